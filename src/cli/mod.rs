@@ -1,0 +1,48 @@
+//! Command-line interface. Every flag that configures the server is also an environment variable.
+
+mod client;
+mod demo;
+mod serve;
+mod simulate;
+mod tof;
+
+use clap::{Parser, Subcommand};
+use tracing_subscriber::EnvFilter;
+
+/// murk — 3D shape and depth through fog, smoke and turbid water.
+#[derive(Parser, Debug)]
+#[command(name = "murk", version, about)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+enum Command {
+    /// Run the gRPC server.
+    Serve(serve::ServeArgs),
+    /// Synthesise scenes with ground truth.
+    #[command(subcommand)]
+    Simulate(simulate::SimulateCommand),
+    /// ToF depth in fog: send amplitude + phase to a server, write depth, mask and scatter.
+    Tof(tof::TofArgs),
+    /// Start a server in-process, run simulated scenes through the gRPC API, print accuracy.
+    Demo(demo::DemoArgs),
+}
+
+/// Parses the command line and runs the chosen command.
+pub fn run() -> anyhow::Result<()> {
+    let cli = Cli::parse();
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            EnvFilter::try_from_env("MURK_LOG").unwrap_or_else(|_| EnvFilter::new("info")),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    match cli.command {
+        Command::Serve(a) => serve::run(a),
+        Command::Simulate(c) => simulate::run(c),
+        Command::Tof(a) => tof::run(a),
+        Command::Demo(a) => demo::run(a),
+    }
+}

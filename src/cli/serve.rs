@@ -1,0 +1,90 @@
+//! `murk serve`.
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use anyhow::Context;
+use clap::Args;
+
+use murk::jobs::JobsConfig;
+use murk::server::{serve, shutdown_signal, ServerConfig, DEFAULT_MAX_REQUEST_BYTES};
+
+/// Server configuration; each flag is also an environment variable.
+#[derive(Args, Debug, Clone)]
+pub struct ServeArgs {
+    /// Address to listen on.
+    #[arg(long, env = "MURK_ADDR", default_value = "0.0.0.0:50051")]
+    pub addr: String,
+    /// Compute threads (0 = number of cores).
+    #[arg(long, env = "MURK_WORKERS", default_value_t = 0)]
+    pub workers: usize,
+    /// Jobs computed at once (each uses all compute threads for its inner loops).
+    #[arg(long, env = "MURK_CONCURRENT_JOBS", default_value_t = 1)]
+    pub concurrent_jobs: usize,
+    /// Jobs that may wait; one more gets RESOURCE_EXHAUSTED with a retry hint.
+    #[arg(long, env = "MURK_QUEUE_CAPACITY", default_value_t = 64)]
+    pub queue_capacity: usize,
+    /// In-memory result cache, bytes.
+    #[arg(long, env = "MURK_CACHE_BYTES", default_value_t = 512 << 20)]
+    pub cache_bytes: u64,
+    /// Directory where results persist across restarts (optional).
+    #[arg(long, env = "MURK_CACHE_DIR")]
+    pub cache_dir: Option<PathBuf>,
+    /// Largest request, bytes (default fits a dozen 16-bit 1-megapixel images).
+    #[arg(long, env = "MURK_MAX_REQUEST_BYTES", default_value_t = DEFAULT_MAX_REQUEST_BYTES)]
+    pub max_request_bytes: usize,
+    /// Largest image, pixels.
+    #[arg(long, env = "MURK_MAX_IMAGE_PIXELS", default_value_t = 16 << 20)]
+    pub max_image_pixels: u64,
+    /// Seconds to drain jobs on SIGTERM/Ctrl-C before cancelling them.
+    #[arg(long, env = "MURK_SHUTDOWN_GRACE_SECS", default_value_t = 10.0)]
+    pub shutdown_grace_secs: f64,
+    /// Back-off suggested to clients when the queue is full, milliseconds.
+    #[arg(long, env = "MURK_RETRY_AFTER_MS", default_value_t = 2000)]
+    pub retry_after_ms: u64,
+    /// Job records kept for Get/List (results stay in the cache regardless).
+    #[arg(long, env = "MURK_MAX_JOB_RECORDS", default_value_t = 10_000)]
+    pub max_job_records: usize,
+}
+
+impl ServeArgs {
+    /// The server configuration these flags describe.
+    pub fn config(&self) -> anyhow::Result<ServerConfig> {
+        anyhow::ensure!(
+            self.shutdown_grace_secs.is_finite() && self.shutdown_grace_secs >= 0.0,
+            "--shutdown-grace-secs must be a non-negative number"
+        );
+        anyhow::ensure!(self.queue_capacity > 0, "--queue-capacity must be positive");
+        anyhow::ensure!(
+            self.max_request_bytes >= 1024,
+            "--max-request-bytes must be at least 1024"
+        );
+        Ok(ServerConfig {
+            jobs: JobsConfig {
+                workers: self.workers,
+                concurrent_jobs: self.concurrent_jobs.max(1),
+                queue_capacity: self.queue_capacity,
+                cache_bytes: self.cache_bytes,
+                cache_dir: self.cache_dir.clone(),
+                retry_after: Duration::from_millis(self.retry_after_ms),
+                max_job_records: self.max_job_records.max(1),
+            },
+            max_request_bytes: self.max_request_bytes,
+            max_image_pixels: self.max_image_pixels,
+            shutdown_grace: Duration::from_secs_f64(self.shutdown_grace_secs),
+        })
+    }
+}
+
+/// Runs the server until SIGTERM or Ctrl-C.
+pub fn run(args: ServeArgs) -> anyhow::Result<()> {
+    let config = args.config()?;
+    let rt = tokio::runtime::Runtime::new()?;
+    rt.block_on(async move {
+        let listener = tokio::net::TcpListener::bind(&args.addr)
+            .await
+            .with_context(|| format!("binding {}", args.addr))?;
+        serve(config, listener, shutdown_signal()).await?;
+        Ok(())
+    })
+}

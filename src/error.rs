@@ -1,0 +1,63 @@
+//! The library's one error type. The service layer maps it to `tonic::Status` in exactly one place
+//! (`service::status`), so every algorithm reports bad input the same way: with the field named.
+
+use thiserror::Error;
+
+/// Everything a murk algorithm or codec can fail with.
+#[derive(Debug, Error, Clone, PartialEq)]
+pub enum MurkError {
+    /// The caller supplied something unusable; `field` names it (e.g. `tof.amplitude`).
+    #[error("invalid argument `{field}`: {reason}")]
+    InvalidArgument {
+        /// Dotted path of the offending request field.
+        field: String,
+        /// Human-readable explanation, including the offending value where helpful.
+        reason: String,
+    },
+    /// The job was cancelled cooperatively (cancel RPC, shutdown, or the caller went away).
+    #[error("cancelled")]
+    Cancelled,
+    /// A numerical step failed on valid input (e.g. a solver diverged).
+    #[error("numerical failure: {0}")]
+    Numerical(String),
+    /// A bug or an unexpected condition inside murk (e.g. a worker panicked).
+    #[error("internal error: {0}")]
+    Internal(String),
+    /// Reading or writing a file failed.
+    #[error("i/o error on {path}: {reason}")]
+    Io {
+        /// The file concerned.
+        path: String,
+        /// The underlying error.
+        reason: String,
+    },
+}
+
+impl MurkError {
+    /// Shorthand for [`MurkError::InvalidArgument`].
+    pub fn invalid(field: impl Into<String>, reason: impl Into<String>) -> Self {
+        MurkError::InvalidArgument {
+            field: field.into(),
+            reason: reason.into(),
+        }
+    }
+
+    /// Prefixes the field of an `InvalidArgument` with `prefix.` so nested validators can name
+    /// fields relative to themselves and callers add the outer path.
+    pub fn within(self, prefix: &str) -> Self {
+        match self {
+            MurkError::InvalidArgument { field, reason } => MurkError::InvalidArgument {
+                field: if field.is_empty() {
+                    prefix.to_string()
+                } else {
+                    format!("{prefix}.{field}")
+                },
+                reason,
+            },
+            other => other,
+        }
+    }
+}
+
+/// Result alias used throughout the library.
+pub type Result<T, E = MurkError> = std::result::Result<T, E>;

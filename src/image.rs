@@ -1,0 +1,174 @@
+//! In-memory image type shared by every method: row-major, interleaved channels, `f32` samples.
+
+use crate::error::{MurkError, Result};
+
+/// A dense `f32` image, row-major with interleaved channels (`data[(y·w + x)·c + ch]`).
+#[derive(Clone, Debug, PartialEq)]
+pub struct ImageF32 {
+    width: usize,
+    height: usize,
+    channels: usize,
+    data: Vec<f32>,
+}
+
+impl ImageF32 {
+    /// Wraps `data`; fails if its length is not `width·height·channels` or any dimension is zero.
+    pub fn from_vec(width: usize, height: usize, channels: usize, data: Vec<f32>) -> Result<Self> {
+        if width == 0 || height == 0 || channels == 0 {
+            return Err(MurkError::invalid(
+                "",
+                format!("image dimensions must be positive, got {width}x{height}x{channels}"),
+            ));
+        }
+        let expected = width
+            .checked_mul(height)
+            .and_then(|n| n.checked_mul(channels))
+            .ok_or_else(|| MurkError::invalid("", "image dimensions overflow"))?;
+        if data.len() != expected {
+            return Err(MurkError::invalid(
+                "",
+                format!(
+                    "expected {expected} samples for {width}x{height}x{channels}, got {}",
+                    data.len()
+                ),
+            ));
+        }
+        Ok(Self {
+            width,
+            height,
+            channels,
+            data,
+        })
+    }
+
+    /// A `width×height×channels` image filled with `value`.
+    ///
+    /// # Panics
+    /// If a dimension is zero (programming error; use [`ImageF32::from_vec`] for untrusted sizes).
+    pub fn filled(width: usize, height: usize, channels: usize, value: f32) -> Self {
+        assert!(width > 0 && height > 0 && channels > 0, "zero image dimension");
+        Self {
+            width,
+            height,
+            channels,
+            data: vec![value; width * height * channels],
+        }
+    }
+
+    /// Builds a single-channel image from `f(x, y)`.
+    pub fn from_fn(width: usize, height: usize, mut f: impl FnMut(usize, usize) -> f32) -> Self {
+        let mut img = Self::filled(width, height, 1, 0.0);
+        for y in 0..height {
+            for x in 0..width {
+                img.data[y * width + x] = f(x, y);
+            }
+        }
+        img
+    }
+
+    /// Width in pixels.
+    pub fn width(&self) -> usize {
+        self.width
+    }
+    /// Height in pixels.
+    pub fn height(&self) -> usize {
+        self.height
+    }
+    /// Number of interleaved channels.
+    pub fn channels(&self) -> usize {
+        self.channels
+    }
+    /// `(width, height)`.
+    pub fn dims(&self) -> (usize, usize) {
+        (self.width, self.height)
+    }
+    /// Number of pixels (`width·height`).
+    pub fn pixel_count(&self) -> usize {
+        self.width * self.height
+    }
+    /// All samples.
+    pub fn data(&self) -> &[f32] {
+        &self.data
+    }
+    /// All samples, mutable.
+    pub fn data_mut(&mut self) -> &mut [f32] {
+        &mut self.data
+    }
+    /// Consumes the image, returning its samples.
+    pub fn into_vec(self) -> Vec<f32> {
+        self.data
+    }
+    /// Sample at `(x, y, ch)`. Panics when out of bounds (caller's indices, not user data).
+    #[inline]
+    pub fn get(&self, x: usize, y: usize, ch: usize) -> f32 {
+        self.data[(y * self.width + x) * self.channels + ch]
+    }
+    /// Sets the sample at `(x, y, ch)`.
+    #[inline]
+    pub fn set(&mut self, x: usize, y: usize, ch: usize, v: f32) {
+        self.data[(y * self.width + x) * self.channels + ch] = v;
+    }
+
+    /// Fails with the first non-finite sample's position, naming no field (callers add it).
+    pub fn ensure_finite(&self) -> Result<()> {
+        if let Some(i) = self.data.iter().position(|v| !v.is_finite()) {
+            let px = i / self.channels;
+            return Err(MurkError::invalid(
+                "",
+                format!(
+                    "non-finite sample {} at pixel ({}, {})",
+                    self.data[i],
+                    px % self.width,
+                    px / self.width
+                ),
+            ));
+        }
+        Ok(())
+    }
+
+    /// Fails unless the image has exactly `channels` channels.
+    pub fn ensure_channels(&self, channels: usize) -> Result<()> {
+        if self.channels != channels {
+            return Err(MurkError::invalid(
+                "",
+                format!("expected {channels} channel(s), got {}", self.channels),
+            ));
+        }
+        Ok(())
+    }
+
+    /// Single channel `ch` as a new one-channel image.
+    pub fn channel(&self, ch: usize) -> ImageF32 {
+        let data = self
+            .data
+            .chunks_exact(self.channels)
+            .map(|p| p[ch])
+            .collect();
+        ImageF32 {
+            width: self.width,
+            height: self.height,
+            channels: 1,
+            data,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rejects_wrong_length_and_zero_size() {
+        assert!(ImageF32::from_vec(2, 2, 1, vec![0.0; 3]).is_err());
+        assert!(ImageF32::from_vec(0, 2, 1, vec![]).is_err());
+        assert!(ImageF32::from_vec(2, 2, 1, vec![0.0; 4]).is_ok());
+    }
+
+    #[test]
+    fn finite_check_reports_position() {
+        let mut img = ImageF32::filled(3, 2, 1, 1.0);
+        img.set(2, 1, 0, f32::NAN);
+        let err = img.ensure_finite().unwrap_err().to_string();
+        assert!(err.contains("(2, 1)"), "{err}");
+    }
+}

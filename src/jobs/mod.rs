@@ -1,0 +1,14 @@
+//! Job system: bounded queue → dispatcher threads → rayon pool, with content-hash deduplication,
+//! cooperative cancellation, progress snapshots and a byte-bounded result cache (memory + disk).
+//! Knows nothing of gRPC: work is an opaque closure returning encoded result bytes.
+
+mod cache;
+mod manager;
+mod state;
+
+pub use cache::{CacheStats, ResultCache};
+pub use manager::{JobHandle, JobManager, JobsConfig, SubmitError, Submitted, WaiterGuard, Work};
+pub use state::{JobSnapshot, JobState, ResultBytes};
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,22 @@
+//! murk: 3D shape and depth through fog, smoke and turbid water.
+//!
+//! The library holds the physics-based methods of the reference dissertation
+//! (`../shared/reference/scattering-media-dissertation.md`) and knows nothing of gRPC; the
+//! `service` module converts protobuf ↔ domain types and maps [`MurkError`] to `tonic::Status`.
+
+pub mod camera;
+pub mod error;
+pub mod image;
+pub mod io;
+pub mod jobs;
+pub mod metrics;
+pub mod monitor;
+// TEMP(lead): enabled once tof::estimate_tof_depth lands
+// pub mod server;
+// pub mod service;
+pub mod simulate;
+pub mod tof;
+
+pub use error::{MurkError, Result};
+pub use image::ImageF32;
+pub use monitor::Monitor;

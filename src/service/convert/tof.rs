@@ -1,0 +1,127 @@
+//! `TofDepthRequest` → ([`TofInput`], [`TofParams`]) and [`TofOutput`] → `TofDepthResult`.
+
+use super::image::{image_from_proto, image_to_proto, ImageLimits};
+use crate::camera::Intrinsics;
+use crate::error::{MurkError, Result};
+use crate::service::proto::v1 as pb;
+use crate::tof::{BilateralParams, IrlsChannelParams, TofInput, TofOutput, TofParams};
+
+/// Decodes and fully validates a ToF request. Field names are relative to `TofDepthRequest`.
+pub fn tof_from_proto(
+    req: &pb::TofDepthRequest,
+    limits: &ImageLimits,
+) -> Result<(TofInput, TofParams)> {
+    let amplitude = req
+        .amplitude
+        .as_ref()
+        .ok_or_else(|| MurkError::invalid("amplitude", "required"))
+        .and_then(|i| image_from_proto(i, limits).map_err(|e| e.within("amplitude")))?;
+    let phase = req
+        .phase
+        .as_ref()
+        .ok_or_else(|| MurkError::invalid("phase", "required"))
+        .and_then(|i| image_from_proto(i, limits).map_err(|e| e.within("phase")))?;
+    let intrinsics = req.intrinsics.as_ref().map(|k| Intrinsics {
+        fx: k.fx,
+        fy: k.fy,
+        cx: k.cx,
+        cy: k.cy,
+        skew: k.skew,
+    });
+    let input = TofInput {
+        amplitude,
+        phase,
+        intrinsics,
+    };
+    input.validate()?;
+    let params = params_from_proto(req)?;
+    let (w, h) = input.amplitude.dims();
+    params.validate(w, h).map_err(|e| match e {
+        MurkError::InvalidArgument { field, reason } if field != "modulation_frequency_hz" => {
+            MurkError::invalid(format!("options.{}", proto_field_name(&field)), reason)
+        }
+        other => other,
+    })?;
+    Ok((input, params))
+}
+
+/// Library parameter paths → proto field paths where they differ.
+fn proto_field_name(field: &str) -> String {
+    field
+        .replace("gamma[0]", "gamma_quadratic")
+        .replace("gamma[1]", "gamma_symmetry")
+        .replace("gamma[2]", "gamma_smoothness")
+}
+
+fn params_from_proto(req: &pb::TofDepthRequest) -> Result<TofParams> {
+    let mut p = TofParams {
+        modulation_frequency_hz: req.modulation_frequency_hz,
+        ..TofParams::default()
+    };
+    let Some(o) = &req.options else {
+        return Ok(p);
+    };
+    if let Some(v) = o.patches_x {
+        p.patches_x = v as usize;
+    }
+    if let Some(v) = o.patches_y {
+        p.patches_y = v as usize;
+    }
+    p.symmetry_row = o.symmetry_row.or(p.symmetry_row);
+    irls_from_proto(o.amplitude.as_ref(), &mut p.amplitude);
+    irls_from_proto(o.phase.as_ref(), &mut p.phase);
+    if let Some(v) = o.coarse_iterations {
+        p.coarse_iterations = v as usize;
+    }
+    if let Some(v) = o.fine_iterations {
+        p.fine_iterations = v as usize;
+    }
+    if let Some(b) = &o.bilateral {
+        p.bilateral = if b.disabled {
+            None
+        } else {
+            let d = BilateralParams::default();
+            Some(BilateralParams {
+                radius: b.radius.map_or(d.radius, |r| r as usize),
+                sigma_space_px: b.sigma_space_px.unwrap_or(d.sigma_space_px),
+                sigma_range_rel: b.sigma_range_rel.unwrap_or(d.sigma_range_rel),
+            })
+        };
+    }
+    if let Some(t) = o.mask_threshold {
+        p.mask_threshold = t;
+    }
+    Ok(p)
+}
+
+fn irls_from_proto(o: Option<&pb::IrlsOptions>, p: &mut IrlsChannelParams) {
+    let Some(o) = o else { return };
+    let [g_quadratic, g_symmetry, g_smoothness] = &mut p.gamma;
+    for (dst, src) in [
+        (g_quadratic, o.gamma_quadratic),
+        (g_symmetry, o.gamma_symmetry),
+        (g_smoothness, o.gamma_smoothness),
+        (&mut p.c_coarse, o.c_coarse),
+        (&mut p.c_fine, o.c_fine),
+    ] {
+        if let Some(v) = src {
+            *dst = v;
+        }
+    }
+}
+
+/// Encodes the method's output for the wire.
+pub fn tof_to_proto(out: &TofOutput) -> pb::TofDepthResult {
+    pb::TofDepthResult {
+        range_m: Some(image_to_proto(&out.range_m)),
+        z_depth_m: out.z_depth_m.as_ref().map(image_to_proto),
+        raw_range_m: Some(image_to_proto(&out.raw_range_m)),
+        mask: Some(image_to_proto(&out.mask)),
+        scatter_amplitude: Some(image_to_proto(&out.scatter_amplitude)),
+        scatter_phase: Some(image_to_proto(&out.scatter_phase)),
+        weight_amplitude: Some(image_to_proto(&out.weight_amplitude)),
+        weight_phase: Some(image_to_proto(&out.weight_phase)),
+        corrected_amplitude: Some(image_to_proto(&out.corrected_amplitude)),
+        corrected_phase: Some(image_to_proto(&out.corrected_phase)),
+    }
+}

@@ -1,0 +1,133 @@
+//! Shared path of every submission (Jobs.SubmitJob and the unary RPCs): size check, content-hash
+//! id, dedupe/cache lookup before any decoding, then decode + validate + queue.
+
+use prost::Message;
+use sha2::{Digest, Sha256};
+use tonic::Status;
+
+use super::convert::{tof_from_proto, tof_to_proto, ImageLimits};
+use super::proto::v1 as pb;
+use super::status::{submit_status, to_status};
+use crate::error::MurkError;
+use crate::jobs::{JobManager, Submitted, Work};
+use crate::tof::estimate_tof_depth;
+
+/// Bumped whenever an algorithm's output for the same request may change, so cached results of
+/// older code are never served for new submissions.
+pub const ALGORITHM_VERSION: &str = "murk-algorithms-1";
+
+/// Limits enforced per request.
+#[derive(Clone, Copy, Debug)]
+pub struct RequestLimits {
+    /// Largest accepted encoded request, bytes.
+    pub max_request_bytes: usize,
+    /// Per-image limits.
+    pub images: ImageLimits,
+}
+
+/// What every gRPC handler shares.
+#[derive(Clone)]
+pub struct ServiceState {
+    /// The job system.
+    pub manager: JobManager,
+    /// Request limits.
+    pub limits: RequestLimits,
+}
+
+/// Hex SHA-256 over the algorithm version and the request's protobuf encoding. prost encodes
+/// fields in tag order and murk's messages have no maps, so equal requests hash equally.
+pub fn job_id(req: &pb::JobRequest) -> String {
+    let mut h = Sha256::new();
+    h.update(ALGORITHM_VERSION.as_bytes());
+    h.update([0u8]);
+    h.update(req.encode_to_vec());
+    hex::encode(h.finalize())
+}
+
+/// Method name of a request (`tof_depth`, ...).
+pub fn method_name(m: &pb::job_request::Method) -> &'static str {
+    match m {
+        pb::job_request::Method::TofDepth(_) => "tof_depth",
+    }
+}
+
+/// Validates, deduplicates and queues a request. `prefix` is the request's field path in the
+/// RPC's message (e.g. `request` for SubmitJob, empty for unary RPCs).
+pub async fn submit(
+    state: &ServiceState,
+    req: pb::JobRequest,
+    prefix: &str,
+) -> Result<Submitted, Status> {
+    let named = |e: MurkError| {
+        if prefix.is_empty() {
+            e
+        } else {
+            e.within(prefix)
+        }
+    };
+    let Some(method) = req.method.as_ref() else {
+        return Err(to_status(&named(MurkError::invalid(
+            "method",
+            "one method (e.g. tof_depth) must be set",
+        ))));
+    };
+    let name = method_name(method);
+    check_size(&req, state.limits.max_request_bytes).map_err(|e| to_status(&named(e)))?;
+    let id = job_id(&req);
+    if let Some(found) = state.manager.find(&id, name) {
+        return Ok(found);
+    }
+    let limits = state.limits.images;
+    // Decoding megapixel PNG/EXR is CPU work: keep it off the async runtime's threads.
+    let work = tokio::task::spawn_blocking(move || build_work(req, &limits))
+        .await
+        .map_err(|e| Status::internal(format!("decoder task failed: {e}")))?
+        .map_err(|e| to_status(&named(e)))?;
+    state
+        .manager
+        .submit(&id, name, work)
+        .map_err(|e| submit_status(&e))
+}
+
+/// Rejects requests above the configured size, naming the largest image field so the client
+/// knows what to shrink. (The transport refuses anything above twice the limit outright.)
+fn check_size(req: &pb::JobRequest, max: usize) -> Result<(), MurkError> {
+    let len = req.encoded_len();
+    if len <= max {
+        return Ok(());
+    }
+    let (field, size) = match &req.method {
+        Some(pb::job_request::Method::TofDepth(t)) => [
+            ("tof_depth.amplitude", t.amplitude.as_ref()),
+            ("tof_depth.phase", t.phase.as_ref()),
+        ]
+        .into_iter()
+        .map(|(f, i)| (f, i.map_or(0, |i| i.encoded_len())))
+        .max_by_key(|(_, s)| *s)
+        .unwrap_or(("tof_depth", len)),
+        None => ("method", len),
+    };
+    Err(MurkError::invalid(
+        field,
+        format!(
+            "request is {len} bytes, over the limit of {max} bytes (this field: {size} bytes)"
+        ),
+    ))
+}
+
+/// Decodes and validates the request, returning the closure a worker will run.
+fn build_work(req: pb::JobRequest, limits: &ImageLimits) -> Result<Work, MurkError> {
+    match req.method {
+        Some(pb::job_request::Method::TofDepth(t)) => {
+            let (input, params) = tof_from_proto(&t, limits).map_err(|e| e.within("tof_depth"))?;
+            Ok(Box::new(move |monitor| {
+                let out = estimate_tof_depth(&input, &params, monitor)?;
+                let result = pb::JobResult {
+                    method: Some(pb::job_result::Method::TofDepth(tof_to_proto(&out))),
+                };
+                Ok(result.encode_to_vec())
+            }))
+        }
+        None => Err(MurkError::invalid("method", "required")),
+    }
+}

@@ -1,0 +1,269 @@
+//! Inputs, parameters and outputs of ToF depth in fog (reference Ch. 5, Algorithm 2).
+//! Defaults are the reference's (§5.4.1).
+
+use crate::camera::Intrinsics;
+use crate::error::{MurkError, Result};
+use crate::image::ImageF32;
+
+/// Speed of light in vacuum, m/s (Eq. 5.2).
+pub const SPEED_OF_LIGHT_M_PER_S: f64 = 299_792_458.0;
+
+/// Hard limits on per-request parameters, so absurd values are rejected instead of running forever.
+pub const MAX_ITERATIONS: usize = 10_000;
+/// Largest patch grid per axis for the local quadratic prior.
+pub const MAX_PATCHES_PER_AXIS: usize = 64;
+
+/// IRLS settings for one image (amplitude or phase): Eq. 5.12 weights and Tukey's `c` (Eq. 5.15).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct IrlsChannelParams {
+    /// `[γ′₁, γ′₂, γ′₃]`: local quadratic prior, vertical-symmetry prior, smoothness (Eq. 5.12).
+    pub gamma: [f64; 3],
+    /// Tukey tuning constant at the coarse (patch-wise) level, Eq. 5.16.
+    pub c_coarse: f64,
+    /// Tukey tuning constant at the fine (pixel-wise) level, Eq. 5.11.
+    pub c_fine: f64,
+}
+
+impl IrlsChannelParams {
+    /// Reference defaults for the amplitude image: γ′ = [0.1, 0.1, 10], c = 4 / 7.
+    pub const AMPLITUDE: Self = Self {
+        gamma: [0.1, 0.1, 10.0],
+        c_coarse: 4.0,
+        c_fine: 7.0,
+    };
+    /// Reference defaults for the phase image: γ′ = [0.01, 0.1, 50], c = 2 / 3.
+    pub const PHASE: Self = Self {
+        gamma: [0.01, 0.1, 50.0],
+        c_coarse: 2.0,
+        c_fine: 3.0,
+    };
+
+    fn validate(&self) -> Result<()> {
+        for (i, g) in self.gamma.iter().enumerate() {
+            if !g.is_finite() || *g < 0.0 || *g > 1e6 {
+                return Err(MurkError::invalid(
+                    format!("gamma[{i}]"),
+                    format!("must be finite and in [0, 1e6], got {g}"),
+                ));
+            }
+        }
+        for (name, c) in [("c_coarse", self.c_coarse), ("c_fine", self.c_fine)] {
+            if !c.is_finite() || c <= 0.0 || c > 1e3 {
+                return Err(MurkError::invalid(
+                    name,
+                    format!("must be finite and in (0, 1e3], got {c}"),
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Edge-preserving pre-filter applied to amplitude and phase before estimation (§5.4.1).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct BilateralParams {
+    /// Window radius in pixels (window is `(2r+1)²`).
+    pub radius: usize,
+    /// Spatial Gaussian σ in pixels.
+    pub sigma_space_px: f32,
+    /// Range Gaussian σ relative to the image's robust spread (MAD-based σ), dimensionless.
+    pub sigma_range_rel: f32,
+}
+
+impl Default for BilateralParams {
+    fn default() -> Self {
+        Self {
+            radius: 2,
+            sigma_space_px: 1.5,
+            sigma_range_rel: 0.5,
+        }
+    }
+}
+
+/// All tunables of the ToF method.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TofParams {
+    /// Modulation frequency of the CW-ToF camera, Hz (> 0).
+    pub modulation_frequency_hz: f64,
+    /// Patch grid for the local quadratic prior (Eq. 5.10), columns × rows; reference 4 × 4.
+    pub patches_x: usize,
+    /// See `patches_x`.
+    pub patches_y: usize,
+    /// Row (pixels, may be fractional) about which the vertical flip `F` mirrors the image.
+    /// `None`: the principal point's row when intrinsics are given, else the image centre.
+    pub symmetry_row: Option<f64>,
+    /// Amplitude-image IRLS settings.
+    pub amplitude: IrlsChannelParams,
+    /// Phase-image IRLS settings.
+    pub phase: IrlsChannelParams,
+    /// Coarse (patch-wise) IRLS iterations; reference 5.
+    pub coarse_iterations: usize,
+    /// Fine (pixel-wise) IRLS iterations; reference 50.
+    pub fine_iterations: usize,
+    /// Pre-filter; `None` disables it.
+    pub bilateral: Option<BilateralParams>,
+    /// A pixel is object (outlier) when its final IRLS weight is below this, in (0, 1).
+    pub mask_threshold: f32,
+}
+
+impl Default for TofParams {
+    fn default() -> Self {
+        Self {
+            modulation_frequency_hz: 16e6,
+            patches_x: 4,
+            patches_y: 4,
+            symmetry_row: None,
+            amplitude: IrlsChannelParams::AMPLITUDE,
+            phase: IrlsChannelParams::PHASE,
+            coarse_iterations: 5,
+            fine_iterations: 50,
+            bilateral: Some(BilateralParams::default()),
+            mask_threshold: 0.5,
+        }
+    }
+}
+
+impl TofParams {
+    /// Checks every parameter against its documented range; the error names the field.
+    pub fn validate(&self, width: usize, height: usize) -> Result<()> {
+        let f = self.modulation_frequency_hz;
+        if !f.is_finite() || f <= 0.0 || f > 1e10 {
+            return Err(MurkError::invalid(
+                "modulation_frequency_hz",
+                format!("must be finite and in (0, 1e10] Hz, got {f}"),
+            ));
+        }
+        for (name, p, dim) in [
+            ("patches_x", self.patches_x, width),
+            ("patches_y", self.patches_y, height),
+        ] {
+            if p == 0 || p > MAX_PATCHES_PER_AXIS {
+                return Err(MurkError::invalid(
+                    name,
+                    format!("must be in 1..={MAX_PATCHES_PER_AXIS}, got {p}"),
+                ));
+            }
+            // A quadratic has 6 coefficients: each patch needs at least 3 pixels per axis.
+            if dim / p < 3 {
+                return Err(MurkError::invalid(
+                    name,
+                    format!("{p} patches leave fewer than 3 pixels per patch along an axis of {dim}"),
+                ));
+            }
+        }
+        if let Some(r) = self.symmetry_row {
+            if !r.is_finite() || r < 0.0 || r > (height as f64 - 1.0) {
+                return Err(MurkError::invalid(
+                    "symmetry_row",
+                    format!("must be a row inside the image [0, {}], got {r}", height - 1),
+                ));
+            }
+        }
+        self.amplitude.validate().map_err(|e| e.within("amplitude"))?;
+        self.phase.validate().map_err(|e| e.within("phase"))?;
+        for (name, n) in [
+            ("coarse_iterations", self.coarse_iterations),
+            ("fine_iterations", self.fine_iterations),
+        ] {
+            if n > MAX_ITERATIONS {
+                return Err(MurkError::invalid(
+                    name,
+                    format!("must be at most {MAX_ITERATIONS}, got {n}"),
+                ));
+            }
+        }
+        if let Some(b) = &self.bilateral {
+            if b.radius > 16 {
+                return Err(MurkError::invalid(
+                    "bilateral.radius",
+                    format!("must be at most 16, got {}", b.radius),
+                ));
+            }
+            for (name, v) in [
+                ("bilateral.sigma_space_px", b.sigma_space_px),
+                ("bilateral.sigma_range_rel", b.sigma_range_rel),
+            ] {
+                if !v.is_finite() || v <= 0.0 || v > 1e3 {
+                    return Err(MurkError::invalid(
+                        name,
+                        format!("must be finite and in (0, 1e3], got {v}"),
+                    ));
+                }
+            }
+        }
+        let t = self.mask_threshold;
+        if !t.is_finite() || t <= 0.0 || t >= 1.0 {
+            return Err(MurkError::invalid(
+                "mask_threshold",
+                format!("must be in (0, 1), got {t}"),
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// One CW-ToF frame: amplitude (arbitrary linear units) and phase (radians, wrapped to [0, 2π)).
+#[derive(Clone, Debug)]
+pub struct TofInput {
+    /// Amplitude image α̃, one channel.
+    pub amplitude: ImageF32,
+    /// Phase image φ̃ in radians, one channel, same size as `amplitude`.
+    pub phase: ImageF32,
+    /// Intrinsics; when given, z-depth is produced too and the default symmetry row is `cy`.
+    pub intrinsics: Option<Intrinsics>,
+}
+
+impl TofInput {
+    /// Checks sizes, channel counts and finiteness; errors name `amplitude`, `phase`, `intrinsics`.
+    pub fn validate(&self) -> Result<()> {
+        self.amplitude
+            .ensure_channels(1)
+            .and_then(|_| self.amplitude.ensure_finite())
+            .map_err(|e| e.within("amplitude"))?;
+        self.phase
+            .ensure_channels(1)
+            .and_then(|_| self.phase.ensure_finite())
+            .map_err(|e| e.within("phase"))?;
+        if self.amplitude.dims() != self.phase.dims() {
+            return Err(MurkError::invalid(
+                "phase",
+                format!(
+                    "size {}x{} differs from amplitude {}x{}",
+                    self.phase.width(),
+                    self.phase.height(),
+                    self.amplitude.width(),
+                    self.amplitude.height()
+                ),
+            ));
+        }
+        if let Some(k) = &self.intrinsics {
+            k.validate().map_err(|e| e.within("intrinsics"))?;
+        }
+        Ok(())
+    }
+}
+
+/// Everything the ToF method returns. All images are one-channel and input-sized.
+#[derive(Clone, Debug)]
+pub struct TofOutput {
+    /// Corrected range along the viewing ray, metres (Eq. 5.2 on the direct phase, Eq. 5.9).
+    pub range_m: ImageF32,
+    /// Corrected z-depth, metres (only with intrinsics).
+    pub z_depth_m: Option<ImageF32>,
+    /// Range computed from the raw (foggy) phase, metres, for comparison.
+    pub raw_range_m: ImageF32,
+    /// Object mask: 1 where both amplitude and phase IRLS weights mark an outlier, else 0.
+    pub mask: ImageF32,
+    /// Estimated scattering amplitude α_s.
+    pub scatter_amplitude: ImageF32,
+    /// Estimated scattering phase φ_s, radians.
+    pub scatter_phase: ImageF32,
+    /// Final IRLS weights of the amplitude image, in [0, 1].
+    pub weight_amplitude: ImageF32,
+    /// Final IRLS weights of the phase image, in [0, 1].
+    pub weight_phase: ImageF32,
+    /// Direct amplitude α_d (Eq. 5.8).
+    pub corrected_amplitude: ImageF32,
+    /// Direct phase φ_d (Eq. 5.9), radians in [0, 2π).
+    pub corrected_phase: ImageF32,
+}
