@@ -2,7 +2,7 @@
 //!
 //! The library holds the physics-based methods of the reference dissertation
 //! (`../shared/reference/scattering-media-dissertation.md`) and knows nothing of gRPC; the
-//! `service` module converts protobuf ↔ domain types and maps [`MurkError`] to `tonic::Status`.
+//! [`service`] module converts protobuf ↔ domain types and maps [`MurkError`] to `tonic::Status`.
 
 pub mod camera;
 pub mod error;
@@ -11,9 +11,8 @@ pub mod io;
 pub mod jobs;
 pub mod metrics;
 pub mod monitor;
-// TEMP(lead): enabled once tof::estimate_tof_depth lands
-// pub mod server;
-// pub mod service;
+pub mod server;
+pub mod service;
 pub mod simulate;
 pub mod tof;
 

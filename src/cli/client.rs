@@ -89,12 +89,9 @@ pub async fn run_job(
     };
     match &final_job.outcome {
         Some(pb::job::Outcome::Result(r)) => Ok((final_job.clone(), r.clone())),
-        Some(pb::job::Outcome::Error(e)) => bail!(
-            "job {} failed ({}): {}",
-            final_job.id,
-            e.code,
-            e.message
-        ),
+        Some(pb::job::Outcome::Error(e)) => {
+            bail!("job {} failed ({}): {}", final_job.id, e.code, e.message)
+        }
         None => bail!(
             "job {} ended in state {:?} without a result",
             final_job.id,

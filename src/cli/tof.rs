@@ -57,12 +57,22 @@ pub fn run(a: TofArgs) -> anyhow::Result<()> {
     let limits = DecodeLimits::default();
     let (amplitude, mut phase, meta_k, meta_f) = if let Some(dir) = &a.frame {
         let c = read_tof_capture(dir).with_context(|| format!("reading {}", dir.display()))?;
-        (c.amplitude, c.phase, c.intrinsics, c.modulation_frequency_hz)
+        (
+            c.amplitude,
+            c.phase,
+            c.intrinsics,
+            c.modulation_frequency_hz,
+        )
     } else {
         let (Some(ap), Some(pp)) = (&a.amplitude, &a.phase) else {
             bail!("give --frame DIR, or --amplitude and --phase");
         };
-        (read_image(ap, &limits)?, read_image(pp, &limits)?, None, None)
+        (
+            read_image(ap, &limits)?,
+            read_image(pp, &limits)?,
+            None,
+            None,
+        )
     };
     if a.phase_scale != 1.0 {
         for v in phase.data_mut() {

@@ -51,7 +51,7 @@ impl pb::jobs_server::Jobs for JobsApi {
                 "request", "required",
             )));
         };
-        let submitted = submit(&self.state, req, "request").await?;
+        let submitted = submit(&self.state, req, Some("request")).await?;
         submitted.handle.detach();
         let mut job = job_to_proto(&submitted.handle.snapshot(), false)?;
         job.cached |= submitted.cached;

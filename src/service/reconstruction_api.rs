@@ -32,14 +32,14 @@ impl ReconstructionApi {
         req: pb::JobRequest,
     ) -> Result<pb::job_result::Method, Status> {
         let deadline = grpc_timeout(metadata);
-        let submitted = submit(&self.state, req, "").await?;
+        let submitted = submit(&self.state, req, None).await?;
         let _waiter = submitted.handle.attach();
         let mut rx = submitted.handle.subscribe();
         let wait = rx.wait_for(|s| s.state.is_terminal());
         let snap = match deadline {
-            Some(d) => tokio::time::timeout(d, wait)
-                .await
-                .map_err(|_| Status::deadline_exceeded("deadline passed before the job finished"))?,
+            Some(d) => tokio::time::timeout(d, wait).await.map_err(|_| {
+                Status::deadline_exceeded("deadline passed before the job finished")
+            })?,
             None => wait.await,
         }
         .map_err(|_| Status::internal("job vanished"))?

@@ -83,6 +83,9 @@ mod tests {
         });
         assert_eq!(s.code(), Code::ResourceExhausted);
         let d = s.get_error_details();
-        assert_eq!(d.retry_info().unwrap().retry_delay, Some(Duration::from_secs(2)));
+        assert_eq!(
+            d.retry_info().unwrap().retry_delay,
+            Some(Duration::from_secs(2))
+        );
     }
 }

@@ -51,27 +51,24 @@ pub fn method_name(m: &pb::job_request::Method) -> &'static str {
     }
 }
 
-/// Validates, deduplicates and queues a request. `prefix` is the request's field path in the
-/// RPC's message (e.g. `request` for SubmitJob, empty for unary RPCs).
+/// Validates, deduplicates and queues a request. Errors name fields relative to the method's
+/// request message; `prefix` is where that message sits in the RPC's own message
+/// (`Some("request")` for SubmitJob → `request.tof_depth.phase`; `None` for unary RPCs, whose
+/// message *is* the method request → `phase`).
 pub async fn submit(
     state: &ServiceState,
     req: pb::JobRequest,
-    prefix: &str,
+    prefix: Option<&str>,
 ) -> Result<Submitted, Status> {
-    let named = |e: MurkError| {
-        if prefix.is_empty() {
-            e
-        } else {
-            e.within(prefix)
-        }
-    };
     let Some(method) = req.method.as_ref() else {
-        return Err(to_status(&named(MurkError::invalid(
-            "method",
-            "one method (e.g. tof_depth) must be set",
-        ))));
+        let e = MurkError::invalid("method", "one method (e.g. tof_depth) must be set");
+        return Err(to_status(&prefix.map_or(e.clone(), |p| e.within(p))));
     };
     let name = method_name(method);
+    let named = |e: MurkError| match prefix {
+        Some(p) => e.within(&format!("{p}.{name}")),
+        None => e,
+    };
     check_size(&req, state.limits.max_request_bytes).map_err(|e| to_status(&named(e)))?;
     let id = job_id(&req);
     if let Some(found) = state.manager.find(&id, name) {
@@ -89,7 +86,8 @@ pub async fn submit(
         .map_err(|e| submit_status(&e))
 }
 
-/// Rejects requests above the configured size, naming the largest image field so the client
+/// Rejects requests above the configured size, naming the largest image field (relative to the
+/// method's request) so the client
 /// knows what to shrink. (The transport refuses anything above twice the limit outright.)
 fn check_size(req: &pb::JobRequest, max: usize) -> Result<(), MurkError> {
     let len = req.encoded_len();
@@ -98,20 +96,18 @@ fn check_size(req: &pb::JobRequest, max: usize) -> Result<(), MurkError> {
     }
     let (field, size) = match &req.method {
         Some(pb::job_request::Method::TofDepth(t)) => [
-            ("tof_depth.amplitude", t.amplitude.as_ref()),
-            ("tof_depth.phase", t.phase.as_ref()),
+            ("amplitude", t.amplitude.as_ref()),
+            ("phase", t.phase.as_ref()),
         ]
         .into_iter()
         .map(|(f, i)| (f, i.map_or(0, |i| i.encoded_len())))
         .max_by_key(|(_, s)| *s)
-        .unwrap_or(("tof_depth", len)),
-        None => ("method", len),
+        .unwrap_or(("", len)),
+        None => ("", len),
     };
     Err(MurkError::invalid(
         field,
-        format!(
-            "request is {len} bytes, over the limit of {max} bytes (this field: {size} bytes)"
-        ),
+        format!("request is {len} bytes, over the limit of {max} bytes (this field: {size} bytes)"),
     ))
 }
 
@@ -119,7 +115,7 @@ fn check_size(req: &pb::JobRequest, max: usize) -> Result<(), MurkError> {
 fn build_work(req: pb::JobRequest, limits: &ImageLimits) -> Result<Work, MurkError> {
     match req.method {
         Some(pb::job_request::Method::TofDepth(t)) => {
-            let (input, params) = tof_from_proto(&t, limits).map_err(|e| e.within("tof_depth"))?;
+            let (input, params) = tof_from_proto(&t, limits)?;
             Ok(Box::new(move |monitor| {
                 let out = estimate_tof_depth(&input, &params, monitor)?;
                 let result = pb::JobResult {

@@ -1,0 +1,157 @@
+//! Shared fixtures for the integration tests: an in-process server on 127.0.0.1:0 and clients
+//! generated from the proto files.
+
+#![allow(dead_code)]
+
+use std::time::Duration;
+
+use murk::jobs::JobsConfig;
+use murk::server::{InProcessServer, ServerConfig};
+use murk::service::convert::image_to_proto;
+use murk::service::proto::v1 as pb;
+use murk::simulate::tof::{simulate_tof, TofSimConfig};
+use murk::Monitor;
+use pb::jobs_client::JobsClient;
+use pb::reconstruction_client::ReconstructionClient;
+use tonic::transport::{Channel, Endpoint};
+
+/// A small server: 2 workers, one job at a time.
+pub fn config(queue: usize) -> ServerConfig {
+    ServerConfig {
+        jobs: JobsConfig {
+            workers: 2,
+            concurrent_jobs: 1,
+            queue_capacity: queue,
+            retry_after: Duration::from_millis(1500),
+            ..JobsConfig::default()
+        },
+        shutdown_grace: Duration::from_millis(200),
+        ..ServerConfig::default()
+    }
+}
+
+pub async fn start(cfg: ServerConfig) -> InProcessServer {
+    InProcessServer::start(cfg).await.expect("server starts")
+}
+
+pub fn channel(server: &InProcessServer) -> Channel {
+    Endpoint::from_shared(server.url())
+        .expect("url")
+        .connect_lazy()
+}
+
+pub fn jobs(server: &InProcessServer) -> JobsClient<Channel> {
+    JobsClient::new(channel(server))
+        .max_decoding_message_size(usize::MAX)
+        .max_encoding_message_size(usize::MAX)
+}
+
+pub fn recon(server: &InProcessServer) -> ReconstructionClient<Channel> {
+    ReconstructionClient::new(channel(server))
+        .max_decoding_message_size(usize::MAX)
+        .max_encoding_message_size(usize::MAX)
+}
+
+/// A simulated medium-fog ToF request of `width × height`.
+pub fn tof_request(width: usize, height: usize, seed: u64) -> pb::TofDepthRequest {
+    let cfg = TofSimConfig {
+        seed,
+        ..TofSimConfig::with_size(width, height)
+    };
+    let frame = simulate_tof(&cfg, &Monitor::noop()).expect("simulate");
+    let k = frame.intrinsics;
+    pb::TofDepthRequest {
+        amplitude: Some(image_to_proto(&frame.amplitude)),
+        phase: Some(image_to_proto(&frame.phase)),
+        modulation_frequency_hz: cfg.modulation_frequency_hz,
+        intrinsics: Some(pb::CameraIntrinsics {
+            fx: k.fx,
+            fy: k.fy,
+            cx: k.cx,
+            cy: k.cy,
+            skew: k.skew,
+        }),
+        options: None,
+    }
+}
+
+/// A request that runs for a long time (thousands of fine iterations) unless cancelled.
+pub fn long_tof_request(fine_iterations: u32) -> pb::TofDepthRequest {
+    let mut r = tof_request(256, 212, 7);
+    r.options = Some(pb::TofOptions {
+        fine_iterations: Some(fine_iterations),
+        ..Default::default()
+    });
+    r
+}
+
+pub fn job(req: pb::TofDepthRequest) -> pb::SubmitJobRequest {
+    pb::SubmitJobRequest {
+        request: Some(pb::JobRequest {
+            method: Some(pb::job_request::Method::TofDepth(req)),
+        }),
+    }
+}
+
+pub fn state(j: &pb::Job) -> pb::JobState {
+    pb::JobState::try_from(j.state).unwrap_or(pb::JobState::Unspecified)
+}
+
+/// Follows the watch stream until a terminal state; returns every message seen.
+pub async fn watch_to_end(client: &mut JobsClient<Channel>, id: &str) -> Vec<pb::Job> {
+    let mut stream = client
+        .watch_job(pb::WatchJobRequest {
+            id: id.to_string(),
+            omit_result: true,
+        })
+        .await
+        .expect("watch")
+        .into_inner();
+    let mut seen = Vec::new();
+    while let Some(j) = stream.message().await.expect("stream") {
+        seen.push(j);
+    }
+    seen
+}
+
+/// Waits (via the watch stream, no polling) until the job is RUNNING.
+pub async fn wait_running(client: &mut JobsClient<Channel>, id: &str) {
+    let mut stream = client
+        .watch_job(pb::WatchJobRequest {
+            id: id.to_string(),
+            omit_result: true,
+        })
+        .await
+        .expect("watch")
+        .into_inner();
+    while let Some(j) = stream.message().await.expect("stream") {
+        match state(&j) {
+            pb::JobState::Running => return,
+            pb::JobState::Queued => continue,
+            other => panic!("job ended before running: {other:?}"),
+        }
+    }
+    panic!("stream ended before the job ran");
+}
+
+/// The field named by an INVALID_ARGUMENT status's google.rpc.BadRequest detail.
+pub fn bad_field(s: &tonic::Status) -> String {
+    use tonic_types::StatusExt;
+    assert_eq!(
+        s.code(),
+        tonic::Code::InvalidArgument,
+        "expected INVALID_ARGUMENT, got {s:?}"
+    );
+    let d = s.get_error_details();
+    let field = d
+        .bad_request()
+        .and_then(|b| b.field_violations.first())
+        .map(|v| v.field.clone())
+        .unwrap_or_default();
+    assert!(
+        s.message().contains(&field),
+        "message should name the field: {}",
+        s.message()
+    );
+    field
+}
