@@ -46,7 +46,10 @@ impl ImageF32 {
     /// # Panics
     /// If a dimension is zero (programming error; use [`ImageF32::from_vec`] for untrusted sizes).
     pub fn filled(width: usize, height: usize, channels: usize, value: f32) -> Self {
-        assert!(width > 0 && height > 0 && channels > 0, "zero image dimension");
+        assert!(
+            width > 0 && height > 0 && channels > 0,
+            "zero image dimension"
+        );
         Self {
             width,
             height,

@@ -205,7 +205,10 @@ mod tests {
         assert!(c.get("a").is_some() && c.get("c").is_some());
         assert!(c.stats().memory_bytes <= 100);
         c.put("huge", val(1000, 4));
-        assert!(c.get("huge").is_none(), "entries above the budget are not kept");
+        assert!(
+            c.get("huge").is_none(),
+            "entries above the budget are not kept"
+        );
     }
 
     #[test]
@@ -224,6 +227,9 @@ mod tests {
         std::fs::write(&path, b"MURKRES1garbage").unwrap();
         assert!(c.get("fedcba").is_none());
         assert!(!path.exists(), "corrupt entry removed");
-        assert!(c.get("../etc/passwd").is_none(), "non-hex ids never reach the disk");
+        assert!(
+            c.get("../etc/passwd").is_none(),
+            "non-hex ids never reach the disk"
+        );
     }
 }

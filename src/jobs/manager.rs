@@ -277,7 +277,10 @@ impl JobManager {
     fn find_locked(&self, reg: &mut Registry, id: &str, method: &str) -> Option<Submitted> {
         if let Some(e) = reg.jobs.get(id) {
             let st = e.state();
-            if matches!(st, JobState::Queued | JobState::Running | JobState::Succeeded) {
+            if matches!(
+                st,
+                JobState::Queued | JobState::Running | JobState::Succeeded
+            ) {
                 return Some(Submitted {
                     handle: self.handle(e.clone()),
                     cached: st == JobState::Succeeded,
@@ -480,11 +483,7 @@ fn dispatch_loop(inner: Arc<Inner>) {
 }
 
 fn run_job(inner: &Inner, entry: &Arc<JobEntry>) {
-    let work = entry
-        .work
-        .lock()
-        .unwrap_or_else(|p| p.into_inner())
-        .take();
+    let work = entry.work.lock().unwrap_or_else(|p| p.into_inner()).take();
     let Some(work) = work else {
         entry.finish(
             JobState::Failed,
@@ -523,9 +522,8 @@ fn run_job(inner: &Inner, entry: &Arc<JobEntry>) {
         });
     });
     let monitor = Monitor::new(entry.cancel.clone(), Some(sink));
-    let outcome = std::panic::catch_unwind(AssertUnwindSafe(|| {
-        inner.pool.install(|| work(&monitor))
-    }));
+    let outcome =
+        std::panic::catch_unwind(AssertUnwindSafe(|| inner.pool.install(|| work(&monitor))));
     let elapsed_ms = started.elapsed().as_secs_f64() * 1e3;
     match outcome {
         Ok(Ok(bytes)) => {

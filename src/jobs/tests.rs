@@ -65,16 +65,22 @@ async fn full_queue_is_refused_with_retry_hint() {
     let m = manager(1);
     let release = Arc::new(std::sync::atomic::AtomicBool::new(false));
     let (tx, rx) = mpsc::channel();
-    let first = m.submit("01", "t", gated(tx.clone(), release.clone())).unwrap();
+    let first = m
+        .submit("01", "t", gated(tx.clone(), release.clone()))
+        .unwrap();
     rx.recv_timeout(Duration::from_secs(10)).unwrap(); // first is running, queue empty
-    m.submit("02", "t", gated(tx.clone(), release.clone())).unwrap();
+    m.submit("02", "t", gated(tx.clone(), release.clone()))
+        .unwrap();
     let err = m
         .submit("03", "t", gated(tx, release.clone()))
         .err()
         .unwrap();
     assert!(matches!(err, SubmitError::QueueFull { capacity: 1, .. }));
     release.store(true, Ordering::SeqCst);
-    assert_eq!(wait_terminal(&first.handle).await.state, JobState::Succeeded);
+    assert_eq!(
+        wait_terminal(&first.handle).await.state,
+        JobState::Succeeded
+    );
 }
 
 #[tokio::test]
@@ -82,20 +88,29 @@ async fn cancel_running_and_queued_jobs() {
     let m = manager(4);
     let release = Arc::new(std::sync::atomic::AtomicBool::new(false));
     let (tx, rx) = mpsc::channel();
-    let running = m.submit("0a", "t", gated(tx.clone(), release.clone())).unwrap();
+    let running = m
+        .submit("0a", "t", gated(tx.clone(), release.clone()))
+        .unwrap();
     rx.recv_timeout(Duration::from_secs(10)).unwrap();
     let queued = m.submit("0b", "t", gated(tx, release.clone())).unwrap();
     let snap = m.cancel("0b").unwrap();
     assert_eq!(snap.state, JobState::Cancelled, "queued jobs end at once");
     m.cancel("0a").unwrap();
-    assert_eq!(wait_terminal(&running.handle).await.state, JobState::Cancelled);
-    assert_eq!(wait_terminal(&queued.handle).await.state, JobState::Cancelled);
+    assert_eq!(
+        wait_terminal(&running.handle).await.state,
+        JobState::Cancelled
+    );
+    assert_eq!(
+        wait_terminal(&queued.handle).await.state,
+        JobState::Cancelled
+    );
     assert!(m.cancel("unknown").is_none());
     // A cancelled job runs again when resubmitted.
-    let again = m
-        .submit("0a", "t", Box::new(|_| Ok(vec![9])))
-        .unwrap();
-    assert_eq!(wait_terminal(&again.handle).await.state, JobState::Succeeded);
+    let again = m.submit("0a", "t", Box::new(|_| Ok(vec![9]))).unwrap();
+    assert_eq!(
+        wait_terminal(&again.handle).await.state,
+        JobState::Succeeded
+    );
 }
 
 #[tokio::test]
@@ -103,7 +118,9 @@ async fn last_unary_waiter_leaving_cancels_but_detached_jobs_survive() {
     let m = manager(4);
     let release = Arc::new(std::sync::atomic::AtomicBool::new(false));
     let (tx, rx) = mpsc::channel();
-    let s = m.submit("0c", "t", gated(tx.clone(), release.clone())).unwrap();
+    let s = m
+        .submit("0c", "t", gated(tx.clone(), release.clone()))
+        .unwrap();
     rx.recv_timeout(Duration::from_secs(10)).unwrap();
     let g1 = s.handle.attach();
     let g2 = s.handle.attach();
@@ -124,14 +141,16 @@ async fn last_unary_waiter_leaving_cancels_but_detached_jobs_survive() {
 async fn failures_and_panics_become_failed_jobs() {
     let m = manager(4);
     let f = m
-        .submit("0e", "t", Box::new(|_| Err(MurkError::Numerical("diverged".into()))))
+        .submit(
+            "0e",
+            "t",
+            Box::new(|_| Err(MurkError::Numerical("diverged".into()))),
+        )
         .unwrap();
     let s = wait_terminal(&f.handle).await;
     assert_eq!(s.state, JobState::Failed);
     assert!(matches!(s.error, Some(MurkError::Numerical(_))));
-    let p = m
-        .submit("0f", "t", Box::new(|_| panic!("boom")))
-        .unwrap();
+    let p = m.submit("0f", "t", Box::new(|_| panic!("boom"))).unwrap();
     let s = wait_terminal(&p.handle).await;
     assert_eq!(s.state, JobState::Failed);
     assert!(matches!(s.error, Some(MurkError::Internal(ref msg)) if msg.contains("boom")));
