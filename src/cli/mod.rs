@@ -33,9 +33,15 @@ enum Command {
 /// Parses the command line and runs the chosen command.
 pub fn run() -> anyhow::Result<()> {
     let cli = Cli::parse();
+    // The server logs every job; the client commands only warnings, so progress bars and
+    // result tables stay readable.
+    let default_level = match cli.command {
+        Command::Serve(_) => "info",
+        _ => "warn",
+    };
     tracing_subscriber::fmt()
         .with_env_filter(
-            EnvFilter::try_from_env("MURK_LOG").unwrap_or_else(|_| EnvFilter::new("info")),
+            EnvFilter::try_from_env("MURK_LOG").unwrap_or_else(|_| EnvFilter::new(default_level)),
         )
         .with_writer(std::io::stderr)
         .init();
