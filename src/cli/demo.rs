@@ -8,6 +8,7 @@ use std::time::Instant;
 use anyhow::{bail, Context};
 use clap::Args;
 
+use murk::metrics::{mask_iou, mean_abs_error};
 use murk::server::{InProcessServer, ServerConfig};
 use murk::service::convert::image_to_proto;
 use murk::service::proto::v1 as pb;
@@ -101,9 +102,9 @@ pub fn run(a: DemoArgs) -> anyhow::Result<()> {
             let gt_mask = Some(&frame.gt_mask);
             rows.push(Row {
                 preset,
-                raw_err_m: mean_abs_error(&out.raw_range_m, &frame.gt_range_m, gt_mask),
-                err_m: mean_abs_error(&out.range_m, &frame.gt_range_m, gt_mask),
-                iou: mask_iou(&out.mask, &frame.gt_mask),
+                raw_err_m: mean_abs_error(&out.raw_range_m, &frame.gt_range_m, gt_mask)?,
+                err_m: mean_abs_error(&out.range_m, &frame.gt_range_m, gt_mask)?,
+                iou: mask_iou(&out.mask, &frame.gt_mask)?,
                 seconds,
                 cached: job.cached,
             });
@@ -134,24 +135,3 @@ pub fn run(a: DemoArgs) -> anyhow::Result<()> {
     })
 }
 
-// TEMP(lead): replaced by murk::metrics once it lands.
-fn mean_abs_error(pred: &murk::ImageF32, gt: &murk::ImageF32, mask: Option<&murk::ImageF32>) -> f64 {
-    let mut s = 0.0;
-    let mut n = 0usize;
-    for i in 0..gt.data().len() {
-        if mask.is_none_or(|m| m.data()[i] > 0.5) && pred.data()[i].is_finite() {
-            s += (pred.data()[i] - gt.data()[i]).abs() as f64;
-            n += 1;
-        }
-    }
-    s / n.max(1) as f64
-}
-fn mask_iou(a: &murk::ImageF32, b: &murk::ImageF32) -> f64 {
-    let (mut i, mut u) = (0usize, 0usize);
-    for (x, y) in a.data().iter().zip(b.data()) {
-        let (x, y) = (*x > 0.5, *y > 0.5);
-        i += (x && y) as usize;
-        u += (x || y) as usize;
-    }
-    i as f64 / u.max(1) as f64
-}

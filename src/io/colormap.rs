@@ -1,0 +1,137 @@
+//! False-colour previews with the Turbo colormap (Mikhailov 2019), via its published degree-5
+//! polynomial fit, accurate to a few 8-bit levels — plenty for previews.
+
+use std::path::Path;
+
+use super::png::write_png_rgb8;
+use crate::error::{MurkError, Result};
+use crate::image::ImageF32;
+
+/// Colour of masked-out and non-finite pixels (dark grey).
+pub const MASKED_RGB: [u8; 3] = [48, 48, 48];
+
+/// Turbo colour of `t ∈ [0, 1]` (clamped; NaN maps to 0) as RGB8: dark blue → cyan → green →
+/// yellow → red.
+pub fn turbo(t: f32) -> [u8; 3] {
+    let x = if t.is_nan() {
+        0.0
+    } else {
+        t.clamp(0.0, 1.0) as f64
+    };
+    let poly = |c: [f64; 6]| c[0] + x * (c[1] + x * (c[2] + x * (c[3] + x * (c[4] + x * c[5]))));
+    let r = poly([
+        0.135_721_38,
+        4.615_392_6,
+        -42.660_322_58,
+        132.131_082_34,
+        -152.942_393_96,
+        59.286_379_43,
+    ]);
+    let g = poly([
+        0.091_402_61,
+        2.194_188_39,
+        4.842_966_58,
+        -14.185_033_33,
+        4.277_298_57,
+        2.829_566_04,
+    ]);
+    let b = poly([
+        0.106_673_3,
+        12.641_946_08,
+        -60.582_048_36,
+        110.362_767_71,
+        -89.903_109_12,
+        27.348_249_73,
+    ]);
+    let q = |v: f64| (v.clamp(0.0, 1.0) * 255.0).round() as u8;
+    [q(r), q(g), q(b)]
+}
+
+/// A mask sample marks a valid pixel when > 0.5.
+fn mask_set(v: f32) -> bool {
+    v > 0.5
+}
+
+/// Maps channel 0 of `img` through Turbo with `lo → 0` and `hi → 1`, returning interleaved RGB8.
+///
+/// Non-finite samples, and pixels where `mask` (same size, > 0.5 = valid) is not valid, become
+/// [`MASKED_RGB`]. A mask of another size is ignored; a degenerate range (`hi ≤ lo` or non-finite)
+/// paints every finite pixel mid-scale.
+pub fn colorize(img: &ImageF32, lo: f32, hi: f32, mask: Option<&ImageF32>) -> Vec<u8> {
+    let mask = mask.filter(|m| m.dims() == img.dims());
+    let valid_range = lo.is_finite() && hi.is_finite() && hi > lo;
+    let c = img.channels();
+    let mut out = Vec::with_capacity(img.pixel_count() * 3);
+    for i in 0..img.pixel_count() {
+        let v = img.data()[i * c];
+        // NaN in the mask means invalid, hence `!(v > 0.5)` rather than `v <= 0.5`.
+        let masked = mask.is_some_and(|m| !mask_set(m.data()[i * m.channels()]));
+        let rgb = if masked || !v.is_finite() {
+            MASKED_RGB
+        } else if valid_range {
+            turbo((v - lo) / (hi - lo))
+        } else {
+            turbo(0.5)
+        };
+        out.extend_from_slice(&rgb);
+    }
+    out
+}
+
+/// Writes [`colorize`] as an 8-bit RGB PNG. Unlike `colorize`, a mask of the wrong size is an
+/// error (field `mask`).
+pub fn write_colormap_png(
+    path: &Path,
+    img: &ImageF32,
+    lo: f32,
+    hi: f32,
+    mask: Option<&ImageF32>,
+) -> Result<()> {
+    if let Some(m) = mask {
+        if m.dims() != img.dims() {
+            return Err(MurkError::invalid(
+                "mask",
+                format!(
+                    "size {}x{} differs from the image's {}x{}",
+                    m.width(),
+                    m.height(),
+                    img.width(),
+                    img.height()
+                ),
+            ));
+        }
+    }
+    let rgb = colorize(img, lo, hi, mask);
+    write_png_rgb8(path, img.width(), img.height(), &rgb)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn turbo_runs_blue_green_red() {
+        let lo = turbo(0.05);
+        let mid = turbo(0.5);
+        let hi = turbo(0.95);
+        assert!(lo[2] > lo[0] && lo[2] > lo[1], "{lo:?}");
+        assert!(mid[1] > mid[2] && mid[1] > 150, "{mid:?}");
+        assert!(hi[0] > hi[1] && hi[0] > hi[2], "{hi:?}");
+        assert_eq!(turbo(f32::NAN), turbo(0.0));
+        assert_eq!(turbo(7.0), turbo(1.0));
+    }
+
+    #[test]
+    fn colorize_masks_and_non_finite() {
+        let img = ImageF32::from_vec(3, 1, 1, vec![0.0, f32::INFINITY, 1.0]).unwrap();
+        let mask = ImageF32::from_vec(3, 1, 1, vec![0.0, 1.0, 1.0]).unwrap();
+        let rgb = colorize(&img, 0.0, 1.0, Some(&mask));
+        assert_eq!(&rgb[0..3], &MASKED_RGB);
+        assert_eq!(&rgb[3..6], &MASKED_RGB);
+        assert_eq!(&rgb[6..9], &turbo(1.0));
+        let dir = tempfile::tempdir().unwrap();
+        let bad = ImageF32::filled(2, 1, 1, 1.0);
+        assert!(write_colormap_png(&dir.path().join("c.png"), &img, 0.0, 1.0, Some(&bad)).is_err());
+        write_colormap_png(&dir.path().join("c.png"), &img, 0.0, 1.0, None).unwrap();
+    }
+}
