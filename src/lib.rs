@@ -4,6 +4,7 @@
 //! (`../shared/reference/scattering-media-dissertation.md`) and knows nothing of gRPC; the
 //! [`service`] module converts protobuf ↔ domain types and maps [`MurkError`] to `tonic::Status`.
 
+pub mod atmosphere;
 pub mod camera;
 pub mod error;
 pub mod image;
@@ -11,6 +12,7 @@ pub mod io;
 pub mod jobs;
 pub mod metrics;
 pub mod monitor;
+pub mod mvs;
 pub mod server;
 pub mod service;
 pub mod simulate;

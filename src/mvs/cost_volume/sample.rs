@@ -1,0 +1,56 @@
+//! Bilinear sampling of interleaved images at sub-pixel positions, murk's pixel convention
+//! (pixel `(x, y)`'s centre at integer coordinates, i.e. "align corners").
+
+/// Bilinear sample of a `w×h` image with `C` interleaved channels at `(u, v)`.
+///
+/// Returns `None` unless `0 ≤ u ≤ w − 1` and `0 ≤ v ≤ h − 1` (NaN included): outside the
+/// pixel-centre hull there is no data to interpolate, and the cost volume treats such samples as
+/// unobserved rather than inventing values by clamping or zero padding. Needs `w, h ≥ 2`.
+#[inline]
+pub fn bilinear<const C: usize>(
+    data: &[f32],
+    w: usize,
+    h: usize,
+    u: f64,
+    v: f64,
+) -> Option<[f32; C]> {
+    if !(u >= 0.0 && v >= 0.0 && u <= (w - 1) as f64 && v <= (h - 1) as f64) {
+        return None;
+    }
+    // At the right/bottom edge use the last cell with weight 1 on its far side.
+    let x0 = (u as usize).min(w - 2);
+    let y0 = (v as usize).min(h - 2);
+    let fx = (u - x0 as f64) as f32;
+    let fy = (v - y0 as f64) as f32;
+    let i00 = (y0 * w + x0) * C;
+    let i10 = i00 + w * C;
+    let top = &data[i00..i00 + 2 * C];
+    let bottom = &data[i10..i10 + 2 * C];
+    let mut out = [0.0f32; C];
+    for (c, o) in out.iter_mut().enumerate() {
+        let t = top[c] + fx * (top[C + c] - top[c]);
+        let b = bottom[c] + fx * (bottom[C + c] - bottom[c]);
+        *o = t + fy * (b - t);
+    }
+    Some(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn interpolates_and_rejects_outside() {
+        // 3×2 image, 1 channel: value = 10·x + y.
+        let d = [0.0, 10.0, 20.0, 1.0, 11.0, 21.0];
+        assert_eq!(bilinear::<1>(&d, 3, 2, 0.0, 0.0), Some([0.0]));
+        assert_eq!(bilinear::<1>(&d, 3, 2, 2.0, 1.0), Some([21.0]));
+        let [m] = bilinear::<1>(&d, 3, 2, 1.5, 0.25).unwrap();
+        assert!((m - 15.25).abs() < 1e-6);
+        for (u, v) in [(-0.01, 0.0), (2.01, 0.0), (0.0, 1.01), (f64::NAN, 0.0)] {
+            assert_eq!(bilinear::<1>(&d, 3, 2, u, v), None, "({u}, {v})");
+        }
+        let rgb: Vec<f32> = (0..12).map(|k| k as f32).collect();
+        assert_eq!(bilinear::<3>(&rgb, 2, 2, 1.0, 0.0), Some([3.0, 4.0, 5.0]));
+    }
+}

@@ -1,0 +1,20 @@
+//! Multi-view stereo through haze with the dehazing cost volume (reference Ch. 3.2).
+//!
+//! Building blocks, one idea per module: world-to-camera poses and the reference→source
+//! transform ([`pose`]), the plane sweep — planes uniform in inverse depth, the per-plane
+//! homography π_{r→s} (Eq. 3.2) and the source-camera depth ζ (Eq. 3.6) — ([`plane_sweep`]), and
+//! COLMAP sparse-model I/O ([`colmap`]), and the ordinary and dehazing cost volumes
+//! (Eq. 3.1, 3.7; [`cost_volume`]). The scattering model itself lives in
+//! [`crate::atmosphere`].
+//!
+//! Units: depths, translations and plane positions are in scene units (COLMAP's arbitrary SfM
+//! scale for real data), so `β` is per scene unit.
+
+pub mod colmap;
+pub mod cost_volume;
+pub mod plane_sweep;
+pub mod pose;
+
+pub use cost_volume::{build_cost_volume, CostKind, CostVolume, View};
+pub use plane_sweep::{PlaneSet, PlaneWarp, MAX_PLANES};
+pub use pose::Pose;
