@@ -1,0 +1,113 @@
+//! ToF-in-fog benchmarks: the full pipeline (5 coarse + 50 fine IRLS iterations on amplitude and
+//! phase) and one x-step solve (Eq. 5.12) with each solver, at the Kinect v2 size 424×512.
+//!
+//! Run: `cargo bench --bench tof`.
+
+use criterion::{criterion_group, criterion_main, Criterion};
+
+use murk::simulate::tof::{simulate_tof, FogPreset, TofSimConfig};
+use murk::tof::irls::{run_irls, IrlsConfig};
+use murk::tof::quadratic_prior::{PatchGrid, QuadraticPrior};
+use murk::tof::symmetry::RowMirror;
+use murk::tof::wls::{XStepState, XStepSystem};
+use murk::tof::{
+    estimate_tof_depth_with_solver, IrlsChannelParams, TofInput, TofParams, XStepSolver,
+};
+use murk::Monitor;
+
+const W: usize = 512;
+const H: usize = 424;
+
+fn frame() -> TofInput {
+    let cfg = TofSimConfig {
+        preset: FogPreset::Medium,
+        seed: 1,
+        ..TofSimConfig::with_size(W, H)
+    };
+    let f = simulate_tof(&cfg, &Monitor::noop()).expect("simulate");
+    TofInput {
+        amplitude: f.amplitude,
+        phase: f.phase,
+        intrinsics: Some(f.intrinsics),
+    }
+}
+
+fn bench(c: &mut Criterion) {
+    let input = frame();
+    let params = TofParams::default();
+    let monitor = Monitor::noop();
+
+    let mut g = c.benchmark_group("tof_pipeline_424x512");
+    g.sample_size(10);
+    g.bench_function("pcg_default", |b| {
+        b.iter(|| {
+            estimate_tof_depth_with_solver(&input, &params, XStepSolver::default(), &monitor)
+                .expect("pipeline")
+        })
+    });
+    g.finish();
+
+    // One x-step at the state the fine level sees: weights from a short IRLS run on the phase
+    // image (γ′ = PHASE, the stiffer system), warm start = that run's x (as inside the loop) and
+    // cold start = the observation.
+    let observed: Vec<f64> = input.phase.data().iter().map(|&v| v as f64).collect();
+    let ch = IrlsChannelParams::PHASE;
+    let sys = XStepSystem::new(W, H, ch.gamma, RowMirror::new(H, (H as f64 - 1.0) / 2.0));
+    let mut prior = QuadraticPrior::new(PatchGrid::new(W, H, 4, 4)).expect("prior");
+    let cfg = IrlsConfig {
+        channel: ch,
+        coarse_iterations: 5,
+        fine_iterations: 5,
+        solver: XStepSolver::default(),
+    };
+    let st = run_irls(
+        &observed,
+        &sys,
+        &mut prior,
+        &cfg,
+        "bench",
+        &monitor,
+        &|_| {},
+    )
+    .expect("irls");
+    let mut prior_img = vec![0.0; W * H];
+    prior.evaluate(&mut prior_img);
+    let mut rhs = vec![0.0; W * H];
+    sys.rhs(&st.weights, &observed, &prior_img, &mut rhs);
+
+    let mut g = c.benchmark_group("tof_xstep_424x512");
+    g.sample_size(10);
+    let mut pcg = XStepState::new(XStepSolver::default(), &sys).expect("pcg");
+    let mut x = st.scatter.clone();
+    g.bench_function("pcg_warm", |b| {
+        b.iter(|| {
+            // Perturb the weights' effect slightly by restarting from the previous iterate, as
+            // the IRLS loop does.
+            x.copy_from_slice(&st.scatter);
+            pcg.solve(&sys, &st.weights, &rhs, &mut x, &monitor)
+                .expect("solve")
+        })
+    });
+    g.bench_function("pcg_cold", |b| {
+        b.iter(|| {
+            x.copy_from_slice(&observed);
+            pcg.solve(&sys, &st.weights, &rhs, &mut x, &monitor)
+                .expect("solve")
+        })
+    });
+    let mut chol = XStepState::new(XStepSolver::SparseCholesky, &sys).expect("cholesky");
+    g.bench_function("sparse_cholesky", |b| {
+        b.iter(|| {
+            chol.solve(&sys, &st.weights, &rhs, &mut x, &monitor)
+                .expect("solve")
+        })
+    });
+    g.finish();
+}
+
+criterion_group! {
+    name = benches;
+    config = Criterion::default().sample_size(10);
+    targets = bench
+}
+criterion_main!(benches);

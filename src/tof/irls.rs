@@ -1,0 +1,241 @@
+//! Algorithm 2: coarse-to-fine IRLS estimation of the scattering component and the outlier
+//! (object) weights of one image (amplitude or phase).
+//!
+//! Coarse level (Eq. 5.16): one Tukey weight per patch from the patch's residual, then the fine
+//! level (Eq. 5.11): one weight per pixel. Each level fixes its scale σ from the residuals of its
+//! first iteration (§5.3.4). Every iteration alternates the x-step and the a-step of Eq. 5.12.
+
+use rayon::prelude::*;
+
+use super::params::IrlsChannelParams;
+use super::quadratic_prior::QuadraticPrior;
+use super::tukey::{self, mad_sigma_in_place, median_in_place, scale_floor};
+use super::wls::{XStepSolver, XStepState, XStepSystem};
+use crate::error::{MurkError, Result};
+use crate::monitor::Monitor;
+
+/// Settings of one IRLS run.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct IrlsConfig {
+    /// γ′ and Tukey constants of this image.
+    pub channel: IrlsChannelParams,
+    /// Coarse (patch-wise) iterations.
+    pub coarse_iterations: usize,
+    /// Fine (pixel-wise) iterations.
+    pub fine_iterations: usize,
+    /// x-step solver.
+    pub solver: XStepSolver,
+}
+
+/// Result of one IRLS run.
+#[derive(Clone, Debug, PartialEq)]
+pub struct IrlsOutcome {
+    /// Estimated scattering component x (same units as the input image).
+    pub scatter: Vec<f64>,
+    /// Final IRLS weights in [0, 1]; small = outlier (object).
+    pub weights: Vec<f64>,
+    /// Coarse-level scale σ₂ (RMS residual units), if the coarse level ran.
+    pub sigma_coarse: Option<f64>,
+    /// Fine-level scale σ₁, if the fine level ran.
+    pub sigma_fine: Option<f64>,
+    /// Total conjugate-gradient iterations over all x-steps (0 for Cholesky).
+    pub cg_iterations: usize,
+}
+
+/// Runs Algorithm 2 on `observed` (row-major, the system's size).
+///
+/// `tick(stage)` is called after every iteration with `"{stage_prefix}.coarse"` or
+/// `"{stage_prefix}.fine"`; cancellation is checked every iteration (and inside CG).
+///
+/// With zero iterations at both levels the result is the initial state of Algorithm 2: the
+/// patch-wise quadratic fits of the observation as scatter and all weights 1 (no object).
+pub fn run_irls(
+    observed: &[f64],
+    sys: &XStepSystem,
+    prior: &mut QuadraticPrior,
+    cfg: &IrlsConfig,
+    stage_prefix: &str,
+    monitor: &Monitor,
+    tick: &(dyn Fn(&str) + Sync),
+) -> Result<IrlsOutcome> {
+    let n = sys.len();
+    let w = sys.width();
+    if observed.len() != n || prior.grid().width() != w || prior.grid().height() != sys.height() {
+        return Err(MurkError::Numerical(
+            "IRLS buffers do not match the image size".into(),
+        ));
+    }
+    let magnitude = observed
+        .par_iter()
+        .map(|v| v.abs())
+        .reduce(|| 0.0, f64::max);
+    let floor = scale_floor(magnitude);
+    let stage_coarse = format!("{stage_prefix}.coarse");
+    let stage_fine = format!("{stage_prefix}.fine");
+
+    let mut weights = vec![1.0; n];
+    let mut prior_img = vec![0.0; n];
+    let mut rhs = vec![0.0; n];
+    let mut scratch = vec![0.0; n];
+    // Algorithm 2's initialisation: a_k fitted to the observation; x warm-starts at x̃, which is
+    // the W = I solution up to the (small) smoothing and prior terms.
+    prior.fit(observed);
+    prior.evaluate(&mut prior_img);
+    let mut x = observed.to_vec();
+    let mut state = XStepState::new(cfg.solver, sys)?;
+    let mut cg_iterations = 0;
+
+    let pxn = prior.grid().patches_x();
+    let k = prior.grid().count();
+    let mut row_sums = vec![0.0; sys.height() * pxn];
+    let mut patch_rms = vec![0.0; k];
+    let mut patch_weight = vec![1.0; k];
+    let mut sigma_coarse = None;
+    for it in 0..cfg.coarse_iterations {
+        monitor.checkpoint()?;
+        cg_iterations += x_and_a_step(
+            sys,
+            &mut state,
+            prior,
+            &weights,
+            observed,
+            &mut prior_img,
+            &mut rhs,
+            &mut x,
+            monitor,
+        )?;
+        patch_rms_residuals(prior, &x, observed, &mut row_sums, &mut patch_rms);
+        if it == 0 {
+            // The patch residual is an RMS, i.e. already a per-pixel deviation about the ideal
+            // zero residual, so its median over patches is the robust scale (a "median absolute
+            // deviation" about zero): background patches sit near r = 1 and an object patch at
+            // r ≫ 1, independent of patch size (the last patches are larger).
+            scratch[..k].copy_from_slice(&patch_rms);
+            let med = median_in_place(&mut scratch[..k]).ok_or_else(|| {
+                MurkError::Numerical("non-finite residual at the coarse level".into())
+            })?;
+            sigma_coarse = Some(med.max(floor));
+        }
+        let s2 = sigma_coarse.unwrap_or(floor);
+        for (pw, &rms) in patch_weight.iter_mut().zip(&patch_rms) {
+            *pw = tukey::weight(rms / s2, cfg.channel.c_coarse);
+        }
+        spread_patch_weights(prior, &patch_weight, &mut weights);
+        tick(&stage_coarse);
+    }
+
+    let mut sigma_fine = None;
+    let c_fine = cfg.channel.c_fine;
+    for it in 0..cfg.fine_iterations {
+        monitor.checkpoint()?;
+        cg_iterations += x_and_a_step(
+            sys,
+            &mut state,
+            prior,
+            &weights,
+            observed,
+            &mut prior_img,
+            &mut rhs,
+            &mut x,
+            monitor,
+        )?;
+        if it == 0 {
+            scratch
+                .par_iter_mut()
+                .zip(x.par_iter().zip(observed.par_iter()))
+                .for_each(|(s, (xi, oi))| *s = xi - oi);
+            let s = mad_sigma_in_place(&mut scratch).ok_or_else(|| {
+                MurkError::Numerical("non-finite residual at the fine level".into())
+            })?;
+            sigma_fine = Some(s.max(floor));
+        }
+        let inv_s1 = 1.0 / sigma_fine.unwrap_or(floor);
+        weights
+            .par_iter_mut()
+            .zip(x.par_iter().zip(observed.par_iter()))
+            .for_each(|(wi, (xi, oi))| {
+                let r = (oi - xi) * inv_s1;
+                *wi = tukey::weight(r, c_fine)
+            });
+        tick(&stage_fine);
+    }
+
+    if cfg.coarse_iterations + cfg.fine_iterations == 0 {
+        x.copy_from_slice(&prior_img);
+    }
+    Ok(IrlsOutcome {
+        scatter: x,
+        weights,
+        sigma_coarse,
+        sigma_fine,
+        cg_iterations,
+    })
+}
+
+/// One alternation of Eq. 5.12: x given a_k (and W), then a_k given x. Returns CG iterations.
+#[allow(clippy::too_many_arguments)]
+fn x_and_a_step(
+    sys: &XStepSystem,
+    state: &mut XStepState,
+    prior: &mut QuadraticPrior,
+    weights: &[f64],
+    observed: &[f64],
+    prior_img: &mut [f64],
+    rhs: &mut [f64],
+    x: &mut [f64],
+    monitor: &Monitor,
+) -> Result<usize> {
+    sys.rhs(weights, observed, prior_img, rhs);
+    let stats = state.solve(sys, weights, rhs, x, monitor)?;
+    prior.fit(x);
+    prior.evaluate(prior_img);
+    Ok(stats.iterations)
+}
+
+/// RMS of x − x̃ over every patch (Eq. 5.16's ‖x_k − x̃_k‖ divided by √N_k).
+fn patch_rms_residuals(
+    prior: &QuadraticPrior,
+    x: &[f64],
+    observed: &[f64],
+    row_sums: &mut [f64],
+    out: &mut [f64],
+) {
+    let grid = prior.grid();
+    let w = grid.width();
+    let pxn = grid.patches_x();
+    let cols = grid.col_ranges();
+    row_sums
+        .par_chunks_mut(pxn)
+        .zip(x.par_chunks(w).zip(observed.par_chunks(w)))
+        .for_each(|(sums, (xr, or))| {
+            for (s, &(x0, x1)) in sums.iter_mut().zip(cols) {
+                *s = xr[x0..x1]
+                    .iter()
+                    .zip(&or[x0..x1])
+                    .map(|(a, b)| (a - b) * (a - b))
+                    .sum();
+            }
+        });
+    for (py, &(y0, y1)) in grid.row_ranges().iter().enumerate() {
+        for (px, &(x0, x1)) in cols.iter().enumerate() {
+            let ss: f64 = (y0..y1).map(|y| row_sums[y * pxn + px]).sum();
+            out[py * pxn + px] = (ss / ((y1 - y0) * (x1 - x0)) as f64).sqrt();
+        }
+    }
+}
+
+/// Every pixel of a patch shares the patch's coarse weight (Eq. 5.16).
+fn spread_patch_weights(prior: &QuadraticPrior, patch_weight: &[f64], weights: &mut [f64]) {
+    let grid = prior.grid();
+    let pxn = grid.patches_x();
+    let cols = grid.col_ranges();
+    weights
+        .par_chunks_mut(grid.width())
+        .enumerate()
+        .for_each(|(y, row)| {
+            let py = grid.patch_row_of(y);
+            for (px, &(x0, x1)) in cols.iter().enumerate() {
+                row[x0..x1].fill(patch_weight[py * pxn + px]);
+            }
+        });
+}

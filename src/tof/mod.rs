@@ -1,0 +1,21 @@
+//! Time-of-flight depth in fog (reference Ch. 5): estimate the scattering component of a CW-ToF
+//! camera's amplitude and phase images by robust IRLS, segment the object as the outliers, and
+//! recover the direct component's depth.
+//!
+//! Entry point: [`estimate_tof_depth`]. Building blocks, one idea per module: Tukey's biweight
+//! and MAD scale ([`tukey`]), the local quadratic prior ([`quadratic_prior`]), the flip rows of
+//! the symmetry prior ([`symmetry`]), the weighted least-squares x-step ([`wls`]), Algorithm 2
+//! ([`irls`]), the bilateral pre-filter ([`bilateral`]) and the pipeline ([`pipeline`]).
+
+pub mod bilateral;
+pub mod irls;
+mod params;
+pub mod pipeline;
+pub mod quadratic_prior;
+pub mod symmetry;
+pub mod tukey;
+pub mod wls;
+
+pub use params::*;
+pub use pipeline::{estimate_tof_depth, estimate_tof_depth_with_solver};
+pub use wls::XStepSolver;

@@ -1,0 +1,404 @@
+//! The full ToF-in-fog pipeline (reference Ch. 5): validate, pre-filter, run Algorithm 2 on the
+//! amplitude and phase images, intersect their object masks and subtract the scattering phasor
+//! (Eq. 5.8–5.9) to obtain the direct component's range (Eq. 5.2).
+//!
+//! Limitation: phase is assumed not to wrap inside the image (every pixel within one ambiguity
+//! interval c/(2f)); the quadratic/symmetry/smoothness priors treat phase as a smooth real field.
+
+use std::f64::consts::TAU;
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+use rayon::prelude::*;
+
+use super::bilateral::bilateral_filter;
+use super::irls::{run_irls, IrlsConfig, IrlsOutcome};
+use super::params::{TofInput, TofOutput, TofParams, SPEED_OF_LIGHT_M_PER_S};
+use super::quadratic_prior::{PatchGrid, QuadraticPrior};
+use super::symmetry::RowMirror;
+use super::wls::{XStepSolver, XStepSystem};
+use crate::error::{MurkError, Result};
+use crate::image::ImageF32;
+use crate::monitor::Monitor;
+
+/// Progress fractions of the pipeline's stages.
+const PREFILTER_END: f32 = 0.05;
+const IRLS_END: f32 = 0.95;
+
+/// Estimates the object mask and the fog-corrected range of a CW-ToF frame (Ch. 5, Algorithm 2,
+/// Eq. 5.2, 5.8–5.16) with the default x-step solver.
+///
+/// Errors: the `InvalidArgument` of [`TofInput::validate`] / [`TofParams::validate`] unchanged,
+/// `Cancelled` when `monitor` is cancelled (checked every IRLS iteration), `Numerical` if a solve
+/// fails. Progress stages: `tof.prefilter`, `tof.{amplitude,phase}.{coarse,fine}`, `tof.compose`.
+pub fn estimate_tof_depth(
+    input: &TofInput,
+    params: &TofParams,
+    monitor: &Monitor,
+) -> Result<TofOutput> {
+    estimate_tof_depth_with_solver(input, params, XStepSolver::default(), monitor)
+}
+
+/// [`estimate_tof_depth`] with an explicit x-step solver (benchmarks, cross-checks).
+pub fn estimate_tof_depth_with_solver(
+    input: &TofInput,
+    params: &TofParams,
+    solver: XStepSolver,
+    monitor: &Monitor,
+) -> Result<TofOutput> {
+    input.validate()?;
+    let (w, h) = input.amplitude.dims();
+    params.validate(w, h)?;
+    monitor.checkpoint()?;
+
+    let (amp, phase) = match &params.bilateral {
+        Some(b) => {
+            let mut a = vec![0.0f32; w * h];
+            let mut p = vec![0.0f32; w * h];
+            rayon::join(
+                || bilateral_filter(input.amplitude.data(), w, h, b, &mut a),
+                || bilateral_filter(input.phase.data(), w, h, b, &mut p),
+            );
+            (a, p)
+        }
+        None => (input.amplitude.data().to_vec(), input.phase.data().to_vec()),
+    };
+    monitor.progress("tof.prefilter", PREFILTER_END);
+    monitor.checkpoint()?;
+
+    let row0 = params
+        .symmetry_row
+        .or(input.intrinsics.map(|k| k.cy))
+        .unwrap_or((h as f64 - 1.0) * 0.5);
+    let mirror = RowMirror::new(h, row0);
+    let grid = PatchGrid::new(w, h, params.patches_x, params.patches_y);
+    let total = 2 * (params.coarse_iterations + params.fine_iterations);
+    let done = AtomicUsize::new(0);
+    let tick = |stage: &str| {
+        let d = done.fetch_add(1, Ordering::Relaxed) + 1;
+        let f = PREFILTER_END + (IRLS_END - PREFILTER_END) * d as f32 / total.max(1) as f32;
+        monitor.progress(stage, f);
+    };
+    let run = |img: &[f32], channel, prefix: &str| -> Result<IrlsOutcome> {
+        let observed: Vec<f64> = img.iter().map(|&v| v as f64).collect();
+        let cfg = IrlsConfig {
+            channel,
+            coarse_iterations: params.coarse_iterations,
+            fine_iterations: params.fine_iterations,
+            solver,
+        };
+        let sys = XStepSystem::new(w, h, cfg.channel.gamma, mirror.clone());
+        let mut prior = QuadraticPrior::new(grid.clone())?;
+        run_irls(&observed, &sys, &mut prior, &cfg, prefix, monitor, &tick)
+    };
+    let (ra, rp) = rayon::join(
+        || run(&amp, params.amplitude, "tof.amplitude"),
+        || run(&phase, params.phase, "tof.phase"),
+    );
+    let (ra, rp) = (ra?, rp?);
+    monitor.checkpoint()?;
+
+    let out = compose(input, params, &amp, &phase, &ra, &rp)?;
+    monitor.progress("tof.compose", 1.0);
+    Ok(out)
+}
+
+/// Range along the ray (metres) of a phase (radians): Eq. 5.2, c·φ/(4πf).
+#[inline]
+fn range_m(phase_rad: f64, frequency_hz: f64) -> f64 {
+    SPEED_OF_LIGHT_M_PER_S * phase_rad / (2.0 * TAU * frequency_hz)
+}
+
+/// Wraps radians into [0, 2π) (`rem_euclid` can round up to exactly 2π for tiny negatives).
+#[inline]
+fn wrap_phase(p: f64) -> f64 {
+    let r = p.rem_euclid(TAU);
+    if r >= TAU {
+        0.0
+    } else {
+        r
+    }
+}
+
+fn image(w: usize, h: usize, data: Vec<f32>) -> Result<ImageF32> {
+    ImageF32::from_vec(w, h, 1, data).map_err(|e| MurkError::Numerical(e.to_string()))
+}
+
+/// Mask intersection and direct component (Eq. 5.8–5.9), ranges (Eq. 5.2), z-depth.
+fn compose(
+    input: &TofInput,
+    params: &TofParams,
+    amp: &[f32],
+    phase: &[f32],
+    ra: &IrlsOutcome,
+    rp: &IrlsOutcome,
+) -> Result<TofOutput> {
+    let (w, h) = input.amplitude.dims();
+    let n = w * h;
+    let f = params.modulation_frequency_hz;
+    let t = params.mask_threshold as f64;
+    let mut mask = vec![0.0f32; n];
+    let mut alpha_d = vec![0.0f32; n];
+    let mut phi_d = vec![0.0f32; n];
+    let mut range = vec![0.0f32; n];
+    let mut scatter_a = vec![0.0f32; n];
+    let mut scatter_p = vec![0.0f32; n];
+    let raw_phase = input.phase.data();
+    let raw_range: Vec<f32> = raw_phase
+        .par_iter()
+        .map(|&p| range_m(wrap_phase(p as f64), f) as f32)
+        .collect();
+    (
+        mask.par_iter_mut(),
+        alpha_d.par_iter_mut(),
+        phi_d.par_iter_mut(),
+        range.par_iter_mut(),
+        scatter_a.par_iter_mut(),
+        scatter_p.par_iter_mut(),
+    )
+        .into_par_iter()
+        .enumerate()
+        .for_each(|(i, (m, ad, pd, rg, sa, sp))| {
+            // Object = outlier in both images (§5.3.4).
+            let object = ra.weights[i] < t && rp.weights[i] < t;
+            *m = if object { 1.0 } else { 0.0 };
+            // A scattering amplitude is a magnitude; a slightly negative estimate (possible in
+            // the unconstrained least squares) would flip the subtracted phasor.
+            let a_s = ra.scatter[i].max(0.0);
+            let p_s = rp.scatter[i];
+            let (a_o, p_o) = (amp[i] as f64, phase[i] as f64);
+            let re = a_o * p_o.cos() - a_s * p_s.cos();
+            let im = a_o * p_o.sin() - a_s * p_s.sin();
+            let p = wrap_phase(im.atan2(re));
+            *ad = re.hypot(im) as f32;
+            *pd = p as f32;
+            *rg = range_m(p, f) as f32;
+            *sa = a_s as f32;
+            *sp = wrap_phase(p_s) as f32;
+        });
+    let z_depth = input.intrinsics.map(|k| {
+        let mut z = vec![0.0f32; n];
+        z.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+            for (x, zv) in row.iter_mut().enumerate() {
+                *zv = (range[y * w + x] as f64 * k.ray(x as f64, y as f64)[2]) as f32;
+            }
+        });
+        z
+    });
+    let to_f32 = |v: &[f64]| v.iter().map(|&x| x as f32).collect::<Vec<f32>>();
+    Ok(TofOutput {
+        range_m: image(w, h, range)?,
+        z_depth_m: z_depth.map(|z| image(w, h, z)).transpose()?,
+        raw_range_m: image(w, h, raw_range)?,
+        mask: image(w, h, mask)?,
+        scatter_amplitude: image(w, h, scatter_a)?,
+        scatter_phase: image(w, h, scatter_p)?,
+        weight_amplitude: image(w, h, to_f32(&ra.weights))?,
+        weight_phase: image(w, h, to_f32(&rp.weights))?,
+        corrected_amplitude: image(w, h, alpha_d)?,
+        corrected_phase: image(w, h, phi_d)?,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::Intrinsics;
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+    use std::sync::atomic::AtomicBool;
+    use std::sync::Arc;
+
+    const W: usize = 64;
+    const H: usize = 48;
+
+    fn gauss(rng: &mut ChaCha8Rng) -> f64 {
+        let u1: f64 = 1.0 - rng.random::<f64>();
+        let u2: f64 = rng.random();
+        (-2.0 * u1.ln()).sqrt() * (TAU * u2).cos()
+    }
+
+    /// Smooth scatter symmetric about row (H−1)/2 (camera and light on a horizontal line), plus
+    /// an optional bright disc (the object) and Gaussian noise. Returns input, true scatter
+    /// amplitude and the disc mask.
+    fn scene(blob: bool, seed: u64) -> (TofInput, Vec<f32>, Vec<bool>) {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let (cy, cx) = ((H as f64 - 1.0) / 2.0, 40.0);
+        let mut amp = vec![0.0f32; W * H];
+        let mut ph = vec![0.0f32; W * H];
+        let mut sa = vec![0.0f32; W * H];
+        let mut m = vec![false; W * H];
+        for y in 0..H {
+            for x in 0..W {
+                let (dx, dy) = (x as f64 - cx, y as f64 - cy);
+                // Gentle enough that γ′₃'s boundary bias (≈ γ′₃·gradient at the Neumann border) stays
+                // within Tukey's c·σ: steeper scatter makes border pixels outliers.
+                let s_a = 100.0 - 0.003 * dx * dx - 0.006 * dy * dy;
+                let s_p = 0.2 + 0.00002 * dx * dx + 0.00004 * dy * dy;
+                let i = y * W + x;
+                sa[i] = s_a as f32;
+                let (bx, by) = (x as f64 - 22.0, y as f64 - 18.0);
+                let inside = blob && bx * bx + by * by <= 64.0;
+                m[i] = inside;
+                let (mut re, mut im) = (s_a * s_p.cos(), s_a * s_p.sin());
+                if inside {
+                    // Object 1.5 m away at 16 MHz: phase ≈ 1.0 rad.
+                    re += 150.0 * 1.0f64.cos();
+                    im += 150.0 * 1.0f64.sin();
+                }
+                re += 0.5 * gauss(&mut rng);
+                im += 0.5 * gauss(&mut rng);
+                amp[i] = re.hypot(im) as f32;
+                ph[i] = wrap_phase(im.atan2(re)) as f32;
+            }
+        }
+        let input = TofInput {
+            amplitude: ImageF32::from_vec(W, H, 1, amp).unwrap(),
+            phase: ImageF32::from_vec(W, H, 1, ph).unwrap(),
+            intrinsics: None,
+        };
+        (input, sa, m)
+    }
+
+    fn fast_params() -> TofParams {
+        TofParams {
+            coarse_iterations: 5,
+            fine_iterations: 20,
+            ..TofParams::default()
+        }
+    }
+
+    #[test]
+    fn background_only_has_unit_weights_and_no_mask() {
+        let (input, _, _) = scene(false, 7);
+        let out = estimate_tof_depth(&input, &fast_params(), &Monitor::noop()).unwrap();
+        let n = (W * H) as f64;
+        let mean_w: f64 = out
+            .weight_amplitude
+            .data()
+            .iter()
+            .map(|&v| v as f64)
+            .sum::<f64>()
+            / n;
+        assert!(mean_w > 0.85, "mean amplitude weight {mean_w}");
+        let masked: f32 = out.mask.data().iter().sum();
+        assert!(
+            masked <= 0.005 * n as f32,
+            "{masked} background pixels masked"
+        );
+        assert!(out.range_m.data().iter().all(|v| v.is_finite()));
+    }
+
+    #[test]
+    fn bright_blob_is_masked_and_scatter_recovered_under_it() {
+        let (input, true_sa, blob) = scene(true, 11);
+        let out = estimate_tof_depth(&input, &fast_params(), &Monitor::noop()).unwrap();
+        let (mut inter, mut uni, mut err, mut nb) = (0, 0, 0.0, 0);
+        for i in 0..W * H {
+            let m = out.mask.data()[i] > 0.5;
+            inter += (m && blob[i]) as usize;
+            uni += (m || blob[i]) as usize;
+            if blob[i] {
+                err += (out.scatter_amplitude.data()[i] - true_sa[i]).abs() as f64;
+                // Direct phase is the object's 1.0 rad once the scatter is removed.
+                let pd = out.corrected_phase.data()[i] as f64;
+                assert!((pd - 1.0).abs() < 0.05, "direct phase {pd}");
+                nb += 1;
+            }
+        }
+        let iou = inter as f64 / uni as f64;
+        assert!(iou > 0.85, "IoU {iou}");
+        let rel = err / nb as f64 / 100.0;
+        assert!(rel < 0.02, "relative scatter error under the blob {rel}");
+        let expect_m = SPEED_OF_LIGHT_M_PER_S * 1.0 / (2.0 * TAU * 16e6);
+        let i = 18 * W + 22;
+        assert!((out.range_m.data()[i] as f64 - expect_m).abs() < 0.05);
+        assert!((out.raw_range_m.data()[i] as f64 - expect_m).abs() > 0.01);
+    }
+
+    #[test]
+    fn zero_iterations_and_constant_image_are_finite() {
+        let (input, _, _) = scene(true, 3);
+        let p = TofParams {
+            coarse_iterations: 0,
+            fine_iterations: 0,
+            ..TofParams::default()
+        };
+        let out = estimate_tof_depth(&input, &p, &Monitor::noop()).unwrap();
+        assert!(out.mask.data().iter().all(|&v| v == 0.0));
+        assert!(out.weight_phase.data().iter().all(|&v| v == 1.0));
+        assert!(out.range_m.data().iter().all(|v| v.is_finite()));
+
+        let c = TofInput {
+            amplitude: ImageF32::filled(W, H, 1, 5.0),
+            phase: ImageF32::filled(W, H, 1, 0.3),
+            intrinsics: Some(Intrinsics::new(50.0, 50.0, 31.5, 23.5)),
+        };
+        let out = estimate_tof_depth(&c, &fast_params(), &Monitor::noop()).unwrap();
+        for img in [&out.range_m, &out.weight_amplitude, &out.scatter_phase] {
+            assert!(img.data().iter().all(|v| v.is_finite()));
+        }
+        assert!(out.z_depth_m.unwrap().data().iter().all(|v| v.is_finite()));
+        assert!(out.mask.data().iter().all(|&v| v == 0.0));
+    }
+
+    #[test]
+    fn cancellation_stops_the_job() {
+        let (input, _, _) = scene(true, 5);
+        let m = Monitor::noop();
+        m.cancel();
+        assert_eq!(
+            estimate_tof_depth(&input, &fast_params(), &m).unwrap_err(),
+            MurkError::Cancelled
+        );
+        // Cancel from the progress sink after the first IRLS iteration.
+        let flag = Arc::new(AtomicBool::new(false));
+        let f2 = flag.clone();
+        let m = Monitor::new(
+            flag,
+            Some(Arc::new(move |stage: &str, _| {
+                if stage.ends_with(".coarse") {
+                    f2.store(true, Ordering::Relaxed);
+                }
+            })),
+        );
+        assert_eq!(
+            estimate_tof_depth(&input, &fast_params(), &m).unwrap_err(),
+            MurkError::Cancelled
+        );
+    }
+
+    fn field(e: MurkError) -> String {
+        match e {
+            MurkError::InvalidArgument { field, .. } => field,
+            other => panic!("expected InvalidArgument, got {other:?}"),
+        }
+    }
+
+    #[test]
+    fn validation_errors_name_fields() {
+        let (input, _, _) = scene(false, 1);
+        let m = Monitor::noop();
+        let mut bad = input.clone();
+        bad.phase = ImageF32::filled(W - 1, H, 1, 0.1);
+        assert_eq!(
+            field(estimate_tof_depth(&bad, &fast_params(), &m).unwrap_err()),
+            "phase"
+        );
+        let mut bad = input.clone();
+        bad.amplitude.set(3, 4, 0, f32::NAN);
+        assert_eq!(
+            field(estimate_tof_depth(&bad, &fast_params(), &m).unwrap_err()),
+            "amplitude"
+        );
+        for f in [0.0, -1.0, f64::NAN] {
+            let p = TofParams {
+                modulation_frequency_hz: f,
+                ..fast_params()
+            };
+            assert_eq!(
+                field(estimate_tof_depth(&input, &p, &m).unwrap_err()),
+                "modulation_frequency_hz"
+            );
+        }
+    }
+}

@@ -1,0 +1,350 @@
+//! Acceptance of ToF depth in fog (reference Ch. 5) on physically simulated frames: inside the
+//! ground-truth object mask the corrected range must be within 3 cm on average, at least 5× better
+//! than the uncorrected range, and the estimated object mask must match the truth (IoU ≥ 0.9).
+
+// Diagnostics index several parallel images by pixel.
+#![allow(clippy::needless_range_loop)]
+
+use std::time::Instant;
+
+use murk::simulate::tof::{simulate_tof, FogPreset, TofSimConfig, TofSimFrame};
+use murk::tof::{estimate_tof_depth, TofInput, TofOutput, TofParams};
+use murk::Monitor;
+
+/// Errors and overlap of one run, all over the ground-truth object mask unless stated.
+#[derive(Debug, Clone, Copy)]
+struct Scores {
+    mean_err_m: f64,
+    raw_mean_err_m: f64,
+    clear_mean_err_m: f64,
+    iou: f64,
+    gt_pixels: usize,
+    est_pixels: usize,
+    seconds: f64,
+}
+
+fn simulate(preset: FogPreset, seed: u64, width: usize, height: usize) -> TofSimFrame {
+    let cfg = TofSimConfig {
+        preset,
+        seed,
+        ..TofSimConfig::with_size(width, height)
+    };
+    simulate_tof(&cfg, &Monitor::noop()).expect("simulation")
+}
+
+fn run(frame: &TofSimFrame) -> (TofOutput, f64) {
+    let input = TofInput {
+        amplitude: frame.amplitude.clone(),
+        phase: frame.phase.clone(),
+        intrinsics: Some(frame.intrinsics),
+    };
+    let mut params = TofParams {
+        modulation_frequency_hz: frame.config.modulation_frequency_hz,
+        ..TofParams::default()
+    };
+    if let Some(rel) = std::env::var("TOF_BIL_REL")
+        .ok()
+        .and_then(|s| s.parse().ok())
+    {
+        params.bilateral = Some(murk::tof::BilateralParams {
+            sigma_range_rel: rel,
+            ..Default::default()
+        });
+    }
+    if std::env::var("TOF_NO_BILATERAL").is_ok() {
+        params.bilateral = None;
+    }
+    let t = Instant::now();
+    let out = match std::env::var("TOF_CG_MAX")
+        .ok()
+        .and_then(|s| s.parse().ok())
+    {
+        Some(max_iterations) => murk::tof::estimate_tof_depth_with_solver(
+            &input,
+            &params,
+            murk::tof::XStepSolver::Pcg {
+                rel_tol: 1e-5,
+                max_iterations,
+            },
+            &Monitor::noop(),
+        ),
+        None => estimate_tof_depth(&input, &params, &Monitor::noop()),
+    }
+    .expect("estimate");
+    (out, t.elapsed().as_secs_f64())
+}
+
+fn score(frame: &TofSimFrame, out: &TofOutput, seconds: f64) -> Scores {
+    let gt = frame.gt_mask.data();
+    let gt_range = frame.gt_range_m.data();
+    let c = murk::tof::SPEED_OF_LIGHT_M_PER_S;
+    let f = frame.config.modulation_frequency_hz;
+    let (mut e, mut e_raw, mut e_clear, mut n) = (0.0, 0.0, 0.0, 0usize);
+    let (mut inter, mut uni, mut est) = (0usize, 0usize, 0usize);
+    for i in 0..gt.len() {
+        let g = gt[i] > 0.5;
+        let m = out.mask.data()[i] > 0.5;
+        inter += (g && m) as usize;
+        uni += (g || m) as usize;
+        est += m as usize;
+        if g {
+            let r = gt_range[i] as f64;
+            e += (out.range_m.data()[i] as f64 - r).abs();
+            e_raw += (out.raw_range_m.data()[i] as f64 - r).abs();
+            let clear = c * frame.phase_clear.data()[i] as f64 / (4.0 * std::f64::consts::PI * f);
+            e_clear += (clear - r).abs();
+            n += 1;
+        }
+    }
+    let nn = n.max(1) as f64;
+    Scores {
+        mean_err_m: e / nn,
+        raw_mean_err_m: e_raw / nn,
+        clear_mean_err_m: e_clear / nn,
+        iou: if uni == 0 {
+            1.0
+        } else {
+            inter as f64 / uni as f64
+        },
+        gt_pixels: n,
+        est_pixels: est,
+        seconds,
+    }
+}
+
+fn assert_acceptance(s: &Scores, what: &str) {
+    assert!(s.gt_pixels > 0, "{what}: scene without objects");
+    assert!(
+        s.mean_err_m <= 0.03,
+        "{what}: mean range error {:.4} m > 0.03 m ({s:?})",
+        s.mean_err_m
+    );
+    assert!(
+        s.raw_mean_err_m >= 5.0 * s.mean_err_m,
+        "{what}: uncorrected error {:.4} m is not ≥ 5× the corrected {:.4} m ({s:?})",
+        s.raw_mean_err_m,
+        s.mean_err_m
+    );
+    assert!(s.iou >= 0.9, "{what}: mask IoU {:.3} < 0.9 ({s:?})", s.iou);
+}
+
+#[test]
+fn medium_fog_reduced_size_meets_acceptance() {
+    let frame = simulate(FogPreset::Medium, 1, 128, 106);
+    let (out, secs) = run(&frame);
+    let s = score(&frame, &out, secs);
+    assert_acceptance(&s, "medium 128x106 seed 1");
+}
+
+/// Survey over presets, seeds and sizes; prints a table. Run with
+/// `cargo test --release --test tof_accuracy -- --ignored --nocapture`.
+#[test]
+#[ignore]
+fn survey() {
+    let sizes: Vec<(usize, usize)> = match std::env::var("TOF_SURVEY_SIZES").as_deref() {
+        Ok("full") => vec![(512, 424)],
+        Ok("both") => vec![(128, 106), (512, 424)],
+        _ => vec![(128, 106)],
+    };
+    let seeds: u64 = std::env::var("TOF_SURVEY_SEEDS")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(4);
+    println!("size      preset  seed  err_m   raw_m   clear_m  ratio  IoU    gt_px  est_px  secs");
+    for &(w, h) in &sizes {
+        for preset in FogPreset::ALL {
+            for seed in 0..seeds {
+                let frame = simulate(preset, seed, w, h);
+                let (out, secs) = run(&frame);
+                let s = score(&frame, &out, secs);
+                println!(
+                    "{w}x{h:<4} {preset:<7} {seed:<4} {:.4}  {:.4}  {:.4}   {:5.1}  {:.3}  {:6} {:6}  {:.3}",
+                    s.mean_err_m,
+                    s.raw_mean_err_m,
+                    s.clear_mean_err_m,
+                    s.raw_mean_err_m / s.mean_err_m.max(1e-9),
+                    s.iou,
+                    s.gt_pixels,
+                    s.est_pixels,
+                    s.seconds
+                );
+            }
+        }
+    }
+}
+
+/// Diagnostics of one frame: scatter-estimate errors in and out of the object, σ, CG work.
+#[test]
+#[ignore]
+fn diagnose() {
+    use murk::tof::irls::{run_irls, IrlsConfig};
+    use murk::tof::quadratic_prior::{PatchGrid, QuadraticPrior};
+    use murk::tof::symmetry::RowMirror;
+    use murk::tof::wls::XStepSystem;
+    use murk::tof::{IrlsChannelParams, XStepSolver};
+    let preset = match std::env::var("TOF_PRESET").as_deref() {
+        Ok("thin") => FogPreset::Thin,
+        Ok("thick") => FogPreset::Thick,
+        _ => FogPreset::Medium,
+    };
+    let seed: u64 = std::env::var("TOF_SEED")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(1);
+    let (w, h) = match std::env::var("TOF_SIZE").as_deref() {
+        Ok("full") => (512, 424),
+        _ => (128, 106),
+    };
+    let frame = simulate(preset, seed, w, h);
+    let gt = frame.gt_mask.data();
+    for (name, img, truth, ch) in [
+        (
+            "amplitude",
+            &frame.amplitude,
+            &frame.scatter_amplitude,
+            IrlsChannelParams::AMPLITUDE,
+        ),
+        (
+            "phase",
+            &frame.phase,
+            &frame.scatter_phase,
+            IrlsChannelParams::PHASE,
+        ),
+    ] {
+        let mut filtered = img.data().to_vec();
+        if std::env::var("TOF_DIAG_BILATERAL").is_ok() {
+            let b = murk::tof::BilateralParams::default();
+            murk::tof::bilateral::bilateral_filter(img.data(), w, h, &b, &mut filtered);
+        }
+        let observed: Vec<f64> = filtered.iter().map(|&v| v as f64).collect();
+        let mut ch = ch;
+        if let Some(v) = std::env::var("TOF_CFINE_SCALE")
+            .ok()
+            .and_then(|s| s.parse::<f64>().ok())
+        {
+            ch.c_fine *= v;
+        }
+        if let Some(v) = std::env::var("TOF_G1_SCALE")
+            .ok()
+            .and_then(|s| s.parse::<f64>().ok())
+        {
+            ch.gamma[0] *= v;
+        }
+        if let Some(v) = std::env::var("TOF_G3_SCALE")
+            .ok()
+            .and_then(|s| s.parse::<f64>().ok())
+        {
+            ch.gamma[2] *= v;
+        }
+        let sys = XStepSystem::new(w, h, ch.gamma, RowMirror::new(h, frame.intrinsics.cy));
+        let mut prior = QuadraticPrior::new(PatchGrid::new(w, h, 4, 4)).unwrap();
+        let cfg = IrlsConfig {
+            channel: ch,
+            coarse_iterations: 5,
+            fine_iterations: 50,
+            solver: XStepSolver::default(),
+        };
+        let t = Instant::now();
+        let o = run_irls(
+            &observed,
+            &sys,
+            &mut prior,
+            &cfg,
+            "d",
+            &Monitor::noop(),
+            &|_| {},
+        )
+        .unwrap();
+        let secs = t.elapsed().as_secs_f64();
+        if std::env::var("TOF_MAPS").is_ok() {
+            // Coarse map: '#' object outlier, 'x' background outlier, 'o' object inlier, '.' ok;
+            // then the scatter error relative to the truth's spread, 0–9.
+            let (sx, sy) = (w / 64, h / 26);
+            let spread = truth.data().iter().fold(0.0f32, |m, v| m.max(v.abs())) as f64;
+            for y in (0..h).step_by(sy.max(1)) {
+                let mut line = String::new();
+                let mut line2 = String::new();
+                for x in (0..w).step_by(sx.max(1)) {
+                    let i = y * w + x;
+                    let obj = gt[i] > 0.5;
+                    let out = o.weights[i] < 0.5;
+                    line.push(match (obj, out) {
+                        (true, true) => '#',
+                        (false, true) => 'x',
+                        (true, false) => 'o',
+                        _ => '.',
+                    });
+                    let e =
+                        ((o.scatter[i] - truth.data()[i] as f64).abs() / spread * 50.0).min(9.0);
+                    line2.push(char::from(b'0' + e as u8));
+                }
+                println!("{line}   {line2}");
+            }
+        }
+        let (mut ein, mut eout, mut obs_bg, mut nin, mut nout, mut tin) =
+            (0.0, 0.0, 0.0, 0, 0, 0.0);
+        let (mut fp, mut fneg) = (0, 0);
+        for i in 0..w * h {
+            let e = (o.scatter[i] - truth.data()[i] as f64).abs();
+            if gt[i] > 0.5 {
+                ein += e;
+                tin += truth.data()[i] as f64;
+                nin += 1;
+                fneg += (o.weights[i] >= 0.5) as usize;
+            } else {
+                eout += e;
+                obs_bg += (observed[i] - truth.data()[i] as f64).abs();
+                nout += 1;
+                fp += (o.weights[i] < 0.5) as usize;
+            }
+        }
+        println!(
+            "{name}: |x−s| in obj {:.4} (mean s {:.4}), bg {:.4}; |x̃−s| bg {:.4}; σ2 {:?} σ1 {:?}; \
+             cg its {} ({:.1}/solve); {:.3}s; outlier-bg px {fp}/{nout}, inlier-obj px {fneg}/{nin}",
+            ein / nin as f64,
+            tin / nin as f64,
+            eout / nout as f64,
+            obs_bg / nout as f64,
+            o.sigma_coarse,
+            o.sigma_fine,
+            o.cg_iterations,
+            o.cg_iterations as f64 / 55.0,
+            secs
+        );
+    }
+    // Oracle: subtract the true scatter phasor from the observation (floor of the method).
+    let c = murk::tof::SPEED_OF_LIGHT_M_PER_S;
+    let f = frame.config.modulation_frequency_hz;
+    let k = c / (4.0 * std::f64::consts::PI * f);
+    let (out, _) = run(&frame);
+    let (mut eo, mut ee, mut esa, mut esp, mut n) = (0.0, 0.0, 0.0, 0.0, 0);
+    for i in 0..w * h {
+        if gt[i] < 0.5 {
+            continue;
+        }
+        let (a, p) = (
+            frame.amplitude.data()[i] as f64,
+            frame.phase.data()[i] as f64,
+        );
+        let (sa, sp) = (
+            frame.scatter_amplitude.data()[i] as f64,
+            frame.scatter_phase.data()[i] as f64,
+        );
+        let re = a * p.cos() - sa * sp.cos();
+        let im = a * p.sin() - sa * sp.sin();
+        let ph = im.atan2(re).rem_euclid(2.0 * std::f64::consts::PI);
+        eo += (k * ph - frame.gt_range_m.data()[i] as f64).abs();
+        ee += (out.range_m.data()[i] as f64 - frame.gt_range_m.data()[i] as f64).abs();
+        esa += (out.scatter_amplitude.data()[i] as f64 - sa).abs();
+        esp += (out.scatter_phase.data()[i] as f64 - sp).abs();
+        n += 1;
+    }
+    let n = n as f64;
+    println!(
+        "oracle-scatter range err {:.4} m; pipeline err {:.4} m; pipeline |Δα_s| {:.3} |Δφ_s| {:.4}",
+        eo / n,
+        ee / n,
+        esa / n,
+        esp / n
+    );
+}
