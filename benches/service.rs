@@ -22,6 +22,7 @@ fn request(width: usize, height: usize) -> pb::SubmitJobRequest {
                 phase: Some(image_to_proto(&frame.phase)),
                 modulation_frequency_hz: cfg.modulation_frequency_hz,
                 intrinsics: None,
+                light_position_m: None,
                 options: Some(pb::TofOptions {
                     // The result's content does not matter here, only its size.
                     fine_iterations: Some(5),
@@ -59,7 +60,11 @@ fn cache_hit_round_trip(c: &mut Criterion) {
         // Compute once so every measured call is a cache hit.
         rt.block_on(async {
             let mut cl = client.clone();
-            let job = cl.submit_job(req.clone()).await.expect("submit").into_inner();
+            let job = cl
+                .submit_job(req.clone())
+                .await
+                .expect("submit")
+                .into_inner();
             let mut s = cl
                 .watch_job(pb::WatchJobRequest {
                     id: job.id,

@@ -40,6 +40,7 @@ fn run(frame: &TofSimFrame) -> (TofOutput, f64) {
     };
     let mut params = TofParams {
         modulation_frequency_hz: frame.config.modulation_frequency_hz,
+        light_position_m: Some(frame.config.light_position_m()),
         ..TofParams::default()
     };
     if let Some(rel) = std::env::var("TOF_BIL_REL")

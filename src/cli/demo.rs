@@ -82,6 +82,10 @@ pub fn run(a: DemoArgs) -> anyhow::Result<()> {
                     cy: k.cy,
                     skew: k.skew,
                 }),
+                light_position_m: Some({
+                    let [x, y, z] = frame.config.light_position_m();
+                    pb::Vector3 { x, y, z }
+                }),
                 options: None,
             };
             let t0 = Instant::now();
@@ -134,4 +138,3 @@ pub fn run(a: DemoArgs) -> anyhow::Result<()> {
         Ok(())
     })
 }
-

@@ -38,6 +38,10 @@ pub struct TofArgs {
     /// Intrinsics "fx,fy,cx,cy" in pixels (overrides meta.json); enables z-depth.
     #[arg(long)]
     pub intrinsics: Option<String>,
+    /// Light source position "x,y,z" in the camera frame, metres (overrides meta.json); with
+    /// intrinsics, range is solved exactly for the emitter's offset from the lens.
+    #[arg(long)]
+    pub light_position_m: Option<String>,
     /// Fine IRLS iterations (default: the reference's 50).
     #[arg(long)]
     pub fine_iterations: Option<u32>,
@@ -55,13 +59,14 @@ pub struct TofArgs {
 /// Runs `murk tof`.
 pub fn run(a: TofArgs) -> anyhow::Result<()> {
     let limits = DecodeLimits::default();
-    let (amplitude, mut phase, meta_k, meta_f) = if let Some(dir) = &a.frame {
+    let (amplitude, mut phase, meta_k, meta_f, meta_light) = if let Some(dir) = &a.frame {
         let c = read_tof_capture(dir).with_context(|| format!("reading {}", dir.display()))?;
         (
             c.amplitude,
             c.phase,
             c.intrinsics,
             c.modulation_frequency_hz,
+            c.light_position_m,
         )
     } else {
         let (Some(ap), Some(pp)) = (&a.amplitude, &a.phase) else {
@@ -70,6 +75,7 @@ pub fn run(a: TofArgs) -> anyhow::Result<()> {
         (
             read_image(ap, &limits)?,
             read_image(pp, &limits)?,
+            None,
             None,
             None,
         )
@@ -87,6 +93,12 @@ pub fn run(a: TofArgs) -> anyhow::Result<()> {
         Some(s) => Some(parse_intrinsics(s)?),
         None => meta_k,
     };
+    let light = match &a.light_position_m {
+        Some(s) => Some(parse_numbers::<3>(s, "--light-position-m", "x,y,z")?),
+        None => meta_light,
+    }
+    // The correction needs each pixel's ray; without intrinsics fall back to half the path.
+    .filter(|_| intrinsics.is_some());
     let request = pb::TofDepthRequest {
         amplitude: Some(image_to_proto(&amplitude)),
         phase: Some(image_to_proto(&phase)),
@@ -98,6 +110,7 @@ pub fn run(a: TofArgs) -> anyhow::Result<()> {
             cy: k.cy,
             skew: k.skew,
         }),
+        light_position_m: light.map(|[x, y, z]| pb::Vector3 { x, y, z }),
         options: Some(pb::TofOptions {
             coarse_iterations: a.coarse_iterations,
             fine_iterations: a.fine_iterations,
@@ -131,15 +144,18 @@ pub fn run(a: TofArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-fn parse_intrinsics(s: &str) -> anyhow::Result<Intrinsics> {
+fn parse_numbers<const N: usize>(s: &str, flag: &str, shape: &str) -> anyhow::Result<[f64; N]> {
     let v: Vec<f64> = s
         .split(',')
         .map(|p| p.trim().parse::<f64>())
         .collect::<Result<_, _>>()
-        .context("--intrinsics must be fx,fy,cx,cy")?;
-    let [fx, fy, cx, cy] = v[..] else {
-        bail!("--intrinsics must have 4 numbers: fx,fy,cx,cy");
-    };
+        .with_context(|| format!("{flag} must be {shape}"))?;
+    v.try_into()
+        .map_err(|_| anyhow::anyhow!("{flag} must have {N} numbers: {shape}"))
+}
+
+fn parse_intrinsics(s: &str) -> anyhow::Result<Intrinsics> {
+    let [fx, fy, cx, cy] = parse_numbers::<4>(s, "--intrinsics", "fx,fy,cx,cy")?;
     let k = Intrinsics::new(fx, fy, cx, cy);
     k.validate()?;
     Ok(k)

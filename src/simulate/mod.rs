@@ -5,7 +5,8 @@
 //!
 //! ```text
 //! <dir>/
-//!   meta.json               format "murk.tof_frame" v1: modulation_frequency_hz, intrinsics
+//!   meta.json               format "murk.tof_frame" v1: modulation_frequency_hz, intrinsics,
+//!                           light_position_m
 //!                           {fx, fy, cx, cy, skew} (pixels, pixel-centre origin), beta_per_mm,
 //!                           units, and for simulations the full config and scene
 //!   amplitude.exr           observed amplitude α̃ (1 channel "Y", f32, sensor units)
@@ -16,12 +17,14 @@
 //!   scatter_phase.exr                                               (simulation only)
 //!   gt_range_m.exr          distance along the ray to the surface, m (simulation only)
 //!   gt_z_depth_m.exr        z-depth of the surface, m                (simulation only)
-//!   gt_mask.png             16-bit gray, 65535 = object, 0 = background (simulation only)
+//!   gt_mask.png             16-bit gray, 65535 = lit object (measurable), 0 = else (simulation only)
+//!   gt_object_mask.png      16-bit gray, 65535 = any object pixel, lit or not (simulation only)
 //!   preview_*.png           Turbo-coloured previews, for people only
 //! ```
 //!
 //! Real captures use the same layout with only `amplitude.exr`, `phase.exr` and (optionally)
-//! `meta.json` holding `modulation_frequency_hz` and `intrinsics`; read them with
+//! `meta.json` holding `modulation_frequency_hz`, `intrinsics` and `light_position_m` (the
+//! emitter in the camera frame, metres); read them with
 //! [`read_tof_capture`].
 
 pub mod scene;
@@ -89,6 +92,9 @@ struct TofMeta {
     modulation_frequency_hz: Option<f64>,
     #[serde(default)]
     intrinsics: Option<IntrinsicsJson>,
+    /// Light source in the camera frame, metres.
+    #[serde(default)]
+    light_position_m: Option<[f64; 3]>,
     #[serde(default)]
     beta_per_mm: Option<f64>,
     #[serde(default)]
@@ -127,12 +133,19 @@ pub fn write_tof_frame(dir: &Path, frame: &TofSimFrame) -> Result<()> {
         io::write_exr(&dir.join(name), img)?;
     }
     io::write_png16(&dir.join("gt_mask.png"), &frame.gt_mask, 0.0, 1.0)?;
+    io::write_png16(
+        &dir.join("gt_object_mask.png"),
+        &frame.gt_object_mask,
+        0.0,
+        1.0,
+    )?;
 
     let meta = TofMeta {
         format: Some(TOF_FRAME_FORMAT.to_string()),
         version: Some(1),
         modulation_frequency_hz: Some(frame.config.modulation_frequency_hz),
         intrinsics: Some(frame.intrinsics.into()),
+        light_position_m: Some(frame.config.light_position_m()),
         beta_per_mm: Some(frame.config.effective_beta_per_mm()),
         units: Some(serde_json::json!({
             "amplitude": "linear sensor units",
@@ -248,6 +261,7 @@ pub fn read_tof_frame(dir: &Path) -> Result<TofSimFrame> {
         rest.push(read_channel(dir, name, dims)?);
     }
     let gt_mask = read_channel(dir, "gt_mask.png", dims)?;
+    let gt_object_mask = read_channel(dir, "gt_object_mask.png", dims)?;
     let mut it = rest.into_iter();
     let mut next = || {
         it.next()
@@ -266,6 +280,7 @@ pub fn read_tof_frame(dir: &Path) -> Result<TofSimFrame> {
         gt_range_m: next()?,
         gt_z_depth_m: next()?,
         gt_mask,
+        gt_object_mask,
     })
 }
 
@@ -280,6 +295,8 @@ pub struct TofCapture {
     pub intrinsics: Option<Intrinsics>,
     /// Modulation frequency from `meta.json`, if given.
     pub modulation_frequency_hz: Option<f64>,
+    /// Light source position (camera frame, metres) from `meta.json`, if given.
+    pub light_position_m: Option<[f64; 3]>,
 }
 
 /// Reads `amplitude.exr`, `phase.exr` and, when present, `meta.json` from `dir` (simulated frames
@@ -288,21 +305,31 @@ pub fn read_tof_capture(dir: &Path) -> Result<TofCapture> {
     let meta = read_meta(dir, false)?;
     let amplitude = read_channel(dir, "amplitude.exr", None)?;
     let phase = read_channel(dir, "phase.exr", Some(amplitude.dims()))?;
-    let (intrinsics, modulation_frequency_hz) = match meta {
+    let (intrinsics, modulation_frequency_hz, light_position_m) = match meta {
         Some(m) => (
             m.intrinsics.map(Intrinsics::from),
             m.modulation_frequency_hz,
+            m.light_position_m,
         ),
-        None => (None, None),
+        None => (None, None, None),
     };
     if let Some(k) = &intrinsics {
         k.validate().map_err(|e| e.within("meta.json.intrinsics"))?;
+    }
+    if let Some(l) = &light_position_m {
+        if l.iter().any(|v| !v.is_finite()) {
+            return Err(MurkError::invalid(
+                "meta.json.light_position_m",
+                format!("must be finite, got {l:?}"),
+            ));
+        }
     }
     Ok(TofCapture {
         amplitude,
         phase,
         intrinsics,
         modulation_frequency_hz,
+        light_position_m,
     })
 }
 
@@ -339,10 +366,12 @@ mod tests {
         let frame = simulate_tof(&cfg, &Monitor::noop()).unwrap();
         let dir = tempfile::tempdir().unwrap();
         write_tof_frame(dir.path(), &frame).unwrap();
-        for f in IMAGE_FILES
-            .iter()
-            .chain(&["gt_mask.png", "meta.json", "preview_amplitude.png"])
-        {
+        for f in IMAGE_FILES.iter().chain(&[
+            "gt_mask.png",
+            "gt_object_mask.png",
+            "meta.json",
+            "preview_amplitude.png",
+        ]) {
             assert!(dir.path().join(f).is_file(), "{f} missing");
         }
         let back = read_tof_frame(dir.path()).unwrap();

@@ -187,6 +187,11 @@ impl Default for TofSimConfig {
 }
 
 impl TofSimConfig {
+    /// The light source's position in the camera frame, metres.
+    pub fn light_position_m(&self) -> [f64; 3] {
+        [self.light_offset_mm * 1e-3, 0.0, 0.0]
+    }
+
     /// The default camera at `width × height`, focal lengths scaled so the field of view is the
     /// default's, principal point at the image centre.
     pub fn with_size(width: usize, height: usize) -> Self {
@@ -358,8 +363,13 @@ pub struct TofSimFrame {
     pub gt_range_m: ImageF32,
     /// Ground-truth z-depth of the surface, metres.
     pub gt_z_depth_m: ImageF32,
-    /// 1 where the pixel sees an object, 0 where it sees the background wall.
+    /// 1 where the pixel sees an object that the camera's own light reaches (its clear-air
+    /// direct return is above the sensor's read-noise floor), 0 elsewhere. Object pixels in
+    /// shadow or outside the beam return no direct light: no ToF method can measure them, so
+    /// accuracy is evaluated on this mask.
     pub gt_mask: ImageF32,
+    /// 1 where the pixel sees an object at all (lit or not), 0 where it sees the wall.
+    pub gt_object_mask: ImageF32,
 }
 
 /// Precomputed constants of the signal model.
@@ -548,6 +558,7 @@ struct PixelOut {
     range: f32,
     z: f32,
     mask: f32,
+    object: f32,
 }
 
 /// Standard normal pair by Box–Muller (rand 0.9 has no normal distribution without rand_distr).
@@ -613,6 +624,7 @@ pub fn simulate_tof(cfg: &TofSimConfig, monitor: &Monitor) -> Result<TofSimFrame
         gt_range_m: img(|p| p.range)?,
         gt_z_depth_m: img(|p| p.z)?,
         gt_mask: img(|p| p.mask)?,
+        gt_object_mask: img(|p| p.object)?,
         scene,
     };
     monitor.progress("simulate_tof", 1.0);
@@ -667,7 +679,13 @@ fn render_pixel(model: &Model<'_>, cfg: &TofSimConfig, d: V3, rng: &mut ChaCha8R
         scatter_phase: phase_f32(scatter),
         range: range as f32,
         z: z as f32,
-        mask,
+        // Measurable: lit well enough in clear air to stand out of the read noise.
+        mask: if mask > 0.5 && direct_clear.amplitude() > 3.0 * cfg.noise_read.max(1e-9) {
+            1.0
+        } else {
+            0.0
+        },
+        object: mask,
     }
 }
 

@@ -104,6 +104,12 @@ pub struct TofParams {
     pub bilateral: Option<BilateralParams>,
     /// A pixel is object (outlier) when its final IRLS weight is below this, in (0, 1).
     pub mask_threshold: f32,
+    /// Position of the camera's light source in the camera frame, metres (e.g. `[0.06, 0, 0]`
+    /// for an emitter 6 cm to the right of the lens). The phase measures the optical path
+    /// camera ← surface ← light, so without it range is taken as half the path, which is off
+    /// by up to half the baseline. Requires intrinsics (the ray direction enters the
+    /// correction).
+    pub light_position_m: Option<[f64; 3]>,
 }
 
 impl Default for TofParams {
@@ -119,6 +125,7 @@ impl Default for TofParams {
             fine_iterations: 50,
             bilateral: Some(BilateralParams::default()),
             mask_threshold: 0.5,
+            light_position_m: None,
         }
     }
 }
@@ -147,7 +154,9 @@ impl TofParams {
             if dim / p < 3 {
                 return Err(MurkError::invalid(
                     name,
-                    format!("{p} patches leave fewer than 3 pixels per patch along an axis of {dim}"),
+                    format!(
+                        "{p} patches leave fewer than 3 pixels per patch along an axis of {dim}"
+                    ),
                 ));
             }
         }
@@ -155,11 +164,16 @@ impl TofParams {
             if !r.is_finite() || r < 0.0 || r > (height as f64 - 1.0) {
                 return Err(MurkError::invalid(
                     "symmetry_row",
-                    format!("must be a row inside the image [0, {}], got {r}", height - 1),
+                    format!(
+                        "must be a row inside the image [0, {}], got {r}",
+                        height - 1
+                    ),
                 ));
             }
         }
-        self.amplitude.validate().map_err(|e| e.within("amplitude"))?;
+        self.amplitude
+            .validate()
+            .map_err(|e| e.within("amplitude"))?;
         self.phase.validate().map_err(|e| e.within("phase"))?;
         for (name, n) in [
             ("coarse_iterations", self.coarse_iterations),
@@ -191,11 +205,34 @@ impl TofParams {
                 }
             }
         }
+        if let Some(l) = self.light_position_m {
+            if l.iter().any(|v| !v.is_finite()) || l.iter().map(|v| v * v).sum::<f64>() > 100.0 {
+                return Err(MurkError::invalid(
+                    "light_position_m",
+                    format!("must be finite and within 10 m of the camera, got {l:?}"),
+                ));
+            }
+        }
         let t = self.mask_threshold;
         if !t.is_finite() || t <= 0.0 || t >= 1.0 {
             return Err(MurkError::invalid(
                 "mask_threshold",
                 format!("must be in (0, 1), got {t}"),
+            ));
+        }
+        Ok(())
+    }
+}
+
+impl TofParams {
+    /// [`TofParams::validate`] plus the checks that need the input (image size, intrinsics).
+    pub fn validate_for(&self, input: &TofInput) -> Result<()> {
+        let (w, h) = input.amplitude.dims();
+        self.validate(w, h)?;
+        if self.light_position_m.is_some() && input.intrinsics.is_none() {
+            return Err(MurkError::invalid(
+                "light_position_m",
+                "needs intrinsics: the range correction depends on each pixel's ray",
             ));
         }
         Ok(())

@@ -47,7 +47,7 @@ pub fn estimate_tof_depth_with_solver(
 ) -> Result<TofOutput> {
     input.validate()?;
     let (w, h) = input.amplitude.dims();
-    params.validate(w, h)?;
+    params.validate_for(input)?;
     monitor.checkpoint()?;
 
     let (amp, phase) = match &params.bilateral {
@@ -106,6 +106,20 @@ pub fn estimate_tof_depth_with_solver(
 #[inline]
 fn range_m(phase_rad: f64, frequency_hz: f64) -> f64 {
     SPEED_OF_LIGHT_M_PER_S * phase_rad / (2.0 * TAU * frequency_hz)
+}
+
+/// Range along the unit ray `d` (metres) of a surface whose optical path light → surface →
+/// camera is `path_m`, for a light at `light` (camera frame, metres). From
+/// `path = s + |s·d − L|`: `s = (path² − |L|²) / (2·(path − d·L))`. Falls back to `path/2` where
+/// the path is shorter than the baseline (noise), which no real surface can produce.
+#[inline]
+fn range_from_path(path_m: f64, d: [f64; 3], light: [f64; 3]) -> f64 {
+    let l2 = light[0] * light[0] + light[1] * light[1] + light[2] * light[2];
+    let dl = d[0] * light[0] + d[1] * light[1] + d[2] * light[2];
+    if path_m * path_m <= l2 || path_m <= dl {
+        return 0.5 * path_m;
+    }
+    (path_m * path_m - l2) / (2.0 * (path_m - dl))
 }
 
 /// Wraps radians into [0, 2π) (`rem_euclid` can round up to exactly 2π for tiny negatives).
@@ -175,6 +189,18 @@ fn compose(
             *sa = a_s as f32;
             *sp = wrap_phase(p_s) as f32;
         });
+    let mut raw_range = raw_range;
+    if let (Some(k), Some(light)) = (input.intrinsics, params.light_position_m) {
+        // Eq. 5.2 gives half the optical path; with the light off the lens the range is not.
+        for img in [&mut range, &mut raw_range] {
+            img.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+                for (x, r) in row.iter_mut().enumerate() {
+                    let d = k.ray(x as f64, y as f64);
+                    *r = range_from_path(2.0 * *r as f64, d, light) as f32;
+                }
+            });
+        }
+    }
     let z_depth = input.intrinsics.map(|k| {
         let mut z = vec![0.0f32; n];
         z.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
@@ -203,6 +229,24 @@ fn compose(
 mod tests {
     use super::*;
     use crate::camera::Intrinsics;
+
+    #[test]
+    fn range_from_path_inverts_the_offset_light_geometry() {
+        let light = [0.06, 0.01, 0.0];
+        for (d, s) in [
+            ([0.0, 0.0, 1.0], 1.5),
+            ([0.5f64, -0.2, 0.84], 0.8),
+            ([-0.55, 0.3, 0.78], 2.7),
+        ] {
+            let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2] as f64).sqrt();
+            let d = [d[0] / n, d[1] / n, d[2] / n];
+            let p = [d[0] * s, d[1] * s, d[2] * s];
+            let rl = ((p[0] - light[0]).powi(2) + (p[1] - light[1]).powi(2) + p[2].powi(2)).sqrt();
+            let got = range_from_path(s + rl, d, light);
+            assert!((got - s).abs() < 1e-12, "{got} vs {s}");
+        }
+        assert_eq!(range_from_path(0.01, [0.0, 0.0, 1.0], light), 0.005);
+    }
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
     use std::sync::atomic::AtomicBool;

@@ -71,6 +71,10 @@ pub fn tof_request(width: usize, height: usize, seed: u64) -> pb::TofDepthReques
             cy: k.cy,
             skew: k.skew,
         }),
+        light_position_m: Some({
+            let [x, y, z] = cfg.light_position_m();
+            pb::Vector3 { x, y, z }
+        }),
         options: None,
     }
 }

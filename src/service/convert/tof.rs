@@ -35,9 +35,10 @@ pub fn tof_from_proto(
     };
     input.validate()?;
     let params = params_from_proto(req)?;
-    let (w, h) = input.amplitude.dims();
-    params.validate(w, h).map_err(|e| match e {
-        MurkError::InvalidArgument { field, reason } if field != "modulation_frequency_hz" => {
+    params.validate_for(&input).map_err(|e| match e {
+        MurkError::InvalidArgument { field, reason }
+            if field != "modulation_frequency_hz" && field != "light_position_m" =>
+        {
             MurkError::invalid(format!("options.{}", proto_field_name(&field)), reason)
         }
         other => other,
@@ -58,6 +59,7 @@ fn params_from_proto(req: &pb::TofDepthRequest) -> Result<TofParams> {
         modulation_frequency_hz: req.modulation_frequency_hz,
         ..TofParams::default()
     };
+    p.light_position_m = req.light_position_m.as_ref().map(|v| [v.x, v.y, v.z]);
     let Some(o) = &req.options else {
         return Ok(p);
     };
