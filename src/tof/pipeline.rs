@@ -234,11 +234,11 @@ mod tests {
     fn range_from_path_inverts_the_offset_light_geometry() {
         let light = [0.06, 0.01, 0.0];
         for (d, s) in [
-            ([0.0, 0.0, 1.0], 1.5),
+            ([0.0f64, 0.0, 1.0], 1.5),
             ([0.5f64, -0.2, 0.84], 0.8),
             ([-0.55, 0.3, 0.78], 2.7),
         ] {
-            let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2] as f64).sqrt();
+            let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
             let d = [d[0] / n, d[1] / n, d[2] / n];
             let p = [d[0] * s, d[1] * s, d[2] * s];
             let rl = ((p[0] - light[0]).powi(2) + (p[1] - light[1]).powi(2) + p[2].powi(2)).sqrt();
