@@ -6,7 +6,7 @@
 use criterion::{criterion_group, criterion_main, Criterion};
 use murk::jobs::JobsConfig;
 use murk::server::{InProcessServer, ServerConfig};
-use murk::service::convert::image_to_proto;
+use murk::service::convert::tof_request_to_proto;
 use murk::service::proto::v1 as pb;
 use murk::simulate::tof::{simulate_tof, TofSimConfig};
 use murk::Monitor;
@@ -15,20 +15,21 @@ use tonic::transport::Endpoint;
 fn request(width: usize, height: usize) -> pb::SubmitJobRequest {
     let cfg = TofSimConfig::with_size(width, height);
     let frame = simulate_tof(&cfg, &Monitor::noop()).expect("simulate");
+    let mut tof = tof_request_to_proto(
+        &frame.amplitude,
+        &frame.phase,
+        None,
+        cfg.modulation_frequency_hz,
+        None,
+    );
+    // The result's content does not matter here, only its size.
+    tof.options = Some(pb::TofOptions {
+        fine_iterations: Some(5),
+        ..Default::default()
+    });
     pb::SubmitJobRequest {
         request: Some(pb::JobRequest {
-            method: Some(pb::job_request::Method::TofDepth(pb::TofDepthRequest {
-                amplitude: Some(image_to_proto(&frame.amplitude)),
-                phase: Some(image_to_proto(&frame.phase)),
-                modulation_frequency_hz: cfg.modulation_frequency_hz,
-                intrinsics: None,
-                light_position_m: None,
-                options: Some(pb::TofOptions {
-                    // The result's content does not matter here, only its size.
-                    fine_iterations: Some(5),
-                    ..Default::default()
-                }),
-            })),
+            method: Some(pb::job_request::Method::TofDepth(tof)),
         }),
     }
 }

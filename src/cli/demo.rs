@@ -10,7 +10,7 @@ use clap::Args;
 
 use murk::metrics::{mask_iou, mean_abs_error};
 use murk::server::{InProcessServer, ServerConfig};
-use murk::service::convert::image_to_proto;
+use murk::service::convert::tof_request_to_proto;
 use murk::service::proto::v1 as pb;
 use murk::simulate::tof::{simulate_tof, FogPreset, TofSimConfig};
 use murk::simulate::write_tof_frame;
@@ -70,24 +70,13 @@ pub fn run(a: DemoArgs) -> anyhow::Result<()> {
             let dir = a.out.join(format!("tof-{preset}"));
             write_tof_frame(&dir.join("input"), &frame)
                 .with_context(|| format!("writing {}", dir.display()))?;
-            let k = frame.intrinsics;
-            let request = pb::TofDepthRequest {
-                amplitude: Some(image_to_proto(&frame.amplitude)),
-                phase: Some(image_to_proto(&frame.phase)),
-                modulation_frequency_hz: frame.config.modulation_frequency_hz,
-                intrinsics: Some(pb::CameraIntrinsics {
-                    fx: k.fx,
-                    fy: k.fy,
-                    cx: k.cx,
-                    cy: k.cy,
-                    skew: k.skew,
-                }),
-                light_position_m: Some({
-                    let [x, y, z] = frame.config.light_position_m();
-                    pb::Vector3 { x, y, z }
-                }),
-                options: None,
-            };
+            let request = tof_request_to_proto(
+                &frame.amplitude,
+                &frame.phase,
+                Some(&frame.intrinsics),
+                frame.config.modulation_frequency_hz,
+                Some(frame.config.light_position_m()),
+            );
             let t0 = Instant::now();
             let (job, result) = run_job(
                 &mut client,

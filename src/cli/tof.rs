@@ -7,7 +7,7 @@ use clap::Args;
 
 use murk::camera::Intrinsics;
 use murk::io::{read_image, write_colormap_png, write_exr, DecodeLimits};
-use murk::service::convert::{image_from_proto, image_to_proto, ImageLimits};
+use murk::service::convert::{image_from_proto, tof_request_to_proto, ImageLimits};
 use murk::service::proto::v1 as pb;
 use murk::simulate::read_tof_capture;
 use murk::ImageF32;
@@ -99,25 +99,14 @@ pub fn run(a: TofArgs) -> anyhow::Result<()> {
     }
     // The correction needs each pixel's ray; without intrinsics fall back to half the path.
     .filter(|_| intrinsics.is_some());
-    let request = pb::TofDepthRequest {
-        amplitude: Some(image_to_proto(&amplitude)),
-        phase: Some(image_to_proto(&phase)),
-        modulation_frequency_hz: frequency,
-        intrinsics: intrinsics.map(|k| pb::CameraIntrinsics {
-            fx: k.fx,
-            fy: k.fy,
-            cx: k.cx,
-            cy: k.cy,
-            skew: k.skew,
-        }),
-        light_position_m: light.map(|[x, y, z]| pb::Vector3 { x, y, z }),
-        options: Some(pb::TofOptions {
-            coarse_iterations: a.coarse_iterations,
-            fine_iterations: a.fine_iterations,
-            symmetry_row: a.symmetry_row,
-            ..Default::default()
-        }),
-    };
+    let mut request =
+        tof_request_to_proto(&amplitude, &phase, intrinsics.as_ref(), frequency, light);
+    request.options = Some(pb::TofOptions {
+        coarse_iterations: a.coarse_iterations,
+        fine_iterations: a.fine_iterations,
+        symmetry_row: a.symmetry_row,
+        ..Default::default()
+    });
     let rt = tokio::runtime::Runtime::new()?;
     let (job, result) = rt.block_on(async {
         let mut client = connect(&a.server).await?;

@@ -7,7 +7,7 @@ use std::time::Duration;
 
 use murk::jobs::JobsConfig;
 use murk::server::{InProcessServer, ServerConfig};
-use murk::service::convert::image_to_proto;
+use murk::service::convert::tof_request_to_proto;
 use murk::service::proto::v1 as pb;
 use murk::simulate::tof::{simulate_tof, TofSimConfig};
 use murk::Monitor;
@@ -59,24 +59,13 @@ pub fn tof_request(width: usize, height: usize, seed: u64) -> pb::TofDepthReques
         ..TofSimConfig::with_size(width, height)
     };
     let frame = simulate_tof(&cfg, &Monitor::noop()).expect("simulate");
-    let k = frame.intrinsics;
-    pb::TofDepthRequest {
-        amplitude: Some(image_to_proto(&frame.amplitude)),
-        phase: Some(image_to_proto(&frame.phase)),
-        modulation_frequency_hz: cfg.modulation_frequency_hz,
-        intrinsics: Some(pb::CameraIntrinsics {
-            fx: k.fx,
-            fy: k.fy,
-            cx: k.cx,
-            cy: k.cy,
-            skew: k.skew,
-        }),
-        light_position_m: Some({
-            let [x, y, z] = cfg.light_position_m();
-            pb::Vector3 { x, y, z }
-        }),
-        options: None,
-    }
+    tof_request_to_proto(
+        &frame.amplitude,
+        &frame.phase,
+        Some(&frame.intrinsics),
+        cfg.modulation_frequency_hz,
+        Some(cfg.light_position_m()),
+    )
 }
 
 /// A request that runs for a long time (thousands of fine iterations) unless cancelled.

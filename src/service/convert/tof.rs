@@ -3,6 +3,7 @@
 use super::image::{image_from_proto, image_to_proto, ImageLimits};
 use crate::camera::Intrinsics;
 use crate::error::{MurkError, Result};
+use crate::image::ImageF32;
 use crate::service::proto::v1 as pb;
 use crate::tof::{BilateralParams, IrlsChannelParams, TofInput, TofOutput, TofParams};
 
@@ -109,6 +110,36 @@ fn irls_from_proto(o: Option<&pb::IrlsOptions>, p: &mut IrlsChannelParams) {
         if let Some(v) = src {
             *dst = v;
         }
+    }
+}
+
+/// Intrinsics for the wire.
+pub fn intrinsics_to_proto(k: &Intrinsics) -> pb::CameraIntrinsics {
+    pb::CameraIntrinsics {
+        fx: k.fx,
+        fy: k.fy,
+        cx: k.cx,
+        cy: k.cy,
+        skew: k.skew,
+    }
+}
+
+/// A request for `input` with the reference defaults (clients: CLI, demo, tests, benchmarks).
+/// Images travel as raw f32 so nothing is lost to quantisation.
+pub fn tof_request_to_proto(
+    amplitude: &ImageF32,
+    phase_rad: &ImageF32,
+    intrinsics: Option<&Intrinsics>,
+    modulation_frequency_hz: f64,
+    light_position_m: Option<[f64; 3]>,
+) -> pb::TofDepthRequest {
+    pb::TofDepthRequest {
+        amplitude: Some(image_to_proto(amplitude)),
+        phase: Some(image_to_proto(phase_rad)),
+        modulation_frequency_hz,
+        intrinsics: intrinsics.map(intrinsics_to_proto),
+        options: None,
+        light_position_m: light_position_m.map(|[x, y, z]| pb::Vector3 { x, y, z }),
     }
 }
 
