@@ -4,7 +4,8 @@
 //! transform ([`pose`]), the plane sweep — planes uniform in inverse depth, the per-plane
 //! homography π_{r→s} (Eq. 3.2) and the source-camera depth ζ (Eq. 3.6) — ([`plane_sweep`]), and
 //! COLMAP sparse-model I/O ([`colmap`]), and the ordinary and dehazing cost volumes
-//! (Eq. 3.1, 3.7; [`cost_volume`]). The scattering model itself lives in
+//! (Eq. 3.1, 3.7; [`cost_volume`]), and training-free depth from a cost volume — semi-global
+//! aggregation, winner-take-all, sub-plane refinement, confidence ([`depth`]). The scattering model itself lives in
 //! [`crate::atmosphere`].
 //!
 //! Units: depths, translations and plane positions are in scene units (COLMAP's arbitrary SfM
@@ -12,9 +13,16 @@
 
 pub mod colmap;
 pub mod cost_volume;
+pub mod depth;
 pub mod plane_sweep;
 pub mod pose;
 
+#[cfg(test)]
+mod tests;
+
 pub use cost_volume::{build_cost_volume, CostKind, CostVolume, View};
+pub use depth::{
+    depth_from_cost_volume, depth_from_costs, estimate_depth, DepthResult, PostFilter, SgmParams,
+};
 pub use plane_sweep::{PlaneSet, PlaneWarp, MAX_PLANES};
 pub use pose::Pose;

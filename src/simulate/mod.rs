@@ -27,6 +27,7 @@
 //! emitter in the camera frame, metres); read them with
 //! [`read_tof_capture`].
 
+pub mod mvs;
 pub mod scene;
 pub mod tof;
 

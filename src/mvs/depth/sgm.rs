@@ -1,0 +1,298 @@
+//! Semi-global aggregation (Hirschmüller 2008) of a plane-sweep cost volume over the plane
+//! index.
+//!
+//! Along each path direction `r` the path cost is
+//!
+//! `L_r(p, i) = C(p, i) + min(L_r(p−r, i), L_r(p−r, i±1) + P1, min_k L_r(p−r, k) + P2) − min_k L_r(p−r, k)`
+//!
+//! and the aggregated volume is `S(p, i) = Σ_r L_r(p, i)` over 4 or 8 directions. Subtracting
+//! `min_k L_r(p−r, k)` keeps `L_r ≤ C_max + P2`, so `f32` never overflows. A path starts at the
+//! image border with `L_r = C`.
+//!
+//! Layout and memory: costs and `S` are **pixel-major** `[y][x][plane]` `f32` (the caller
+//! transposes once), so each path update is a contiguous, vectorisable loop over planes, and
+//! every direction adds straight into the one `S` volume — no per-direction volumes. Horizontal
+//! directions run one image row per rayon task with a two-curve buffer; the other directions
+//! sweep rows in path order (each row depends on the previous) and split each row's pixels
+//! across rayon tasks, with two `W·N` row buffers. A cancellation checkpoint precedes each
+//! direction (and each row of the row-sweeping directions).
+
+use rayon::prelude::*;
+
+use crate::error::Result;
+use crate::image::ImageF32;
+use crate::monitor::Monitor;
+
+/// The 8 path directions `(dx, dy)` (the path steps from `p − r` to `p`); the first 4 are the
+/// 4-path subset (horizontal and vertical).
+pub const DIRECTIONS: [(i32, i32); 8] = [
+    (1, 0),
+    (-1, 0),
+    (0, 1),
+    (0, -1),
+    (1, 1),
+    (-1, 1),
+    (1, -1),
+    (-1, -1),
+];
+
+/// Pixels per rayon task in the row-sweeping directions: enough work per task (16 curves of N
+/// planes) to hide scheduling overhead, small enough to balance over 2+ cores.
+const PIXEL_CHUNK: usize = 16;
+
+/// Penalties of one aggregation run.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Penalties {
+    /// `P1`: cost of a ±1 plane step between neighbours (cost units).
+    pub p1: f32,
+    /// `P2`: cost of any larger jump (cost units), before adaptation.
+    pub p2: f32,
+    /// When `> 0`, `P2` at a path step `p − r → p` becomes `max(P1, P2 / (1 + g/τ))` with `g` the
+    /// mean absolute channel difference of the guide image between the two pixels and `τ` this
+    /// value: depth jumps are cheaper across image edges. `0` = constant `P2`.
+    pub p2_gradient_scale: f32,
+}
+
+/// Guide-image access for the adaptive `P2`.
+#[derive(Clone, Copy)]
+pub(crate) struct Guide<'a> {
+    data: &'a [f32],
+    channels: usize,
+    width: usize,
+}
+
+impl<'a> Guide<'a> {
+    pub(crate) fn new(img: &'a ImageF32) -> Self {
+        Self {
+            data: img.data(),
+            channels: img.channels(),
+            width: img.width(),
+        }
+    }
+}
+
+impl Penalties {
+    /// `P2` for the step from pixel `(xa, ya)` to `(xb, yb)`.
+    #[inline]
+    fn p2_at(&self, guide: Option<Guide<'_>>, xa: usize, ya: usize, xb: usize, yb: usize) -> f32 {
+        match guide {
+            Some(g) if self.p2_gradient_scale > 0.0 => {
+                let c = g.channels;
+                let a = &g.data[(ya * g.width + xa) * c..][..c];
+                let b = &g.data[(yb * g.width + xb) * c..][..c];
+                let diff: f32 = a.iter().zip(b).map(|(u, v)| (u - v).abs()).sum::<f32>() / c as f32;
+                (self.p2 / (1.0 + diff / self.p2_gradient_scale)).max(self.p1)
+            }
+            _ => self.p2.max(self.p1),
+        }
+    }
+}
+
+/// One path step (the recursion in the module docs) for one pixel: writes `L_r(p, ·)` into
+/// `out`, adds it to `sum` and returns `min_i L_r(p, i)`.
+#[inline]
+fn path_step(
+    c: &[f32],
+    prev: &[f32],
+    prev_min: f32,
+    p1: f32,
+    p2: f32,
+    out: &mut [f32],
+    sum: &mut [f32],
+) -> f32 {
+    let n = c.len();
+    let jump = prev_min + p2;
+    if n == 1 {
+        let l = c[0] + prev[0].min(jump) - prev_min;
+        out[0] = l;
+        sum[0] += l;
+        return l;
+    }
+    let mut m = f32::INFINITY;
+    {
+        let l = c[0] + prev[0].min(prev[1] + p1).min(jump) - prev_min;
+        out[0] = l;
+        sum[0] += l;
+        m = m.min(l);
+    }
+    // Interior planes: written over zipped slices so the bounds checks vanish and LLVM can
+    // vectorise along the plane axis.
+    let inner = c[1..n - 1]
+        .iter()
+        .zip(prev.windows(3))
+        .zip(out[1..n - 1].iter_mut().zip(sum[1..n - 1].iter_mut()));
+    for ((&ci, w), (o, s)) in inner {
+        let l = ci + w[1].min(w[0].min(w[2]) + p1).min(jump) - prev_min;
+        *o = l;
+        *s += l;
+        m = m.min(l);
+    }
+    {
+        let l = c[n - 1] + prev[n - 1].min(prev[n - 2] + p1).min(jump) - prev_min;
+        out[n - 1] = l;
+        sum[n - 1] += l;
+        m = m.min(l);
+    }
+    m
+}
+
+/// Starts a path at the border: `L_r = C`.
+#[inline]
+fn path_start(c: &[f32], out: &mut [f32], sum: &mut [f32]) -> f32 {
+    let mut m = f32::INFINITY;
+    for ((&ci, o), s) in c.iter().zip(out.iter_mut()).zip(sum.iter_mut()) {
+        *o = ci;
+        *s += ci;
+        m = m.min(ci);
+    }
+    m
+}
+
+/// Aggregates the pixel-major cost volume `costs` (`[y][x][plane]`, `w·h·n` values) along the
+/// first `num_paths` (4 or 8) of [`DIRECTIONS`] and returns `S` in the same layout.
+/// `guide` (the reference image, `w×h`) enables the adaptive `P2`.
+#[allow(clippy::too_many_arguments)]
+pub fn aggregate(
+    costs: &[f32],
+    w: usize,
+    h: usize,
+    n: usize,
+    num_paths: usize,
+    pen: &Penalties,
+    guide: Option<&ImageF32>,
+    monitor: &Monitor,
+) -> Result<Vec<f32>> {
+    debug_assert_eq!(costs.len(), w * h * n);
+    let guide = guide.map(Guide::new);
+    let mut sum = vec![0.0f32; w * h * n];
+    let dirs = &DIRECTIONS[..num_paths.min(DIRECTIONS.len())];
+    for (k, &(dx, dy)) in dirs.iter().enumerate() {
+        monitor.checkpoint()?;
+        if dy == 0 {
+            horizontal(costs, &mut sum, w, n, dx, pen, guide);
+        } else {
+            row_sweep(costs, &mut sum, w, h, n, dx, dy, pen, guide, monitor)?;
+        }
+        monitor.progress("mvs.sgm", (k + 1) as f32 / dirs.len() as f32);
+    }
+    Ok(sum)
+}
+
+/// A horizontal direction: rows are independent paths.
+fn horizontal(
+    costs: &[f32],
+    sum: &mut [f32],
+    w: usize,
+    n: usize,
+    dx: i32,
+    pen: &Penalties,
+    guide: Option<Guide<'_>>,
+) {
+    sum.par_chunks_mut(w * n)
+        .zip(costs.par_chunks(w * n))
+        .enumerate()
+        .for_each_init(
+            || (vec![0.0f32; n], vec![0.0f32; n]),
+            |(prev, cur), (y, (srow, crow))| {
+                let mut prev_min = 0.0;
+                for step in 0..w {
+                    let x = if dx > 0 { step } else { w - 1 - step };
+                    let c = &crow[x * n..(x + 1) * n];
+                    let s = &mut srow[x * n..(x + 1) * n];
+                    let m = if step == 0 {
+                        path_start(c, cur, s)
+                    } else {
+                        let xp = if dx > 0 { x - 1 } else { x + 1 };
+                        let p2 = pen.p2_at(guide, xp, y, x, y);
+                        path_step(c, prev, prev_min, pen.p1, p2, cur, s)
+                    };
+                    prev_min = m;
+                    std::mem::swap(prev, cur);
+                }
+            },
+        );
+}
+
+/// A direction with `dy = ±1`: rows in path order, pixels of a row in parallel.
+#[allow(clippy::too_many_arguments)]
+fn row_sweep(
+    costs: &[f32],
+    sum: &mut [f32],
+    w: usize,
+    h: usize,
+    n: usize,
+    dx: i32,
+    dy: i32,
+    pen: &Penalties,
+    guide: Option<Guide<'_>>,
+    monitor: &Monitor,
+) -> Result<()> {
+    let row_len = w * n;
+    let mut prev = vec![0.0f32; row_len];
+    let mut cur = vec![0.0f32; row_len];
+    let mut prev_min = vec![0.0f32; w];
+    let mut cur_min = vec![0.0f32; w];
+    for step in 0..h {
+        monitor.checkpoint()?;
+        let y = if dy > 0 { step } else { h - 1 - step };
+        let crow = &costs[y * row_len..(y + 1) * row_len];
+        let srow = &mut sum[y * row_len..(y + 1) * row_len];
+        let (prev_r, prev_min_r) = (&prev[..], &prev_min[..]);
+        srow.par_chunks_mut(PIXEL_CHUNK * n)
+            .zip(cur.par_chunks_mut(PIXEL_CHUNK * n))
+            .zip(cur_min.par_chunks_mut(PIXEL_CHUNK))
+            .enumerate()
+            .for_each(|(chunk, ((s_chunk, cur_chunk), min_chunk))| {
+                let x0 = chunk * PIXEL_CHUNK;
+                let parts = s_chunk
+                    .chunks_exact_mut(n)
+                    .zip(cur_chunk.chunks_exact_mut(n))
+                    .zip(min_chunk.iter_mut());
+                for (j, ((s, out), m)) in parts.enumerate() {
+                    let x = x0 + j;
+                    let c = &crow[x * n..(x + 1) * n];
+                    let xp = x as i64 - dx as i64;
+                    *m = if step == 0 || xp < 0 || xp >= w as i64 {
+                        path_start(c, out, s)
+                    } else {
+                        let xp = xp as usize;
+                        let yp = if dy > 0 { y - 1 } else { y + 1 };
+                        let p2 = pen.p2_at(guide, xp, yp, x, y);
+                        path_step(
+                            c,
+                            &prev_r[xp * n..(xp + 1) * n],
+                            prev_min_r[xp],
+                            pen.p1,
+                            p2,
+                            out,
+                            s,
+                        )
+                    };
+                }
+            });
+        std::mem::swap(&mut prev, &mut cur);
+        std::mem::swap(&mut prev_min, &mut cur_min);
+    }
+    Ok(())
+}
+
+/// Transposes a `[plane][y][x]` volume (`n` planes of `npix` pixels) to pixel-major
+/// `[pixel][plane]`, in parallel over blocks of pixels.
+pub fn to_pixel_major(data: &[f32], npix: usize, n: usize) -> Vec<f32> {
+    let mut out = vec![0.0f32; npix * n];
+    const BLOCK: usize = 64;
+    out.par_chunks_mut(BLOCK * n)
+        .enumerate()
+        .for_each(|(b, chunk)| {
+            let p0 = b * BLOCK;
+            let np = chunk.len() / n;
+            // Plane-outer so each plane's BLOCK pixels are read contiguously.
+            for i in 0..n {
+                let src = &data[i * npix + p0..i * npix + p0 + np];
+                for (j, &v) in src.iter().enumerate() {
+                    chunk[j * n + i] = v;
+                }
+            }
+        });
+    out
+}

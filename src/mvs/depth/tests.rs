@@ -1,0 +1,365 @@
+use super::sgm::{aggregate, Penalties, DIRECTIONS};
+use super::*;
+use crate::camera::Intrinsics;
+use crate::mvs::pose::Pose;
+
+/// Deterministic pseudo-random values in [0, 1).
+fn lcg(seed: u64, n: usize) -> Vec<f32> {
+    let mut s = seed
+        .wrapping_mul(6364136223846793005)
+        .wrapping_add(1442695040888963407);
+    (0..n)
+        .map(|_| {
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((s >> 40) as f32) / (1u64 << 24) as f32
+        })
+        .collect()
+}
+
+/// Straightforward SGM: one full path-cost volume per direction, explicit loops and minima.
+fn reference_sgm(
+    c: &[f32],
+    (w, h, n): (usize, usize, usize),
+    paths: usize,
+    pen: &Penalties,
+    guide: &ImageF32,
+) -> Vec<f32> {
+    let idx = |x: usize, y: usize, d: usize| (y * w + x) * n + d;
+    let mut s = vec![0.0f32; w * h * n];
+    for &(dx, dy) in &DIRECTIONS[..paths] {
+        let mut l = vec![0.0f32; w * h * n];
+        let ys: Vec<usize> = if dy >= 0 {
+            (0..h).collect()
+        } else {
+            (0..h).rev().collect()
+        };
+        let xs: Vec<usize> = if dx >= 0 {
+            (0..w).collect()
+        } else {
+            (0..w).rev().collect()
+        };
+        for &y in &ys {
+            for &x in &xs {
+                let (xp, yp) = (x as i64 - dx as i64, y as i64 - dy as i64);
+                if xp < 0 || yp < 0 || xp >= w as i64 || yp >= h as i64 {
+                    for d in 0..n {
+                        l[idx(x, y, d)] = c[idx(x, y, d)];
+                    }
+                    continue;
+                }
+                let (xp, yp) = (xp as usize, yp as usize);
+                let m = (0..n)
+                    .map(|k| l[idx(xp, yp, k)])
+                    .fold(f32::INFINITY, f32::min);
+                let ch = guide.channels();
+                let g: f32 = (0..ch)
+                    .map(|k| (guide.get(x, y, k) - guide.get(xp, yp, k)).abs())
+                    .sum::<f32>()
+                    / ch as f32;
+                let p2 = if pen.p2_gradient_scale > 0.0 {
+                    (pen.p2 / (1.0 + g / pen.p2_gradient_scale)).max(pen.p1)
+                } else {
+                    pen.p2.max(pen.p1)
+                };
+                for d in 0..n {
+                    let mut best = l[idx(xp, yp, d)];
+                    if d > 0 {
+                        best = best.min(l[idx(xp, yp, d - 1)] + pen.p1);
+                    }
+                    if d + 1 < n {
+                        best = best.min(l[idx(xp, yp, d + 1)] + pen.p1);
+                    }
+                    best = best.min(m + p2);
+                    l[idx(x, y, d)] = c[idx(x, y, d)] + best - m;
+                }
+            }
+        }
+        for (si, li) in s.iter_mut().zip(&l) {
+            *si += li;
+        }
+    }
+    s
+}
+
+#[test]
+fn fast_sgm_equals_reference() {
+    // Width > PIXEL_CHUNK so row sweeps split rows across several tasks.
+    let (w, h) = (37, 9);
+    for (n, paths, tau) in [(7, 8, 0.05f32), (5, 4, 0.0), (1, 8, 0.1), (2, 8, 0.05)] {
+        let c: Vec<f32> = lcg(n as u64, w * h * n).iter().map(|v| 3.0 * v).collect();
+        let guide = ImageF32::from_vec(w, h, 3, lcg(99, w * h * 3)).unwrap();
+        let pen = Penalties {
+            p1: 0.1,
+            p2: 0.9,
+            p2_gradient_scale: tau,
+        };
+        let fast = aggregate(&c, w, h, n, paths, &pen, Some(&guide), &Monitor::noop()).unwrap();
+        let slow = reference_sgm(&c, (w, h, n), paths, &pen, &guide);
+        for (i, (a, b)) in fast.iter().zip(&slow).enumerate() {
+            assert!(
+                (a - b).abs() <= 1e-4 * b.abs().max(1.0),
+                "voxel {i}: {a} vs {b}"
+            );
+        }
+    }
+}
+
+#[test]
+fn transpose_is_exact() {
+    let (npix, n) = (130, 5);
+    let data = lcg(3, npix * n);
+    let t = sgm::to_pixel_major(&data, npix, n);
+    for p in 0..npix {
+        for i in 0..n {
+            assert_eq!(t[p * n + i], data[i * npix + p]);
+        }
+    }
+}
+
+#[test]
+fn sub_plane_refinement_recovers_fractional_minimum() {
+    let n = 32;
+    let m = 10.3f32;
+    let curve: Vec<f32> = (0..n)
+        .map(|i| 0.01 * (i as f32 - m).powi(2) + 0.2)
+        .collect();
+    let sel = select_curve(&curve, 0.0);
+    assert!((sel.index - m).abs() < 1e-3, "{sel:?}");
+    assert!(sel.confidence > 0.0 && sel.confidence <= 1.0);
+    // Through the whole pipeline: with P1 = P2 = 0 every path cost equals the raw cost, so
+    // the aggregated curve is 8× the parabola and the refinement is exact again.
+    let (w, h) = (5, 4);
+    let planes = PlaneSet::new(1.0, 10.0, n).unwrap();
+    let mut data = Vec::with_capacity(w * h * n);
+    for &c in &curve {
+        data.extend(std::iter::repeat_n(c, w * h));
+    }
+    let params = SgmParams {
+        p1: 0.0,
+        p2: 0.0,
+        cost_window_radius: 0,
+        ..SgmParams::default()
+    };
+    let guide = ImageF32::filled(w, h, 3, 0.5);
+    let r = depth_from_costs(data, w, h, &planes, &guide, &params, &Monitor::noop()).unwrap();
+    let want = planes.inverse_depth(f64::from(m));
+    for (&inv, &z) in r.inverse_depth.data().iter().zip(r.z_depth.data()) {
+        assert!(
+            (f64::from(inv) - want).abs() < 1e-4 * want,
+            "{inv} vs {want}"
+        );
+        assert!((f64::from(z) * want - 1.0).abs() < 1e-3);
+    }
+    // Minimum at the first plane: no refinement, index exactly 0.
+    let edge: Vec<f32> = (0..n).map(|i| i as f32).collect();
+    assert_eq!(select_curve(&edge, 0.0).index, 0.0);
+    // A flat curve has zero confidence.
+    assert_eq!(select_curve(&[1.0; 8], 0.0).confidence, 0.0);
+}
+
+#[test]
+fn params_validation_names_fields() {
+    let field = |p: SgmParams| match p.validate() {
+        Err(MurkError::InvalidArgument { field, .. }) => field,
+        other => panic!("{other:?}"),
+    };
+    let d = SgmParams::default();
+    d.validate().unwrap();
+    assert_eq!(field(SgmParams { p1: -1.0, ..d }), "p1");
+    assert_eq!(field(SgmParams { p2: 0.01, ..d }), "p2");
+    assert_eq!(field(SgmParams { num_paths: 6, ..d }), "num_paths");
+    assert_eq!(
+        field(SgmParams {
+            cost_window_radius: 99,
+            ..d
+        }),
+        "cost_window_radius"
+    );
+    assert_eq!(
+        field(SgmParams {
+            post_filter: PostFilter::WeightedMedian {
+                radius: 2,
+                sigma: 0.0
+            },
+            ..d
+        }),
+        "post_filter.sigma"
+    );
+    let planes = PlaneSet::new(1.0, 2.0, 4).unwrap();
+    let g = ImageF32::filled(3, 3, 3, 0.0);
+    match depth_from_costs(vec![0.0; 5], 3, 3, &planes, &g, &d, &Monitor::noop()) {
+        Err(MurkError::InvalidArgument { field, .. }) => assert_eq!(field, "costs"),
+        other => panic!("{other:?}"),
+    }
+}
+
+// --- Rendered planes ------------------------------------------------------------------------
+
+const W: usize = 80;
+const H: usize = 60;
+
+fn k() -> Intrinsics {
+    Intrinsics::new(80.0, 80.0, 39.5, 29.5)
+}
+
+/// Smooth aperiodic RGB texture on world coordinates (x, y), values in [0.05, 0.95].
+fn texture(x: f64, y: f64, c: usize) -> f32 {
+    let cf = c as f64;
+    // Wavelengths of ~0.2–0.5 scene units: several pixels at z = 3…6, so no aliasing.
+    let (x, y) = (x * 0.5, y * 0.5);
+    let a = (x * (31.0 + 7.0 * cf) + y * (11.0 - 5.0 * cf) + cf).sin();
+    let b = (x * (-13.0 + 3.0 * cf) + y * (29.0 + 4.0 * cf) + 2.0 * cf).sin();
+    let d = (x * 17.0 * (1.0 + 0.3 * cf) - y * 19.0 + 0.5).sin() * (y * 7.0 + x * 3.0).cos();
+    (0.5 + 0.45 * (a + b + d) / 3.0) as f32
+}
+
+/// Renders the plane `z = z0 + slope·x` (world = reference frame) from a camera at `centre`
+/// (no rotation); texture only where `x < textured_below_x`, flat grey elsewhere.
+fn render(centre: [f64; 3], z0: f64, slope: f64, textured_below_x: f64) -> (ImageF32, ImageF32) {
+    let kk = k();
+    let mut img = ImageF32::filled(W, H, 3, 0.0);
+    let mut z = ImageF32::filled(W, H, 1, 0.0);
+    for v in 0..H {
+        for u in 0..W {
+            let r = kk.ray(u as f64, v as f64);
+            let d = [r[0] / r[2], r[1] / r[2], 1.0];
+            // (c_z + λ) = z0 + slope (c_x + λ d_x)
+            let lambda = (z0 + slope * centre[0] - centre[2]) / (1.0 - slope * d[0]);
+            let (x, y) = (centre[0] + lambda * d[0], centre[1] + lambda * d[1]);
+            for c in 0..3 {
+                let t = if x < textured_below_x {
+                    texture(x, y, c)
+                } else {
+                    0.45
+                };
+                img.set(u, v, c, t);
+            }
+            z.set(u, v, 0, lambda as f32);
+        }
+    }
+    (img, z)
+}
+
+struct Rig {
+    images: Vec<ImageF32>,
+    depth: ImageF32,
+    poses: Vec<Pose>,
+}
+
+fn rig(z0: f64, slope: f64, textured_below_x: f64) -> Rig {
+    let centres = [
+        [0.0, 0.0, 0.0],
+        [0.25, 0.0, 0.0],
+        [-0.25, 0.0, 0.0],
+        [0.0, 0.2, 0.0],
+    ];
+    let mut images = Vec::new();
+    let mut poses = Vec::new();
+    let mut depth = None;
+    for c in centres {
+        let (img, z) = render(c, z0, slope, textured_below_x);
+        depth.get_or_insert(z);
+        images.push(img);
+        poses.push(Pose::new(Pose::identity().rotation, [-c[0], -c[1], -c[2]]).unwrap());
+    }
+    Rig {
+        images,
+        depth: depth.unwrap(),
+        poses,
+    }
+}
+
+fn run(rig: &Rig, planes: &PlaneSet, params: &SgmParams) -> DepthResult {
+    let views: Vec<View<'_>> = rig
+        .images
+        .iter()
+        .zip(&rig.poses)
+        .map(|(image, pose)| View {
+            image,
+            intrinsics: k(),
+            pose: *pose,
+        })
+        .collect();
+    estimate_depth(
+        &views[0],
+        &views[1..],
+        planes,
+        CostKind::Ordinary,
+        params,
+        &Monitor::noop(),
+    )
+    .unwrap()
+}
+
+/// Share of interior pixels (4 px margin) whose inverse depth is within one plane spacing.
+fn share_within(r: &DepthResult, gt: &ImageF32, planes: &PlaneSet, spacings: f64) -> f64 {
+    let step = spacings * planes.inverse_depth_step();
+    let (mut good, mut n) = (0usize, 0usize);
+    for y in 4..H - 4 {
+        for x in 4..W - 4 {
+            let inv = f64::from(r.inverse_depth.get(x, y, 0));
+            let want = 1.0 / f64::from(gt.get(x, y, 0));
+            n += 1;
+            if (inv - want).abs() <= step {
+                good += 1;
+            }
+        }
+    }
+    good as f64 / n as f64
+}
+
+#[test]
+fn recovers_fronto_parallel_and_slanted_planes() {
+    let planes = PlaneSet::new(2.0, 10.0, 64).unwrap();
+    for (z0, slope) in [(4.0, 0.0), (3.0, 0.0), (4.0, 0.4)] {
+        let rig = rig(z0, slope, f64::INFINITY);
+        for params in [
+            SgmParams::default(),
+            SgmParams {
+                post_filter: PostFilter::WeightedMedian {
+                    radius: 2,
+                    sigma: 0.1,
+                },
+                ..SgmParams::default()
+            },
+        ] {
+            let r = run(&rig, &planes, &params);
+            let s1 = share_within(&r, &rig.depth, &planes, 1.0);
+            let s2 = share_within(&r, &rig.depth, &planes, 2.0);
+            eprintln!(
+                "z0 {z0} slope {slope} {:?}: within 1 plane {s1:.3}, 2 planes {s2:.3}",
+                params.post_filter
+            );
+            assert!(s1 > 0.95, "z0 {z0} slope {slope} {params:?}: {s1}");
+            assert!(r.confidence.data().iter().all(|c| (0.0..=1.0).contains(c)));
+        }
+    }
+}
+
+#[test]
+fn confidence_high_on_texture_low_on_flat() {
+    let planes = PlaneSet::new(2.0, 10.0, 64).unwrap();
+    // The plane at z = 4 is textured for world x < 0 (left half of the reference image).
+    let rig = rig(4.0, 0.0, 0.0);
+    // Without smoothness penalties the aggregated curve is the (windowed) data term summed over
+    // paths, so the confidence measures the data's evidence alone; with penalties SGM rightly
+    // propagates the textured half's depth into the flat half and becomes confident there too.
+    let params = SgmParams {
+        p1: 0.0,
+        p2: 0.0,
+        ..SgmParams::default()
+    };
+    let r = run(&rig, &planes, &params);
+    let median = |x0: usize, x1: usize| {
+        let mut v: Vec<f32> = (8..H - 8)
+            .flat_map(|y| (x0..x1).map(move |x| (x, y)))
+            .map(|(x, y)| r.confidence.get(x, y, 0))
+            .collect();
+        v.sort_by(f32::total_cmp);
+        v[v.len() / 2]
+    };
+    let (tex, flat) = (median(4, W / 2 - 10), median(W / 2 + 10, W - 4));
+    assert!(tex > 0.3 && flat < 0.5 * tex, "textured {tex}, flat {flat}");
+}
