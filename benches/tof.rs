@@ -11,7 +11,8 @@ use murk::tof::quadratic_prior::{PatchGrid, QuadraticPrior};
 use murk::tof::symmetry::RowMirror;
 use murk::tof::wls::{XStepState, XStepSystem};
 use murk::tof::{
-    estimate_tof_depth_with_solver, IrlsChannelParams, TofInput, TofParams, XStepSolver,
+    estimate_tof_depth_with_solver, IrlsChannelParams, Preconditioner, TofInput, TofParams,
+    XStepSolver,
 };
 use murk::Monitor;
 
@@ -59,6 +60,8 @@ fn bench(c: &mut Criterion) {
         coarse_iterations: 5,
         fine_iterations: 5,
         solver: XStepSolver::default(),
+        weight_tolerance: 0.0,
+        mask_threshold: 0.5,
     };
     let st = run_irls(
         &observed,
@@ -77,24 +80,35 @@ fn bench(c: &mut Criterion) {
 
     let mut g = c.benchmark_group("tof_xstep_424x512");
     g.sample_size(10);
-    let mut pcg = XStepState::new(XStepSolver::default(), &sys).expect("pcg");
     let mut x = st.scatter.clone();
-    g.bench_function("pcg_warm", |b| {
-        b.iter(|| {
-            // Perturb the weights' effect slightly by restarting from the previous iterate, as
-            // the IRLS loop does.
-            x.copy_from_slice(&st.scatter);
-            pcg.solve(&sys, &st.weights, &rhs, &mut x, &monitor)
-                .expect("solve")
-        })
-    });
-    g.bench_function("pcg_cold", |b| {
-        b.iter(|| {
-            x.copy_from_slice(&observed);
-            pcg.solve(&sys, &st.weights, &rhs, &mut x, &monitor)
-                .expect("solve")
-        })
-    });
+    for (name, pre) in [
+        ("mg", Preconditioner::Multigrid),
+        ("jacobi", Preconditioner::Jacobi),
+    ] {
+        let kind = XStepSolver::Pcg {
+            rel_tol: 1e-5,
+            max_iterations: 1000,
+            preconditioner: pre,
+        };
+        let mut pcg = XStepState::new(kind, &sys).expect("pcg");
+        for (start, label) in [(&st.scatter, "warm"), (&observed, "cold")] {
+            x.copy_from_slice(start);
+            let s = pcg
+                .solve(&sys, &st.weights, &rhs, &mut x, &monitor)
+                .expect("solve");
+            println!(
+                "x-step {name} {label}: {} CG iterations, rel. residual {:.1e}",
+                s.iterations, s.rel_residual
+            );
+            g.bench_function(format!("pcg_{name}_{label}"), |b| {
+                b.iter(|| {
+                    x.copy_from_slice(start);
+                    pcg.solve(&sys, &st.weights, &rhs, &mut x, &monitor)
+                        .expect("solve")
+                })
+            });
+        }
+    }
     let mut chol = XStepState::new(XStepSolver::SparseCholesky, &sys).expect("cholesky");
     g.bench_function("sparse_cholesky", |b| {
         b.iter(|| {

@@ -9,6 +9,7 @@
 
 pub mod bilateral;
 pub mod irls;
+pub mod multigrid;
 mod params;
 pub mod pipeline;
 pub mod quadratic_prior;
@@ -18,4 +19,4 @@ pub mod wls;
 
 pub use params::*;
 pub use pipeline::{estimate_tof_depth, estimate_tof_depth_with_solver};
-pub use wls::XStepSolver;
+pub use wls::{Preconditioner, XStepSolver};

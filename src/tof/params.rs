@@ -13,10 +13,26 @@ pub const MAX_ITERATIONS: usize = 10_000;
 /// Largest patch grid per axis for the local quadratic prior.
 pub const MAX_PATCHES_PER_AXIS: usize = 64;
 
+/// Image size (the larger side, pixels) at which the γ′ of [`IrlsChannelParams`] are defined:
+/// the reference's Kinect v2 frames are 512 × 424.
+pub const REFERENCE_SIZE_PX: f64 = 512.0;
+
 /// IRLS settings for one image (amplitude or phase): Eq. 5.12 weights and Tukey's `c` (Eq. 5.15).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct IrlsChannelParams {
-    /// `[γ′₁, γ′₂, γ′₃]`: local quadratic prior, vertical-symmetry prior, smoothness (Eq. 5.12).
+    /// `[γ′₁, γ′₂, γ′₃]`: local quadratic prior, vertical-symmetry prior, smoothness (Eq. 5.12),
+    /// as defined at the reference resolution ([`REFERENCE_SIZE_PX`] on the larger side).
+    ///
+    /// The solver uses [`IrlsChannelParams::effective_gamma`]: γ′₃ is scaled by
+    /// (max(w, h)/512)² so the prior means the same on any image size. Reason: for a smooth field
+    /// seen at pixel spacing h, the data term Σ w(x − x̃)² has one term per pixel (∝ h⁻²), while
+    /// the smoothness Σ(Δx)² has one term per edge, each ∝ h² (a difference across one pixel):
+    /// their ratio grows as h². Unscaled, γ′₃ = 50 at 128 × 106 would smooth 16× harder than the
+    /// reference, enough to let the scatter estimate run away under large objects.
+    /// γ′₁ and γ′₂ need no scaling: the quadratic-fit residual x − Ua (with patch-normalised
+    /// coordinates and a fixed patch grid) and the mirror residual Fx − x are per-pixel
+    /// differences of values, not of neighbours, so both sums scale with the pixel count exactly
+    /// like the data term.
     pub gamma: [f64; 3],
     /// Tukey tuning constant at the coarse (patch-wise) level, Eq. 5.16.
     pub c_coarse: f64,
@@ -37,6 +53,13 @@ impl IrlsChannelParams {
         c_coarse: 2.0,
         c_fine: 3.0,
     };
+
+    /// `[γ′₁, γ′₂, γ′₃·(max(w, h)/512)²]`: the weights applied to a `width × height` image (see
+    /// [`IrlsChannelParams::gamma`]).
+    pub fn effective_gamma(&self, width: usize, height: usize) -> [f64; 3] {
+        let s = width.max(height) as f64 / REFERENCE_SIZE_PX;
+        [self.gamma[0], self.gamma[1], self.gamma[2] * s * s]
+    }
 
     fn validate(&self) -> Result<()> {
         for (i, g) in self.gamma.iter().enumerate() {
@@ -66,7 +89,9 @@ pub struct BilateralParams {
     pub radius: usize,
     /// Spatial Gaussian σ in pixels.
     pub sigma_space_px: f32,
-    /// Range Gaussian σ relative to the image's robust spread (MAD-based σ), dimensionless.
+    /// Range Gaussian σ relative to the image's robust pixel-noise σ (1.4826·MAD of horizontal
+    /// neighbour differences / √2, see `bilateral::robust_noise_sigma`), dimensionless: the
+    /// filter averages differences of noise size and keeps object edges.
     pub sigma_range_rel: f32,
 }
 
@@ -96,9 +121,11 @@ pub struct TofParams {
     pub amplitude: IrlsChannelParams,
     /// Phase-image IRLS settings.
     pub phase: IrlsChannelParams,
-    /// Coarse (patch-wise) IRLS iterations; reference 5.
+    /// Cap on coarse (patch-wise) IRLS iterations; reference 5. Algorithm 2 repeats "until
+    /// converged": a level stops earlier once its weights have settled (no weight moving by
+    /// more than 1e-3 and no pixel crossing `mask_threshold`, two iterations in a row).
     pub coarse_iterations: usize,
-    /// Fine (pixel-wise) IRLS iterations; reference 50.
+    /// Cap on fine (pixel-wise) IRLS iterations; reference 50. Stops early like the coarse level.
     pub fine_iterations: usize,
     /// Pre-filter; `None` disables it.
     pub bilateral: Option<BilateralParams>,

@@ -11,7 +11,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use rayon::prelude::*;
 
 use super::bilateral::bilateral_filter;
-use super::irls::{run_irls, IrlsConfig, IrlsOutcome};
+use super::irls::{run_irls, IrlsConfig, IrlsOutcome, DEFAULT_WEIGHT_TOLERANCE};
 use super::params::{TofInput, TofOutput, TofParams, SPEED_OF_LIGHT_M_PER_S};
 use super::quadratic_prior::{PatchGrid, QuadraticPrior};
 use super::symmetry::RowMirror;
@@ -85,8 +85,10 @@ pub fn estimate_tof_depth_with_solver(
             coarse_iterations: params.coarse_iterations,
             fine_iterations: params.fine_iterations,
             solver,
+            weight_tolerance: DEFAULT_WEIGHT_TOLERANCE,
+            mask_threshold: params.mask_threshold as f64,
         };
-        let sys = XStepSystem::new(w, h, cfg.channel.gamma, mirror.clone());
+        let sys = XStepSystem::new(w, h, cfg.channel.effective_gamma(w, h), mirror.clone());
         let mut prior = QuadraticPrior::new(grid.clone())?;
         run_irls(&observed, &sys, &mut prior, &cfg, prefix, monitor, &tick)
     };
@@ -229,6 +231,7 @@ fn compose(
 mod tests {
     use super::*;
     use crate::camera::Intrinsics;
+    use crate::tof::params::{IrlsChannelParams, REFERENCE_SIZE_PX};
 
     #[test]
     fn range_from_path_inverts_the_offset_light_geometry() {
@@ -304,9 +307,19 @@ mod tests {
     }
 
     fn fast_params() -> TofParams {
+        // The synthetic scene's structures are sized in pixels as on a 512-wide frame (an
+        // 8-pixel-radius blob); keep the smoothing per pixel of the reference resolution by
+        // undoing the (64/512)² size scaling of γ′₃ (see `IrlsChannelParams::gamma`).
+        let s = (REFERENCE_SIZE_PX / W as f64).powi(2);
+        let mut amplitude = IrlsChannelParams::AMPLITUDE;
+        let mut phase = IrlsChannelParams::PHASE;
+        amplitude.gamma[2] *= s;
+        phase.gamma[2] *= s;
         TofParams {
             coarse_iterations: 5,
             fine_iterations: 20,
+            amplitude,
+            phase,
             ..TofParams::default()
         }
     }
