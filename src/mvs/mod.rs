@@ -20,7 +20,10 @@ pub mod pose;
 #[cfg(test)]
 mod tests;
 
-pub use cost_volume::{build_cost_volume, CostKind, CostVolume, View};
+pub use cost_volume::{
+    build_cost_volume, estimate_noise_sigma, CostKind, CostVolume, DehazingOptions,
+    DehazingResidual, RangePenalty, View,
+};
 pub use depth::{
     depth_from_cost_volume, depth_from_costs, estimate_depth, DepthResult, PostFilter, SgmParams,
 };

@@ -1,12 +1,16 @@
 //! End-to-end comparison for issue 3: on simulated hazy scenes with ground-truth `A` and `β`,
-//! the dehazing cost volume (Eq. 3.7) + SGM against the ordinary one (Eq. 3.1) + SGM.
+//! the dehazing cost volume + SGM against the ordinary one (Eq. 3.1) + SGM.
 //!
-//! Status (measured, see the printed tables): with the simulator's default sensor noise
-//! (σ = 0.01) the dehazing volume + SGM does **not** beat the ordinary volume + SGM — the
-//! `1/t` noise amplification of Eq. 3.5 pushes correct-depth voxels of dark or bright pixels
-//! out of `[0, 1]` (penalty γ) and biases far pixels towards nearer planes. Without sensor
-//! noise it wins on C.P. but not on L1-rel. So the ordering is *measured and printed*, not
-//! asserted; the issue's "dehazing beats ordinary" test stays open.
+//! Status (measured, see the printed tables; sensor noise σ = 0.01): the reference's Eq. 3.7
+//! (`eq37`) loses badly to the ordinary volume — Eq. 3.5 amplifies noise by `1/t`, so far,
+//! low-transmission voxels look bad at the correct depth. Measuring the same constraint in
+//! observation space (`DehazingResidual::ObservationSpace`, the default) removes that: at
+//! 256×192×256, 4 sources, seeds 0–4 it beats ordinary on L1-rel and C.P. on every seed
+//! (mean L1-rel 0.135 vs 0.143, C.P. 60.1 % vs 58.5 %). Every `[0, 1]` range penalty tried
+//! (hard, noise-aware, reference-only, soft) *costs* accuracy here, even though at the true
+//! depth the reference's dehazed values never leave the noise-widened range, so the default
+//! has none. At reduced size the test below asserts L1-rel on every seed and C.P. on the mean.
+//! The issue's C.P. ≥ 80 % is not reached by any variant.
 
 use std::time::Instant;
 
@@ -14,7 +18,10 @@ use crate::atmosphere::AtmosphereParams;
 use crate::image::ImageF32;
 use crate::metrics::{depth_metrics, DepthMetrics};
 use crate::monitor::Monitor;
-use crate::mvs::{build_cost_volume, depth_from_cost_volume, CostKind, PlaneSet, SgmParams, View};
+use crate::mvs::{
+    build_cost_volume, depth_from_cost_volume, CostKind, DehazingOptions, DehazingResidual,
+    PlaneSet, RangePenalty, SgmParams, View,
+};
 use crate::simulate::mvs::{simulate_mvs, MvsScene, MvsSimConfig};
 
 /// Depth of the reference view of `scene` with `kind`, and the metrics against GT; also the
@@ -50,27 +57,74 @@ fn evaluate(
     (metrics, (t1 - t0).as_secs_f64(), (t2 - t1).as_secs_f64())
 }
 
-fn kinds(scene: &MvsScene) -> [(&'static str, CostKind); 2] {
-    [
+/// The cost volumes compared: ordinary, the reference's Eq. 3.7, and the noise-robust variants
+/// (residual space × range penalty; `default` is `DehazingOptions::default()`).
+/// `MURK_VARIANTS` (comma-separated names, or `all`) overrides the set `default_set`.
+fn kinds(scene: &MvsScene, default_set: &[&str]) -> Vec<(&'static str, CostKind)> {
+    let atm = AtmosphereParams {
+        airlight: scene.airlight,
+        beta: scene.beta,
+    };
+    let with = |residual, range| {
+        CostKind::DehazingWith(
+            atm,
+            DehazingOptions {
+                residual,
+                range,
+                noise_sigma: None,
+            },
+        )
+    };
+    let aware = RangePenalty::NoiseAware { k: 3.0 };
+    let soft = RangePenalty::Soft { k: 3.0 };
+    let refaware = RangePenalty::ReferenceAware { k: 3.0 };
+    let all = vec![
         ("ordinary", CostKind::Ordinary),
+        ("eq37", CostKind::Dehazing(atm)),
+        ("eq37+aware", with(DehazingResidual::Eq37, aware)),
         (
-            "dehazing",
-            CostKind::Dehazing(AtmosphereParams {
-                airlight: scene.airlight,
-                beta: scene.beta,
-            }),
+            "obs+hard",
+            with(DehazingResidual::ObservationSpace, RangePenalty::Hard),
         ),
-    ]
+        ("obs+aware", with(DehazingResidual::ObservationSpace, aware)),
+        (
+            "obs+off",
+            with(DehazingResidual::ObservationSpace, RangePenalty::Off),
+        ),
+        ("obs+soft", with(DehazingResidual::ObservationSpace, soft)),
+        ("eq37+soft", with(DehazingResidual::Eq37, soft)),
+        (
+            "obs+refaware",
+            with(DehazingResidual::ObservationSpace, refaware),
+        ),
+        ("eq37+refaware", with(DehazingResidual::Eq37, refaware)),
+        ("white+aware", with(DehazingResidual::NoiseWhitened, aware)),
+        (
+            "white+off",
+            with(DehazingResidual::NoiseWhitened, RangePenalty::Off),
+        ),
+        (
+            "default",
+            CostKind::DehazingWith(atm, DehazingOptions::default()),
+        ),
+    ];
+    let list = std::env::var("MURK_VARIANTS").unwrap_or_else(|_| default_set.join(","));
+    if list == "all" {
+        return all;
+    }
+    all.into_iter()
+        .filter(|(n, _)| list.split(',').any(|l| l == *n))
+        .collect()
 }
 
-/// Reduced-size comparison (128×96, 96 planes, 4 sources, 3 seeds). Sensor noise from
-/// `MURK_NOISE` (default: the simulator's 0.01). Asserts only that both pipelines produce
-/// valid depth everywhere; prints the metrics.
+/// Reduced-size comparison (128×96, 96 planes, 4 sources, seeds 0..5). Sensor noise from
+/// `MURK_NOISE` (default: the simulator's 0.01). Asserts that every pipeline produces valid
+/// depth everywhere; prints the metrics.
 #[test]
 fn dehazing_vs_ordinary_at_reduced_size() {
     let planes = PlaneSet::new(1.5, 15.0, 96).unwrap();
-    let mut sums = [[0.0f64; 2]; 2]; // [kind][l1_rel, c_p]
-    let seeds = 0..3u64;
+    let seeds = 0..5u64;
+    let mut rows: Vec<(&'static str, u64, DepthMetrics)> = Vec::new();
     for seed in seeds.clone() {
         let cfg = MvsSimConfig {
             seed,
@@ -81,31 +135,90 @@ fn dehazing_vs_ordinary_at_reduced_size() {
             ..MvsSimConfig::with_size(128, 96)
         };
         let scene = simulate_mvs(&cfg, &Monitor::noop()).unwrap();
-        for (k, (name, kind)) in kinds(&scene).into_iter().enumerate() {
+        for (name, kind) in kinds(&scene, &["ordinary", "eq37", "default"]) {
             let (m, _, _) = evaluate(&scene, &planes, kind, 4);
             assert_eq!(m.missing_predictions, 0, "{name}");
-            eprintln!(
-                "seed {seed} {name}: L1-rel {:.3} L1-inv {:.4} sc-inv {:.3} C.P. {:.1}% (t_med {:.2})",
-                m.l1_rel,
-                m.l1_inv,
-                m.sc_inv,
-                100.0 * m.c_p,
-                scene.median_transmission
-            );
-            sums[k][0] += m.l1_rel;
-            sums[k][1] += m.c_p;
+            assert!(m.l1_rel.is_finite() && m.c_p.is_finite(), "{name}");
+            rows.push((name, seed, m));
         }
     }
-    let [ord, dcv] = sums;
-    eprintln!(
-        "mean over 3 seeds: ordinary L1-rel {:.3} C.P. {:.1}%, dehazing L1-rel {:.3} C.P. {:.1}%",
-        ord[0] / 3.0,
-        100.0 * ord[1] / 3.0,
-        dcv[0] / 3.0,
-        100.0 * dcv[1] / 3.0
+    print_table(&rows, seeds.clone().count());
+    if std::env::var("MURK_NOISE").is_ok() || std::env::var("MURK_VARIANTS").is_ok() {
+        return;
+    }
+    // The issue's ordering, on the default noise: the default dehazing volume (observation-space
+    // residual) beats the ordinary one on L1-rel on every seed and on mean C.P. (per seed, C.P.
+    // is within 0.3 points either way on seeds 0 and 4 at this size; at 256×192×256 it wins on
+    // every seed, see `measure_full_size`).
+    let get = |name: &str, seed: u64| {
+        rows.iter()
+            .find(|r| r.0 == name && r.1 == seed)
+            .map(|r| r.2)
+            .unwrap()
+    };
+    let (mut cp_ord, mut cp_def) = (0.0, 0.0);
+    for seed in seeds {
+        let (o, d) = (get("ordinary", seed), get("default", seed));
+        assert!(
+            d.l1_rel < o.l1_rel,
+            "seed {seed}: L1-rel dehazing {} >= ordinary {}",
+            d.l1_rel,
+            o.l1_rel
+        );
+        cp_ord += o.c_p;
+        cp_def += d.c_p;
+    }
+    assert!(
+        cp_def > cp_ord,
+        "mean C.P.: dehazing {cp_def} <= ordinary {cp_ord}"
     );
-    assert!(sums.iter().flatten().all(|v| v.is_finite()));
 }
+
+/// Prints per-seed rows and per-variant means of `rows` (variant, seed, metrics).
+fn print_table(rows: &[(&'static str, u64, DepthMetrics)], n_seeds: usize) {
+    println!("| seed | cost volume | L1-rel | L1-inv | sc-inv | C.P. (%) |");
+    println!("|---|---|---|---|---|---|");
+    for (name, seed, m) in rows {
+        println!(
+            "| {seed} | {name} | {:.3} | {:.4} | {:.3} | {:.1} |",
+            m.l1_rel,
+            m.l1_inv,
+            m.sc_inv,
+            100.0 * m.c_p
+        );
+    }
+    let mut names: Vec<&str> = rows.iter().map(|r| r.0).collect();
+    names.dedup();
+    names.truncate(rows.len() / n_seeds.max(1));
+    for name in names {
+        let mut mean = [0.0f64; 4];
+        for (_, _, m) in rows.iter().filter(|r| r.0 == name) {
+            for (acc, v) in mean.iter_mut().zip([m.l1_rel, m.l1_inv, m.sc_inv, m.c_p]) {
+                *acc += v / n_seeds as f64;
+            }
+        }
+        println!(
+            "| mean | {name} | {:.3} | {:.4} | {:.3} | {:.1} |",
+            mean[0],
+            mean[1],
+            mean[2],
+            100.0 * mean[3]
+        );
+    }
+}
+
+/// Variants measured at full size unless `MURK_VARIANTS` says otherwise.
+const FULL_SIZE_SET: [&str; 9] = [
+    "ordinary",
+    "eq37",
+    "eq37+aware",
+    "obs+hard",
+    "obs+aware",
+    "obs+refaware",
+    "obs+soft",
+    "obs+off",
+    "white+off",
+];
 
 /// Full-size measurement for the issue (256×192, 256 planes, 4 sources, 5 seeds): prints a
 /// metric table and timings. Run with
@@ -114,46 +227,30 @@ fn dehazing_vs_ordinary_at_reduced_size() {
 #[ignore = "measurement (several seconds); prints the table for docs/"]
 fn measure_full_size() {
     let planes = PlaneSet::new(1.5, 15.0, 256).unwrap();
-    println!("| seed | t_med | cost volume | L1-rel | L1-inv | sc-inv | C.P. (%) | CV s | SGM s |");
-    println!("|---|---|---|---|---|---|---|---|---|");
-    let mut mean = [[0.0f64; 4]; 2];
+    let mut rows: Vec<(&'static str, u64, DepthMetrics)> = Vec::new();
     for seed in 0..5u64 {
         let cfg = MvsSimConfig {
             seed,
             ..MvsSimConfig::default()
         };
         let scene = simulate_mvs(&cfg, &Monitor::noop()).unwrap();
-        for (k, (name, kind)) in kinds(&scene).into_iter().enumerate() {
+        for (name, kind) in kinds(&scene, &FULL_SIZE_SET) {
             let (m, tc, ta) = evaluate(&scene, &planes, kind, 4);
-            println!(
-                "| {seed} | {:.2} | {name} | {:.3} | {:.4} | {:.3} | {:.1} | {tc:.3} | {ta:.3} |",
+            eprintln!(
+                "seed {seed} t_med {:.2} {name}: C.P. {:.1}% CV {tc:.3} s SGM {ta:.3} s",
                 scene.median_transmission,
-                m.l1_rel,
-                m.l1_inv,
-                m.sc_inv,
                 100.0 * m.c_p
             );
-            for (acc, v) in mean[k]
-                .iter_mut()
-                .zip([m.l1_rel, m.l1_inv, m.sc_inv, m.c_p])
-            {
-                *acc += v / 5.0;
-            }
+            rows.push((name, seed, m));
         }
     }
-    for (k, name) in ["ordinary", "dehazing"].iter().enumerate() {
-        let m = mean[k];
-        println!(
-            "| mean | | {name} | {:.3} | {:.4} | {:.3} | {:.1} | | |",
-            m[0],
-            m[1],
-            m[2],
-            100.0 * m[3]
-        );
-    }
+    print_table(&rows, 5);
     // Timing with one source (the issue's ≤ 0.5 s target for cost volume + aggregation).
     let scene = simulate_mvs(&MvsSimConfig::default(), &Monitor::noop()).unwrap();
-    for (name, kind) in kinds(&scene) {
+    for (name, kind) in kinds(&scene, &FULL_SIZE_SET)
+        .into_iter()
+        .filter(|(n, _)| ["ordinary", "eq37", "obs+off"].contains(n))
+    {
         let mut best = (f64::INFINITY, f64::INFINITY);
         for _ in 0..3 {
             let (_, tc, ta) = evaluate(&scene, &planes, kind, 1);

@@ -3,8 +3,10 @@
 //! dehazing is the identity) they agree bit for bit.
 
 use super::sample::bilinear;
-use crate::atmosphere::{inverse_transmission, transmission};
+use crate::atmosphere::inverse_transmission;
 use crate::mvs::plane_sweep::PlaneWarp;
+
+use super::DehazingResidual;
 
 /// One source view for one plane: its samples and the plane's reference→source warp.
 pub(super) struct SourcePlane<'a> {
@@ -20,6 +22,26 @@ pub(super) struct Haze {
     pub beta: f32,
     pub ref_inv_t: f32,
     pub ref_offset: f32,
+    /// Reference transmission `t_r = e^{−β z_i}` (scales the residual out of dehazed space).
+    pub ref_t: f32,
+    /// Where the residual is measured.
+    pub residual: DehazingResidual,
+    /// Accepted range of a dehazed reference value, `[ref_lo, ref_hi]` (`[0, 1]` for Eq. 3.7).
+    pub ref_lo: f32,
+    pub ref_hi: f32,
+    /// Margin of the source range check in observation units: a dehazed source value is
+    /// accepted in `[−m/t_s, 1 + m/t_s]` (`m = 0` for Eq. 3.7, `∞` for no check).
+    pub src_margin: f32,
+    /// Soft range penalty: `Some(m)` adds each channel's excursion beyond `[−m/t, 1 + m/t]`
+    /// (dehazed units) to the residual before scaling, the voxel capped at `γ`.
+    pub soft_margin: Option<f32>,
+}
+
+/// `max(0, dist(j, [0, 1]) − margin)`: how far a dehazed value lies outside its noise-widened
+/// range.
+#[inline]
+fn excursion(j: f32, margin: f32) -> f32 {
+    ((-j).max(j - 1.0) - margin).max(0.0)
 }
 
 /// Per-worker row buffers, reused across rows so the sweep allocates nothing per voxel or row.
@@ -29,6 +51,8 @@ pub(super) struct RowScratch {
     jr: Vec<f32>,
     /// Whether every channel of the reference pixel is in `[0, 1]` (Eq. 3.7).
     ref_ok: Vec<bool>,
+    /// Soft-penalty excursion of the reference pixel, summed over channels.
+    ref_exc: Vec<f32>,
     /// Sum of per-source costs.
     sum: Vec<f32>,
     /// Number of sources that observe the voxel.
@@ -54,18 +78,25 @@ pub(super) fn fill_row<const C: usize, const DEHAZE: bool>(
     let row = &reference[y * width * C..(y + 1) * width * C];
     scratch.jr.clear();
     scratch.ref_ok.clear();
+    scratch.ref_exc.clear();
+    let ref_soft = haze.soft_margin.map(|m| m * haze.ref_inv_t);
     for ir in row.chunks_exact(C) {
         let mut ok = true;
+        let mut exc = 0.0f32;
         for &v in ir {
             let j = if DEHAZE {
                 v * haze.ref_inv_t + haze.ref_offset
             } else {
                 v
             };
-            ok &= (0.0..=1.0).contains(&j);
+            ok &= !DEHAZE || (haze.ref_lo..=haze.ref_hi).contains(&j);
+            if let (true, Some(m)) = (DEHAZE, ref_soft) {
+                exc += excursion(j, m);
+            }
             scratch.jr.push(j);
         }
         scratch.ref_ok.push(ok);
+        scratch.ref_exc.push(exc);
     }
     scratch.sum.clear();
     scratch.sum.resize(width, 0.0);
@@ -74,12 +105,35 @@ pub(super) fn fill_row<const C: usize, const DEHAZE: bool>(
 
     for s in sources {
         let warp = s.warp.row(y as f64);
+        // ζ is affine in u along the row (ζ = depth·w(u)), so 1/t_s = e^{βζ} is a geometric
+        // sequence: one multiply per pixel instead of an exp (f64, so the drift over a row is
+        // ~1e-14 relative; β = 0 gives exactly 1).
+        // Rows where e^{βζ} over- or underflows at an end fall back to one exp per pixel.
+        let b = f64::from(haze.beta);
+        let z0 = warp.map(0.0).2;
+        let dz = warp.map(1.0).2 - z0;
+        let (start, end) = ((b * z0).exp(), (b * (z0 + dz * (width - 1) as f64)).exp());
+        let geometric = !DEHAZE || (start.is_normal() && end.is_normal());
+        let (mut inv_ts, ratio) = if DEHAZE && geometric {
+            (start, (b * dz).exp())
+        } else {
+            (1.0, 1.0)
+        };
+        let max_inv_t = f64::from(inverse_transmission(0.0));
         let pixels = scratch
             .sum
             .iter_mut()
             .zip(scratch.observed.iter_mut())
-            .zip(scratch.jr.chunks_exact(C).zip(&scratch.ref_ok));
-        for (x, ((sum, observed), (jr, &ref_ok))) in pixels.enumerate() {
+            .zip(scratch.jr.chunks_exact(C).zip(&scratch.ref_ok))
+            .zip(&scratch.ref_exc);
+        for (x, (((sum, observed), (jr, &ref_ok)), &ref_exc)) in pixels.enumerate() {
+            let inv_t_here = if geometric {
+                inv_ts.min(max_inv_t) as f32
+            } else {
+                let (_, _, zeta) = warp.map(x as f64);
+                (b * zeta).exp().min(max_inv_t) as f32
+            };
+            inv_ts *= ratio;
             let (us, vs, zeta) = warp.map(x as f64);
             // ζ ≤ 0 (or NaN): the plane point is behind the source camera.
             if zeta.is_nan() || zeta <= 0.0 {
@@ -93,13 +147,29 @@ pub(super) fn fill_row<const C: usize, const DEHAZE: bool>(
                 *sum += penalty;
                 continue;
             }
-            let (inv_t, offset) = if DEHAZE {
+            let (inv_t, offset, lo, hi, scale) = if DEHAZE {
                 // Eq. 3.6: the source sample is dehazed with the plane point's depth ζ as seen
                 // from the source camera, not with z_i.
-                let inv_t = inverse_transmission(transmission(haze.beta, zeta as f32));
-                (inv_t, haze.airlight * (1.0 - inv_t))
+                let inv_t = inv_t_here;
+                let margin = haze.src_margin * inv_t;
+                let scale = match haze.residual {
+                    DehazingResidual::Eq37 => 1.0,
+                    DehazingResidual::ObservationSpace => haze.ref_t,
+                    DehazingResidual::NoiseWhitened => {
+                        // t_r·sqrt(2 / (1 + (t_r/t_s)²)): exactly 1 when t_r = t_s = 1.
+                        let r = haze.ref_t * inv_t;
+                        haze.ref_t * (2.0 / (1.0 + r * r)).sqrt()
+                    }
+                };
+                (
+                    inv_t,
+                    haze.airlight * (1.0 - inv_t),
+                    -margin,
+                    1.0 + margin,
+                    scale,
+                )
             } else {
-                (1.0, 0.0)
+                (1.0, 0.0, 0.0, 1.0, 1.0)
             };
             let mut cost = 0.0f32;
             let mut src_ok = true;
@@ -109,10 +179,26 @@ pub(super) fn fill_row<const C: usize, const DEHAZE: bool>(
                 } else {
                     is[c]
                 };
-                src_ok &= (0.0..=1.0).contains(&js);
+                src_ok &= (lo..=hi).contains(&js);
                 cost += (jr[c] - js).abs();
             }
-            *sum += if DEHAZE && !src_ok { penalty } else { cost };
+            *sum += if DEHAZE && !src_ok {
+                penalty
+            } else if DEHAZE {
+                // Capped at γ so the volume stays in [0, γ] without the hard check too (a no-op
+                // for Eq. 3.7, whose in-range residual is at most C = γ).
+                let exc = match haze.soft_margin {
+                    None => 0.0,
+                    Some(m) => {
+                        let m = m * inv_t;
+                        let e: f32 = is.iter().map(|&v| excursion(v * inv_t + offset, m)).sum();
+                        ref_exc + e
+                    }
+                };
+                ((cost + exc) * scale).min(penalty)
+            } else {
+                cost
+            };
         }
     }
 

@@ -11,7 +11,20 @@
 //!   (Eq. 3.5) and the source with `ζ`, the plane point's depth seen from the source camera
 //!   (Eq. 3.6); the cost is `Σ_c |J_r − J_s|`, or the penalty `γ` when any channel of `J_r` or
 //!   `J_s` leaves `[0, 1]` (Eq. 3.7). Transmission is floored at
-//!   [`crate::atmosphere::MIN_TRANSMISSION`].
+//!   [`crate::atmosphere::MIN_TRANSMISSION`]. That is [`CostKind::Dehazing`] (=
+//!   [`DehazingOptions::EQ37`]).
+//! - **noise-robust dehazing** ([`CostKind::DehazingWith`], [`DehazingOptions`]): Eq. 3.5
+//!   multiplies sensor noise by `1/t`, so with noise the Eq. 3.7 residual of the correct depth
+//!   grows with distance and the volume favours near planes. The same constraint `J_r = J_s`
+//!   can be measured in observation space, `t_r·(J_r − J_s) = (I_r − A) − (t_r/t_s)(I_s − A)`
+//!   (the reference against the source re-hazed to the reference's depth; noise `σ·sqrt(1 +
+//!   (t_r/t_s)²)`, independent of distance) — [`DehazingResidual::ObservationSpace`], or its
+//!   noise-whitened form. The `[0, 1]` check can be hard (Eq. 3.7), widened by `k` noise stds
+//!   of the dehazed value (`k·σ/t`, `σ` estimated robustly from the reference,
+//!   [`estimate_noise_sigma`]), reference-only, soft (excursion added to the residual), or off;
+//!   every dehazing voxel is capped at `γ`. `DehazingOptions::default()` — observation space,
+//!   no range check — is the measured best (`src/mvs/tests.rs`). With `β = 0` every mode equals
+//!   the ordinary volume bit for bit.
 //!
 //! `γ = C` (= 3 for RGB, the reference's value): the largest cost the ordinary volume can take.
 //!
@@ -60,8 +73,164 @@ pub struct View<'a> {
 pub enum CostKind {
     /// Eq. 3.1 on the observed (hazy) images.
     Ordinary,
-    /// Eq. 3.7: dehaze with the plane hypothesis and the given airlight and `β` (per scene unit).
+    /// Eq. 3.7 exactly as in the reference: dehaze with the plane hypothesis and the given
+    /// airlight and `β` (per scene unit); same as `DehazingWith(p, DehazingOptions::EQ37)`.
     Dehazing(AtmosphereParams),
+    /// The dehazing volume with a choice of residual space and range penalty
+    /// ([`DehazingOptions`]; its `Default` is the measured, noise-robust choice).
+    DehazingWith(AtmosphereParams, DehazingOptions),
+}
+
+impl CostKind {
+    /// Atmosphere and options of a dehazing kind, `None` for [`CostKind::Ordinary`].
+    pub fn dehazing(&self) -> Option<(AtmosphereParams, DehazingOptions)> {
+        match *self {
+            CostKind::Ordinary => None,
+            CostKind::Dehazing(p) => Some((p, DehazingOptions::EQ37)),
+            CostKind::DehazingWith(p, o) => Some((p, o)),
+        }
+    }
+}
+
+/// Where the dehazing volume measures the residual of the constraint `J_r = J_s`.
+///
+/// Sensor noise `σ` in `I` becomes `σ/t` in the dehazed `J` (Eq. 3.5), so in Eq. 3.7 the
+/// residual of a correct-depth voxel grows like `σ·sqrt(1/t_r² + 1/t_s²)`, and far, dim voxels
+/// (small `t`) look worse than near ones for no geometric reason.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum DehazingResidual {
+    /// Eq. 3.7: `Σ_c |J_r − J_s|`, in dehazed space.
+    Eq37,
+    /// `t_r·Σ_c |J_r − J_s| = Σ_c |(I_r − A) − (t_r/t_s)(I_s − A)|`: the same constraint in
+    /// observation space, the reference compared with the source re-hazed to the reference's
+    /// depth. The noise of a correct-depth voxel is `σ·sqrt(1 + (t_r/t_s)²)`, no longer `∝ 1/t`.
+    ObservationSpace,
+    /// The observation-space residual divided by its noise std relative to `t_r = t_s`:
+    /// `t_r·sqrt(2/(1 + (t_r/t_s)²))·Σ_c |J_r − J_s|` (whitened, then scaled so equal
+    /// transmissions give the observation-space value).
+    NoiseWhitened,
+}
+
+/// When a dehazed value outside `[0, 1]` earns the penalty `γ`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum RangePenalty {
+    /// Eq. 3.7: `γ` whenever any channel of `J_r` or `J_s` leaves `[0, 1]`.
+    Hard,
+    /// `γ` only when a channel leaves `[0, 1]` by more than `k·σ/t`, i.e. by more than `k`
+    /// noise standard deviations of the dehazed value (`σ` from [`DehazingOptions::noise_sigma`]
+    /// or estimated from the reference image, [`estimate_noise_sigma`]).
+    NoiseAware {
+        /// Margin in noise standard deviations, finite and `≥ 0`.
+        k: f32,
+    },
+    /// Soft: each channel's excursion beyond the noise-widened range `[−k·σ/t, 1 + k·σ/t]`
+    /// (dehazed units) is added to the L1 residual before it is scaled to the residual space,
+    /// the voxel capped at `γ`. In observation space this is the L1 distance of the observation
+    /// from the set of values the haze model allows at the hypothesised depth,
+    /// `A(1 − t) + t·[0, 1]`, less the noise margin: a residual in the same units as the
+    /// photometric one instead of a cliff.
+    Soft {
+        /// Margin in noise standard deviations, finite and `≥ 0`.
+        k: f32,
+    },
+    /// As [`RangePenalty::NoiseAware`] but for the reference only: `J_r` depends only on the
+    /// reference pixel and the hypothesis, so its range bound holds whatever the sources see,
+    /// while an out-of-range source sample may be an occlusion (the source sees a nearer
+    /// surface, dehazed with the plane's larger ζ) rather than a wrong depth.
+    ReferenceAware {
+        /// Margin in noise standard deviations, finite and `≥ 0`.
+        k: f32,
+    },
+    /// No range check (ablation).
+    Off,
+}
+
+/// Options of the dehazing volume. [`DehazingOptions::EQ37`] is the reference's Eq. 3.7;
+/// `Default` is the choice measured best with sensor noise (see `src/mvs/tests.rs`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct DehazingOptions {
+    /// Residual space.
+    pub residual: DehazingResidual,
+    /// Range penalty.
+    pub range: RangePenalty,
+    /// Sensor-noise std (pixel-value units) for [`RangePenalty::NoiseAware`]; `None` estimates
+    /// it from the reference image.
+    pub noise_sigma: Option<f32>,
+}
+
+impl DehazingOptions {
+    /// The reference's Eq. 3.7: dehazed-space residual, hard `[0, 1]` penalty.
+    pub const EQ37: DehazingOptions = DehazingOptions {
+        residual: DehazingResidual::Eq37,
+        range: RangePenalty::Hard,
+        noise_sigma: None,
+    };
+
+    fn validate(&self) -> Result<()> {
+        if let RangePenalty::NoiseAware { k }
+        | RangePenalty::Soft { k }
+        | RangePenalty::ReferenceAware { k } = self.range
+        {
+            if !k.is_finite() || k < 0.0 {
+                return Err(MurkError::invalid(
+                    "range.k",
+                    format!("must be finite and >= 0, got {k}"),
+                ));
+            }
+        }
+        if let Some(s) = self.noise_sigma {
+            if !s.is_finite() || s < 0.0 {
+                return Err(MurkError::invalid(
+                    "noise_sigma",
+                    format!("must be finite and >= 0, got {s}"),
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
+impl Default for DehazingOptions {
+    fn default() -> Self {
+        DehazingOptions {
+            residual: DehazingResidual::ObservationSpace,
+            range: RangePenalty::Off,
+            noise_sigma: None,
+        }
+    }
+}
+
+/// Robust estimate of additive white sensor noise std of `image` (pixel-value units): the median
+/// absolute response of the 3×3 Laplacian-difference kernel `[1 −2 1; −2 4 −2; 1 −2 1]`
+/// (Immerkær 1996; it cancels locally planar intensity) over all channels, divided by
+/// `0.6745·6` (the kernel's noise gain is `sqrt(36) = 6`; the median of `|N(0, s²)|` is
+/// `0.6745·s`). Texture biases it upwards; the median keeps edges from dominating.
+/// Returns 0 for images smaller than 3×3.
+pub fn estimate_noise_sigma(image: &ImageF32) -> f32 {
+    let (w, h, c) = (image.width(), image.height(), image.channels());
+    if w < 3 || h < 3 {
+        return 0.0;
+    }
+    let d = image.data();
+    let at = |x: usize, y: usize, ch: usize| d[(y * w + x) * c + ch];
+    let mut r = Vec::with_capacity((w - 2) * (h - 2) * c);
+    for y in 1..h - 1 {
+        for x in 1..w - 1 {
+            for ch in 0..c {
+                let v = at(x - 1, y - 1, ch) - 2.0 * at(x, y - 1, ch) + at(x + 1, y - 1, ch)
+                    - 2.0 * at(x - 1, y, ch)
+                    + 4.0 * at(x, y, ch)
+                    - 2.0 * at(x + 1, y, ch)
+                    + at(x - 1, y + 1, ch)
+                    - 2.0 * at(x, y + 1, ch)
+                    + at(x + 1, y + 1, ch);
+                r.push(v.abs());
+            }
+        }
+    }
+    let mid = r.len() / 2;
+    let (_, m, _) = r.select_nth_unstable_by(mid, f32::total_cmp);
+    *m / (0.6745 * 6.0)
 }
 
 /// A plane-sweep cost volume, `f32`, `[plane][y][x]`.
@@ -199,9 +368,27 @@ pub fn build_cost_volume(
         check_view(s, Some((w, h, c))).map_err(|e| e.within(&format!("sources[{k}]")))?;
     }
     planes.validate().map_err(|e| e.within("planes"))?;
-    if let CostKind::Dehazing(p) = kind {
+    if let Some((p, o)) = kind.dehazing() {
         p.validate().map_err(|e| e.within("atmosphere"))?;
+        o.validate().map_err(|e| e.within("options"))?;
     }
+    // Noise margin (observation units) of the hard range check: 0 for Eq. 3.7, ∞ for none;
+    // and of the soft one.
+    let sigma = |o: &DehazingOptions| {
+        o.noise_sigma
+            .unwrap_or_else(|| estimate_noise_sigma(reference.image))
+    };
+    // (reference margin, source margin, soft margin)
+    let (margin, src_margin, soft_margin) = match kind.dehazing() {
+        None => (0.0, 0.0, None),
+        Some((_, o)) => match o.range {
+            RangePenalty::Hard => (0.0, 0.0, None),
+            RangePenalty::Off => (f32::INFINITY, f32::INFINITY, None),
+            RangePenalty::NoiseAware { k } => (k * sigma(&o), k * sigma(&o), None),
+            RangePenalty::ReferenceAware { k } => (k * sigma(&o), f32::INFINITY, None),
+            RangePenalty::Soft { k } => (f32::INFINITY, f32::INFINITY, Some(k * sigma(&o))),
+        },
+    };
     let n_pix = w * h;
     let n_planes = planes.num_planes;
     let voxels = n_pix
@@ -232,26 +419,39 @@ pub fn build_cost_volume(
             data: s.image.data(),
             warp: PlaneWarp::new(&reference.intrinsics, &s.intrinsics, rel, z),
         }));
-        let haze = match kind {
-            CostKind::Ordinary => Haze {
+        let haze = match kind.dehazing() {
+            None => Haze {
                 airlight: 0.0,
                 beta: 0.0,
                 ref_inv_t: 1.0,
                 ref_offset: 0.0,
+                ref_t: 1.0,
+                residual: DehazingResidual::Eq37,
+                ref_lo: 0.0,
+                ref_hi: 1.0,
+                src_margin: 0.0,
+                soft_margin: None,
             },
-            CostKind::Dehazing(p) => {
-                let inv_t = inverse_transmission(transmission(p.beta, z as f32));
+            Some((p, o)) => {
+                let t = transmission(p.beta, z as f32);
+                let inv_t = inverse_transmission(t);
                 Haze {
                     airlight: p.airlight,
                     beta: p.beta,
                     ref_inv_t: inv_t,
                     ref_offset: p.airlight * (1.0 - inv_t),
+                    ref_t: t.max(crate::atmosphere::MIN_TRANSMISSION),
+                    residual: o.residual,
+                    ref_lo: -margin * inv_t,
+                    ref_hi: 1.0 + margin * inv_t,
+                    src_margin,
+                    soft_margin,
                 }
             }
         };
         let refd = reference.image.data();
         let srcs = &plane_sources[..];
-        let dehaze = matches!(kind, CostKind::Dehazing(_));
+        let dehaze = kind.dehazing().is_some();
         out.par_chunks_mut(w).enumerate().for_each_init(
             RowScratch::default,
             |scratch, (y, row)| match (c, dehaze) {

@@ -384,3 +384,210 @@ fn cost_volume_timing() {
         }
     }
 }
+
+/// Every residual space × range penalty, with an explicit noise level.
+fn all_options() -> Vec<DehazingOptions> {
+    let mut out = Vec::new();
+    for residual in [
+        DehazingResidual::Eq37,
+        DehazingResidual::ObservationSpace,
+        DehazingResidual::NoiseWhitened,
+    ] {
+        for range in [
+            RangePenalty::Hard,
+            RangePenalty::NoiseAware { k: 3.0 },
+            RangePenalty::ReferenceAware { k: 3.0 },
+            RangePenalty::Soft { k: 3.0 },
+            RangePenalty::Off,
+        ] {
+            for noise_sigma in [None, Some(0.02)] {
+                out.push(DehazingOptions {
+                    residual,
+                    range,
+                    noise_sigma,
+                });
+            }
+        }
+    }
+    out
+}
+
+#[test]
+fn beta_zero_makes_every_dehazing_mode_ordinary() {
+    let s = scene(2.3, 0.8, 0.4, &[[0.3, 0.02, 0.05], [-0.25, -0.03, 0.0]]);
+    let ordinary = build(&s, CostKind::Ordinary);
+    let atm = AtmosphereParams {
+        airlight: 0.8,
+        beta: 0.0,
+    };
+    for o in all_options() {
+        let d = build(&s, CostKind::DehazingWith(atm, o));
+        assert!(ordinary.data() == d.data(), "{o:?}");
+    }
+    assert_eq!(
+        build(&s, CostKind::Dehazing(atm)).data(),
+        build(&s, CostKind::DehazingWith(atm, DehazingOptions::EQ37)).data()
+    );
+}
+
+/// The observation-space and whitened residuals at a few voxels, recomputed the long way:
+/// `Σ_c |(I_r − A) − (t_r/t_s)(I_s − A)|`, times `sqrt(2/(1 + (t_r/t_s)²))` when whitened.
+#[test]
+fn observation_space_voxels_match_direct_evaluation() {
+    let atm = AtmosphereParams {
+        airlight: 0.9,
+        beta: 0.3,
+    };
+    let s = scene(3.0, atm.airlight, atm.beta, &[[0.3, 0.02, 0.05]]);
+    let opts = |residual| DehazingOptions {
+        residual,
+        range: RangePenalty::Off,
+        noise_sigma: None,
+    };
+    let obs = build(
+        &s,
+        CostKind::DehazingWith(atm, opts(DehazingResidual::ObservationSpace)),
+    );
+    let white = build(
+        &s,
+        CostKind::DehazingWith(atm, opts(DehazingResidual::NoiseWhitened)),
+    );
+    let rel = Pose::relative(&s.poses[0], &s.poses[1]);
+    let (ir, is) = (&s.images[0], &s.images[1]);
+    let mut checked = 0;
+    for &(x, y) in &[(10usize, 10usize), (40, 20), (50, 40), (5, 30), (33, 7)] {
+        for i in (0..64).step_by(3) {
+            let z = obs.planes().depth(i as f64);
+            let ray = k().ray(x as f64, y as f64);
+            let q = rel.transform([ray[0] / ray[2] * z, ray[1] / ray[2] * z, z]);
+            let Some((u, v)) = k().project(q) else {
+                continue;
+            };
+            if !(u >= 0.0 && v >= 0.0 && u <= (W - 1) as f64 && v <= (H - 1) as f64) {
+                assert_eq!(obs.cost(x, y, i), 3.0);
+                continue;
+            }
+            let (x0, y0) = (u.floor() as usize, v.floor() as usize);
+            let (x1, y1) = ((x0 + 1).min(W - 1), (y0 + 1).min(H - 1));
+            let (fx, fy) = (u - x0 as f64, v - y0 as f64);
+            let (a, b) = (atm.airlight as f64, atm.beta as f64);
+            let (tr, ts) = ((-b * z).exp(), (-b * q[2]).exp());
+            let mut cost = 0.0;
+            for c in 0..3 {
+                let g = |xx: usize, yy: usize| is.get(xx, yy, c) as f64;
+                let sample = (1.0 - fy) * ((1.0 - fx) * g(x0, y0) + fx * g(x1, y0))
+                    + fy * ((1.0 - fx) * g(x0, y1) + fx * g(x1, y1));
+                cost += ((ir.get(x, y, c) as f64 - a) - tr / ts * (sample - a)).abs();
+            }
+            let got = obs.cost(x, y, i) as f64;
+            assert!(
+                (got - cost).abs() < 1e-4,
+                "({x}, {y}, {i}): {got} vs {cost}"
+            );
+            let r = tr / ts;
+            let want = cost * (2.0 / (1.0 + r * r)).sqrt();
+            let got = white.cost(x, y, i) as f64;
+            assert!(
+                (got - want).abs() < 1e-4,
+                "({x}, {y}, {i}): {got} vs {want}"
+            );
+            checked += 1;
+        }
+    }
+    assert!(checked > 10, "only {checked} voxels checked");
+}
+
+/// Consistency of the range penalties: a zero noise margin is Eq. 3.7's hard check, a huge
+/// one is no check; the soft penalty only adds cost and stays within `γ`.
+#[test]
+fn range_penalties_are_consistent() {
+    let atm = AtmosphereParams {
+        airlight: 0.85,
+        beta: 0.5,
+    };
+    let s = scene(2.0, atm.airlight, atm.beta, &[[0.3, 0.02, 0.05]]);
+    let with = |range, sigma| {
+        build(
+            &s,
+            CostKind::DehazingWith(
+                atm,
+                DehazingOptions {
+                    residual: DehazingResidual::Eq37,
+                    range,
+                    noise_sigma: Some(sigma),
+                },
+            ),
+        )
+    };
+    let hard = build(&s, CostKind::Dehazing(atm));
+    let off = with(RangePenalty::Off, 0.0);
+    assert!(hard.data() != off.data(), "the hard check never fired");
+    assert!(with(RangePenalty::NoiseAware { k: 3.0 }, 0.0).data() == hard.data());
+    assert!(off.data().iter().all(|&c| (0.0..=3.0).contains(&c)));
+    assert!(with(RangePenalty::NoiseAware { k: 1e30 }, 1.0).data() == off.data());
+    assert!(with(RangePenalty::Soft { k: 1e30 }, 1.0).data() == off.data());
+    let soft = with(RangePenalty::Soft { k: 0.0 }, 0.0);
+    for ((&s, &o), &h) in soft.data().iter().zip(off.data()).zip(hard.data()) {
+        assert!(s >= o && s <= 3.0, "{s} vs off {o}");
+        // Where the hard check passes there is no excursion.
+        if h < 3.0 {
+            assert!((s - o).abs() <= 1e-6 * o.max(1.0), "{s} vs {o}");
+        }
+    }
+}
+
+#[test]
+fn noise_sigma_is_estimated_robustly() {
+    use rand::{Rng, SeedableRng};
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+    for sigma in [0.0f32, 0.005, 0.02] {
+        let img = ImageF32::from_fn(128, 96, |x, y| {
+            let v = texture(x as f64 * 0.02, y as f64 * 0.02, 0);
+            // Box–Muller.
+            let (u1, u2): (f32, f32) = (rng.random_range(1e-7..1.0), rng.random());
+            v + sigma * (-2.0 * u1.ln()).sqrt() * (std::f32::consts::TAU * u2).cos()
+        });
+        let est = estimate_noise_sigma(&img);
+        assert!(
+            (est - sigma).abs() <= 0.15 * sigma + 1e-3,
+            "sigma {sigma}: estimated {est}"
+        );
+    }
+}
+
+#[test]
+fn bad_dehazing_options_are_rejected() {
+    let s = scene(2.0, 0.8, 0.3, &[[0.3, 0.0, 0.0]]);
+    let v = s.views();
+    let atm = AtmosphereParams {
+        airlight: 0.8,
+        beta: 0.3,
+    };
+    let run = |o: DehazingOptions| {
+        field_of(
+            build_cost_volume(
+                &v[0],
+                &v[1..],
+                &planes(),
+                CostKind::DehazingWith(atm, o),
+                &Monitor::noop(),
+            )
+            .unwrap_err(),
+        )
+    };
+    let base = DehazingOptions::default();
+    assert_eq!(
+        run(DehazingOptions {
+            range: RangePenalty::Soft { k: -1.0 },
+            ..base
+        }),
+        "options.range.k"
+    );
+    assert_eq!(
+        run(DehazingOptions {
+            noise_sigma: Some(f32::NAN),
+            ..base
+        }),
+        "options.noise_sigma"
+    );
+}
