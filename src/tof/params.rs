@@ -137,6 +137,10 @@ pub struct TofParams {
     /// by up to half the baseline. Requires intrinsics (the ray direction enters the
     /// correction).
     pub light_position_m: Option<[f64; 3]>,
+    /// IRLS convergence test ("repeat … until converged", Algorithm 2): a level stops early once
+    /// no weight moves by more than this for two iterations and the mask is unchanged, so the
+    /// iteration counts are caps. 0 disables early stopping (always run the caps).
+    pub convergence_tolerance: f64,
 }
 
 impl Default for TofParams {
@@ -153,6 +157,7 @@ impl Default for TofParams {
             bilateral: Some(BilateralParams::default()),
             mask_threshold: 0.5,
             light_position_m: None,
+            convergence_tolerance: super::irls::DEFAULT_WEIGHT_TOLERANCE,
         }
     }
 }
@@ -239,6 +244,13 @@ impl TofParams {
                     format!("must be finite and within 10 m of the camera, got {l:?}"),
                 ));
             }
+        }
+        let tol = self.convergence_tolerance;
+        if !tol.is_finite() || !(0.0..=1.0).contains(&tol) {
+            return Err(MurkError::invalid(
+                "convergence_tolerance",
+                format!("must be in [0, 1], got {tol}"),
+            ));
         }
         let t = self.mask_threshold;
         if !t.is_finite() || t <= 0.0 || t >= 1.0 {

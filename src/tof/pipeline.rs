@@ -11,7 +11,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use rayon::prelude::*;
 
 use super::bilateral::bilateral_filter;
-use super::irls::{run_irls, IrlsConfig, IrlsOutcome, DEFAULT_WEIGHT_TOLERANCE};
+use super::irls::{run_irls, IrlsConfig, IrlsOutcome};
 use super::params::{TofInput, TofOutput, TofParams, SPEED_OF_LIGHT_M_PER_S};
 use super::quadratic_prior::{PatchGrid, QuadraticPrior};
 use super::symmetry::RowMirror;
@@ -85,7 +85,7 @@ pub fn estimate_tof_depth_with_solver(
             coarse_iterations: params.coarse_iterations,
             fine_iterations: params.fine_iterations,
             solver,
-            weight_tolerance: DEFAULT_WEIGHT_TOLERANCE,
+            weight_tolerance: params.convergence_tolerance,
             mask_threshold: params.mask_threshold as f64,
         };
         let sys = XStepSystem::new(w, h, cfg.channel.effective_gamma(w, h), mirror.clone());

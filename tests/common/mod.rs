@@ -68,11 +68,13 @@ pub fn tof_request(width: usize, height: usize, seed: u64) -> pb::TofDepthReques
     )
 }
 
-/// A request that runs for a long time (thousands of fine iterations) unless cancelled.
+/// A request that runs for a long time (thousands of fine iterations, early stopping off)
+/// unless cancelled.
 pub fn long_tof_request(fine_iterations: u32) -> pb::TofDepthRequest {
     let mut r = tof_request(256, 212, 7);
     r.options = Some(pb::TofOptions {
         fine_iterations: Some(fine_iterations),
+        convergence_tolerance: Some(0.0),
         ..Default::default()
     });
     r

@@ -94,6 +94,9 @@ fn params_from_proto(req: &pb::TofDepthRequest) -> Result<TofParams> {
     if let Some(t) = o.mask_threshold {
         p.mask_threshold = t;
     }
+    if let Some(t) = o.convergence_tolerance {
+        p.convergence_tolerance = t;
+    }
     Ok(p)
 }
 
