@@ -130,27 +130,17 @@ fn assert_acceptance(s: &Scores, what: &str) {
     assert!(s.iou >= 0.9, "{what}: mask IoU {:.3} < 0.9 ({s:?})", s.iou);
 }
 
-/// Medium fog at 128 × 106 on several seeds.
+/// Medium fog at 128 × 106 on seeds 0–5 (all of the survey's medium seeds).
 ///
-/// Seeds 0, 3 and 4 are known failures of the method as specified (reference γ′, scaled to the
-/// image size): mean errors 0.036 / 0.12 / 0.06 m, the amplitude scatter estimate drifting under
-/// large objects (see `survey`); seed 0 fails the same way at the full 512 × 424 (0.048 m). They
-/// are asserted in `medium_fog_known_failures` (ignored) so the gap stays visible.
+/// Seeds 0, 3 and 4 failed (0.036 / 0.12 / 0.06 m) until two changes to `murk::tof::irls`: the
+/// a-step fits the patch quadratics with the IRLS weights, so the scatter estimate no longer
+/// drifts under large objects (seeds 3, 4), and σ₁ is re-measured from the first x-step solved
+/// under pixel weights instead of the coarse level's leftovers (seed 0: σ₁ was 3.5× the noise,
+/// dim object pixels stayed amplitude inliers). The thin preset's seeds 3 and 4 (large objects
+/// in weak scatter) still end worse than the uncorrected range; see `survey`.
 #[test]
 fn medium_fog_reduced_size_meets_acceptance() {
-    for seed in [1, 2, 5] {
-        let frame = simulate(FogPreset::Medium, seed, 128, 106);
-        let (out, secs) = run(&frame);
-        let s = score(&frame, &out, secs);
-        assert_acceptance(&s, &format!("medium 128x106 seed {seed}"));
-    }
-}
-
-/// The medium-fog seeds the method does not yet meet (see above). Run with `--ignored`.
-#[test]
-#[ignore]
-fn medium_fog_known_failures() {
-    for seed in [0, 3, 4] {
+    for seed in 0..6 {
         let frame = simulate(FogPreset::Medium, seed, 128, 106);
         let (out, secs) = run(&frame);
         let s = score(&frame, &out, secs);
@@ -267,7 +257,10 @@ fn diagnose() {
         let mut prior = QuadraticPrior::new(PatchGrid::new(w, h, 4, 4)).unwrap();
         let cfg = IrlsConfig {
             channel: ch,
-            coarse_iterations: 5,
+            coarse_iterations: std::env::var("TOF_COARSE")
+                .ok()
+                .and_then(|s| s.parse().ok())
+                .unwrap_or(5),
             fine_iterations: 50,
             solver: XStepSolver::default(),
             weight_tolerance: murk::tof::irls::DEFAULT_WEIGHT_TOLERANCE,
@@ -303,9 +296,14 @@ fn diagnose() {
                         (true, false) => 'o',
                         _ => '.',
                     });
-                    let e =
-                        ((o.scatter[i] - truth.data()[i] as f64).abs() / spread * 50.0).min(9.0);
-                    line2.push(char::from(b'0' + e as u8));
+                    let d = o.scatter[i] - truth.data()[i] as f64;
+                    let e = (d.abs() / spread * 50.0).min(9.0);
+                    if std::env::var("TOF_SIGNED").is_ok() && d < 0.0 && e >= 1.0 {
+                        // Underestimate: letters a (1) … i (9).
+                        line2.push(char::from(b'a' + e as u8 - 1));
+                    } else {
+                        line2.push(char::from(b'0' + e as u8));
+                    }
                 }
                 println!("{line}   {line2}");
             }
@@ -349,6 +347,7 @@ fn diagnose() {
     let k = c / (4.0 * std::f64::consts::PI * f);
     let (out, _) = run(&frame);
     let (mut eo, mut ee, mut esa, mut esp, mut n) = (0.0, 0.0, 0.0, 0.0, 0);
+    let mut mixed = [0.0f64; 2];
     for i in 0..w * h {
         if gt[i] < 0.5 {
             continue;
@@ -365,12 +364,28 @@ fn diagnose() {
         let im = a * p.sin() - sa * sp.sin();
         let ph = im.atan2(re).rem_euclid(2.0 * std::f64::consts::PI);
         eo += (k * ph - frame.gt_range_m.data()[i] as f64).abs();
+        // Mixed oracles: one channel's scatter true, the other estimated.
+        let (ea, ep) = (
+            out.scatter_amplitude.data()[i] as f64,
+            out.scatter_phase.data()[i] as f64,
+        );
+        for (j, (a_s, p_s)) in [(sa, ep), (ea, sp)].into_iter().enumerate() {
+            let re = a * p.cos() - a_s * p_s.cos();
+            let im = a * p.sin() - a_s * p_s.sin();
+            let ph = im.atan2(re).rem_euclid(2.0 * std::f64::consts::PI);
+            mixed[j] += (k * ph - frame.gt_range_m.data()[i] as f64).abs();
+        }
         ee += (out.range_m.data()[i] as f64 - frame.gt_range_m.data()[i] as f64).abs();
         esa += (out.scatter_amplitude.data()[i] as f64 - sa).abs();
         esp += (out.scatter_phase.data()[i] as f64 - sp).abs();
         n += 1;
     }
     let n = n as f64;
+    println!(
+        "range err with true α_s + estimated φ_s {:.4} m; estimated α_s + true φ_s {:.4} m",
+        mixed[0] / n,
+        mixed[1] / n
+    );
     println!(
         "oracle-scatter range err {:.4} m; pipeline err {:.4} m; pipeline |Δα_s| {:.3} |Δφ_s| {:.4}",
         eo / n,

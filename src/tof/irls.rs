@@ -3,7 +3,10 @@
 //!
 //! Coarse level (Eq. 5.16): one Tukey weight per patch from the patch's residual, then the fine
 //! level (Eq. 5.11): one weight per pixel. Each level fixes its scale σ from the residuals of its
-//! first iteration (§5.3.4). Every iteration alternates the x-step and the a-step of Eq. 5.12.
+//! first iteration (§5.3.4); the fine level re-measures σ₁ once, from its first x-step solved
+//! under pixel weights (see `run_irls`). Every iteration alternates the x-step and the a-step of
+//! Eq. 5.12, the a-step fitting the quadratics with the IRLS weights (a deviation, see
+//! `x_and_a_step`).
 
 use rayon::prelude::*;
 
@@ -93,7 +96,8 @@ pub struct IrlsOutcome {
     pub weights: Vec<f64>,
     /// Coarse-level scale σ₂ (RMS residual units), if the coarse level ran.
     pub sigma_coarse: Option<f64>,
-    /// Fine-level scale σ₁, if the fine level ran.
+    /// Fine-level scale σ₁ as finally fixed (from the second fine iteration when it ran), if the
+    /// fine level ran.
     pub sigma_fine: Option<f64>,
     /// Total conjugate-gradient iterations over all x-steps (0 for Cholesky).
     pub cg_iterations: usize,
@@ -218,7 +222,13 @@ pub fn run_irls(
         )?;
         fine_run += 1;
         prev_weights.copy_from_slice(&weights);
-        if it == 0 {
+        // σ₁ is measured twice and then fixed (§5.3.4 fixes it from the level's first
+        // residuals). The first fine x-step still runs under the coarse patch weights: in every
+        // rejected patch the background residuals are the priors' misfit, not noise, and
+        // inflate σ₁ (3.5× the noise on a simulated medium-fog frame), which then keeps dim
+        // object pixels as inliers. That first estimate only seeds the first pixel weights;
+        // the residuals of the first x-step solved under pixel weights give the noise scale.
+        if it <= 1 {
             scratch
                 .par_iter_mut()
                 .zip(x.par_iter().zip(observed.par_iter()))
@@ -260,6 +270,17 @@ pub fn run_irls(
 }
 
 /// One alternation of Eq. 5.12: x given a_k (and W), then a_k given x. Returns CG iterations.
+///
+/// Deviation from Eq. 5.12: the a-step fits each patch's quadratic to x with the current IRLS
+/// weights ([`QuadraticPrior::fit_weighted`]) instead of uniformly. Where W ≈ 0 (objects) x has
+/// no data term: it is only what the priors made of it, so a uniform fit lets the priors confirm
+/// themselves there. The previous state persists (the alternation is a slow diffusion in those
+/// pixels) — in particular Algorithm 2's initial fit to the observation, bright objects
+/// included — and a quadratic partially fitted to the object region (the failure of the
+/// reference's Fig. 5.14/5.16) lifts x over the whole patch until the background pixels beside
+/// the object turn outliers too. Weighted, a_k follows the data-constrained pixels and the
+/// object region receives the background's quadratic. At the coarse level all pixels of a patch
+/// share one weight, so the fit is the uniform one there (see `fit_weighted`).
 #[allow(clippy::too_many_arguments)]
 fn x_and_a_step(
     sys: &XStepSystem,
@@ -275,7 +296,7 @@ fn x_and_a_step(
 ) -> Result<usize> {
     sys.rhs(weights, observed, prior_img, rhs);
     let stats = state.solve_inexact(sys, weights, rhs, x, tol_scale, monitor)?;
-    prior.fit(x);
+    prior.fit_weighted(x, weights);
     prior.evaluate(prior_img);
     Ok(stats.iterations)
 }

@@ -8,6 +8,10 @@ use rayon::prelude::*;
 
 use crate::error::{MurkError, Result};
 
+/// Weight floor ε of [`QuadraticPrior::fit_weighted`]: relative to an inlier's weight 1, small
+/// enough that outliers barely pull the fit, large enough to keep every patch's system SPD.
+pub const WEIGHTED_FIT_FLOOR: f64 = 1e-3;
+
 /// Non-overlapping patch grid; the last patch along each axis absorbs the remainder pixels.
 #[derive(Clone, Debug, PartialEq)]
 pub struct PatchGrid {
@@ -148,7 +152,9 @@ fn cholesky6_solve(l: &[[f64; 6]; 6], b: &[f64; 6]) -> [f64; 6] {
 }
 
 /// Per-patch least-squares quadratic fits `a_k = argmin ‖U a_k − x_k‖²` (Eq. 5.10, a-step of
-/// Eq. 5.12). `U` never changes, so each patch's Gram matrix is factored once.
+/// Eq. 5.12). `U` never changes, so each patch's Gram matrix is factored once. The IRLS a-step
+/// uses the weighted variant [`QuadraticPrior::fit_weighted`] (a documented deviation, see
+/// `irls::x_and_a_step`); the uniform [`QuadraticPrior::fit`] initialises Algorithm 2.
 #[derive(Clone, Debug)]
 pub struct QuadraticPrior {
     grid: PatchGrid,
@@ -261,6 +267,63 @@ impl QuadraticPrior {
         }
     }
 
+    /// Weighted fits `a_k = argmin Σᵢ (wᵢ + ε)(U a_k − x)ᵢ²` over every patch, with `weights`
+    /// the IRLS weights (row-major, `width·height`) and ε = [`WEIGHTED_FIT_FLOOR`]. Equal weights
+    /// over a patch (the coarse level) give exactly [`QuadraticPrior::fit`]; ε keeps a patch
+    /// whose pixels are all outliers determined (it then falls back to the unweighted fit).
+    pub fn fit_weighted(&mut self, x: &[f64], weights: &[f64]) {
+        let w = self.grid.width;
+        let pxn = self.grid.patches_x();
+        let grid = &self.grid;
+        let (col_norm, row_norm) = (&self.col_norm, &self.row_norm);
+        let fits: Vec<Option<[f64; 6]>> = (0..grid.count())
+            .into_par_iter()
+            .map(|k| {
+                let (py, px) = (k / pxn, k % pxn);
+                let (y0, y1) = grid.rows[py];
+                let (x0, x1) = grid.cols[px];
+                let mut g = [[0.0; 6]; 6];
+                let mut rhs = [0.0; 6];
+                for y in y0..y1 {
+                    let v = row_norm[py].at(y);
+                    for xi in x0..x1 {
+                        let i = y * w + xi;
+                        let wi = weights[i].max(0.0) + WEIGHTED_FIT_FLOOR;
+                        let b = basis(col_norm[px].at(xi), v);
+                        for r in 0..6 {
+                            let wb = wi * b[r];
+                            rhs[r] += wb * x[i];
+                            for c in 0..=r {
+                                g[r][c] += wb * b[c];
+                            }
+                        }
+                    }
+                }
+                for r in 0..6 {
+                    for c in 0..r {
+                        g[c][r] = g[r][c];
+                    }
+                }
+                cholesky6(&g).map(|l| cholesky6_solve(&l, &rhs))
+            })
+            .collect();
+        let mut unweighted = None;
+        for (k, f) in fits.into_iter().enumerate() {
+            match f {
+                Some(a) => self.coeffs[k] = a,
+                None => {
+                    // Numerically degenerate weighted Gram matrix: use the plain fit.
+                    let plain = unweighted.get_or_insert_with(|| {
+                        let mut q = self.clone();
+                        q.fit(x);
+                        q.coeffs
+                    });
+                    self.coeffs[k] = plain[k];
+                }
+            }
+        }
+    }
+
     /// Writes U a_k for every pixel (the prior image that enters the x-step right-hand side).
     pub fn evaluate(&self, out: &mut [f64]) {
         let w = self.grid.width;
@@ -312,6 +375,47 @@ mod tests {
         for (a, b) in out.iter().zip(&img) {
             assert!((a - b).abs() < 1e-9 * b.abs().max(1.0), "{a} vs {b}");
         }
+    }
+
+    #[test]
+    fn weighted_fit_ignores_zero_weight_pixels_and_matches_uniform_weights() {
+        let (w, h) = (24, 18);
+        let f = |x: f64, y: f64| 0.02 * x * x - 0.01 * x * y + 0.03 * y * y + x - y + 10.0;
+        let clean: Vec<f64> = (0..w * h)
+            .map(|i| f((i % w) as f64, (i / w) as f64))
+            .collect();
+        let mut q = QuadraticPrior::new(PatchGrid::new(w, h, 2, 2)).unwrap();
+        // Uniform weights (any value, zero included) reproduce the plain fit.
+        let noisy: Vec<f64> = (0..w * h).map(|i| ((i * 7919) % 13) as f64).collect();
+        q.fit(&noisy);
+        let plain = q.coeffs().to_vec();
+        for wt in [1.0, 0.3, 0.0] {
+            q.fit_weighted(&noisy, &vec![wt; w * h]);
+            for (a, b) in q.coeffs().iter().zip(&plain) {
+                for (u, v) in a.iter().zip(b) {
+                    assert!((u - v).abs() < 1e-9 * v.abs().max(1.0), "{u} vs {v}");
+                }
+            }
+        }
+        // A bright block with weight 0 barely moves the fit of the quadratic underneath (only ε
+        // of it pulls: < 0.5 % of its height).
+        let mut img = clean.clone();
+        let mut weights = vec![1.0; w * h];
+        for y in 2..8 {
+            for x in 3..10 {
+                img[y * w + x] += 500.0;
+                weights[y * w + x] = 0.0;
+            }
+        }
+        q.fit_weighted(&img, &weights);
+        let mut out = vec![0.0; w * h];
+        q.evaluate(&mut out);
+        for (a, b) in out.iter().zip(&clean) {
+            assert!((a - b).abs() < 2.5, "{a} vs {b}");
+        }
+        q.fit(&img);
+        q.evaluate(&mut out);
+        assert!(out.iter().zip(&clean).any(|(a, b)| (a - b).abs() > 50.0));
     }
 
     #[test]
