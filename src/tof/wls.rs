@@ -324,19 +324,17 @@ pub fn solve_pcg(
             ws.inv_diag.par_iter_mut().for_each(|d| *d = 1.0 / *d);
         }
         Preconditioner::Multigrid => {
-            let fits = ws
+            if ws
                 .mg
                 .as_ref()
-                .is_some_and(|m| m.dims() == (sys.width, sys.height));
-            if !fits {
-                ws.mg = Some(Box::new(Multigrid::new(
-                    sys.width,
-                    sys.height,
-                    sys.gamma[2],
-                )));
+                .is_some_and(|m| m.dims() != (sys.width, sys.height))
+            {
+                ws.mg = None;
             }
+            let mg = ws.mg.get_or_insert_with(|| {
+                Box::new(Multigrid::new(sys.width, sys.height, sys.gamma[2]))
+            });
             let base = sys.gamma[0] + RIDGE;
-            let mg = ws.mg.as_mut().expect("multigrid");
             mg.set_mass(|i| weights[i] + base + sys.pair_coef(i / w));
         }
     }
@@ -356,7 +354,14 @@ pub fn solve_pcg(
             .par_iter_mut()
             .zip(r.par_iter().zip(inv_diag.par_iter()))
             .for_each(|(zi, (ri, di))| *zi = ri * di),
-        Preconditioner::Multigrid => mg.as_mut().expect("multigrid").apply(r, z),
+        // Set up above whenever the multigrid preconditioner is selected.
+        Preconditioner::Multigrid => {
+            if let Some(mg) = mg.as_mut() {
+                mg.apply(r, z)
+            } else {
+                z.copy_from_slice(r)
+            }
+        }
     };
     r.par_iter_mut()
         .zip(b.par_iter().zip(q.par_iter()))
