@@ -1,0 +1,79 @@
+//! MVS in haze (issue 3): cost volumes (Eq. 3.1, Eq. 3.7 and the default noise-balanced
+//! dehazing residual) at the reference's DCV size 256×192 with 256 planes, 1 and 4 sources, and
+//! the full depth (cost volume + 8-path SGM + selection).
+//!
+//! Run: `cargo bench --bench mvs`.
+
+use criterion::{criterion_group, criterion_main, Criterion};
+
+use murk::atmosphere::AtmosphereParams;
+use murk::mvs::{
+    build_cost_volume, estimate_depth, CostKind, DehazingOptions, PlaneSet, SgmParams, View,
+};
+use murk::simulate::mvs::{simulate_mvs, MvsSimConfig};
+use murk::Monitor;
+
+fn bench(c: &mut Criterion) {
+    let scene = simulate_mvs(&MvsSimConfig::default(), &Monitor::noop()).expect("simulate");
+    let view = |i: usize| View {
+        image: &scene.views[i].hazy,
+        intrinsics: scene.views[i].intrinsics,
+        pose: scene.views[i].pose,
+    };
+    let reference = view(scene.reference);
+    let sources: Vec<View> = (0..scene.views.len())
+        .filter(|&i| i != scene.reference)
+        .map(view)
+        .collect();
+    let planes = PlaneSet::new(0.5, 50.0, 256).expect("planes");
+    let atm = AtmosphereParams {
+        airlight: scene.airlight,
+        beta: scene.beta,
+    };
+    let monitor = Monitor::noop();
+    let (w, h) = scene.views[0].hazy.dims();
+
+    let mut g = c.benchmark_group(format!("mvs_cost_volume_{w}x{h}x256"));
+    g.sample_size(10);
+    for n_src in [1usize, 4] {
+        for (name, kind) in [
+            ("ordinary", CostKind::Ordinary),
+            ("dehazing_eq37", CostKind::Dehazing(atm)),
+            (
+                "dehazing_default",
+                CostKind::DehazingWith(atm, DehazingOptions::default()),
+            ),
+        ] {
+            g.bench_function(format!("{name}/{n_src}src"), |b| {
+                b.iter(|| {
+                    build_cost_volume(&reference, &sources[..n_src], &planes, kind, &monitor)
+                        .expect("cost volume")
+                })
+            });
+        }
+    }
+    g.finish();
+
+    let mut g = c.benchmark_group(format!("mvs_depth_{w}x{h}x256"));
+    g.sample_size(10);
+    let kind = CostKind::DehazingWith(atm, DehazingOptions::default());
+    for n_src in [1usize, 4] {
+        g.bench_function(format!("dehazing_default_sgm/{n_src}src"), |b| {
+            b.iter(|| {
+                estimate_depth(
+                    &reference,
+                    &sources[..n_src],
+                    &planes,
+                    kind,
+                    &SgmParams::default(),
+                    &monitor,
+                )
+                .expect("depth")
+            })
+        });
+    }
+    g.finish();
+}
+
+criterion_group!(benches, bench);
+criterion_main!(benches);
