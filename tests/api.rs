@@ -136,17 +136,12 @@ async fn submit_watch_result_then_identical_resubmit_is_a_cache_hit() {
 async fn cancelling_a_long_job_ends_it_within_one_second() {
     let server = start(config(4)).await;
     let mut c = jobs(&server);
-    let j = c
-        .submit_job(job(long_tof_request(10_000)))
-        .await
-        .unwrap()
-        .into_inner();
-    wait_running(&mut c, &j.id).await;
+    let id = submit_running_long_job(&mut c).await;
     let t0 = Instant::now();
-    c.cancel_job(pb::CancelJobRequest { id: j.id.clone() })
+    c.cancel_job(pb::CancelJobRequest { id: id.clone() })
         .await
         .unwrap();
-    let seen = watch_to_end(&mut c, &j.id).await;
+    let seen = watch_to_end(&mut c, &id).await;
     let elapsed = t0.elapsed();
     assert_eq!(state(seen.last().unwrap()), pb::JobState::Cancelled);
     assert!(elapsed < Duration::from_secs(1), "took {elapsed:?}");
@@ -157,12 +152,12 @@ async fn cancelling_a_long_job_ends_it_within_one_second() {
         .await
         .unwrap()
         .into_inner();
-    assert_eq!(again.id, j.id);
+    assert_eq!(again.id, id);
     assert!(matches!(
         state(&again),
         pb::JobState::Queued | pb::JobState::Running
     ));
-    c.cancel_job(pb::CancelJobRequest { id: j.id.clone() })
+    c.cancel_job(pb::CancelJobRequest { id: id.clone() })
         .await
         .unwrap();
     server.stop().await.unwrap();

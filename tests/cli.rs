@@ -74,14 +74,9 @@ async fn simulate_then_tof_client_writes_outputs() {
 async fn graceful_shutdown_cancels_running_jobs_after_the_grace_period() {
     let server = start(config(4)).await;
     let mut c = jobs(&server);
-    let j = c
-        .submit_job(job(long_tof_request(10_000)))
-        .await
-        .unwrap()
-        .into_inner();
-    wait_running(&mut c, &j.id).await;
+    let id = submit_running_long_job(&mut c).await;
     let manager = server.manager().clone();
     server.stop().await.unwrap();
-    let snap = manager.get(&j.id).unwrap().snapshot();
+    let snap = manager.get(&id).unwrap().snapshot();
     assert_eq!(snap.state, murk::jobs::JobState::Cancelled);
 }

@@ -150,3 +150,14 @@ pub fn bad_field(s: &tonic::Status) -> String {
     );
     field
 }
+
+/// Submits a long job (see [`long_tof_request`]) and returns its id once it is RUNNING.
+pub async fn submit_running_long_job(client: &mut JobsClient<Channel>) -> String {
+    let j = client
+        .submit_job(job(long_tof_request(10_000)))
+        .await
+        .expect("submit")
+        .into_inner();
+    wait_running(client, &j.id).await;
+    j.id
+}
