@@ -125,9 +125,9 @@ pub fn run(a: TofArgs) -> anyhow::Result<()> {
     };
     write_tof_result(&a.out, &r)?;
     println!(
-        "job {} {}; outputs in {}",
+        "job {}{}; outputs in {}",
         &job.id[..12.min(job.id.len())],
-        if job.cached { "(cached)" } else { "" },
+        if job.cached { " (cached)" } else { "" },
         a.out.display()
     );
     Ok(())
