@@ -42,6 +42,14 @@ impl MurkError {
         }
     }
 
+    /// The field an `InvalidArgument` names; `None` for other errors.
+    pub fn field(&self) -> Option<&str> {
+        match self {
+            MurkError::InvalidArgument { field, .. } => Some(field),
+            _ => None,
+        }
+    }
+
     /// Prefixes the field of an `InvalidArgument` with `prefix.` so nested validators can name
     /// fields relative to themselves and callers add the outer path.
     pub fn within(self, prefix: &str) -> Self {
@@ -56,6 +64,15 @@ impl MurkError {
             },
             other => other,
         }
+    }
+}
+
+/// Test helper: the field an `InvalidArgument` names; panics on any other error.
+#[cfg(test)]
+pub(crate) fn field_of(e: MurkError) -> String {
+    match e.field() {
+        Some(f) => f.to_string(),
+        None => panic!("expected InvalidArgument, got {e:?}"),
     }
 }
 

@@ -166,12 +166,7 @@ mod tests {
     use super::*;
     use proptest::prelude::*;
 
-    fn field_of(e: MurkError) -> String {
-        match e {
-            MurkError::InvalidArgument { field, .. } => field,
-            other => panic!("expected InvalidArgument, got {other:?}"),
-        }
-    }
+    use crate::error::field_of;
 
     #[test]
     fn params_validation_names_fields() {

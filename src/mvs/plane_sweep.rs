@@ -259,12 +259,7 @@ mod tests {
     use super::*;
     use proptest::prelude::*;
 
-    fn field_of(e: MurkError) -> String {
-        match e {
-            MurkError::InvalidArgument { field, .. } => field,
-            other => panic!("expected InvalidArgument, got {other:?}"),
-        }
-    }
+    use crate::error::field_of;
 
     /// Back-project, transform, project: the direct reading of Eq. 3.2 / 3.6.
     fn reference_map(

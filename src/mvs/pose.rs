@@ -273,12 +273,7 @@ mod tests {
         r.chain(t).fold(0.0, f64::max)
     }
 
-    fn field_of(e: MurkError) -> String {
-        match e {
-            MurkError::InvalidArgument { field, .. } => field,
-            other => panic!("expected InvalidArgument, got {other:?}"),
-        }
-    }
+    use crate::error::field_of;
 
     #[test]
     fn quaternion_matches_known_rotation() {

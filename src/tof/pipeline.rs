@@ -424,12 +424,7 @@ mod tests {
         );
     }
 
-    fn field(e: MurkError) -> String {
-        match e {
-            MurkError::InvalidArgument { field, .. } => field,
-            other => panic!("expected InvalidArgument, got {other:?}"),
-        }
-    }
+    use crate::error::field_of as field;
 
     #[test]
     fn validation_errors_name_fields() {

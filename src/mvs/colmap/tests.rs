@@ -26,12 +26,7 @@ const POINTS_TXT: &str = "\
 8 -1 0.5 4 1 2 3 -1 1 1
 ";
 
-fn field_of(e: MurkError) -> String {
-    match e {
-        MurkError::InvalidArgument { field, .. } => field,
-        other => panic!("expected InvalidArgument, got {other:?}"),
-    }
-}
+use crate::error::field_of;
 
 fn text_model() -> ColmapModel {
     ColmapModel {

@@ -100,12 +100,7 @@ fn build(s: &Scene, kind: CostKind) -> CostVolume {
     build_cost_volume(&v[0], &v[1..], &planes(), kind, &Monitor::noop()).unwrap()
 }
 
-fn field_of(e: MurkError) -> String {
-    match e {
-        MurkError::InvalidArgument { field, .. } => field,
-        other => panic!("expected InvalidArgument, got {other:?}"),
-    }
-}
+use crate::error::field_of;
 
 #[test]
 fn beta_zero_makes_both_volumes_identical() {
