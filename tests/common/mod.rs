@@ -92,16 +92,21 @@ pub fn state(j: &pb::Job) -> pb::JobState {
     pb::JobState::try_from(j.state).unwrap_or(pb::JobState::Unspecified)
 }
 
-/// Follows the watch stream until a terminal state; returns every message seen.
-pub async fn watch_to_end(client: &mut JobsClient<Channel>, id: &str) -> Vec<pb::Job> {
-    let mut stream = client
+/// Opens the job's watch stream (without results).
+pub async fn watch(client: &mut JobsClient<Channel>, id: &str) -> tonic::codec::Streaming<pb::Job> {
+    client
         .watch_job(pb::WatchJobRequest {
             id: id.to_string(),
             omit_result: true,
         })
         .await
         .expect("watch")
-        .into_inner();
+        .into_inner()
+}
+
+/// Follows the watch stream until a terminal state; returns every message seen.
+pub async fn watch_to_end(client: &mut JobsClient<Channel>, id: &str) -> Vec<pb::Job> {
+    let mut stream = watch(client, id).await;
     let mut seen = Vec::new();
     while let Some(j) = stream.message().await.expect("stream") {
         seen.push(j);
@@ -111,14 +116,7 @@ pub async fn watch_to_end(client: &mut JobsClient<Channel>, id: &str) -> Vec<pb:
 
 /// Waits (via the watch stream, no polling) until the job is RUNNING.
 pub async fn wait_running(client: &mut JobsClient<Channel>, id: &str) {
-    let mut stream = client
-        .watch_job(pb::WatchJobRequest {
-            id: id.to_string(),
-            omit_result: true,
-        })
-        .await
-        .expect("watch")
-        .into_inner();
+    let mut stream = watch(client, id).await;
     while let Some(j) = stream.message().await.expect("stream") {
         match state(&j) {
             pb::JobState::Running => return,
