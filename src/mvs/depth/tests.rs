@@ -168,7 +168,13 @@ fn params_validation_names_fields() {
     let d = SgmParams::default();
     d.validate().unwrap();
     assert_eq!(field(SgmParams { p1: -1.0, ..d }), "p1");
-    assert_eq!(field(SgmParams { p2: 0.01, ..d }), "p2");
+    assert_eq!(
+        field(SgmParams {
+            p2: d.p1 / 2.0,
+            ..d
+        }),
+        "p2"
+    );
     assert_eq!(field(SgmParams { num_paths: 6, ..d }), "num_paths");
     assert_eq!(
         field(SgmParams {
