@@ -243,6 +243,12 @@ pub struct RowWarp {
 }
 
 impl RowWarp {
+    /// `(slope, offset, depth)`: the homogeneous source coordinates at `u` are
+    /// `slope·u + offset`, and `ζ = (slope[2]·u + offset[2])·depth`.
+    pub fn coefficients(&self) -> ([f64; 3], [f64; 3], f64) {
+        (self.slope, self.offset, self.depth)
+    }
+
     /// Same as [`PlaneWarp::map`]`(u, v)` for this row's `v`.
     #[inline]
     pub fn map(&self, u: f64) -> (f64, f64, f64) {
