@@ -279,8 +279,9 @@ pub fn backproject(
         for u in 0..z_depth.width() {
             let z = f64::from(z_depth.get(u, v, 0));
             let conf = confidence.get(u, v, 0);
-            // `!(conf >= min)` also skips a NaN confidence.
-            if !z.is_finite() || z <= 0.0 || !(conf >= min_confidence) {
+            // A NaN confidence compares as neither, so it is skipped too.
+            let confident = conf >= min_confidence;
+            if !z.is_finite() || z <= 0.0 || !confident {
                 continue;
             }
             let y = (v as f64 - k.cy) / k.fy;

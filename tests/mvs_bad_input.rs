@@ -25,6 +25,9 @@ async fn submit_err(server: &murk::server::InProcessServer, req: pb::MvsDepthReq
     bad_field(&s)
 }
 
+/// A change that breaks one field of a good request.
+type Edit = Box<dyn Fn(&mut pb::MvsDepthRequest)>;
+
 fn reference(r: &mut pb::MvsDepthRequest) -> &mut pb::MvsView {
     r.reference.as_mut().expect("reference")
 }
@@ -37,7 +40,7 @@ fn intrinsics(v: &mut pb::MvsView) -> &mut pb::CameraIntrinsics {
 async fn bad_mvs_requests_name_the_field_and_the_server_keeps_serving() {
     let server = start(config(4)).await;
     let good = good();
-    let cases: Vec<(&str, Box<dyn Fn(&mut pb::MvsDepthRequest)>)> = vec![
+    let cases: Vec<(&str, Edit)> = vec![
         ("sources", Box::new(|r| r.sources.clear())),
         (
             "sources",
