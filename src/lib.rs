@@ -13,6 +13,7 @@ pub mod jobs;
 pub mod metrics;
 pub mod monitor;
 pub mod mvs;
+pub mod mvs_io;
 pub mod server;
 pub mod service;
 pub mod simulate;

@@ -80,3 +80,122 @@ async fn graceful_shutdown_cancels_running_jobs_after_the_grace_period() {
     let snap = manager.get(&id).unwrap().snapshot();
     assert_eq!(snap.state, murk::jobs::JobState::Cancelled);
 }
+
+#[test]
+fn simulate_mvs_then_mvs_client_writes_depth_and_point_cloud() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("scene");
+    let out = dir.path().join("out");
+    let sim = murk()
+        .args([
+            "simulate", "mvs", "--seed", "2", "--width", "64", "--height", "48",
+        ])
+        .arg("--out")
+        .arg(&scene)
+        .output()
+        .unwrap();
+    assert!(
+        sim.status.success(),
+        "{}",
+        String::from_utf8_lossy(&sim.stderr)
+    );
+    let said = String::from_utf8_lossy(&sim.stdout);
+    assert!(
+        said.contains("airlight A =") && said.contains("median transmission"),
+        "{said}"
+    );
+    for f in [
+        "meta.json",
+        "sparse/cameras.txt",
+        "sparse/images.txt",
+        "sparse/points3D.txt",
+    ] {
+        assert!(scene.join(f).exists(), "{f} missing");
+    }
+    let meta: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(scene.join("meta.json")).unwrap()).unwrap();
+    let reference = meta["reference"].as_str().unwrap().to_string();
+    assert!(scene.join("images").join(&reference).exists());
+    assert!(scene.join("clear").join(&reference).exists());
+
+    // No --server: the client starts one in-process. A and β come from meta.json.
+    let run = murk()
+        .env_remove("MURK_SERVER")
+        .args(["mvs", "--reference", &reference, "--num-sources", "2"])
+        .args(["--near", "1.5", "--far", "15", "--planes", "32"])
+        .arg("--model")
+        .arg(scene.join("sparse"))
+        .arg("--images")
+        .arg(scene.join("images"))
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&run.stdout);
+    assert!(
+        run.status.success(),
+        "stdout: {stdout}\nstderr: {}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    assert!(stdout.contains("ground-truth airlight"), "{stdout}");
+    assert!(
+        stdout.contains("C.P."),
+        "GT depth is found and scored: {stdout}"
+    );
+    for f in [
+        "depth.exr",
+        "inverse_depth.exr",
+        "confidence.exr",
+        "depth.png",
+        "points.ply",
+    ] {
+        assert!(out.join(f).exists(), "{f} missing");
+    }
+    // A valid binary PLY: header, then exactly `vertex` records of 3 floats + 3 bytes. With the
+    // default --min-confidence 0 every pixel is a point.
+    let ply = std::fs::read(out.join("points.ply")).unwrap();
+    let end = ply
+        .windows(11)
+        .position(|w| w == b"end_header\n")
+        .expect("end_header")
+        + 11;
+    let header = std::str::from_utf8(&ply[..end]).unwrap();
+    assert!(
+        header.starts_with("ply\nformat binary_little_endian 1.0\n"),
+        "{header}"
+    );
+    for p in ["x", "y", "z"] {
+        assert!(header.contains(&format!("property float {p}\n")));
+    }
+    for p in ["red", "green", "blue"] {
+        assert!(header.contains(&format!("property uchar {p}\n")));
+    }
+    let count: usize = header
+        .lines()
+        .find_map(|l| l.strip_prefix("element vertex "))
+        .expect("vertex element")
+        .parse()
+        .unwrap();
+    assert_eq!(count, 64 * 48);
+    assert_eq!(ply.len() - end, count * 15);
+
+    // A model without scene metadata needs A and β for the dehazing volume: a clear error.
+    let bare = dir.path().join("bare");
+    std::fs::create_dir_all(&bare).unwrap();
+    for f in ["cameras.txt", "images.txt", "points3D.txt"] {
+        std::fs::copy(scene.join("sparse").join(f), bare.join(f)).unwrap();
+    }
+    let bad = murk()
+        .env_remove("MURK_SERVER")
+        .args(["mvs", "--reference", &reference, "--model"])
+        .arg(&bare)
+        .arg("--images")
+        .arg(scene.join("images"))
+        .arg("--out")
+        .arg(dir.path().join("out2"))
+        .output()
+        .unwrap();
+    assert!(!bad.status.success());
+    let err = String::from_utf8_lossy(&bad.stderr);
+    assert!(err.contains("--airlight"), "{err}");
+}

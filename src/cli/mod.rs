@@ -2,6 +2,7 @@
 
 mod client;
 mod demo;
+mod mvs;
 mod serve;
 mod simulate;
 mod tof;
@@ -26,6 +27,8 @@ enum Command {
     Simulate(simulate::SimulateCommand),
     /// ToF depth in fog: send amplitude + phase to a server, write depth, mask and scatter.
     Tof(tof::TofArgs),
+    /// MVS depth in haze: COLMAP model + images → depth, confidence and a point cloud.
+    Mvs(mvs::MvsArgs),
     /// Start a server in-process, run simulated scenes through the gRPC API, print accuracy.
     Demo(demo::DemoArgs),
 }
@@ -49,6 +52,7 @@ pub fn run() -> anyhow::Result<()> {
         Command::Serve(a) => serve::run(a),
         Command::Simulate(c) => simulate::run(c),
         Command::Tof(a) => tof::run(a),
+        Command::Mvs(a) => mvs::run(a),
         Command::Demo(a) => demo::run(a),
     }
 }

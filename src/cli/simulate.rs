@@ -5,6 +5,7 @@ use std::path::PathBuf;
 use anyhow::Context;
 use clap::{Args, Subcommand};
 
+use murk::simulate::mvs::{simulate_mvs, write_mvs_scene, MvsSimConfig};
 use murk::simulate::tof::{simulate_tof, FogPreset, TofSimConfig};
 use murk::simulate::write_tof_frame;
 use murk::Monitor;
@@ -14,6 +15,31 @@ use murk::Monitor;
 pub enum SimulateCommand {
     /// A foggy CW-ToF frame with ground truth (amplitude, phase, GT range, mask, scatter).
     Tof(SimTofArgs),
+    /// A hazy multi-view scene with ground truth (hazy + clear images, GT depth, COLMAP model).
+    Mvs(SimMvsArgs),
+}
+
+/// Options of `murk simulate mvs`.
+#[derive(Args, Debug)]
+pub struct SimMvsArgs {
+    /// Output folder (created).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Seed of the scene layout, haze and noise.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Image width (the focal length scales with it, so the field of view is kept).
+    #[arg(long, default_value_t = 256)]
+    pub width: usize,
+    /// Image height.
+    #[arg(long, default_value_t = 192)]
+    pub height: usize,
+    /// Number of views along the trajectory (default 5; 2 with --rectified-pair).
+    #[arg(long)]
+    pub views: Option<usize>,
+    /// Two views with the same orientation, the source shifted along +x (rectified stereo).
+    #[arg(long)]
+    pub rectified_pair: bool,
 }
 
 /// Options of `murk simulate tof`.
@@ -63,5 +89,44 @@ pub fn run(cmd: SimulateCommand) -> anyhow::Result<()> {
             );
             Ok(())
         }
+        SimulateCommand::Mvs(a) => simulate_mvs_scene(&a),
     }
+}
+
+fn simulate_mvs_scene(a: &SimMvsArgs) -> anyhow::Result<()> {
+    let base = MvsSimConfig::with_size(a.width, a.height);
+    let cfg = MvsSimConfig {
+        seed: a.seed,
+        rectified_pair: a.rectified_pair,
+        num_views: a
+            .views
+            .unwrap_or(if a.rectified_pair { 2 } else { base.num_views }),
+        ..base
+    };
+    let scene = simulate_mvs(&cfg, &Monitor::noop())?;
+    write_mvs_scene(&a.out, &scene).with_context(|| format!("writing {}", a.out.display()))?;
+    let reference = scene
+        .views
+        .get(scene.reference)
+        .context("simulated scene has no reference view")?;
+    println!(
+        "wrote {} ({}x{}, {} views, reference {}, seed {})",
+        a.out.display(),
+        cfg.width,
+        cfg.height,
+        scene.views.len(),
+        reference.name,
+        cfg.seed
+    );
+    println!(
+        "airlight A = {:.4}, beta = {:.5} per scene unit, median transmission of the reference \
+         {:.3}",
+        scene.airlight, scene.beta, scene.median_transmission
+    );
+    println!(
+        "next: murk mvs --model {0}/sparse --images {0}/images --reference {1} --out {0}/result",
+        a.out.display(),
+        reference.name
+    );
+    Ok(())
 }

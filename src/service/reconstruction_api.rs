@@ -75,6 +75,21 @@ impl pb::reconstruction_server::Reconstruction for ReconstructionApi {
         };
         match self.run(&metadata, job).await? {
             pb::job_result::Method::TofDepth(r) => Ok(Response::new(r)),
+            _ => Err(Status::internal("stored result is of another method")),
+        }
+    }
+
+    async fn mvs_depth(
+        &self,
+        request: Request<pb::MvsDepthRequest>,
+    ) -> Result<Response<pb::MvsDepthResult>, Status> {
+        let (metadata, _, req) = request.into_parts();
+        let job = pb::JobRequest {
+            method: Some(pb::job_request::Method::MvsDepth(req)),
+        };
+        match self.run(&metadata, job).await? {
+            pb::job_result::Method::MvsDepth(r) => Ok(Response::new(r)),
+            _ => Err(Status::internal("stored result is of another method")),
         }
     }
 }

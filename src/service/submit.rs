@@ -1,11 +1,17 @@
-//! Shared path of every submission (Jobs.SubmitJob and the unary RPCs): size check, content-hash
-//! id, dedupe/cache lookup before any decoding, then decode + validate + queue.
+//! Shared path of every submission (Jobs.SubmitJob and the unary RPCs): canonical form, size
+//! check, content-hash id, dedupe/cache lookup before any decoding, then decode + validate +
+//! queue.
+
+use std::time::Instant;
 
 use prost::Message;
 use sha2::{Digest, Sha256};
 use tonic::Status;
 
-use super::convert::{tof_from_proto, tof_to_proto, ImageLimits};
+use super::convert::{
+    canonicalize_mvs_request, mvs_from_proto, mvs_to_proto, tof_from_proto, tof_to_proto,
+    ImageLimits,
+};
 use super::proto::v1 as pb;
 use super::status::{submit_status, to_status};
 use crate::error::MurkError;
@@ -48,6 +54,7 @@ pub fn job_id(req: &pb::JobRequest) -> String {
 pub fn method_name(m: &pb::job_request::Method) -> &'static str {
     match m {
         pb::job_request::Method::TofDepth(_) => "tof_depth",
+        pb::job_request::Method::MvsDepth(_) => "mvs_depth",
     }
 }
 
@@ -57,9 +64,10 @@ pub fn method_name(m: &pb::job_request::Method) -> &'static str {
 /// message *is* the method request → `phase`).
 pub async fn submit(
     state: &ServiceState,
-    req: pb::JobRequest,
+    mut req: pb::JobRequest,
     prefix: Option<&str>,
 ) -> Result<Submitted, Status> {
+    canonicalize(&mut req);
     let Some(method) = req.method.as_ref() else {
         let e = MurkError::invalid("method", "one method (e.g. tof_depth) must be set");
         return Err(to_status(&prefix.map_or(e.clone(), |p| e.within(p))));
@@ -86,25 +94,53 @@ pub async fn submit(
         .map_err(|e| submit_status(&e))
 }
 
+/// Puts a request into its canonical form before hashing, so requests that mean the same
+/// computation (an explicit default vs. an unset field) share one job id and cached result.
+fn canonicalize(req: &mut pb::JobRequest) {
+    match &mut req.method {
+        Some(pb::job_request::Method::MvsDepth(m)) => canonicalize_mvs_request(m),
+        // ToF ids hash the request as sent (its options are `optional` fields whose presence is
+        // kept as sent).
+        Some(pb::job_request::Method::TofDepth(_)) | None => {}
+    }
+}
+
 /// Rejects requests above the configured size, naming the largest image field (relative to the
-/// method's request) so the client
-/// knows what to shrink. (The transport refuses anything above twice the limit outright.)
+/// method's request, e.g. `phase` or `sources[2].image`) so the client knows what to shrink.
+/// (The transport refuses anything above twice the limit outright.)
 fn check_size(req: &pb::JobRequest, max: usize) -> Result<(), MurkError> {
     let len = req.encoded_len();
     if len <= max {
         return Ok(());
     }
-    let (field, size) = match &req.method {
-        Some(pb::job_request::Method::TofDepth(t)) => [
-            ("amplitude", t.amplitude.as_ref()),
-            ("phase", t.phase.as_ref()),
-        ]
-        .into_iter()
-        .map(|(f, i)| (f, i.map_or(0, |i| i.encoded_len())))
-        .max_by_key(|(_, s)| *s)
-        .unwrap_or(("", len)),
-        None => ("", len),
+    let size_of = |i: Option<&pb::Image>| i.map_or(0, |i| i.encoded_len());
+    let images: Vec<(String, usize)> = match &req.method {
+        Some(pb::job_request::Method::TofDepth(t)) => vec![
+            ("amplitude".into(), size_of(t.amplitude.as_ref())),
+            ("phase".into(), size_of(t.phase.as_ref())),
+        ],
+        Some(pb::job_request::Method::MvsDepth(m)) => {
+            let view = |v: &pb::MvsView| size_of(v.image.as_ref());
+            std::iter::once((
+                "reference.image".to_string(),
+                m.reference.as_ref().map_or(0, view),
+            ))
+            .chain(
+                m.sources
+                    .iter()
+                    .enumerate()
+                    .map(|(k, s)| (format!("sources[{k}].image"), view(s))),
+            )
+            .collect()
+        }
+        None => Vec::new(),
     };
+    // The first of equally large fields wins, so the answer is stable.
+    let (field, size) = images
+        .into_iter()
+        .rev()
+        .max_by_key(|(_, s)| *s)
+        .unwrap_or_else(|| (String::new(), len));
     Err(MurkError::invalid(
         field,
         format!("request is {len} bytes, over the limit of {max} bytes (this field: {size} bytes)"),
@@ -120,6 +156,22 @@ fn build_work(req: pb::JobRequest, limits: &ImageLimits) -> Result<Work, MurkErr
                 let out = estimate_tof_depth(&input, &params, monitor)?;
                 let result = pb::JobResult {
                     method: Some(pb::job_result::Method::TofDepth(tof_to_proto(&out))),
+                };
+                Ok(result.encode_to_vec())
+            }))
+        }
+        Some(pb::job_request::Method::MvsDepth(m)) => {
+            // The job captures only the decoded input; the request's encoded images are freed
+            // when this arm returns.
+            let input = mvs_from_proto(&m, limits)?;
+            Ok(Box::new(move |monitor| {
+                let started = Instant::now();
+                let out = input.estimate(monitor)?;
+                let seconds = started.elapsed().as_secs_f64();
+                let result = pb::JobResult {
+                    method: Some(pb::job_result::Method::MvsDepth(mvs_to_proto(
+                        &input, &out, seconds,
+                    ))),
                 };
                 Ok(result.encode_to_vec())
             }))

@@ -5,10 +5,13 @@
 
 use std::time::Duration;
 
+use murk::atmosphere::AtmosphereParams;
 use murk::jobs::JobsConfig;
+use murk::mvs::{PlaneSet, View};
 use murk::server::{InProcessServer, ServerConfig};
-use murk::service::convert::tof_request_to_proto;
+use murk::service::convert::{mvs_request_to_proto, tof_request_to_proto};
 use murk::service::proto::v1 as pb;
+use murk::simulate::mvs::{simulate_mvs, MvsScene, MvsSimConfig};
 use murk::simulate::tof::{simulate_tof, TofSimConfig};
 use murk::Monitor;
 use pb::jobs_client::JobsClient;
@@ -84,6 +87,57 @@ pub fn job(req: pb::TofDepthRequest) -> pb::SubmitJobRequest {
     pb::SubmitJobRequest {
         request: Some(pb::JobRequest {
             method: Some(pb::job_request::Method::TofDepth(req)),
+        }),
+    }
+}
+
+/// A simulated hazy multi-view scene of `width × height`: 5 views along a line, the reference in
+/// the middle, ground-truth depth, A and β.
+pub fn mvs_scene(width: usize, height: usize, seed: u64) -> MvsScene {
+    let cfg = MvsSimConfig {
+        seed,
+        ..MvsSimConfig::with_size(width, height)
+    };
+    simulate_mvs(&cfg, &Monitor::noop()).expect("simulate mvs")
+}
+
+/// A request for `scene`'s reference view against all its other (hazy) views, with the
+/// ground-truth A and β and the given planes.
+pub fn mvs_request(
+    scene: &MvsScene,
+    kind: pb::CostVolumeKind,
+    planes: &PlaneSet,
+) -> pb::MvsDepthRequest {
+    let views: Vec<View<'_>> = scene
+        .views
+        .iter()
+        .map(|v| View {
+            image: &v.hazy,
+            intrinsics: v.intrinsics,
+            pose: v.pose,
+        })
+        .collect();
+    let sources: Vec<View<'_>> = (0..views.len())
+        .filter(|&i| i != scene.reference)
+        .map(|i| views[i])
+        .collect();
+    let atmosphere = AtmosphereParams {
+        airlight: scene.airlight,
+        beta: scene.beta,
+    };
+    mvs_request_to_proto(
+        &views[scene.reference],
+        &sources,
+        kind,
+        Some(atmosphere),
+        Some(planes),
+    )
+}
+
+pub fn mvs_job(req: pb::MvsDepthRequest) -> pb::SubmitJobRequest {
+    pb::SubmitJobRequest {
+        request: Some(pb::JobRequest {
+            method: Some(pb::job_request::Method::MvsDepth(req)),
         }),
     }
 }

@@ -1,0 +1,373 @@
+//! `murk mvs`: multi-view stereo depth in haze from a COLMAP sparse model and its images.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context};
+use clap::{Args, ValueEnum};
+
+use murk::atmosphere::AtmosphereParams;
+use murk::io::{read_image, write_colormap_png, write_exr, DecodeLimits};
+use murk::metrics::{depth_metrics, DepthMetrics};
+use murk::mvs::colmap::read_colmap_dir;
+use murk::mvs_io::{
+    backproject, find_gt_depth, find_scene_metadata, load_view, nearest_sources, write_ply,
+    LoadedView, PlyFormat,
+};
+use murk::server::{InProcessServer, ServerConfig};
+use murk::service::convert::{
+    image_from_proto, mvs_request_to_proto, ImageLimits, MAX_SOURCE_VIEWS,
+};
+use murk::service::proto::v1 as pb;
+use murk::ImageF32;
+
+use super::client::{connect, run_job};
+
+/// The cost volume, as named on the command line.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum CostVolumeArg {
+    /// Eq. 3.1 on the hazy images; needs no airlight or beta.
+    Ordinary,
+    /// murk's dehazing volume (observation-space residual; the measured best).
+    Dehazing,
+    /// The reference's Eq. 3.7 as published.
+    Eq37,
+}
+
+impl CostVolumeArg {
+    /// The wire enum.
+    pub fn wire(self) -> pb::CostVolumeKind {
+        match self {
+            CostVolumeArg::Ordinary => pb::CostVolumeKind::Ordinary,
+            CostVolumeArg::Dehazing => pb::CostVolumeKind::Dehazing,
+            CostVolumeArg::Eq37 => pb::CostVolumeKind::DehazingEq37,
+        }
+    }
+}
+
+/// Options of `murk mvs`.
+#[derive(Args, Debug)]
+pub struct MvsArgs {
+    /// COLMAP sparse model folder (cameras/images/points3D, .txt or .bin; detected).
+    #[arg(long)]
+    pub model: PathBuf,
+    /// Folder holding the model's images (names as in images.txt/.bin).
+    #[arg(long)]
+    pub images: PathBuf,
+    /// Name of the reference image (whose depth is estimated), as in the model.
+    #[arg(long)]
+    pub reference: String,
+    /// Source images by name, comma-separated (default: the --num-sources nearest cameras).
+    #[arg(long, value_delimiter = ',', conflicts_with = "num_sources")]
+    pub sources: Vec<String>,
+    /// Number of source images to pick by camera distance when --sources is not given.
+    #[arg(long)]
+    pub num_sources: Option<usize>,
+    /// Airlight A in (0, 1] (default: the ground truth of a scene from `murk simulate mvs`).
+    #[arg(long, requires = "beta")]
+    pub airlight: Option<f32>,
+    /// Scattering coefficient beta, per scene unit (with --airlight).
+    #[arg(long, requires = "airlight")]
+    pub beta: Option<f32>,
+    /// Cost volume.
+    #[arg(long, value_enum, default_value_t = CostVolumeArg::Dehazing)]
+    pub cost_volume: CostVolumeArg,
+    /// Nearest plane z-depth, scene units (default 0.5).
+    #[arg(long)]
+    pub near: Option<f64>,
+    /// Farthest plane z-depth, scene units (default 50).
+    #[arg(long)]
+    pub far: Option<f64>,
+    /// Number of planes, uniform in inverse depth (default 256).
+    #[arg(long)]
+    pub planes: Option<u32>,
+    /// Points below this confidence are left out of points.ply (0 keeps all).
+    #[arg(long, default_value_t = 0.0)]
+    pub min_confidence: f32,
+    /// Write points.ply as ASCII instead of binary little-endian.
+    #[arg(long)]
+    pub ascii_ply: bool,
+    /// Output folder (created).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Server URL; without it a server is started in this process.
+    #[arg(long, env = "MURK_SERVER")]
+    pub server: Option<String>,
+}
+
+/// Default number of sources picked by distance (the reference evaluates with a handful of
+/// neighbouring views).
+const DEFAULT_NUM_SOURCES: usize = 4;
+
+/// Largest request the in-process server accepts: the client and server share the machine, so
+/// the network-facing default (32 MiB) would only refuse large local captures.
+const IN_PROCESS_MAX_REQUEST_BYTES: usize = 1 << 30;
+
+/// Runs `murk mvs`.
+pub fn run(a: MvsArgs) -> anyhow::Result<()> {
+    let model = read_colmap_dir(&a.model)
+        .with_context(|| format!("reading the COLMAP model in {}", a.model.display()))?;
+    let source_names = if a.sources.is_empty() {
+        let n = a.num_sources.unwrap_or(DEFAULT_NUM_SOURCES);
+        if n == 0 || n > MAX_SOURCE_VIEWS {
+            bail!("--num-sources must be in 1..={MAX_SOURCE_VIEWS}, got {n}");
+        }
+        nearest_sources(&model, &a.reference, n)?
+    } else {
+        if a.sources.len() > MAX_SOURCE_VIEWS {
+            bail!(
+                "at most {MAX_SOURCE_VIEWS} --sources, got {}",
+                a.sources.len()
+            );
+        }
+        if a.sources.contains(&a.reference) {
+            bail!("--sources must not contain the reference {:?}", a.reference);
+        }
+        a.sources.clone()
+    };
+    let limits = DecodeLimits::default();
+    let load = |name: &str| {
+        load_view(&model, &a.images, name, &limits)
+            .with_context(|| format!("loading image {name:?}"))
+    };
+    let reference = load(&a.reference)?;
+    let sources = source_names
+        .iter()
+        .map(|n| load(n))
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    println!(
+        "reference {} ({}x{}x{}), sources {}",
+        reference.name,
+        reference.image.width(),
+        reference.image.height(),
+        reference.image.channels(),
+        source_names.join(", ")
+    );
+
+    let kind = a.cost_volume;
+    let atmosphere = atmosphere_for(&a)?;
+    let mut request = build_request(&reference, &sources, kind, atmosphere);
+    // Unset flags stay 0 on the wire: the server's defaults, echoed in the result.
+    request.near = a.near.unwrap_or(0.0);
+    request.far = a.far.unwrap_or(0.0);
+    request.num_planes = a.planes.unwrap_or(0);
+
+    let rt = tokio::runtime::Runtime::new()?;
+    let (job, result) = rt.block_on(async {
+        let job_request = pb::JobRequest {
+            method: Some(pb::job_request::Method::MvsDepth(request)),
+        };
+        match &a.server {
+            Some(url) => {
+                let mut client = connect(url).await?;
+                run_job(&mut client, job_request, "mvs", true).await
+            }
+            None => {
+                let server = InProcessServer::start(ServerConfig {
+                    max_request_bytes: IN_PROCESS_MAX_REQUEST_BYTES,
+                    ..ServerConfig::default()
+                })
+                .await?;
+                let mut client = connect(&server.url()).await?;
+                let out = run_job(&mut client, job_request, "mvs", true).await;
+                server.stop().await?;
+                out
+            }
+        }
+    })?;
+    let Some(pb::job_result::Method::MvsDepth(r)) = result.method else {
+        bail!("server returned a result of another method");
+    };
+    let images = write_mvs_result(&a.out, &r)?;
+    let points = backproject(
+        &images.z_depth,
+        &images.confidence,
+        &reference.image,
+        &reference.intrinsics,
+        &reference.pose,
+        a.min_confidence,
+    )?;
+    let ply_format = if a.ascii_ply {
+        PlyFormat::Ascii
+    } else {
+        PlyFormat::BinaryLittleEndian
+    };
+    write_ply(&a.out.join("points.ply"), &points, ply_format)?;
+    println!(
+        "job {}{}: {} cost volume, {} planes over z {}..{}, {:.2} s; {} points; outputs in {}",
+        &job.id[..12.min(job.id.len())],
+        if job.cached { " (cached)" } else { "" },
+        kind_name(r.cost_volume),
+        r.num_planes,
+        r.near,
+        r.far,
+        r.compute_seconds,
+        points.len(),
+        a.out.display()
+    );
+    if let Some(gt_path) = find_gt_depth(&a.images, &reference.name) {
+        let gt = read_image(&gt_path, &limits)
+            .with_context(|| format!("reading ground truth {}", gt_path.display()))?;
+        let m = depth_metrics(&images.z_depth, &gt, None)
+            .with_context(|| format!("comparing with {}", gt_path.display()))?;
+        println!("against ground truth {}:", gt_path.display());
+        print_metrics_header();
+        print_metrics_row(
+            kind_name(r.cost_volume),
+            &m,
+            r.compute_seconds,
+            if job.cached { " (cached)" } else { "" },
+        );
+    }
+    Ok(())
+}
+
+/// A and β for the chosen cost volume: the flags, else a simulated scene's ground truth, else an
+/// error for the dehazing kinds (ORDINARY needs neither).
+fn atmosphere_for(a: &MvsArgs) -> anyhow::Result<Option<AtmosphereParams>> {
+    if let (Some(airlight), Some(beta)) = (a.airlight, a.beta) {
+        let p = AtmosphereParams { airlight, beta };
+        p.validate()?;
+        return Ok(Some(p));
+    }
+    if a.cost_volume == CostVolumeArg::Ordinary {
+        return Ok(None);
+    }
+    match find_scene_metadata(&a.model)? {
+        Some(meta) => {
+            println!(
+                "using the ground-truth airlight A = {:.4} and beta = {:.5} per scene unit from {} \
+                 (a scene written by `murk simulate mvs`)",
+                meta.atmosphere.airlight,
+                meta.atmosphere.beta,
+                meta.path.display()
+            );
+            Ok(Some(meta.atmosphere))
+        }
+        None => bail!(
+            "the {:?} cost volume needs the scattering parameters: pass --airlight A --beta B \
+             (per scene unit), or use --cost-volume ordinary (murk cannot estimate A and beta \
+             yet)",
+            a.cost_volume
+        ),
+    }
+}
+
+/// The wire request; images travel in their original encoding when it was used unchanged.
+fn build_request(
+    reference: &LoadedView,
+    sources: &[LoadedView],
+    kind: CostVolumeArg,
+    atmosphere: Option<AtmosphereParams>,
+) -> pb::MvsDepthRequest {
+    let source_views: Vec<_> = sources.iter().map(LoadedView::view).collect();
+    let mut request = mvs_request_to_proto(
+        &reference.view(),
+        &source_views,
+        kind.wire(),
+        atmosphere,
+        None,
+    );
+    let views = std::iter::once(request.reference.as_mut())
+        .chain(request.sources.iter_mut().map(Some))
+        .zip(std::iter::once(reference).chain(sources));
+    for (wire, loaded) in views {
+        if let (Some(wire), Some(bytes)) = (wire, &loaded.encoded) {
+            wire.image = Some(pb::Image {
+                data: Some(pb::image::Data::Encoded(bytes.clone())),
+                ..Default::default()
+            });
+        }
+    }
+    request
+}
+
+/// The decoded result images.
+pub struct MvsImages {
+    /// z-depth, scene units.
+    pub z_depth: ImageF32,
+    /// Inverse depth, per scene unit.
+    pub inverse_depth: ImageF32,
+    /// Confidence in [0, 1].
+    pub confidence: ImageF32,
+}
+
+/// Writes `depth.exr`, `inverse_depth.exr`, `confidence.exr` and a colour-mapped `depth.png`
+/// into `dir` (created); returns the decoded images.
+pub fn write_mvs_result(dir: &Path, r: &pb::MvsDepthResult) -> anyhow::Result<MvsImages> {
+    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    let limits = ImageLimits {
+        max_pixels: u64::MAX,
+        max_channels: 4,
+    };
+    let dec = |name: &str, img: &Option<pb::Image>| -> anyhow::Result<ImageF32> {
+        let img = img
+            .as_ref()
+            .with_context(|| format!("result lacks {name}"))?;
+        image_from_proto(img, &limits).with_context(|| format!("decoding {name}"))
+    };
+    let images = MvsImages {
+        z_depth: dec("z_depth", &r.z_depth)?,
+        inverse_depth: dec("inverse_depth", &r.inverse_depth)?,
+        confidence: dec("confidence", &r.confidence)?,
+    };
+    write_exr(&dir.join("depth.exr"), &images.z_depth)?;
+    write_exr(&dir.join("inverse_depth.exr"), &images.inverse_depth)?;
+    write_exr(&dir.join("confidence.exr"), &images.confidence)?;
+    // Coloured by inverse depth (near red, far blue), which spreads near detail the way the
+    // planes do, over its 2nd..98th percentile so a few outliers do not flatten the preview.
+    let (lo, hi) = robust_range(&images.inverse_depth);
+    write_colormap_png(&dir.join("depth.png"), &images.inverse_depth, lo, hi, None)?;
+    Ok(images)
+}
+
+/// 2nd and 98th percentile of the finite samples (`(0, 1)` when there are none).
+fn robust_range(img: &ImageF32) -> (f32, f32) {
+    let mut v: Vec<f32> = img
+        .data()
+        .iter()
+        .copied()
+        .filter(|x| x.is_finite())
+        .collect();
+    if v.is_empty() {
+        return (0.0, 1.0);
+    }
+    v.sort_by(f32::total_cmp);
+    let lo = v[v.len() / 50];
+    let hi = v[(v.len() * 49 / 50).min(v.len() - 1)];
+    if hi > lo {
+        (lo, hi)
+    } else {
+        (lo, lo + 1.0)
+    }
+}
+
+/// Display name of a wire cost-volume kind.
+pub fn kind_name(v: i32) -> &'static str {
+    match pb::CostVolumeKind::try_from(v) {
+        Ok(pb::CostVolumeKind::Ordinary) => "ordinary",
+        Ok(pb::CostVolumeKind::Dehazing | pb::CostVolumeKind::Unspecified) => "dehazing",
+        Ok(pb::CostVolumeKind::DehazingEq37) => "eq37",
+        Err(_) => "unknown",
+    }
+}
+
+/// Header of the metric table printed by `murk mvs` and `murk demo`.
+pub fn print_metrics_header() {
+    println!(
+        "{:<12} {:>8} {:>8} {:>8} {:>9} {:>9}",
+        "cost volume", "L1-rel", "L1-inv", "sc-inv", "C.P. [%]", "time [s]"
+    );
+}
+
+/// One row of that table; `note` is appended (e.g. " (cached)").
+pub fn print_metrics_row(name: &str, m: &DepthMetrics, seconds: f64, note: &str) {
+    println!(
+        "{:<12} {:>8.3} {:>8.4} {:>8.3} {:>9.1} {:>9.2}{note}",
+        name,
+        m.l1_rel,
+        m.l1_inv,
+        m.sc_inv,
+        100.0 * m.c_p,
+        seconds
+    );
+}

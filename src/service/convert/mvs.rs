@@ -1,0 +1,608 @@
+//! `MvsDepthRequest` → [`MvsInput`] and [`DepthResult`] → `MvsDepthResult`.
+//!
+//! Everything the library would reject is checked here, at submission, so a bad request is
+//! refused with `INVALID_ARGUMENT` naming the proto field instead of being queued and failing
+//! later. Field names are relative to `MvsDepthRequest` (`sources[1].image`,
+//! `reference.intrinsics.fx`, `near`, `airlight`, `sgm.p2`, ...); the submit path adds the outer
+//! prefix (`request.mvs_depth.`) for `Jobs.SubmitJob`.
+
+use super::image::{image_from_proto, image_to_proto, ImageLimits};
+use super::tof::intrinsics_to_proto;
+use crate::atmosphere::AtmosphereParams;
+use crate::camera::Intrinsics;
+use crate::error::{MurkError, Result};
+use crate::image::ImageF32;
+use crate::monitor::Monitor;
+use crate::mvs::cost_volume::MAX_VOXELS;
+use crate::mvs::{
+    estimate_depth, CostKind, DehazingOptions, DepthResult, PlaneSet, Pose, SgmParams, View,
+};
+use crate::service::proto::v1 as pb;
+
+/// Largest number of source views per request. Every source adds a full pass over the cost
+/// volume (the cost is the mean over sources), while the reference (§3.2.3) uses a handful of
+/// nearby views; 16 bounds a request's work at 16 × the one-source cost.
+pub const MAX_SOURCE_VIEWS: usize = 16;
+
+/// One decoded, validated view.
+#[derive(Clone, Debug, PartialEq)]
+pub struct MvsViewInput {
+    /// The image (1 or 3 channels, finite).
+    pub image: ImageF32,
+    /// Pinhole intrinsics, pixels.
+    pub intrinsics: Intrinsics,
+    /// World-to-camera pose, scene units.
+    pub pose: Pose,
+}
+
+impl MvsViewInput {
+    /// The library's borrowed view.
+    pub fn view(&self) -> View<'_> {
+        View {
+            image: &self.image,
+            intrinsics: self.intrinsics,
+            pose: self.pose,
+        }
+    }
+}
+
+/// A decoded and fully validated `MvsDepthRequest`, owning its images so the job can outlive the
+/// request.
+#[derive(Clone, Debug, PartialEq)]
+pub struct MvsInput {
+    /// The view whose depth is estimated.
+    pub reference: MvsViewInput,
+    /// The other views (1 ..= [`MAX_SOURCE_VIEWS`]).
+    pub sources: Vec<MvsViewInput>,
+    /// Plane set, defaults resolved.
+    pub planes: PlaneSet,
+    /// The library's cost kind.
+    pub kind: CostKind,
+    /// The wire kind it came from (UNSPECIFIED resolved), echoed in the result.
+    pub wire_kind: pb::CostVolumeKind,
+    /// Aggregation parameters, defaults resolved.
+    pub sgm: SgmParams,
+}
+
+impl MvsInput {
+    /// Runs [`estimate_depth`]. Library errors name library paths (`planes.near`,
+    /// `atmosphere.beta`); they are mapped back to the proto's field names. (Validation at
+    /// submission makes such errors unexpected; the mapping keeps them useful if the library's
+    /// rules ever become stricter than this module's.)
+    pub fn estimate(&self, monitor: &Monitor) -> Result<DepthResult> {
+        let reference = self.reference.view();
+        let sources: Vec<View<'_>> = self.sources.iter().map(MvsViewInput::view).collect();
+        estimate_depth(
+            &reference,
+            &sources,
+            &self.planes,
+            self.kind,
+            &self.sgm,
+            monitor,
+        )
+        .map_err(|e| match e {
+            MurkError::InvalidArgument { field, reason } => {
+                MurkError::invalid(library_field_to_proto(&field), reason)
+            }
+            other => other,
+        })
+    }
+}
+
+/// `planes.near` → `near`, `atmosphere.airlight` → `airlight`; other paths already match.
+fn library_field_to_proto(field: &str) -> String {
+    for prefix in ["planes.", "atmosphere."] {
+        if let Some(rest) = field.strip_prefix(prefix) {
+            return rest.to_string();
+        }
+    }
+    field.to_string()
+}
+
+/// The wire kind with UNSPECIFIED resolved; unknown enum values fail naming `cost_volume`.
+fn resolve_kind(v: i32) -> Result<pb::CostVolumeKind> {
+    match pb::CostVolumeKind::try_from(v) {
+        Ok(pb::CostVolumeKind::Unspecified) => Ok(pb::CostVolumeKind::Dehazing),
+        Ok(k) => Ok(k),
+        Err(_) => Err(MurkError::invalid(
+            "cost_volume",
+            format!("unknown cost volume kind {v}"),
+        )),
+    }
+}
+
+/// The plane set a request asks for, 0 meaning the reference's default for each field.
+fn planes_of(req: &pb::MvsDepthRequest) -> (f64, f64, usize) {
+    let d = PlaneSet::default();
+    (
+        if req.near == 0.0 { d.near } else { req.near },
+        if req.far == 0.0 { d.far } else { req.far },
+        if req.num_planes == 0 {
+            d.num_planes
+        } else {
+            req.num_planes as usize
+        },
+    )
+}
+
+fn sgm_of(o: Option<&pb::SgmOptions>) -> SgmParams {
+    let mut p = SgmParams::default();
+    if let Some(o) = o {
+        p.p1 = o.p1.unwrap_or(p.p1);
+        p.p2 = o.p2.unwrap_or(p.p2);
+        p.p2_gradient_scale = o.p2_gradient_scale.unwrap_or(p.p2_gradient_scale);
+        p.num_paths = o.num_paths.map_or(p.num_paths, |v| v as usize);
+        p.cost_window_radius = o
+            .cost_window_radius
+            .map_or(p.cost_window_radius, |v| v as usize);
+    }
+    p
+}
+
+/// Rewrites `req` into its canonical form before it is hashed into a job id, so requests that
+/// mean the same computation share one id (and one cached result): defaults written out (0
+/// planes/near/far, UNSPECIFIED kind, unset SGM fields), and airlight/β zeroed for ORDINARY,
+/// which ignores them. Values that will be rejected (NaN, unknown enum values) are left alone
+/// so validation still sees them.
+pub fn canonicalize_mvs_request(req: &mut pb::MvsDepthRequest) {
+    let (near, far, num_planes) = planes_of(req);
+    req.near = near;
+    req.far = far;
+    if let Ok(n) = u32::try_from(num_planes) {
+        req.num_planes = n;
+    }
+    if let Ok(kind) = resolve_kind(req.cost_volume) {
+        req.cost_volume = kind as i32;
+        if kind == pb::CostVolumeKind::Ordinary && req.airlight.is_finite() && req.beta.is_finite()
+        {
+            req.airlight = 0.0;
+            req.beta = 0.0;
+        }
+    }
+    let p = sgm_of(req.sgm.as_ref());
+    // Written out only when every value fits its wire type (always, for u32 counts from u32s).
+    if let (Ok(num_paths), Ok(radius)) = (
+        u32::try_from(p.num_paths),
+        u32::try_from(p.cost_window_radius),
+    ) {
+        req.sgm = Some(pb::SgmOptions {
+            p1: Some(p.p1),
+            p2: Some(p.p2),
+            p2_gradient_scale: Some(p.p2_gradient_scale),
+            num_paths: Some(num_paths),
+            cost_window_radius: Some(radius),
+        });
+    }
+}
+
+/// Decodes and fully validates an MVS request. Field names are relative to `MvsDepthRequest`.
+/// Cheap scalar checks run before any image is decoded.
+pub fn mvs_from_proto(req: &pb::MvsDepthRequest, limits: &ImageLimits) -> Result<MvsInput> {
+    let wire_kind = resolve_kind(req.cost_volume)?;
+    for (name, v) in [("airlight", req.airlight), ("beta", req.beta)] {
+        // Checked for every kind: ORDINARY ignores the values, but a NaN is a client bug.
+        if !v.is_finite() {
+            return Err(MurkError::invalid(name, format!("must be finite, got {v}")));
+        }
+    }
+    let atmosphere = AtmosphereParams {
+        airlight: req.airlight,
+        beta: req.beta,
+    };
+    let kind = match wire_kind {
+        pb::CostVolumeKind::Ordinary => CostKind::Ordinary,
+        pb::CostVolumeKind::DehazingEq37 => CostKind::Dehazing(atmosphere),
+        pb::CostVolumeKind::Dehazing | pb::CostVolumeKind::Unspecified => {
+            CostKind::DehazingWith(atmosphere, DehazingOptions::default())
+        }
+    };
+    if kind != CostKind::Ordinary {
+        // Names `airlight` (A ∉ (0, 1], which includes an unset A = 0) or `beta`.
+        atmosphere.validate().map_err(|e| {
+            if e.field() == Some("airlight") && req.airlight == 0.0 {
+                MurkError::invalid(
+                    "airlight",
+                    "required (in (0, 1]) for the dehazing cost volumes; got 0 (unset)",
+                )
+            } else {
+                e
+            }
+        })?;
+    }
+    let (near, far, num_planes) = planes_of(req);
+    let planes = PlaneSet::new(near, far, num_planes)?;
+    let sgm = sgm_of(req.sgm.as_ref());
+    sgm.validate().map_err(|e| e.within("sgm"))?;
+    if req.sources.is_empty() {
+        return Err(MurkError::invalid(
+            "sources",
+            "need at least one source view",
+        ));
+    }
+    if req.sources.len() > MAX_SOURCE_VIEWS {
+        return Err(MurkError::invalid(
+            "sources",
+            format!(
+                "at most {MAX_SOURCE_VIEWS} source views, got {}",
+                req.sources.len()
+            ),
+        ));
+    }
+
+    let reference =
+        view_from_proto(req.reference.as_ref(), None, limits).map_err(|e| e.within("reference"))?;
+    let (w, h) = reference.image.dims();
+    let voxels = w.checked_mul(h).and_then(|p| p.checked_mul(num_planes));
+    if voxels.is_none_or(|v| v > MAX_VOXELS) {
+        return Err(MurkError::invalid(
+            "num_planes",
+            format!(
+                "{w}x{h} pixels x {num_planes} planes exceeds the cost-volume limit of \
+                 {MAX_VOXELS} voxels; use fewer planes or smaller images"
+            ),
+        ));
+    }
+    let shape = (w, h, reference.image.channels());
+    let sources = req
+        .sources
+        .iter()
+        .enumerate()
+        .map(|(k, s)| {
+            view_from_proto(Some(s), Some(shape), limits)
+                .map_err(|e| e.within(&format!("sources[{k}]")))
+        })
+        .collect::<Result<Vec<_>>>()?;
+    Ok(MvsInput {
+        reference,
+        sources,
+        planes,
+        kind,
+        wire_kind,
+        sgm,
+    })
+}
+
+/// One view; `shape` is the reference's `(width, height, channels)` for sources. Errors name
+/// `image`, `intrinsics.…` or `pose.…` (or the view itself when it is missing).
+fn view_from_proto(
+    v: Option<&pb::MvsView>,
+    shape: Option<(usize, usize, usize)>,
+    limits: &ImageLimits,
+) -> Result<MvsViewInput> {
+    let v = v.ok_or_else(|| MurkError::invalid("", "required"))?;
+    let image = v
+        .image
+        .as_ref()
+        .ok_or_else(|| MurkError::invalid("image", "required"))
+        .and_then(|i| image_from_proto(i, limits).map_err(|e| e.within("image")))?;
+    let (w, h, c) = (image.width(), image.height(), image.channels());
+    match shape {
+        Some((rw, rh, rc)) if (w, h, c) != (rw, rh, rc) => {
+            return Err(MurkError::invalid(
+                "image",
+                format!("image is {w}x{h}x{c} but the reference image is {rw}x{rh}x{rc}"),
+            ))
+        }
+        Some(_) => {}
+        None => {
+            if c != 1 && c != 3 {
+                return Err(MurkError::invalid(
+                    "image",
+                    format!("need 1 (grey) or 3 (RGB) channels, got {c}"),
+                ));
+            }
+            if w < 2 || h < 2 {
+                return Err(MurkError::invalid(
+                    "image",
+                    format!("need at least 2x2 pixels, got {w}x{h}"),
+                ));
+            }
+        }
+    }
+    image.ensure_finite().map_err(|e| e.within("image"))?;
+    let k = v
+        .intrinsics
+        .as_ref()
+        .ok_or_else(|| MurkError::invalid("intrinsics", "required"))?;
+    let intrinsics = Intrinsics {
+        fx: k.fx,
+        fy: k.fy,
+        cx: k.cx,
+        cy: k.cy,
+        skew: k.skew,
+    };
+    intrinsics.validate().map_err(|e| e.within("intrinsics"))?;
+    let pose = v
+        .pose
+        .as_ref()
+        .ok_or_else(|| MurkError::invalid("pose", "required (world-to-camera)"))
+        .and_then(|p| pose_from_proto(p).map_err(|e| e.within("pose")))?;
+    Ok(MvsViewInput {
+        image,
+        intrinsics,
+        pose,
+    })
+}
+
+/// `murk.v1.Pose` → [`Pose`], validated; errors name `rotation` or `translation`.
+pub fn pose_from_proto(p: &pb::Pose) -> Result<Pose> {
+    let r: [f64; 9] = p.rotation.as_slice().try_into().map_err(|_| {
+        MurkError::invalid(
+            "rotation",
+            format!("need 9 values (row-major 3x3), got {}", p.rotation.len()),
+        )
+    })?;
+    let t: [f64; 3] = p.translation.as_slice().try_into().map_err(|_| {
+        MurkError::invalid(
+            "translation",
+            format!("need 3 values, got {}", p.translation.len()),
+        )
+    })?;
+    Pose::new(
+        [[r[0], r[1], r[2]], [r[3], r[4], r[5]], [r[6], r[7], r[8]]],
+        t,
+    )
+}
+
+/// [`Pose`] for the wire.
+pub fn pose_to_proto(p: &Pose) -> pb::Pose {
+    pb::Pose {
+        rotation: p.rotation.iter().flatten().copied().collect(),
+        translation: p.translation.to_vec(),
+    }
+}
+
+fn view_to_proto(v: &View<'_>) -> pb::MvsView {
+    pb::MvsView {
+        image: Some(image_to_proto(v.image)),
+        intrinsics: Some(intrinsics_to_proto(&v.intrinsics)),
+        pose: Some(pose_to_proto(&v.pose)),
+    }
+}
+
+/// A request for `reference` against `sources` (clients: CLI, demo, tests). Images travel as raw
+/// f32 so nothing is lost to quantisation. `atmosphere` `None` leaves airlight and β unset (fine
+/// for ORDINARY only); `planes` `None` leaves the plane range to the server's defaults; SGM
+/// parameters are left at their defaults.
+pub fn mvs_request_to_proto(
+    reference: &View<'_>,
+    sources: &[View<'_>],
+    cost_volume: pb::CostVolumeKind,
+    atmosphere: Option<AtmosphereParams>,
+    planes: Option<&PlaneSet>,
+) -> pb::MvsDepthRequest {
+    pb::MvsDepthRequest {
+        reference: Some(view_to_proto(reference)),
+        sources: sources.iter().map(view_to_proto).collect(),
+        airlight: atmosphere.map_or(0.0, |a| a.airlight),
+        beta: atmosphere.map_or(0.0, |a| a.beta),
+        near: planes.map_or(0.0, |p| p.near),
+        far: planes.map_or(0.0, |p| p.far),
+        num_planes: planes.map_or(0, |p| u32::try_from(p.num_planes).unwrap_or(u32::MAX)),
+        cost_volume: cost_volume as i32,
+        sgm: None,
+    }
+}
+
+/// Encodes the method's output for the wire, echoing the plane set and cost volume used.
+pub fn mvs_to_proto(
+    input: &MvsInput,
+    out: &DepthResult,
+    compute_seconds: f64,
+) -> pb::MvsDepthResult {
+    pb::MvsDepthResult {
+        z_depth: Some(image_to_proto(&out.z_depth)),
+        inverse_depth: Some(image_to_proto(&out.inverse_depth)),
+        confidence: Some(image_to_proto(&out.confidence)),
+        near: input.planes.near,
+        far: input.planes.far,
+        num_planes: u32::try_from(input.planes.num_planes).unwrap_or(u32::MAX),
+        cost_volume: input.wire_kind as i32,
+        compute_seconds,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::error::field_of;
+    use crate::mvs::MAX_PLANES;
+
+    fn view(w: usize, h: usize, tx: f64) -> (ImageF32, Intrinsics, Pose) {
+        let img = ImageF32::from_vec(
+            w,
+            h,
+            3,
+            (0..w * h * 3).map(|i| (i % 17) as f32 / 17.0).collect(),
+        )
+        .unwrap();
+        let k = Intrinsics::new(50.0, 50.0, (w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0);
+        let pose = Pose::new(Pose::identity().rotation, [tx, 0.0, 0.0]).unwrap();
+        (img, k, pose)
+    }
+
+    fn request(kind: pb::CostVolumeKind) -> pb::MvsDepthRequest {
+        let (ri, rk, rp) = view(16, 12, 0.0);
+        let (si, sk, sp) = view(16, 12, -0.1);
+        let r = View {
+            image: &ri,
+            intrinsics: rk,
+            pose: rp,
+        };
+        let s = View {
+            image: &si,
+            intrinsics: sk,
+            pose: sp,
+        };
+        mvs_request_to_proto(
+            &r,
+            &[s],
+            kind,
+            Some(AtmosphereParams {
+                airlight: 0.8,
+                beta: 0.1,
+            }),
+            Some(&PlaneSet::new(1.0, 10.0, 8).unwrap()),
+        )
+    }
+
+    fn err(req: &pb::MvsDepthRequest) -> String {
+        field_of(mvs_from_proto(req, &ImageLimits::default()).unwrap_err())
+    }
+
+    #[test]
+    fn round_trips_and_resolves_defaults() {
+        let mut req = request(pb::CostVolumeKind::Unspecified);
+        req.near = 0.0;
+        req.far = 0.0;
+        req.num_planes = 0;
+        let input = mvs_from_proto(&req, &ImageLimits::default()).unwrap();
+        assert_eq!(input.planes, PlaneSet::default());
+        assert_eq!(input.wire_kind, pb::CostVolumeKind::Dehazing);
+        assert!(
+            matches!(input.kind, CostKind::DehazingWith(_, o) if o == DehazingOptions::default())
+        );
+        assert_eq!(input.sgm, SgmParams::default());
+        assert_eq!(input.sources.len(), 1);
+        assert_eq!(input.sources[0].pose.translation, [-0.1, 0.0, 0.0]);
+        let eq37 = mvs_from_proto(
+            &request(pb::CostVolumeKind::DehazingEq37),
+            &ImageLimits::default(),
+        )
+        .unwrap();
+        assert!(matches!(eq37.kind, CostKind::Dehazing(_)));
+    }
+
+    #[test]
+    fn canonical_form_merges_equivalent_requests() {
+        let explicit = {
+            let mut r = request(pb::CostVolumeKind::Dehazing);
+            r.near = PlaneSet::default().near;
+            r.far = PlaneSet::default().far;
+            r.num_planes = 256;
+            r.sgm = Some(pb::SgmOptions {
+                p1: Some(SgmParams::default().p1),
+                ..Default::default()
+            });
+            r
+        };
+        let implicit = {
+            let mut r = request(pb::CostVolumeKind::Unspecified);
+            r.near = 0.0;
+            r.far = 0.0;
+            r.num_planes = 0;
+            r
+        };
+        let (mut a, mut b) = (explicit, implicit);
+        canonicalize_mvs_request(&mut a);
+        canonicalize_mvs_request(&mut b);
+        assert_eq!(a, b);
+        // ORDINARY ignores the atmosphere, so it does not split the id...
+        let mut o1 = request(pb::CostVolumeKind::Ordinary);
+        let mut o2 = o1.clone();
+        o2.airlight = 0.3;
+        canonicalize_mvs_request(&mut o1);
+        canonicalize_mvs_request(&mut o2);
+        assert_eq!(o1, o2);
+        // ...but a NaN survives to be rejected.
+        let mut bad = request(pb::CostVolumeKind::Ordinary);
+        bad.beta = f32::NAN;
+        canonicalize_mvs_request(&mut bad);
+        assert_eq!(err(&bad), "beta");
+    }
+
+    #[test]
+    fn errors_name_proto_fields() {
+        let good = request(pb::CostVolumeKind::Dehazing);
+        let mut r = good.clone();
+        r.sources.clear();
+        assert_eq!(err(&r), "sources");
+        let mut r = good.clone();
+        r.sources = vec![r.sources[0].clone(); MAX_SOURCE_VIEWS + 1];
+        assert_eq!(err(&r), "sources");
+        let mut r = good.clone();
+        r.reference = None;
+        assert_eq!(err(&r), "reference");
+        let mut r = good.clone();
+        r.sources[0].intrinsics.as_mut().unwrap().fy = 0.0;
+        assert_eq!(err(&r), "sources[0].intrinsics.fy");
+        let mut r = good.clone();
+        r.reference
+            .as_mut()
+            .unwrap()
+            .pose
+            .as_mut()
+            .unwrap()
+            .rotation
+            .pop();
+        assert_eq!(err(&r), "reference.pose.rotation");
+        let mut r = good.clone();
+        r.reference
+            .as_mut()
+            .unwrap()
+            .pose
+            .as_mut()
+            .unwrap()
+            .rotation[0] = 2.0;
+        assert_eq!(err(&r), "reference.pose.rotation");
+        let mut r = good.clone();
+        r.sources[0].pose = None;
+        assert_eq!(err(&r), "sources[0].pose");
+        let mut r = good.clone();
+        r.cost_volume = 99;
+        assert_eq!(err(&r), "cost_volume");
+        let mut r = good.clone();
+        r.near = 20.0;
+        assert_eq!(err(&r), "far");
+        let mut r = good.clone();
+        r.near = -1.0;
+        assert_eq!(err(&r), "near");
+        let mut r = good.clone();
+        r.num_planes = MAX_PLANES as u32 + 1;
+        assert_eq!(err(&r), "num_planes");
+        let mut r = good.clone();
+        r.airlight = 0.0;
+        assert_eq!(err(&r), "airlight");
+        let mut r = good.clone();
+        r.beta = -0.1;
+        assert_eq!(err(&r), "beta");
+        let mut r = good.clone();
+        r.sgm = Some(pb::SgmOptions {
+            num_paths: Some(3),
+            ..Default::default()
+        });
+        assert_eq!(err(&r), "sgm.num_paths");
+        // ORDINARY ignores A and β, but not NaN.
+        let mut r = request(pb::CostVolumeKind::Ordinary);
+        r.airlight = 0.0;
+        r.beta = -1.0;
+        assert!(mvs_from_proto(&r, &ImageLimits::default()).is_ok());
+        r.airlight = f32::NAN;
+        assert_eq!(err(&r), "airlight");
+    }
+
+    #[test]
+    fn library_paths_map_to_proto_fields() {
+        assert_eq!(library_field_to_proto("planes.near"), "near");
+        assert_eq!(library_field_to_proto("atmosphere.beta"), "beta");
+        assert_eq!(
+            library_field_to_proto("sources[2].image"),
+            "sources[2].image"
+        );
+    }
+
+    #[test]
+    fn estimates_depth_of_a_tiny_request() {
+        let input = mvs_from_proto(
+            &request(pb::CostVolumeKind::Ordinary),
+            &ImageLimits::default(),
+        )
+        .unwrap();
+        let out = input.estimate(&Monitor::noop()).unwrap();
+        assert_eq!(out.z_depth.dims(), (16, 12));
+        let wire = mvs_to_proto(&input, &out, 0.5);
+        assert_eq!(wire.num_planes, 8);
+        assert_eq!(wire.cost_volume, pb::CostVolumeKind::Ordinary as i32);
+        assert_eq!(wire.z_depth.unwrap().width, 16);
+    }
+}
