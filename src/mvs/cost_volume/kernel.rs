@@ -4,7 +4,7 @@
 
 use super::sample::bilinear_inside;
 use crate::atmosphere::inverse_transmission;
-use crate::mvs::plane_sweep::PlaneWarp;
+use crate::mvs::plane_sweep::{PlaneWarp, RowWarp};
 
 use super::DehazingResidual;
 
@@ -57,6 +57,9 @@ pub(super) struct RowScratch {
     sum: Vec<f32>,
     /// Number of sources that observe the voxel.
     observed: Vec<u32>,
+    /// Source sample coordinates of the row (NaN = unobserved).
+    us: Vec<f32>,
+    vs: Vec<f32>,
 }
 
 /// Fills one row of one plane. `penalty` is γ (Eq. 3.7) and also the cost of a voxel that no
@@ -76,47 +79,53 @@ pub(super) fn fill_row<const C: usize, const DEHAZE: bool>(
     scratch: &mut RowScratch,
 ) {
     let row = &reference[y * width * C..(y + 1) * width * C];
-    scratch.jr.clear();
-    scratch.ref_ok.clear();
-    scratch.ref_exc.clear();
-    let ref_soft = haze.soft_margin.map(|m| m * haze.ref_inv_t);
-    for ir in row.chunks_exact(C) {
-        let mut ok = true;
-        let mut exc = 0.0f32;
-        for &v in ir {
-            let j = if DEHAZE {
-                v * haze.ref_inv_t + haze.ref_offset
-            } else {
-                v
-            };
-            ok &= !DEHAZE || (haze.ref_lo..=haze.ref_hi).contains(&j);
-            if let (true, Some(m)) = (DEHAZE, ref_soft) {
-                exc += excursion(j, m);
+    // The ordinary volume compares the reference row as it is; only the dehazing volume needs
+    // the dehazed row and its range flags.
+    if DEHAZE {
+        scratch.jr.clear();
+        scratch.ref_ok.clear();
+        scratch.ref_exc.clear();
+        let ref_soft = haze.soft_margin.map(|m| m * haze.ref_inv_t);
+        for ir in row.chunks_exact(C) {
+            let mut ok = true;
+            let mut exc = 0.0f32;
+            for &v in ir {
+                let j = v * haze.ref_inv_t + haze.ref_offset;
+                ok &= (haze.ref_lo..=haze.ref_hi).contains(&j);
+                if let Some(m) = ref_soft {
+                    exc += excursion(j, m);
+                }
+                scratch.jr.push(j);
             }
-            scratch.jr.push(j);
+            scratch.ref_ok.push(ok);
+            scratch.ref_exc.push(exc);
         }
-        scratch.ref_ok.push(ok);
-        scratch.ref_exc.push(exc);
+    } else {
+        scratch.ref_ok.clear();
+        scratch.ref_ok.resize(width, true);
+        scratch.ref_exc.clear();
+        scratch.ref_exc.resize(width, 0.0);
     }
     scratch.sum.clear();
     scratch.sum.resize(width, 0.0);
     scratch.observed.clear();
     scratch.observed.resize(width, 0);
+    scratch.us.resize(width, 0.0);
+    scratch.vs.resize(width, 0.0);
 
-    let (wmax, hmax) = ((width - 1) as f32, (height - 1) as f32);
     let sum = &mut scratch.sum[..width];
     let observed = &mut scratch.observed[..width];
-    let jr_row = &scratch.jr[..width * C];
+    let jr_row = if DEHAZE {
+        &scratch.jr[..width * C]
+    } else {
+        row
+    };
+    let (us_row, vs_row) = (&mut scratch.us[..width], &mut scratch.vs[..width]);
     let ref_ok = &scratch.ref_ok[..width];
     let ref_exc = &scratch.ref_exc[..width];
     for s in sources {
         let warp = s.warp.row(y as f64);
-        // The homogeneous source coordinates are affine in u along the row; evaluated in f32
-        // (one f32 reciprocal per voxel instead of an f64 division — the inner loop's largest
-        // cost). For images up to 4096 px the f32 rounding moves a sample by < 0.01 px.
         let (slope, offset, depth) = warp.coefficients();
-        let [ax, ay, aw] = slope.map(|v| v as f32);
-        let [bx, by, bw] = offset.map(|v| v as f32);
         // ζ is affine in u along the row (ζ = depth·w(u)), so 1/t_s = e^{βζ} is a geometric
         // sequence: one multiply per pixel instead of an exp (f64, so the drift over a row is
         // ~1e-14 relative; β = 0 gives exactly 1).
@@ -132,6 +141,7 @@ pub(super) fn fill_row<const C: usize, const DEHAZE: bool>(
             (1.0, 1.0)
         };
         let max_inv_t = f64::from(inverse_transmission(0.0));
+        source_coords(&s.warp.row(y as f64), width, height, us_row, vs_row);
         for x in 0..width {
             let inv_t_here = if !DEHAZE {
                 1.0
@@ -144,17 +154,8 @@ pub(super) fn fill_row<const C: usize, const DEHAZE: bool>(
             if DEHAZE {
                 inv_ts *= ratio;
             }
-            let u = x as f32;
-            let hw = aw * u + bw;
-            // ζ = hw·depth with depth > 0: hw ≤ 0 (or NaN) puts the plane point behind the
-            // source camera.
-            if !(hw > 0.0) {
-                continue;
-            }
-            let r = 1.0 / hw;
-            let us = (ax * u + bx) * r;
-            let vs = (ay * u + by) * r;
-            if !(us >= 0.0 && vs >= 0.0 && us <= wmax && vs <= hmax) {
+            let (us, vs) = (us_row[x], vs_row[x]);
+            if us.is_nan() {
                 continue;
             }
             let is = bilinear_inside::<C>(s.data, width, us, vs, height);
@@ -221,5 +222,162 @@ pub(super) fn fill_row<const C: usize, const DEHAZE: bool>(
 
     for ((o, &sum), &n) in out.iter_mut().zip(&scratch.sum).zip(&scratch.observed) {
         *o = if n == 0 { penalty } else { sum / n as f32 };
+    }
+}
+
+/// Source sample coordinates of one reference row for one plane: `us[x], vs[x]` is
+/// `π_{r→s}(x, y; z_i)`, with `us[x] = NaN` marking an unobserved sample (the plane point behind
+/// the source camera, where `ζ = w·depth ≤ 0`, or outside the pixel-centre hull). The
+/// homogeneous coordinates are affine in `u` along the row and evaluated in `f32` (an f32
+/// reciprocal per voxel instead of an f64 division); for images up to 4096 px the rounding moves
+/// a sample by < 0.01 px. Branch-free, so it vectorises.
+#[inline]
+fn source_coords(warp: &RowWarp, width: usize, height: usize, us: &mut [f32], vs: &mut [f32]) {
+    let (slope, offset, _) = warp.coefficients();
+    let [ax, ay, aw] = slope.map(|v| v as f32);
+    let [bx, by, bw] = offset.map(|v| v as f32);
+    let (wmax, hmax) = ((width - 1) as f32, (height - 1) as f32);
+    for (x, (us, vs)) in us.iter_mut().zip(vs.iter_mut()).enumerate() {
+        let u = x as f32;
+        let hw = aw * u + bw;
+        let r = 1.0 / hw;
+        let (a, b) = ((ax * u + bx) * r, (ay * u + by) * r);
+        let inside = hw > 0.0 && a >= 0.0 && b >= 0.0 && a <= wmax && b <= hmax;
+        *us = if inside { a } else { f32::NAN };
+        *vs = b;
+    }
+}
+
+/// The default dehazing volume's row ([`DehazingResidual::ObservationSpace`], no range check,
+/// `β > 0`) in closed form: `min(γ, Σ_c |(I_r − A) − (t_r/t_s)(I_s − A)|)`, which is
+/// `t_r·Σ_c |J_r − J_s|` (Eq. 3.5–3.6) without dehazing either sample. Equal to [`fill_row`]
+/// in that mode up to `f32` rounding (tested); skips its per-voxel mode switches.
+#[allow(clippy::too_many_arguments)]
+#[inline]
+pub(super) fn fill_row_observation<const C: usize>(
+    out: &mut [f32],
+    y: usize,
+    reference: &[f32],
+    width: usize,
+    height: usize,
+    sources: &[SourcePlane<'_>],
+    haze: Haze,
+    penalty: f32,
+    scratch: &mut RowScratch,
+) {
+    let row = &reference[y * width * C..(y + 1) * width * C];
+    let a = haze.airlight;
+    scratch.sum.clear();
+    scratch.sum.resize(width, 0.0);
+    scratch.observed.clear();
+    scratch.observed.resize(width, 0);
+    scratch.us.resize(width, 0.0);
+    scratch.vs.resize(width, 0.0);
+    scratch.jr.resize(width, 0.0);
+    let sum = &mut scratch.sum[..width];
+    let observed = &mut scratch.observed[..width];
+    let (us_row, vs_row) = (&mut scratch.us[..width], &mut scratch.vs[..width]);
+    // t_r/t_s per pixel of the row (reuses the dehazed-row buffer).
+    let ratio_row = &mut scratch.jr[..width];
+    let b = f64::from(haze.beta);
+    let max_inv_t = f64::from(inverse_transmission(0.0));
+    let t_r = f64::from(haze.ref_t);
+    for s in sources {
+        let warp = s.warp.row(y as f64);
+        source_coords(&warp, width, height, us_row, vs_row);
+        // 1/t_s = e^{βζ} with ζ affine in u: a geometric sequence (f64), or one exp per pixel
+        // where it would over- or underflow at an end of the row.
+        let (slope, offset, depth) = warp.coefficients();
+        let (z0, dz) = (offset[2] * depth, slope[2] * depth);
+        let (start, end) = ((b * z0).exp(), (b * (z0 + dz * (width - 1) as f64)).exp());
+        if start.is_normal() && end.is_normal() {
+            let step = (b * dz).exp();
+            let mut inv_ts = start;
+            for r in ratio_row.iter_mut() {
+                *r = (t_r * inv_ts.min(max_inv_t)) as f32;
+                inv_ts *= step;
+            }
+        } else {
+            for (x, r) in ratio_row.iter_mut().enumerate() {
+                let zeta = z0 + dz * x as f64;
+                *r = (t_r * (b * zeta).exp().min(max_inv_t)) as f32;
+            }
+        }
+        for x in 0..width {
+            let us = us_row[x];
+            if us.is_nan() {
+                continue;
+            }
+            let is = bilinear_inside::<C>(s.data, width, us, vs_row[x], height);
+            let k = ratio_row[x];
+            let ir = &row[x * C..x * C + C];
+            let mut cost = 0.0f32;
+            for c in 0..C {
+                cost += ((ir[c] - a) - k * (is[c] - a)).abs();
+            }
+            sum[x] += cost.min(penalty);
+            observed[x] += 1;
+        }
+    }
+    for ((o, &sum), &n) in out.iter_mut().zip(sum.iter()).zip(observed.iter()) {
+        *o = if n == 0 { penalty } else { sum / n as f32 };
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::Intrinsics;
+    use crate::mvs::pose::Pose;
+
+    /// The closed-form observation-space row equals the generic row in that mode.
+    #[test]
+    fn observation_row_matches_generic_row() {
+        let (w, h) = (40usize, 12usize);
+        let img = |seed: usize| -> Vec<f32> {
+            (0..w * h * 3)
+                .map(|i| (((i + seed) * 2654435761) % 1000) as f32 / 1000.0)
+                .collect()
+        };
+        let (refd, src) = (img(0), img(7));
+        let k = Intrinsics::new(30.0, 30.0, 20.0, 6.0);
+        let rel = Pose::new(
+            [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+            [-0.3, 0.05, 0.1],
+        )
+        .unwrap();
+        for z in [1.0f64, 2.5, 6.0] {
+            let sources = [SourcePlane {
+                data: &src,
+                warp: PlaneWarp::new(&k, &k, &rel, z),
+            }];
+            let (a, beta) = (0.8f32, 0.3f32);
+            let t = (-beta * z as f32).exp();
+            let inv_t = inverse_transmission(t);
+            let haze = Haze {
+                airlight: a,
+                beta,
+                ref_inv_t: inv_t,
+                ref_offset: a * (1.0 - inv_t),
+                ref_t: t,
+                residual: DehazingResidual::ObservationSpace,
+                ref_lo: f32::NEG_INFINITY,
+                ref_hi: f32::INFINITY,
+                src_margin: f32::INFINITY,
+                soft_margin: None,
+            };
+            for y in 0..h {
+                let (mut g, mut f) = (vec![0.0; w], vec![0.0; w]);
+                let mut s = RowScratch::default();
+                fill_row::<3, true>(&mut g, y, &refd, w, h, &sources, haze, 3.0, &mut s);
+                fill_row_observation::<3>(&mut f, y, &refd, w, h, &sources, haze, 3.0, &mut s);
+                for (x, (g, f)) in g.iter().zip(&f).enumerate() {
+                    assert!(
+                        (g - f).abs() <= 1e-5 * g.max(1.0),
+                        "z {z} ({x}, {y}): {g} vs {f}"
+                    );
+                }
+            }
+        }
     }
 }

@@ -51,7 +51,7 @@ use crate::monitor::Monitor;
 use crate::mvs::plane_sweep::{PlaneSet, PlaneWarp};
 use crate::mvs::pose::Pose;
 
-use kernel::{fill_row, Haze, RowScratch, SourcePlane};
+use kernel::{fill_row, fill_row_observation, Haze, RowScratch, SourcePlane};
 
 /// Largest accepted volume, in voxels (`W·H·N`): 2²⁹ `f32`s are 2 GiB.
 pub const MAX_VOXELS: usize = 1 << 29;
@@ -452,9 +452,24 @@ pub fn build_cost_volume(
         let refd = reference.image.data();
         let srcs = &plane_sources[..];
         let dehaze = kind.dehazing().is_some();
-        out.par_chunks_mut(w).enumerate().for_each_init(
-            RowScratch::default,
-            |scratch, (y, row)| match (c, dehaze) {
+        // The default dehazing volume has a closed-form row kernel; β = 0 keeps the generic one
+        // so that "β = 0 ⇒ dehazing = ordinary" stays exact.
+        let observation = matches!(
+            kind.dehazing(),
+            Some((p, o)) if p.beta > 0.0
+                && o.residual == DehazingResidual::ObservationSpace
+                && o.range == RangePenalty::Off
+        );
+        out.par_chunks_mut(w)
+            .enumerate()
+            .with_min_len(8)
+            .for_each_init(RowScratch::default, |scratch, (y, row)| match (c, dehaze) {
+                (1, true) if observation => {
+                    fill_row_observation::<1>(row, y, refd, w, h, srcs, haze, penalty, scratch)
+                }
+                (_, true) if observation => {
+                    fill_row_observation::<3>(row, y, refd, w, h, srcs, haze, penalty, scratch)
+                }
                 (1, false) => {
                     fill_row::<1, false>(row, y, refd, w, h, srcs, haze, penalty, scratch)
                 }
@@ -463,8 +478,7 @@ pub fn build_cost_volume(
                     fill_row::<3, false>(row, y, refd, w, h, srcs, haze, penalty, scratch)
                 }
                 (_, true) => fill_row::<3, true>(row, y, refd, w, h, srcs, haze, penalty, scratch),
-            },
-        );
+            });
         monitor.progress("mvs.cost_volume", (i + 1) as f32 / n_planes as f32);
     }
     Ok(CostVolume {
