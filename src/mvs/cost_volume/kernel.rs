@@ -60,6 +60,8 @@ pub(super) struct RowScratch {
     /// Source sample coordinates of the row (NaN = unobserved).
     us: Vec<f32>,
     vs: Vec<f32>,
+    /// `1/t_s` of the row's samples (or `t_r/t_s` in the observation-space kernel).
+    inv_t: Vec<f32>,
 }
 
 /// Fills one row of one plane. `penalty` is γ (Eq. 3.7) and also the cost of a voxel that no
@@ -121,39 +123,18 @@ pub(super) fn fill_row<const C: usize, const DEHAZE: bool>(
         row
     };
     let (us_row, vs_row) = (&mut scratch.us[..width], &mut scratch.vs[..width]);
+    scratch.inv_t.resize(width, 0.0);
+    let inv_t_row = &mut scratch.inv_t[..width];
     let ref_ok = &scratch.ref_ok[..width];
     let ref_exc = &scratch.ref_exc[..width];
     for s in sources {
         let warp = s.warp.row(y as f64);
-        let (slope, offset, depth) = warp.coefficients();
-        // ζ is affine in u along the row (ζ = depth·w(u)), so 1/t_s = e^{βζ} is a geometric
-        // sequence: one multiply per pixel instead of an exp (f64, so the drift over a row is
-        // ~1e-14 relative; β = 0 gives exactly 1).
-        // Rows where e^{βζ} over- or underflows at an end fall back to one exp per pixel.
-        let b = f64::from(haze.beta);
-        let z0 = offset[2] * depth;
-        let dz = slope[2] * depth;
-        let (start, end) = ((b * z0).exp(), (b * (z0 + dz * (width - 1) as f64)).exp());
-        let geometric = !DEHAZE || (start.is_normal() && end.is_normal());
-        let (mut inv_ts, ratio) = if DEHAZE && geometric {
-            (start, (b * dz).exp())
-        } else {
-            (1.0, 1.0)
-        };
-        let max_inv_t = f64::from(inverse_transmission(0.0));
-        source_coords(&s.warp.row(y as f64), width, height, us_row, vs_row);
+        source_coords(&warp, width, height, us_row, vs_row);
+        if DEHAZE {
+            inverse_transmission_row(&warp, haze.beta, inv_t_row);
+        }
         for x in 0..width {
-            let inv_t_here = if !DEHAZE {
-                1.0
-            } else if geometric {
-                inv_ts.min(max_inv_t) as f32
-            } else {
-                let zeta = (slope[2] * x as f64 + offset[2]) * depth;
-                (b * zeta).exp().min(max_inv_t) as f32
-            };
-            if DEHAZE {
-                inv_ts *= ratio;
-            }
+            let inv_t_here = if DEHAZE { inv_t_row[x] } else { 1.0 };
             let (us, vs) = (us_row[x], vs_row[x]);
             if us.is_nan() {
                 continue;
@@ -273,35 +254,19 @@ pub(super) fn fill_row_observation<const C: usize>(
     scratch.observed.resize(width, 0);
     scratch.us.resize(width, 0.0);
     scratch.vs.resize(width, 0.0);
-    scratch.jr.resize(width, 0.0);
     let sum = &mut scratch.sum[..width];
     let observed = &mut scratch.observed[..width];
     let (us_row, vs_row) = (&mut scratch.us[..width], &mut scratch.vs[..width]);
-    // t_r/t_s per pixel of the row (reuses the dehazed-row buffer).
-    let ratio_row = &mut scratch.jr[..width];
-    let b = f64::from(haze.beta);
-    let max_inv_t = f64::from(inverse_transmission(0.0));
-    let t_r = f64::from(haze.ref_t);
+    scratch.inv_t.resize(width, 0.0);
+    let ratio_row = &mut scratch.inv_t[..width];
+    let t_r = haze.ref_t;
     for s in sources {
         let warp = s.warp.row(y as f64);
         source_coords(&warp, width, height, us_row, vs_row);
-        // 1/t_s = e^{βζ} with ζ affine in u: a geometric sequence (f64), or one exp per pixel
-        // where it would over- or underflow at an end of the row.
-        let (slope, offset, depth) = warp.coefficients();
-        let (z0, dz) = (offset[2] * depth, slope[2] * depth);
-        let (start, end) = ((b * z0).exp(), (b * (z0 + dz * (width - 1) as f64)).exp());
-        if start.is_normal() && end.is_normal() {
-            let step = (b * dz).exp();
-            let mut inv_ts = start;
-            for r in ratio_row.iter_mut() {
-                *r = (t_r * inv_ts.min(max_inv_t)) as f32;
-                inv_ts *= step;
-            }
-        } else {
-            for (x, r) in ratio_row.iter_mut().enumerate() {
-                let zeta = z0 + dz * x as f64;
-                *r = (t_r * (b * zeta).exp().min(max_inv_t)) as f32;
-            }
+        // t_r/t_s per pixel of the row.
+        inverse_transmission_row(&warp, haze.beta, ratio_row);
+        for r in ratio_row.iter_mut() {
+            *r *= t_r;
         }
         for x in 0..width {
             let us = us_row[x];
@@ -321,6 +286,33 @@ pub(super) fn fill_row_observation<const C: usize>(
     }
     for ((o, &sum), &n) in out.iter_mut().zip(sum.iter()).zip(observed.iter()) {
         *o = if n == 0 { penalty } else { sum / n as f32 };
+    }
+}
+
+/// `1/t_s = e^{βζ}` for every pixel of one reference row and plane, clamped like
+/// [`inverse_transmission`]. `ζ` is affine in `u` along the row (`ζ = depth·w(u)`), so this is a
+/// geometric sequence: one multiply per pixel instead of an `exp` (in `f64`, so the drift over a
+/// row is ~1e-14 relative; `β = 0` gives exactly 1). Rows where `e^{βζ}` over- or underflows at
+/// an end fall back to one `exp` per pixel.
+#[inline]
+fn inverse_transmission_row(warp: &RowWarp, beta: f32, out: &mut [f32]) {
+    let (slope, offset, depth) = warp.coefficients();
+    let b = f64::from(beta);
+    let (z0, dz) = (offset[2] * depth, slope[2] * depth);
+    let last = out.len().saturating_sub(1) as f64;
+    let (start, end) = ((b * z0).exp(), (b * (z0 + dz * last)).exp());
+    let max_inv_t = f64::from(inverse_transmission(0.0));
+    if start.is_normal() && end.is_normal() {
+        let step = (b * dz).exp();
+        let mut inv_t = start;
+        for o in out.iter_mut() {
+            *o = inv_t.min(max_inv_t) as f32;
+            inv_t *= step;
+        }
+    } else {
+        for (x, o) in out.iter_mut().enumerate() {
+            *o = (b * (z0 + dz * x as f64)).exp().min(max_inv_t) as f32;
+        }
     }
 }
 
