@@ -300,6 +300,16 @@ impl CostVolume {
     }
 }
 
+impl View<'_> {
+    /// Checks the view as [`build_cost_volume`] does: with `like = None` (a reference) the image
+    /// must have 1 or 3 channels and at least 2×2 pixels; with `like = Some((w, h, c))` (a
+    /// source) exactly that shape. Pixels must be finite, intrinsics and pose valid. Errors name
+    /// `image`, `intrinsics.…` or `pose.…`.
+    pub fn validate(&self, like: Option<(usize, usize, usize)>) -> Result<()> {
+        check_view(self, like)
+    }
+}
+
 fn check_view(view: &View<'_>, channels: Option<(usize, usize, usize)>) -> Result<()> {
     let img = view.image;
     if let Some((w, h, c)) = channels {

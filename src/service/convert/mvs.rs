@@ -7,7 +7,7 @@
 //! prefix (`request.mvs_depth.`) for `Jobs.SubmitJob`.
 
 use super::image::{image_from_proto, image_to_proto, ImageLimits};
-use super::tof::intrinsics_to_proto;
+use super::tof::{intrinsics_from_proto, intrinsics_to_proto};
 use crate::atmosphere::AtmosphereParams;
 use crate::camera::Intrinsics;
 use crate::error::{MurkError, Result};
@@ -275,48 +275,24 @@ fn view_from_proto(
         .as_ref()
         .ok_or_else(|| MurkError::invalid("image", "required"))
         .and_then(|i| image_from_proto(i, limits).map_err(|e| e.within("image")))?;
-    let (w, h, c) = (image.width(), image.height(), image.channels());
-    match shape {
-        Some((rw, rh, rc)) if (w, h, c) != (rw, rh, rc) => {
-            return Err(MurkError::invalid(
-                "image",
-                format!("image is {w}x{h}x{c} but the reference image is {rw}x{rh}x{rc}"),
-            ))
-        }
-        Some(_) => {}
-        None => {
-            if c != 1 && c != 3 {
-                return Err(MurkError::invalid(
-                    "image",
-                    format!("need 1 (grey) or 3 (RGB) channels, got {c}"),
-                ));
-            }
-            if w < 2 || h < 2 {
-                return Err(MurkError::invalid(
-                    "image",
-                    format!("need at least 2x2 pixels, got {w}x{h}"),
-                ));
-            }
-        }
-    }
-    image.ensure_finite().map_err(|e| e.within("image"))?;
     let k = v
         .intrinsics
         .as_ref()
         .ok_or_else(|| MurkError::invalid("intrinsics", "required"))?;
-    let intrinsics = Intrinsics {
-        fx: k.fx,
-        fy: k.fy,
-        cx: k.cx,
-        cy: k.cy,
-        skew: k.skew,
-    };
-    intrinsics.validate().map_err(|e| e.within("intrinsics"))?;
+    let intrinsics = intrinsics_from_proto(k);
     let pose = v
         .pose
         .as_ref()
         .ok_or_else(|| MurkError::invalid("pose", "required (world-to-camera)"))
         .and_then(|p| pose_from_proto(p).map_err(|e| e.within("pose")))?;
+    // The library's own check (shape against the reference, channels, finite pixels,
+    // intrinsics, pose), run here so bad input is refused before a job is queued.
+    View {
+        image: &image,
+        intrinsics,
+        pose,
+    }
+    .validate(shape)?;
     Ok(MvsViewInput {
         image,
         intrinsics,

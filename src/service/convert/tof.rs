@@ -22,13 +22,7 @@ pub fn tof_from_proto(
         .as_ref()
         .ok_or_else(|| MurkError::invalid("phase", "required"))
         .and_then(|i| image_from_proto(i, limits).map_err(|e| e.within("phase")))?;
-    let intrinsics = req.intrinsics.as_ref().map(|k| Intrinsics {
-        fx: k.fx,
-        fy: k.fy,
-        cx: k.cx,
-        cy: k.cy,
-        skew: k.skew,
-    });
+    let intrinsics = req.intrinsics.as_ref().map(intrinsics_from_proto);
     let input = TofInput {
         amplitude,
         phase,
@@ -116,7 +110,18 @@ fn irls_from_proto(o: Option<&pb::IrlsOptions>, p: &mut IrlsChannelParams) {
     }
 }
 
-/// Intrinsics for the wire.
+/// `murk.v1.CameraIntrinsics` → [`Intrinsics`] (unvalidated; callers validate).
+pub fn intrinsics_from_proto(k: &pb::CameraIntrinsics) -> Intrinsics {
+    Intrinsics {
+        fx: k.fx,
+        fy: k.fy,
+        cx: k.cx,
+        cy: k.cy,
+        skew: k.skew,
+    }
+}
+
+/// [`Intrinsics`] → `murk.v1.CameraIntrinsics`.
 pub fn intrinsics_to_proto(k: &Intrinsics) -> pb::CameraIntrinsics {
     pb::CameraIntrinsics {
         fx: k.fx,
