@@ -14,6 +14,7 @@ pub mod metrics;
 pub mod monitor;
 pub mod mvs;
 pub mod mvs_io;
+pub mod params;
 pub mod server;
 pub mod service;
 pub mod simulate;

@@ -1,0 +1,5 @@
+//! Scattering-parameter estimation (reference Ch. 3.3): the airlight `A` of a hazy image
+//! ([`airlight`]) and the scattering coefficient `β`, found by Algorithm 1 so that the dense
+//! MVS depth agrees with a sparse SfM point cloud.
+
+pub mod airlight;
