@@ -19,7 +19,9 @@
 //!
 //! **Haze** (Eq. 3.3, [`crate::atmosphere::haze`]): `A ~ U(airlight_range)`, a target median
 //! transmission `t_med ~ U(median_transmission_range)` over the reference view, and
-//! `β = −ln(t_med) / median(z_ref)`; every view is hazed with its own z-depth. Then additive
+//! `β = −ln(t_med) / median(z_ref)`; every view is hazed with its own z-depth. With
+//! `beta_range`, `β` is drawn from that range instead and the scene is scaled to match (the
+//! images do not change, lengths do). Then additive
 //! Gaussian noise of `noise_sigma` on clear and hazy images alike, clipped to `[0, 1]`.
 //! Images are rendered with `supersample²` rays per pixel; depth is the z-depth of the pixel
 //! centre ray.
@@ -103,6 +105,13 @@ pub struct MvsSimConfig {
     pub airlight_range: [f32; 2],
     /// Target median transmission over the reference view, drawn uniformly, within `(0, 1)`.
     pub median_transmission_range: [f64; 2],
+    /// When set, `β` (per scene unit) is drawn uniformly from this range instead of being
+    /// derived from the room's size, and the whole scene (geometry, camera positions, sparse
+    /// cloud, depth) is scaled so that the median transmission still meets its drawn target:
+    /// a pinhole image does not change when the world is scaled about the origin, so the
+    /// images are the same and only lengths change. The reference's setting for indoor scenes
+    /// is `[0.4, 0.8]`.
+    pub beta_range: Option<[f32; 2]>,
     /// Standard deviation of the additive Gaussian image noise (pixel-value units).
     pub noise_sigma: f32,
     /// Rays per pixel along each axis (anti-aliasing).
@@ -129,6 +138,7 @@ impl Default for MvsSimConfig {
             rectified_pair: false,
             airlight_range: [0.7, 1.0],
             median_transmission_range: [0.2, 0.4],
+            beta_range: None,
             noise_sigma: 0.01,
             supersample: 2,
             num_boxes: 3,
@@ -206,6 +216,14 @@ impl MvsSimConfig {
                 "median_transmission_range",
                 format!("need 0 < lo <= hi <= 1, got [{t0}, {t1}]"),
             ));
+        }
+        if let Some([b0, b1]) = self.beta_range {
+            if !(b0.is_finite() && b1.is_finite() && b0 > 0.0 && b0 <= b1 && b1 <= 100.0) {
+                return Err(bad(
+                    "beta_range",
+                    format!("need 0 < lo <= hi <= 100 per scene unit, got [{b0}, {b1}]"),
+                ));
+            }
         }
         if !self.noise_sigma.is_finite() || !(0.0..=0.5).contains(&self.noise_sigma) {
             return Err(bad(
@@ -701,7 +719,7 @@ pub fn simulate_mvs(cfg: &MvsSimConfig, monitor: &Monitor) -> Result<MvsScene> {
     monitor.checkpoint()?;
     let sparse = sparse_model(&world, cfg, &views, &mut rng)?;
     monitor.progress("simulate.mvs", 1.0);
-    Ok(MvsScene {
+    let mut scene = MvsScene {
         config: cfg.clone(),
         views,
         reference,
@@ -709,7 +727,44 @@ pub fn simulate_mvs(cfg: &MvsSimConfig, monitor: &Monitor) -> Result<MvsScene> {
         beta,
         median_transmission,
         sparse,
-    })
+    };
+    // Drawn last so that scenes without `beta_range` keep their seeds' content.
+    if let Some([b0, b1]) = cfg.beta_range {
+        let target = rng.random_range(b0..=b1);
+        scale_scene(&mut scene, f64::from(beta / target))?;
+        scene.beta = target;
+    }
+    Ok(scene)
+}
+
+/// Scales every length of `scene` by `s` (> 0) about the world origin: depth maps, camera
+/// translations (world-to-camera `t` scales with the world), sparse points. Images, rotations,
+/// intrinsics and 2D observations are unchanged; `β` must be divided by `s` by the caller so
+/// that `β·z` (the haze) is unchanged.
+fn scale_scene(scene: &mut MvsScene, s: f64) -> Result<()> {
+    for v in &mut scene.views {
+        for z in v.depth.data_mut() {
+            *z = (f64::from(*z) * s) as f32;
+        }
+        v.pose.translation = v.pose.translation.map(|c| c * s);
+    }
+    for img in scene.sparse.images.values_mut() {
+        let pose = Pose {
+            rotation: img.pose.rotation,
+            translation: img.pose.translation.map(|c| c * s),
+        };
+        *img = ColmapImage::new(
+            img.id,
+            img.camera_id,
+            img.name.clone(),
+            &pose,
+            std::mem::take(&mut img.points2d),
+        )?;
+    }
+    for p in scene.sparse.points.values_mut() {
+        p.xyz = p.xyz.map(|c| c * s);
+    }
+    Ok(())
 }
 
 /// The sparse cloud and COLMAP model (see the module docs).
@@ -999,6 +1054,44 @@ mod tests {
                 assert!(v.hazy.data().iter().all(|x| (0.0..=1.0).contains(x)));
             }
         }
+    }
+
+    #[test]
+    fn beta_range_scales_the_scene_not_the_images() {
+        let plain = simulate_mvs(&small(5), &Monitor::noop()).unwrap();
+        let cfg = MvsSimConfig {
+            beta_range: Some([0.4, 0.8]),
+            ..small(5)
+        };
+        let scaled = simulate_mvs(&cfg, &Monitor::noop()).unwrap();
+        assert!((0.4..=0.8).contains(&scaled.beta), "{}", scaled.beta);
+        assert_eq!(scaled.median_transmission, plain.median_transmission);
+        let s = f64::from(plain.beta / scaled.beta);
+        for (a, b) in plain.views.iter().zip(&scaled.views) {
+            assert_eq!(a.hazy, b.hazy);
+            assert_eq!(a.pose.rotation, b.pose.rotation);
+            for (za, zb) in a.depth.data().iter().zip(b.depth.data()) {
+                assert!((f64::from(*za) * s - f64::from(*zb)).abs() < 1e-4 * f64::from(*zb));
+            }
+        }
+        // The scaled sparse model still projects onto its observations.
+        let k = scaled.views[0].intrinsics;
+        for p in scaled.sparse.points.values().take(50) {
+            for t in &p.track {
+                let img = &scaled.sparse.images[&t.image_id];
+                let (u, v) = k.project(img.pose.transform(p.xyz)).unwrap();
+                let obs = img.points2d[t.point2d_idx as usize].xy;
+                assert!((u + 0.5 - obs[0]).abs() < 1.0 && (v + 0.5 - obs[1]).abs() < 1.0);
+            }
+        }
+        let bad = MvsSimConfig {
+            beta_range: Some([0.8, 0.4]),
+            ..small(5)
+        };
+        assert_eq!(
+            simulate_mvs(&bad, &Monitor::noop()).unwrap_err().field(),
+            Some("beta_range")
+        );
     }
 
     #[test]
