@@ -13,7 +13,8 @@ use tonic::transport::server::TcpIncoming;
 use tonic::transport::Server;
 
 use crate::jobs::{JobManager, JobsConfig};
-use crate::service::convert::ImageLimits;
+use crate::params::airlight::AirlightEstimator;
+use crate::service::convert::{AirlightService, ImageLimits};
 use crate::service::proto::v1::jobs_server::JobsServer;
 use crate::service::proto::v1::reconstruction_server::ReconstructionServer;
 use crate::service::proto::FILE_DESCRIPTOR_SET;
@@ -34,6 +35,9 @@ pub struct ServerConfig {
     pub max_image_pixels: u64,
     /// How long shutdown waits for queued and running jobs before cancelling them.
     pub shutdown_grace: Duration,
+    /// The airlight estimator of scattering-parameter requests that do not name one (loaded
+    /// by the caller, so a bad weights file fails before the server starts).
+    pub airlight: AirlightEstimator,
 }
 
 impl Default for ServerConfig {
@@ -43,6 +47,7 @@ impl Default for ServerConfig {
             max_request_bytes: DEFAULT_MAX_REQUEST_BYTES,
             max_image_pixels: 16 << 20,
             shutdown_grace: Duration::from_secs(10),
+            airlight: AirlightEstimator::default(),
         }
     }
 }
@@ -85,6 +90,9 @@ async fn serve_with_manager(
                 max_pixels: config.max_image_pixels,
                 max_channels: 4,
             },
+        },
+        airlight: AirlightService {
+            estimator: std::sync::Arc::new(config.airlight.clone()),
         },
     };
     // The transport's hard ceiling; between 1× and 2× the handlers answer INVALID_ARGUMENT with

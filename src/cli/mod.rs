@@ -3,6 +3,7 @@
 mod client;
 mod demo;
 mod mvs;
+mod params;
 mod serve;
 mod simulate;
 mod tof;
@@ -29,6 +30,9 @@ enum Command {
     Tof(tof::TofArgs),
     /// MVS depth in haze: COLMAP model + images → depth, confidence and a point cloud.
     Mvs(mvs::MvsArgs),
+    /// Airlight and scattering coefficient (Algorithm 1) from a COLMAP model + images, then
+    /// the depth with them.
+    Params(params::ParamsArgs),
     /// Start a server in-process, run simulated scenes through the gRPC API, print accuracy.
     Demo(demo::DemoArgs),
 }
@@ -53,6 +57,7 @@ pub fn run() -> anyhow::Result<()> {
         Command::Simulate(c) => simulate::run(c),
         Command::Tof(a) => tof::run(a),
         Command::Mvs(a) => mvs::run(a),
+        Command::Params(a) => params::run(a),
         Command::Demo(a) => demo::run(a),
     }
 }

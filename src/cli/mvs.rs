@@ -8,7 +8,7 @@ use clap::{Args, ValueEnum};
 use murk::atmosphere::AtmosphereParams;
 use murk::io::{read_image, write_colormap_png, write_exr, DecodeLimits};
 use murk::metrics::{depth_metrics, DepthMetrics};
-use murk::mvs::colmap::read_colmap_dir;
+use murk::mvs::colmap::{read_colmap_dir, ColmapModel};
 use murk::mvs_io::{
     backproject, find_gt_depth, find_scene_metadata, load_view, nearest_sources, write_ply,
     LoadedView, PlyFormat,
@@ -106,42 +106,15 @@ const IN_PROCESS_MAX_REQUEST_BYTES: usize = 1 << 30;
 pub fn run(a: MvsArgs) -> anyhow::Result<()> {
     let model = read_colmap_dir(&a.model)
         .with_context(|| format!("reading the COLMAP model in {}", a.model.display()))?;
-    let source_names = if a.sources.is_empty() {
-        let n = a.num_sources.unwrap_or(DEFAULT_NUM_SOURCES);
-        if n == 0 || n > MAX_SOURCE_VIEWS {
-            bail!("--num-sources must be in 1..={MAX_SOURCE_VIEWS}, got {n}");
-        }
-        nearest_sources(&model, &a.reference, n)?
-    } else {
-        if a.sources.len() > MAX_SOURCE_VIEWS {
-            bail!(
-                "at most {MAX_SOURCE_VIEWS} --sources, got {}",
-                a.sources.len()
-            );
-        }
-        if a.sources.contains(&a.reference) {
-            bail!("--sources must not contain the reference {:?}", a.reference);
-        }
-        a.sources.clone()
-    };
     let limits = DecodeLimits::default();
-    let load = |name: &str| {
-        load_view(&model, &a.images, name, &limits)
-            .with_context(|| format!("loading image {name:?}"))
-    };
-    let reference = load(&a.reference)?;
-    let sources = source_names
-        .iter()
-        .map(|n| load(n))
-        .collect::<anyhow::Result<Vec<_>>>()?;
-    println!(
-        "reference {} ({}x{}x{}), sources {}",
-        reference.name,
-        reference.image.width(),
-        reference.image.height(),
-        reference.image.channels(),
-        source_names.join(", ")
-    );
+    let (reference, sources) = load_views(
+        &model,
+        &a.images,
+        &a.reference,
+        &a.sources,
+        a.num_sources,
+        &limits,
+    )?;
 
     let kind = a.cost_volume;
     let atmosphere = atmosphere_for(&a)?;
@@ -151,29 +124,10 @@ pub fn run(a: MvsArgs) -> anyhow::Result<()> {
     request.far = a.far.unwrap_or(0.0);
     request.num_planes = a.planes.unwrap_or(0);
 
-    let rt = tokio::runtime::Runtime::new()?;
-    let (job, result) = rt.block_on(async {
-        let job_request = pb::JobRequest {
-            method: Some(pb::job_request::Method::MvsDepth(request)),
-        };
-        match &a.server {
-            Some(url) => {
-                let mut client = connect(url).await?;
-                run_job(&mut client, job_request, "mvs", true).await
-            }
-            None => {
-                let server = InProcessServer::start(ServerConfig {
-                    max_request_bytes: IN_PROCESS_MAX_REQUEST_BYTES,
-                    ..ServerConfig::default()
-                })
-                .await?;
-                let mut client = connect(&server.url()).await?;
-                let out = run_job(&mut client, job_request, "mvs", true).await;
-                server.stop().await?;
-                out
-            }
-        }
-    })?;
+    let job_request = pb::JobRequest {
+        method: Some(pb::job_request::Method::MvsDepth(request)),
+    };
+    let (job, result) = run_here_or_remote(a.server.as_deref(), job_request, "mvs")?;
     let Some(pb::job_result::Method::MvsDepth(r)) = result.method else {
         bail!("server returned a result of another method");
     };
@@ -221,6 +175,96 @@ pub fn run(a: MvsArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// Reads the reference and the source views (named, or the `num_sources` nearest cameras).
+pub fn load_views(
+    model: &ColmapModel,
+    images: &Path,
+    reference: &str,
+    sources: &[String],
+    num_sources: Option<usize>,
+    limits: &DecodeLimits,
+) -> anyhow::Result<(LoadedView, Vec<LoadedView>)> {
+    let source_names = if sources.is_empty() {
+        let n = num_sources.unwrap_or(DEFAULT_NUM_SOURCES);
+        if n == 0 || n > MAX_SOURCE_VIEWS {
+            bail!("--num-sources must be in 1..={MAX_SOURCE_VIEWS}, got {n}");
+        }
+        nearest_sources(model, reference, n)?
+    } else {
+        if sources.len() > MAX_SOURCE_VIEWS {
+            bail!(
+                "at most {MAX_SOURCE_VIEWS} --sources, got {}",
+                sources.len()
+            );
+        }
+        if sources.iter().any(|s| s == reference) {
+            bail!("--sources must not contain the reference {reference:?}");
+        }
+        sources.to_vec()
+    };
+    let load = |name: &str| {
+        load_view(model, images, name, limits).with_context(|| format!("loading image {name:?}"))
+    };
+    let reference = load(reference)?;
+    let sources = source_names
+        .iter()
+        .map(|n| load(n))
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    println!(
+        "reference {} ({}x{}x{}), sources {}",
+        reference.name,
+        reference.image.width(),
+        reference.image.height(),
+        reference.image.channels(),
+        source_names.join(", ")
+    );
+    Ok((reference, sources))
+}
+
+/// Runs one job on the server at `url`, or on a server started in this process for it.
+pub fn run_here_or_remote(
+    url: Option<&str>,
+    job_request: pb::JobRequest,
+    label: &str,
+) -> anyhow::Result<(pb::Job, pb::JobResult)> {
+    let rt = tokio::runtime::Runtime::new()?;
+    rt.block_on(async {
+        match url {
+            Some(url) => {
+                let mut client = connect(url).await?;
+                run_job(&mut client, job_request, label, true).await
+            }
+            None => {
+                let server = InProcessServer::start(ServerConfig {
+                    max_request_bytes: IN_PROCESS_MAX_REQUEST_BYTES,
+                    ..ServerConfig::default()
+                })
+                .await?;
+                let mut client = connect(&server.url()).await?;
+                let out = run_job(&mut client, job_request, label, true).await;
+                server.stop().await?;
+                out
+            }
+        }
+    })
+}
+
+/// Replaces the raw images of a request's views with the files' original encodings where they
+/// were used unchanged (smaller on the wire, nothing lost).
+pub fn use_encoded_images<'a>(
+    wire: impl Iterator<Item = &'a mut pb::MvsView>,
+    loaded: impl Iterator<Item = &'a LoadedView>,
+) {
+    for (wire, loaded) in wire.zip(loaded) {
+        if let Some(bytes) = &loaded.encoded {
+            wire.image = Some(pb::Image {
+                data: Some(pb::image::Data::Encoded(bytes.clone())),
+                ..Default::default()
+            });
+        }
+    }
+}
+
 /// A and β for the chosen cost volume: the flags, else a simulated scene's ground truth, else an
 /// error for the dehazing kinds (ORDINARY needs neither).
 fn atmosphere_for(a: &MvsArgs) -> anyhow::Result<Option<AtmosphereParams>> {
@@ -245,8 +289,7 @@ fn atmosphere_for(a: &MvsArgs) -> anyhow::Result<Option<AtmosphereParams>> {
         }
         None => bail!(
             "the {:?} cost volume needs the scattering parameters: pass --airlight A --beta B \
-             (per scene unit), or use --cost-volume ordinary (murk cannot estimate A and beta \
-             yet)",
+             (per scene unit; `murk params` estimates them), or use --cost-volume ordinary",
             a.cost_volume
         ),
     }
@@ -267,17 +310,13 @@ fn build_request(
         atmosphere,
         None,
     );
-    let views = std::iter::once(request.reference.as_mut())
-        .chain(request.sources.iter_mut().map(Some))
-        .zip(std::iter::once(reference).chain(sources));
-    for (wire, loaded) in views {
-        if let (Some(wire), Some(bytes)) = (wire, &loaded.encoded) {
-            wire.image = Some(pb::Image {
-                data: Some(pb::image::Data::Encoded(bytes.clone())),
-                ..Default::default()
-            });
-        }
-    }
+    use_encoded_images(
+        request
+            .reference
+            .iter_mut()
+            .chain(request.sources.iter_mut()),
+        std::iter::once(reference).chain(sources),
+    );
     request
 }
 

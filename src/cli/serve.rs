@@ -72,6 +72,7 @@ impl ServeArgs {
             max_request_bytes: self.max_request_bytes,
             max_image_pixels: self.max_image_pixels,
             shutdown_grace: Duration::from_secs_f64(self.shutdown_grace_secs),
+            airlight: murk::params::airlight::AirlightEstimator::default(),
         })
     }
 }

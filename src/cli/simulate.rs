@@ -40,6 +40,11 @@ pub struct SimMvsArgs {
     /// Two views with the same orientation, the source shifted along +x (rectified stereo).
     #[arg(long)]
     pub rectified_pair: bool,
+    /// Draw beta (per scene unit) from LO,HI and scale the scene to keep the median transmission
+    /// in [0.2, 0.4] (e.g. 0.4,0.8, the reference's indoor setting); default: beta follows from
+    /// the room's size.
+    #[arg(long, value_delimiter = ',', value_name = "LO,HI")]
+    pub beta_range: Option<Vec<f32>>,
 }
 
 /// Options of `murk simulate tof`.
@@ -95,9 +100,16 @@ pub fn run(cmd: SimulateCommand) -> anyhow::Result<()> {
 
 fn simulate_mvs_scene(a: &SimMvsArgs) -> anyhow::Result<()> {
     let base = MvsSimConfig::with_size(a.width, a.height);
+    if let Some(r) = &a.beta_range {
+        anyhow::ensure!(
+            r.len() == 2,
+            "--beta-range takes two values LO,HI, got {r:?}"
+        );
+    }
     let cfg = MvsSimConfig {
         seed: a.seed,
         rectified_pair: a.rectified_pair,
+        beta_range: a.beta_range.as_deref().map(|r| [r[0], r[1]]),
         num_views: a
             .views
             .unwrap_or(if a.rectified_pair { 2 } else { base.num_views }),
@@ -124,7 +136,8 @@ fn simulate_mvs_scene(a: &SimMvsArgs) -> anyhow::Result<()> {
         scene.airlight, scene.beta, scene.median_transmission
     );
     println!(
-        "next: murk mvs --model {0}/sparse --images {0}/images --reference {1} --out {0}/result",
+        "next: murk mvs --model {0}/sparse --images {0}/images --reference {1} --out {0}/result\n  \
+         or:  murk params --model {0}/sparse --images {0}/images --reference {1} --out {0}/params",
         a.out.display(),
         reference.name
     );

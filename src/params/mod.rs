@@ -3,3 +3,9 @@
 //! MVS depth agrees with a sparse SfM point cloud.
 
 pub mod airlight;
+pub mod residual;
+pub mod search;
+pub mod sparse;
+
+#[cfg(test)]
+mod tests;

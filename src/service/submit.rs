@@ -9,8 +9,8 @@ use sha2::{Digest, Sha256};
 use tonic::Status;
 
 use super::convert::{
-    canonicalize_mvs_request, mvs_from_proto, mvs_to_proto, tof_from_proto, tof_to_proto,
-    ImageLimits,
+    canonicalize_mvs_request, canonicalize_params_request, mvs_from_proto, mvs_to_proto,
+    params_from_proto, tof_from_proto, tof_to_proto, AirlightService, ImageLimits,
 };
 use super::proto::v1 as pb;
 use super::status::{submit_status, to_status};
@@ -38,6 +38,8 @@ pub struct ServiceState {
     pub manager: JobManager,
     /// Request limits.
     pub limits: RequestLimits,
+    /// The airlight estimators (scattering-parameter requests).
+    pub airlight: AirlightService,
 }
 
 /// Hex SHA-256 over the algorithm version and the request's protobuf encoding. prost encodes
@@ -55,6 +57,7 @@ pub fn method_name(m: &pb::job_request::Method) -> &'static str {
     match m {
         pb::job_request::Method::TofDepth(_) => "tof_depth",
         pb::job_request::Method::MvsDepth(_) => "mvs_depth",
+        pb::job_request::Method::ScatteringParams(_) => "scattering_params",
     }
 }
 
@@ -67,7 +70,7 @@ pub async fn submit(
     mut req: pb::JobRequest,
     prefix: Option<&str>,
 ) -> Result<Submitted, Status> {
-    canonicalize(&mut req);
+    canonicalize(&mut req, &state.airlight);
     let Some(method) = req.method.as_ref() else {
         let e = MurkError::invalid("method", "one method (e.g. tof_depth) must be set");
         return Err(to_status(&prefix.map_or(e.clone(), |p| e.within(p))));
@@ -83,8 +86,9 @@ pub async fn submit(
         return Ok(found);
     }
     let limits = state.limits.images;
+    let airlight = state.airlight.clone();
     // Decoding megapixel PNG/EXR is CPU work: keep it off the async runtime's threads.
-    let work = tokio::task::spawn_blocking(move || build_work(req, &limits))
+    let work = tokio::task::spawn_blocking(move || build_work(req, &limits, &airlight))
         .await
         .map_err(|e| Status::internal(format!("decoder task failed: {e}")))?
         .map_err(|e| to_status(&named(e)))?;
@@ -96,9 +100,12 @@ pub async fn submit(
 
 /// Puts a request into its canonical form before hashing, so requests that mean the same
 /// computation (an explicit default vs. an unset field) share one job id and cached result.
-fn canonicalize(req: &mut pb::JobRequest) {
+fn canonicalize(req: &mut pb::JobRequest, airlight: &AirlightService) {
     match &mut req.method {
         Some(pb::job_request::Method::MvsDepth(m)) => canonicalize_mvs_request(m),
+        Some(pb::job_request::Method::ScatteringParams(p)) => {
+            canonicalize_params_request(p, airlight)
+        }
         // ToF ids hash the request as sent (its options are `optional` fields whose presence is
         // kept as sent).
         Some(pb::job_request::Method::TofDepth(_)) | None => {}
@@ -119,19 +126,14 @@ fn check_size(req: &pb::JobRequest, max: usize) -> Result<(), MurkError> {
             ("amplitude".into(), size_of(t.amplitude.as_ref())),
             ("phase".into(), size_of(t.phase.as_ref())),
         ],
-        Some(pb::job_request::Method::MvsDepth(m)) => {
-            let view = |v: &pb::MvsView| size_of(v.image.as_ref());
-            std::iter::once((
-                "reference.image".to_string(),
-                m.reference.as_ref().map_or(0, view),
-            ))
-            .chain(
-                m.sources
-                    .iter()
-                    .enumerate()
-                    .map(|(k, s)| (format!("sources[{k}].image"), view(s))),
-            )
-            .collect()
+        Some(pb::job_request::Method::MvsDepth(m)) => view_sizes(m.reference.as_ref(), &m.sources),
+        Some(pb::job_request::Method::ScatteringParams(p)) => {
+            let mut v = view_sizes(p.reference.as_ref(), &p.sources);
+            v.push((
+                "sparse_points".into(),
+                p.sparse_points.iter().map(|q| q.encoded_len()).sum(),
+            ));
+            v
         }
         None => Vec::new(),
     };
@@ -147,8 +149,25 @@ fn check_size(req: &pb::JobRequest, max: usize) -> Result<(), MurkError> {
     ))
 }
 
+/// Encoded sizes of a reference view's and source views' images, named by field.
+fn view_sizes(reference: Option<&pb::MvsView>, sources: &[pb::MvsView]) -> Vec<(String, usize)> {
+    let view = |v: &pb::MvsView| v.image.as_ref().map_or(0, |i| i.encoded_len());
+    std::iter::once(("reference.image".to_string(), reference.map_or(0, view)))
+        .chain(
+            sources
+                .iter()
+                .enumerate()
+                .map(|(k, s)| (format!("sources[{k}].image"), view(s))),
+        )
+        .collect()
+}
+
 /// Decodes and validates the request, returning the closure a worker will run.
-fn build_work(req: pb::JobRequest, limits: &ImageLimits) -> Result<Work, MurkError> {
+fn build_work(
+    req: pb::JobRequest,
+    limits: &ImageLimits,
+    airlight: &AirlightService,
+) -> Result<Work, MurkError> {
     match req.method {
         Some(pb::job_request::Method::TofDepth(t)) => {
             let (input, params) = tof_from_proto(&t, limits)?;
@@ -172,6 +191,17 @@ fn build_work(req: pb::JobRequest, limits: &ImageLimits) -> Result<Work, MurkErr
                     method: Some(pb::job_result::Method::MvsDepth(mvs_to_proto(
                         &input, &out, seconds,
                     ))),
+                };
+                Ok(result.encode_to_vec())
+            }))
+        }
+        Some(pb::job_request::Method::ScatteringParams(p)) => {
+            let input = params_from_proto(&p, limits, airlight)?;
+            Ok(Box::new(move |monitor| {
+                let result = pb::JobResult {
+                    method: Some(pb::job_result::Method::ScatteringParams(
+                        input.run(monitor)?,
+                    )),
                 };
                 Ok(result.encode_to_vec())
             }))

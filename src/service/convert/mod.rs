@@ -3,6 +3,7 @@
 mod image;
 mod job;
 mod mvs;
+mod params;
 mod tof;
 
 pub use image::{image_from_proto, image_to_proto, ImageLimits};
@@ -10,5 +11,9 @@ pub use job::{job_to_proto, timestamp};
 pub use mvs::{
     canonicalize_mvs_request, mvs_from_proto, mvs_request_to_proto, mvs_to_proto, pose_from_proto,
     pose_to_proto, MvsInput, MvsViewInput, MAX_SOURCE_VIEWS,
+};
+pub use params::{
+    canonicalize_params_request, params_from_proto, params_request_to_proto, AirlightService,
+    ParamsInput, MAX_SPARSE_POINTS,
 };
 pub use tof::{intrinsics_to_proto, tof_from_proto, tof_request_to_proto, tof_to_proto};

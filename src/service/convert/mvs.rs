@@ -125,7 +125,7 @@ fn planes_of(req: &pb::MvsDepthRequest) -> (f64, f64, usize) {
     )
 }
 
-fn sgm_of(o: Option<&pb::SgmOptions>) -> SgmParams {
+pub(super) fn sgm_of(o: Option<&pb::SgmOptions>) -> SgmParams {
     let mut p = SgmParams::default();
     if let Some(o) = o {
         p.p1 = o.p1.unwrap_or(p.p1);
@@ -264,7 +264,7 @@ pub fn mvs_from_proto(req: &pb::MvsDepthRequest, limits: &ImageLimits) -> Result
 
 /// One view; `shape` is the reference's `(width, height, channels)` for sources. Errors name
 /// `image`, `intrinsics.…` or `pose.…` (or the view itself when it is missing).
-fn view_from_proto(
+pub(super) fn view_from_proto(
     v: Option<&pb::MvsView>,
     shape: Option<(usize, usize, usize)>,
     limits: &ImageLimits,
@@ -328,7 +328,7 @@ pub fn pose_to_proto(p: &Pose) -> pb::Pose {
     }
 }
 
-fn view_to_proto(v: &View<'_>) -> pb::MvsView {
+pub(super) fn view_to_proto(v: &View<'_>) -> pb::MvsView {
     pb::MvsView {
         image: Some(image_to_proto(v.image)),
         intrinsics: Some(intrinsics_to_proto(&v.intrinsics)),

@@ -1,0 +1,286 @@
+//! The sparse SfM depth map of Eq. 3.8: SfM points projected into the reference camera give
+//! `z_sfm(u, v)` where the indicator `m(u, v) = 1`.
+
+use crate::camera::Intrinsics;
+use crate::error::{MurkError, Result};
+use crate::image::ImageF32;
+use crate::mvs::colmap::ColmapModel;
+use crate::mvs::pose::Pose;
+
+/// One pixel with `m(u, v) = 1`: integer pixel (murk convention, pixel centres at integers)
+/// and the z-depth of the SfM point seen there, scene units.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SparseSample {
+    /// Column, pixels.
+    pub x: u32,
+    /// Row, pixels.
+    pub y: u32,
+    /// z-depth in the reference camera, scene units (> 0).
+    pub z: f32,
+}
+
+/// `z_sfm` and `m` of Eq. 3.8 for one reference view, stored as the list of pixels with
+/// `m = 1` (a few hundred to a few thousand, against ~50 k pixels), sorted by row then column.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SparseDepth {
+    width: usize,
+    height: usize,
+    samples: Vec<SparseSample>,
+}
+
+/// Which points of a COLMAP model are projected into the reference view.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum PointSelection {
+    /// Points whose track includes the reference image (SfM matched them there, so they are
+    /// visible in it), or every point when the model stores no observations for the reference.
+    ObservedInReference,
+    /// Every point in front of the camera and inside the image (occluded points included).
+    All,
+}
+
+/// The world points (scene units) of `model` that `selection` picks for the image named
+/// `reference` (see [`PointSelection`]). Fails naming `reference` for an unknown image.
+pub fn selected_points(
+    model: &ColmapModel,
+    reference: &str,
+    selection: PointSelection,
+) -> Result<Vec<[f64; 3]>> {
+    let image = model.image_by_name(reference).ok_or_else(|| {
+        MurkError::invalid(
+            "reference",
+            format!("no image named {reference:?} in the model"),
+        )
+    })?;
+    let observed = selection == PointSelection::ObservedInReference
+        && image.points2d.iter().any(|p| p.point3d_id.is_some());
+    Ok(if observed {
+        image
+            .points2d
+            .iter()
+            .filter_map(|p| p.point3d_id)
+            .filter_map(|id| model.points.get(&id))
+            .map(|p| p.xyz)
+            .collect()
+    } else {
+        model.points.values().map(|p| p.xyz).collect()
+    })
+}
+
+impl SparseDepth {
+    /// Projects world points (scene units) with the reference camera; points behind the camera
+    /// or outside the `width × height` image are dropped, and where several points fall on one
+    /// pixel the nearest is kept (it occludes the others). Non-finite points fail naming
+    /// `points[i]`.
+    pub fn from_points(
+        points: &[[f64; 3]],
+        intrinsics: &Intrinsics,
+        pose: &Pose,
+        width: usize,
+        height: usize,
+    ) -> Result<Self> {
+        let mut samples: Vec<SparseSample> = Vec::with_capacity(points.len());
+        for (i, p) in points.iter().enumerate() {
+            if !p.iter().all(|c| c.is_finite()) {
+                return Err(MurkError::invalid(
+                    format!("points[{i}]"),
+                    format!("coordinates must be finite, got {p:?}"),
+                ));
+            }
+            let q = pose.transform(*p);
+            let Some((u, v)) = intrinsics.project(q) else {
+                continue;
+            };
+            let (x, y) = (u.round(), v.round());
+            if !(x >= 0.0 && y >= 0.0 && x < width as f64 && y < height as f64) {
+                continue;
+            }
+            samples.push(SparseSample {
+                x: x as u32,
+                y: y as u32,
+                z: q[2] as f32,
+            });
+        }
+        samples.sort_by(|a, b| (a.y, a.x, a.z).partial_cmp(&(b.y, b.x, b.z)).unwrap());
+        samples.dedup_by(|later, first| later.x == first.x && later.y == first.y);
+        Ok(Self {
+            width,
+            height,
+            samples,
+        })
+    }
+
+    /// Eq. 3.8 from a COLMAP sparse model: the points chosen by `selection` projected into the
+    /// image named `reference` (its pose and camera from the model; `width × height` is the
+    /// size of the image the depth will be computed for, which must match the camera's).
+    /// Fails naming `reference` for an unknown image.
+    pub fn from_colmap(
+        model: &ColmapModel,
+        reference: &str,
+        width: usize,
+        height: usize,
+        selection: PointSelection,
+    ) -> Result<Self> {
+        let image = model.image_by_name(reference).ok_or_else(|| {
+            MurkError::invalid(
+                "reference",
+                format!("no image named {reference:?} in the model"),
+            )
+        })?;
+        let intrinsics = model.intrinsics_of(image)?;
+        let points = selected_points(model, reference, selection)?;
+        Self::from_points(&points, &intrinsics, &image.pose, width, height)
+    }
+
+    /// From pixels already sorted by row then column with one sample per pixel, all inside.
+    pub(crate) fn from_samples(width: usize, height: usize, samples: Vec<SparseSample>) -> Self {
+        Self {
+            width,
+            height,
+            samples,
+        }
+    }
+
+    /// Image width, pixels.
+    pub fn width(&self) -> usize {
+        self.width
+    }
+
+    /// Image height, pixels.
+    pub fn height(&self) -> usize {
+        self.height
+    }
+
+    /// The pixels with `m = 1`, sorted by row then column, one sample per pixel.
+    pub fn samples(&self) -> &[SparseSample] {
+        &self.samples
+    }
+
+    /// Number of pixels with `m = 1`.
+    pub fn len(&self) -> usize {
+        self.samples.len()
+    }
+
+    /// True when no point is seen.
+    pub fn is_empty(&self) -> bool {
+        self.samples.is_empty()
+    }
+
+    /// The `[min, max]` z-depth of the samples (scene units), `None` when empty.
+    pub fn depth_range(&self) -> Option<(f32, f32)> {
+        let mut it = self.samples.iter().map(|s| s.z);
+        let first = it.next()?;
+        Some(it.fold((first, first), |(lo, hi), z| (lo.min(z), hi.max(z))))
+    }
+
+    /// A quantile of the samples' z-depth (`q ∈ [0, 1]`), `None` when empty.
+    pub fn depth_quantile(&self, q: f64) -> Option<f32> {
+        if self.samples.is_empty() {
+            return None;
+        }
+        let mut z: Vec<f32> = self.samples.iter().map(|s| s.z).collect();
+        let k = ((z.len() - 1) as f64 * q.clamp(0.0, 1.0)).round() as usize;
+        let (_, v, _) = z.select_nth_unstable_by(k, f32::total_cmp);
+        Some(*v)
+    }
+
+    /// `z_sfm` as an image: the depth where `m = 1`, 0 elsewhere (one channel).
+    pub fn to_image(&self) -> ImageF32 {
+        let mut img = ImageF32::filled(self.width, self.height, 1, 0.0);
+        for s in &self.samples {
+            img.set(s.x as usize, s.y as usize, 0, s.z);
+        }
+        img
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::mvs::colmap::{ColmapCamera, ColmapImage, Point2D, Point3D, TrackElement};
+    use std::collections::BTreeMap;
+
+    fn camera() -> Intrinsics {
+        Intrinsics::new(50.0, 50.0, 15.5, 11.5)
+    }
+
+    #[test]
+    fn projects_keeps_nearest_and_drops_outside() {
+        let k = camera();
+        let pose = Pose::identity();
+        let pts = [
+            [0.0, 0.0, 2.0],  // centre pixel (15.5 → 16, 11.5 → 12)
+            [0.0, 0.0, 3.0],  // same pixel, farther: dropped
+            [0.0, 0.0, -1.0], // behind
+            [10.0, 0.0, 1.0], // outside
+            [0.2, 0.1, 2.0],  // (20.5 → 21, 14)
+        ];
+        let s = SparseDepth::from_points(&pts, &k, &pose, 32, 24).unwrap();
+        assert_eq!(s.len(), 2);
+        assert_eq!(
+            s.samples()[0],
+            SparseSample {
+                x: 16,
+                y: 12,
+                z: 2.0
+            }
+        );
+        assert_eq!((s.samples()[1].x, s.samples()[1].y), (21, 14));
+        assert_eq!(s.depth_range(), Some((2.0, 2.0)));
+        let img = s.to_image();
+        assert_eq!(img.get(16, 12, 0), 2.0);
+        assert_eq!(img.get(0, 0, 0), 0.0);
+        let err = SparseDepth::from_points(&[[f64::NAN, 0.0, 1.0]], &k, &pose, 32, 24);
+        assert_eq!(err.unwrap_err().field(), Some("points[0]"));
+    }
+
+    #[test]
+    fn colmap_selection_uses_the_reference_track() {
+        let k = camera();
+        let cam = ColmapCamera::from_intrinsics(1, &k, 32, 24).unwrap();
+        let seen = Point3D {
+            id: 1,
+            xyz: [0.0, 0.0, 2.0],
+            rgb: [0; 3],
+            error: 0.0,
+            track: vec![TrackElement {
+                image_id: 1,
+                point2d_idx: 0,
+            }],
+        };
+        let unseen = Point3D {
+            id: 2,
+            xyz: [0.1, 0.0, 4.0],
+            track: vec![],
+            ..seen.clone()
+        };
+        let image = ColmapImage::new(
+            1,
+            1,
+            "ref.png",
+            &Pose::identity(),
+            vec![Point2D {
+                xy: [16.0, 12.0],
+                point3d_id: Some(1),
+            }],
+        )
+        .unwrap();
+        let model = ColmapModel {
+            cameras: BTreeMap::from([(1, cam)]),
+            images: BTreeMap::from([(1, image)]),
+            points: BTreeMap::from([(1, seen), (2, unseen)]),
+        };
+        let obs = SparseDepth::from_colmap(
+            &model,
+            "ref.png",
+            32,
+            24,
+            PointSelection::ObservedInReference,
+        )
+        .unwrap();
+        assert_eq!(obs.len(), 1);
+        let all = SparseDepth::from_colmap(&model, "ref.png", 32, 24, PointSelection::All).unwrap();
+        assert_eq!(all.len(), 2);
+        let err = SparseDepth::from_colmap(&model, "x.png", 32, 24, PointSelection::All);
+        assert_eq!(err.unwrap_err().field(), Some("reference"));
+    }
+}

@@ -1,0 +1,359 @@
+//! `ScatteringParamsRequest` → [`ParamsInput`] and the search + final depth →
+//! `ScatteringParamsResult`.
+//!
+//! As for MVS, every rule is checked at submission (field names relative to
+//! `ScatteringParamsRequest`: `sources[0].image`, `sparse_points`, `beta_max`, ...), including
+//! that enough SfM points project into the reference view, so a request that cannot be searched
+//! is refused before it is queued.
+
+use std::sync::Arc;
+use std::time::Instant;
+
+use super::image::{image_to_proto, ImageLimits};
+use super::mvs::{sgm_of, view_from_proto, view_to_proto, MvsViewInput, MAX_SOURCE_VIEWS};
+use crate::atmosphere::AtmosphereParams;
+use crate::error::{MurkError, Result};
+use crate::monitor::Monitor;
+use crate::mvs::cost_volume::MAX_VOXELS;
+use crate::mvs::{estimate_depth, CostKind, DehazingOptions, PlaneSet, View, MAX_PLANES};
+use crate::params::airlight::{dark_channel_airlight, AirlightEstimator, DarkChannelParams};
+use crate::params::search::{
+    plane_range_from_sparse, search_scattering, SearchParams, SearchStage, MIN_SPARSE_POINTS,
+};
+use crate::params::sparse::SparseDepth;
+use crate::service::proto::v1 as pb;
+
+/// Most SfM points per request (COLMAP reconstructions of a few hundred images have ~10⁵).
+pub const MAX_SPARSE_POINTS: usize = 1_000_000;
+
+/// Default plane count of the final depth (the reference's 256).
+const DEFAULT_PLANES: usize = 256;
+
+/// The airlight estimators a server offers: its configured estimator (the CNN, or the dark
+/// channel when configured so or fallen back to), used for `AIRLIGHT_SOURCE_UNSPECIFIED`.
+#[derive(Clone, Debug)]
+pub struct AirlightService {
+    /// The configured estimator.
+    pub estimator: Arc<AirlightEstimator>,
+}
+
+impl AirlightService {
+    /// The wire source that UNSPECIFIED means on this server.
+    pub fn default_source(&self) -> pb::AirlightSource {
+        match *self.estimator {
+            AirlightEstimator::DarkChannel(_) => pb::AirlightSource::DarkChannel,
+        }
+    }
+
+    /// Whether the CNN is loaded.
+    fn has_cnn(&self) -> bool {
+        self.default_source() == pb::AirlightSource::Cnn
+    }
+}
+
+/// A decoded, validated request.
+#[derive(Clone, Debug)]
+pub struct ParamsInput {
+    /// The reference view.
+    pub reference: MvsViewInput,
+    /// The sources.
+    pub sources: Vec<MvsViewInput>,
+    /// Eq. 3.8's sparse depth in the reference view (full resolution).
+    pub sparse: SparseDepth,
+    /// Where `A₀` comes from (UNSPECIFIED resolved).
+    pub airlight_source: pb::AirlightSource,
+    /// `A₀` for GIVEN.
+    pub airlight_given: f32,
+    /// Search settings, defaults resolved.
+    pub search: SearchParams,
+    /// Plane set of the final depth (its range is also the search's).
+    pub planes: PlaneSet,
+    /// The server's estimators.
+    pub airlight: AirlightService,
+}
+
+/// Rewrites defaults into explicit values before hashing, so equivalent requests share one job
+/// id: UNSPECIFIED airlight source → the server's, unset search settings → the reference's.
+/// (near/far = 0 stay 0: "from the SfM points" is itself deterministic in the request.)
+pub fn canonicalize_params_request(
+    req: &mut pb::ScatteringParamsRequest,
+    airlight: &AirlightService,
+) {
+    let d = SearchParams::default();
+    if req.airlight_source == pb::AirlightSource::Unspecified as i32 {
+        req.airlight_source = airlight.default_source() as i32;
+    }
+    req.beta_min.get_or_insert(d.beta_min);
+    req.beta_max.get_or_insert(d.beta_max);
+    if req.beta_steps == 0 {
+        req.beta_steps = d.beta_steps as u32;
+    }
+    if req.grid_steps == 0 {
+        req.grid_steps = d.grid_steps as u32;
+    }
+    req.delta_airlight.get_or_insert(d.delta_airlight);
+    req.delta_beta.get_or_insert(d.delta_beta);
+    req.delta_px.get_or_insert(d.delta_px as u32);
+    if req.num_planes == 0 {
+        req.num_planes = DEFAULT_PLANES as u32;
+    }
+    if req.search_planes == 0 {
+        req.search_planes = d.search_planes as u32;
+    }
+    if req.search_downsample == 0 {
+        req.search_downsample = d.search_downsample as u32;
+    }
+}
+
+/// Decodes and validates a request (canonicalized or not). Scalars are checked before images
+/// are decoded.
+pub fn params_from_proto(
+    req: &pb::ScatteringParamsRequest,
+    limits: &ImageLimits,
+    airlight: &AirlightService,
+) -> Result<ParamsInput> {
+    let source = match pb::AirlightSource::try_from(req.airlight_source) {
+        Ok(pb::AirlightSource::Unspecified) => airlight.default_source(),
+        Ok(s) => s,
+        Err(_) => {
+            return Err(MurkError::invalid(
+                "airlight_source",
+                format!("unknown airlight source {}", req.airlight_source),
+            ))
+        }
+    };
+    if source == pb::AirlightSource::Cnn && !airlight.has_cnn() {
+        return Err(MurkError::invalid(
+            "airlight_source",
+            "the CNN airlight estimator is not loaded on this server (it runs the dark-channel \
+             estimator); ask for AIRLIGHT_SOURCE_DARK_CHANNEL or GIVEN",
+        ));
+    }
+    if source == pb::AirlightSource::Given {
+        if !(req.airlight.is_finite() && req.airlight > 0.0 && req.airlight <= 1.0) {
+            return Err(MurkError::invalid(
+                "airlight",
+                format!(
+                    "AIRLIGHT_SOURCE_GIVEN needs an airlight in (0, 1], got {}",
+                    req.airlight
+                ),
+            ));
+        }
+    } else if req.airlight != 0.0 {
+        return Err(MurkError::invalid(
+            "airlight",
+            format!(
+                "only used with AIRLIGHT_SOURCE_GIVEN; must be 0 (unset) otherwise, got {}",
+                req.airlight
+            ),
+        ));
+    }
+    let d = SearchParams::default();
+    let or = |v: u32, def: usize| if v == 0 { def } else { v as usize };
+    let search = SearchParams {
+        beta_min: req.beta_min.unwrap_or(d.beta_min),
+        beta_max: req.beta_max.unwrap_or(d.beta_max),
+        beta_steps: or(req.beta_steps, d.beta_steps),
+        grid_steps: or(req.grid_steps, d.grid_steps),
+        delta_airlight: req.delta_airlight.unwrap_or(d.delta_airlight),
+        delta_beta: req.delta_beta.unwrap_or(d.delta_beta),
+        delta_px: req.delta_px.map_or(d.delta_px, |v| v as usize),
+        search_downsample: or(req.search_downsample, d.search_downsample),
+        search_planes: or(req.search_planes, d.search_planes),
+        cost: DehazingOptions::default(),
+        sgm: sgm_of(req.sgm.as_ref()),
+    };
+    search.validate()?;
+    let num_planes = or(req.num_planes, DEFAULT_PLANES);
+    if num_planes > MAX_PLANES {
+        return Err(MurkError::invalid(
+            "num_planes",
+            format!("must be in 1..={MAX_PLANES}, got {num_planes}"),
+        ));
+    }
+    if (req.near == 0.0) != (req.far == 0.0) {
+        return Err(MurkError::invalid(
+            if req.near == 0.0 { "near" } else { "far" },
+            "set both near and far, or neither (0 = from the SfM points)",
+        ));
+    }
+    if req.sparse_points.len() > MAX_SPARSE_POINTS {
+        return Err(MurkError::invalid(
+            "sparse_points",
+            format!(
+                "at most {MAX_SPARSE_POINTS} points, got {}",
+                req.sparse_points.len()
+            ),
+        ));
+    }
+    if req.sources.is_empty() || req.sources.len() > MAX_SOURCE_VIEWS {
+        return Err(MurkError::invalid(
+            "sources",
+            format!(
+                "need 1 to {MAX_SOURCE_VIEWS} source views, got {}",
+                req.sources.len()
+            ),
+        ));
+    }
+    let reference =
+        view_from_proto(req.reference.as_ref(), None, limits).map_err(|e| e.within("reference"))?;
+    let (w, h) = reference.image.dims();
+    let shape = (w, h, reference.image.channels());
+    let sources = req
+        .sources
+        .iter()
+        .enumerate()
+        .map(|(k, s)| {
+            view_from_proto(Some(s), Some(shape), limits)
+                .map_err(|e| e.within(&format!("sources[{k}]")))
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let points: Vec<[f64; 3]> = req.sparse_points.iter().map(|p| [p.x, p.y, p.z]).collect();
+    let sparse = SparseDepth::from_points(&points, &reference.intrinsics, &reference.pose, w, h)
+        .map_err(|e| e.within("sparse_points"))?;
+    let visible = sparse.downsampled(search.search_downsample).len();
+    if visible < MIN_SPARSE_POINTS {
+        return Err(MurkError::invalid(
+            "sparse_points",
+            format!(
+                "{} of {} points project into the reference view ({visible} distinct pixels at \
+                 the search resolution); at least {MIN_SPARSE_POINTS} are needed",
+                sparse.len(),
+                points.len()
+            ),
+        ));
+    }
+    let (near, far) = if req.near == 0.0 {
+        plane_range_from_sparse(&sparse).expect("checked non-empty above")
+    } else {
+        (req.near, req.far)
+    };
+    let planes = PlaneSet::new(near, far, num_planes)?;
+    if w * h * num_planes.max(search.search_planes) > MAX_VOXELS {
+        return Err(MurkError::invalid(
+            "num_planes",
+            format!(
+                "{w}x{h} pixels x {num_planes} planes exceeds the cost-volume limit of \
+                 {MAX_VOXELS} voxels"
+            ),
+        ));
+    }
+    Ok(ParamsInput {
+        reference,
+        sources,
+        sparse,
+        airlight_source: source,
+        airlight_given: req.airlight,
+        search,
+        planes,
+        airlight: airlight.clone(),
+    })
+}
+
+impl ParamsInput {
+    /// Airlight estimate, search, final depth; the wire result.
+    pub fn run(&self, monitor: &Monitor) -> Result<pb::ScatteringParamsResult> {
+        let reference = self.reference.view();
+        let sources: Vec<View<'_>> = self.sources.iter().map(MvsViewInput::view).collect();
+        let t0 = Instant::now();
+        let a0 = match self.airlight_source {
+            pb::AirlightSource::Given => self.airlight_given,
+            pb::AirlightSource::DarkChannel => {
+                dark_channel_airlight(reference.image, &DarkChannelParams::default())?
+            }
+            _ => self.airlight.estimator.estimate(reference.image)?,
+        };
+        let airlight_seconds = t0.elapsed().as_secs_f64();
+        let est = search_scattering(
+            &reference,
+            &sources,
+            &self.sparse,
+            a0,
+            &self.planes,
+            &self.search,
+            &monitor.sub(0.0, 0.75),
+        )?;
+        let t1 = Instant::now();
+        let kind = CostKind::DehazingWith(
+            AtmosphereParams {
+                airlight: est.airlight,
+                beta: est.beta,
+            },
+            self.search.cost,
+        );
+        let depth = estimate_depth(
+            &reference,
+            &sources,
+            &self.planes,
+            kind,
+            &self.search.sgm,
+            &monitor.sub(0.75, 1.0),
+        )?;
+        let depth_seconds = t1.elapsed().as_secs_f64();
+        Ok(pb::ScatteringParamsResult {
+            airlight: est.airlight,
+            beta: est.beta,
+            airlight_initial: a0,
+            airlight_source: self.airlight_source as i32,
+            beta_initial: est.beta_initial,
+            residual: est.residual,
+            grid: est
+                .grid
+                .iter()
+                .map(|g| pb::ResidualSample {
+                    stage: match g.stage {
+                        SearchStage::Beta => pb::SearchStage::Beta,
+                        SearchStage::Joint => pb::SearchStage::Joint,
+                    } as i32,
+                    airlight: g.airlight,
+                    beta: g.beta,
+                    residual: g.residual,
+                })
+                .collect(),
+            num_sparse_points: u32::try_from(est.num_sparse_points).unwrap_or(u32::MAX),
+            depth: Some(pb::MvsDepthResult {
+                z_depth: Some(image_to_proto(&depth.z_depth)),
+                inverse_depth: Some(image_to_proto(&depth.inverse_depth)),
+                confidence: Some(image_to_proto(&depth.confidence)),
+                near: self.planes.near,
+                far: self.planes.far,
+                num_planes: u32::try_from(self.planes.num_planes).unwrap_or(u32::MAX),
+                cost_volume: pb::CostVolumeKind::Dehazing as i32,
+                compute_seconds: depth_seconds,
+            }),
+            airlight_seconds,
+            search_seconds: est.seconds,
+            depth_seconds,
+        })
+    }
+}
+
+/// A request for clients (CLI, demo, tests): views as raw f32, SfM points, the airlight source
+/// (`airlight` is used with GIVEN only), everything else at the server's defaults.
+pub fn params_request_to_proto(
+    reference: &View<'_>,
+    sources: &[View<'_>],
+    sparse_points: &[[f64; 3]],
+    airlight_source: pb::AirlightSource,
+    airlight: f32,
+) -> pb::ScatteringParamsRequest {
+    pb::ScatteringParamsRequest {
+        reference: Some(view_to_proto(reference)),
+        sources: sources.iter().map(view_to_proto).collect(),
+        sparse_points: sparse_points
+            .iter()
+            .map(|p| pb::Vector3 {
+                x: p[0],
+                y: p[1],
+                z: p[2],
+            })
+            .collect(),
+        airlight_source: airlight_source as i32,
+        airlight: if airlight_source == pb::AirlightSource::Given {
+            airlight
+        } else {
+            0.0
+        },
+        ..Default::default()
+    }
+}
