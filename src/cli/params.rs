@@ -158,8 +158,8 @@ pub fn run(a: ParamsArgs) -> anyhow::Result<()> {
     );
     request.beta_min = a.beta_min;
     request.beta_max = a.beta_max;
-    request.beta_steps = a.beta_steps.unwrap_or(0);
-    request.grid_steps = a.grid_steps.unwrap_or(0);
+    request.beta_steps = a.beta_steps;
+    request.grid_steps = a.grid_steps;
     request.num_planes = a.planes.unwrap_or(0);
     request.near = a.near.unwrap_or(0.0);
     request.far = a.far.unwrap_or(0.0);

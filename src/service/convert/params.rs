@@ -85,12 +85,8 @@ pub fn canonicalize_params_request(
     }
     req.beta_min.get_or_insert(d.beta_min);
     req.beta_max.get_or_insert(d.beta_max);
-    if req.beta_steps == 0 {
-        req.beta_steps = d.beta_steps as u32;
-    }
-    if req.grid_steps == 0 {
-        req.grid_steps = d.grid_steps as u32;
-    }
+    req.beta_steps.get_or_insert(d.beta_steps as u32);
+    req.grid_steps.get_or_insert(d.grid_steps as u32);
     req.delta_airlight.get_or_insert(d.delta_airlight);
     req.delta_beta.get_or_insert(d.delta_beta);
     req.delta_px.get_or_insert(d.delta_px as u32);
@@ -153,8 +149,8 @@ pub fn params_from_proto(
     let search = SearchParams {
         beta_min: req.beta_min.unwrap_or(d.beta_min),
         beta_max: req.beta_max.unwrap_or(d.beta_max),
-        beta_steps: or(req.beta_steps, d.beta_steps),
-        grid_steps: or(req.grid_steps, d.grid_steps),
+        beta_steps: req.beta_steps.map_or(d.beta_steps, |v| v as usize),
+        grid_steps: req.grid_steps.map_or(d.grid_steps, |v| v as usize),
         delta_airlight: req.delta_airlight.unwrap_or(d.delta_airlight),
         delta_beta: req.delta_beta.unwrap_or(d.delta_beta),
         delta_px: req.delta_px.map_or(d.delta_px, |v| v as usize),
@@ -210,7 +206,13 @@ pub fn params_from_proto(
         .collect::<Result<Vec<_>>>()?;
     let points: Vec<[f64; 3]> = req.sparse_points.iter().map(|p| [p.x, p.y, p.z]).collect();
     let sparse = SparseDepth::from_points(&points, &reference.intrinsics, &reference.pose, w, h)
-        .map_err(|e| e.within("sparse_points"))?;
+        // The library names `points[i]`; the wire field is `sparse_points[i]`.
+        .map_err(|e| match e {
+            MurkError::InvalidArgument { field, reason } => {
+                MurkError::invalid(format!("sparse_{field}"), reason)
+            }
+            other => other,
+        })?;
     let visible = sparse.downsampled(search.search_downsample).len();
     if visible < MIN_SPARSE_POINTS {
         return Err(MurkError::invalid(

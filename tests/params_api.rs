@@ -1,0 +1,236 @@
+//! `ScatteringParams` (Algorithm 1) through the real server: unary and Jobs API agree, the
+//! result is complete and consistent, and bad input gets INVALID_ARGUMENT naming the field.
+
+mod common;
+
+use common::*;
+use murk::mvs::View;
+use murk::params::sparse::{selected_points, PointSelection};
+use murk::service::convert::{params_request_to_proto, MAX_SPARSE_POINTS};
+use murk::service::proto::v1 as pb;
+use murk::simulate::mvs::{simulate_mvs, MvsScene, MvsSimConfig};
+use murk::Monitor;
+
+fn scene(w: usize, h: usize, seed: u64) -> MvsScene {
+    let cfg = MvsSimConfig {
+        seed,
+        beta_range: Some([0.4, 0.8]),
+        ..MvsSimConfig::with_size(w, h)
+    };
+    simulate_mvs(&cfg, &Monitor::noop()).expect("simulate")
+}
+
+fn request(
+    scene: &MvsScene,
+    source: pb::AirlightSource,
+    airlight: f32,
+) -> pb::ScatteringParamsRequest {
+    let views: Vec<View<'_>> = scene
+        .views
+        .iter()
+        .map(|v| View {
+            image: &v.hazy,
+            intrinsics: v.intrinsics,
+            pose: v.pose,
+        })
+        .collect();
+    let r = scene.reference;
+    let sources: Vec<View<'_>> = (0..views.len())
+        .filter(|&i| i != r)
+        .map(|i| views[i])
+        .collect();
+    let points = selected_points(
+        &scene.sparse,
+        &scene.views[r].name,
+        PointSelection::ObservedInReference,
+    )
+    .unwrap();
+    params_request_to_proto(&views[r], &sources, &points, source, airlight)
+}
+
+fn job(req: pb::ScatteringParamsRequest) -> pb::SubmitJobRequest {
+    pb::SubmitJobRequest {
+        request: Some(pb::JobRequest {
+            method: Some(pb::job_request::Method::ScatteringParams(req)),
+        }),
+    }
+}
+
+#[tokio::test]
+async fn unary_and_jobs_agree_and_the_result_is_complete() {
+    let server = start(config(4)).await;
+    let s = scene(96, 72, 3);
+    let mut req = request(&s, pb::AirlightSource::DarkChannel, 0.0);
+    // Small and quick: 3 + 2×2 evaluations.
+    req.beta_steps = Some(3);
+    req.grid_steps = Some(2);
+    req.num_planes = 32;
+    req.search_planes = 16;
+    let unary = recon(&server)
+        .scattering_params(req.clone())
+        .await
+        .expect("unary")
+        .into_inner();
+    assert_eq!(unary.grid.len(), 3 + 4);
+    assert_eq!(
+        unary.airlight_source,
+        pb::AirlightSource::DarkChannel as i32
+    );
+    assert!((0.35..=0.85).contains(&unary.beta), "{}", unary.beta);
+    let best = unary
+        .grid
+        .iter()
+        .map(|g| g.residual)
+        .fold(f64::INFINITY, f64::min);
+    assert_eq!(
+        unary.residual, best,
+        "A*, beta* is the argmin of the evaluations"
+    );
+    assert!(unary
+        .grid
+        .iter()
+        .any(|g| g.airlight == unary.airlight && g.beta == unary.beta));
+    assert!((unary.airlight_initial - s.airlight).abs() < 0.1);
+    let depth = unary.depth.as_ref().expect("depth");
+    assert_eq!(depth.num_planes, 32);
+    assert!(depth.near > 0.0 && depth.far > depth.near);
+    let z = depth.z_depth.as_ref().unwrap();
+    assert_eq!((z.width, z.height), (96, 72));
+
+    // The same request through the Jobs API is the same job (content hash) and result.
+    let mut client = jobs(&server);
+    let submitted = client.submit_job(job(req)).await.unwrap().into_inner();
+    assert!(
+        submitted.cached,
+        "resubmission hits the cache: {submitted:?}"
+    );
+    let last = client
+        .get_job(pb::GetJobRequest {
+            id: submitted.id.clone(),
+            omit_result: false,
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    let Some(pb::job::Outcome::Result(r)) = &last.outcome else {
+        panic!("no result: {last:?}")
+    };
+    let Some(pb::job_result::Method::ScatteringParams(p)) = &r.method else {
+        panic!("other method")
+    };
+    assert_eq!(p.airlight, unary.airlight);
+    assert_eq!(p.beta, unary.beta);
+    assert_eq!(last.method, "scattering_params");
+}
+
+#[tokio::test]
+async fn bad_params_requests_name_the_field() {
+    let server = start(config(4)).await;
+    let s = scene(64, 48, 4);
+    let good = request(&s, pb::AirlightSource::Given, 0.8);
+    type Edit = Box<dyn Fn(&mut pb::ScatteringParamsRequest)>;
+    let far_away = pb::Vector3 {
+        x: 0.0,
+        y: 0.0,
+        z: -5.0,
+    };
+    let cases: Vec<(&str, Edit)> = vec![
+        (
+            "sparse_points",
+            Box::new(move |r| r.sparse_points = vec![far_away; 50]),
+        ),
+        ("sparse_points", Box::new(|r| r.sparse_points.truncate(3))),
+        ("sparse_points", Box::new(|r| r.sparse_points.clear())),
+        (
+            "sparse_points",
+            Box::new(|r| r.sparse_points = vec![pb::Vector3::default(); MAX_SPARSE_POINTS + 1]),
+        ),
+        (
+            "sparse_points[2]",
+            Box::new(|r| r.sparse_points[2].y = f64::NAN),
+        ),
+        ("beta_max", Box::new(|r| r.beta_max = Some(0.3))),
+        (
+            "beta_max",
+            Box::new(|r| {
+                r.beta_min = Some(0.5);
+                r.beta_max = Some(0.5)
+            }),
+        ),
+        ("beta_min", Box::new(|r| r.beta_min = Some(-0.1))),
+        ("beta_min", Box::new(|r| r.beta_min = Some(f32::NAN))),
+        ("beta_steps", Box::new(|r| r.beta_steps = Some(0))),
+        ("grid_steps", Box::new(|r| r.grid_steps = Some(0))),
+        ("grid_steps", Box::new(|r| r.grid_steps = Some(65))),
+        ("beta_steps", Box::new(|r| r.beta_steps = Some(1000))),
+        (
+            "delta_airlight",
+            Box::new(|r| r.delta_airlight = Some(-0.1)),
+        ),
+        ("delta_px", Box::new(|r| r.delta_px = Some(1000))),
+        ("search_downsample", Box::new(|r| r.search_downsample = 9)),
+        ("search_planes", Box::new(|r| r.search_planes = 5000)),
+        ("num_planes", Box::new(|r| r.num_planes = 5000)),
+        ("near", Box::new(|r| r.far = 10.0)),
+        (
+            "far",
+            Box::new(|r| {
+                r.near = 2.0;
+                r.far = 1.0
+            }),
+        ),
+        ("airlight", Box::new(|r| r.airlight = 0.0)),
+        ("airlight", Box::new(|r| r.airlight = 1.5)),
+        (
+            "airlight",
+            Box::new(|r| r.airlight_source = pb::AirlightSource::DarkChannel as i32),
+        ),
+        ("airlight_source", Box::new(|r| r.airlight_source = 42)),
+        ("sources", Box::new(|r| r.sources.clear())),
+        ("reference", Box::new(|r| r.reference = None)),
+        (
+            "sources[0].intrinsics.fx",
+            Box::new(|r| r.sources[0].intrinsics.as_mut().unwrap().fx = 0.0),
+        ),
+        (
+            "sgm.p2",
+            Box::new(|r| {
+                r.sgm = Some(pb::SgmOptions {
+                    p1: Some(0.5),
+                    p2: Some(0.1),
+                    ..Default::default()
+                })
+            }),
+        ),
+    ];
+    let mut client = recon(&server);
+    for (field, edit) in cases {
+        let mut req = good.clone();
+        edit(&mut req);
+        let status = client.scattering_params(req).await.unwrap_err();
+        assert_eq!(
+            status.code(),
+            tonic::Code::InvalidArgument,
+            "{field}: {status:?}"
+        );
+        assert_eq!(bad_field(&status), field, "{status:?}");
+    }
+    // Through SubmitJob the field carries the request's path.
+    let mut req = good.clone();
+    req.sparse_points.truncate(2);
+    let status = jobs(&server).submit_job(job(req)).await.unwrap_err();
+    assert_eq!(
+        bad_field(&status),
+        "request.scattering_params.sparse_points"
+    );
+    // Still serving.
+    let mut ok = good.clone();
+    ok.beta_steps = Some(1);
+    ok.grid_steps = Some(1);
+    ok.search_planes = 8;
+    ok.num_planes = 8;
+    client
+        .scattering_params(ok)
+        .await
+        .expect("a good request after bad ones");
+}
