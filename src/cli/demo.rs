@@ -12,8 +12,10 @@ use clap::Args;
 use murk::atmosphere::AtmosphereParams;
 use murk::metrics::{depth_metrics, mask_iou, mean_abs_error};
 use murk::mvs::{PlaneSet, View};
+use murk::params::search::plane_range_from_sparse;
+use murk::params::sparse::{selected_points, PointSelection, SparseDepth};
 use murk::server::{InProcessServer, ServerConfig};
-use murk::service::convert::{mvs_request_to_proto, tof_request_to_proto};
+use murk::service::convert::{mvs_request_to_proto, params_request_to_proto, tof_request_to_proto};
 use murk::service::proto::v1 as pb;
 use murk::simulate::mvs::{simulate_mvs, write_mvs_scene, MvsSimConfig};
 use murk::simulate::tof::{simulate_tof, FogPreset, TofSimConfig};
@@ -23,13 +25,15 @@ use tonic::transport::Channel;
 
 use super::client::{connect, run_job};
 use super::mvs::{print_metrics_header, print_metrics_row, write_mvs_result};
+use super::params::source_name;
 use super::tof::write_tof_result;
 
 /// The MVS scene of the demo: the reference's evaluation size (256×192), 5 views (the reference
 /// and 4 sources), 256 planes over the simulated room's depth range (z 1.5…15, as in
 /// docs/ACCURACY.md).
 const MVS_SIZE: (usize, usize) = (256, 192);
-const MVS_PLANES: (f64, f64, usize) = (1.5, 15.0, 256);
+/// Planes of the MVS depth; their range comes from the scene's SfM points.
+const MVS_PLANES: usize = 256;
 
 /// Options of `murk demo`.
 #[derive(Args, Debug)]
@@ -141,14 +145,17 @@ pub fn run(a: DemoArgs) -> anyhow::Result<()> {
     })
 }
 
-/// Simulates one hazy multi-view scene and runs it through the API with the ordinary and the
-/// dehazing cost volume (ground-truth A and β), printing the reference's depth metrics.
+/// Simulates one hazy multi-view scene (β ∈ [0.4, 0.8] per scene unit, the reference's setting),
+/// estimates A and β through the API (Algorithm 1 against the scene's SfM points), then runs
+/// the MVS depth with the ordinary cost volume, the dehazing one with the estimated parameters,
+/// and the dehazing one with the ground truth, printing the reference's depth metrics.
 async fn mvs_demo(
     a: &DemoArgs,
     client: &mut pb::jobs_client::JobsClient<Channel>,
 ) -> anyhow::Result<()> {
     let cfg = MvsSimConfig {
         seed: a.seed,
+        beta_range: Some([0.4, 0.8]),
         ..MvsSimConfig::with_size(MVS_SIZE.0, MVS_SIZE.1)
     };
     let scene = tokio::task::spawn_blocking(move || simulate_mvs(&cfg, &Monitor::noop())).await??;
@@ -174,15 +181,74 @@ async fn mvs_demo(
         .map(|(_, v)| *v)
         .collect();
     let gt = &scene.views[scene.reference].depth;
-    let planes = PlaneSet::new(MVS_PLANES.0, MVS_PLANES.1, MVS_PLANES.2)?;
+    let ref_name = &scene.views[scene.reference].name;
+    let points = selected_points(&scene.sparse, ref_name, PointSelection::ObservedInReference)?;
+    let sparse = SparseDepth::from_points(
+        &points,
+        &reference.intrinsics,
+        &reference.pose,
+        reference.image.width(),
+        reference.image.height(),
+    )?;
+    let (near, far) = plane_range_from_sparse(&sparse).context("no SfM point in the reference")?;
+    let planes = PlaneSet::new(near, far, MVS_PLANES)?;
+
+    // Scattering parameters first, as a user without ground truth would.
+    let mut request = params_request_to_proto(
+        reference,
+        &sources,
+        &points,
+        pb::AirlightSource::Unspecified,
+        0.0,
+    );
+    request.num_planes = MVS_PLANES as u32;
+    let t0 = Instant::now();
+    let (job, result) = run_job(
+        client,
+        pb::JobRequest {
+            method: Some(pb::job_request::Method::ScatteringParams(request)),
+        },
+        "params",
+        true,
+    )
+    .await?;
+    let params_seconds = t0.elapsed().as_secs_f64();
+    let Some(pb::job_result::Method::ScatteringParams(p)) = result.method else {
+        bail!("unexpected result kind");
+    };
+    let mut rows = Vec::new();
+    if let Some(depth) = &p.depth {
+        let out = write_mvs_result(&dir.join("estimated_params"), depth)?;
+        rows.push((
+            "dehazing, estimated A, beta",
+            depth_metrics(&out.z_depth, gt, None)?,
+            params_seconds,
+            job.cached,
+        ));
+    }
+    println!();
+    println!(
+        "Scattering parameters (Algorithm 1, {} SfM pixels, {} depth evaluations, {:.2} s): \
+         A* = {:.3} (A0 = {:.3} from {}; truth {:.3}), beta* = {:.3}/unit (beta0 = {:.3}; truth \
+         {:.3})",
+        p.num_sparse_points,
+        p.grid.len(),
+        p.search_seconds,
+        p.airlight,
+        p.airlight_initial,
+        source_name(p.airlight_source),
+        scene.airlight,
+        p.beta,
+        p.beta_initial,
+        scene.beta
+    );
     let atmosphere = AtmosphereParams {
         airlight: scene.airlight,
         beta: scene.beta,
     };
-    let mut rows = Vec::new();
     for (name, kind) in [
         ("ordinary", pb::CostVolumeKind::Ordinary),
-        ("dehazing", pb::CostVolumeKind::Dehazing),
+        ("dehazing, true A, beta", pb::CostVolumeKind::Dehazing),
     ] {
         let request =
             mvs_request_to_proto(reference, &sources, kind, Some(atmosphere), Some(&planes));
@@ -200,7 +266,12 @@ async fn mvs_demo(
         let Some(pb::job_result::Method::MvsDepth(r)) = result.method else {
             bail!("unexpected result kind");
         };
-        let out = write_mvs_result(&dir.join(name), &r)?;
+        let folder = if name == "ordinary" {
+            "ordinary"
+        } else {
+            "true_params"
+        };
+        let out = write_mvs_result(&dir.join(folder), &r)?;
         rows.push((
             name,
             depth_metrics(&out.z_depth, gt, None)?,
@@ -210,8 +281,9 @@ async fn mvs_demo(
     }
     println!();
     println!(
-        "MVS depth in haze, {}x{}, {} sources, {} planes (z {}..{}), seed {}: A = {:.3}, \
-         beta = {:.4}/unit (ground truth), median transmission {:.2}",
+        "MVS depth in haze, {}x{}, {} sources, {} planes (z {:.3}..{:.3}), seed {}: A = {:.3}, \
+         beta = {:.4}/unit (ground truth), median transmission {:.2}; the first row's time \
+         includes the parameter search",
         MVS_SIZE.0,
         MVS_SIZE.1,
         sources.len(),

@@ -393,7 +393,7 @@ pub fn kind_name(v: i32) -> &'static str {
 /// Header of the metric table printed by `murk mvs` and `murk demo`.
 pub fn print_metrics_header() {
     println!(
-        "{:<12} {:>8} {:>8} {:>8} {:>9} {:>9}",
+        "{:<26} {:>8} {:>8} {:>8} {:>9} {:>9}",
         "cost volume", "L1-rel", "L1-inv", "sc-inv", "C.P. [%]", "time [s]"
     );
 }
@@ -401,7 +401,7 @@ pub fn print_metrics_header() {
 /// One row of that table; `note` is appended (e.g. " (cached)").
 pub fn print_metrics_row(name: &str, m: &DepthMetrics, seconds: f64, note: &str) {
     println!(
-        "{:<12} {:>8.3} {:>8.4} {:>8.3} {:>9.1} {:>9.2}{note}",
+        "{:<26} {:>8.3} {:>8.4} {:>8.3} {:>9.1} {:>9.2}{note}",
         name,
         m.l1_rel,
         m.l1_inv,
