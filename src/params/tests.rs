@@ -320,3 +320,85 @@ fn measure_search() {
         secs / k
     );
 }
+
+/// Photometric objective: mean over pixels of the smallest cost over planes (the matching
+/// residual at the best depth), against β with GT A.
+/// `cargo test --release --lib params::tests::photometric_curves -- --ignored --nocapture`
+#[test]
+#[ignore]
+fn photometric_curves() {
+    use crate::mvs::build_cost_volume;
+    let mut errs = Vec::new();
+    for seed in 100..110u64 {
+        let cfg = MvsSimConfig {
+            seed,
+            beta_range: Some([0.4, 0.8]),
+            ..MvsSimConfig::default()
+        };
+        let scene = simulate_mvs(&cfg, &Monitor::noop()).unwrap();
+        let views: Vec<View<'_>> = scene
+            .views
+            .iter()
+            .map(|v| View {
+                image: &v.hazy,
+                intrinsics: v.intrinsics,
+                pose: v.pose,
+            })
+            .collect();
+        let r = scene.reference;
+        let sources: Vec<View<'_>> = (0..views.len())
+            .filter(|&i| i != r)
+            .map(|i| views[i])
+            .collect();
+        let sparse = SparseDepth::from_colmap(
+            &scene.sparse,
+            &scene.views[r].name,
+            cfg.width,
+            cfg.height,
+            PointSelection::ObservedInReference,
+        )
+        .unwrap();
+        let (near, far) = crate::params::search::plane_range_from_sparse(&sparse).unwrap();
+        let planes = PlaneSet::new(near, far, 128).unwrap();
+        let betas: Vec<f32> = (0..21).map(|i| 0.2 + 0.04 * i as f32).collect();
+        let mut vals = Vec::new();
+        for &beta in &betas {
+            let kind = CostKind::DehazingWith(
+                AtmosphereParams {
+                    airlight: scene.airlight,
+                    beta,
+                },
+                DehazingOptions::default(),
+            );
+            let vol =
+                build_cost_volume(&views[r], &sources, &planes, kind, &Monitor::noop()).unwrap();
+            let n = cfg.width * cfg.height;
+            let d = vol.into_vec();
+            let mut sum = 0.0f64;
+            for p in 0..n {
+                let mut m = f32::INFINITY;
+                for k in 0..planes.num_planes {
+                    m = m.min(d[k * n + p]);
+                }
+                sum += m as f64;
+            }
+            vals.push(sum / n as f64);
+        }
+        let (bi, _) = vals
+            .iter()
+            .enumerate()
+            .min_by(|a, b| a.1.total_cmp(b.1))
+            .unwrap();
+        println!(
+            "seed {seed}: β gt {:.3} argmin {:.3} | {}",
+            scene.beta,
+            betas[bi],
+            vals.iter()
+                .map(|v| format!("{v:.4}"))
+                .collect::<Vec<_>>()
+                .join(" ")
+        );
+        errs.push((betas[bi] - scene.beta).abs());
+    }
+    println!("MAE β {:.4}", errs.iter().sum::<f32>() / errs.len() as f32);
+}

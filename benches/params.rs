@@ -1,0 +1,88 @@
+//! Scattering-parameter estimation (issue 4): the full Algorithm 1 search (10 + 4×4 = 26 depth
+//! evaluations at the search resolution) plus the final 256-plane depth at 256×192 with 4
+//! sources, and one search-resolution depth evaluation alone.
+//!
+//! Run: `cargo bench --bench params`.
+
+use criterion::{criterion_group, criterion_main, Criterion};
+
+use murk::atmosphere::AtmosphereParams;
+use murk::mvs::{estimate_depth, CostKind, DehazingOptions, PlaneSet, SgmParams, View};
+use murk::params::airlight::{dark_channel_airlight, DarkChannelParams};
+use murk::params::search::{plane_range_from_sparse, search_scattering, SearchParams};
+use murk::params::sparse::{PointSelection, SparseDepth};
+use murk::simulate::mvs::{simulate_mvs, MvsSimConfig};
+use murk::Monitor;
+
+fn bench(c: &mut Criterion) {
+    let cfg = MvsSimConfig {
+        beta_range: Some([0.4, 0.8]),
+        ..MvsSimConfig::default()
+    };
+    let scene = simulate_mvs(&cfg, &Monitor::noop()).expect("simulate");
+    let view = |i: usize| View {
+        image: &scene.views[i].hazy,
+        intrinsics: scene.views[i].intrinsics,
+        pose: scene.views[i].pose,
+    };
+    let r = scene.reference;
+    let reference = view(r);
+    let sources: Vec<View> = (0..scene.views.len())
+        .filter(|&i| i != r)
+        .map(view)
+        .collect();
+    let sparse = SparseDepth::from_colmap(
+        &scene.sparse,
+        &scene.views[r].name,
+        cfg.width,
+        cfg.height,
+        PointSelection::ObservedInReference,
+    )
+    .expect("sparse");
+    let (near, far) = plane_range_from_sparse(&sparse).expect("points");
+    let planes = PlaneSet::new(near, far, 256).expect("planes");
+    let params = SearchParams::default();
+    let monitor = Monitor::noop();
+
+    let mut g = c.benchmark_group(format!("params_{}x{}", cfg.width, cfg.height));
+    g.sample_size(10);
+    g.bench_function("airlight_dark_channel", |b| {
+        b.iter(|| dark_channel_airlight(reference.image, &DarkChannelParams::default()).unwrap())
+    });
+    g.bench_function("search_26_evaluations", |b| {
+        b.iter(|| {
+            search_scattering(
+                &reference, &sources, &sparse, 0.9, &planes, &params, &monitor,
+            )
+            .expect("search")
+        })
+    });
+    g.bench_function("full_estimation_search_plus_final_depth", |b| {
+        b.iter(|| {
+            let est = search_scattering(
+                &reference, &sources, &sparse, 0.9, &planes, &params, &monitor,
+            )
+            .expect("search");
+            let kind = CostKind::DehazingWith(
+                AtmosphereParams {
+                    airlight: est.airlight,
+                    beta: est.beta,
+                },
+                DehazingOptions::default(),
+            );
+            estimate_depth(
+                &reference,
+                &sources,
+                &planes,
+                kind,
+                &SgmParams::default(),
+                &monitor,
+            )
+            .expect("depth")
+        })
+    });
+    g.finish();
+}
+
+criterion_group!(benches, bench);
+criterion_main!(benches);
