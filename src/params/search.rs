@@ -407,3 +407,157 @@ impl SparseDepth {
         SparseDepth::from_samples(w, h, samples)
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::params::sparse::PointSelection;
+    use crate::simulate::mvs::{simulate_mvs, MvsScene, MvsSimConfig};
+    use std::sync::atomic::AtomicBool;
+    use std::sync::{Arc, Mutex};
+
+    #[test]
+    fn downsampled_intrinsics_match_the_box_downsampled_image() {
+        let k = Intrinsics {
+            fx: 100.0,
+            fy: 90.0,
+            cx: 31.5,
+            cy: 23.5,
+            skew: 0.5,
+        };
+        for f in [1usize, 2, 3] {
+            let kc = downsample_intrinsics(&k, f);
+            let p = [0.3, -0.2, 2.0];
+            let (u, v) = k.project(p).unwrap();
+            let (uc, vc) = kc.project(p).unwrap();
+            // Fine pixels f·i … f·i+f−1 average into coarse pixel i, centred at f·i + (f−1)/2.
+            assert!((uc * f as f64 + (f as f64 - 1.0) / 2.0 - u).abs() < 1e-9);
+            assert!((vc * f as f64 + (f as f64 - 1.0) / 2.0 - v).abs() < 1e-9);
+        }
+        let img = ImageF32::from_fn(6, 4, |x, y| (x + 10 * y) as f32);
+        let d = box_downsample(&img, 2);
+        assert_eq!(d.dims(), (3, 2));
+        assert_eq!(d.get(1, 1, 0), (22.0 + 23.0 + 32.0 + 33.0) / 4.0);
+    }
+
+    #[test]
+    fn linspace_covers_the_range() {
+        assert_eq!(linspace(0.4, 0.8, 1), vec![0.5 * (0.4f32 + 0.8)]);
+        let v = linspace(0.4, 0.8, 5);
+        assert_eq!(v.len(), 5);
+        assert_eq!(v[0], 0.4);
+        assert!((v[4] - 0.8).abs() < 1e-7);
+    }
+
+    fn small_scene() -> MvsScene {
+        let cfg = MvsSimConfig {
+            seed: 7,
+            beta_range: Some([0.4, 0.8]),
+            ..MvsSimConfig::with_size(64, 48)
+        };
+        simulate_mvs(&cfg, &Monitor::noop()).unwrap()
+    }
+
+    /// The search's bookkeeping: `beta_steps + grid_steps²` evaluations in order, the step-2
+    /// grid centred on (A₀, β₀), the answer the smallest residual seen, progress monotone up to
+    /// 1, cancellation honoured. (Whether the minimum is at the true β depends on the depth
+    /// function; see docs/ACCURACY.md.)
+    #[test]
+    fn search_bookkeeping_progress_and_cancel() {
+        let scene = small_scene();
+        let views: Vec<View<'_>> = scene
+            .views
+            .iter()
+            .map(|v| View {
+                image: &v.hazy,
+                intrinsics: v.intrinsics,
+                pose: v.pose,
+            })
+            .collect();
+        let r = scene.reference;
+        let sources: Vec<View<'_>> = (0..views.len())
+            .filter(|&i| i != r)
+            .map(|i| views[i])
+            .collect();
+        let sparse = SparseDepth::from_colmap(
+            &scene.sparse,
+            &scene.views[r].name,
+            64,
+            48,
+            PointSelection::ObservedInReference,
+        )
+        .unwrap();
+        let (near, far) = plane_range_from_sparse(&sparse).unwrap();
+        let planes = PlaneSet::new(near, far, 32).unwrap();
+        let params = SearchParams {
+            beta_steps: 4,
+            grid_steps: 2,
+            search_planes: 16,
+            ..SearchParams::default()
+        };
+        let seen: Arc<Mutex<Vec<f32>>> = Arc::default();
+        let sink = {
+            let seen = seen.clone();
+            Arc::new(move |stage: &str, f: f32| {
+                if stage == "params.search" {
+                    seen.lock().unwrap().push(f);
+                }
+            })
+        };
+        let monitor = Monitor::new(Arc::new(AtomicBool::new(false)), Some(sink));
+        let est = search_scattering(
+            &views[r], &sources, &sparse, 0.85, &planes, &params, &monitor,
+        )
+        .unwrap();
+        assert_eq!(est.grid.len(), 4 + 4);
+        assert!(est.grid[..4]
+            .iter()
+            .all(|g| g.stage == SearchStage::Beta && g.airlight == 0.85));
+        let betas: Vec<f32> = est.grid[..4].iter().map(|g| g.beta).collect();
+        assert_eq!(betas, linspace(0.4, 0.8, 4));
+        let best_step1 = est.grid[..4]
+            .iter()
+            .min_by(|a, b| a.residual.total_cmp(&b.residual))
+            .unwrap();
+        assert_eq!(est.beta_initial, best_step1.beta);
+        for g in &est.grid[4..] {
+            assert_eq!(g.stage, SearchStage::Joint);
+            assert!((g.airlight - 0.85).abs() <= 0.05 + 1e-6);
+            assert!((g.beta - est.beta_initial).abs() <= 0.05 + 1e-6);
+        }
+        let best = est
+            .grid
+            .iter()
+            .min_by(|a, b| a.residual.total_cmp(&b.residual))
+            .unwrap();
+        assert_eq!(
+            (est.airlight, est.beta, est.residual),
+            (best.airlight, best.beta, best.residual)
+        );
+        let p = seen.lock().unwrap().clone();
+        assert_eq!(p.len(), 8);
+        assert!(p.windows(2).all(|w| w[0] <= w[1]));
+        assert_eq!(*p.last().unwrap(), 1.0);
+
+        let cancelled = Monitor::new(Arc::new(AtomicBool::new(true)), None);
+        assert_eq!(
+            search_scattering(&views[r], &sources, &sparse, 0.85, &planes, &params, &cancelled)
+                .unwrap_err(),
+            MurkError::Cancelled
+        );
+        // Too few points, bad A₀, bad parameters: named.
+        let few = SparseDepth::from_samples(64, 48, sparse.samples()[..3].to_vec());
+        let err = search_scattering(&views[r], &sources, &few, 0.85, &planes, &params, &monitor);
+        assert_eq!(err.unwrap_err().field(), Some("sparse_points"));
+        let err = search_scattering(
+            &views[r], &sources, &sparse, 0.0, &planes, &params, &monitor,
+        );
+        assert_eq!(err.unwrap_err().field(), Some("airlight_initial"));
+        let bad = SearchParams {
+            beta_max: 0.4,
+            ..params.clone()
+        };
+        let err = search_scattering(&views[r], &sources, &sparse, 0.85, &planes, &bad, &monitor);
+        assert_eq!(err.unwrap_err().field(), Some("params.beta_max"));
+    }
+}
