@@ -231,3 +231,37 @@ async fn measure_small_scene_accuracy() {
     }
     server.stop().await.unwrap();
 }
+
+/// The unary MvsDepth call honours the client's deadline, and the job it leaves behind (no other
+/// caller) is cancelled at the next plane instead of running on.
+#[tokio::test]
+async fn unary_mvs_honours_deadline_and_cancels_the_abandoned_job() {
+    let server = start(config(4)).await;
+    // 256×192 × 1024 planes × 4 sources: seconds of work, far beyond the 300 ms deadline.
+    let scene = mvs_scene(256, 192, SEED);
+    let req = mvs_request(
+        &scene,
+        pb::CostVolumeKind::Dehazing,
+        &PlaneSet::new(0.5, 50.0, 1024).unwrap(),
+    );
+    let mut call = tonic::Request::new(req);
+    call.set_timeout(std::time::Duration::from_millis(300));
+    let err = recon(&server).mvs_depth(call).await.unwrap_err();
+    assert!(
+        matches!(
+            err.code(),
+            tonic::Code::DeadlineExceeded | tonic::Code::Cancelled
+        ),
+        "{err:?}"
+    );
+    let mut c = jobs(&server);
+    let list = c
+        .list_jobs(pb::ListJobsRequest::default())
+        .await
+        .unwrap()
+        .into_inner();
+    let id = list.jobs.first().expect("job recorded").id.clone();
+    let seen = watch_to_end(&mut c, &id).await;
+    assert_eq!(state(seen.last().unwrap()), pb::JobState::Cancelled);
+    server.stop().await.unwrap();
+}
