@@ -199,3 +199,73 @@ fn simulate_mvs_then_mvs_client_writes_depth_and_point_cloud() {
     let err = String::from_utf8_lossy(&bad.stderr);
     assert!(err.contains("--airlight"), "{err}");
 }
+
+#[test]
+fn simulate_mvs_then_params_estimates_and_writes_the_residual_grid() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("scene");
+    let out = dir.path().join("out");
+    let sim = murk()
+        .args([
+            "simulate", "mvs", "--seed", "3", "--width", "96", "--height", "72",
+        ])
+        .args(["--beta-range", "0.4,0.8"])
+        .arg("--out")
+        .arg(&scene)
+        .output()
+        .unwrap();
+    assert!(
+        sim.status.success(),
+        "{}",
+        String::from_utf8_lossy(&sim.stderr)
+    );
+    let meta: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(scene.join("meta.json")).unwrap()).unwrap();
+    let reference = meta["reference"].as_str().unwrap().to_string();
+    let beta = meta["beta"].as_f64().unwrap();
+    assert!((0.4..=0.8).contains(&beta), "{meta}");
+    let run = murk()
+        .env_remove("MURK_SERVER")
+        .args(["params", "--reference", &reference, "--num-sources", "2"])
+        .args(["--beta-steps", "3", "--grid-steps", "2", "--planes", "32"])
+        .args(["--airlight-source", "dark-channel"])
+        .arg("--model")
+        .arg(scene.join("sparse"))
+        .arg("--images")
+        .arg(scene.join("images"))
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&run.stdout);
+    assert!(
+        run.status.success(),
+        "stdout: {stdout}\nstderr: {}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    assert!(
+        stdout.contains("A* =") && stdout.contains("beta* ="),
+        "{stdout}"
+    );
+    assert!(stdout.contains("ground truth"), "{stdout}");
+    let csv = std::fs::read_to_string(out.join("residuals.csv")).unwrap();
+    let lines: Vec<&str> = csv.lines().collect();
+    assert_eq!(lines[0], "stage,airlight,beta,residual");
+    assert_eq!(lines.len(), 1 + 3 + 4, "{csv}");
+    assert!(lines[1].starts_with("beta,") && lines[4].starts_with("joint,"));
+    for f in ["depth.exr", "confidence.exr", "depth.png", "points.ply"] {
+        assert!(out.join(f).exists(), "{f} missing");
+    }
+    // A given airlight without --airlight-source given is refused by the CLI.
+    let bad = murk()
+        .args(["params", "--reference", &reference, "--airlight", "0.9"])
+        .arg("--model")
+        .arg(scene.join("sparse"))
+        .arg("--images")
+        .arg(scene.join("images"))
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(!bad.status.success());
+}
