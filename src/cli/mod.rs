@@ -6,6 +6,7 @@ mod mvs;
 mod serve;
 mod simulate;
 mod tof;
+mod train;
 
 use clap::{Parser, Subcommand};
 use tracing_subscriber::EnvFilter;
@@ -31,6 +32,9 @@ enum Command {
     Mvs(mvs::MvsArgs),
     /// Start a server in-process, run simulated scenes through the gRPC API, print accuracy.
     Demo(demo::DemoArgs),
+    /// Train a learned estimator on simulated scenes (e.g. the airlight CNN).
+    #[command(subcommand)]
+    Train(train::TrainCommand),
 }
 
 /// Parses the command line and runs the chosen command.
@@ -54,5 +58,6 @@ pub fn run() -> anyhow::Result<()> {
         Command::Tof(a) => tof::run(a),
         Command::Mvs(a) => mvs::run(a),
         Command::Demo(a) => demo::run(a),
+        Command::Train(c) => train::run(c),
     }
 }
