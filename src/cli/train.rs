@@ -21,7 +21,7 @@ pub enum TrainCommand {
     Airlight(TrainAirlightArgs),
 }
 
-/// Options of `murk train airlight`.
+/// Options of `murk train airlight`; the defaults are the run that made the committed weights.
 #[derive(Args, Debug)]
 pub struct TrainAirlightArgs {
     /// Output weights file (burnpack, full precision), e.g. models/airlight_cnn.bpk.
@@ -31,19 +31,19 @@ pub struct TrainAirlightArgs {
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
     /// Optimiser steps.
-    #[arg(long, default_value_t = 1500)]
+    #[arg(long, default_value_t = 2500)]
     pub steps: usize,
     /// Images per batch.
-    #[arg(long, default_value_t = 16)]
+    #[arg(long, default_value_t = 32)]
     pub batch: usize,
     /// Peak Adam learning rate.
     #[arg(long, default_value_t = 1e-3)]
     pub lr: f64,
     /// Scenes in the training pool (two views each).
-    #[arg(long, default_value_t = 1500)]
+    #[arg(long, default_value_t = 2500)]
     pub pool_scenes: usize,
     /// Held-out scenes (one image each, seeds disjoint from training); 0 skips the evaluation.
-    #[arg(long, default_value_t = 300)]
+    #[arg(long, default_value_t = 400)]
     pub eval_scenes: usize,
     /// Lowest median transmission of the simulated haze.
     #[arg(long, default_value_t = 0.1)]

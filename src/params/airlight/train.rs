@@ -59,10 +59,11 @@ impl Default for TrainConfig {
     fn default() -> Self {
         Self {
             seed: 1,
-            steps: 1500,
-            batch: 16,
+            // The run that made the committed weights (docs/AIRLIGHT.md).
+            steps: 2500,
+            batch: 32,
             learning_rate: 1e-3,
-            pool_scenes: 1500,
+            pool_scenes: 2500,
             sim_width: 256,
             sim_height: 192,
             airlight_range: [0.7, 1.0],
