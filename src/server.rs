@@ -47,7 +47,8 @@ impl Default for ServerConfig {
             max_request_bytes: DEFAULT_MAX_REQUEST_BYTES,
             max_image_pixels: 16 << 20,
             shutdown_grace: Duration::from_secs(10),
-            airlight: AirlightEstimator::default(),
+            airlight: AirlightEstimator::from_config(None, true)
+                .unwrap_or(AirlightEstimator::DarkChannel(Default::default())),
         }
     }
 }
@@ -91,9 +92,7 @@ async fn serve_with_manager(
                 max_channels: 4,
             },
         },
-        airlight: AirlightService {
-            estimator: std::sync::Arc::new(config.airlight.clone()),
-        },
+        airlight: AirlightService::new(config.airlight.clone()),
     };
     // The transport's hard ceiling; between 1× and 2× the handlers answer INVALID_ARGUMENT with
     // the field named, which is more useful to a client than a bare OUT_OF_RANGE.

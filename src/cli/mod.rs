@@ -7,6 +7,7 @@ mod params;
 mod serve;
 mod simulate;
 mod tof;
+mod train;
 
 use clap::{Parser, Subcommand};
 use tracing_subscriber::EnvFilter;
@@ -35,6 +36,9 @@ enum Command {
     Params(params::ParamsArgs),
     /// Start a server in-process, run simulated scenes through the gRPC API, print accuracy.
     Demo(demo::DemoArgs),
+    /// Train a learned estimator on simulated scenes (e.g. the airlight CNN).
+    #[command(subcommand)]
+    Train(train::TrainCommand),
 }
 
 /// Parses the command line and runs the chosen command.
@@ -59,5 +63,6 @@ pub fn run() -> anyhow::Result<()> {
         Command::Mvs(a) => mvs::run(a),
         Command::Params(a) => params::run(a),
         Command::Demo(a) => demo::run(a),
+        Command::Train(c) => train::run(c),
     }
 }

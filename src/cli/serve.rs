@@ -5,6 +5,7 @@ use std::time::Duration;
 
 use anyhow::Context;
 use clap::Args;
+use murk::params::airlight::AirlightEstimator;
 
 use murk::jobs::JobsConfig;
 use murk::server::{serve, shutdown_signal, ServerConfig, DEFAULT_MAX_REQUEST_BYTES};
@@ -45,6 +46,26 @@ pub struct ServeArgs {
     /// Job records kept for Get/List (results stay in the cache regardless).
     #[arg(long, env = "MURK_MAX_JOB_RECORDS", default_value_t = 10_000)]
     pub max_job_records: usize,
+    /// Airlight estimator for scattering-parameter requests that do not name one.
+    #[arg(long, env = "MURK_AIRLIGHT_ESTIMATOR", value_enum, default_value_t = AirlightArg::Cnn)]
+    pub airlight_estimator: AirlightArg,
+    /// Weights of the airlight CNN (a burnpack file from `murk train airlight`); default: the
+    /// weights built into murk. A missing or corrupt file stops the server from starting.
+    #[arg(long, env = "MURK_AIRLIGHT_WEIGHTS")]
+    pub airlight_weights: Option<std::path::PathBuf>,
+    /// With unusable CNN weights, log a warning and use the dark-channel estimator instead of
+    /// refusing to start.
+    #[arg(long, env = "MURK_AIRLIGHT_FALLBACK")]
+    pub airlight_fallback: bool,
+}
+
+/// The server's default airlight estimator.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum AirlightArg {
+    /// The CNN of the reference's Table 3.1.
+    Cnn,
+    /// The dark-channel prior's brightest-pixel rule.
+    DarkChannel,
 }
 
 impl ServeArgs {
@@ -72,7 +93,14 @@ impl ServeArgs {
             max_request_bytes: self.max_request_bytes,
             max_image_pixels: self.max_image_pixels,
             shutdown_grace: Duration::from_secs_f64(self.shutdown_grace_secs),
-            airlight: murk::params::airlight::AirlightEstimator::default(),
+            airlight: match self.airlight_estimator {
+                AirlightArg::DarkChannel => AirlightEstimator::DarkChannel(Default::default()),
+                AirlightArg::Cnn => AirlightEstimator::from_config(
+                    self.airlight_weights.as_deref(),
+                    self.airlight_fallback,
+                )
+                .map_err(|e| anyhow::anyhow!("loading the airlight CNN: {e}"))?,
+            },
         })
     }
 }

@@ -193,7 +193,8 @@ fn envelope_experiment() {
 
 /// Algorithm 1 on `MURK_SCENES` (default 10) simulated scenes with A ∈ [0.7, 1], β ∈ [0.4, 0.8]:
 /// MAE of A and β, and C.P. of the final depth with estimated against GT parameters.
-/// `MURK_COST=default|obs+aware3|obs+hard|eq37` picks the depth function's cost.
+/// `MURK_COST=default|obs+aware3|obs+hard|eq37` picks the depth function's cost, `MURK_A0=cnn`
+/// the airlight estimator (default: dark channel).
 /// `cargo test --release --lib params::tests::measure_search -- --ignored --nocapture`
 #[test]
 #[ignore]
@@ -222,6 +223,9 @@ fn measure_search() {
         cost,
         ..SearchParams::default()
     };
+    // MURK_A0=cnn: A₀ from the embedded CNN instead of the dark channel.
+    let cnn = (std::env::var("MURK_A0").as_deref() == Ok("cnn"))
+        .then(|| crate::params::airlight::AirlightCnn::embedded().unwrap());
     let (mut ea, mut eb, mut ea_dcp, mut cp_est, mut cp_gt, mut secs) =
         (0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
     for seed in 100..100 + n {
@@ -254,7 +258,10 @@ fn measure_search() {
         .unwrap();
         let (near, far) = plane_range_from_sparse(&sparse).unwrap();
         let planes = PlaneSet::new(near, far, 256).unwrap();
-        let a0 = dark_channel_airlight(views[r].image, &DarkChannelParams::default()).unwrap();
+        let a0 = match &cnn {
+            Some(c) => c.estimate(views[r].image).unwrap(),
+            None => dark_channel_airlight(views[r].image, &DarkChannelParams::default()).unwrap(),
+        };
         let est = search_scattering(
             &views[r],
             &sources,
@@ -311,7 +318,7 @@ fn measure_search() {
     }
     let k = n as f64;
     println!(
-        "MAE_A {:.4} (A0 dark channel {:.4}) MAE_β {:.4} C.P. est {:.1} % gt {:.1} % search {:.2} s/scene",
+        "MAE_A {:.4} (A0 alone {:.4}) MAE_β {:.4} C.P. est {:.1} % gt {:.1} % search {:.2} s/scene",
         ea / k,
         ea_dcp / k,
         eb / k,

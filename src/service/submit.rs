@@ -42,14 +42,32 @@ pub struct ServiceState {
     pub airlight: AirlightService,
 }
 
-/// Hex SHA-256 over the algorithm version and the request's protobuf encoding. prost encodes
-/// fields in tag order and murk's messages have no maps, so equal requests hash equally.
-pub fn job_id(req: &pb::JobRequest) -> String {
+/// Hex SHA-256 over the algorithm version, `model` (the identity of any learned model the
+/// request uses, empty otherwise) and the request's protobuf encoding. prost encodes fields in
+/// tag order and murk's messages have no maps, so equal requests hash equally; the model part
+/// keeps results computed with other weights (another replica's, or before a redeploy) from
+/// being served from a shared cache.
+pub fn job_id(req: &pb::JobRequest, model: &str) -> String {
     let mut h = Sha256::new();
     h.update(ALGORITHM_VERSION.as_bytes());
     h.update([0u8]);
+    h.update(model.as_bytes());
+    h.update([0u8]);
     h.update(req.encode_to_vec());
     hex::encode(h.finalize())
+}
+
+/// The learned model a (canonical) request depends on: the airlight CNN's digest for
+/// scattering-parameter requests that use it, empty otherwise.
+fn model_of(req: &pb::JobRequest, airlight: &AirlightService) -> String {
+    match &req.method {
+        Some(pb::job_request::Method::ScatteringParams(p))
+            if p.airlight_source == pb::AirlightSource::Cnn as i32 =>
+        {
+            airlight.model_digest()
+        }
+        _ => String::new(),
+    }
 }
 
 /// Method name of a request (`tof_depth`, ...).
@@ -81,7 +99,7 @@ pub async fn submit(
         None => e,
     };
     check_size(&req, state.limits.max_request_bytes).map_err(|e| to_status(&named(e)))?;
-    let id = job_id(&req);
+    let id = job_id(&req, &model_of(&req, &state.airlight));
     if let Some(found) = state.manager.find(&id, name) {
         return Ok(found);
     }

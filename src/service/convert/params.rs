@@ -34,7 +34,9 @@ const DEFAULT_PLANES: usize = 256;
 #[derive(Clone, Debug)]
 pub struct AirlightService {
     /// The configured estimator.
-    pub estimator: Arc<AirlightEstimator>,
+    estimator: Arc<AirlightEstimator>,
+    /// Fingerprint of the CNN weights.
+    digest: String,
 }
 
 impl AirlightService {
@@ -42,6 +44,24 @@ impl AirlightService {
     pub fn default_source(&self) -> pb::AirlightSource {
         match *self.estimator {
             AirlightEstimator::DarkChannel(_) => pb::AirlightSource::DarkChannel,
+            AirlightEstimator::Cnn(_) => pb::AirlightSource::Cnn,
+        }
+    }
+
+    /// SHA-256 of the CNN's weights (hex), computed once; empty without a CNN.
+    pub fn model_digest(&self) -> String {
+        self.digest.clone()
+    }
+
+    /// Wraps `estimator`, fingerprinting the CNN's weights for job ids.
+    pub fn new(estimator: AirlightEstimator) -> Self {
+        let digest = match &estimator {
+            AirlightEstimator::Cnn(cnn) => format!("airlight-cnn:{}", cnn.digest()),
+            AirlightEstimator::DarkChannel(_) => String::new(),
+        };
+        Self {
+            estimator: Arc::new(estimator),
+            digest,
         }
     }
 
