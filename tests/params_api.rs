@@ -168,6 +168,10 @@ async fn bad_params_requests_name_the_field() {
             Box::new(|r| r.delta_airlight = Some(-0.1)),
         ),
         ("delta_px", Box::new(|r| r.delta_px = Some(1000))),
+        (
+            "min_improvement_t",
+            Box::new(|r| r.min_improvement_t = Some(-1.0)),
+        ),
         ("search_downsample", Box::new(|r| r.search_downsample = 9)),
         ("search_planes", Box::new(|r| r.search_planes = 5000)),
         ("num_planes", Box::new(|r| r.num_planes = 5000)),

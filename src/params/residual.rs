@@ -30,6 +30,17 @@ fn rho(depth: &[f32], w: usize, h: usize, x: usize, y: usize, z_sfm: f32, delta:
 /// mean residual, scene units; the argmin is the same as the reference's sum, and the value is
 /// comparable across views). `depth` is a one-channel z-depth map of the sparse map's size.
 pub fn sparse_residual(depth: &ImageF32, sparse: &SparseDepth, delta_px: usize) -> Result<f64> {
+    let r = sparse_residuals(depth, sparse, delta_px)?;
+    Ok(r.iter().map(|&x| f64::from(x)).sum::<f64>() / r.len() as f64)
+}
+
+/// Eq. 3.9's `ρ` at every SfM pixel, in the order of [`SparseDepth::samples`] (scene units).
+/// Errors as [`sparse_residual`].
+pub fn sparse_residuals(
+    depth: &ImageF32,
+    sparse: &SparseDepth,
+    delta_px: usize,
+) -> Result<Vec<f32>> {
     if depth.dims() != (sparse.width(), sparse.height()) || depth.channels() != 1 {
         return Err(MurkError::invalid(
             "depth",
@@ -51,12 +62,33 @@ pub fn sparse_residual(depth: &ImageF32, sparse: &SparseDepth, delta_px: usize) 
     }
     let (w, h) = depth.dims();
     let d = depth.data();
-    let sum: f64 = sparse
+    Ok(sparse
         .samples()
         .iter()
-        .map(|s| f64::from(rho(d, w, h, s.x as usize, s.y as usize, s.z, delta_px)))
-        .sum();
-    Ok(sum / sparse.len() as f64)
+        .map(|s| rho(d, w, h, s.x as usize, s.y as usize, s.z, delta_px))
+        .collect())
+}
+
+/// Paired t statistic of `incumbent − candidate` over the same SfM pixels: how many standard
+/// errors the candidate's mean residual lies below the incumbent's (positive = candidate
+/// better). 0 when the difference has no spread (identical depths).
+pub fn paired_improvement_t(incumbent: &[f32], candidate: &[f32]) -> f64 {
+    let n = incumbent.len().min(candidate.len());
+    if n < 2 {
+        return 0.0;
+    }
+    let d = || {
+        incumbent
+            .iter()
+            .zip(candidate)
+            .map(|(&a, &b)| f64::from(a) - f64::from(b))
+    };
+    let mean = d().sum::<f64>() / n as f64;
+    let var = d().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1) as f64;
+    if var <= 0.0 {
+        return 0.0;
+    }
+    mean / (var / n as f64).sqrt()
 }
 
 #[cfg(test)]
@@ -85,6 +117,19 @@ mod tests {
         let two = [back(5.0, 5.0, 2.0), back(6.0, 5.0, 1.0)];
         let s = SparseDepth::from_points(&two, &k, &Pose::identity(), w, h).unwrap();
         assert_eq!(sparse_residual(&depth, &s, 0).unwrap(), 0.5);
+    }
+
+    #[test]
+    fn paired_t_is_signed_and_scale_free() {
+        let a = [1.0f32, 2.0, 3.0, 4.0];
+        let better = [0.5f32, 1.6, 2.4, 3.5];
+        let t = paired_improvement_t(&a, &better);
+        assert!(t > 5.0, "{t}");
+        assert!((paired_improvement_t(&better, &a) + t).abs() < 1e-12);
+        let scaled: Vec<f32> = a.iter().map(|x| x * 10.0).collect();
+        let scaled_b: Vec<f32> = better.iter().map(|x| x * 10.0).collect();
+        assert!((paired_improvement_t(&scaled, &scaled_b) - t).abs() < 1e-4 * t);
+        assert_eq!(paired_improvement_t(&a, &a), 0.0);
     }
 
     #[test]

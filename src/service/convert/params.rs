@@ -110,6 +110,7 @@ pub fn canonicalize_params_request(
     req.delta_airlight.get_or_insert(d.delta_airlight);
     req.delta_beta.get_or_insert(d.delta_beta);
     req.delta_px.get_or_insert(d.delta_px as u32);
+    req.min_improvement_t.get_or_insert(d.min_improvement_t);
     if req.num_planes == 0 {
         req.num_planes = DEFAULT_PLANES as u32;
     }
@@ -178,6 +179,7 @@ pub fn params_from_proto(
         search_planes: or(req.search_planes, d.search_planes),
         cost: DehazingOptions::default(),
         sgm: sgm_of(req.sgm.as_ref()),
+        min_improvement_t: req.min_improvement_t.unwrap_or(d.min_improvement_t),
     };
     search.validate()?;
     let num_planes = or(req.num_planes, DEFAULT_PLANES);
