@@ -1,6 +1,6 @@
-//! Scattering-parameter estimation (issue 4): the full Algorithm 1 search (10 + 4×4 = 26 depth
-//! evaluations at the search resolution) plus the final 256-plane depth at 256×192 with 4
-//! sources, and one search-resolution depth evaluation alone.
+//! Scattering-parameter estimation (issue 4) at 256×192 with 4 sources: the Algorithm 1 search
+//! with the reference's 10 + 4×4 = 26 depth evaluations (Δ_A = 0.05) and with murk's default
+//! 10 + 4 = 14 (Δ_A = 0), each plus the final 256-plane depth; the airlight estimators.
 //!
 //! Run: `cargo bench --bench params`.
 
@@ -41,13 +41,21 @@ fn bench(c: &mut Criterion) {
     .expect("sparse");
     let (near, far) = plane_range_from_sparse(&sparse).expect("points");
     let planes = PlaneSet::new(near, far, 256).expect("planes");
-    let params = SearchParams::default();
+    let params = SearchParams {
+        delta_airlight: 0.05,
+        ..SearchParams::default()
+    };
+    let defaults = SearchParams::default();
     let monitor = Monitor::noop();
 
     let mut g = c.benchmark_group(format!("params_{}x{}", cfg.width, cfg.height));
     g.sample_size(10);
     g.bench_function("airlight_dark_channel", |b| {
         b.iter(|| dark_channel_airlight(reference.image, &DarkChannelParams::default()).unwrap())
+    });
+    let cnn = murk::params::airlight::AirlightCnn::embedded().expect("weights");
+    g.bench_function("airlight_cnn", |b| {
+        b.iter(|| cnn.estimate(reference.image).unwrap())
     });
     g.bench_function("search_26_evaluations", |b| {
         b.iter(|| {
@@ -57,7 +65,15 @@ fn bench(c: &mut Criterion) {
             .expect("search")
         })
     });
-    g.bench_function("full_estimation_search_plus_final_depth", |b| {
+    g.bench_function("search_14_evaluations_default", |b| {
+        b.iter(|| {
+            search_scattering(
+                &reference, &sources, &sparse, 0.9, &planes, &defaults, &monitor,
+            )
+            .expect("search")
+        })
+    });
+    g.bench_function("full_estimation_26_search_plus_final_depth", |b| {
         b.iter(|| {
             let est = search_scattering(
                 &reference, &sources, &sparse, 0.9, &planes, &params, &monitor,

@@ -64,6 +64,7 @@ async fn unary_and_jobs_agree_and_the_result_is_complete() {
     // Small and quick: 3 + 2×2 evaluations.
     req.beta_steps = Some(3);
     req.grid_steps = Some(2);
+    req.delta_airlight = Some(0.05);
     req.num_planes = 32;
     req.search_planes = 16;
     let unary = recon(&server)

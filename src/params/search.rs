@@ -8,12 +8,13 @@
 //!    `[A₀ − Δ_A, A₀ + Δ_A] × [β₀ − Δ_β, β₀ + Δ_β]` (clamped to `A ∈ (0, 1]`, `β ≥ 0`); the
 //!    step-1 evaluation at `(A₀, β₀)` lies in that box and stays a candidate.
 //!
-//! The defaults are the reference's: 10 steps, a 4×4 grid, `Δ_A = Δ_β = 0.05`, `δ = 5` px, so 26
-//! depth evaluations. One deviation, measured: in step 2 a grid point replaces `(A₀, β₀)` only if
-//! its residual is lower by `min_improvement_t` (3) standard errors of the paired per-point
-//! difference — with murk's classical depth function the residual carries almost no information
-//! about `A`, and the plain argmin drifted to the grid's edge (`A₀ + Δ_A`) on 9 of 10 scenes,
-//! turning the CNN's MAE_A of 0.008 into 0.039. **Speed**: the depth function during the search runs on the images
+//! The reference's settings are 10 steps, a 4×4 grid, `Δ_A = Δ_β = 0.05`, `δ = 5` px (26 depth
+//! evaluations); all are parameters. Two deviations in murk's defaults, both measured
+//! (docs/ACCURACY.md): `Δ_A = 0` — with the classical depth function the residual prefers
+//! larger `A` systematically (the argmin sat at `A₀ + Δ_A` on 9 of 10 scenes, turning the CNN's
+//! MAE_A of 0.008 into 0.039), so `A* = A₀` and step 2 is a 1×4 refinement of β (14
+//! evaluations); and a step-2 point replaces `(A₀, β₀)` only if its residual is lower by
+//! `min_improvement_t` (3) standard errors of the paired per-point difference (0 = plain argmin). **Speed**: the depth function during the search runs on the images
 //! box-downsampled by `search_downsample` (intrinsics and SfM pixels scaled to match, `δ`
 //! divided) with `search_planes` planes: the residual is read at a few thousand SfM pixels, so the
 //! full resolution buys little there; the caller computes the final depth `z* = F(A*, β*)` at full
@@ -47,7 +48,10 @@ pub struct SearchParams {
     pub beta_steps: usize,
     /// Values per axis of the step-2 grid, `1..=MAX_GRID_STEPS` (reference: 4).
     pub grid_steps: usize,
-    /// Half-width of the step-2 airlight range, `≥ 0` (reference: 0.05).
+    /// Half-width of the step-2 airlight range, `≥ 0` (reference: 0.05; murk's default 0: with
+    /// the classical depth function the residual is biased towards larger `A` and the grid made
+    /// the CNN's `A₀` worse, MAE 0.008 → 0.034, see docs/ACCURACY.md). With 0 the grid has one
+    /// airlight, `A₀`, and `grid_steps` values of β.
     pub delta_airlight: f32,
     /// Half-width of the step-2 β range, `≥ 0`, per scene unit (reference: 0.05).
     pub delta_beta: f32,
@@ -74,7 +78,7 @@ impl Default for SearchParams {
             beta_max: 0.8,
             beta_steps: 10,
             grid_steps: 4,
-            delta_airlight: 0.05,
+            delta_airlight: 0.0,
             delta_beta: 0.05,
             delta_px: 5,
             search_downsample: 2,
@@ -152,9 +156,18 @@ impl SearchParams {
         self.sgm.validate().map_err(|e| e.within("sgm"))
     }
 
-    /// Number of depth evaluations of a search: `beta_steps + grid_steps²`.
+    /// Number of depth evaluations of a search: `beta_steps + grid_steps²`, or
+    /// `beta_steps + grid_steps` when `delta_airlight` is 0.
     pub fn evaluations(&self) -> usize {
-        self.beta_steps + self.grid_steps * self.grid_steps
+        self.beta_steps + self.airlight_steps() * self.grid_steps
+    }
+
+    fn airlight_steps(&self) -> usize {
+        if self.delta_airlight == 0.0 {
+            1
+        } else {
+            self.grid_steps
+        }
     }
 }
 
@@ -368,7 +381,7 @@ pub fn search_scattering(
     let a_values = linspace(
         airlight_initial - params.delta_airlight,
         airlight_initial + params.delta_airlight,
-        params.grid_steps,
+        params.airlight_steps(),
     );
     let b_values = linspace(
         beta_initial - params.delta_beta,
@@ -517,9 +530,19 @@ mod tests {
         let params = SearchParams {
             beta_steps: 4,
             grid_steps: 2,
+            delta_airlight: 0.05,
             search_planes: 16,
             ..SearchParams::default()
         };
+        assert_eq!(params.evaluations(), 8);
+        assert_eq!(
+            SearchParams {
+                delta_airlight: 0.0,
+                ..params.clone()
+            }
+            .evaluations(),
+            6
+        );
         let seen: Arc<Mutex<Vec<f32>>> = Arc::default();
         let sink = {
             let seen = seen.clone();
