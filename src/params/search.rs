@@ -376,7 +376,6 @@ pub fn search_scattering(
         }
     }
     let beta_initial = best.2;
-    let start_point = best;
     // Step 2 (Eq. 3.8 over Ω_A × Ω_β).
     let a_values = linspace(
         airlight_initial - params.delta_airlight,
@@ -402,7 +401,6 @@ pub fn search_scattering(
             }
         }
     }
-    debug_assert!(best.0 <= start_point.0);
     Ok(ScatteringEstimate {
         airlight: best.1,
         beta: best.2,
