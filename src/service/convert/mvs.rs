@@ -242,16 +242,7 @@ pub fn mvs_from_proto(req: &pb::MvsDepthRequest, limits: &ImageLimits) -> Result
             ),
         ));
     }
-    let shape = (w, h, reference.image.channels());
-    let sources = req
-        .sources
-        .iter()
-        .enumerate()
-        .map(|(k, s)| {
-            view_from_proto(Some(s), Some(shape), limits)
-                .map_err(|e| e.within(&format!("sources[{k}]")))
-        })
-        .collect::<Result<Vec<_>>>()?;
+    let sources = sources_from_proto(&req.sources, &reference, limits)?;
     Ok(MvsInput {
         reference,
         sources,
@@ -260,6 +251,25 @@ pub fn mvs_from_proto(req: &pb::MvsDepthRequest, limits: &ImageLimits) -> Result
         wire_kind,
         sgm,
     })
+}
+
+/// The source views, each checked against the reference's size and channel count; errors name
+/// `sources[k].…`.
+pub(super) fn sources_from_proto(
+    sources: &[pb::MvsView],
+    reference: &MvsViewInput,
+    limits: &ImageLimits,
+) -> Result<Vec<MvsViewInput>> {
+    let (w, h) = reference.image.dims();
+    let shape = (w, h, reference.image.channels());
+    sources
+        .iter()
+        .enumerate()
+        .map(|(k, s)| {
+            view_from_proto(Some(s), Some(shape), limits)
+                .map_err(|e| e.within(&format!("sources[{k}]")))
+        })
+        .collect()
 }
 
 /// One view; `shape` is the reference's `(width, height, channels)` for sources. Errors name

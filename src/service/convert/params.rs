@@ -10,7 +10,9 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use super::image::{image_to_proto, ImageLimits};
-use super::mvs::{sgm_of, view_from_proto, view_to_proto, MvsViewInput, MAX_SOURCE_VIEWS};
+use super::mvs::{
+    sgm_of, sources_from_proto, view_from_proto, view_to_proto, MvsViewInput, MAX_SOURCE_VIEWS,
+};
 use crate::atmosphere::AtmosphereParams;
 use crate::error::{MurkError, Result};
 use crate::monitor::Monitor;
@@ -216,16 +218,7 @@ pub fn params_from_proto(
     let reference =
         view_from_proto(req.reference.as_ref(), None, limits).map_err(|e| e.within("reference"))?;
     let (w, h) = reference.image.dims();
-    let shape = (w, h, reference.image.channels());
-    let sources = req
-        .sources
-        .iter()
-        .enumerate()
-        .map(|(k, s)| {
-            view_from_proto(Some(s), Some(shape), limits)
-                .map_err(|e| e.within(&format!("sources[{k}]")))
-        })
-        .collect::<Result<Vec<_>>>()?;
+    let sources = sources_from_proto(&req.sources, &reference, limits)?;
     let points: Vec<[f64; 3]> = req.sparse_points.iter().map(|p| [p.x, p.y, p.z]).collect();
     let sparse = SparseDepth::from_points(&points, &reference.intrinsics, &reference.pose, w, h)
         // The library names `points[i]`; the wire field is `sparse_points[i]`.
