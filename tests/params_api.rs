@@ -25,15 +25,7 @@ fn request(
     source: pb::AirlightSource,
     airlight: f32,
 ) -> pb::ScatteringParamsRequest {
-    let views: Vec<View<'_>> = scene
-        .views
-        .iter()
-        .map(|v| View {
-            image: &v.hazy,
-            intrinsics: v.intrinsics,
-            pose: v.pose,
-        })
-        .collect();
+    let views: Vec<View<'_>> = scene.hazy_views();
     let r = scene.reference;
     let sources: Vec<View<'_>> = (0..views.len())
         .filter(|&i| i != r)

@@ -162,15 +162,7 @@ async fn mvs_demo(
     let dir = a.out.join("mvs");
     write_mvs_scene(&dir.join("input"), &scene)
         .with_context(|| format!("writing {}", dir.display()))?;
-    let views: Vec<View<'_>> = scene
-        .views
-        .iter()
-        .map(|v| View {
-            image: &v.hazy,
-            intrinsics: v.intrinsics,
-            pose: v.pose,
-        })
-        .collect();
+    let views: Vec<View<'_>> = scene.hazy_views();
     let reference = views
         .get(scene.reference)
         .context("simulated scene has no reference view")?;

@@ -37,15 +37,7 @@ fn evaluate(
     kind: CostKind,
     num_sources: usize,
 ) -> (DepthMetrics, f64, f64) {
-    let views: Vec<View<'_>> = scene
-        .views
-        .iter()
-        .map(|v| View {
-            image: &v.hazy,
-            intrinsics: v.intrinsics,
-            pose: v.pose,
-        })
-        .collect();
+    let views: Vec<View<'_>> = scene.hazy_views();
     let reference = views[scene.reference];
     // Sources nearest to the reference first (by trajectory position).
     let mut others: Vec<usize> = (0..views.len()).filter(|&i| i != scene.reference).collect();

@@ -501,15 +501,7 @@ mod tests {
     #[test]
     fn search_bookkeeping_progress_and_cancel() {
         let scene = small_scene();
-        let views: Vec<View<'_>> = scene
-            .views
-            .iter()
-            .map(|v| View {
-                image: &v.hazy,
-                intrinsics: v.intrinsics,
-                pose: v.pose,
-            })
-            .collect();
+        let views: Vec<View<'_>> = scene.hazy_views();
         let r = scene.reference;
         let sources: Vec<View<'_>> = (0..views.len())
             .filter(|&i| i != r)

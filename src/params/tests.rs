@@ -28,15 +28,7 @@ fn residual_curves() {
             ..MvsSimConfig::default()
         };
         let scene = simulate_mvs(&cfg, &Monitor::noop()).unwrap();
-        let views: Vec<View<'_>> = scene
-            .views
-            .iter()
-            .map(|v| View {
-                image: &v.hazy,
-                intrinsics: v.intrinsics,
-                pose: v.pose,
-            })
-            .collect();
+        let views: Vec<View<'_>> = scene.hazy_views();
         let r = scene.reference;
         let reference = views[r];
         let mut others: Vec<usize> = (0..views.len()).filter(|&i| i != r).collect();
@@ -235,15 +227,7 @@ fn measure_search() {
             ..MvsSimConfig::default()
         };
         let scene = simulate_mvs(&cfg, &Monitor::noop()).unwrap();
-        let views: Vec<View<'_>> = scene
-            .views
-            .iter()
-            .map(|v| View {
-                image: &v.hazy,
-                intrinsics: v.intrinsics,
-                pose: v.pose,
-            })
-            .collect();
+        let views: Vec<View<'_>> = scene.hazy_views();
         let r = scene.reference;
         let mut others: Vec<usize> = (0..views.len()).filter(|&i| i != r).collect();
         others.sort_by_key(|&i| i.abs_diff(r));
@@ -343,15 +327,7 @@ fn photometric_curves() {
             ..MvsSimConfig::default()
         };
         let scene = simulate_mvs(&cfg, &Monitor::noop()).unwrap();
-        let views: Vec<View<'_>> = scene
-            .views
-            .iter()
-            .map(|v| View {
-                image: &v.hazy,
-                intrinsics: v.intrinsics,
-                pose: v.pose,
-            })
-            .collect();
+        let views: Vec<View<'_>> = scene.hazy_views();
         let r = scene.reference;
         let sources: Vec<View<'_>> = (0..views.len())
             .filter(|&i| i != r)

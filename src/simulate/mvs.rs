@@ -68,6 +68,7 @@ use crate::mvs::colmap::{
     TrackElement,
 };
 use crate::mvs::pose::Pose;
+use crate::mvs::View;
 use crate::simulate::scene::{dot, Shape, V3};
 
 /// `format` tag of `meta.json`.
@@ -304,6 +305,20 @@ pub struct MvsScene {
     pub median_transmission: f64,
     /// Sparse SfM-like model: cameras, images (poses + observations), points with tracks.
     pub sparse: ColmapModel,
+}
+
+impl MvsScene {
+    /// Every view as the library's [`View`] of its *hazy* image, in order.
+    pub fn hazy_views(&self) -> Vec<View<'_>> {
+        self.views
+            .iter()
+            .map(|v| View {
+                image: &v.hazy,
+                intrinsics: v.intrinsics,
+                pose: v.pose,
+            })
+            .collect()
+    }
 }
 
 // ---------------------------------------------------------------------------------------------

@@ -108,15 +108,7 @@ pub fn mvs_request(
     kind: pb::CostVolumeKind,
     planes: &PlaneSet,
 ) -> pb::MvsDepthRequest {
-    let views: Vec<View<'_>> = scene
-        .views
-        .iter()
-        .map(|v| View {
-            image: &v.hazy,
-            intrinsics: v.intrinsics,
-            pose: v.pose,
-        })
-        .collect();
+    let views: Vec<View<'_>> = scene.hazy_views();
     let sources: Vec<View<'_>> = (0..views.len())
         .filter(|&i| i != scene.reference)
         .map(|i| views[i])
