@@ -15,6 +15,7 @@ pub mod monitor;
 pub mod mvs;
 pub mod mvs_io;
 pub mod params;
+pub mod ps;
 pub mod server;
 pub mod service;
 pub mod simulate;

@@ -1,0 +1,1 @@
+//! Block BiCGStab (placeholder, filled in by the solver change).

@@ -1,0 +1,1 @@
+//! Perspective normal integration (placeholder, filled in by the integration change).
