@@ -235,7 +235,7 @@ impl ForwardKernel {
         geom: &SurfaceGeometry,
         support_r: usize,
     ) -> Result<ForwardKernel> {
-        if support_r < 3 || support_r % 2 == 0 {
+        if support_r < 3 || support_r.is_multiple_of(2) {
             return Err(MurkError::invalid(
                 "support_r",
                 format!("kernel support must be odd and >= 3, got {support_r}"),
@@ -449,6 +449,9 @@ impl ForwardKernel {
 /// of p are summed exactly; farther q are taken on the image-aligned grid
 /// {x ≡ 0, y ≡ 0 mod `far_stride`} with weight far_stride² (`far_stride` ≤ 1 is exact).
 /// All lights share one pass over q; parallel over p.
+/// The far sampling is a quadrature of a smooth, slowly decaying kernel: with a near radius of
+/// only 8 px and stride 2 the worst per-pixel relative error measured on a small sphere is 6 %;
+/// with the production radius of 32 px the sampled q carry a much smaller share of the sum.
 ///
 /// # Panics
 /// If the geometry is invalid or a light's image does not have width·height values.
@@ -490,7 +493,7 @@ pub(crate) fn dense_forward_scatter_radius(
         }
     }
     let far: Vec<u32> = (0..npx)
-        .filter(|&i| geom.mask[i] && (i % w) % s == 0 && (i / w) % s == 0)
+        .filter(|&i| geom.mask[i] && (i % w).is_multiple_of(s) && (i / w).is_multiple_of(s))
         .map(|i| i as u32)
         .collect();
     let (beta, sigma) = (medium.beta_per_mm, medium.sigma_per_mm);

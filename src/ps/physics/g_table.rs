@@ -17,6 +17,14 @@
 //! c, bilinear. Beyond [`T_MAX`] ln G is extrapolated linearly in T from the last grid cell;
 //! asymptotically G ∝ e^{−T}/T, so this is an approximation whose error grows slowly with
 //! T − T_MAX (at T = 2·T_MAX the light reaching the surface is attenuated by e^{−40}).
+//!
+//! Accuracy (tests): against a brute-force hemisphere integral of Eq. 4.37–4.38 (no F) the
+//! relative error is ≤ 1.9·10⁻⁴ (bound 3·10⁻³); against the untabulated 1D integral at
+//! off-grid (T, c) ≤ 2.8·10⁻⁴ (bound 2·10⁻³).
+//!
+//! Eq. 4.55, G(T, c) ≈ G(T, 1)·c, underestimates G by the relative gap (G − G(T,1)c)/G of
+//! 2.2 %, 6.4 %, 18 %, 42 % at c = 0.9, 0.75, 0.5, 0.25 for T = 0.6 and 1.6 %, 4.8 %, 14 %, 36 %
+//! for T = 2: growing with the angle, as in Fig. 4.10.
 
 use std::f64::consts::{FRAC_PI_2, PI};
 use std::sync::OnceLock;
@@ -32,6 +40,7 @@ use super::Medium;
 pub const T_MAX: f64 = 20.0;
 const DEFAULT_NT: usize = 161;
 const DEFAULT_NC: usize = 257;
+#[cfg(test)]
 const NODES_PER_PIECE: usize = 48;
 
 /// Tabulated G(T, c) of Eq. 4.40 (see the module documentation for grid and range).
@@ -54,8 +63,9 @@ pub(crate) fn azimuthal(a: f64, b: f64) -> f64 {
     }
 }
 
-/// G(T, c) by direct 1D quadrature (no table for G; F from `ft` with the short-bracket
-/// fallback). Used to build the table and as its test reference.
+/// G(T, c) by direct 1D quadrature with breaks at the kinks of the azimuthal factor (no table
+/// for G; F from `ft` with the small-bracket fallback): the tests' reference for the table.
+#[cfg(test)]
 pub(crate) fn g_direct(ft: &FTable, rule: &(Vec<f64>, Vec<f64>), t: f64, c: f64) -> f64 {
     let c = c.clamp(-1.0, 1.0);
     let theta = c.acos();

@@ -134,8 +134,8 @@ fn bracket_quadrature(u: f64, v1: f64, v2: f64) -> f64 {
     if v2 <= v1 {
         return 0.0;
     }
-    let tol = 1e-11 * (v2 - v1);
-    quad::adaptive(&mut |xi: f64| (-u * xi.tan()).exp(), v1, v2, tol)
+    // 10⁻⁹ relative is far below the table's accuracy that the other path offers.
+    quad::adaptive_rel(&mut |xi: f64| (-u * xi.tan()).exp(), v1, v2, 1e-9)
 }
 
 /// Eq. 4.32 by brute force: ∫₀^L I₀/d² · β/(4π) · e^{−σ(x+d)} dx for a source at distance `d`

@@ -66,6 +66,14 @@ pub(crate) fn adaptive(f: &mut impl FnMut(f64) -> f64, a: f64, b: f64, tol: f64)
     adaptive_rec(f, r, a, b, whole, tol, 0)
 }
 
+/// [`adaptive`] with a tolerance relative to the first whole-interval estimate; cheaper where
+/// only relative accuracy matters (tiny integrals would otherwise recurse to an absolute floor).
+pub(crate) fn adaptive_rel(f: &mut impl FnMut(f64) -> f64, a: f64, b: f64, rel: f64) -> f64 {
+    let r = rule12();
+    let whole = gl_apply(r, a, b, f);
+    adaptive_rec(f, r, a, b, whole, rel * whole.abs(), 0)
+}
+
 fn adaptive_rec(
     f: &mut impl FnMut(f64) -> f64,
     r: &(Vec<f64>, Vec<f64>),
