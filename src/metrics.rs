@@ -221,6 +221,43 @@ pub fn mask_iou(pred: &ImageF32, gt: &ImageF32) -> Result<f64> {
     })
 }
 
+/// Mean angular error between unit normals, degrees, over `mask` (the reference's normal metric,
+/// Table 4.1). Normals need not be normalised; pixels where either is zero or non-finite are
+/// skipped. Fails when the lengths differ or nothing is evaluated.
+pub fn mean_angular_error_deg(pred: &[[f32; 3]], gt: &[[f32; 3]], mask: &[bool]) -> Result<f64> {
+    if pred.len() != gt.len() || mask.len() != gt.len() {
+        return Err(MurkError::invalid(
+            "pred",
+            format!(
+                "{} predicted, {} ground-truth normals and {} mask entries",
+                pred.len(),
+                gt.len(),
+                mask.len()
+            ),
+        ));
+    }
+    let (mut sum, mut count) = (0.0f64, 0usize);
+    for ((a, b), &m) in pred.iter().zip(gt).zip(mask) {
+        if !m {
+            continue;
+        }
+        let a = a.map(f64::from);
+        let b = b.map(f64::from);
+        let na = (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt();
+        let nb = (b[0] * b[0] + b[1] * b[1] + b[2] * b[2]).sqrt();
+        if !(na > 0.0 && nb > 0.0 && na.is_finite() && nb.is_finite()) {
+            continue;
+        }
+        let c = ((a[0] * b[0] + a[1] * b[1] + a[2] * b[2]) / (na * nb)).clamp(-1.0, 1.0);
+        sum += c.acos().to_degrees();
+        count += 1;
+    }
+    if count == 0 {
+        return Err(MurkError::invalid("mask", "no pixel to evaluate"));
+    }
+    Ok(sum / count as f64)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -300,5 +337,19 @@ mod tests {
         close(mask_iou(&img(&[0.0; 3]), &img(&[0.0; 3])).unwrap(), 1.0);
         close(mask_iou(&a, &a).unwrap(), 1.0);
         assert!(mask_iou(&a, &img(&[1.0])).is_err());
+    }
+    #[test]
+    fn angular_error_of_known_rotations() {
+        let gt = vec![[0.0f32, 0.0, -1.0]; 3];
+        let a = 10f32.to_radians();
+        let pred = vec![
+            [a.sin(), 0.0, -a.cos()],
+            [0.0, 2.0 * a.sin(), -2.0 * a.cos()], // length 2: direction counts only
+            [1.0, 0.0, 0.0],                      // masked out
+        ];
+        let e = mean_angular_error_deg(&pred, &gt, &[true, true, false]).unwrap();
+        assert!((e - 10.0).abs() < 1e-4, "{e}");
+        assert!(mean_angular_error_deg(&pred, &gt, &[false; 3]).is_err());
+        assert!(mean_angular_error_deg(&pred[..2], &gt, &[true; 3]).is_err());
     }
 }

@@ -33,6 +33,9 @@ pub struct ServerConfig {
     pub max_request_bytes: usize,
     /// Largest image accepted, pixels.
     pub max_image_pixels: u64,
+    /// Largest forward-scatter kernel a photometric-stereo job may store, bytes (the method's
+    /// memory peak: object pixels × r² × 4).
+    pub max_ps_kernel_bytes: usize,
     /// How long shutdown waits for queued and running jobs before cancelling them.
     pub shutdown_grace: Duration,
     /// The airlight estimator of scattering-parameter requests that do not name one (loaded
@@ -46,6 +49,7 @@ impl Default for ServerConfig {
             jobs: JobsConfig::default(),
             max_request_bytes: DEFAULT_MAX_REQUEST_BYTES,
             max_image_pixels: 16 << 20,
+            max_ps_kernel_bytes: crate::ps::pipeline::DEFAULT_MAX_KERNEL_BYTES,
             shutdown_grace: Duration::from_secs(10),
             airlight: AirlightEstimator::from_config(None, true)
                 .unwrap_or(AirlightEstimator::DarkChannel(Default::default())),
@@ -91,6 +95,7 @@ async fn serve_with_manager(
                 max_pixels: config.max_image_pixels,
                 max_channels: 4,
             },
+            max_ps_kernel_bytes: config.max_ps_kernel_bytes,
         },
         airlight: AirlightService::new(config.airlight.clone()),
     };

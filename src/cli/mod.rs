@@ -4,6 +4,7 @@ mod client;
 mod demo;
 mod mvs;
 mod params;
+mod ps;
 mod serve;
 mod simulate;
 mod tof;
@@ -34,6 +35,9 @@ enum Command {
     /// Airlight and scattering coefficient (Algorithm 1) from a COLMAP model + images, then
     /// the depth with them.
     Params(params::ParamsArgs),
+    /// Photometric stereo in turbid water: per-light images with and without the object →
+    /// normals, albedo, depth and a mesh.
+    Ps(ps::PsArgs),
     /// Start a server in-process, run simulated scenes through the gRPC API, print accuracy.
     Demo(demo::DemoArgs),
     /// Train a learned estimator on simulated scenes (e.g. the airlight CNN).
@@ -62,6 +66,7 @@ pub fn run() -> anyhow::Result<()> {
         Command::Tof(a) => tof::run(a),
         Command::Mvs(a) => mvs::run(a),
         Command::Params(a) => params::run(a),
+        Command::Ps(a) => ps::run(a),
         Command::Demo(a) => demo::run(a),
         Command::Train(c) => train::run(c),
     }

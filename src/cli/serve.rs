@@ -37,6 +37,10 @@ pub struct ServeArgs {
     /// Largest image, pixels.
     #[arg(long, env = "MURK_MAX_IMAGE_PIXELS", default_value_t = 16 << 20)]
     pub max_image_pixels: u64,
+    /// Largest forward-scatter kernel of a photometric-stereo job, bytes (object pixels × r² ×
+    /// 4; the method's memory peak). Larger requests get INVALID_ARGUMENT naming `support_r`.
+    #[arg(long, env = "MURK_MAX_PS_KERNEL_BYTES", default_value_t = murk::ps::pipeline::DEFAULT_MAX_KERNEL_BYTES)]
+    pub max_ps_kernel_bytes: usize,
     /// Seconds to drain jobs on SIGTERM/Ctrl-C before cancelling them.
     #[arg(long, env = "MURK_SHUTDOWN_GRACE_SECS", default_value_t = 10.0)]
     pub shutdown_grace_secs: f64,
@@ -92,6 +96,7 @@ impl ServeArgs {
             },
             max_request_bytes: self.max_request_bytes,
             max_image_pixels: self.max_image_pixels,
+            max_ps_kernel_bytes: self.max_ps_kernel_bytes,
             shutdown_grace: Duration::from_secs_f64(self.shutdown_grace_secs),
             airlight: match self.airlight_estimator {
                 AirlightArg::DarkChannel => AirlightEstimator::DarkChannel(Default::default()),

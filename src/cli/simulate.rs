@@ -6,6 +6,7 @@ use anyhow::Context;
 use clap::{Args, Subcommand};
 
 use murk::simulate::mvs::{simulate_mvs, write_mvs_scene, MvsSimConfig};
+use murk::simulate::ps::{simulate_ps, write_ps_capture, PsShape, PsSimConfig};
 use murk::simulate::tof::{simulate_tof, FogPreset, TofSimConfig};
 use murk::simulate::write_tof_frame;
 use murk::Monitor;
@@ -17,6 +18,56 @@ pub enum SimulateCommand {
     Tof(SimTofArgs),
     /// A hazy multi-view scene with ground truth (hazy + clear images, GT depth, COLMAP model).
     Mvs(SimMvsArgs),
+    /// A photometric-stereo capture in turbid water with ground truth (per light an image with
+    /// and without the object, GT normals, depth, albedo, mask).
+    Ps(SimPsArgs),
+}
+
+/// The object of `murk simulate ps`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum ShapeArg {
+    /// A sphere (the reference's synthetic object).
+    Sphere,
+    /// A vase-like surface of revolution with concave parts.
+    Vase,
+}
+
+/// Options of `murk simulate ps`. Defaults are the reference's synthetic setting (§4.4.1).
+#[derive(Args, Debug)]
+pub struct SimPsArgs {
+    /// Output folder (created).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// The object.
+    #[arg(long, value_enum, default_value_t = ShapeArg::Sphere)]
+    pub shape: ShapeArg,
+    /// Seed of the light intensities, the albedo pattern and the noise.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Image width (the focal length scales with it, so the object keeps its share of the frame).
+    #[arg(long, default_value_t = 300)]
+    pub width: usize,
+    /// Image height.
+    #[arg(long, default_value_t = 300)]
+    pub height: usize,
+    /// Scattering coefficient beta, per mm.
+    #[arg(long, default_value_t = 5e-3)]
+    pub beta_per_mm: f64,
+    /// Extinction coefficient sigma, per mm (>= beta).
+    #[arg(long, default_value_t = 5e-3)]
+    pub sigma_per_mm: f64,
+    /// Number of lights on a ring around the camera.
+    #[arg(long, default_value_t = 8)]
+    pub lights: usize,
+    /// Give the object a smooth albedo pattern.
+    #[arg(long)]
+    pub textured: bool,
+    /// Standard deviation of additive Gaussian noise, image units.
+    #[arg(long, default_value_t = 0.0)]
+    pub noise_std: f64,
+    /// Far-field sampling stride of the forward-scatter sum (1 = exact, slower).
+    #[arg(long, default_value_t = 2)]
+    pub far_stride: usize,
 }
 
 /// Options of `murk simulate mvs`.
@@ -95,7 +146,47 @@ pub fn run(cmd: SimulateCommand) -> anyhow::Result<()> {
             Ok(())
         }
         SimulateCommand::Mvs(a) => simulate_mvs_scene(&a),
+        SimulateCommand::Ps(a) => simulate_ps_capture(&a),
     }
+}
+
+fn simulate_ps_capture(a: &SimPsArgs) -> anyhow::Result<()> {
+    let cfg = PsSimConfig {
+        shape: match a.shape {
+            ShapeArg::Sphere => PsShape::Sphere,
+            ShapeArg::Vase => PsShape::Vase,
+        },
+        seed: a.seed,
+        beta_per_mm: a.beta_per_mm,
+        sigma_per_mm: a.sigma_per_mm,
+        num_lights: a.lights,
+        textured: a.textured,
+        noise_std: a.noise_std,
+        far_stride: a.far_stride,
+        ..PsSimConfig::with_size(a.width, a.height)
+    };
+    let started = std::time::Instant::now();
+    let sim = simulate_ps(&cfg, &Monitor::noop())?;
+    write_ps_capture(&a.out, &sim).with_context(|| format!("writing {}", a.out.display()))?;
+    println!(
+        "wrote {} ({}x{}, {:?}, {} lights, beta {:.1e}/mm, sigma {:.1e}/mm, {} object pixels, \
+         seed {}) in {:.1} s",
+        a.out.display(),
+        cfg.width,
+        cfg.height,
+        cfg.shape,
+        cfg.num_lights,
+        cfg.beta_per_mm,
+        cfg.sigma_per_mm,
+        sim.capture.mask.iter().filter(|&&b| b).count(),
+        cfg.seed,
+        started.elapsed().as_secs_f64()
+    );
+    println!(
+        "next: murk ps --capture {0} --out {0}/result --support-r 81",
+        a.out.display()
+    );
+    Ok(())
 }
 
 fn simulate_mvs_scene(a: &SimMvsArgs) -> anyhow::Result<()> {

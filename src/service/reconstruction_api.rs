@@ -106,6 +106,20 @@ impl pb::reconstruction_server::Reconstruction for ReconstructionApi {
             _ => Err(Status::internal("stored result is of another method")),
         }
     }
+
+    async fn photometric_stereo(
+        &self,
+        request: Request<pb::PhotometricStereoRequest>,
+    ) -> Result<Response<pb::PhotometricStereoResult>, Status> {
+        let (metadata, _, req) = request.into_parts();
+        let job = pb::JobRequest {
+            method: Some(pb::job_request::Method::PhotometricStereo(req)),
+        };
+        match self.run(&metadata, job).await? {
+            pb::job_result::Method::PhotometricStereo(r) => Ok(Response::new(r)),
+            _ => Err(Status::internal("stored result is of another method")),
+        }
+    }
 }
 
 /// The client's deadline from the `grpc-timeout` header (gRPC over HTTP/2 spec: 1–8 digits and a

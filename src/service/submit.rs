@@ -9,8 +9,9 @@ use sha2::{Digest, Sha256};
 use tonic::Status;
 
 use super::convert::{
-    canonicalize_mvs_request, canonicalize_params_request, mvs_from_proto, mvs_to_proto,
-    params_from_proto, tof_from_proto, tof_to_proto, AirlightService, ImageLimits,
+    canonicalize_mvs_request, canonicalize_params_request, canonicalize_ps_request, mvs_from_proto,
+    mvs_to_proto, params_from_proto, ps_from_proto, ps_to_proto, tof_from_proto, tof_to_proto,
+    AirlightService, ImageLimits,
 };
 use super::proto::v1 as pb;
 use super::status::{submit_status, to_status};
@@ -29,6 +30,8 @@ pub struct RequestLimits {
     pub max_request_bytes: usize,
     /// Per-image limits.
     pub images: ImageLimits,
+    /// Largest forward-scatter kernel a photometric-stereo job may store, bytes.
+    pub max_ps_kernel_bytes: usize,
 }
 
 /// What every gRPC handler shares.
@@ -76,6 +79,7 @@ pub fn method_name(m: &pb::job_request::Method) -> &'static str {
         pb::job_request::Method::TofDepth(_) => "tof_depth",
         pb::job_request::Method::MvsDepth(_) => "mvs_depth",
         pb::job_request::Method::ScatteringParams(_) => "scattering_params",
+        pb::job_request::Method::PhotometricStereo(_) => "photometric_stereo",
     }
 }
 
@@ -103,7 +107,7 @@ pub async fn submit(
     if let Some(found) = state.manager.find(&id, name) {
         return Ok(found);
     }
-    let limits = state.limits.images;
+    let limits = state.limits;
     let airlight = state.airlight.clone();
     // Decoding megapixel PNG/EXR is CPU work: keep it off the async runtime's threads.
     let work = tokio::task::spawn_blocking(move || build_work(req, &limits, &airlight))
@@ -126,6 +130,7 @@ fn canonicalize(req: &mut pb::JobRequest, airlight: &AirlightService) {
         }
         // ToF ids hash the request as sent (its options are `optional` fields whose presence is
         // kept as sent).
+        Some(pb::job_request::Method::PhotometricStereo(p)) => canonicalize_ps_request(p),
         Some(pb::job_request::Method::TofDepth(_)) | None => {}
     }
 }
@@ -151,6 +156,17 @@ fn check_size(req: &pb::JobRequest, max: usize) -> Result<(), MurkError> {
                 "sparse_points".into(),
                 p.sparse_points.iter().map(|q| q.encoded_len()).sum(),
             ));
+            v
+        }
+        Some(pb::job_request::Method::PhotometricStereo(p)) => {
+            let mut v = vec![("mask".to_string(), size_of(p.mask.as_ref()))];
+            for (k, l) in p.lights.iter().enumerate() {
+                v.push((format!("lights[{k}].image"), size_of(l.image.as_ref())));
+                v.push((
+                    format!("lights[{k}].background"),
+                    size_of(l.background.as_ref()),
+                ));
+            }
             v
         }
         None => Vec::new(),
@@ -183,9 +199,10 @@ fn view_sizes(reference: Option<&pb::MvsView>, sources: &[pb::MvsView]) -> Vec<(
 /// Decodes and validates the request, returning the closure a worker will run.
 fn build_work(
     req: pb::JobRequest,
-    limits: &ImageLimits,
+    request_limits: &RequestLimits,
     airlight: &AirlightService,
 ) -> Result<Work, MurkError> {
+    let limits = &request_limits.images;
     match req.method {
         Some(pb::job_request::Method::TofDepth(t)) => {
             let (input, params) = tof_from_proto(&t, limits)?;
@@ -220,6 +237,20 @@ fn build_work(
                     method: Some(pb::job_result::Method::ScatteringParams(
                         input.run(monitor)?,
                     )),
+                };
+                Ok(result.encode_to_vec())
+            }))
+        }
+        Some(pb::job_request::Method::PhotometricStereo(p)) => {
+            let (capture, params) = ps_from_proto(&p, limits, request_limits.max_ps_kernel_bytes)?;
+            let with_history = p.return_iteration_normals;
+            Ok(Box::new(move |monitor| {
+                let out = crate::ps::photometric_stereo(&capture, &params, monitor)?;
+                let result = pb::JobResult {
+                    method: Some(pb::job_result::Method::PhotometricStereo(ps_to_proto(
+                        &out,
+                        with_history,
+                    ))),
                 };
                 Ok(result.encode_to_vec())
             }))

@@ -28,6 +28,7 @@
 //! [`read_tof_capture`].
 
 pub mod mvs;
+pub mod ps;
 pub mod scene;
 pub mod tof;
 
@@ -50,7 +51,7 @@ use crate::io::{self, DecodeLimits};
 pub const TOF_FRAME_FORMAT: &str = "murk.tof_frame";
 
 #[derive(Serialize, Deserialize)]
-struct IntrinsicsJson {
+pub(crate) struct IntrinsicsJson {
     fx: f64,
     fy: f64,
     cx: f64,

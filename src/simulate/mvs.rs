@@ -615,7 +615,7 @@ fn poses(cfg: &MvsSimConfig, rng: &mut ChaCha8Rng) -> Result<(Vec<Pose>, usize)>
     Ok((out, reference))
 }
 
-fn gaussian(rng: &mut ChaCha8Rng) -> f64 {
+pub(crate) fn gaussian(rng: &mut ChaCha8Rng) -> f64 {
     // Box–Muller; `1 − u` keeps the logarithm finite.
     let u1: f64 = 1.0 - rng.random::<f64>();
     let u2: f64 = rng.random();

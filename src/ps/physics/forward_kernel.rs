@@ -24,7 +24,7 @@
 use rayon::prelude::*;
 
 use super::f_table::FTable;
-use super::h::scatter_cs;
+use super::h::{scatter_cs, scatter_cs_fast};
 use super::Medium;
 use crate::camera::Intrinsics;
 use crate::error::{MurkError, Result};
@@ -152,12 +152,27 @@ impl Pre {
 /// K_pq from precomputed pixel data (see the module documentation for the model).
 #[inline(always)]
 fn k_entry(ft: &FTable, beta: f64, sigma: f64, p: &Pre, q: &Pre) -> f64 {
+    let (cos_g, sin_g, len) = k_geometry(p, q);
+    scatter_cs(ft, beta, sigma, q.da, q.d, cos_g, sin_g, len)
+}
+
+/// [`k_entry`] with the fast bracket of the kernel build (see `h::bracket_fast`); the
+/// simulator's dense sum and [`kernel_entry`] keep the accurate one.
+#[inline(always)]
+fn k_entry_fast(ft: &FTable, beta: f64, sigma: f64, p: &Pre, q: &Pre) -> f64 {
+    let (cos_g, sin_g, len) = k_geometry(p, q);
+    scatter_cs_fast(ft, beta, sigma, q.da, q.d, cos_g, sin_g, len)
+}
+
+/// cos γ, sin γ and the lit ray length d_vp′ of K_pq.
+#[inline(always)]
+fn k_geometry(p: &Pre, q: &Pre) -> (f64, f64, f64) {
     let cos_g = dot(p.ray, q.ray);
     let sin_g = cross_norm(p.ray, q.ray);
     let t = q.nq / dot(q.n, p.ray);
     // NaN (parallel ray on the plane) and t ≤ 0 (never crosses ahead) both mean "no crossing".
     let len = if t > 0.0 { t.min(p.d) } else { p.d };
-    scatter_cs(ft, beta, sigma, q.da, q.d, cos_g, sin_g, len)
+    (cos_g, sin_g, len)
 }
 
 /// K_pq for p ≠ q (Eq. 4.46, second case): the forward scatter collected along p's viewing ray
@@ -289,7 +304,7 @@ impl ForwardKernel {
                             *slot = (-sigma * pp.d).exp() as f32;
                             continue;
                         }
-                        let k = k_entry(ft, beta, sigma, pp, &pre[qi]) as f32;
+                        let k = k_entry_fast(ft, beta, sigma, pp, &pre[qi]) as f32;
                         *slot = k;
                         min = min.min(k as f64);
                     }
@@ -714,10 +729,12 @@ mod tests {
             mat[n * (n + 1) + b] = eps;
         }
         mat[n * (n + 1) + n] = -1.0;
-        assert_eq!(
-            kern.epsilon(),
-            eps,
-            "ε is the smallest stored off-diagonal entry"
+        // The build evaluates short brackets by a 3-point rule and the rest from the table
+        // (h::bracket_fast), `kernel_entry` with the accurate bracket: they agree to ~1e-3.
+        assert!(
+            (kern.epsilon() - eps).abs() <= 2e-3 * eps,
+            "ε is the smallest stored off-diagonal entry: {} vs {eps}",
+            kern.epsilon()
         );
         assert!(eps > 0.0);
 
@@ -732,7 +749,11 @@ mod tests {
             kern.apply(x, &mut y1);
             for a in 0..=n {
                 let want: f64 = (0..=n).map(|b| mat[a * (n + 1) + b] * x[b]).sum();
-                let tol = 1e-6 * (1.0 + want.abs());
+                let off: f64 = (0..n)
+                    .filter(|&b| b != a)
+                    .map(|b| (mat[a * (n + 1) + b] * x[b]).abs())
+                    .sum();
+                let tol = 1e-6 * (1.0 + want.abs()) + 2e-3 * off;
                 assert!(
                     (y1[a] - want).abs() < tol,
                     "light {j} row {a}: {} vs {want}",

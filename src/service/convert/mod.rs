@@ -4,6 +4,7 @@ mod image;
 mod job;
 mod mvs;
 mod params;
+mod ps;
 mod tof;
 
 pub use image::{image_from_proto, image_to_proto, ImageLimits};
@@ -15,5 +16,8 @@ pub use mvs::{
 pub use params::{
     canonicalize_params_request, params_from_proto, params_request_to_proto, AirlightService,
     ParamsInput, MAX_SPARSE_POINTS,
+};
+pub use ps::{
+    canonicalize_ps_request, ps_from_proto, ps_from_result, ps_request_to_proto, ps_to_proto,
 };
 pub use tof::{intrinsics_to_proto, tof_from_proto, tof_request_to_proto, tof_to_proto};

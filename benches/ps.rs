@@ -1,0 +1,123 @@
+//! Photometric stereo in turbid media (issue 5) on the reference's synthetic setting: a 300×300
+//! sphere, β = σ = 5e-3 /mm, 8 lights, kernel support r = 81, initialised as a plane. Benches
+//! the kernel build K̂ alone, one 8-light BiCGStab solve of Eq. 4.52 alone, and the whole
+//! pipeline with 5 iterations; after the pipeline it prints the per-stage times of one run and
+//! the process's peak resident memory (VmHWM).
+//!
+//! Run: `cargo bench --bench ps` (about 5 minutes: criterion's minimum of 10 samples of a
+//! ~20 s pipeline).
+
+use criterion::{criterion_group, criterion_main, Criterion};
+
+use murk::ps::bicgstab::{bicgstab_block, BicgstabParams, BlockOperator};
+use murk::ps::physics::{FTable, ForwardKernel, SurfaceGeometry};
+use murk::ps::pipeline::back_project;
+use murk::ps::{photometric_stereo, PsParams};
+use murk::simulate::ps::{simulate_ps, PsSimConfig};
+use murk::Monitor;
+
+const R: usize = 81;
+
+struct Augmented<'a>(&'a ForwardKernel);
+
+impl BlockOperator for Augmented<'_> {
+    fn dim(&self) -> usize {
+        self.0.masked_count() + 1
+    }
+    fn apply_block(&self, xs: &[f64], ys: &mut [f64], k: usize) {
+        self.0.apply_block(xs, ys, k);
+    }
+}
+
+fn peak_rss_mib() -> Option<f64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kb: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb / 1024.0)
+}
+
+fn bench(c: &mut Criterion) {
+    let cfg = PsSimConfig::default();
+    let sim = simulate_ps(&cfg, &Monitor::noop()).expect("simulate");
+    let cap = &sim.capture;
+    let (w, h) = cap.dims();
+    let ft = FTable::global();
+    // The kernel of the true shape (what later iterations see).
+    let points = back_project(&cap.intrinsics, w, &sim.gt_depth_mm, &cap.mask);
+    let geom = SurfaceGeometry {
+        width: w,
+        height: h,
+        intrinsics: cap.intrinsics,
+        points_mm: points,
+        normals: sim.gt_normals.clone(),
+        mask: cap.mask.clone(),
+    };
+    let object_pixels = cap.mask.iter().filter(|&&b| b).count();
+    let mut g = c.benchmark_group(format!("ps_{w}x{h}_r{R}_{object_pixels}px"));
+    g.sample_size(10);
+    g.bench_function("kernel_build", |b| {
+        b.iter(|| ForwardKernel::build(ft, &cap.medium, &geom, R).expect("kernel"))
+    });
+    let kernel = ForwardKernel::build(ft, &cap.medium, &geom, R).expect("kernel");
+    let masked: Vec<usize> = (0..w * h).filter(|&p| cap.mask[p]).collect();
+    let dim = masked.len() + 1;
+    let m = cap.lights.len();
+    let mut rhs = vec![0.0f64; dim * m];
+    for (i, img) in cap.images.iter().enumerate() {
+        for (k, &p) in masked.iter().enumerate() {
+            rhs[i * dim + k] = f64::from(img.data()[p] - cap.backgrounds[i].data()[p]);
+        }
+    }
+    g.bench_function("bicgstab_8_lights", |b| {
+        b.iter(|| {
+            let mut x = rhs.clone();
+            bicgstab_block(
+                &Augmented(&kernel),
+                &rhs,
+                &mut x,
+                m,
+                &BicgstabParams::default(),
+                &Monitor::noop(),
+            )
+            .expect("solve")
+        })
+    });
+    drop(kernel);
+    let params = PsParams {
+        initial_distance_mm: sim.initial_distance_mm,
+        support_r: R,
+        max_iterations: 5,
+        tolerance: 0.0,
+        ..PsParams::default()
+    };
+    let mut last = None;
+    g.bench_function("pipeline_5_iterations", |b| {
+        b.iter(|| last = Some(photometric_stereo(cap, &params, &Monitor::noop()).expect("ps")))
+    });
+    g.finish();
+    if let Some(out) = last {
+        eprintln!(
+            "one pipeline run: total {:.2} s, backscatter removal {:.3} s",
+            out.total_s, out.backscatter_s
+        );
+        for s in &out.iterations {
+            eprintln!(
+                "  iteration {}: kernel {:.2} s ({:.0} MiB), BiCGStab {:.2} s ({:?} iterations), \
+                 normals {:.3} s, integration {:.3} s",
+                s.iteration,
+                s.kernel_s,
+                s.kernel_bytes as f64 / (1 << 20) as f64,
+                s.solve_s,
+                s.solver_iterations,
+                s.normals_s,
+                s.integrate_s
+            );
+        }
+    }
+    if let Some(mib) = peak_rss_mib() {
+        eprintln!("peak resident memory of the bench process: {mib:.0} MiB");
+    }
+}
+
+criterion_group!(benches, bench);
+criterion_main!(benches);

@@ -1,0 +1,195 @@
+//! `murk ps`: photometric stereo in turbid media (reference Ch. 4) on a capture folder.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::Context;
+use clap::{Args, ValueEnum};
+
+use murk::image::ImageF32;
+use murk::io::{write_colormap_png, write_exr, write_png_rgb8};
+use murk::metrics::mean_angular_error_deg;
+use murk::ps::mesh::{depth_mesh, encode_ply_mesh};
+use murk::ps::{PsMode, PsParams, PsResult};
+use murk::service::convert::{ps_from_result, ps_request_to_proto};
+use murk::service::proto::v1 as pb;
+use murk::simulate::ps::read_ps_capture;
+
+use super::mvs::run_here_or_remote;
+
+/// Which scattering effects to remove, as named on the command line.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum ModeArg {
+    /// Backscatter, surface-camera and source-surface forward scatter (the reference's method).
+    Full,
+    /// Backscatter subtraction and attenuation only (the baseline [15]).
+    BackscatterOnly,
+}
+
+/// Options of `murk ps`.
+#[derive(Args, Debug)]
+pub struct PsArgs {
+    /// Capture folder in the layout of `murk simulate ps` (meta.json, image_*.exr,
+    /// background_*.exr, mask.png); see the README for bringing your own captures.
+    #[arg(long)]
+    pub capture: PathBuf,
+    /// Output folder (created).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Server URL; default: run a server in this process.
+    #[arg(long)]
+    pub server: Option<String>,
+    /// z-distance of the initial plane, mm: the mean z-depth of the object's visible surface
+    /// (default: meta.json's initial_distance_mm). It sets the absolute scale of the depth.
+    #[arg(long)]
+    pub initial_distance_mm: Option<f64>,
+    /// Kernel support r (odd).
+    #[arg(long, default_value_t = 61)]
+    pub support_r: usize,
+    /// Iteration cap.
+    #[arg(long, default_value_t = 5)]
+    pub iterations: usize,
+    /// Stop when the mean depth change falls below this fraction (0 = run every iteration).
+    #[arg(long, default_value_t = 1e-3)]
+    pub tolerance: f64,
+    /// Full model or the backscatter-only baseline.
+    #[arg(long, value_enum, default_value_t = ModeArg::Full)]
+    pub mode: ModeArg,
+    /// Keep Eq. 4.55's linearisation G(T, n·l) ≈ G(T, 1)·n·l (the reference as published)
+    /// instead of refining normals on the exact G.
+    #[arg(long)]
+    pub linear_g: bool,
+}
+
+/// Runs `murk ps`.
+pub fn run(a: PsArgs) -> anyhow::Result<()> {
+    let folder = read_ps_capture(&a.capture)
+        .with_context(|| format!("reading capture {}", a.capture.display()))?;
+    let initial = a
+        .initial_distance_mm
+        .or(folder.initial_distance_mm)
+        .context("no initial distance: pass --initial-distance-mm (meta.json has none)")?;
+    let params = PsParams {
+        initial_distance_mm: initial,
+        support_r: a.support_r,
+        max_iterations: a.iterations,
+        tolerance: a.tolerance,
+        mode: match a.mode {
+            ModeArg::Full => PsMode::Full,
+            ModeArg::BackscatterOnly => PsMode::BackscatterOnly,
+        },
+        exact_g: !a.linear_g,
+        ..PsParams::default()
+    };
+    let mut request = ps_request_to_proto(&folder.capture, &params);
+    request.return_iteration_normals = folder.gt_normals.is_some();
+    let (job, result) = run_here_or_remote(
+        a.server.as_deref(),
+        pb::JobRequest {
+            method: Some(pb::job_request::Method::PhotometricStereo(request)),
+        },
+        "ps",
+    )?;
+    let Some(pb::job_result::Method::PhotometricStereo(r)) = result.method else {
+        anyhow::bail!("the server returned a result of another method");
+    };
+    let out = ps_from_result(&r, &folder.capture.mask)?;
+    write_ps_result(&a.out, &folder.capture.intrinsics, &out)?;
+    print_iteration_table(&out, folder.gt_normals.as_deref());
+    println!(
+        "job {}{}: {:.2} s; wrote {}",
+        job.id,
+        if job.cached { " (cached)" } else { "" },
+        out.total_s,
+        a.out.display()
+    );
+    Ok(())
+}
+
+/// Writes normals (EXR + PNG), albedo, depth (EXR + colour-mapped PNG) and a PLY mesh.
+pub fn write_ps_result(
+    dir: &Path,
+    intr: &murk::camera::Intrinsics,
+    out: &PsResult,
+) -> anyhow::Result<()> {
+    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    let (w, h) = (out.width, out.height);
+    write_exr(
+        &dir.join("normals.exr"),
+        &ImageF32::from_vec(w, h, 3, out.normals.iter().flatten().copied().collect())?,
+    )?;
+    // The usual normal-map colouring: RGB = (n + 1) / 2 with y flipped to point up and z
+    // towards the viewer, so a sphere looks as in the reference's figures.
+    let rgb: Vec<u8> = out
+        .normals
+        .iter()
+        .zip(&out.mask)
+        .flat_map(|(n, &m)| {
+            if m {
+                [n[0], -n[1], -n[2]]
+                    .map(|c| ((c + 1.0) * 0.5 * 255.0).round().clamp(0.0, 255.0) as u8)
+            } else {
+                [0, 0, 0]
+            }
+        })
+        .collect();
+    write_png_rgb8(&dir.join("normals.png"), w, h, &rgb)?;
+    write_exr(
+        &dir.join("albedo.exr"),
+        &ImageF32::from_vec(w, h, 1, out.albedo.clone())?,
+    )?;
+    let depth = ImageF32::from_vec(w, h, 1, out.depth_mm.clone())?;
+    write_exr(&dir.join("depth_mm.exr"), &depth)?;
+    let finite: Vec<f32> = out
+        .depth_mm
+        .iter()
+        .copied()
+        .filter(|v| v.is_finite())
+        .collect();
+    let lo = finite.iter().copied().fold(f32::INFINITY, f32::min);
+    let hi = finite.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+    if lo.is_finite() && hi > lo {
+        let mask = ImageF32::from_vec(
+            w,
+            h,
+            1,
+            out.mask
+                .iter()
+                .map(|&b| if b { 1.0 } else { 0.0 })
+                .collect(),
+        )?;
+        write_colormap_png(&dir.join("depth.png"), &depth, lo, hi, Some(&mask))?;
+    }
+    let (v, n, f) = depth_mesh(intr, w, &out.depth_mm, &out.normals, &out.mask);
+    std::fs::write(dir.join("mesh.ply"), encode_ply_mesh(&v, &n, &f))
+        .with_context(|| format!("writing {}", dir.join("mesh.ply").display()))?;
+    Ok(())
+}
+
+/// Prints one row per iteration; with ground truth also the mean angular error of that
+/// iteration's normals (the reference's Table 4.1).
+pub fn print_iteration_table(out: &PsResult, gt: Option<&[[f32; 3]]>) {
+    println!(
+        "{:>4} {:>10} {:>10} {:>12} {:>9} {:>8} {:>8} {:>8}",
+        "iter", "error [°]", "Δz/z", "mean z [mm]", "BiCGStab", "K [s]", "solve [s]", "rest [s]"
+    );
+    for (k, s) in out.iterations.iter().enumerate() {
+        let err = match (gt, out.normals_history.get(k)) {
+            (Some(gt), Some(n)) => mean_angular_error_deg(n, gt, &out.mask)
+                .map(|e| format!("{e:.2}"))
+                .unwrap_or_else(|_| "-".into()),
+            _ => "-".into(),
+        };
+        let iters = s.solver_iterations.iter().max().copied().unwrap_or(0);
+        println!(
+            "{:>4} {:>10} {:>10.4} {:>12.1} {:>9} {:>8.2} {:>8.2} {:>8.2}",
+            s.iteration,
+            err,
+            s.relative_depth_change,
+            s.mean_depth_mm,
+            iters,
+            s.kernel_s,
+            s.solve_s,
+            s.normals_s + s.integrate_s
+        );
+    }
+}

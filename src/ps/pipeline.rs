@@ -1,0 +1,518 @@
+//! The iterative algorithm of §4.3.4: backscatter removal, then repeatedly surface-camera
+//! forward-scatter removal (Eq. 4.52, BiCGStab), near-light photometric stereo (Eq. 4.56–4.59),
+//! perspective normal integration (Eq. 4.15–4.27, 4.60–4.62) and a normal update from the
+//! shape, until the shape stops changing.
+
+use std::time::Instant;
+
+use crate::error::{MurkError, Result};
+use crate::monitor::Monitor;
+use crate::ps::backscatter::remove_backscatter;
+use crate::ps::bicgstab::{bicgstab_block, BicgstabParams, BlockOperator};
+use crate::ps::capture::PsCapture;
+use crate::ps::integrate::{
+    depth_from_log, integrate_normals, normals_from_depth, IntegrationParams,
+};
+use crate::ps::near_light::{solve_normals, ShadingModel};
+use crate::ps::physics::{FTable, ForwardKernel, GTable, SurfaceGeometry};
+
+/// Largest kernel support `r` accepted (an r×r window per pixel is stored; 201² f32 = 160 kB
+/// per object pixel).
+pub const MAX_SUPPORT_R: usize = 201;
+/// Largest iteration cap accepted.
+pub const MAX_ITERATIONS: usize = 100;
+/// Default bound on the stored kernel K̂ (`object pixels × r² × 4` bytes), the method's memory
+/// peak: 4 GiB, the issue's budget for 300×300 at r = 81 (about 1 GiB there).
+pub const DEFAULT_MAX_KERNEL_BYTES: usize = 4 << 30;
+
+/// Which scattering effects the pipeline removes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub enum PsMode {
+    /// The reference's method: backscatter, surface-camera and source-surface forward scatter.
+    Full,
+    /// The baseline [15]: backscatter subtraction and attenuation only.
+    BackscatterOnly,
+}
+
+/// Settings of [`photometric_stereo`]. Defaults follow the reference.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PsParams {
+    /// z-distance of the initial fronto-parallel plane, mm (§4.4.4 initialises with a plane):
+    /// the mean z-depth of the object's visible surface as well as the rig knows it. Every
+    /// integrated shape keeps this mean depth: perspective integration fixes the shape only up
+    /// to scale, so this value sets the absolute scale (docs/ACCURACY.md measures the cost of
+    /// getting it wrong).
+    pub initial_distance_mm: f64,
+    /// An initial shape instead of the plane: z-depth per pixel, mm (finite and > 0 on the
+    /// mask). With the true shape this is the reference's "Input GT" experiment.
+    pub initial_depth_mm: Option<Vec<f32>>,
+    /// Kernel support `r` (odd, ≥ 3): K̂ keeps an r×r window per pixel (Eq. 4.51). The
+    /// reference found 61–81 effective.
+    pub support_r: usize,
+    /// Iteration cap for steps 3–5.
+    pub max_iterations: usize,
+    /// Stop when the mean |Δz| between iterations falls below this fraction of the mean depth.
+    pub tolerance: f64,
+    /// Full model or the backscatter-only baseline.
+    pub mode: PsMode,
+    /// Apply the 3×3 median after backscatter subtraction (§4.3.4).
+    pub median_filter: bool,
+    /// Observations below this fraction of a pixel's brightest one count as shadowed.
+    pub shadow_ratio: f64,
+    /// Refine each pixel's Eq. 4.57 solution by Gauss–Newton on the exact `G(T, n·l)` of
+    /// Eq. 4.54 instead of keeping Eq. 4.55's linearisation (see
+    /// [`crate::ps::near_light::solve_normals`]). Off reproduces the reference exactly.
+    pub exact_g: bool,
+    /// `s` of the integration weights (Eq. 4.61–4.62).
+    pub smoothness_s: f64,
+    /// BiCGStab settings for Eq. 4.52.
+    pub solver: BicgstabParams,
+    /// Refuse captures whose kernel K̂ would exceed this many bytes.
+    pub max_kernel_bytes: usize,
+}
+
+impl Default for PsParams {
+    fn default() -> Self {
+        Self {
+            initial_distance_mm: 300.0,
+            initial_depth_mm: None,
+            support_r: 61,
+            max_iterations: 5,
+            tolerance: 1e-3,
+            mode: PsMode::Full,
+            median_filter: true,
+            shadow_ratio: 0.05,
+            exact_g: true,
+            smoothness_s: 0.02,
+            solver: BicgstabParams::default(),
+            max_kernel_bytes: DEFAULT_MAX_KERNEL_BYTES,
+        }
+    }
+}
+
+/// Every check [`photometric_stereo`] makes before it starts, for callers that validate at
+/// submission: the settings, the capture, and the kernel's memory bound.
+pub fn validate_request(capture: &PsCapture, params: &PsParams) -> Result<()> {
+    let (width, height) = capture.dims();
+    params.validate(width, height)?;
+    capture.validate(params.initial_distance_mm)?;
+    if let Some(d) = &params.initial_depth_mm {
+        if d.len() != width * height {
+            return Err(MurkError::invalid(
+                "initial_depth_mm",
+                format!("{} values for a {width}x{height} image", d.len()),
+            ));
+        }
+        if d.iter()
+            .zip(&capture.mask)
+            .any(|(z, &m)| m && !(z.is_finite() && *z > 0.0))
+        {
+            return Err(MurkError::invalid(
+                "initial_depth_mm",
+                "must be finite and > 0 on every object pixel",
+            ));
+        }
+    }
+    let object_pixels = capture.mask.iter().filter(|&&b| b).count();
+    let bytes = object_pixels
+        .saturating_mul(params.support_r * params.support_r)
+        .saturating_mul(4);
+    if params.mode == PsMode::Full && bytes > params.max_kernel_bytes {
+        return Err(MurkError::invalid(
+            "support_r",
+            format!(
+                "the kernel for {object_pixels} object pixels at r = {} needs {bytes} bytes, over \
+                 the limit of {} bytes: use a smaller support or a smaller image",
+                params.support_r, params.max_kernel_bytes
+            ),
+        ));
+    }
+    Ok(())
+}
+
+impl PsParams {
+    /// Checks the settings against an image of `width × height`; errors name the field.
+    pub fn validate(&self, width: usize, height: usize) -> Result<()> {
+        if !self.initial_distance_mm.is_finite() || self.initial_distance_mm <= 0.0 {
+            return Err(MurkError::invalid(
+                "initial_distance_mm",
+                format!("must be finite and > 0, got {}", self.initial_distance_mm),
+            ));
+        }
+        let r = self.support_r;
+        if r < 3 || r.is_multiple_of(2) {
+            return Err(MurkError::invalid(
+                "support_r",
+                format!("must be odd and ≥ 3, got {r}"),
+            ));
+        }
+        if r > MAX_SUPPORT_R || r > width.max(height) {
+            return Err(MurkError::invalid(
+                "support_r",
+                format!(
+                    "{r} exceeds the limit min({MAX_SUPPORT_R}, image size {})",
+                    width.max(height)
+                ),
+            ));
+        }
+        if self.max_iterations == 0 || self.max_iterations > MAX_ITERATIONS {
+            return Err(MurkError::invalid(
+                "max_iterations",
+                format!(
+                    "must be in 1..={MAX_ITERATIONS}, got {}",
+                    self.max_iterations
+                ),
+            ));
+        }
+        if !self.tolerance.is_finite() || self.tolerance < 0.0 {
+            return Err(MurkError::invalid(
+                "tolerance",
+                format!("must be finite and ≥ 0, got {}", self.tolerance),
+            ));
+        }
+        if !self.shadow_ratio.is_finite() || !(0.0..1.0).contains(&self.shadow_ratio) {
+            return Err(MurkError::invalid(
+                "shadow_ratio",
+                format!("must be in [0, 1), got {}", self.shadow_ratio),
+            ));
+        }
+        if !self.smoothness_s.is_finite() || self.smoothness_s <= 0.0 {
+            return Err(MurkError::invalid(
+                "smoothness_s",
+                format!("must be finite and > 0, got {}", self.smoothness_s),
+            ));
+        }
+        let s = &self.solver;
+        if !s.rel_tolerance.is_finite() || s.rel_tolerance <= 0.0 || s.rel_tolerance >= 1.0 {
+            return Err(MurkError::invalid(
+                "solver.rel_tolerance",
+                format!("must be in (0, 1), got {}", s.rel_tolerance),
+            ));
+        }
+        if s.max_iterations == 0 || s.max_iterations > 10_000 {
+            return Err(MurkError::invalid(
+                "solver.max_iterations",
+                format!("must be in 1..=10000, got {}", s.max_iterations),
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// What one pass of steps 3–5 did.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PsIterationStats {
+    /// 1-based iteration number.
+    pub iteration: usize,
+    /// Mean |Δz| against the previous shape over the mean depth.
+    pub relative_depth_change: f64,
+    /// Mean depth of the shape after this iteration, mm.
+    pub mean_depth_mm: f64,
+    /// BiCGStab iterations per light (empty in backscatter-only mode).
+    pub solver_iterations: Vec<usize>,
+    /// Largest final relative residual over the lights (0 in backscatter-only mode).
+    pub solver_residual: f64,
+    /// ε of Eq. 4.53 (0 in backscatter-only mode).
+    pub epsilon: f64,
+    /// The constant term `C` of Eq. 4.52 per light.
+    pub constant_term: Vec<f64>,
+    /// Bytes of the stored kernel K̂.
+    pub kernel_bytes: usize,
+    /// Pixels whose normal was filled from neighbours.
+    pub filled_pixels: usize,
+    /// Seconds spent building K̂.
+    pub kernel_s: f64,
+    /// Seconds in BiCGStab.
+    pub solve_s: f64,
+    /// Seconds in photometric stereo.
+    pub normals_s: f64,
+    /// Seconds in integration, scale choice and the normal update.
+    pub integrate_s: f64,
+}
+
+/// Output of [`photometric_stereo`].
+#[derive(Clone, Debug)]
+pub struct PsResult {
+    /// Image width.
+    pub width: usize,
+    /// Image height.
+    pub height: usize,
+    /// Unit normals (camera frame, towards the camera) from the last iteration's photometric
+    /// stereo; `[0, 0, -1]` outside the mask.
+    pub normals: Vec<[f32; 3]>,
+    /// Albedo from the last iteration (Eq. 4.58), 0 outside the mask.
+    pub albedo: Vec<f32>,
+    /// z-depth of the integrated shape, mm; NaN outside the mask.
+    pub depth_mm: Vec<f32>,
+    /// The mask the pipeline worked on.
+    pub mask: Vec<bool>,
+    /// Per-iteration statistics.
+    pub iterations: Vec<PsIterationStats>,
+    /// Photometric-stereo normals after each iteration (for Table 4.1-style error tables).
+    pub normals_history: Vec<Vec<[f32; 3]>>,
+    /// Seconds for backscatter removal.
+    pub backscatter_s: f64,
+    /// Total seconds.
+    pub total_s: f64,
+}
+
+/// The augmented operator of Eq. 4.52 over K̂.
+struct Augmented<'a>(&'a ForwardKernel);
+
+impl BlockOperator for Augmented<'_> {
+    fn dim(&self) -> usize {
+        self.0.masked_count() + 1
+    }
+    fn apply_block(&self, xs: &[f64], ys: &mut [f64], k: usize) {
+        self.0.apply_block(xs, ys, k);
+    }
+}
+
+/// Runs the method of §4.3.4 on `capture`. Progress is reported per stage and iteration;
+/// `monitor` cancellation stops it between (and inside) stages.
+pub fn photometric_stereo(
+    capture: &PsCapture,
+    params: &PsParams,
+    monitor: &Monitor,
+) -> Result<PsResult> {
+    let started = Instant::now();
+    let (width, height) = capture.dims();
+    validate_request(capture, params)?;
+    let mask = capture.mask.clone();
+    let n = width * height;
+    let m = capture.lights.len();
+    let intr = capture.intrinsics;
+    let medium = capture.medium;
+    let masked: Vec<usize> = (0..n).filter(|&p| mask[p]).collect();
+    let model = match params.mode {
+        PsMode::Full => ShadingModel::ForwardScatter,
+        PsMode::BackscatterOnly => ShadingModel::DirectOnly,
+    };
+    let ft = FTable::global();
+    let gt = GTable::global();
+
+    // Step 2.
+    monitor.progress("backscatter removal", 0.0);
+    let t0 = Instant::now();
+    let observed: Vec<Vec<f32>> = capture
+        .images
+        .iter()
+        .zip(&capture.backgrounds)
+        .map(|(img, bg)| {
+            remove_backscatter(img.data(), bg.data(), &mask, width, params.median_filter)
+        })
+        .collect();
+    let backscatter_s = t0.elapsed().as_secs_f64();
+    monitor.checkpoint()?;
+
+    // Step 1: a fronto-parallel plane, or the given shape.
+    let mut depth: Vec<f32> = (0..n)
+        .map(|p| match (&params.initial_depth_mm, mask[p]) {
+            (_, false) => f32::NAN,
+            (Some(d), true) => d[p],
+            (None, true) => params.initial_distance_mm as f32,
+        })
+        .collect();
+    let mut shape_normals = match &params.initial_depth_mm {
+        Some(_) => normals_from_depth(&intr, width, height, &depth, &mask),
+        None => vec![[0.0f32, 0.0, -1.0]; n],
+    };
+    let mut iterations = Vec::new();
+    let mut normals_history = Vec::new();
+    let mut last = None;
+    let total = params.max_iterations as f32;
+
+    for it in 0..params.max_iterations {
+        let stage = |name: &str, frac: f32| {
+            monitor.progress(
+                &format!("iteration {}/{}: {name}", it + 1, params.max_iterations),
+                (it as f32 + frac) / total,
+            )
+        };
+        let points = back_project(&intr, width, &depth, &mask);
+        let mut stats = PsIterationStats {
+            iteration: it + 1,
+            relative_depth_change: 0.0,
+            mean_depth_mm: 0.0,
+            solver_iterations: Vec::new(),
+            solver_residual: 0.0,
+            epsilon: 0.0,
+            constant_term: Vec::new(),
+            kernel_bytes: 0,
+            filled_pixels: 0,
+            kernel_s: 0.0,
+            solve_s: 0.0,
+            normals_s: 0.0,
+            integrate_s: 0.0,
+        };
+
+        // Step 3: reflected component L_s per light.
+        // Without scattering (β = 0) K is diagonal and the solve is a division.
+        let use_kernel = params.mode == PsMode::Full && medium.beta_per_mm > 0.0;
+        let reflected: Vec<Vec<f32>> = match use_kernel {
+            false => observed
+                .iter()
+                .map(|obs| {
+                    (0..n)
+                        .map(|p| {
+                            if mask[p] {
+                                let d = norm(points[p]);
+                                obs[p] * (medium.sigma_per_mm * d).exp() as f32
+                            } else {
+                                0.0
+                            }
+                        })
+                        .collect()
+                })
+                .collect(),
+            true => {
+                stage("forward-scatter kernel", 0.0);
+                let t = Instant::now();
+                let geom = SurfaceGeometry {
+                    width,
+                    height,
+                    intrinsics: intr,
+                    points_mm: points.clone(),
+                    normals: shape_normals.clone(),
+                    mask: mask.clone(),
+                };
+                let kernel = ForwardKernel::build(ft, &medium, &geom, params.support_r)?;
+                stats.kernel_s = t.elapsed().as_secs_f64();
+                stats.kernel_bytes = kernel.bytes();
+                stats.epsilon = kernel.epsilon();
+                monitor.checkpoint()?;
+                stage("forward-scatter removal", 0.3);
+                let t = Instant::now();
+                let dim = masked.len() + 1;
+                let mut b = vec![0.0f64; dim * m];
+                let mut x = vec![0.0f64; dim * m];
+                for (i, obs) in observed.iter().enumerate() {
+                    for (k, &p) in masked.iter().enumerate() {
+                        b[i * dim + k] = f64::from(obs[p]);
+                        let diag = (-medium.sigma_per_mm * norm(points[p])).exp();
+                        x[i * dim + k] = f64::from(obs[p]) / diag;
+                    }
+                }
+                let report = bicgstab_block(
+                    &Augmented(&kernel),
+                    &b,
+                    &mut x,
+                    m,
+                    &params.solver,
+                    &monitor.sub((it as f32 + 0.3) / total, (it as f32 + 0.6) / total),
+                )?;
+                stats.solve_s = t.elapsed().as_secs_f64();
+                stats.solver_iterations = report.iterations.clone();
+                stats.solver_residual = report.rel_residuals.iter().copied().fold(0.0, f64::max);
+                stats.constant_term = (0..m).map(|i| x[i * dim + dim - 1]).collect();
+                (0..m)
+                    .map(|i| {
+                        let mut ls = vec![0.0f32; n];
+                        for (k, &p) in masked.iter().enumerate() {
+                            ls[p] = x[i * dim + k] as f32;
+                        }
+                        ls
+                    })
+                    .collect()
+            }
+        };
+        monitor.checkpoint()?;
+
+        // Step 4: normals and albedo.
+        stage("photometric stereo", 0.6);
+        let t = Instant::now();
+        let est = solve_normals(
+            &reflected,
+            &capture.lights,
+            &medium,
+            gt,
+            model,
+            &points,
+            &mask,
+            width,
+            params.shadow_ratio,
+            params.exact_g,
+        );
+        stats.filled_pixels = masked.iter().filter(|&&p| !est.solved[p]).count();
+        stats.normals_s = t.elapsed().as_secs_f64();
+        monitor.checkpoint()?;
+
+        // Step 5: integrate, fix the scale, update normals from the shape.
+        stage("normal integration", 0.8);
+        let t = Instant::now();
+        let g = integrate_normals(
+            &intr,
+            width,
+            height,
+            &est.normals,
+            &mask,
+            &IntegrationParams {
+                smoothness_s: params.smoothness_s,
+            },
+        )?;
+        let prev_mean = mean_masked(&depth, &masked);
+        let new_depth = depth_from_log(&g, &mask, prev_mean);
+        let change = masked
+            .iter()
+            .map(|&p| f64::from((new_depth[p] - depth[p]).abs()))
+            .sum::<f64>()
+            / masked.len() as f64;
+        depth = new_depth;
+        shape_normals = normals_from_depth(&intr, width, height, &depth, &mask);
+        stats.mean_depth_mm = mean_masked(&depth, &masked);
+        stats.relative_depth_change = change / stats.mean_depth_mm.max(1e-9);
+        stats.integrate_s = t.elapsed().as_secs_f64();
+        tracing::debug!(?stats, "photometric stereo iteration");
+        let converged = stats.relative_depth_change < params.tolerance;
+        iterations.push(stats);
+        normals_history.push(est.normals.clone());
+        last = Some(est);
+        if converged {
+            break;
+        }
+    }
+    monitor.progress("done", 1.0);
+    let est = last.ok_or_else(|| MurkError::Internal("no iteration ran".into()))?;
+    Ok(PsResult {
+        width,
+        height,
+        normals: est.normals,
+        albedo: est.albedo,
+        depth_mm: depth,
+        mask,
+        iterations,
+        normals_history,
+        backscatter_s,
+        total_s: started.elapsed().as_secs_f64(),
+    })
+}
+
+fn norm(v: [f32; 3]) -> f64 {
+    let [x, y, z] = v.map(f64::from);
+    (x * x + y * y + z * z).sqrt()
+}
+
+fn mean_masked(v: &[f32], masked: &[usize]) -> f64 {
+    masked.iter().map(|&p| f64::from(v[p])).sum::<f64>() / masked.len().max(1) as f64
+}
+
+/// Camera-frame points of a z-depth map (zeros outside the mask).
+pub fn back_project(
+    intr: &crate::camera::Intrinsics,
+    width: usize,
+    depth_mm: &[f32],
+    mask: &[bool],
+) -> Vec<[f32; 3]> {
+    depth_mm
+        .iter()
+        .enumerate()
+        .map(|(p, &z)| {
+            if !mask[p] {
+                return [0.0; 3];
+            }
+            let r = intr.ray((p % width) as f64, (p / width) as f64);
+            let s = f64::from(z) / r[2];
+            [(r[0] * s) as f32, (r[1] * s) as f32, (r[2] * s) as f32]
+        })
+        .collect()
+}
