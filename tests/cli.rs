@@ -270,3 +270,64 @@ fn simulate_mvs_then_params_estimates_and_writes_the_residual_grid() {
         .unwrap();
     assert!(!bad.status.success());
 }
+
+#[test]
+fn simulate_ps_then_ps_client_writes_normals_depth_and_mesh() {
+    let dir = tempfile::tempdir().unwrap();
+    let capture = dir.path().join("capture");
+    let out = dir.path().join("out");
+    let st = murk()
+        .args(["simulate", "ps", "--shape", "vase", "--seed", "2"])
+        .args(["--width", "48", "--height", "48", "--out"])
+        .arg(&capture)
+        .status()
+        .unwrap();
+    assert!(st.success());
+    for f in [
+        "meta.json",
+        "image_00.exr",
+        "background_07.exr",
+        "mask.png",
+        "gt_normals.exr",
+        "gt_depth_mm.exr",
+        "gt_albedo.exr",
+        "gt_reflected_03.exr",
+    ] {
+        assert!(capture.join(f).exists(), "{f} missing");
+    }
+    // No --server: the command starts its own server in-process.
+    let output = murk()
+        .args(["ps", "--support-r", "13", "--iterations", "2", "--capture"])
+        .arg(&capture)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    assert!(
+        output.status.success(),
+        "stderr: {}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    for f in [
+        "normals.exr",
+        "normals.png",
+        "albedo.exr",
+        "depth_mm.exr",
+        "depth.png",
+        "mesh.ply",
+    ] {
+        assert!(out.join(f).exists(), "{f} missing");
+    }
+    // Ground truth is in the folder, so the per-iteration table has an error column filled in.
+    let row = stdout
+        .lines()
+        .find(|l| l.trim_start().starts_with("1 "))
+        .unwrap_or_else(|| panic!("no iteration row in:\n{stdout}"));
+    let err: f64 = row.split_whitespace().nth(1).unwrap().parse().unwrap();
+    assert!(err.is_finite() && err < 30.0, "{row}");
+    let ply = std::fs::read(out.join("mesh.ply")).unwrap();
+    let header = String::from_utf8_lossy(&ply[..ply.len().min(400)]);
+    assert!(header.starts_with("ply\nformat binary_little_endian 1.0"));
+    assert!(header.contains("element face"));
+}

@@ -72,25 +72,82 @@ fn reference_table_full_size() {
         .ok()
         .and_then(|v| v.parse().ok())
         .unwrap_or(81);
+    let side: usize = std::env::var("MURK_PS_SIDE")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(300);
     let cfg = PsSimConfig {
         shape,
-        ..PsSimConfig::default()
+        ..PsSimConfig::with_size(side, side)
     };
-    let params = PsParams {
+    let t0 = std::time::Instant::now();
+    let sim = simulate_ps(&cfg, &Monitor::noop()).unwrap();
+    eprintln!(
+        "{shape:?} {side}x{side}: {} object px, simulated in {:.1} s, initial plane {:.1} mm",
+        sim.capture.mask.iter().filter(|&&b| b).count(),
+        t0.elapsed().as_secs_f64(),
+        sim.initial_distance_mm
+    );
+    let base = PsParams {
+        initial_distance_mm: sim.initial_distance_mm,
         support_r: r,
         max_iterations: 5,
         tolerance: 0.0,
         ..PsParams::default()
     };
-    for mode in [PsMode::Full, PsMode::BackscatterOnly] {
-        let e = errors(
-            &cfg,
-            &PsParams {
-                mode,
-                ..params.clone()
+    let variants = [
+        ("full, exact G (murk default)", PsParams { ..base.clone() }),
+        (
+            "full, Eq. 4.55 linear G (as published)",
+            PsParams {
+                exact_g: false,
+                ..base.clone()
             },
+        ),
+        (
+            "backscatter only [15]",
+            PsParams {
+                mode: PsMode::BackscatterOnly,
+                ..base.clone()
+            },
+        ),
+        (
+            "input GT, exact G",
+            PsParams {
+                initial_depth_mm: Some(sim.gt_depth_mm.clone()),
+                max_iterations: 1,
+                ..base.clone()
+            },
+        ),
+        (
+            "input GT, linear G",
+            PsParams {
+                initial_depth_mm: Some(sim.gt_depth_mm.clone()),
+                max_iterations: 1,
+                exact_g: false,
+                ..base.clone()
+            },
+        ),
+    ];
+    for (name, params) in variants {
+        let out = photometric_stereo(&sim.capture, &params, &Monitor::noop()).unwrap();
+        let e: Vec<String> = out
+            .normals_history
+            .iter()
+            .map(|n| {
+                format!(
+                    "{:.2}",
+                    mean_angular_error_deg(n, &sim.gt_normals, &sim.capture.mask).unwrap()
+                )
+            })
+            .collect();
+        let kernel: f64 = out.iterations.iter().map(|s| s.kernel_s).sum();
+        let solve: f64 = out.iterations.iter().map(|s| s.solve_s).sum();
+        eprintln!(
+            "| {name} | {} | {:.1} s (kernel {kernel:.1}, BiCGStab {solve:.1}) |",
+            e.join(" | "),
+            out.total_s
         );
-        eprintln!("{shape:?} {mode:?} r={r}: {e:?}");
     }
 }
 
@@ -360,5 +417,48 @@ fn experiment_g_shape() {
             .map(|&c| format!("{c}:{:.4}", g.eval(t, c)))
             .collect();
         eprintln!("T={t}: {}", row.join(" "));
+    }
+}
+
+#[test]
+#[ignore = "experiment: kernel build time on the simulator's sphere vs the initial plane"]
+fn experiment_kernel_build_time() {
+    use crate::ps::physics::{FTable, ForwardKernel, SurfaceGeometry};
+    use crate::ps::pipeline::back_project;
+    let side: usize = std::env::var("MURK_PS_SIDE")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(300);
+    let r: usize = std::env::var("MURK_PS_R")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(81);
+    let cfg = PsSimConfig {
+        far_stride: 8,
+        ..PsSimConfig::with_size(side, side)
+    };
+    let sim = simulate_ps(&cfg, &Monitor::noop()).unwrap();
+    let cap = &sim.capture;
+    let (w, h) = cap.dims();
+    let plane: Vec<f32> = vec![sim.initial_distance_mm as f32; w * h];
+    for (name, depth, normals) in [
+        ("sphere", sim.gt_depth_mm.clone(), sim.gt_normals.clone()),
+        ("plane", plane, vec![[0.0f32, 0.0, -1.0]; w * h]),
+    ] {
+        let geom = SurfaceGeometry {
+            width: w,
+            height: h,
+            intrinsics: cap.intrinsics,
+            points_mm: back_project(&cap.intrinsics, w, &depth, &cap.mask),
+            normals,
+            mask: cap.mask.clone(),
+        };
+        let t = std::time::Instant::now();
+        let k = ForwardKernel::build(FTable::global(), &cap.medium, &geom, r).unwrap();
+        eprintln!(
+            "{name}: build {:.2} s, ε {:.3e}",
+            t.elapsed().as_secs_f64(),
+            k.epsilon()
+        );
     }
 }

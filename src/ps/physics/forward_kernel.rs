@@ -132,6 +132,8 @@ struct Pre {
     nq: f64,
     /// Facet area dA (Eq. 4.44), mm².
     da: f64,
+    /// e^{−σ d}, filled in by the kernel build (0 elsewhere).
+    att: f64,
 }
 
 impl Pre {
@@ -145,6 +147,7 @@ impl Pre {
             n,
             nq: dot(n, point),
             da: omega * d * d / vn,
+            att: 0.0,
         }
     }
 }
@@ -161,7 +164,7 @@ fn k_entry(ft: &FTable, beta: f64, sigma: f64, p: &Pre, q: &Pre) -> f64 {
 #[inline(always)]
 fn k_entry_fast(ft: &FTable, beta: f64, sigma: f64, p: &Pre, q: &Pre) -> f64 {
     let (cos_g, sin_g, len) = k_geometry(p, q);
-    scatter_cs_fast(ft, beta, sigma, q.da, q.d, cos_g, sin_g, len)
+    scatter_cs_fast(ft, beta, sigma, q.da, q.d, q.att, cos_g, sin_g, len)
 }
 
 /// cos γ, sin γ and the lit ray length d_vp′ of K_pq.
@@ -263,7 +266,10 @@ impl ForwardKernel {
             return Err(MurkError::invalid("width", "image too large"));
         }
         let half = (r / 2) as isize;
-        let pre = precompute(geom);
+        let mut pre = precompute(geom);
+        for p in &mut pre {
+            p.att = (-medium.sigma_per_mm * p.d).exp();
+        }
         let mut index_of = vec![NOT_MASKED; w * h];
         let mut masked = Vec::new();
         for (i, &m) in geom.mask.iter().enumerate() {
