@@ -213,8 +213,13 @@ fn experiment_iterations() {
             out.iterations[0].epsilon
         );
     }
-    for mode in [PsMode::Full, PsMode::BackscatterOnly] {
+    for (mode, median) in [
+        (PsMode::Full, true),
+        (PsMode::Full, false),
+        (PsMode::BackscatterOnly, true),
+    ] {
         let params = PsParams {
+            median_filter: median,
             initial_distance_mm: gt_mean,
             initial_depth_mm: Some(sim.gt_depth_mm.clone()),
             support_r: r,
@@ -234,7 +239,7 @@ fn experiment_iterations() {
             .map(|((a, b), _)| f64::from((a - b).abs()))
             .sum::<f64>()
             / sim.capture.mask.iter().filter(|&&m| m).count() as f64;
-        eprintln!("input GT {mode:?}: normals {e:.2}°, integrated depth mean |dz| {dz:.2} mm");
+        eprintln!("input GT {mode:?} median {median}: normals {e:.2}°, integrated depth mean |dz| {dz:.2} mm");
     }
 }
 
