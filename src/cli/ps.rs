@@ -45,6 +45,12 @@ pub struct PsArgs {
     /// Kernel support r (odd).
     #[arg(long, default_value_t = 61)]
     pub support_r: usize,
+    /// Far-field cell size of the kernel, pixels (1 = the reference's exact r×r window).
+    #[arg(long, default_value_t = murk::ps::pipeline::DEFAULT_FAR_CELL)]
+    pub far_cell: usize,
+    /// Radius within which the kernel is kept per pixel, pixels.
+    #[arg(long, default_value_t = murk::ps::pipeline::DEFAULT_NEAR_RADIUS_PX)]
+    pub near_radius_px: usize,
     /// Iteration cap.
     #[arg(long, default_value_t = 5)]
     pub iterations: usize,
@@ -71,6 +77,8 @@ pub fn run(a: PsArgs) -> anyhow::Result<()> {
     let params = PsParams {
         initial_distance_mm: initial,
         support_r: a.support_r,
+        far_cell: a.far_cell,
+        near_radius_px: a.near_radius_px,
         max_iterations: a.iterations,
         tolerance: a.tolerance,
         mode: match a.mode {

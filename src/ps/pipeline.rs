@@ -14,7 +14,7 @@ use crate::ps::integrate::{
     depth_from_log, integrate_normals, normals_from_depth, IntegrationParams,
 };
 use crate::ps::near_light::{solve_normals, ShadingModel};
-use crate::ps::physics::{FTable, ForwardKernel, GTable, SurfaceGeometry};
+use crate::ps::physics::{FTable, ForwardKernel, GTable, KernelLayout, SurfaceGeometry};
 
 /// Largest kernel support `r` accepted (an r×r window per pixel is stored; 201² f32 = 160 kB
 /// per object pixel).
@@ -24,6 +24,11 @@ pub const MAX_ITERATIONS: usize = 100;
 /// Default bound on the stored kernel K̂ (`object pixels × r² × 4` bytes), the method's memory
 /// peak: 4 GiB, the issue's budget for 300×300 at r = 81 (about 1 GiB there).
 pub const DEFAULT_MAX_KERNEL_BYTES: usize = 4 << 30;
+
+/// Default [`PsParams::far_cell`] (measured in docs/ACCURACY.md and docs/BENCHMARKS.md).
+pub const DEFAULT_FAR_CELL: usize = 3;
+/// Default [`PsParams::near_radius_px`].
+pub const DEFAULT_NEAR_RADIUS_PX: usize = 9;
 
 /// Which scattering effects the pipeline removes.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
@@ -53,6 +58,11 @@ pub struct PsParams {
     pub max_iterations: usize,
     /// Stop when the mean |Δz| between iterations falls below this fraction of the mean depth.
     pub tolerance: f64,
+    /// Far-field cell size s of K̂ in pixels ([`KernelLayout`]): beyond `near_radius_px` the
+    /// support is stored per s×s cell. 1 keeps the reference's exact r×r window.
+    pub far_cell: usize,
+    /// Radius (pixels) around each pixel within which K̂ is kept per pixel when `far_cell` > 1.
+    pub near_radius_px: usize,
     /// Full model or the backscatter-only baseline.
     pub mode: PsMode,
     /// Apply the 3×3 median after backscatter subtraction (§4.3.4).
@@ -77,6 +87,8 @@ impl Default for PsParams {
             initial_distance_mm: 300.0,
             initial_depth_mm: None,
             support_r: 61,
+            far_cell: DEFAULT_FAR_CELL,
+            near_radius_px: DEFAULT_NEAR_RADIUS_PX,
             max_iterations: 5,
             tolerance: 1e-3,
             mode: PsMode::Full,
@@ -114,16 +126,15 @@ pub fn validate_request(capture: &PsCapture, params: &PsParams) -> Result<()> {
         }
     }
     let object_pixels = capture.mask.iter().filter(|&&b| b).count();
-    let bytes = object_pixels
-        .saturating_mul(params.support_r * params.support_r)
-        .saturating_mul(4);
+    let bytes = params.kernel_layout()?.entry_bytes(object_pixels);
     if params.mode == PsMode::Full && bytes > params.max_kernel_bytes {
         return Err(MurkError::invalid(
             "support_r",
             format!(
-                "the kernel for {object_pixels} object pixels at r = {} needs {bytes} bytes, over \
-                 the limit of {} bytes: use a smaller support or a smaller image",
-                params.support_r, params.max_kernel_bytes
+                "the kernel for {object_pixels} object pixels at r = {} (far cell {}) needs \
+                 {bytes} bytes, over the limit of {} bytes: use a smaller support, a larger \
+                 far cell or a smaller image",
+                params.support_r, params.far_cell, params.max_kernel_bytes
             ),
         ));
     }
@@ -131,6 +142,11 @@ pub fn validate_request(capture: &PsCapture, params: &PsParams) -> Result<()> {
 }
 
 impl PsParams {
+    /// The storage layout of K̂ these settings ask for.
+    pub fn kernel_layout(&self) -> Result<KernelLayout> {
+        KernelLayout::coarse_far(self.support_r, self.far_cell, self.near_radius_px)
+    }
+
     /// Checks the settings against an image of `width × height`; errors name the field.
     pub fn validate(&self, width: usize, height: usize) -> Result<()> {
         if !self.initial_distance_mm.is_finite() || self.initial_distance_mm <= 0.0 {
@@ -155,6 +171,7 @@ impl PsParams {
                 ),
             ));
         }
+        self.kernel_layout()?;
         if self.max_iterations == 0 || self.max_iterations > MAX_ITERATIONS {
             return Err(MurkError::invalid(
                 "max_iterations",
@@ -376,7 +393,8 @@ pub fn photometric_stereo(
                     normals: shape_normals.clone(),
                     mask: mask.clone(),
                 };
-                let kernel = ForwardKernel::build(ft, &medium, &geom, params.support_r)?;
+                let kernel =
+                    ForwardKernel::build_with(ft, &medium, &geom, &params.kernel_layout()?)?;
                 stats.kernel_s = t.elapsed().as_secs_f64();
                 stats.kernel_bytes = kernel.bytes();
                 stats.epsilon = kernel.epsilon();

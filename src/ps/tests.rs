@@ -88,8 +88,18 @@ fn reference_table_full_size() {
         t0.elapsed().as_secs_f64(),
         sim.initial_distance_mm
     );
+    let far_cell: usize = std::env::var("MURK_PS_CELL")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(crate::ps::pipeline::DEFAULT_FAR_CELL);
+    let near_radius_px: usize = std::env::var("MURK_PS_NEAR")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(crate::ps::pipeline::DEFAULT_NEAR_RADIUS_PX);
     let base = PsParams {
         initial_distance_mm: sim.initial_distance_mm,
+        far_cell,
+        near_radius_px,
         support_r: r,
         max_iterations: 5,
         tolerance: 0.0,
@@ -129,7 +139,11 @@ fn reference_table_full_size() {
             },
         ),
     ];
-    for (name, params) in variants {
+    let count: usize = std::env::var("MURK_PS_VARIANTS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(variants.len());
+    for (name, params) in variants.into_iter().take(count) {
         let out = photometric_stereo(&sim.capture, &params, &Monitor::noop()).unwrap();
         let e: Vec<String> = out
             .normals_history

@@ -17,6 +17,7 @@ pub mod f_table;
 pub mod forward_kernel;
 pub mod g_table;
 pub mod h;
+pub mod kernel_layout;
 pub(crate) mod quad;
 
 pub use backscatter::{backscatter, backscatter_quadrature};
@@ -26,6 +27,7 @@ pub use forward_kernel::{
 };
 pub use g_table::{source_surface_forward, GTable};
 pub use h::{h0, h1, h2, point_source_scatter};
+pub use kernel_layout::KernelLayout;
 
 /// Homogeneous scattering medium. σ = α + β (Eq. 2.3), so σ ≥ β.
 #[derive(Clone, Copy, Debug, PartialEq)]

@@ -183,6 +183,16 @@ fn params_from_proto(
         } else {
             req.support_r as usize
         },
+        far_cell: if req.far_cell == 0 {
+            d.far_cell
+        } else {
+            req.far_cell as usize
+        },
+        near_radius_px: if req.near_radius_px == 0 {
+            d.near_radius_px
+        } else {
+            req.near_radius_px as usize
+        },
         max_iterations: if req.max_iterations == 0 {
             d.max_iterations
         } else {
@@ -212,6 +222,12 @@ pub fn canonicalize_ps_request(req: &mut pb::PhotometricStereoRequest) {
     }
     if req.max_iterations == 0 {
         req.max_iterations = d.max_iterations as u32;
+    }
+    if req.far_cell == 0 {
+        req.far_cell = d.far_cell as u32;
+    }
+    if req.near_radius_px == 0 {
+        req.near_radius_px = d.near_radius_px as u32;
     }
     if req.mode == pb::PsMode::Unspecified as i32 {
         req.mode = pb::PsMode::Full as i32;
@@ -260,6 +276,8 @@ pub fn ps_request_to_proto(capture: &PsCapture, params: &PsParams) -> pb::Photom
         sigma_per_mm: capture.medium.sigma_per_mm,
         initial_distance_mm: params.initial_distance_mm,
         support_r: params.support_r as u32,
+        far_cell: params.far_cell as u32,
+        near_radius_px: params.near_radius_px as u32,
         max_iterations: params.max_iterations as u32,
         tolerance: Some(params.tolerance),
         mode: match params.mode {
