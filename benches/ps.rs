@@ -1,16 +1,17 @@
 //! Photometric stereo in turbid media (issue 5) on the reference's synthetic setting: a 300×300
 //! sphere, β = σ = 5e-3 /mm, 8 lights, kernel support r = 81, initialised as a plane. Benches
-//! the kernel build K̂ alone, one 8-light BiCGStab solve of Eq. 4.52 alone, and the whole
-//! pipeline with 5 iterations; after the pipeline it prints the per-stage times of one run and
-//! the process's peak resident memory (VmHWM).
+//! the kernel build K̂ alone in both layouts (exact r×r window per pixel, and murk's default:
+//! exact near block + 3×3-pixel cells beyond it), one 8-light BiCGStab solve of Eq. 4.52 alone
+//! on the default layout, and the whole pipeline with 5 iterations and default parameters; after
+//! the pipeline it prints the per-stage times of one run and the process's peak resident memory
+//! (VmHWM).
 //!
-//! Run: `cargo bench --bench ps` (about 5 minutes: criterion's minimum of 10 samples of a
-//! ~20 s pipeline).
+//! Run: `cargo bench --bench ps` (about 6 minutes: criterion's minimum of 10 samples each).
 
 use criterion::{criterion_group, criterion_main, Criterion};
 
 use murk::ps::bicgstab::{bicgstab_block, BicgstabParams, BlockOperator};
-use murk::ps::physics::{FTable, ForwardKernel, SurfaceGeometry};
+use murk::ps::physics::{FTable, ForwardKernel, KernelLayout, SurfaceGeometry};
 use murk::ps::pipeline::back_project;
 use murk::ps::{photometric_stereo, PsParams};
 use murk::simulate::ps::{simulate_ps, PsSimConfig};
@@ -55,10 +56,26 @@ fn bench(c: &mut Criterion) {
     let object_pixels = cap.mask.iter().filter(|&&b| b).count();
     let mut g = c.benchmark_group(format!("ps_{w}x{h}_r{R}_{object_pixels}px"));
     g.sample_size(10);
-    g.bench_function("kernel_build", |b| {
-        b.iter(|| ForwardKernel::build(ft, &cap.medium, &geom, R).expect("kernel"))
+    let params = PsParams {
+        initial_distance_mm: sim.initial_distance_mm,
+        support_r: R,
+        max_iterations: 5,
+        tolerance: 0.0,
+        ..PsParams::default()
+    };
+    let coarse = params.kernel_layout().expect("layout");
+    let exact = KernelLayout::exact(R).expect("layout");
+    g.bench_function("kernel_build_exact", |b| {
+        b.iter(|| ForwardKernel::build_with(ft, &cap.medium, &geom, &exact).expect("kernel"))
     });
-    let kernel = ForwardKernel::build(ft, &cap.medium, &geom, R).expect("kernel");
+    g.bench_function("kernel_build_far_cells_3", |b| {
+        b.iter(|| ForwardKernel::build_with(ft, &cap.medium, &geom, &coarse).expect("kernel"))
+    });
+    let kernel = ForwardKernel::build_with(ft, &cap.medium, &geom, &coarse).expect("kernel");
+    eprintln!(
+        "kernel memory: far cells {:.0} MiB",
+        kernel.bytes() as f64 / (1 << 20) as f64
+    );
     let masked: Vec<usize> = (0..w * h).filter(|&p| cap.mask[p]).collect();
     let dim = masked.len() + 1;
     let m = cap.lights.len();
@@ -83,13 +100,6 @@ fn bench(c: &mut Criterion) {
         })
     });
     drop(kernel);
-    let params = PsParams {
-        initial_distance_mm: sim.initial_distance_mm,
-        support_r: R,
-        max_iterations: 5,
-        tolerance: 0.0,
-        ..PsParams::default()
-    };
     let mut last = None;
     g.bench_function("pipeline_5_iterations", |b| {
         b.iter(|| last = Some(photometric_stereo(cap, &params, &Monitor::noop()).expect("ps")))
