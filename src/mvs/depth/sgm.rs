@@ -88,6 +88,29 @@ impl Penalties {
     }
 }
 
+/// Lanes of the explicitly unrolled plane loop in [`path_step`]: 8 independent running minima
+/// let LLVM keep the min-reduction in vector registers (a single scalar accumulator is a
+/// loop-carried dependency it will not reassociate for floats).
+const LANES: usize = 8;
+
+/// `min` without NaN handling: one `minps` instead of `minnum`'s compare-and-blend. Costs are
+/// finite: `depth_from_costs` rejects non-finite ones before aggregation, and [`aggregate`]
+/// documents the requirement.
+#[inline(always)]
+fn fmin(a: f32, b: f32) -> f32 {
+    if a < b {
+        a
+    } else {
+        b
+    }
+}
+
+/// The recursion for one interior plane.
+#[inline(always)]
+fn path_value(c: f32, below: f32, at: f32, above: f32, p1: f32, jump: f32, prev_min: f32) -> f32 {
+    c + fmin(fmin(at, fmin(below, above) + p1), jump) - prev_min
+}
+
 /// One path step (the recursion in the module docs) for one pixel: writes `L_r(p, ·)` into
 /// `out`, adds it to `sum` and returns `min_i L_r(p, i)`.
 #[inline]
@@ -103,37 +126,47 @@ fn path_step(
     let n = c.len();
     let jump = prev_min + p2;
     if n == 1 {
-        let l = c[0] + prev[0].min(jump) - prev_min;
+        let l = c[0] + fmin(prev[0], jump) - prev_min;
         out[0] = l;
         sum[0] += l;
         return l;
     }
-    let mut m = f32::INFINITY;
+    let first = c[0] + fmin(fmin(prev[0], prev[1] + p1), jump) - prev_min;
+    out[0] = first;
+    sum[0] += first;
+    let last = c[n - 1] + fmin(fmin(prev[n - 1], prev[n - 2] + p1), jump) - prev_min;
+    out[n - 1] = last;
+    sum[n - 1] += last;
+    let mut m = fmin(first, last);
+    // Interior planes 1..n−1 as three shifted views of `prev`, in fixed-size chunks: the
+    // chunk bodies have no bounds checks and vectorise, with one running minimum per lane.
+    let inner = n - 2;
+    let (c_in, below, at, above) = (&c[1..n - 1], &prev[..n - 2], &prev[1..n - 1], &prev[2..]);
+    let (out_in, sum_in) = (&mut out[1..n - 1], &mut sum[1..n - 1]);
+    let full = inner / LANES * LANES;
+    let mut acc = [f32::INFINITY; LANES];
+    for (((((cc, lo), mid), hi), oo), ss) in c_in[..full]
+        .chunks_exact(LANES)
+        .zip(below[..full].chunks_exact(LANES))
+        .zip(at[..full].chunks_exact(LANES))
+        .zip(above[..full].chunks_exact(LANES))
+        .zip(out_in[..full].chunks_exact_mut(LANES))
+        .zip(sum_in[..full].chunks_exact_mut(LANES))
     {
-        let l = c[0] + prev[0].min(prev[1] + p1).min(jump) - prev_min;
-        out[0] = l;
-        sum[0] += l;
-        m = m.min(l);
+        for j in 0..LANES {
+            let l = path_value(cc[j], lo[j], mid[j], hi[j], p1, jump, prev_min);
+            oo[j] = l;
+            ss[j] += l;
+            acc[j] = fmin(acc[j], l);
+        }
     }
-    // Interior planes: written over zipped slices so the bounds checks vanish and LLVM can
-    // vectorise along the plane axis.
-    let inner = c[1..n - 1]
-        .iter()
-        .zip(prev.windows(3))
-        .zip(out[1..n - 1].iter_mut().zip(sum[1..n - 1].iter_mut()));
-    for ((&ci, w), (o, s)) in inner {
-        let l = ci + w[1].min(w[0].min(w[2]) + p1).min(jump) - prev_min;
-        *o = l;
-        *s += l;
-        m = m.min(l);
+    for j in full..inner {
+        let l = path_value(c_in[j], below[j], at[j], above[j], p1, jump, prev_min);
+        out_in[j] = l;
+        sum_in[j] += l;
+        m = fmin(m, l);
     }
-    {
-        let l = c[n - 1] + prev[n - 1].min(prev[n - 2] + p1).min(jump) - prev_min;
-        out[n - 1] = l;
-        sum[n - 1] += l;
-        m = m.min(l);
-    }
-    m
+    acc.iter().fold(m, |a, &b| fmin(a, b))
 }
 
 /// Starts a path at the border: `L_r = C`.
@@ -150,7 +183,8 @@ fn path_start(c: &[f32], out: &mut [f32], sum: &mut [f32]) -> f32 {
 
 /// Aggregates the pixel-major cost volume `costs` (`[y][x][plane]`, `w·h·n` values) along the
 /// first `num_paths` (4 or 8) of [`DIRECTIONS`] and returns `S` in the same layout.
-/// `guide` (the reference image, `w×h`) enables the adaptive `P2`.
+/// `guide` (the reference image, `w×h`) enables the adaptive `P2`. Costs must be finite (a NaN
+/// cost makes the minima along its paths unspecified, never a panic).
 #[allow(clippy::too_many_arguments)]
 pub fn aggregate(
     costs: &[f32],

@@ -85,9 +85,17 @@ fn reference_sgm(
 
 #[test]
 fn fast_sgm_equals_reference() {
-    // Width > PIXEL_CHUNK so row sweeps split rows across several tasks.
+    // Width > PIXEL_CHUNK so row sweeps split rows across several tasks; plane counts cover
+    // the unrolled path step's full chunks with and without a remainder, and short curves.
     let (w, h) = (37, 9);
-    for (n, paths, tau) in [(7, 8, 0.05f32), (5, 4, 0.0), (1, 8, 0.1), (2, 8, 0.05)] {
+    for (n, paths, tau) in [
+        (7, 8, 0.05f32),
+        (5, 4, 0.0),
+        (1, 8, 0.1),
+        (2, 8, 0.05),
+        (27, 8, 0.05),
+        (18, 4, 0.0),
+    ] {
         let c: Vec<f32> = lcg(n as u64, w * h * n).iter().map(|v| 3.0 * v).collect();
         let guide = ImageF32::from_vec(w, h, 3, lcg(99, w * h * 3)).unwrap();
         let pen = Penalties {
