@@ -62,6 +62,8 @@ pub(super) struct RowScratch {
     vs: Vec<f32>,
     /// `1/t_s` of the row's samples (or `t_r/t_s` in the observation-space kernel).
     inv_t: Vec<f32>,
+    /// `A·(t_r/t_s − 1)` of the row's samples (observation-space kernel).
+    offset: Vec<f32>,
 }
 
 /// Fills one row of one plane. `penalty` is γ (Eq. 3.7) and also the cost of a voxel that no
@@ -201,8 +203,16 @@ pub(super) fn fill_row<const C: usize, const DEHAZE: bool>(
         }
     }
 
-    for ((o, &sum), &n) in out.iter_mut().zip(&scratch.sum).zip(&scratch.observed) {
-        *o = if n == 0 { penalty } else { sum / n as f32 };
+    mean_or_penalty(out, &scratch.sum, &scratch.observed, penalty);
+}
+
+/// `out[x] = sum[x] / observed[x]`, or `penalty` where no source observed the voxel. Divides by
+/// `max(n, 1)` and selects afterwards, so the loop has no branch and vectorises.
+#[inline]
+fn mean_or_penalty(out: &mut [f32], sum: &[f32], observed: &[u32], penalty: f32) {
+    for ((o, &s), &n) in out.iter_mut().zip(sum).zip(observed) {
+        let mean = s / (n as f32).max(1.0);
+        *o = if n == 0 { penalty } else { mean };
     }
 }
 
@@ -233,9 +243,12 @@ fn source_coords(warp: &RowWarp, width: usize, height: usize, us: &mut [f32], vs
 /// `β > 0`) in closed form: `min(γ, Σ_c |(I_r − A) − (t_r/t_s)(I_s − A)|)`, which is
 /// `t_r·Σ_c |J_r − J_s|` (Eq. 3.5–3.6) without dehazing either sample. Equal to [`fill_row`]
 /// in that mode up to `f32` rounding (tested); skips its per-voxel mode switches.
+///
+/// With `HAZE = false` it is the ordinary volume's row (Eq. 3.1), `Σ_c |I_r − I_s|` uncapped,
+/// bit for bit what [`fill_row`] computes without dehazing (tested).
 #[allow(clippy::too_many_arguments)]
 #[inline]
-pub(super) fn fill_row_observation<const C: usize>(
+pub(super) fn fill_row_observation<const C: usize, const HAZE: bool>(
     out: &mut [f32],
     y: usize,
     reference: &[f32],
@@ -258,15 +271,21 @@ pub(super) fn fill_row_observation<const C: usize>(
     let observed = &mut scratch.observed[..width];
     let (us_row, vs_row) = (&mut scratch.us[..width], &mut scratch.vs[..width]);
     scratch.inv_t.resize(width, 0.0);
+    scratch.offset.resize(width, 0.0);
     let ratio_row = &mut scratch.inv_t[..width];
+    let offset_row = &mut scratch.offset[..width];
     let t_r = haze.ref_t;
     for s in sources {
         let warp = s.warp.row(y as f64);
         source_coords(&warp, width, height, us_row, vs_row);
-        // t_r/t_s per pixel of the row.
-        inverse_transmission_row(&warp, haze.beta, ratio_row);
-        for r in ratio_row.iter_mut() {
-            *r *= t_r;
+        if HAZE {
+            // k = t_r/t_s per pixel of the row, and the airlight terms folded into one offset:
+            // (I_r − A) − k(I_s − A) = I_r − k·I_s + A(k − 1).
+            inverse_transmission_row(&warp, haze.beta, ratio_row);
+            for (r, o) in ratio_row.iter_mut().zip(offset_row.iter_mut()) {
+                *r *= t_r;
+                *o = a * (*r - 1.0);
+            }
         }
         for x in 0..width {
             let us = us_row[x];
@@ -274,19 +293,24 @@ pub(super) fn fill_row_observation<const C: usize>(
                 continue;
             }
             let is = bilinear_inside::<C>(s.data, width, us, vs_row[x], height);
-            let k = ratio_row[x];
             let ir = &row[x * C..x * C + C];
             let mut cost = 0.0f32;
-            for c in 0..C {
-                cost += ((ir[c] - a) - k * (is[c] - a)).abs();
+            if HAZE {
+                let (k, b) = (ratio_row[x], offset_row[x]);
+                for c in 0..C {
+                    cost += (ir[c] - k * is[c] + b).abs();
+                }
+                cost = cost.min(penalty);
+            } else {
+                for c in 0..C {
+                    cost += (ir[c] - is[c]).abs();
+                }
             }
-            sum[x] += cost.min(penalty);
+            sum[x] += cost;
             observed[x] += 1;
         }
     }
-    for ((o, &sum), &n) in out.iter_mut().zip(sum.iter()).zip(observed.iter()) {
-        *o = if n == 0 { penalty } else { sum / n as f32 };
-    }
+    mean_or_penalty(out, sum, observed, penalty);
 }
 
 /// `1/t_s = e^{βζ}` for every pixel of one reference row and plane, clamped like
@@ -303,11 +327,25 @@ fn inverse_transmission_row(warp: &RowWarp, beta: f32, out: &mut [f32]) {
     let (start, end) = ((b * z0).exp(), (b * (z0 + dz * last)).exp());
     let max_inv_t = f64::from(inverse_transmission(0.0));
     if start.is_normal() && end.is_normal() {
+        // Four interleaved geometric sequences (ratio step⁴) so the multiplies do not form one
+        // latency-bound chain across the row.
         let step = (b * dz).exp();
-        let mut inv_t = start;
-        for o in out.iter_mut() {
-            *o = inv_t.min(max_inv_t) as f32;
-            inv_t *= step;
+        let step4 = step.powi(4);
+        let mut lanes = [
+            start,
+            start * step,
+            start * step * step,
+            start * step.powi(3),
+        ];
+        let mut chunks = out.chunks_exact_mut(4);
+        for o in &mut chunks {
+            for (o, l) in o.iter_mut().zip(lanes.iter_mut()) {
+                *o = l.min(max_inv_t) as f32;
+                *l *= step4;
+            }
+        }
+        for (o, l) in chunks.into_remainder().iter_mut().zip(lanes) {
+            *o = l.min(max_inv_t) as f32;
         }
     } else {
         for (x, o) in out.iter_mut().enumerate() {
@@ -321,6 +359,81 @@ mod tests {
     use super::*;
     use crate::camera::Intrinsics;
     use crate::mvs::pose::Pose;
+
+    /// The interleaved geometric sequence equals one `exp` per pixel (clamped), on rows whose
+    /// length is not a multiple of the 4 lanes.
+    #[test]
+    fn inverse_transmission_row_matches_exp() {
+        let k = Intrinsics::new(30.0, 30.0, 20.0, 6.0);
+        let rel = Pose::new(
+            [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+            [-0.3, 0.05, 0.1],
+        )
+        .unwrap();
+        let max_inv_t = inverse_transmission(0.0);
+        for (z, beta, width) in [(1.0f64, 0.3f32, 37usize), (6.0, 0.8, 41), (2.0, 0.0, 3)] {
+            let warp = PlaneWarp::new(&k, &k, &rel, z).row(4.0);
+            let mut fast = vec![0.0f32; width];
+            inverse_transmission_row(&warp, beta, &mut fast);
+            let (slope, offset, depth) = warp.coefficients();
+            for (x, &f) in fast.iter().enumerate() {
+                let zeta = (offset[2] + slope[2] * x as f64) * depth;
+                let exact = ((f64::from(beta) * zeta).exp() as f32).min(max_inv_t);
+                assert!((f - exact).abs() <= 1e-6 * exact, "x {x}: {f} vs {exact}");
+            }
+        }
+    }
+
+    /// The direct ordinary row equals the generic row without dehazing, bit for bit.
+    #[test]
+    fn direct_ordinary_row_matches_generic_row() {
+        let (w, h) = (40usize, 12usize);
+        let img = |seed: usize| -> Vec<f32> {
+            (0..w * h * 3)
+                .map(|i| (((i + seed) * 2654435761) % 1000) as f32 / 700.0 - 0.2)
+                .collect()
+        };
+        let (refd, src) = (img(0), img(7));
+        let k = Intrinsics::new(30.0, 30.0, 20.0, 6.0);
+        let rel = Pose::new(
+            [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+            [-0.3, 0.05, 0.1],
+        )
+        .unwrap();
+        let haze = Haze {
+            airlight: 0.0,
+            beta: 0.0,
+            ref_inv_t: 1.0,
+            ref_offset: 0.0,
+            ref_t: 1.0,
+            residual: DehazingResidual::Eq37,
+            ref_lo: 0.0,
+            ref_hi: 1.0,
+            src_margin: 0.0,
+            soft_margin: None,
+        };
+        for z in [1.0f64, 2.5, 6.0] {
+            let sources = [
+                SourcePlane {
+                    data: &src,
+                    warp: PlaneWarp::new(&k, &k, &rel, z),
+                },
+                SourcePlane {
+                    data: &refd,
+                    warp: PlaneWarp::new(&k, &k, &Pose::identity(), z),
+                },
+            ];
+            for y in 0..h {
+                let (mut g, mut f) = (vec![0.0; w], vec![0.0; w]);
+                let mut s = RowScratch::default();
+                fill_row::<3, false>(&mut g, y, &refd, w, h, &sources, haze, 3.0, &mut s);
+                fill_row_observation::<3, false>(
+                    &mut f, y, &refd, w, h, &sources, haze, 3.0, &mut s,
+                );
+                assert_eq!(g, f, "z {z}, row {y}");
+            }
+        }
+    }
 
     /// The closed-form observation-space row equals the generic row in that mode.
     #[test]
@@ -362,7 +475,9 @@ mod tests {
                 let (mut g, mut f) = (vec![0.0; w], vec![0.0; w]);
                 let mut s = RowScratch::default();
                 fill_row::<3, true>(&mut g, y, &refd, w, h, &sources, haze, 3.0, &mut s);
-                fill_row_observation::<3>(&mut f, y, &refd, w, h, &sources, haze, 3.0, &mut s);
+                fill_row_observation::<3, true>(
+                    &mut f, y, &refd, w, h, &sources, haze, 3.0, &mut s,
+                );
                 for (x, (g, f)) in g.iter().zip(&f).enumerate() {
                     assert!(
                         (g - f).abs() <= 1e-5 * g.max(1.0),

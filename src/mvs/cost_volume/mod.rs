@@ -419,78 +419,91 @@ pub fn build_cost_volume(
         .collect();
     let penalty = c as f32;
     let mut data = vec![0.0f32; voxels];
-    // Reused across planes so the loop allocates nothing per plane.
-    let mut plane_sources: Vec<SourcePlane<'_>> = Vec::with_capacity(sources.len());
-    for (i, out) in data.chunks_exact_mut(n_pix).enumerate() {
-        monitor.checkpoint()?;
-        let z = planes.depth(i as f64);
-        plane_sources.clear();
-        plane_sources.extend(sources.iter().zip(&relatives).map(|(s, rel)| SourcePlane {
-            data: s.image.data(),
-            warp: PlaneWarp::new(&reference.intrinsics, &s.intrinsics, rel, z),
-        }));
-        let haze = match kind.dehazing() {
-            None => Haze {
-                airlight: 0.0,
-                beta: 0.0,
-                ref_inv_t: 1.0,
-                ref_offset: 0.0,
-                ref_t: 1.0,
-                residual: DehazingResidual::Eq37,
-                ref_lo: 0.0,
-                ref_hi: 1.0,
-                src_margin: 0.0,
-                soft_margin: None,
-            },
-            Some((p, o)) => {
-                let t = transmission(p.beta, z as f32);
-                let inv_t = inverse_transmission(t);
-                Haze {
-                    airlight: p.airlight,
-                    beta: p.beta,
-                    ref_inv_t: inv_t,
-                    ref_offset: p.airlight * (1.0 - inv_t),
-                    ref_t: t.max(crate::atmosphere::MIN_TRANSMISSION),
-                    residual: o.residual,
-                    ref_lo: -margin * inv_t,
-                    ref_hi: 1.0 + margin * inv_t,
-                    src_margin,
-                    soft_margin,
+    let refd = reference.image.data();
+    let dehaze = kind.dehazing().is_some();
+    // The default dehazing volume has a closed-form row kernel; β = 0 keeps the generic one so
+    // that "β = 0 ⇒ dehazing = ordinary" stays exact.
+    let observation = matches!(
+        kind.dehazing(),
+        Some((p, o)) if p.beta > 0.0
+            && o.residual == DehazingResidual::ObservationSpace
+            && o.range == RangePenalty::Off
+    );
+    let done = std::sync::atomic::AtomicUsize::new(0);
+    // One rayon task per plane: a plane is ~50k voxels of independent work, and parallelising
+    // over planes instead of over each plane's rows saves a fork-join (and the workers' sleep
+    // and wake-up) per plane. Each worker reuses its row scratch and source list across planes.
+    data.par_chunks_mut(n_pix).enumerate().try_for_each_init(
+        || (RowScratch::default(), Vec::with_capacity(sources.len())),
+        |(scratch, plane_sources): &mut (RowScratch, Vec<SourcePlane<'_>>),
+         (i, out)|
+         -> Result<()> {
+            monitor.checkpoint()?;
+            let z = planes.depth(i as f64);
+            plane_sources.clear();
+            plane_sources.extend(sources.iter().zip(&relatives).map(|(s, rel)| SourcePlane {
+                data: s.image.data(),
+                warp: PlaneWarp::new(&reference.intrinsics, &s.intrinsics, rel, z),
+            }));
+            let haze = match kind.dehazing() {
+                None => Haze {
+                    airlight: 0.0,
+                    beta: 0.0,
+                    ref_inv_t: 1.0,
+                    ref_offset: 0.0,
+                    ref_t: 1.0,
+                    residual: DehazingResidual::Eq37,
+                    ref_lo: 0.0,
+                    ref_hi: 1.0,
+                    src_margin: 0.0,
+                    soft_margin: None,
+                },
+                Some((p, o)) => {
+                    let t = transmission(p.beta, z as f32);
+                    let inv_t = inverse_transmission(t);
+                    Haze {
+                        airlight: p.airlight,
+                        beta: p.beta,
+                        ref_inv_t: inv_t,
+                        ref_offset: p.airlight * (1.0 - inv_t),
+                        ref_t: t.max(crate::atmosphere::MIN_TRANSMISSION),
+                        residual: o.residual,
+                        ref_lo: -margin * inv_t,
+                        ref_hi: 1.0 + margin * inv_t,
+                        src_margin,
+                        soft_margin,
+                    }
+                }
+            };
+            let srcs = &plane_sources[..];
+            for (y, row) in out.chunks_exact_mut(w).enumerate() {
+                match (c, dehaze) {
+                    (1, true) if observation => fill_row_observation::<1, true>(
+                        row, y, refd, w, h, srcs, haze, penalty, scratch,
+                    ),
+                    (_, true) if observation => fill_row_observation::<3, true>(
+                        row, y, refd, w, h, srcs, haze, penalty, scratch,
+                    ),
+                    // The ordinary volume's direct row (bit-identical to the generic one).
+                    (1, false) => fill_row_observation::<1, false>(
+                        row, y, refd, w, h, srcs, haze, penalty, scratch,
+                    ),
+                    (_, false) => fill_row_observation::<3, false>(
+                        row, y, refd, w, h, srcs, haze, penalty, scratch,
+                    ),
+                    (1, true) => {
+                        fill_row::<1, true>(row, y, refd, w, h, srcs, haze, penalty, scratch)
+                    }
+                    (_, true) => {
+                        fill_row::<3, true>(row, y, refd, w, h, srcs, haze, penalty, scratch)
+                    }
                 }
             }
-        };
-        let refd = reference.image.data();
-        let srcs = &plane_sources[..];
-        let dehaze = kind.dehazing().is_some();
-        // The default dehazing volume has a closed-form row kernel; β = 0 keeps the generic one
-        // so that "β = 0 ⇒ dehazing = ordinary" stays exact.
-        let observation = matches!(
-            kind.dehazing(),
-            Some((p, o)) if p.beta > 0.0
-                && o.residual == DehazingResidual::ObservationSpace
-                && o.range == RangePenalty::Off
-        );
-        out.par_chunks_mut(w)
-            .enumerate()
-            .with_min_len(8)
-            .for_each_init(RowScratch::default, |scratch, (y, row)| match (c, dehaze) {
-                (1, true) if observation => {
-                    fill_row_observation::<1>(row, y, refd, w, h, srcs, haze, penalty, scratch)
-                }
-                (_, true) if observation => {
-                    fill_row_observation::<3>(row, y, refd, w, h, srcs, haze, penalty, scratch)
-                }
-                (1, false) => {
-                    fill_row::<1, false>(row, y, refd, w, h, srcs, haze, penalty, scratch)
-                }
-                (1, true) => fill_row::<1, true>(row, y, refd, w, h, srcs, haze, penalty, scratch),
-                (_, false) => {
-                    fill_row::<3, false>(row, y, refd, w, h, srcs, haze, penalty, scratch)
-                }
-                (_, true) => fill_row::<3, true>(row, y, refd, w, h, srcs, haze, penalty, scratch),
-            });
-        monitor.progress("mvs.cost_volume", (i + 1) as f32 / n_planes as f32);
-    }
+            let k = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+            monitor.progress("mvs.cost_volume", k as f32 / n_planes as f32);
+            Ok(())
+        },
+    )?;
     Ok(CostVolume {
         width: w,
         height: h,

@@ -48,9 +48,10 @@ pub fn bilinear_inside<const C: usize>(
 ) -> [f32; C] {
     debug_assert!(u >= 0.0 && v >= 0.0 && u <= (w - 1) as f32 && v <= (h - 1) as f32);
     // Non-negative, so the truncating casts are floors; the last cell takes the right/bottom
-    // edge with weight 1 on its far side.
-    let x0 = (u as usize).min(w - 2);
-    let y0 = (v as usize).min(h - 2);
+    // edge with weight 1 on its far side. Through `i32`: x86-64 converts f32 → i32 in one
+    // instruction, while f32 → u64 needs a two-range sequence; images are far below 2³¹ px.
+    let x0 = (u as i32 as usize).min(w - 2);
+    let y0 = (v as i32 as usize).min(h - 2);
     let fx = u - x0 as f32;
     let fy = v - y0 as f32;
     let i00 = (y0 * w + x0) * C;
