@@ -157,6 +157,8 @@ async fn bad_requests_name_the_field_and_nothing_is_queued() {
         ("support_r", Box::new(|r| r.support_r = 12)),
         ("support_r", Box::new(|r| r.support_r = SIDE as u32 + 1)),
         ("support_r", Box::new(|r| r.support_r = 1)),
+        // auto_support with an explicit support as well.
+        ("support_r", Box::new(|r| r.auto_support = true)),
         (
             "sigma_per_mm",
             Box::new(|r| r.sigma_per_mm = r.beta_per_mm * 0.5),
@@ -226,6 +228,49 @@ async fn a_kernel_over_the_memory_limit_is_refused_naming_the_support() {
         .unwrap()
         .into_inner();
     assert!(ok.normals.is_some());
+    server.stop().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn auto_support_follows_the_object_and_is_reported() {
+    let sim = capture();
+    let server = start(config(4)).await;
+    let mut r = request(&sim);
+    r.auto_support = true;
+    r.support_r = 0;
+    r.far_cell = 0;
+    r.max_iterations = 1;
+    let out = recon(&server)
+        .photometric_stereo(r)
+        .await
+        .expect("auto support")
+        .into_inner();
+    let expected = murk::ps::choose_support(
+        &sim.capture.mask,
+        SIDE,
+        SIDE,
+        murk::ps::pipeline::DEFAULT_NEAR_RADIUS_PX,
+        murk::ps::pipeline::DEFAULT_MAX_KERNEL_BYTES,
+    )
+    .unwrap();
+    assert_eq!(
+        (out.support_r as usize, out.far_cell as usize),
+        (expected.support_r, expected.far_cell)
+    );
+    assert!(
+        expected.support_r > 13 && expected.support_r < SIDE,
+        "{expected:?}"
+    );
+    // An explicit request reports the support it was given; r = 13 lies within the near
+    // radius, so the layout is the exact window (cell 1) whatever far_cell says.
+    let mut r = request(&sim);
+    r.max_iterations = 1;
+    let out = recon(&server)
+        .photometric_stereo(r)
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!((out.support_r, out.far_cell), (13, 1));
     server.stop().await.unwrap();
 }
 

@@ -45,9 +45,14 @@ pub struct PsArgs {
     /// Kernel support r (odd).
     #[arg(long, default_value_t = 61)]
     pub support_r: usize,
-    /// Far-field cell size of the kernel, pixels (1 = the reference's exact r×r window).
-    #[arg(long, default_value_t = murk::ps::pipeline::DEFAULT_FAR_CELL)]
-    pub far_cell: usize,
+    /// Let the server choose r from the object's size (≈ 0.55 × the mask's larger side) and,
+    /// unless --far-cell is given, the far cell.
+    #[arg(long, conflicts_with = "support_r")]
+    pub auto_support: bool,
+    /// Far-field cell size of the kernel, pixels (1 = the reference's exact r×r window;
+    /// default 3, or chosen by the server with --auto-support).
+    #[arg(long)]
+    pub far_cell: Option<usize>,
     /// Radius within which the kernel is kept per pixel, pixels.
     #[arg(long, default_value_t = murk::ps::pipeline::DEFAULT_NEAR_RADIUS_PX)]
     pub near_radius_px: usize,
@@ -77,7 +82,7 @@ pub fn run(a: PsArgs) -> anyhow::Result<()> {
     let params = PsParams {
         initial_distance_mm: initial,
         support_r: a.support_r,
-        far_cell: a.far_cell,
+        far_cell: a.far_cell.unwrap_or(murk::ps::pipeline::DEFAULT_FAR_CELL),
         near_radius_px: a.near_radius_px,
         max_iterations: a.iterations,
         tolerance: a.tolerance,
@@ -90,6 +95,13 @@ pub fn run(a: PsArgs) -> anyhow::Result<()> {
     };
     let mut request = ps_request_to_proto(&folder.capture, &params);
     request.return_iteration_normals = folder.gt_normals.is_some();
+    if a.auto_support {
+        request.auto_support = true;
+        request.support_r = 0;
+        if a.far_cell.is_none() {
+            request.far_cell = 0;
+        }
+    }
     let (job, result) = run_here_or_remote(
         a.server.as_deref(),
         pb::JobRequest {
@@ -103,6 +115,10 @@ pub fn run(a: PsArgs) -> anyhow::Result<()> {
     let out = ps_from_result(&r, &folder.capture.mask)?;
     write_ps_result(&a.out, &folder.capture.intrinsics, &out)?;
     print_iteration_table(&out, folder.gt_normals.as_deref());
+    println!(
+        "kernel support r = {} px, far cell {} px",
+        out.support_r, out.far_cell
+    );
     println!(
         "job {}{}: {:.2} s; wrote {}",
         job.id,

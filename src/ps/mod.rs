@@ -7,7 +7,8 @@
 //! the forward-scatter kernel ([`physics`]), backscatter subtraction ([`backscatter`]), the
 //! capture and its validation ([`capture`]), block BiCGStab for Eq. 4.52 ([`bicgstab`]),
 //! near-light photometric stereo ([`near_light`]), perspective normal integration
-//! ([`integrate`]) and the iteration of §4.3.4 ([`pipeline`]).
+//! ([`integrate`]), the iteration of §4.3.4 ([`pipeline`]) and the choice of the kernel
+//! support from the object's size ([`support`]).
 //!
 //! Conventions: camera frame as in [`crate::camera`] (+x right, +y down, +z forward), lengths
 //! in millimetres, β and σ per millimetre, unit normals pointing towards the camera (n_z < 0).
@@ -20,6 +21,7 @@ pub mod mesh;
 pub mod near_light;
 pub mod physics;
 pub mod pipeline;
+pub mod support;
 
 #[cfg(test)]
 mod tests;
@@ -29,3 +31,4 @@ pub use near_light::ShadingModel;
 pub use pipeline::{
     photometric_stereo, validate_request, PsIterationStats, PsMode, PsParams, PsResult,
 };
+pub use support::{choose_support, SupportChoice};

@@ -271,6 +271,11 @@ pub struct PsResult {
     pub backscatter_s: f64,
     /// Total seconds.
     pub total_s: f64,
+    /// Kernel support r the run used, pixels.
+    pub support_r: usize,
+    /// Far-field cell size the run used, pixels: 1 for the exact window, also when a support
+    /// within the near radius made the requested cells moot ([`KernelLayout::coarse_far`]).
+    pub far_cell: usize,
 }
 
 /// The augmented operator of Eq. 4.52 over K̂.
@@ -502,6 +507,8 @@ pub fn photometric_stereo(
         normals_history,
         backscatter_s,
         total_s: started.elapsed().as_secs_f64(),
+        support_r: params.support_r,
+        far_cell: params.kernel_layout()?.cell(),
     })
 }
 

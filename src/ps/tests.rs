@@ -96,6 +96,22 @@ fn reference_table_full_size() {
         .ok()
         .and_then(|v| v.parse().ok())
         .unwrap_or(crate::ps::pipeline::DEFAULT_NEAR_RADIUS_PX);
+    // MURK_PS_AUTO=1: the support and far cell that `auto_support` would choose.
+    let (r, far_cell) = if std::env::var("MURK_PS_AUTO").is_ok() {
+        let (w, h) = sim.capture.dims();
+        let c = crate::ps::choose_support(
+            &sim.capture.mask,
+            w,
+            h,
+            near_radius_px,
+            crate::ps::pipeline::DEFAULT_MAX_KERNEL_BYTES,
+        )
+        .unwrap();
+        eprintln!("auto support: {c:?}");
+        (c.support_r, c.far_cell)
+    } else {
+        (r, far_cell)
+    };
     let base = PsParams {
         initial_distance_mm: sim.initial_distance_mm,
         far_cell,

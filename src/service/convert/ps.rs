@@ -115,6 +115,21 @@ pub fn ps_from_proto(
         },
     };
     let mut params = params_from_proto(req, max_kernel_bytes)?;
+    if req.auto_support {
+        if req.support_r != 0 {
+            return Err(MurkError::invalid(
+                "support_r",
+                format!("must be 0 (unset) with auto_support, got {}", req.support_r),
+            ));
+        }
+        let choice =
+            crate::ps::choose_support(&capture.mask, w, h, params.near_radius_px, max_kernel_bytes)
+                .map_err(rename_fields)?;
+        params.support_r = choice.support_r;
+        if req.far_cell == 0 {
+            params.far_cell = choice.far_cell;
+        }
+    }
     if let Some(img) = &req.initial_depth_mm {
         let d = image_from_proto(img, limits).map_err(|e| e.within("initial_depth_mm"))?;
         d.ensure_channels(1)
@@ -217,13 +232,15 @@ fn params_from_proto(
 /// Writes the defaults into unset fields so equivalent requests share a job id.
 pub fn canonicalize_ps_request(req: &mut pb::PhotometricStereoRequest) {
     let d = PsParams::default();
-    if req.support_r == 0 {
+    // With auto_support the support (and a zero far cell) follow from the mask, which is part of
+    // the request: left as 0 they still identify the job.
+    if req.support_r == 0 && !req.auto_support {
         req.support_r = d.support_r as u32;
     }
     if req.max_iterations == 0 {
         req.max_iterations = d.max_iterations as u32;
     }
-    if req.far_cell == 0 {
+    if req.far_cell == 0 && !req.auto_support {
         req.far_cell = d.far_cell as u32;
     }
     if req.near_radius_px == 0 {
@@ -278,6 +295,7 @@ pub fn ps_request_to_proto(capture: &PsCapture, params: &PsParams) -> pb::Photom
         support_r: params.support_r as u32,
         far_cell: params.far_cell as u32,
         near_radius_px: params.near_radius_px as u32,
+        auto_support: false,
         max_iterations: params.max_iterations as u32,
         tolerance: Some(params.tolerance),
         mode: match params.mode {
@@ -339,6 +357,8 @@ pub fn ps_to_proto(out: &PsResult, with_history: bool) -> pb::PhotometricStereoR
             .collect(),
         backscatter_seconds: out.backscatter_s,
         total_seconds: out.total_s,
+        support_r: out.support_r as u32,
+        far_cell: out.far_cell as u32,
     }
 }
 
@@ -399,5 +419,7 @@ pub fn ps_from_result(r: &pb::PhotometricStereoResult, mask: &[bool]) -> Result<
             .collect::<Result<_>>()?,
         backscatter_s: r.backscatter_seconds,
         total_s: r.total_seconds,
+        support_r: r.support_r as usize,
+        far_cell: r.far_cell as usize,
     })
 }
