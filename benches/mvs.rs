@@ -1,6 +1,7 @@
 //! MVS in haze (issue 3): cost volumes (Eq. 3.1, Eq. 3.7 and the default noise-balanced
 //! dehazing residual) at the reference's DCV size 256×192 with 256 planes, 1 and 4 sources, and
-//! the full depth (cost volume + 8-path SGM + selection).
+//! the full depth (pre-smoothing + cost volume + 8-path SGM + selection), and the pre-smoothing
+//! of one view alone.
 //!
 //! Run: `cargo bench --bench mvs`.
 
@@ -8,7 +9,8 @@ use criterion::{criterion_group, criterion_main, Criterion};
 
 use murk::atmosphere::AtmosphereParams;
 use murk::mvs::{
-    build_cost_volume, estimate_depth, CostKind, DehazingOptions, PlaneSet, SgmParams, View,
+    build_cost_volume, depth::presmooth::gaussian_presmooth, estimate_depth, CostKind,
+    DehazingOptions, PlaneSet, SgmParams, View,
 };
 use murk::simulate::mvs::{simulate_mvs, MvsSimConfig};
 use murk::Monitor;
@@ -56,6 +58,10 @@ fn bench(c: &mut Criterion) {
 
     let mut g = c.benchmark_group(format!("mvs_depth_{w}x{h}x256"));
     g.sample_size(10);
+    let sigma = SgmParams::default().presmooth_sigma_px;
+    g.bench_function("presmooth_one_view", |b| {
+        b.iter(|| gaussian_presmooth(reference.image, sigma))
+    });
     let kind = CostKind::DehazingWith(atm, DehazingOptions::default());
     for n_src in [1usize, 4] {
         g.bench_function(format!("dehazing_default_sgm/{n_src}src"), |b| {

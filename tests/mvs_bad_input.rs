@@ -118,6 +118,24 @@ async fn bad_mvs_requests_name_the_field_and_the_server_keeps_serving() {
             }),
         ),
         (
+            "sgm.presmooth_sigma_px",
+            Box::new(|r| {
+                r.sgm = Some(pb::SgmOptions {
+                    presmooth_sigma_px: Some(f32::NAN),
+                    ..Default::default()
+                })
+            }),
+        ),
+        (
+            "sgm.presmooth_sigma_px",
+            Box::new(|r| {
+                r.sgm = Some(pb::SgmOptions {
+                    presmooth_sigma_px: Some(50.0),
+                    ..Default::default()
+                })
+            }),
+        ),
+        (
             "reference.image",
             Box::new(|r| {
                 let mut img = ImageF32::filled(W, H, 3, 0.5);

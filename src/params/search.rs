@@ -522,6 +522,8 @@ mod tests {
             grid_steps: 2,
             delta_airlight: 0.05,
             search_planes: 16,
+            // The published plain argmin, so the estimate must be the grid's minimum.
+            min_improvement_t: 0.0,
             ..SearchParams::default()
         };
         assert_eq!(params.evaluations(), 8);

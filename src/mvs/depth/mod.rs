@@ -3,6 +3,7 @@
 //!
 //! Pipeline ([`estimate_depth`] / [`depth_from_cost_volume`]):
 //!
+//! 0. optional Gaussian pre-smoothing of every view ([`presmooth`], σ = 0.8 px by default);
 //! 1. the ordinary (Eq. 3.1) or dehazing (Eq. 3.7) cost volume, `C(p, i)` in `[0, γ]`, `γ = 3`
 //!    for RGB ([`crate::mvs::cost_volume`]);
 //! 2. optional box mean of each plane ([`window`]);
@@ -17,6 +18,7 @@
 //! 2 × 50 MB (plus the cost volume itself while it is transposed).
 
 pub mod filter;
+pub mod presmooth;
 pub mod select;
 pub mod sgm;
 pub mod window;
@@ -73,6 +75,10 @@ pub struct SgmParams {
     pub cost_window_radius: usize,
     /// Optional post-filter (off by default).
     pub post_filter: PostFilter,
+    /// σ of the Gaussian applied to every view before the cost volume ([`presmooth`]), pixels,
+    /// `0 ..= 4` (`0` = none). Used by [`estimate_depth`], not by [`depth_from_cost_volume`],
+    /// which receives a finished volume.
+    pub presmooth_sigma_px: f32,
 }
 
 impl Default for SgmParams {
@@ -84,13 +90,14 @@ impl Default for SgmParams {
             num_paths: 8,
             cost_window_radius: 2,
             post_filter: PostFilter::None,
+            presmooth_sigma_px: 0.8,
         }
     }
 }
 
 impl SgmParams {
     /// Fails naming the offending field (`p1`, `p2`, `p2_gradient_scale`, `num_paths`,
-    /// `cost_window_radius`, `post_filter.radius`, `post_filter.sigma`).
+    /// `cost_window_radius`, `post_filter.radius`, `post_filter.sigma`, `presmooth_sigma_px`).
     pub fn validate(&self) -> Result<()> {
         if !self.p1.is_finite() || self.p1 < 0.0 {
             return Err(MurkError::invalid(
@@ -123,6 +130,18 @@ impl SgmParams {
             return Err(MurkError::invalid(
                 "cost_window_radius",
                 format!("must be at most 16 pixels, got {}", self.cost_window_radius),
+            ));
+        }
+        if !self.presmooth_sigma_px.is_finite()
+            || !(0.0..=presmooth::MAX_PRESMOOTH_SIGMA_PX).contains(&self.presmooth_sigma_px)
+        {
+            return Err(MurkError::invalid(
+                "presmooth_sigma_px",
+                format!(
+                    "must be in 0..={} pixels, got {}",
+                    presmooth::MAX_PRESMOOTH_SIGMA_PX,
+                    self.presmooth_sigma_px
+                ),
             ));
         }
         if let PostFilter::WeightedMedian { radius, sigma } = self.post_filter {
@@ -174,8 +193,29 @@ pub fn estimate_depth(
     monitor: &Monitor,
 ) -> Result<DepthResult> {
     params.validate().map_err(|e| e.within("sgm"))?;
-    let volume = build_cost_volume(reference, sources, planes, kind, &monitor.sub(0.0, 0.5))?;
-    depth_from_cost_volume(volume, reference.image, params, &monitor.sub(0.5, 1.0))
+    if params.presmooth_sigma_px <= 0.0 {
+        let volume = build_cost_volume(reference, sources, planes, kind, &monitor.sub(0.0, 0.5))?;
+        return depth_from_cost_volume(volume, reference.image, params, &monitor.sub(0.5, 1.0));
+    }
+    // Invalid images are left to `build_cost_volume` to report; smoothing them first would
+    // only hide the field (NaN spreads, sizes are kept).
+    let sigma = params.presmooth_sigma_px;
+    let smooth_ref = presmooth::gaussian_presmooth(reference.image, sigma);
+    let smooth_src: Vec<ImageF32> = sources
+        .iter()
+        .map(|s| presmooth::gaussian_presmooth(s.image, sigma))
+        .collect();
+    let reference = View {
+        image: &smooth_ref,
+        ..*reference
+    };
+    let sources: Vec<View<'_>> = sources
+        .iter()
+        .zip(&smooth_src)
+        .map(|(s, img)| View { image: img, ..*s })
+        .collect();
+    let volume = build_cost_volume(&reference, &sources, planes, kind, &monitor.sub(0.0, 0.5))?;
+    depth_from_cost_volume(volume, &smooth_ref, params, &monitor.sub(0.5, 1.0))
 }
 
 /// Depth, inverse depth and confidence from a cost volume (steps 2–5 of the module docs).

@@ -135,6 +135,7 @@ pub(super) fn sgm_of(o: Option<&pb::SgmOptions>) -> SgmParams {
         p.cost_window_radius = o
             .cost_window_radius
             .map_or(p.cost_window_radius, |v| v as usize);
+        p.presmooth_sigma_px = o.presmooth_sigma_px.unwrap_or(p.presmooth_sigma_px);
     }
     p
 }
@@ -171,6 +172,7 @@ pub fn canonicalize_mvs_request(req: &mut pb::MvsDepthRequest) {
             p2_gradient_scale: Some(p.p2_gradient_scale),
             num_paths: Some(num_paths),
             cost_window_radius: Some(radius),
+            presmooth_sigma_px: Some(p.presmooth_sigma_px),
         });
     }
 }
@@ -558,6 +560,12 @@ mod tests {
             ..Default::default()
         });
         assert_eq!(err(&r), "sgm.num_paths");
+        let mut r = good.clone();
+        r.sgm = Some(pb::SgmOptions {
+            presmooth_sigma_px: Some(-0.5),
+            ..Default::default()
+        });
+        assert_eq!(err(&r), "sgm.presmooth_sigma_px");
         // ORDINARY ignores A and β, but not NaN.
         let mut r = request(pb::CostVolumeKind::Ordinary);
         r.airlight = 0.0;
