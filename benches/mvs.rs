@@ -1,7 +1,7 @@
 //! MVS in haze (issue 3): cost volumes (Eq. 3.1, Eq. 3.7 and the default noise-balanced
 //! dehazing residual) at the reference's DCV size 256×192 with 256 planes, 1 and 4 sources, and
-//! the full depth (pre-smoothing + cost volume + 8-path SGM + selection), and the pre-smoothing
-//! of one view alone.
+//! the full depth (pre-smoothing + cost volume + contrast normalisation + 8-path SGM +
+//! selection), and the pre-smoothing of one view and the contrast normalisation alone.
 //!
 //! Run: `cargo bench --bench mvs`.
 
@@ -9,8 +9,10 @@ use criterion::{criterion_group, criterion_main, Criterion};
 
 use murk::atmosphere::AtmosphereParams;
 use murk::mvs::{
-    build_cost_volume, depth::presmooth::gaussian_presmooth, estimate_depth, CostKind,
-    DehazingOptions, PlaneSet, SgmParams, View,
+    build_cost_volume,
+    depth::contrast::{apply_weights, contrast_weights, local_contrast},
+    depth::presmooth::gaussian_presmooth,
+    estimate_depth, CostKind, DehazingOptions, PlaneSet, SgmParams, View,
 };
 use murk::simulate::mvs::{simulate_mvs, MvsSimConfig};
 use murk::Monitor;
@@ -61,6 +63,21 @@ fn bench(c: &mut Criterion) {
     let sigma = SgmParams::default().presmooth_sigma_px;
     g.bench_function("presmooth_one_view", |b| {
         b.iter(|| gaussian_presmooth(reference.image, sigma))
+    });
+    // Weights from the reference, applied to a 256-plane volume in place (the values only grow,
+    // by at most w_max per iteration; inf costs the same as a finite value).
+    let defaults = SgmParams::default();
+    let mut volume = vec![1.0f32; w * h * 256];
+    g.bench_function("contrast_normalisation_256_planes", |b| {
+        b.iter(|| {
+            let c = local_contrast(reference.image.data(), w, h, reference.image.channels(), 2);
+            let weights = contrast_weights(
+                &c,
+                defaults.contrast_percentile,
+                defaults.contrast_max_weight,
+            );
+            apply_weights(&mut volume, &weights);
+        })
     });
     let kind = CostKind::DehazingWith(atm, DehazingOptions::default());
     for n_src in [1usize, 4] {

@@ -136,6 +136,24 @@ async fn bad_mvs_requests_name_the_field_and_the_server_keeps_serving() {
             }),
         ),
         (
+            "sgm.contrast_percentile",
+            Box::new(|r| {
+                r.sgm = Some(pb::SgmOptions {
+                    contrast_percentile: Some(f32::NAN),
+                    ..Default::default()
+                })
+            }),
+        ),
+        (
+            "sgm.contrast_max_weight",
+            Box::new(|r| {
+                r.sgm = Some(pb::SgmOptions {
+                    contrast_max_weight: Some(1000.0),
+                    ..Default::default()
+                })
+            }),
+        ),
+        (
             "reference.image",
             Box::new(|r| {
                 let mut img = ImageF32::filled(W, H, 3, 0.5);

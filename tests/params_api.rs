@@ -59,6 +59,8 @@ async fn unary_and_jobs_agree_and_the_result_is_complete() {
     req.delta_airlight = Some(0.05);
     req.num_planes = 32;
     req.search_planes = 16;
+    // The published plain argmin, so A*, β* must be the grid's minimum.
+    req.min_improvement_t = Some(0.0);
     let unary = recon(&server)
         .scattering_params(req.clone())
         .await

@@ -6,7 +6,8 @@
 //! 0. optional Gaussian pre-smoothing of every view ([`presmooth`], σ = 0.8 px by default);
 //! 1. the ordinary (Eq. 3.1) or dehazing (Eq. 3.7) cost volume, `C(p, i)` in `[0, γ]`, `γ = 3`
 //!    for RGB ([`crate::mvs::cost_volume`]);
-//! 2. optional box mean of each plane ([`window`]);
+//! 2. contrast normalisation: each pixel's curve weighted by `clamp(c₀/c_p, 1, w_max)` from the
+//!    reference's local contrast ([`contrast`]), then the box mean of each plane ([`window`]);
 //! 3. semi-global aggregation over 8 (or 4) paths with penalties `P1`, `P2` on plane-index
 //!    jumps, `P2` optionally adapted to the reference image gradient ([`sgm`]);
 //! 4. winner-take-all, parabola sub-plane refinement in inverse depth and a confidence from the
@@ -17,6 +18,7 @@
 //! aggregated volume of the same size holds the sum over all paths: at 256×192×256 that is
 //! 2 × 50 MB (plus the cost volume itself while it is transposed).
 
+pub mod contrast;
 pub mod filter;
 pub mod presmooth;
 pub mod select;
@@ -79,6 +81,11 @@ pub struct SgmParams {
     /// `0 ..= 4` (`0` = none). Used by [`estimate_depth`], not by [`depth_from_cost_volume`],
     /// which receives a finished volume.
     pub presmooth_sigma_px: f32,
+    /// Percentile (0–100) of the reference's local contrast that sets `c₀` of the contrast
+    /// normalisation ([`contrast`]).
+    pub contrast_percentile: f32,
+    /// Largest contrast weight `w_max` (`1 ..= 64`; `1` = no contrast normalisation).
+    pub contrast_max_weight: f32,
 }
 
 impl Default for SgmParams {
@@ -91,13 +98,16 @@ impl Default for SgmParams {
             cost_window_radius: 2,
             post_filter: PostFilter::None,
             presmooth_sigma_px: 0.8,
+            contrast_percentile: 95.0,
+            contrast_max_weight: 4.0,
         }
     }
 }
 
 impl SgmParams {
     /// Fails naming the offending field (`p1`, `p2`, `p2_gradient_scale`, `num_paths`,
-    /// `cost_window_radius`, `post_filter.radius`, `post_filter.sigma`, `presmooth_sigma_px`).
+    /// `cost_window_radius`, `post_filter.radius`, `post_filter.sigma`, `presmooth_sigma_px`,
+    /// `contrast_percentile`, `contrast_max_weight`).
     pub fn validate(&self) -> Result<()> {
         if !self.p1.is_finite() || self.p1 < 0.0 {
             return Err(MurkError::invalid(
@@ -142,6 +152,22 @@ impl SgmParams {
                     presmooth::MAX_PRESMOOTH_SIGMA_PX,
                     self.presmooth_sigma_px
                 ),
+            ));
+        }
+        if !self.contrast_percentile.is_finite()
+            || !(0.0..=100.0).contains(&self.contrast_percentile)
+        {
+            return Err(MurkError::invalid(
+                "contrast_percentile",
+                format!("must be in 0..=100, got {}", self.contrast_percentile),
+            ));
+        }
+        if !self.contrast_max_weight.is_finite()
+            || !(1.0..=64.0).contains(&self.contrast_max_weight)
+        {
+            return Err(MurkError::invalid(
+                "contrast_max_weight",
+                format!("must be in 1..=64, got {}", self.contrast_max_weight),
             ));
         }
         if let PostFilter::WeightedMedian { radius, sigma } = self.post_filter {
@@ -271,6 +297,18 @@ pub fn depth_from_costs(
         ));
     }
     guide.ensure_finite().map_err(|e| e.within("guide"))?;
+    if params.contrast_max_weight > 1.0 {
+        let c = contrast::local_contrast(
+            guide.data(),
+            w,
+            h,
+            guide.channels(),
+            params.cost_window_radius.max(1),
+        );
+        let weights =
+            contrast::contrast_weights(&c, params.contrast_percentile, params.contrast_max_weight);
+        contrast::apply_weights(&mut data, &weights);
+    }
     window::box_filter_planes(&mut data, w, h, params.cost_window_radius, monitor)?;
     monitor.checkpoint()?;
     let costs = sgm::to_pixel_major(&data, w * h, n);

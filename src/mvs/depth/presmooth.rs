@@ -10,8 +10,8 @@
 //! interpolation no longer changes its variance much, and it lowers the noise itself; it barely
 //! touches texture at the scale the matching window (5×5) resolves anyway.
 //!
-//! Measured on murk's simulated rooms (σ_noise = 0.01, 256×192×256, seeds 0–4,
-//! docs/ACCURACY.md): C.P. 70.7 → 73.4 % in haze and 83.1 → 89.4 % on the clear images with
+//! Measured on murk's simulated rooms (σ_noise = 0.01, 256×192×256, seeds 0–4, before the
+//! contrast normalisation, docs/ACCURACY.md): C.P. 70.7 → 73.4 % in haze and 83.1 → 89.4 % on the clear images with
 //! `σ = 0.8` px; the gain has a plateau for σ in 0.7–1.0 and drops beyond 1.5 px.
 //!
 //! The model of Eq. 3.3 is affine in the radiance, `I = t·J + A(1 − t)`, so smoothing commutes

@@ -136,6 +136,8 @@ pub(super) fn sgm_of(o: Option<&pb::SgmOptions>) -> SgmParams {
             .cost_window_radius
             .map_or(p.cost_window_radius, |v| v as usize);
         p.presmooth_sigma_px = o.presmooth_sigma_px.unwrap_or(p.presmooth_sigma_px);
+        p.contrast_percentile = o.contrast_percentile.unwrap_or(p.contrast_percentile);
+        p.contrast_max_weight = o.contrast_max_weight.unwrap_or(p.contrast_max_weight);
     }
     p
 }
@@ -173,6 +175,8 @@ pub fn canonicalize_mvs_request(req: &mut pb::MvsDepthRequest) {
             num_paths: Some(num_paths),
             cost_window_radius: Some(radius),
             presmooth_sigma_px: Some(p.presmooth_sigma_px),
+            contrast_percentile: Some(p.contrast_percentile),
+            contrast_max_weight: Some(p.contrast_max_weight),
         });
     }
 }
@@ -566,6 +570,18 @@ mod tests {
             ..Default::default()
         });
         assert_eq!(err(&r), "sgm.presmooth_sigma_px");
+        let mut r = good.clone();
+        r.sgm = Some(pb::SgmOptions {
+            contrast_max_weight: Some(0.5),
+            ..Default::default()
+        });
+        assert_eq!(err(&r), "sgm.contrast_max_weight");
+        let mut r = good.clone();
+        r.sgm = Some(pb::SgmOptions {
+            contrast_percentile: Some(101.0),
+            ..Default::default()
+        });
+        assert_eq!(err(&r), "sgm.contrast_percentile");
         // ORDINARY ignores A and β, but not NaN.
         let mut r = request(pb::CostVolumeKind::Ordinary);
         r.airlight = 0.0;
