@@ -339,6 +339,7 @@ fn experiment_presmooth() {
 #[ignore = "experiment (about a minute)"]
 fn experiment_adaptive_scale() {
     use crate::mvs::cost_volume::estimate_noise_sigma;
+    use crate::mvs::depth::contrast::local_contrast;
     use crate::mvs::depth::presmooth::gaussian_presmooth;
     let planes = PlaneSet::new(1.5, 15.0, 256).unwrap();
     let coarse: Vec<f32> = std::env::var("MURK_COARSE")
@@ -391,25 +392,9 @@ fn experiment_adaptive_scale() {
         let ok = |z: f32, g: f32| ((z - g) / g).abs() < 0.1;
         let noise = estimate_noise_sigma(reference.image).max(1e-4);
         let sm = gaussian_presmooth(reference.image, fine_p.presmooth_sigma_px);
-        let c = sm.channels();
-        let snr: Vec<f32> = (0..w * h)
-            .map(|p| {
-                let (x, y) = ((p % w) as i64, (p / w) as i64);
-                let mut var = 0.0f32;
-                for ch in 0..c {
-                    let (mut s, mut s2, mut n) = (0.0f32, 0.0f32, 0.0f32);
-                    for yy in (y - 2).max(0)..(y + 3).min(h as i64) {
-                        for xx in (x - 2).max(0)..(x + 3).min(w as i64) {
-                            let v = sm.data()[(yy as usize * w + xx as usize) * c + ch];
-                            s += v;
-                            s2 += v * v;
-                            n += 1.0;
-                        }
-                    }
-                    var += (s2 / n - (s / n) * (s / n)).max(0.0);
-                }
-                (var / c as f32).sqrt() / noise
-            })
+        let snr: Vec<f32> = local_contrast(sm.data(), w, h, sm.channels(), 2)
+            .into_iter()
+            .map(|c| c / noise)
             .collect();
         let n = (w * h) as f64;
         let (f, co, g) = (zf.data(), zc.data(), gt.data());
@@ -496,6 +481,7 @@ fn experiment_adaptive_scale() {
 #[test]
 #[ignore = "experiment (about a minute)"]
 fn experiment_contrast_weight() {
+    use crate::mvs::depth::contrast::{apply_weights, contrast_weights, local_contrast};
     use crate::mvs::depth::presmooth::gaussian_presmooth;
     use crate::mvs::{build_cost_volume, depth_from_costs};
     let planes = PlaneSet::new(1.5, 15.0, 256).unwrap();
@@ -504,7 +490,7 @@ fn experiment_contrast_weight() {
         .split(',')
         .map(|v| v.parse().unwrap())
         .collect();
-    let pct: f64 = std::env::var("MURK_PCT")
+    let pct: f32 = std::env::var("MURK_PCT")
         .ok()
         .and_then(|v| v.parse().ok())
         .unwrap_or(50.0);
@@ -567,43 +553,17 @@ fn experiment_contrast_weight() {
             build_cost_volume(&reference, &sources, &planes, kind, &Monitor::noop()).unwrap();
         let (w, h) = (volume.width(), volume.height());
         let sm = reference.image;
-        let c = sm.channels();
-        let contrast: Vec<f32> = (0..w * h)
-            .map(|p| {
-                let (x, y) = ((p % w) as i64, (p / w) as i64);
-                let mut sd = 0.0f32;
-                for ch in 0..c {
-                    let (mut s, mut s2, mut n) = (0.0f32, 0.0f32, 0.0f32);
-                    for yy in (y - 2).max(0)..(y + 3).min(h as i64) {
-                        for xx in (x - 2).max(0)..(x + 3).min(w as i64) {
-                            let v = sm.data()[(yy as usize * w + xx as usize) * c + ch];
-                            s += v;
-                            s2 += v * v;
-                            n += 1.0;
-                        }
-                    }
-                    sd += (s2 / n - (s / n) * (s / n)).max(0.0).sqrt();
-                }
-                sd / c as f32
-            })
-            .collect();
-        let mut sorted = contrast.clone();
-        sorted.sort_by(f32::total_cmp);
-        let c0 = sorted[((pct / 100.0) * (sorted.len() - 1) as f64) as usize].max(1e-6);
+        let contrast = local_contrast(sm.data(), w, h, sm.channels(), 2);
         let gt = &scene.views[scene.reference].depth;
         let mut row = Vec::new();
         for &wmax in &wmaxes {
             let mut data = volume.data().to_vec();
-            for plane in data.chunks_mut(w * h) {
-                for (v, &cp) in plane.iter_mut().zip(&contrast) {
-                    *v *= (c0 / cp.max(1e-6)).clamp(1.0, wmax);
-                }
-            }
+            apply_weights(&mut data, &contrast_weights(&contrast, pct, wmax));
             let d = depth_from_costs(data, w, h, &planes, sm, &sgm, &Monitor::noop()).unwrap();
             row.push(depth_metrics(&d.z_depth, gt, None).unwrap().c_p);
         }
         eprintln!(
-            "seed {seed}: c₀ {c0:.4}; C.P. {:?}",
+            "seed {seed}: C.P. {:?}",
             row.iter()
                 .map(|v| (1000.0 * v).round() / 10.0)
                 .collect::<Vec<_>>()
