@@ -151,6 +151,22 @@ fn simulate_mvs_then_mvs_client_writes_depth_and_point_cloud() {
     ] {
         assert!(out.join(f).exists(), "{f} missing");
     }
+    // Depth options reach the server; an out-of-range one is refused with its field named.
+    let bad = murk()
+        .env_remove("MURK_SERVER")
+        .args(["mvs", "--reference", &reference, "--num-sources", "2"])
+        .args(["--planes", "32", "--presmooth-sigma", "9"])
+        .arg("--model")
+        .arg(scene.join("sparse"))
+        .arg("--images")
+        .arg(scene.join("images"))
+        .arg("--out")
+        .arg(dir.path().join("out-bad"))
+        .output()
+        .unwrap();
+    assert!(!bad.status.success());
+    let err = String::from_utf8_lossy(&bad.stderr);
+    assert!(err.contains("sgm.presmooth_sigma_px"), "{err}");
     // A valid binary PLY: header, then exactly `vertex` records of 3 floats + 3 bytes. With the
     // default --min-confidence 0 every pixel is a point.
     let ply = std::fs::read(out.join("points.ply")).unwrap();

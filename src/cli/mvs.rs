@@ -80,6 +80,13 @@ pub struct MvsArgs {
     /// Number of planes, uniform in inverse depth (default 256).
     #[arg(long)]
     pub planes: Option<u32>,
+    /// σ of the Gaussian applied to every view before the cost volume, pixels, 0..=4
+    /// (0 = none; server default 0.8). Lower it for noise-free or already denoised images.
+    #[arg(long)]
+    pub presmooth_sigma: Option<f32>,
+    /// Largest contrast-normalisation weight of the costs, 1..=64 (1 = off; server default 4).
+    #[arg(long)]
+    pub contrast_max_weight: Option<f32>,
     /// Points below this confidence are left out of points.ply (0 keeps all).
     #[arg(long, default_value_t = 0.0)]
     pub min_confidence: f32,
@@ -123,6 +130,13 @@ pub fn run(a: MvsArgs) -> anyhow::Result<()> {
     request.near = a.near.unwrap_or(0.0);
     request.far = a.far.unwrap_or(0.0);
     request.num_planes = a.planes.unwrap_or(0);
+    if a.presmooth_sigma.is_some() || a.contrast_max_weight.is_some() {
+        request.sgm = Some(pb::SgmOptions {
+            presmooth_sigma_px: a.presmooth_sigma,
+            contrast_max_weight: a.contrast_max_weight,
+            ..Default::default()
+        });
+    }
 
     let job_request = pb::JobRequest {
         method: Some(pb::job_request::Method::MvsDepth(request)),
