@@ -219,29 +219,34 @@ pub fn estimate_depth(
     monitor: &Monitor,
 ) -> Result<DepthResult> {
     params.validate().map_err(|e| e.within("sgm"))?;
-    if params.presmooth_sigma_px <= 0.0 {
-        let volume = build_cost_volume(reference, sources, planes, kind, &monitor.sub(0.0, 0.5))?;
-        return depth_from_cost_volume(volume, reference.image, params, &monitor.sub(0.5, 1.0));
-    }
-    // Invalid images are left to `build_cost_volume` to report; smoothing them first would
-    // only hide the field (NaN spreads, sizes are kept).
+    // Invalid images are left to `build_cost_volume` to report; smoothing keeps their sizes and
+    // spreads NaN, so the field it names is unchanged.
     let sigma = params.presmooth_sigma_px;
-    let smooth_ref = presmooth::gaussian_presmooth(reference.image, sigma);
-    let smooth_src: Vec<ImageF32> = sources
-        .iter()
-        .map(|s| presmooth::gaussian_presmooth(s.image, sigma))
-        .collect();
-    let reference = View {
-        image: &smooth_ref,
-        ..*reference
+    let smoothed: Option<(ImageF32, Vec<ImageF32>)> = (sigma > 0.0).then(|| {
+        (
+            presmooth::gaussian_presmooth(reference.image, sigma),
+            sources
+                .iter()
+                .map(|s| presmooth::gaussian_presmooth(s.image, sigma))
+                .collect(),
+        )
+    });
+    let (reference, sources): (View<'_>, Vec<View<'_>>) = match &smoothed {
+        Some((r, s)) => (
+            View {
+                image: r,
+                ..*reference
+            },
+            sources
+                .iter()
+                .zip(s)
+                .map(|(v, img)| View { image: img, ..*v })
+                .collect(),
+        ),
+        None => (*reference, sources.to_vec()),
     };
-    let sources: Vec<View<'_>> = sources
-        .iter()
-        .zip(&smooth_src)
-        .map(|(s, img)| View { image: img, ..*s })
-        .collect();
     let volume = build_cost_volume(&reference, &sources, planes, kind, &monitor.sub(0.0, 0.5))?;
-    depth_from_cost_volume(volume, &smooth_ref, params, &monitor.sub(0.5, 1.0))
+    depth_from_cost_volume(volume, reference.image, params, &monitor.sub(0.5, 1.0))
 }
 
 /// Depth, inverse depth and confidence from a cost volume (steps 2–5 of the module docs).
