@@ -42,14 +42,19 @@ fn evaluate_with(
     let views: Vec<View<'_>> = scene.hazy_views();
     let reference = views[scene.reference];
     // Sources nearest to the reference first (by trajectory position).
-    let mut others: Vec<usize> = (0..views.len()).filter(|&i| i != scene.reference).collect();
-    others.sort_by_key(|&i| i.abs_diff(scene.reference));
-    let sources: Vec<View<'_>> = others.iter().take(num_sources).map(|&i| views[i]).collect();
+    let sources = nearest_sources(&views, scene.reference, num_sources);
     let t0 = Instant::now();
     let depth = estimate_depth(&reference, &sources, planes, kind, sgm, &Monitor::noop()).unwrap();
     let elapsed = t0.elapsed().as_secs_f64();
     let gt: &ImageF32 = &scene.views[scene.reference].depth;
     (depth_metrics(&depth.z_depth, gt, None).unwrap(), elapsed)
+}
+
+/// The `n` views nearest to `reference` along the trajectory (by index), nearest first.
+fn nearest_sources<'a>(views: &[View<'a>], reference: usize, n: usize) -> Vec<View<'a>> {
+    let mut others: Vec<usize> = (0..views.len()).filter(|&i| i != reference).collect();
+    others.sort_by_key(|&i| i.abs_diff(reference));
+    others.iter().take(n).map(|&i| views[i]).collect()
 }
 
 /// [`evaluate_with`] with the default [`SgmParams`].
@@ -370,9 +375,7 @@ fn experiment_adaptive_scale() {
         .unwrap();
         let views = scene.hazy_views();
         let reference = views[scene.reference];
-        let mut others: Vec<usize> = (0..views.len()).filter(|&i| i != scene.reference).collect();
-        others.sort_by_key(|&i| i.abs_diff(scene.reference));
-        let sources: Vec<View<'_>> = others.iter().take(4).map(|&i| views[i]).collect();
+        let sources = nearest_sources(&views, scene.reference, 4);
         let kind = CostKind::DehazingWith(
             AtmosphereParams {
                 airlight: scene.airlight,
@@ -535,9 +538,7 @@ fn experiment_contrast_weight() {
             })
             .collect();
         let reference = views[scene.reference];
-        let mut others: Vec<usize> = (0..views.len()).filter(|&i| i != scene.reference).collect();
-        others.sort_by_key(|&i| i.abs_diff(scene.reference));
-        let sources: Vec<View<'_>> = others.iter().take(4).map(|&i| views[i]).collect();
+        let sources = nearest_sources(&views, scene.reference, 4);
         let kind = if clear {
             CostKind::Ordinary
         } else {
