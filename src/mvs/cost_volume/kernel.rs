@@ -3,6 +3,7 @@
 //! dehazing is the identity) they agree bit for bit.
 
 use super::sample::bilinear_inside;
+use super::simd::{self, RowInputs};
 use crate::atmosphere::inverse_transmission;
 use crate::mvs::plane_sweep::{PlaneWarp, RowWarp};
 
@@ -11,6 +12,9 @@ use super::DehazingResidual;
 /// One source view for one plane: its samples and the plane's reference→source warp.
 pub(super) struct SourcePlane<'a> {
     pub data: &'a [f32],
+    /// The same image as [`super::sample::pad_rgb4`] pixels for the RGB direct rows' AVX2 loop;
+    /// empty otherwise.
+    pub padded: &'a [[f32; 4]],
     pub warp: PlaneWarp,
 }
 
@@ -208,8 +212,8 @@ pub(super) fn fill_row<const C: usize, const DEHAZE: bool>(
 
 /// `out[x] = sum[x] / observed[x]`, or `penalty` where no source observed the voxel. Divides by
 /// `max(n, 1)` and selects afterwards, so the loop has no branch and vectorises.
-#[inline]
-fn mean_or_penalty(out: &mut [f32], sum: &[f32], observed: &[u32], penalty: f32) {
+#[inline(always)]
+pub(super) fn mean_or_penalty(out: &mut [f32], sum: &[f32], observed: &[u32], penalty: f32) {
     for ((o, &s), &n) in out.iter_mut().zip(sum).zip(observed) {
         let mean = s / (n as f32).max(1.0);
         *o = if n == 0 { penalty } else { mean };
@@ -222,8 +226,14 @@ fn mean_or_penalty(out: &mut [f32], sum: &[f32], observed: &[u32], penalty: f32)
 /// homogeneous coordinates are affine in `u` along the row and evaluated in `f32` (an f32
 /// reciprocal per voxel instead of an f64 division); for images up to 4096 px the rounding moves
 /// a sample by < 0.01 px. Branch-free, so it vectorises.
-#[inline]
-fn source_coords(warp: &RowWarp, width: usize, height: usize, us: &mut [f32], vs: &mut [f32]) {
+#[inline(always)]
+pub(super) fn source_coords(
+    warp: &RowWarp,
+    width: usize,
+    height: usize,
+    us: &mut [f32],
+    vs: &mut [f32],
+) {
     let (slope, offset, _) = warp.coefficients();
     let [ax, ay, aw] = slope.map(|v| v as f32);
     let [bx, by, bw] = offset.map(|v| v as f32);
@@ -246,12 +256,17 @@ fn source_coords(warp: &RowWarp, width: usize, height: usize, us: &mut [f32], vs
 ///
 /// With `HAZE = false` it is the ordinary volume's row (Eq. 3.1), `Σ_c |I_r − I_s|` uncapped,
 /// bit for bit what [`fill_row`] computes without dehazing (tested).
+///
+/// Where the CPU has AVX2 the row runs through [`simd`]'s loops, eight pixels at a time (RGB
+/// reads `reference_rgb4` and the sources' `padded` images, [`super::sample::pad_rgb4`]); the
+/// scalar loop below does the rest of the row, or all of it.
 #[allow(clippy::too_many_arguments)]
 #[inline]
 pub(super) fn fill_row_observation<const C: usize, const HAZE: bool>(
     out: &mut [f32],
     y: usize,
     reference: &[f32],
+    reference_rgb4: &[[f32; 4]],
     width: usize,
     height: usize,
     sources: &[SourcePlane<'_>],
@@ -277,7 +292,7 @@ pub(super) fn fill_row_observation<const C: usize, const HAZE: bool>(
     let t_r = haze.ref_t;
     for s in sources {
         let warp = s.warp.row(y as f64);
-        source_coords(&warp, width, height, us_row, vs_row);
+        simd::source_coords(&warp, width, height, us_row, vs_row);
         if HAZE {
             // k = t_r/t_s per pixel of the row, and the airlight terms folded into one offset:
             // (I_r − A) − k(I_s − A) = I_r − k·I_s + A(k − 1).
@@ -287,7 +302,27 @@ pub(super) fn fill_row_observation<const C: usize, const HAZE: bool>(
                 *o = a * (*r - 1.0);
             }
         }
-        for x in 0..width {
+        let inputs = RowInputs {
+            us: us_row,
+            vs: vs_row,
+            ratio: ratio_row,
+            offset: offset_row,
+        };
+        let start = if C == 3 {
+            simd::accumulate_rgb4::<HAZE>(
+                sum,
+                observed,
+                &inputs,
+                &reference_rgb4[y * width..(y + 1) * width],
+                s.padded,
+                width,
+                height,
+                penalty,
+            )
+        } else {
+            simd::accumulate::<C, HAZE>(sum, observed, &inputs, row, s.data, width, height, penalty)
+        };
+        for x in start..width {
             let us = us_row[x];
             if us.is_nan() {
                 continue;
@@ -310,7 +345,7 @@ pub(super) fn fill_row_observation<const C: usize, const HAZE: bool>(
             observed[x] += 1;
         }
     }
-    mean_or_penalty(out, sum, observed, penalty);
+    simd::mean_or_penalty(out, sum, observed, penalty);
 }
 
 /// `1/t_s = e^{βζ}` for every pixel of one reference row and plane, clamped like
@@ -358,6 +393,7 @@ fn inverse_transmission_row(warp: &RowWarp, beta: f32, out: &mut [f32]) {
 mod tests {
     use super::*;
     use crate::camera::Intrinsics;
+    use crate::mvs::cost_volume::sample::pad_rgb4;
     use crate::mvs::pose::Pose;
 
     /// The interleaved geometric sequence equals one `exp` per pixel (clamped), on rows whose
@@ -384,16 +420,19 @@ mod tests {
         }
     }
 
-    /// The direct ordinary row equals the generic row without dehazing, bit for bit.
+    /// The direct ordinary row (AVX2 loops and scalar loop, RGB and grey) equals the generic row
+    /// without dehazing, bit for bit.
     #[test]
     fn direct_ordinary_row_matches_generic_row() {
-        let (w, h) = (40usize, 12usize);
+        // Not a multiple of 8: the AVX2 loop and the scalar remainder both run.
+        let (w, h) = (43usize, 12usize);
         let img = |seed: usize| -> Vec<f32> {
             (0..w * h * 3)
                 .map(|i| (((i + seed) * 2654435761) % 1000) as f32 / 700.0 - 0.2)
                 .collect()
         };
         let (refd, src) = (img(0), img(7));
+        let (ref4, src4) = (pad_rgb4(&refd), pad_rgb4(&src));
         let k = Intrinsics::new(30.0, 30.0, 20.0, 6.0);
         let rel = Pose::new(
             [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
@@ -416,10 +455,12 @@ mod tests {
             let sources = [
                 SourcePlane {
                     data: &src,
+                    padded: &src4,
                     warp: PlaneWarp::new(&k, &k, &rel, z),
                 },
                 SourcePlane {
                     data: &refd,
+                    padded: &ref4,
                     warp: PlaneWarp::new(&k, &k, &Pose::identity(), z),
                 },
             ];
@@ -427,24 +468,56 @@ mod tests {
                 let (mut g, mut f) = (vec![0.0; w], vec![0.0; w]);
                 let mut s = RowScratch::default();
                 fill_row::<3, false>(&mut g, y, &refd, w, h, &sources, haze, 3.0, &mut s);
-                fill_row_observation::<3, false>(
-                    &mut f, y, &refd, w, h, &sources, haze, 3.0, &mut s,
+                for scalar in [false, true] {
+                    simd::FORCE_SCALAR.with(|f| f.set(scalar));
+                    fill_row_observation::<3, false>(
+                        &mut f, y, &refd, &ref4, w, h, &sources, haze, 3.0, &mut s,
+                    );
+                    assert_eq!(g, f, "z {z}, row {y}, scalar {scalar}");
+                }
+                simd::FORCE_SCALAR.with(|f| f.set(false));
+            }
+            // One channel: the gather loop.
+            let (gray_ref, gray_src) = (&refd[..w * h], &src[..w * h]);
+            let gray = [SourcePlane {
+                data: gray_src,
+                padded: &[],
+                warp: PlaneWarp::new(&k, &k, &rel, z),
+            }];
+            for y in 0..h {
+                let (mut g, mut f) = (vec![0.0; w], vec![0.0; w]);
+                let mut s = RowScratch::default();
+                fill_row::<1, false>(&mut g, y, gray_ref, w, h, &gray, haze, 1.0, &mut s);
+                fill_row_observation::<1, false>(
+                    &mut f,
+                    y,
+                    gray_ref,
+                    &[],
+                    w,
+                    h,
+                    &gray,
+                    haze,
+                    1.0,
+                    &mut s,
                 );
-                assert_eq!(g, f, "z {z}, row {y}");
+                assert_eq!(g, f, "gray: z {z}, row {y}");
             }
         }
     }
 
-    /// The closed-form observation-space row equals the generic row in that mode.
+    /// The closed-form observation-space row (AVX2 and scalar) equals the generic row in that
+    /// mode.
     #[test]
     fn observation_row_matches_generic_row() {
-        let (w, h) = (40usize, 12usize);
+        // Not a multiple of 8: the AVX2 loop and the scalar remainder both run.
+        let (w, h) = (43usize, 12usize);
         let img = |seed: usize| -> Vec<f32> {
             (0..w * h * 3)
                 .map(|i| (((i + seed) * 2654435761) % 1000) as f32 / 1000.0)
                 .collect()
         };
         let (refd, src) = (img(0), img(7));
+        let (ref4, src4) = (pad_rgb4(&refd), pad_rgb4(&src));
         let k = Intrinsics::new(30.0, 30.0, 20.0, 6.0);
         let rel = Pose::new(
             [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
@@ -454,6 +527,7 @@ mod tests {
         for z in [1.0f64, 2.5, 6.0] {
             let sources = [SourcePlane {
                 data: &src,
+                padded: &src4,
                 warp: PlaneWarp::new(&k, &k, &rel, z),
             }];
             let (a, beta) = (0.8f32, 0.3f32);
@@ -475,15 +549,19 @@ mod tests {
                 let (mut g, mut f) = (vec![0.0; w], vec![0.0; w]);
                 let mut s = RowScratch::default();
                 fill_row::<3, true>(&mut g, y, &refd, w, h, &sources, haze, 3.0, &mut s);
-                fill_row_observation::<3, true>(
-                    &mut f, y, &refd, w, h, &sources, haze, 3.0, &mut s,
-                );
-                for (x, (g, f)) in g.iter().zip(&f).enumerate() {
-                    assert!(
-                        (g - f).abs() <= 1e-5 * g.max(1.0),
-                        "z {z} ({x}, {y}): {g} vs {f}"
+                for scalar in [false, true] {
+                    simd::FORCE_SCALAR.with(|f| f.set(scalar));
+                    fill_row_observation::<3, true>(
+                        &mut f, y, &refd, &ref4, w, h, &sources, haze, 3.0, &mut s,
                     );
+                    for (x, (g, f)) in g.iter().zip(&f).enumerate() {
+                        assert!(
+                            (g - f).abs() <= 1e-5 * g.max(1.0),
+                            "z {z} ({x}, {y}), scalar {scalar}: {g} vs {f}"
+                        );
+                    }
                 }
+                simd::FORCE_SCALAR.with(|f| f.set(false));
             }
         }
     }

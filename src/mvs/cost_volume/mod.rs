@@ -40,6 +40,7 @@
 
 mod kernel;
 pub mod sample;
+mod simd;
 
 use rayon::prelude::*;
 
@@ -429,6 +430,17 @@ pub fn build_cost_volume(
             && o.residual == DehazingResidual::ObservationSpace
             && o.range == RangePenalty::Off
     );
+    // The RGB direct rows' vector loop reads one 4-lane register per pixel; the copies are two
+    // passes over the images against W·H·N samples.
+    let rgb4 = |img: &ImageF32| {
+        if c == 3 && (observation || !dehaze) {
+            sample::pad_rgb4(img.data())
+        } else {
+            Vec::new()
+        }
+    };
+    let ref4 = rgb4(reference.image);
+    let sources4: Vec<Vec<[f32; 4]>> = sources.iter().map(|s| rgb4(s.image)).collect();
     let done = std::sync::atomic::AtomicUsize::new(0);
     // One rayon task per plane: a plane is ~50k voxels of independent work, and parallelising
     // over planes instead of over each plane's rows saves a fork-join (and the workers' sleep
@@ -441,10 +453,13 @@ pub fn build_cost_volume(
             monitor.checkpoint()?;
             let z = planes.depth(i as f64);
             plane_sources.clear();
-            plane_sources.extend(sources.iter().zip(&relatives).map(|(s, rel)| SourcePlane {
-                data: s.image.data(),
-                warp: PlaneWarp::new(&reference.intrinsics, &s.intrinsics, rel, z),
-            }));
+            plane_sources.extend(sources.iter().zip(&relatives).zip(&sources4).map(
+                |((s, rel), padded)| SourcePlane {
+                    data: s.image.data(),
+                    padded,
+                    warp: PlaneWarp::new(&reference.intrinsics, &s.intrinsics, rel, z),
+                },
+            ));
             let haze = match kind.dehazing() {
                 None => Haze {
                     airlight: 0.0,
@@ -479,17 +494,17 @@ pub fn build_cost_volume(
             for (y, row) in out.chunks_exact_mut(w).enumerate() {
                 match (c, dehaze) {
                     (1, true) if observation => fill_row_observation::<1, true>(
-                        row, y, refd, w, h, srcs, haze, penalty, scratch,
+                        row, y, refd, &ref4, w, h, srcs, haze, penalty, scratch,
                     ),
                     (_, true) if observation => fill_row_observation::<3, true>(
-                        row, y, refd, w, h, srcs, haze, penalty, scratch,
+                        row, y, refd, &ref4, w, h, srcs, haze, penalty, scratch,
                     ),
                     // The ordinary volume's direct row (bit-identical to the generic one).
                     (1, false) => fill_row_observation::<1, false>(
-                        row, y, refd, w, h, srcs, haze, penalty, scratch,
+                        row, y, refd, &ref4, w, h, srcs, haze, penalty, scratch,
                     ),
                     (_, false) => fill_row_observation::<3, false>(
-                        row, y, refd, w, h, srcs, haze, penalty, scratch,
+                        row, y, refd, &ref4, w, h, srcs, haze, penalty, scratch,
                     ),
                     (1, true) => {
                         fill_row::<1, true>(row, y, refd, w, h, srcs, haze, penalty, scratch)

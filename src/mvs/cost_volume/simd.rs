@@ -1,0 +1,355 @@
+//! AVX2 version of the direct rows' inner loop ([`super::kernel::fill_row_observation`]): eight
+//! reference pixels at a time, the bilinear corners fetched with hardware gathers.
+//!
+//! Why: the scalar loop's bilinear sample is a chain of dependent scalar loads and lerps per
+//! voxel, and per-voxel work is all a plane sweep does. Eight lanes share the index arithmetic
+//! and the lerps; only the corner fetches stay per lane, as gathers.
+//!
+//! The arithmetic is the scalar loop's, operation for operation and in the same order (separate
+//! multiply and add, no FMA; channels summed from 0 up), so each lane is bit for bit the scalar
+//! result (tested) and the ordinary volume stays identical to the dehazing volume at `β = 0`.
+//! The loop is used only where the CPU reports AVX2 at run time; elsewhere, and for the last
+//! `width mod 8` pixels of a row, the scalar loop runs.
+
+use crate::mvs::plane_sweep::RowWarp;
+
+#[cfg(test)]
+thread_local! {
+    /// Tests set this to run the scalar loops on a CPU that has AVX2 (this thread only).
+    pub(super) static FORCE_SCALAR: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
+}
+
+/// Whether the AVX2 loops run: the CPU has AVX2 (detected once, then a cached flag).
+#[cfg(target_arch = "x86_64")]
+#[inline]
+fn avx2_enabled() -> bool {
+    #[cfg(test)]
+    if FORCE_SCALAR.with(|f| f.get()) {
+        return false;
+    }
+    std::arch::is_x86_feature_detected!("avx2")
+}
+
+/// [`super::kernel::source_coords`], compiled for AVX2 (eight lanes per instruction) where the
+/// CPU has it: the same operations, so the same coordinates bit for bit.
+#[inline]
+pub(super) fn source_coords(
+    warp: &RowWarp,
+    width: usize,
+    height: usize,
+    us: &mut [f32],
+    vs: &mut [f32],
+) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if avx2_enabled() {
+            // SAFETY: AVX2 is present.
+            return unsafe { avx2::source_coords(warp, width, height, us, vs) };
+        }
+    }
+    super::kernel::source_coords(warp, width, height, us, vs)
+}
+
+/// [`super::kernel::mean_or_penalty`], compiled for AVX2 where the CPU has it (same results).
+#[inline]
+pub(super) fn mean_or_penalty(out: &mut [f32], sum: &[f32], observed: &[u32], penalty: f32) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if avx2_enabled() {
+            // SAFETY: AVX2 is present.
+            return unsafe { avx2::mean_or_penalty(out, sum, observed, penalty) };
+        }
+    }
+    super::kernel::mean_or_penalty(out, sum, observed, penalty)
+}
+
+/// Inputs of one row × one source for [`accumulate`]: the row's source coordinates (`us` NaN =
+/// unobserved) and, for the dehazing volume, `k = t_r/t_s` and `b = A(k − 1)` per pixel.
+pub(super) struct RowInputs<'a> {
+    pub us: &'a [f32],
+    pub vs: &'a [f32],
+    pub ratio: &'a [f32],
+    pub offset: &'a [f32],
+}
+
+/// Adds this source's cost to `sum[x]` and 1 to `observed[x]` for every observed pixel in
+/// `0..8·⌊width/8⌋` and returns where the caller's scalar loop must continue (`0` without
+/// AVX2). `reference` is the reference row deinterleaved, channel `c` at `c·width..`; `source`
+/// the interleaved `width × height × C` source image.
+#[allow(clippy::too_many_arguments)]
+#[inline]
+pub(super) fn accumulate<const C: usize, const HAZE: bool>(
+    sum: &mut [f32],
+    observed: &mut [u32],
+    row: &RowInputs<'_>,
+    reference: &[f32],
+    source: &[f32],
+    width: usize,
+    height: usize,
+    penalty: f32,
+) -> usize {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if avx2_enabled() {
+            // The gathers read `source` through raw offsets; these checks make every offset
+            // they can form (see `avx2::accumulate`) lie inside it.
+            assert!(width >= 2 && height >= 2);
+            assert!(source.len() >= width * height * C && width * height * C <= i32::MAX as usize);
+            assert!(sum.len() >= width && observed.len() >= width && reference.len() >= C * width);
+            assert!(row.us.len() >= width && row.vs.len() >= width);
+            if HAZE {
+                assert!(row.ratio.len() >= width && row.offset.len() >= width);
+            }
+            // SAFETY: AVX2 is present (checked above) and the slices have the lengths the
+            // function requires (asserted above).
+            return unsafe {
+                avx2::accumulate::<C, HAZE>(
+                    sum, observed, row, reference, source, width, height, penalty,
+                )
+            };
+        }
+    }
+    let _ = (
+        sum, observed, row, reference, source, width, height, penalty,
+    );
+    0
+}
+
+/// [`accumulate`] for RGB in the 4-lane layout of [`super::sample::pad_rgb4`] (`source` and
+/// `reference` both padded, offset 0): instead of twelve gathers per eight pixels, each pixel's
+/// two corner pairs are two 256-bit loads (`[p00 | p01]`, `[p10 | p11]`) and the lerps run on
+/// all channels at once. Same arithmetic and channel order as the scalar loop.
+#[allow(clippy::too_many_arguments)]
+#[inline]
+pub(super) fn accumulate_rgb4<const HAZE: bool>(
+    sum: &mut [f32],
+    observed: &mut [u32],
+    row: &RowInputs<'_>,
+    reference: &[[f32; 4]],
+    source: &[[f32; 4]],
+    width: usize,
+    height: usize,
+    penalty: f32,
+) -> usize {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if avx2_enabled() {
+            // Every read is at pixel index ≤ (h−2)·w + (w−2) + w + 1 = w·h − 1 (see
+            // `avx2::accumulate_rgb4`), inside `source` by this check.
+            assert!(width >= 2 && height >= 2);
+            assert!(source.len() >= width * height && width * height <= i32::MAX as usize);
+            assert!(sum.len() >= width && observed.len() >= width && reference.len() >= width);
+            assert!(row.us.len() >= width && row.vs.len() >= width);
+            if HAZE {
+                assert!(row.ratio.len() >= width && row.offset.len() >= width);
+            }
+            // SAFETY: AVX2 is present and the lengths are as required (both checked above).
+            return unsafe {
+                avx2::accumulate_rgb4::<HAZE>(
+                    sum, observed, row, reference, source, width, height, penalty,
+                )
+            };
+        }
+    }
+    let _ = (
+        sum, observed, row, reference, source, width, height, penalty,
+    );
+    0
+}
+
+#[cfg(target_arch = "x86_64")]
+mod avx2 {
+    use std::arch::x86_64::*;
+
+    use super::RowInputs;
+    use crate::mvs::plane_sweep::RowWarp;
+
+    /// # Safety
+    /// AVX2 must be available.
+    #[target_feature(enable = "avx2")]
+    pub(super) unsafe fn source_coords(
+        warp: &RowWarp,
+        width: usize,
+        height: usize,
+        us: &mut [f32],
+        vs: &mut [f32],
+    ) {
+        super::super::kernel::source_coords(warp, width, height, us, vs)
+    }
+
+    /// # Safety
+    /// AVX2 must be available.
+    #[target_feature(enable = "avx2")]
+    pub(super) unsafe fn mean_or_penalty(
+        out: &mut [f32],
+        sum: &[f32],
+        observed: &[u32],
+        penalty: f32,
+    ) {
+        super::super::kernel::mean_or_penalty(out, sum, observed, penalty)
+    }
+
+    /// # Safety
+    /// AVX2 must be available; `source.len() ≥ width·height·C < 2³¹`, `width, height ≥ 2`,
+    /// `sum`, `observed`, `row.us`, `row.vs` (and `row.ratio`, `row.offset` when `HAZE`) hold at
+    /// least `width` elements and `reference` at least `C·width`.
+    #[allow(clippy::too_many_arguments)]
+    #[target_feature(enable = "avx2")]
+    pub(super) unsafe fn accumulate<const C: usize, const HAZE: bool>(
+        sum: &mut [f32],
+        observed: &mut [u32],
+        row: &RowInputs<'_>,
+        reference: &[f32],
+        source: &[f32],
+        width: usize,
+        height: usize,
+        penalty: f32,
+    ) -> usize {
+        let w = width as i32;
+        let (wm2, hm2) = (
+            _mm256_set1_epi32(w - 2),
+            _mm256_set1_epi32(height as i32 - 2),
+        );
+        let (w_v, c_v) = (_mm256_set1_epi32(w), _mm256_set1_epi32(C as i32));
+        let penalty_v = _mm256_set1_ps(penalty);
+        let sign = _mm256_set1_ps(-0.0);
+        let src = source.as_ptr();
+        let below = width * C;
+        let mut x = 0usize;
+        while x + 8 <= width {
+            let u = _mm256_loadu_ps(row.us.as_ptr().add(x));
+            let v = _mm256_loadu_ps(row.vs.as_ptr().add(x));
+            let valid = _mm256_cmp_ps::<_CMP_ORD_Q>(u, u);
+            // Unobserved lanes sample pixel (0, 0) — a valid address — and are masked out below.
+            let (u, v) = (_mm256_and_ps(u, valid), _mm256_and_ps(v, valid));
+            // u, v ∈ [0, w−1] × [0, h−1] for observed lanes, so truncation is the floor.
+            let x0 = _mm256_min_epi32(_mm256_cvttps_epi32(u), wm2);
+            let y0 = _mm256_min_epi32(_mm256_cvttps_epi32(v), hm2);
+            let fx = _mm256_sub_ps(u, _mm256_cvtepi32_ps(x0));
+            let fy = _mm256_sub_ps(v, _mm256_cvtepi32_ps(y0));
+            // (y0·w + x0)·C ≤ ((h−2)·w + w−2)·C; the largest offset added below is
+            // w·C + C + (C−1), so every read is < w·h·C.
+            let idx = _mm256_mullo_epi32(_mm256_add_epi32(_mm256_mullo_epi32(y0, w_v), x0), c_v);
+            let (k, b) = if HAZE {
+                (
+                    _mm256_loadu_ps(row.ratio.as_ptr().add(x)),
+                    _mm256_loadu_ps(row.offset.as_ptr().add(x)),
+                )
+            } else {
+                (_mm256_setzero_ps(), _mm256_setzero_ps())
+            };
+            let mut cost = _mm256_setzero_ps();
+            for c in 0..C {
+                let p00 = _mm256_i32gather_ps::<4>(src.add(c), idx);
+                let p01 = _mm256_i32gather_ps::<4>(src.add(c + C), idx);
+                let p10 = _mm256_i32gather_ps::<4>(src.add(c + below), idx);
+                let p11 = _mm256_i32gather_ps::<4>(src.add(c + below + C), idx);
+                let top = _mm256_add_ps(p00, _mm256_mul_ps(fx, _mm256_sub_ps(p01, p00)));
+                let bottom = _mm256_add_ps(p10, _mm256_mul_ps(fx, _mm256_sub_ps(p11, p10)));
+                let is = _mm256_add_ps(top, _mm256_mul_ps(fy, _mm256_sub_ps(bottom, top)));
+                let ir = _mm256_loadu_ps(reference.as_ptr().add(c * width + x));
+                let d = if HAZE {
+                    _mm256_add_ps(_mm256_sub_ps(ir, _mm256_mul_ps(k, is)), b)
+                } else {
+                    _mm256_sub_ps(ir, is)
+                };
+                cost = _mm256_add_ps(cost, _mm256_andnot_ps(sign, d));
+            }
+            if HAZE {
+                cost = _mm256_min_ps(cost, penalty_v);
+            }
+            let s = sum.as_mut_ptr().add(x);
+            _mm256_storeu_ps(
+                s,
+                _mm256_add_ps(_mm256_loadu_ps(s), _mm256_and_ps(cost, valid)),
+            );
+            let o = observed.as_mut_ptr().add(x) as *mut __m256i;
+            // `valid` is all ones (−1 as an integer) in observed lanes.
+            _mm256_storeu_si256(
+                o,
+                _mm256_sub_epi32(_mm256_loadu_si256(o), _mm256_castps_si256(valid)),
+            );
+            x += 8;
+        }
+        x
+    }
+
+    /// # Safety
+    /// AVX2 must be available; `source.len() ≥ width·height < 2³¹`, `width, height ≥ 2`, and
+    /// `sum`, `observed`, `reference`, `row.us`, `row.vs` (and `row.ratio`, `row.offset` when
+    /// `HAZE`) hold at least `width` elements.
+    #[allow(clippy::too_many_arguments)]
+    #[target_feature(enable = "avx2")]
+    pub(super) unsafe fn accumulate_rgb4<const HAZE: bool>(
+        sum: &mut [f32],
+        observed: &mut [u32],
+        row: &RowInputs<'_>,
+        reference: &[[f32; 4]],
+        source: &[[f32; 4]],
+        width: usize,
+        height: usize,
+        penalty: f32,
+    ) -> usize {
+        let (wm2, hm2) = (
+            _mm256_set1_epi32(width as i32 - 2),
+            _mm256_set1_epi32(height as i32 - 2),
+        );
+        let w_v = _mm256_set1_epi32(width as i32);
+        let sign = _mm_set1_ps(-0.0);
+        let src = source.as_ptr() as *const f32;
+        let mut x = 0usize;
+        let (mut idx, mut fxs, mut fys) = ([0i32; 8], [0f32; 8], [0f32; 8]);
+        while x + 8 <= width {
+            // Index arithmetic for eight pixels at once, as in `accumulate`.
+            let u = _mm256_loadu_ps(row.us.as_ptr().add(x));
+            let v = _mm256_loadu_ps(row.vs.as_ptr().add(x));
+            let valid = _mm256_cmp_ps::<_CMP_ORD_Q>(u, u);
+            let mask = _mm256_movemask_ps(valid);
+            if mask == 0 {
+                x += 8;
+                continue;
+            }
+            let (u, v) = (_mm256_and_ps(u, valid), _mm256_and_ps(v, valid));
+            let x0 = _mm256_min_epi32(_mm256_cvttps_epi32(u), wm2);
+            let y0 = _mm256_min_epi32(_mm256_cvttps_epi32(v), hm2);
+            _mm256_storeu_ps(fxs.as_mut_ptr(), _mm256_sub_ps(u, _mm256_cvtepi32_ps(x0)));
+            _mm256_storeu_ps(fys.as_mut_ptr(), _mm256_sub_ps(v, _mm256_cvtepi32_ps(y0)));
+            // Pixel index y0·w + x0 ≤ (h−2)·w + w−2; the reads below reach index + w + 1.
+            let i = _mm256_add_epi32(_mm256_mullo_epi32(y0, w_v), x0);
+            _mm256_storeu_si256(idx.as_mut_ptr() as *mut __m256i, i);
+            for j in 0..8 {
+                if mask & (1 << j) == 0 {
+                    continue;
+                }
+                let p = src.add(idx[j] as usize * 4);
+                let top = _mm256_loadu_ps(p); // [p00 | p01]
+                let bottom = _mm256_loadu_ps(p.add(width * 4)); // [p10 | p11]
+                let left = _mm256_permute2f128_ps::<0x20>(top, bottom); // [p00 | p10]
+                let right = _mm256_permute2f128_ps::<0x31>(top, bottom); // [p01 | p11]
+                let fx = _mm256_set1_ps(fxs[j]);
+                let tb = _mm256_add_ps(left, _mm256_mul_ps(fx, _mm256_sub_ps(right, left)));
+                let (t, b) = (_mm256_castps256_ps128(tb), _mm256_extractf128_ps::<1>(tb));
+                let is = _mm_add_ps(t, _mm_mul_ps(_mm_set1_ps(fys[j]), _mm_sub_ps(b, t)));
+                let ir = _mm_loadu_ps(reference.as_ptr().add(x + j) as *const f32);
+                let d = if HAZE {
+                    let k = _mm_set1_ps(*row.ratio.get_unchecked(x + j));
+                    let off = _mm_set1_ps(*row.offset.get_unchecked(x + j));
+                    _mm_add_ps(_mm_sub_ps(ir, _mm_mul_ps(k, is)), off)
+                } else {
+                    _mm_sub_ps(ir, is)
+                };
+                let a = _mm_andnot_ps(sign, d);
+                // (|d0| + |d1|) + |d2|: the scalar loop's order (its `0 + |d0|` is exact).
+                let c01 = _mm_add_ss(a, _mm_movehdup_ps(a));
+                let mut cost = _mm_cvtss_f32(_mm_add_ss(c01, _mm_movehl_ps(a, a)));
+                if HAZE {
+                    cost = cost.min(penalty);
+                }
+                *sum.get_unchecked_mut(x + j) += cost;
+                *observed.get_unchecked_mut(x + j) += 1;
+            }
+            x += 8;
+        }
+        x
+    }
+}
