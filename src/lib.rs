@@ -10,6 +10,7 @@ pub mod error;
 pub mod image;
 pub mod io;
 pub mod jobs;
+pub mod large_buffer;
 pub mod metrics;
 pub mod monitor;
 pub mod mvs;

@@ -419,7 +419,7 @@ pub fn build_cost_volume(
         .map(|s| Pose::relative(&reference.pose, &s.pose))
         .collect();
     let penalty = c as f32;
-    let mut data = vec![0.0f32; voxels];
+    let mut data = crate::large_buffer::zeroed_f32(voxels);
     let refd = reference.image.data();
     let dehaze = kind.dehazing().is_some();
     // The default dehazing volume has a closed-form row kernel; β = 0 keeps the generic one so

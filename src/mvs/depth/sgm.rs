@@ -198,7 +198,7 @@ pub fn aggregate(
 ) -> Result<Vec<f32>> {
     debug_assert_eq!(costs.len(), w * h * n);
     let guide = guide.map(Guide::new);
-    let mut sum = vec![0.0f32; w * h * n];
+    let mut sum = crate::large_buffer::zeroed_f32(w * h * n);
     let dirs = &DIRECTIONS[..num_paths.min(DIRECTIONS.len())];
     for (k, &(dx, dy)) in dirs.iter().enumerate() {
         monitor.checkpoint()?;
@@ -313,7 +313,7 @@ fn row_sweep(
 /// Transposes a `[plane][y][x]` volume (`n` planes of `npix` pixels) to pixel-major
 /// `[pixel][plane]`, in parallel over blocks of pixels.
 pub fn to_pixel_major(data: &[f32], npix: usize, n: usize) -> Vec<f32> {
-    let mut out = vec![0.0f32; npix * n];
+    let mut out = crate::large_buffer::zeroed_f32(npix * n);
     const BLOCK: usize = 64;
     out.par_chunks_mut(BLOCK * n)
         .enumerate()
