@@ -66,8 +66,6 @@ pub(super) struct RowScratch {
     vs: Vec<f32>,
     /// `1/t_s` of the row's samples (or `t_r/t_s` in the observation-space kernel).
     inv_t: Vec<f32>,
-    /// `A·(t_r/t_s − 1)` of the row's samples (observation-space kernel).
-    offset: Vec<f32>,
 }
 
 /// Fills one row of one plane. `penalty` is γ (Eq. 3.7) and also the cost of a voxel that no
@@ -286,27 +284,23 @@ pub(super) fn fill_row_observation<const C: usize, const HAZE: bool>(
     let observed = &mut scratch.observed[..width];
     let (us_row, vs_row) = (&mut scratch.us[..width], &mut scratch.vs[..width]);
     scratch.inv_t.resize(width, 0.0);
-    scratch.offset.resize(width, 0.0);
     let ratio_row = &mut scratch.inv_t[..width];
-    let offset_row = &mut scratch.offset[..width];
     let t_r = haze.ref_t;
     for s in sources {
         let warp = s.warp.row(y as f64);
         simd::source_coords(&warp, width, height, us_row, vs_row);
         if HAZE {
-            // k = t_r/t_s per pixel of the row, and the airlight terms folded into one offset:
-            // (I_r − A) − k(I_s − A) = I_r − k·I_s + A(k − 1).
-            inverse_transmission_row(&warp, haze.beta, ratio_row);
-            for (r, o) in ratio_row.iter_mut().zip(offset_row.iter_mut()) {
+            // k = t_r/t_s per pixel of the row.
+            simd::inverse_transmission_row(&warp, haze.beta, ratio_row);
+            for r in ratio_row.iter_mut() {
                 *r *= t_r;
-                *o = a * (*r - 1.0);
             }
         }
         let inputs = RowInputs {
             us: us_row,
             vs: vs_row,
             ratio: ratio_row,
-            offset: offset_row,
+            airlight: a,
         };
         let start = if C == 3 {
             simd::accumulate_rgb4::<HAZE>(
@@ -331,7 +325,10 @@ pub(super) fn fill_row_observation<const C: usize, const HAZE: bool>(
             let ir = &row[x * C..x * C + C];
             let mut cost = 0.0f32;
             if HAZE {
-                let (k, b) = (ratio_row[x], offset_row[x]);
+                // The airlight terms folded into one offset:
+                // (I_r − A) − k(I_s − A) = I_r − k·I_s + A(k − 1).
+                let k = ratio_row[x];
+                let b = a * (k - 1.0);
                 for c in 0..C {
                     cost += (ir[c] - k * is[c] + b).abs();
                 }
@@ -353,8 +350,8 @@ pub(super) fn fill_row_observation<const C: usize, const HAZE: bool>(
 /// geometric sequence: one multiply per pixel instead of an `exp` (in `f64`, so the drift over a
 /// row is ~1e-14 relative; `β = 0` gives exactly 1). Rows where `e^{βζ}` over- or underflows at
 /// an end fall back to one `exp` per pixel.
-#[inline]
-fn inverse_transmission_row(warp: &RowWarp, beta: f32, out: &mut [f32]) {
+#[inline(always)]
+pub(super) fn inverse_transmission_row(warp: &RowWarp, beta: f32, out: &mut [f32]) {
     let (slope, offset, depth) = warp.coefficients();
     let b = f64::from(beta);
     let (z0, dz) = (offset[2] * depth, slope[2] * depth);
@@ -432,7 +429,7 @@ mod tests {
                 .collect()
         };
         let (refd, src) = (img(0), img(7));
-        let (ref4, src4) = (pad_rgb4(&refd), pad_rgb4(&src));
+        let (ref4, src4) = (pad_rgb4(&refd, 0.0), pad_rgb4(&src, 0.0));
         let k = Intrinsics::new(30.0, 30.0, 20.0, 6.0);
         let rel = Pose::new(
             [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
@@ -517,7 +514,8 @@ mod tests {
                 .collect()
         };
         let (refd, src) = (img(0), img(7));
-        let (ref4, src4) = (pad_rgb4(&refd), pad_rgb4(&src));
+        let (a, beta) = (0.8f32, 0.3f32);
+        let (ref4, src4) = (pad_rgb4(&refd, a), pad_rgb4(&src, a));
         let k = Intrinsics::new(30.0, 30.0, 20.0, 6.0);
         let rel = Pose::new(
             [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
@@ -530,7 +528,6 @@ mod tests {
                 padded: &src4,
                 warp: PlaneWarp::new(&k, &k, &rel, z),
             }];
-            let (a, beta) = (0.8f32, 0.3f32);
             let t = (-beta * z as f32).exp();
             let inv_t = inverse_transmission(t);
             let haze = Haze {

@@ -430,11 +430,15 @@ pub fn build_cost_volume(
             && o.residual == DehazingResidual::ObservationSpace
             && o.range == RangePenalty::Off
     );
-    // The RGB direct rows' vector loop reads one 4-lane register per pixel; the copies are two
-    // passes over the images against W·H·N samples.
+    // The RGB direct rows' vector loop reads one 4-lane register per pixel, minus the airlight
+    // for the dehazing volume; the copies are two passes over the images against W·H·N samples.
+    let rgb4_offset = match kind.dehazing() {
+        Some((p, _)) if observation => p.airlight,
+        _ => 0.0,
+    };
     let rgb4 = |img: &ImageF32| {
         if c == 3 && (observation || !dehaze) {
-            sample::pad_rgb4(img.data())
+            sample::pad_rgb4(img.data(), rgb4_offset)
         } else {
             Vec::new()
         }

@@ -67,12 +67,12 @@ pub fn bilinear_inside<const C: usize>(
     out
 }
 
-/// Converts a 3-channel interleaved image to one `[f32; 4]` per pixel (RGB, then a zero lane), so
-/// that a pixel, and a horizontal pair of pixels, is one aligned-size vector load for the cost
-/// volume's AVX2 loop.
-pub fn pad_rgb4(data: &[f32]) -> Vec<[f32; 4]> {
+/// Converts a 3-channel interleaved image to one `[f32; 4]` per pixel (RGB minus `offset`, then
+/// a zero lane), so that a pixel, and a horizontal pair of pixels, is one vector load for the
+/// cost volume's AVX2 loop. The dehazing volume passes the airlight as `offset`.
+pub fn pad_rgb4(data: &[f32], offset: f32) -> Vec<[f32; 4]> {
     data.chunks_exact(3)
-        .map(|p| [p[0], p[1], p[2], 0.0])
+        .map(|p| [p[0] - offset, p[1] - offset, p[2] - offset, 0.0])
         .collect()
 }
 

@@ -50,6 +50,20 @@ pub(super) fn source_coords(
     super::kernel::source_coords(warp, width, height, us, vs)
 }
 
+/// [`super::kernel::inverse_transmission_row`], compiled for AVX2 where the CPU has it (same
+/// results).
+#[inline]
+pub(super) fn inverse_transmission_row(warp: &RowWarp, beta: f32, out: &mut [f32]) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if avx2_enabled() {
+            // SAFETY: AVX2 is present.
+            return unsafe { avx2::inverse_transmission_row(warp, beta, out) };
+        }
+    }
+    super::kernel::inverse_transmission_row(warp, beta, out)
+}
+
 /// [`super::kernel::mean_or_penalty`], compiled for AVX2 where the CPU has it (same results).
 #[inline]
 pub(super) fn mean_or_penalty(out: &mut [f32], sum: &[f32], observed: &[u32], penalty: f32) {
@@ -64,12 +78,12 @@ pub(super) fn mean_or_penalty(out: &mut [f32], sum: &[f32], observed: &[u32], pe
 }
 
 /// Inputs of one row × one source for [`accumulate`]: the row's source coordinates (`us` NaN =
-/// unobserved) and, for the dehazing volume, `k = t_r/t_s` and `b = A(k − 1)` per pixel.
+/// unobserved) and, for the dehazing volume, `k = t_r/t_s` per pixel and the airlight `A`.
 pub(super) struct RowInputs<'a> {
     pub us: &'a [f32],
     pub vs: &'a [f32],
     pub ratio: &'a [f32],
-    pub offset: &'a [f32],
+    pub airlight: f32,
 }
 
 /// Adds this source's cost to `sum[x]` and 1 to `observed[x]` for every observed pixel in
@@ -98,7 +112,7 @@ pub(super) fn accumulate<const C: usize, const HAZE: bool>(
             assert!(sum.len() >= width && observed.len() >= width && reference.len() >= C * width);
             assert!(row.us.len() >= width && row.vs.len() >= width);
             if HAZE {
-                assert!(row.ratio.len() >= width && row.offset.len() >= width);
+                assert!(row.ratio.len() >= width);
             }
             // SAFETY: AVX2 is present (checked above) and the slices have the lengths the
             // function requires (asserted above).
@@ -115,10 +129,14 @@ pub(super) fn accumulate<const C: usize, const HAZE: bool>(
     0
 }
 
-/// [`accumulate`] for RGB in the 4-lane layout of [`super::sample::pad_rgb4`] (`source` and
-/// `reference` both padded, offset 0): instead of twelve gathers per eight pixels, each pixel's
-/// two corner pairs are two 256-bit loads (`[p00 | p01]`, `[p10 | p11]`) and the lerps run on
-/// all channels at once. Same arithmetic and channel order as the scalar loop.
+/// [`accumulate`] for RGB in the 4-lane layout of [`super::sample::pad_rgb4`]: instead of twelve
+/// gathers per eight pixels, each pixel's two corner pairs are two 256-bit loads
+/// (`[p00 | p01]`, `[p10 | p11]`) and the lerps run on all channels at once.
+///
+/// For the ordinary volume `source` and `reference` are padded with offset 0 and the
+/// arithmetic and channel order are the scalar loop's (bit for bit). For the dehazing volume
+/// both are padded with offset `A`, so the residual is `(I_r − A) − k(I_s − A)` directly, one
+/// multiply and one subtraction per pixel (equal to the scalar loop's form up to rounding).
 #[allow(clippy::too_many_arguments)]
 #[inline]
 pub(super) fn accumulate_rgb4<const HAZE: bool>(
@@ -141,7 +159,7 @@ pub(super) fn accumulate_rgb4<const HAZE: bool>(
             assert!(sum.len() >= width && observed.len() >= width && reference.len() >= width);
             assert!(row.us.len() >= width && row.vs.len() >= width);
             if HAZE {
-                assert!(row.ratio.len() >= width && row.offset.len() >= width);
+                assert!(row.ratio.len() >= width);
             }
             // SAFETY: AVX2 is present and the lengths are as required (both checked above).
             return unsafe {
@@ -180,6 +198,13 @@ mod avx2 {
     /// # Safety
     /// AVX2 must be available.
     #[target_feature(enable = "avx2")]
+    pub(super) unsafe fn inverse_transmission_row(warp: &RowWarp, beta: f32, out: &mut [f32]) {
+        super::super::kernel::inverse_transmission_row(warp, beta, out)
+    }
+
+    /// # Safety
+    /// AVX2 must be available.
+    #[target_feature(enable = "avx2")]
     pub(super) unsafe fn mean_or_penalty(
         out: &mut [f32],
         sum: &[f32],
@@ -191,8 +216,8 @@ mod avx2 {
 
     /// # Safety
     /// AVX2 must be available; `source.len() ≥ width·height·C < 2³¹`, `width, height ≥ 2`,
-    /// `sum`, `observed`, `row.us`, `row.vs` (and `row.ratio`, `row.offset` when `HAZE`) hold at
-    /// least `width` elements and `reference` at least `C·width`.
+    /// `sum`, `observed`, `row.us`, `row.vs` (and `row.ratio` when `HAZE`) hold at least
+    /// `width` elements and `reference` at least `C·width`.
     #[allow(clippy::too_many_arguments)]
     #[target_feature(enable = "avx2")]
     pub(super) unsafe fn accumulate<const C: usize, const HAZE: bool>(
@@ -213,6 +238,7 @@ mod avx2 {
         let (w_v, c_v) = (_mm256_set1_epi32(w), _mm256_set1_epi32(C as i32));
         let penalty_v = _mm256_set1_ps(penalty);
         let sign = _mm256_set1_ps(-0.0);
+        let (airlight, one) = (_mm256_set1_ps(row.airlight), _mm256_set1_ps(1.0));
         let src = source.as_ptr();
         let below = width * C;
         let mut x = 0usize;
@@ -231,10 +257,9 @@ mod avx2 {
             // w·C + C + (C−1), so every read is < w·h·C.
             let idx = _mm256_mullo_epi32(_mm256_add_epi32(_mm256_mullo_epi32(y0, w_v), x0), c_v);
             let (k, b) = if HAZE {
-                (
-                    _mm256_loadu_ps(row.ratio.as_ptr().add(x)),
-                    _mm256_loadu_ps(row.offset.as_ptr().add(x)),
-                )
+                let k = _mm256_loadu_ps(row.ratio.as_ptr().add(x));
+                // A(k − 1), as the scalar loop forms it.
+                (k, _mm256_mul_ps(airlight, _mm256_sub_ps(k, one)))
             } else {
                 (_mm256_setzero_ps(), _mm256_setzero_ps())
             };
@@ -276,8 +301,8 @@ mod avx2 {
 
     /// # Safety
     /// AVX2 must be available; `source.len() ≥ width·height < 2³¹`, `width, height ≥ 2`, and
-    /// `sum`, `observed`, `reference`, `row.us`, `row.vs` (and `row.ratio`, `row.offset` when
-    /// `HAZE`) hold at least `width` elements.
+    /// `sum`, `observed`, `reference`, `row.us`, `row.vs` (and `row.ratio` when `HAZE`) hold at
+    /// least `width` elements.
     #[allow(clippy::too_many_arguments)]
     #[target_feature(enable = "avx2")]
     pub(super) unsafe fn accumulate_rgb4<const HAZE: bool>(
@@ -296,6 +321,7 @@ mod avx2 {
         );
         let w_v = _mm256_set1_epi32(width as i32);
         let sign = _mm_set1_ps(-0.0);
+        let penalty_v = _mm_set1_ps(penalty);
         let src = source.as_ptr() as *const f32;
         let mut x = 0usize;
         let (mut idx, mut fxs, mut fys) = ([0i32; 8], [0f32; 8], [0f32; 8]);
@@ -333,19 +359,18 @@ mod avx2 {
                 let ir = _mm_loadu_ps(reference.as_ptr().add(x + j) as *const f32);
                 let d = if HAZE {
                     let k = _mm_set1_ps(*row.ratio.get_unchecked(x + j));
-                    let off = _mm_set1_ps(*row.offset.get_unchecked(x + j));
-                    _mm_add_ps(_mm_sub_ps(ir, _mm_mul_ps(k, is)), off)
+                    _mm_sub_ps(ir, _mm_mul_ps(k, is))
                 } else {
                     _mm_sub_ps(ir, is)
                 };
                 let a = _mm_andnot_ps(sign, d);
                 // (|d0| + |d1|) + |d2|: the scalar loop's order (its `0 + |d0|` is exact).
                 let c01 = _mm_add_ss(a, _mm_movehdup_ps(a));
-                let mut cost = _mm_cvtss_f32(_mm_add_ss(c01, _mm_movehl_ps(a, a)));
+                let mut cost = _mm_add_ss(c01, _mm_movehl_ps(a, a));
                 if HAZE {
-                    cost = cost.min(penalty);
+                    cost = _mm_min_ss(cost, penalty_v);
                 }
-                *sum.get_unchecked_mut(x + j) += cost;
+                *sum.get_unchecked_mut(x + j) += _mm_cvtss_f32(cost);
                 *observed.get_unchecked_mut(x + j) += 1;
             }
             x += 8;
