@@ -35,8 +35,11 @@
 //! a pixel that no source sees at any plane gets a flat curve that carries no preference.
 //!
 //! Layout: `f32`, `[plane][y][x]`, plane 0 the farthest (see [`PlaneSet`]). Computation: one pass
-//! per plane (cancellation checkpoint between planes), rows in parallel with rayon; row buffers
-//! are per worker and reused, so nothing is allocated per voxel or per row.
+//! per plane (cancellation checkpoint between planes), planes in parallel with rayon; row
+//! buffers are per worker and reused, so nothing is allocated per voxel or per row. The row
+//! kernels are in `kernel.rs` (scalar, the reference) and `simd.rs` (AVX2, chosen at run time,
+//! tested equal to the scalar rows); the volume's memory comes from
+//! [`crate::large_buffer::zeroed_f32`] (transparent huge pages on Linux).
 
 mod kernel;
 pub mod sample;
