@@ -439,8 +439,15 @@ pub fn build_cost_volume(
         Some((p, _)) if observation => p.airlight,
         _ => 0.0,
     };
+    // Eq. 3.7 with a hard or noise-widened range check (not the soft penalty) has a vector
+    // loop too, on the plain images.
+    let eq37_vector = matches!(
+        kind.dehazing(),
+        Some((_, o)) if o.residual == DehazingResidual::Eq37
+            && !matches!(o.range, RangePenalty::Soft { .. })
+    );
     let rgb4 = |img: &ImageF32| {
-        if c == 3 && (observation || !dehaze) {
+        if c == 3 && (observation || !dehaze || eq37_vector) {
             sample::pad_rgb4(img.data(), rgb4_offset)
         } else {
             Vec::new()

@@ -175,11 +175,58 @@ pub(super) fn accumulate_rgb4<const HAZE: bool>(
     0
 }
 
+/// Inputs of one row × one source for [`accumulate_rgb4_eq37`]: source coordinates (`us` NaN =
+/// unobserved), `1/t_s` per pixel, the airlight, the source range margin (observation units, 0
+/// for Eq. 3.7), the reference's range flags and its dehazed row `J_r` in the 4-lane layout.
+pub(super) struct DehazedRow<'a> {
+    pub us: &'a [f32],
+    pub vs: &'a [f32],
+    pub inv_t: &'a [f32],
+    pub airlight: f32,
+    pub src_margin: f32,
+    pub ref_ok: &'a [bool],
+    pub jr4: &'a [[f32; 4]],
+}
+
+/// The dehazing volume of Eq. 3.7 (residual in dehazed space, penalty `γ` where a dehazed value
+/// leaves its range) over `0..8·⌊width/8⌋` for RGB, `source` in the 4-lane layout with offset 0:
+/// the source sample is dehazed with `J_s = I_s/t_s + A(1 − 1/t_s)` (Eq. 3.6) on all channels at
+/// once. Same operations and order as [`super::kernel::fill_row`] in that mode, so the same
+/// costs bit for bit (tested). Returns where the scalar loop continues (`0` without AVX2).
+#[inline]
+pub(super) fn accumulate_rgb4_eq37(
+    sum: &mut [f32],
+    observed: &mut [u32],
+    row: &DehazedRow<'_>,
+    source: &[[f32; 4]],
+    width: usize,
+    height: usize,
+    penalty: f32,
+) -> usize {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if avx2_enabled() {
+            // The reads are those of `avx2::accumulate_rgb4`, inside `source` by this check.
+            assert!(width >= 2 && height >= 2);
+            assert!(source.len() >= width * height && width * height <= i32::MAX as usize);
+            assert!(sum.len() >= width && observed.len() >= width);
+            assert!(row.us.len() >= width && row.vs.len() >= width && row.inv_t.len() >= width);
+            assert!(row.ref_ok.len() >= width && row.jr4.len() >= width);
+            // SAFETY: AVX2 is present and the lengths are as required (both checked above).
+            return unsafe {
+                avx2::accumulate_rgb4_eq37(sum, observed, row, source, width, height, penalty)
+            };
+        }
+    }
+    let _ = (sum, observed, row, source, width, height, penalty);
+    0
+}
+
 #[cfg(target_arch = "x86_64")]
 mod avx2 {
     use std::arch::x86_64::*;
 
-    use super::RowInputs;
+    use super::{DehazedRow, RowInputs};
     use crate::mvs::plane_sweep::RowWarp;
 
     /// # Safety
@@ -315,47 +362,20 @@ mod avx2 {
         height: usize,
         penalty: f32,
     ) -> usize {
-        let (wm2, hm2) = (
-            _mm256_set1_epi32(width as i32 - 2),
-            _mm256_set1_epi32(height as i32 - 2),
-        );
-        let w_v = _mm256_set1_epi32(width as i32);
         let sign = _mm_set1_ps(-0.0);
         let penalty_v = _mm_set1_ps(penalty);
         let src = source.as_ptr() as *const f32;
         let mut x = 0usize;
         let (mut idx, mut fxs, mut fys) = ([0i32; 8], [0f32; 8], [0f32; 8]);
         while x + 8 <= width {
-            // Index arithmetic for eight pixels at once, as in `accumulate`.
-            let u = _mm256_loadu_ps(row.us.as_ptr().add(x));
-            let v = _mm256_loadu_ps(row.vs.as_ptr().add(x));
-            let valid = _mm256_cmp_ps::<_CMP_ORD_Q>(u, u);
-            let mask = _mm256_movemask_ps(valid);
-            if mask == 0 {
-                x += 8;
-                continue;
-            }
-            let (u, v) = (_mm256_and_ps(u, valid), _mm256_and_ps(v, valid));
-            let x0 = _mm256_min_epi32(_mm256_cvttps_epi32(u), wm2);
-            let y0 = _mm256_min_epi32(_mm256_cvttps_epi32(v), hm2);
-            _mm256_storeu_ps(fxs.as_mut_ptr(), _mm256_sub_ps(u, _mm256_cvtepi32_ps(x0)));
-            _mm256_storeu_ps(fys.as_mut_ptr(), _mm256_sub_ps(v, _mm256_cvtepi32_ps(y0)));
-            // Pixel index y0·w + x0 ≤ (h−2)·w + w−2; the reads below reach index + w + 1.
-            let i = _mm256_add_epi32(_mm256_mullo_epi32(y0, w_v), x0);
-            _mm256_storeu_si256(idx.as_mut_ptr() as *mut __m256i, i);
+            let mask = cells(
+                row.us, row.vs, x, width, height, &mut idx, &mut fxs, &mut fys,
+            );
             for j in 0..8 {
                 if mask & (1 << j) == 0 {
                     continue;
                 }
-                let p = src.add(idx[j] as usize * 4);
-                let top = _mm256_loadu_ps(p); // [p00 | p01]
-                let bottom = _mm256_loadu_ps(p.add(width * 4)); // [p10 | p11]
-                let left = _mm256_permute2f128_ps::<0x20>(top, bottom); // [p00 | p10]
-                let right = _mm256_permute2f128_ps::<0x31>(top, bottom); // [p01 | p11]
-                let fx = _mm256_set1_ps(fxs[j]);
-                let tb = _mm256_add_ps(left, _mm256_mul_ps(fx, _mm256_sub_ps(right, left)));
-                let (t, b) = (_mm256_castps256_ps128(tb), _mm256_extractf128_ps::<1>(tb));
-                let is = _mm_add_ps(t, _mm_mul_ps(_mm_set1_ps(fys[j]), _mm_sub_ps(b, t)));
+                let is = sample4(src, idx[j] as usize, width, fxs[j], fys[j]);
                 let ir = _mm_loadu_ps(reference.as_ptr().add(x + j) as *const f32);
                 let d = if HAZE {
                     let k = _mm_set1_ps(*row.ratio.get_unchecked(x + j));
@@ -372,6 +392,112 @@ mod avx2 {
                 }
                 *sum.get_unchecked_mut(x + j) += _mm_cvtss_f32(cost);
                 *observed.get_unchecked_mut(x + j) += 1;
+            }
+            x += 8;
+        }
+        x
+    }
+
+    /// Eight pixels' bilinear set-up, as `accumulate` does it: the valid-lane mask (0 = no
+    /// lane observed), and per lane the cell's pixel index `y0·w + x0 ≤ (h−2)·w + w−2` (so the
+    /// reads of [`sample4`] reach at most index `w·h − 1`) and `(fx, fy)`.
+    #[allow(clippy::too_many_arguments)]
+    #[target_feature(enable = "avx2")]
+    #[inline]
+    unsafe fn cells(
+        us: &[f32],
+        vs: &[f32],
+        x: usize,
+        width: usize,
+        height: usize,
+        idx: &mut [i32; 8],
+        fxs: &mut [f32; 8],
+        fys: &mut [f32; 8],
+    ) -> i32 {
+        let u = _mm256_loadu_ps(us.as_ptr().add(x));
+        let v = _mm256_loadu_ps(vs.as_ptr().add(x));
+        let valid = _mm256_cmp_ps::<_CMP_ORD_Q>(u, u);
+        let mask = _mm256_movemask_ps(valid);
+        if mask == 0 {
+            return 0;
+        }
+        let (u, v) = (_mm256_and_ps(u, valid), _mm256_and_ps(v, valid));
+        let x0 = _mm256_min_epi32(_mm256_cvttps_epi32(u), _mm256_set1_epi32(width as i32 - 2));
+        let y0 = _mm256_min_epi32(_mm256_cvttps_epi32(v), _mm256_set1_epi32(height as i32 - 2));
+        _mm256_storeu_ps(fxs.as_mut_ptr(), _mm256_sub_ps(u, _mm256_cvtepi32_ps(x0)));
+        _mm256_storeu_ps(fys.as_mut_ptr(), _mm256_sub_ps(v, _mm256_cvtepi32_ps(y0)));
+        let i = _mm256_add_epi32(_mm256_mullo_epi32(y0, _mm256_set1_epi32(width as i32)), x0);
+        _mm256_storeu_si256(idx.as_mut_ptr() as *mut __m256i, i);
+        mask
+    }
+
+    /// The bilinear sample of a 4-lane image at cell `i` with weights `(fx, fy)`: two 256-bit
+    /// loads (`[p00 | p01]`, `[p10 | p11]`), the scalar sampler's operations lane by lane.
+    #[target_feature(enable = "avx2")]
+    #[inline]
+    unsafe fn sample4(src: *const f32, i: usize, width: usize, fx: f32, fy: f32) -> __m128 {
+        let p = src.add(i * 4);
+        let top = _mm256_loadu_ps(p);
+        let bottom = _mm256_loadu_ps(p.add(width * 4));
+        let left = _mm256_permute2f128_ps::<0x20>(top, bottom);
+        let right = _mm256_permute2f128_ps::<0x31>(top, bottom);
+        let fx = _mm256_set1_ps(fx);
+        let tb = _mm256_add_ps(left, _mm256_mul_ps(fx, _mm256_sub_ps(right, left)));
+        let (t, b) = (_mm256_castps256_ps128(tb), _mm256_extractf128_ps::<1>(tb));
+        _mm_add_ps(t, _mm_mul_ps(_mm_set1_ps(fy), _mm_sub_ps(b, t)))
+    }
+
+    /// # Safety
+    /// AVX2 must be available; `source.len() ≥ width·height < 2³¹`, `width, height ≥ 2`, and
+    /// `sum`, `observed` and every slice of `row` hold at least `width` elements.
+    #[target_feature(enable = "avx2")]
+    pub(super) unsafe fn accumulate_rgb4_eq37(
+        sum: &mut [f32],
+        observed: &mut [u32],
+        row: &DehazedRow<'_>,
+        source: &[[f32; 4]],
+        width: usize,
+        height: usize,
+        penalty: f32,
+    ) -> usize {
+        let sign = _mm_set1_ps(-0.0);
+        let src = source.as_ptr() as *const f32;
+        let mut x = 0usize;
+        let (mut idx, mut fxs, mut fys) = ([0i32; 8], [0f32; 8], [0f32; 8]);
+        while x + 8 <= width {
+            let mask = cells(
+                row.us, row.vs, x, width, height, &mut idx, &mut fxs, &mut fys,
+            );
+            for j in 0..8 {
+                if mask & (1 << j) == 0 {
+                    continue;
+                }
+                let xj = x + j;
+                *observed.get_unchecked_mut(xj) += 1;
+                if !*row.ref_ok.get_unchecked(xj) {
+                    *sum.get_unchecked_mut(xj) += penalty;
+                    continue;
+                }
+                let is = sample4(src, idx[j] as usize, width, fxs[j], fys[j]);
+                // Eq. 3.6 with the source's own depth: J_s = I_s·(1/t_s) + A(1 − 1/t_s).
+                let inv_t = *row.inv_t.get_unchecked(xj);
+                let margin = row.src_margin * inv_t;
+                let offset = row.airlight * (1.0 - inv_t);
+                let js = _mm_add_ps(_mm_mul_ps(is, _mm_set1_ps(inv_t)), _mm_set1_ps(offset));
+                let inside = _mm_and_ps(
+                    _mm_cmp_ps::<_CMP_GE_OQ>(js, _mm_set1_ps(-margin)),
+                    _mm_cmp_ps::<_CMP_LE_OQ>(js, _mm_set1_ps(1.0 + margin)),
+                );
+                // Lane 3 is padding.
+                if _mm_movemask_ps(inside) & 0b111 != 0b111 {
+                    *sum.get_unchecked_mut(xj) += penalty;
+                    continue;
+                }
+                let jr = _mm_loadu_ps(row.jr4.as_ptr().add(xj) as *const f32);
+                let a = _mm_andnot_ps(sign, _mm_sub_ps(jr, js));
+                let c01 = _mm_add_ss(a, _mm_movehdup_ps(a));
+                let cost = _mm_add_ss(c01, _mm_movehl_ps(a, a));
+                *sum.get_unchecked_mut(xj) += _mm_cvtss_f32(cost).min(penalty);
             }
             x += 8;
         }
