@@ -87,9 +87,24 @@ pub(super) fn fill_row<const C: usize, const DEHAZE: bool>(
     scratch: &mut RowScratch,
 ) {
     let row = &reference[y * width * C..(y + 1) * width * C];
+    // Eq. 3.7 with a hard (or noise-widened) range check on RGB has an AVX2 loop; it reads the
+    // sources' 4-lane copies, which the caller provides exactly in that case.
+    let vector_eq37 = DEHAZE
+        && C == 3
+        && haze.residual == DehazingResidual::Eq37
+        && haze.soft_margin.is_none()
+        && sources.iter().all(|s| !s.padded.is_empty());
     // The ordinary volume compares the reference row as it is; only the dehazing volume needs
     // the dehazed row and its range flags.
-    if DEHAZE {
+    if vector_eq37 {
+        // The dehazed row straight into the 4-lane layout, pixel by pixel (no soft penalty
+        // here, so no excursions).
+        scratch.jr4.resize(width, [0.0; 4]);
+        scratch.ref_ok.resize(width, true);
+        scratch.ref_exc.clear();
+        scratch.ref_exc.resize(width, 0.0);
+        simd::dehaze_reference_rgb4(row, haze, &mut scratch.jr4, &mut scratch.ref_ok);
+    } else if DEHAZE {
         scratch.jr.clear();
         scratch.ref_ok.clear();
         scratch.ref_exc.clear();
@@ -123,29 +138,19 @@ pub(super) fn fill_row<const C: usize, const DEHAZE: bool>(
 
     let sum = &mut scratch.sum[..width];
     let observed = &mut scratch.observed[..width];
-    let jr_row = if DEHAZE {
-        &scratch.jr[..width * C]
+    // Pixel x's reference values are jr_row[x·stride..x·stride + C].
+    let (jr_row, stride) = if vector_eq37 {
+        (scratch.jr4[..width].as_flattened(), 4)
+    } else if DEHAZE {
+        (&scratch.jr[..width * C], C)
     } else {
-        row
+        (row, C)
     };
     let (us_row, vs_row) = (&mut scratch.us[..width], &mut scratch.vs[..width]);
     scratch.inv_t.resize(width, 0.0);
     let inv_t_row = &mut scratch.inv_t[..width];
     let ref_ok = &scratch.ref_ok[..width];
     let ref_exc = &scratch.ref_exc[..width];
-    // Eq. 3.7 with a hard (or noise-widened) range check on RGB has an AVX2 loop; it reads the
-    // sources' 4-lane copies, which the caller provides exactly in that case.
-    let vector_eq37 = DEHAZE
-        && C == 3
-        && haze.residual == DehazingResidual::Eq37
-        && haze.soft_margin.is_none()
-        && sources.iter().all(|s| !s.padded.is_empty());
-    if vector_eq37 {
-        scratch.jr4.clear();
-        scratch
-            .jr4
-            .extend(jr_row.chunks_exact(C).map(|j| [j[0], j[1], j[2], 0.0]));
-    }
     let jr4 = &scratch.jr4[..];
     for s in sources {
         let warp = s.warp.row(y as f64);
@@ -179,7 +184,7 @@ pub(super) fn fill_row<const C: usize, const DEHAZE: bool>(
                 sum[x] += penalty;
                 continue;
             }
-            let jr = &jr_row[x * C..x * C + C];
+            let jr = &jr_row[x * stride..x * stride + C];
             let (inv_t, offset, lo, hi, scale) = if DEHAZE {
                 // Eq. 3.6: the source sample is dehazed with the plane point's depth ζ as seen
                 // from the source camera, not with z_i.
@@ -593,8 +598,9 @@ mod tests {
         }
     }
 
-    /// Eq. 3.7's AVX2 loop (hard and noise-widened range checks) equals the scalar loop bit for
-    /// bit, on values that put some dehazed samples outside `[0, 1]`.
+    /// Eq. 3.7's AVX2 loop (hard and noise-widened range checks), and the scalar loop on the
+    /// 4-lane reference, equal the generic scalar row bit for bit, on values that put some
+    /// dehazed samples outside `[0, 1]`.
     #[test]
     fn eq37_vector_row_matches_scalar_row() {
         let (w, h) = (43usize, 12usize);
@@ -633,15 +639,23 @@ mod tests {
                 src_margin: margin,
                 soft_margin: None,
             };
+            // Without the 4-lane copies the row takes the generic scalar path throughout.
+            let plain = [SourcePlane {
+                data: &src,
+                padded: &[],
+                warp: PlaneWarp::new(&k, &k, &rel, z),
+            }];
             for y in 0..h {
-                let (mut v, mut f) = (vec![0.0; w], vec![0.0; w]);
+                let (mut v, mut f, mut g) = (vec![0.0; w], vec![0.0; w], vec![0.0; w]);
                 let mut s = RowScratch::default();
+                fill_row::<3, true>(&mut g, y, &refd, w, h, &plain, haze, 3.0, &mut s);
                 fill_row::<3, true>(&mut v, y, &refd, w, h, &sources, haze, 3.0, &mut s);
                 simd::FORCE_SCALAR.with(|f| f.set(true));
                 fill_row::<3, true>(&mut f, y, &refd, w, h, &sources, haze, 3.0, &mut s);
                 simd::FORCE_SCALAR.with(|f| f.set(false));
-                assert_eq!(v, f, "z {z}, margin {margin}, row {y}");
-                penalised += f.iter().filter(|&&c| c == 3.0).count();
+                assert_eq!(v, g, "vector: z {z}, margin {margin}, row {y}");
+                assert_eq!(f, g, "4-lane scalar: z {z}, margin {margin}, row {y}");
+                penalised += g.iter().filter(|&&c| c == 3.0).count();
             }
         }
         assert!(penalised > 0, "the range check never fired");

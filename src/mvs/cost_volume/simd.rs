@@ -175,6 +175,43 @@ pub(super) fn accumulate_rgb4<const HAZE: bool>(
     0
 }
 
+/// The reference row dehazed with the plane's depth (Eq. 3.5, `J_r = I_r·(1/t_r) + A(1 − 1/t_r)`)
+/// in the 4-lane layout, and whether all three channels lie in `[ref_lo, ref_hi]`: the scalar
+/// prelude's operations per pixel, compiled for AVX2 where the CPU has it.
+pub(super) fn dehaze_reference_rgb4(
+    row: &[f32],
+    haze: super::kernel::Haze,
+    jr4: &mut [[f32; 4]],
+    ok: &mut [bool],
+) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if avx2_enabled() {
+            // SAFETY: AVX2 is present.
+            return unsafe { avx2::dehaze_reference_rgb4(row, haze, jr4, ok) };
+        }
+    }
+    dehaze_reference_rgb4_body(row, haze, jr4, ok)
+}
+
+#[inline(always)]
+fn dehaze_reference_rgb4_body(
+    row: &[f32],
+    haze: super::kernel::Haze,
+    jr4: &mut [[f32; 4]],
+    ok: &mut [bool],
+) {
+    for ((ir, j), ok) in row.chunks_exact(3).zip(jr4.iter_mut()).zip(ok.iter_mut()) {
+        let mut inside = true;
+        for c in 0..3 {
+            j[c] = ir[c] * haze.ref_inv_t + haze.ref_offset;
+            inside &= (haze.ref_lo..=haze.ref_hi).contains(&j[c]);
+        }
+        j[3] = 0.0;
+        *ok = inside;
+    }
+}
+
 /// Inputs of one row × one source for [`accumulate_rgb4_eq37`]: source coordinates (`us` NaN =
 /// unobserved), `1/t_s` per pixel, the airlight, the source range margin (observation units, 0
 /// for Eq. 3.7), the reference's range flags and its dehazed row `J_r` in the 4-lane layout.
@@ -247,6 +284,18 @@ mod avx2 {
     #[target_feature(enable = "avx2")]
     pub(super) unsafe fn inverse_transmission_row(warp: &RowWarp, beta: f32, out: &mut [f32]) {
         super::super::kernel::inverse_transmission_row(warp, beta, out)
+    }
+
+    /// # Safety
+    /// AVX2 must be available.
+    #[target_feature(enable = "avx2")]
+    pub(super) unsafe fn dehaze_reference_rgb4(
+        row: &[f32],
+        haze: crate::mvs::cost_volume::kernel::Haze,
+        jr4: &mut [[f32; 4]],
+        ok: &mut [bool],
+    ) {
+        super::dehaze_reference_rgb4_body(row, haze, jr4, ok)
     }
 
     /// # Safety
