@@ -1,16 +1,23 @@
-//! AVX2 version of the direct rows' inner loop ([`super::kernel::fill_row_observation`]): eight
-//! reference pixels at a time, the bilinear corners fetched with hardware gathers.
+//! AVX2 versions of the cost-volume rows' loops ([`super::kernel`]), chosen at run time.
 //!
 //! Why: the scalar loop's bilinear sample is a chain of dependent scalar loads and lerps per
-//! voxel, and per-voxel work is all a plane sweep does. Eight lanes share the index arithmetic
-//! and the lerps; only the corner fetches stay per lane, as gathers.
+//! voxel, and per-voxel work is all a plane sweep does.
+//! - RGB ([`accumulate_rgb4`], [`accumulate_rgb4_eq37`]): images in the 4-lane layout of
+//!   [`super::sample::pad_rgb4`]; each sample's corner pairs are two 256-bit loads and the lerps
+//!   run on all channels at once. (Gathers of the twelve corner values of eight pixels were
+//!   tried first and are slow on Zen 3; see docs/BENCHMARKS.md.)
+//! - Grey ([`accumulate`]): eight pixels at a time, corners fetched with gathers.
+//! - The per-row passes (source coordinates, `1/t_s`, the dehazed reference, the mean) are the
+//!   scalar functions compiled a second time for AVX2 ([`compiled_for_avx2`]).
 //!
 //! The arithmetic is the scalar loop's, operation for operation and in the same order (separate
 //! multiply and add, no FMA; channels summed from 0 up), so each lane is bit for bit the scalar
-//! result (tested) and the ordinary volume stays identical to the dehazing volume at `β = 0`.
-//! The loop is used only where the CPU reports AVX2 at run time; elsewhere, and for the last
+//! result (tested) and the ordinary volume stays identical to the dehazing volume at `β = 0`;
+//! the observation-space loop alone folds the airlight into its input copies and agrees up to
+//! rounding. The loops run only where the CPU reports AVX2; elsewhere, and for the last
 //! `width mod 8` pixels of a row, the scalar loop runs.
 
+use super::kernel::Haze;
 use crate::mvs::plane_sweep::RowWarp;
 
 #[cfg(test)]
@@ -30,51 +37,54 @@ fn avx2_enabled() -> bool {
     std::arch::is_x86_feature_detected!("avx2")
 }
 
-/// [`super::kernel::source_coords`], compiled for AVX2 (eight lanes per instruction) where the
-/// CPU has it: the same operations, so the same coordinates bit for bit.
-#[inline]
-pub(super) fn source_coords(
-    warp: &RowWarp,
-    width: usize,
-    height: usize,
-    us: &mut [f32],
-    vs: &mut [f32],
-) {
-    #[cfg(target_arch = "x86_64")]
-    {
-        if avx2_enabled() {
-            // SAFETY: AVX2 is present.
-            return unsafe { avx2::source_coords(warp, width, height, us, vs) };
+/// Defines `pub(super) fn $name(..)` that calls the scalar function `$body` (which must be
+/// `#[inline(always)]`) through a copy compiled with AVX2 enabled where the CPU has it: the same
+/// operations on wider registers, so the same results.
+macro_rules! compiled_for_avx2 {
+    ($(#[$doc:meta])* fn $name:ident($($arg:ident: $ty:ty),* $(,)?) => $body:path;) => {
+        $(#[$doc])*
+        #[inline]
+        pub(super) fn $name($($arg: $ty),*) {
+            #[cfg(target_arch = "x86_64")]
+            {
+                #[target_feature(enable = "avx2")]
+                unsafe fn with_avx2($($arg: $ty),*) {
+                    $body($($arg),*)
+                }
+                if avx2_enabled() {
+                    // SAFETY: AVX2 is present.
+                    return unsafe { with_avx2($($arg),*) };
+                }
+            }
+            $body($($arg),*)
         }
-    }
-    super::kernel::source_coords(warp, width, height, us, vs)
+    };
 }
 
-/// [`super::kernel::inverse_transmission_row`], compiled for AVX2 where the CPU has it (same
-/// results).
-#[inline]
-pub(super) fn inverse_transmission_row(warp: &RowWarp, beta: f32, out: &mut [f32]) {
-    #[cfg(target_arch = "x86_64")]
-    {
-        if avx2_enabled() {
-            // SAFETY: AVX2 is present.
-            return unsafe { avx2::inverse_transmission_row(warp, beta, out) };
-        }
-    }
-    super::kernel::inverse_transmission_row(warp, beta, out)
+compiled_for_avx2! {
+    /// [`super::kernel::source_coords`] (the same coordinates bit for bit).
+    fn source_coords(warp: &RowWarp, width: usize, height: usize, us: &mut [f32], vs: &mut [f32])
+        => super::kernel::source_coords;
 }
 
-/// [`super::kernel::mean_or_penalty`], compiled for AVX2 where the CPU has it (same results).
-#[inline]
-pub(super) fn mean_or_penalty(out: &mut [f32], sum: &[f32], observed: &[u32], penalty: f32) {
-    #[cfg(target_arch = "x86_64")]
-    {
-        if avx2_enabled() {
-            // SAFETY: AVX2 is present.
-            return unsafe { avx2::mean_or_penalty(out, sum, observed, penalty) };
-        }
-    }
-    super::kernel::mean_or_penalty(out, sum, observed, penalty)
+compiled_for_avx2! {
+    /// [`super::kernel::inverse_transmission_row`].
+    fn inverse_transmission_row(warp: &RowWarp, beta: f32, out: &mut [f32])
+        => super::kernel::inverse_transmission_row;
+}
+
+compiled_for_avx2! {
+    /// [`super::kernel::mean_or_penalty`].
+    fn mean_or_penalty(out: &mut [f32], sum: &[f32], observed: &[u32], penalty: f32)
+        => super::kernel::mean_or_penalty;
+}
+
+compiled_for_avx2! {
+    /// The reference row dehazed with the plane's depth (Eq. 3.5,
+    /// `J_r = I_r·(1/t_r) + A(1 − 1/t_r)`) in the 4-lane layout, and whether all three channels
+    /// lie in `[ref_lo, ref_hi]` (the scalar prelude's operations per pixel).
+    fn dehaze_reference_rgb4(row: &[f32], haze: Haze, jr4: &mut [[f32; 4]], ok: &mut [bool])
+        => dehaze_reference_rgb4_body;
 }
 
 /// Inputs of one row × one source for [`accumulate`]: the row's source coordinates (`us` NaN =
@@ -175,32 +185,8 @@ pub(super) fn accumulate_rgb4<const HAZE: bool>(
     0
 }
 
-/// The reference row dehazed with the plane's depth (Eq. 3.5, `J_r = I_r·(1/t_r) + A(1 − 1/t_r)`)
-/// in the 4-lane layout, and whether all three channels lie in `[ref_lo, ref_hi]`: the scalar
-/// prelude's operations per pixel, compiled for AVX2 where the CPU has it.
-pub(super) fn dehaze_reference_rgb4(
-    row: &[f32],
-    haze: super::kernel::Haze,
-    jr4: &mut [[f32; 4]],
-    ok: &mut [bool],
-) {
-    #[cfg(target_arch = "x86_64")]
-    {
-        if avx2_enabled() {
-            // SAFETY: AVX2 is present.
-            return unsafe { avx2::dehaze_reference_rgb4(row, haze, jr4, ok) };
-        }
-    }
-    dehaze_reference_rgb4_body(row, haze, jr4, ok)
-}
-
 #[inline(always)]
-fn dehaze_reference_rgb4_body(
-    row: &[f32],
-    haze: super::kernel::Haze,
-    jr4: &mut [[f32; 4]],
-    ok: &mut [bool],
-) {
+fn dehaze_reference_rgb4_body(row: &[f32], haze: Haze, jr4: &mut [[f32; 4]], ok: &mut [bool]) {
     for ((ir, j), ok) in row.chunks_exact(3).zip(jr4.iter_mut()).zip(ok.iter_mut()) {
         let mut inside = true;
         for c in 0..3 {
@@ -264,51 +250,6 @@ mod avx2 {
     use std::arch::x86_64::*;
 
     use super::{DehazedRow, RowInputs};
-    use crate::mvs::plane_sweep::RowWarp;
-
-    /// # Safety
-    /// AVX2 must be available.
-    #[target_feature(enable = "avx2")]
-    pub(super) unsafe fn source_coords(
-        warp: &RowWarp,
-        width: usize,
-        height: usize,
-        us: &mut [f32],
-        vs: &mut [f32],
-    ) {
-        super::super::kernel::source_coords(warp, width, height, us, vs)
-    }
-
-    /// # Safety
-    /// AVX2 must be available.
-    #[target_feature(enable = "avx2")]
-    pub(super) unsafe fn inverse_transmission_row(warp: &RowWarp, beta: f32, out: &mut [f32]) {
-        super::super::kernel::inverse_transmission_row(warp, beta, out)
-    }
-
-    /// # Safety
-    /// AVX2 must be available.
-    #[target_feature(enable = "avx2")]
-    pub(super) unsafe fn dehaze_reference_rgb4(
-        row: &[f32],
-        haze: crate::mvs::cost_volume::kernel::Haze,
-        jr4: &mut [[f32; 4]],
-        ok: &mut [bool],
-    ) {
-        super::dehaze_reference_rgb4_body(row, haze, jr4, ok)
-    }
-
-    /// # Safety
-    /// AVX2 must be available.
-    #[target_feature(enable = "avx2")]
-    pub(super) unsafe fn mean_or_penalty(
-        out: &mut [f32],
-        sum: &[f32],
-        observed: &[u32],
-        penalty: f32,
-    ) {
-        super::super::kernel::mean_or_penalty(out, sum, observed, penalty)
-    }
 
     /// # Safety
     /// AVX2 must be available; `source.len() ≥ width·height·C < 2³¹`, `width, height ≥ 2`,
