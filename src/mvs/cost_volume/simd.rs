@@ -162,12 +162,8 @@ pub(super) fn accumulate_rgb4<const HAZE: bool>(
     #[cfg(target_arch = "x86_64")]
     {
         if avx2_enabled() {
-            // Every read is at pixel index ≤ (h−2)·w + (w−2) + w + 1 = w·h − 1 (see
-            // `avx2::accumulate_rgb4`), inside `source` by this check.
-            assert!(width >= 2 && height >= 2);
-            assert!(source.len() >= width * height && width * height <= i32::MAX as usize);
-            assert!(sum.len() >= width && observed.len() >= width && reference.len() >= width);
-            assert!(row.us.len() >= width && row.vs.len() >= width);
+            assert_rgb4_bounds(source, width, height, sum, observed, row.us, row.vs);
+            assert!(reference.len() >= width);
             if HAZE {
                 assert!(row.ratio.len() >= width);
             }
@@ -196,6 +192,23 @@ fn dehaze_reference_rgb4_body(row: &[f32], haze: Haze, jr4: &mut [[f32; 4]], ok:
         j[3] = 0.0;
         *ok = inside;
     }
+}
+
+/// The bounds the 4-lane loops rely on: every read of `avx2::sample4` is at pixel index
+/// ≤ (h−2)·w + (w−2) + w + 1 = w·h − 1, inside `source`, and the row buffers cover the row.
+fn assert_rgb4_bounds(
+    source: &[[f32; 4]],
+    width: usize,
+    height: usize,
+    sum: &[f32],
+    observed: &[u32],
+    us: &[f32],
+    vs: &[f32],
+) {
+    assert!(width >= 2 && height >= 2);
+    assert!(source.len() >= width * height && width * height <= i32::MAX as usize);
+    assert!(sum.len() >= width && observed.len() >= width);
+    assert!(us.len() >= width && vs.len() >= width);
 }
 
 /// Inputs of one row × one source for [`accumulate_rgb4_eq37`]: source coordinates (`us` NaN =
@@ -229,11 +242,8 @@ pub(super) fn accumulate_rgb4_eq37(
     #[cfg(target_arch = "x86_64")]
     {
         if avx2_enabled() {
-            // The reads are those of `avx2::accumulate_rgb4`, inside `source` by this check.
-            assert!(width >= 2 && height >= 2);
-            assert!(source.len() >= width * height && width * height <= i32::MAX as usize);
-            assert!(sum.len() >= width && observed.len() >= width);
-            assert!(row.us.len() >= width && row.vs.len() >= width && row.inv_t.len() >= width);
+            assert_rgb4_bounds(source, width, height, sum, observed, row.us, row.vs);
+            assert!(row.inv_t.len() >= width);
             assert!(row.ref_ok.len() >= width && row.jr4.len() >= width);
             // SAFETY: AVX2 is present and the lengths are as required (both checked above).
             return unsafe {
