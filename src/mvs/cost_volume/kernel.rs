@@ -452,25 +452,55 @@ mod tests {
         }
     }
 
-    /// The direct ordinary row (AVX2 loops and scalar loop, RGB and grey) equals the generic row
-    /// without dehazing, bit for bit.
-    #[test]
-    fn direct_ordinary_row_matches_generic_row() {
-        // Not a multiple of 8: the AVX2 loop and the scalar remainder both run.
-        let (w, h) = (43usize, 12usize);
-        let img = |seed: usize| -> Vec<f32> {
-            (0..w * h * 3)
-                .map(|i| (((i + seed) * 2654435761) % 1000) as f32 / 700.0 - 0.2)
-                .collect()
-        };
-        let (refd, src) = (img(0), img(7));
-        let (ref4, src4) = (pad_rgb4(&refd, 0.0), pad_rgb4(&src, 0.0));
+    /// An RGB test image, `w × h`, pseudo-random values `(hash mod 1000)/scale − shift`.
+    fn test_image(w: usize, h: usize, seed: usize, scale: f32, shift: f32) -> Vec<f32> {
+        (0..w * h * 3)
+            .map(|i| (((i + seed) * 2654435761) % 1000) as f32 / scale - shift)
+            .collect()
+    }
+
+    /// Intrinsics and a reference → source pose with a sideways and forward baseline.
+    fn test_geometry() -> (Intrinsics, Pose) {
         let k = Intrinsics::new(30.0, 30.0, 20.0, 6.0);
         let rel = Pose::new(
             [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
             [-0.3, 0.05, 0.1],
         )
         .unwrap();
+        (k, rel)
+    }
+
+    /// The plane constants at depth `z` with airlight `a`: range margin `margin` (observation
+    /// units) on both the reference and the source check (`∞` = no check), no soft penalty.
+    fn haze_at(a: f32, beta: f32, z: f64, residual: DehazingResidual, margin: f32) -> Haze {
+        let t = (-beta * z as f32).exp();
+        let inv_t = inverse_transmission(t);
+        Haze {
+            airlight: a,
+            beta,
+            ref_inv_t: inv_t,
+            ref_offset: a * (1.0 - inv_t),
+            ref_t: t,
+            residual,
+            ref_lo: -margin * inv_t,
+            ref_hi: 1.0 + margin * inv_t,
+            src_margin: margin,
+            soft_margin: None,
+        }
+    }
+
+    /// The direct ordinary row (AVX2 loops and scalar loop, RGB and grey) equals the generic row
+    /// without dehazing, bit for bit.
+    #[test]
+    fn direct_ordinary_row_matches_generic_row() {
+        // Not a multiple of 8: the AVX2 loop and the scalar remainder both run.
+        let (w, h) = (43usize, 12usize);
+        let (refd, src) = (
+            test_image(w, h, 0, 700.0, 0.2),
+            test_image(w, h, 7, 700.0, 0.2),
+        );
+        let (ref4, src4) = (pad_rgb4(&refd, 0.0), pad_rgb4(&src, 0.0));
+        let (k, rel) = test_geometry();
         let haze = Haze {
             airlight: 0.0,
             beta: 0.0,
@@ -543,40 +573,26 @@ mod tests {
     fn observation_row_matches_generic_row() {
         // Not a multiple of 8: the AVX2 loop and the scalar remainder both run.
         let (w, h) = (43usize, 12usize);
-        let img = |seed: usize| -> Vec<f32> {
-            (0..w * h * 3)
-                .map(|i| (((i + seed) * 2654435761) % 1000) as f32 / 1000.0)
-                .collect()
-        };
-        let (refd, src) = (img(0), img(7));
+        let (refd, src) = (
+            test_image(w, h, 0, 1000.0, 0.0),
+            test_image(w, h, 7, 1000.0, 0.0),
+        );
         let (a, beta) = (0.8f32, 0.3f32);
         let (ref4, src4) = (pad_rgb4(&refd, a), pad_rgb4(&src, a));
-        let k = Intrinsics::new(30.0, 30.0, 20.0, 6.0);
-        let rel = Pose::new(
-            [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
-            [-0.3, 0.05, 0.1],
-        )
-        .unwrap();
+        let (k, rel) = test_geometry();
         for z in [1.0f64, 2.5, 6.0] {
             let sources = [SourcePlane {
                 data: &src,
                 padded: &src4,
                 warp: PlaneWarp::new(&k, &k, &rel, z),
             }];
-            let t = (-beta * z as f32).exp();
-            let inv_t = inverse_transmission(t);
-            let haze = Haze {
-                airlight: a,
+            let haze = haze_at(
+                a,
                 beta,
-                ref_inv_t: inv_t,
-                ref_offset: a * (1.0 - inv_t),
-                ref_t: t,
-                residual: DehazingResidual::ObservationSpace,
-                ref_lo: f32::NEG_INFINITY,
-                ref_hi: f32::INFINITY,
-                src_margin: f32::INFINITY,
-                soft_margin: None,
-            };
+                z,
+                DehazingResidual::ObservationSpace,
+                f32::INFINITY,
+            );
             for y in 0..h {
                 let (mut g, mut f) = (vec![0.0; w], vec![0.0; w]);
                 let mut s = RowScratch::default();
@@ -604,19 +620,12 @@ mod tests {
     #[test]
     fn eq37_vector_row_matches_scalar_row() {
         let (w, h) = (43usize, 12usize);
-        let img = |seed: usize| -> Vec<f32> {
-            (0..w * h * 3)
-                .map(|i| (((i + seed) * 2654435761) % 1000) as f32 / 1000.0)
-                .collect()
-        };
-        let (refd, src) = (img(0), img(7));
+        let (refd, src) = (
+            test_image(w, h, 0, 1000.0, 0.0),
+            test_image(w, h, 7, 1000.0, 0.0),
+        );
         let src4 = pad_rgb4(&src, 0.0);
-        let k = Intrinsics::new(30.0, 30.0, 20.0, 6.0);
-        let rel = Pose::new(
-            [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
-            [-0.3, 0.05, 0.1],
-        )
-        .unwrap();
+        let (k, rel) = test_geometry();
         let (a, beta) = (0.8f32, 0.3f32);
         let mut penalised = 0usize;
         for (z, margin) in [(1.0f64, 0.0f32), (2.5, 0.0), (6.0, 0.0), (2.5, 0.02)] {
@@ -625,20 +634,7 @@ mod tests {
                 padded: &src4,
                 warp: PlaneWarp::new(&k, &k, &rel, z),
             }];
-            let t = (-beta * z as f32).exp();
-            let inv_t = inverse_transmission(t);
-            let haze = Haze {
-                airlight: a,
-                beta,
-                ref_inv_t: inv_t,
-                ref_offset: a * (1.0 - inv_t),
-                ref_t: t,
-                residual: DehazingResidual::Eq37,
-                ref_lo: -margin * inv_t,
-                ref_hi: 1.0 + margin * inv_t,
-                src_margin: margin,
-                soft_margin: None,
-            };
+            let haze = haze_at(a, beta, z, DehazingResidual::Eq37, margin);
             // Without the 4-lane copies the row takes the generic scalar path throughout.
             let plain = [SourcePlane {
                 data: &src,
