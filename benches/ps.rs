@@ -11,7 +11,7 @@
 use criterion::{criterion_group, criterion_main, Criterion};
 
 use murk::ps::bicgstab::{bicgstab_block, BicgstabParams, BlockOperator};
-use murk::ps::physics::{FTable, ForwardKernel, KernelLayout, SurfaceGeometry};
+use murk::ps::physics::{FTable, FarField, ForwardKernel, KernelLayout, SurfaceGeometry};
 use murk::ps::pipeline::back_project;
 use murk::ps::{photometric_stereo, PsParams};
 use murk::simulate::ps::{simulate_ps, PsSimConfig};
@@ -65,13 +65,22 @@ fn bench(c: &mut Criterion) {
     };
     let coarse = params.kernel_layout().expect("layout");
     let exact = KernelLayout::exact(R).expect("layout");
+    let eps = FarField::ConstantEpsilon;
     g.bench_function("kernel_build_exact", |b| {
-        b.iter(|| ForwardKernel::build_with(ft, &cap.medium, &geom, &exact).expect("kernel"))
+        b.iter(|| ForwardKernel::build_with(ft, &cap.medium, &geom, &exact, eps).expect("kernel"))
     });
     g.bench_function("kernel_build_far_cells_3", |b| {
-        b.iter(|| ForwardKernel::build_with(ft, &cap.medium, &geom, &coarse).expect("kernel"))
+        b.iter(|| ForwardKernel::build_with(ft, &cap.medium, &geom, &coarse, eps).expect("kernel"))
     });
-    let kernel = ForwardKernel::build_with(ft, &cap.medium, &geom, &coarse).expect("kernel");
+    // The default: far cells plus the per-pixel far field (κ_p over the outside of the support).
+    let per_pixel = FarField::PerPixel;
+    g.bench_function("kernel_build_far_cells_3_per_pixel_far_field", |b| {
+        b.iter(|| {
+            ForwardKernel::build_with(ft, &cap.medium, &geom, &coarse, per_pixel).expect("kernel")
+        })
+    });
+    let kernel =
+        ForwardKernel::build_with(ft, &cap.medium, &geom, &coarse, per_pixel).expect("kernel");
     eprintln!(
         "kernel memory: far cells {:.0} MiB",
         kernel.bytes() as f64 / (1 << 20) as f64

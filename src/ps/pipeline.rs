@@ -14,7 +14,7 @@ use crate::ps::integrate::{
     depth_from_log, integrate_normals, normals_from_depth, IntegrationParams,
 };
 use crate::ps::near_light::{solve_normals, ShadingModel};
-use crate::ps::physics::{FTable, ForwardKernel, GTable, KernelLayout, SurfaceGeometry};
+use crate::ps::physics::{FTable, FarField, ForwardKernel, GTable, KernelLayout, SurfaceGeometry};
 
 /// Largest kernel support `r` accepted (an r×r window per pixel is stored; 201² f32 = 160 kB
 /// per object pixel).
@@ -63,6 +63,9 @@ pub struct PsParams {
     pub far_cell: usize,
     /// Radius (pixels) around each pixel within which K̂ is kept per pixel when `far_cell` > 1.
     pub near_radius_px: usize,
+    /// How the forward scatter from outside the support enters Eq. 4.52: the reference's
+    /// constant ε (Eq. 4.53) or murk's per-pixel far field ([`FarField`]).
+    pub far_field: FarField,
     /// Full model or the backscatter-only baseline.
     pub mode: PsMode,
     /// Apply the 3×3 median after backscatter subtraction (§4.3.4).
@@ -89,6 +92,7 @@ impl Default for PsParams {
             support_r: 61,
             far_cell: DEFAULT_FAR_CELL,
             near_radius_px: DEFAULT_NEAR_RADIUS_PX,
+            far_field: FarField::default(),
             max_iterations: 5,
             tolerance: 1e-3,
             mode: PsMode::Full,
@@ -398,8 +402,13 @@ pub fn photometric_stereo(
                     normals: shape_normals.clone(),
                     mask: mask.clone(),
                 };
-                let kernel =
-                    ForwardKernel::build_with(ft, &medium, &geom, &params.kernel_layout()?)?;
+                let kernel = ForwardKernel::build_with(
+                    ft,
+                    &medium,
+                    &geom,
+                    &params.kernel_layout()?,
+                    params.far_field,
+                )?;
                 stats.kernel_s = t.elapsed().as_secs_f64();
                 stats.kernel_bytes = kernel.bytes();
                 stats.epsilon = kernel.epsilon();

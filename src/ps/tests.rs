@@ -53,8 +53,10 @@ fn converges_in_turbid_water_and_beats_the_backscatter_only_baseline() {
     );
     eprintln!("full: {full:?}\nbackscatter only: {base:?}");
     let (f, b) = (*full.last().unwrap(), *base.last().unwrap());
-    assert!(f < 3.0, "full model error {f}° ({full:?})");
-    assert!(f < 0.6 * b, "full {f}° vs baseline {b}°");
+    // The target at full size is 1.5°; with the per-pixel far field the reduced scene
+    // reaches 0.91° (1.65° with Eq. 4.52's constant ε).
+    assert!(f < 1.5, "full model error {f}° ({full:?})");
+    assert!(f < 0.25 * b, "full {f}° vs baseline {b}°");
     assert!(
         f < full[0],
         "no improvement over the first iteration: {full:?}"

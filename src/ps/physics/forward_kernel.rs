@@ -24,6 +24,7 @@
 use rayon::prelude::*;
 
 use super::f_table::FTable;
+use super::far_field::{outside_support_kappa, FarField};
 use super::h::{scatter_cs, scatter_cs_fast};
 use super::kernel_layout::KernelLayout;
 use super::Medium;
@@ -122,17 +123,17 @@ fn cross_norm(a: [f64; 3], b: [f64; 3]) -> f64 {
 
 /// Everything about a pixel that K_pq needs, whether it plays p or q.
 #[derive(Clone, Copy, Debug, Default)]
-struct Pre {
+pub(super) struct Pre {
     /// Unit view ray (direction of the point).
-    ray: [f64; 3],
+    pub(super) ray: [f64; 3],
     /// Distance camera–point, mm.
-    d: f64,
+    pub(super) d: f64,
     /// Unit normal.
-    n: [f64; 3],
+    pub(super) n: [f64; 3],
     /// n·point: the tangent plane is {x : n·x = nq}.
     nq: f64,
     /// Facet area dA (Eq. 4.44), mm².
-    da: f64,
+    pub(super) da: f64,
     /// e^{−σ d}, filled in by the kernel build (0 elsewhere).
     att: f64,
 }
@@ -151,6 +152,34 @@ impl Pre {
             att: 0.0,
         }
     }
+
+    /// The mean geometry of `count` pixels from the sums of their points (`point_sum`, mm) and
+    /// unit normals (`normal_sum`), with facet area `da` (mm²) and the attenuation e^{−σd}.
+    pub(super) fn mean(
+        point_sum: [f64; 3],
+        normal_sum: [f64; 3],
+        count: usize,
+        da: f64,
+        sigma: f64,
+    ) -> Pre {
+        let c = count as f64;
+        let point = [point_sum[0] / c, point_sum[1] / c, point_sum[2] / c];
+        let nl = dot(normal_sum, normal_sum).sqrt();
+        let n = if nl > 0.0 {
+            [normal_sum[0] / nl, normal_sum[1] / nl, normal_sum[2] / nl]
+        } else {
+            [0.0, 0.0, -1.0]
+        };
+        let d = dot(point, point).sqrt();
+        Pre {
+            ray: [point[0] / d, point[1] / d, point[2] / d],
+            d,
+            n,
+            nq: dot(n, point),
+            da,
+            att: (-sigma * d).exp(),
+        }
+    }
 }
 
 /// K_pq from precomputed pixel data (see the module documentation for the model).
@@ -163,7 +192,7 @@ fn k_entry(ft: &FTable, beta: f64, sigma: f64, p: &Pre, q: &Pre) -> f64 {
 /// [`k_entry`] with the fast bracket of the kernel build (see `h::bracket_fast`); the
 /// simulator's dense sum and [`kernel_entry`] keep the accurate one.
 #[inline(always)]
-fn k_entry_fast(ft: &FTable, beta: f64, sigma: f64, p: &Pre, q: &Pre) -> f64 {
+pub(super) fn k_entry_fast(ft: &FTable, beta: f64, sigma: f64, p: &Pre, q: &Pre) -> f64 {
     let (cos_g, sin_g, len) = k_geometry(p, q);
     scatter_cs_fast(ft, beta, sigma, q.da, q.d, q.att, cos_g, sin_g, len)
 }
@@ -244,6 +273,13 @@ pub struct ForwardKernel {
     cell_weight: Vec<f32>,
     entries: Vec<f32>,
     epsilon: f64,
+    far_field: FarField,
+    /// Per masked pixel p, the coefficient of the extra unknown x_C in row p: 1 for
+    /// Eq. 4.52, κ_p/κ̄ for [`FarField::PerPixel`].
+    far_coeff: Vec<f64>,
+    /// Per masked pixel q, its weight in the last row (x_C = Σ_q weight_q L_s(q)): ε for
+    /// Eq. 4.52, κ̄·dA_q for [`FarField::PerPixel`].
+    total_weight: Vec<f64>,
 }
 
 /// Marks unmasked pixels in [`ForwardKernel::masked_index`]'s table.
@@ -300,23 +336,7 @@ fn cell_geometry(
                 return (Pre::default(), false);
             }
             let per_pixel = count < inside || min_vn < CELL_MIN_COS_VIEW;
-            let c = count as f64;
-            let point = [pt[0] / c, pt[1] / c, pt[2] / c];
-            let nl = dot(nn, nn).sqrt();
-            let n = if nl > 0.0 {
-                [nn[0] / nl, nn[1] / nl, nn[2] / nl]
-            } else {
-                [0.0, 0.0, -1.0]
-            };
-            let d = dot(point, point).sqrt();
-            let cell = Pre {
-                ray: [point[0] / d, point[1] / d, point[2] / d],
-                d,
-                n,
-                nq: dot(n, point),
-                da: da / c,
-                att: (-sigma * d).exp(),
-            };
+            let cell = Pre::mean(pt, nn, count, da / count as f64, sigma);
             (cell, per_pixel)
         })
         .collect();
@@ -332,17 +352,25 @@ impl ForwardKernel {
         geom: &SurfaceGeometry,
         support_r: usize,
     ) -> Result<ForwardKernel> {
-        ForwardKernel::build_with(ft, medium, geom, &KernelLayout::exact(support_r)?)
+        ForwardKernel::build_with(
+            ft,
+            medium,
+            geom,
+            &KernelLayout::exact(support_r)?,
+            FarField::ConstantEpsilon,
+        )
     }
 
     /// Builds K̂ over the masked pixels of `geom` in `layout`, in parallel over pixels, and ε
     /// (Eq. 4.53) as the smallest stored off-diagonal per-pixel entry whose q is masked (0 when
-    /// there is none).
+    /// there is none). `far_field` picks the model of the scatter from outside the support
+    /// ([`FarField`]); with [`FarField::PerPixel`] the stored entries are K_pq − κ_p·dA_q.
     pub fn build_with(
         ft: &FTable,
         medium: &Medium,
         geom: &SurfaceGeometry,
         layout: &KernelLayout,
+        far_field: FarField,
     ) -> Result<ForwardKernel> {
         medium.validate()?;
         geom.validate()?;
@@ -385,20 +413,40 @@ impl ForwardKernel {
                 })
                 .collect()
         };
+        // κ_p = far_coeff_p·κ̄, scaled so that x_C is of the order of Eq. 4.52's C. The
+        // constant-ε model has κ̄ = 0 here (nothing subtracted in the support) and its last-row
+        // weights ε once ε is known.
+        let (far_coeff, kappa_mean) = match far_field {
+            FarField::ConstantEpsilon => (vec![1.0; masked.len()], 0.0),
+            FarField::PerPixel => {
+                let kappa = outside_support_kappa(ft, medium, &pre, &geom.mask, (w, h), layout);
+                let kappa: Vec<f64> = masked.iter().map(|&p| kappa[p as usize]).collect();
+                let mean = kappa.iter().sum::<f64>() / kappa.len().max(1) as f64;
+                if mean > 0.0 {
+                    (kappa.iter().map(|k| k / mean).collect(), mean)
+                } else {
+                    (vec![0.0; masked.len()], 0.0)
+                }
+            }
+        };
         let (nb, fw) = (layout.near_width(), layout.far_width());
         let (mc, kc) = (layout.near_cells() as isize, layout.far_cells() as isize);
         let si = s as isize;
         let per = layout.entries_per_pixel();
         let mut entries = vec![0f32; masked.len() * per];
+        // What the per-pixel far field takes out of entry pq, per unit dA_q: κ_p (far_field.rs).
+        let kappa_of = |k: usize| far_coeff[k] * kappa_mean;
         let epsilon = entries
             .par_chunks_mut(per)
             .zip(masked.par_iter())
-            .map(|(win, &pi)| {
+            .enumerate()
+            .map(|(k, (win, &pi))| {
                 let pi = pi as usize;
                 let (px, py) = ((pi % w) as isize, (pi / w) as isize);
                 let (pcx, pcy) = (px / si, py / si);
                 let (ox, oy) = ((pcx - mc) * si, (pcy - mc) * si);
                 let pp = &pre[pi];
+                let kappa = kappa_of(k);
                 let mut min = f64::INFINITY;
                 let (near, far) = win.split_at_mut(nb * nb);
                 for (wy, wrow) in near.chunks_exact_mut(nb).enumerate() {
@@ -415,13 +463,14 @@ impl ForwardKernel {
                             continue;
                         }
                         let slot = &mut wrow[(qx - ox) as usize];
+                        let q = &pre[qi];
                         if qi == pi {
-                            *slot = (-sigma * pp.d).exp() as f32;
+                            *slot = ((-sigma * pp.d).exp() - kappa * q.da) as f32;
                             continue;
                         }
-                        let k = k_entry_fast(ft, beta, sigma, pp, &pre[qi]) as f32;
-                        *slot = k;
-                        min = min.min(k as f64);
+                        let k = k_entry_fast(ft, beta, sigma, pp, q);
+                        min = min.min(f64::from(k as f32));
+                        *slot = (k - kappa * q.da) as f32;
                     }
                 }
                 if fw > 0 {
@@ -463,14 +512,22 @@ impl ForwardKernel {
                             } else {
                                 k_entry_fast(ft, beta, sigma, pp, cell) as f32
                             };
-                            *slot = k;
-                            min = min.min(k as f64);
+                            min = min.min(f64::from(k));
+                            *slot = (f64::from(k) - kappa * cell.da) as f32;
                         }
                     }
                 }
                 min
             })
             .reduce(|| f64::INFINITY, f64::min);
+        let epsilon = if epsilon.is_finite() { epsilon } else { 0.0 };
+        let total_weight = match far_field {
+            FarField::ConstantEpsilon => vec![epsilon; masked.len()],
+            FarField::PerPixel => masked
+                .iter()
+                .map(|&q| kappa_mean * pre[q as usize].da)
+                .collect(),
+        };
         Ok(ForwardKernel {
             width: w,
             height: h,
@@ -482,7 +539,10 @@ impl ForwardKernel {
             diag,
             cell_weight,
             entries,
-            epsilon: if epsilon.is_finite() { epsilon } else { 0.0 },
+            epsilon,
+            far_field,
+            far_coeff,
+            total_weight,
         })
     }
 
@@ -494,6 +554,28 @@ impl ForwardKernel {
     /// ε of Eq. 4.53.
     pub fn epsilon(&self) -> f64 {
         self.epsilon
+    }
+
+    /// The far-field model the kernel was built with.
+    pub fn far_field(&self) -> FarField {
+        self.far_field
+    }
+
+    /// The value of the extra unknown x_C that is consistent with `ls` (L_s per masked pixel):
+    /// Eq. 4.52's last row, ε Σ_q L_s(q) (or κ̄ Σ_q dA_q L_s(q) for [`FarField::PerPixel`]).
+    /// A good start for the solver.
+    ///
+    /// # Panics
+    /// If `ls` does not have one value per masked pixel.
+    pub fn constant_for(&self, ls: &[f64]) -> f64 {
+        assert_eq!(ls.len(), self.masked.len(), "one value per masked pixel");
+        ls.iter().zip(&self.total_weight).map(|(x, w)| w * x).sum()
+    }
+
+    /// The far field the constant x_C adds to masked pixel `k`: x_C·far_coeff_k, with
+    /// far_coeff ≡ 1 for Eq. 4.52 and κ_k/κ̄ for [`FarField::PerPixel`].
+    pub fn far_coefficient(&self, k: usize) -> f64 {
+        self.far_coeff[k]
     }
 
     /// The requested support r.
@@ -513,6 +595,7 @@ impl ForwardKernel {
             + self.cell_weight.len() * 4
             + self.masked.len() * 4
             + self.index_of.len() * 4
+            + (self.far_coeff.len() + self.total_weight.len()) * 8
     }
 
     /// Image width and height the kernel was built for.
@@ -648,10 +731,9 @@ impl ForwardKernel {
             let y = &mut ys[j * m..(j + 1) * m];
             let xc = x[n];
             for p in 0..n {
-                y[p] = out[p * BLOCK + j] + xc;
+                y[p] = out[p * BLOCK + j] + self.far_coeff[p] * xc;
             }
-            let sum: f64 = x[..n].iter().sum();
-            y[n] = self.epsilon * sum - xc;
+            y[n] = self.constant_for(&x[..n]) - xc;
         }
     }
 }
@@ -991,7 +1073,8 @@ mod tests {
         let exact = ForwardKernel::build(ft, &m, &g, 125).unwrap();
         let layout = KernelLayout::coarse_far(125, 3, 9).unwrap();
         assert!(layout.far_width() > 0);
-        let coarse = ForwardKernel::build_with(ft, &m, &g, &layout).unwrap();
+        let coarse =
+            ForwardKernel::build_with(ft, &m, &g, &layout, FarField::ConstantEpsilon).unwrap();
         let n = exact.masked_count();
         assert_eq!(coarse.masked_count(), n);
         assert_eq!(coarse.diagonal(), exact.diagonal());

@@ -14,6 +14,7 @@ use crate::error::{MurkError, Result};
 
 pub mod backscatter;
 pub mod f_table;
+pub mod far_field;
 pub mod forward_kernel;
 pub mod g_table;
 pub mod h;
@@ -22,6 +23,7 @@ pub(crate) mod quad;
 
 pub use backscatter::{backscatter, backscatter_quadrature};
 pub use f_table::{f_quadrature, FTable};
+pub use far_field::FarField;
 pub use forward_kernel::{
     dense_forward_scatter, kernel_entry, pixel_solid_angle, ForwardKernel, SurfaceGeometry,
 };

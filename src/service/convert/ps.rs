@@ -226,6 +226,7 @@ fn params_from_proto(
                 .map_or(d.solver.max_iterations, |v| v as usize),
         },
         max_kernel_bytes,
+        far_field: d.far_field,
     })
 }
 
