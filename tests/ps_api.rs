@@ -180,6 +180,7 @@ async fn bad_requests_name_the_field_and_nothing_is_queued() {
         ),
         ("intrinsics", Box::new(|r| r.intrinsics = None)),
         ("mode", Box::new(|r| r.mode = 42)),
+        ("far_field", Box::new(|r| r.far_field = 42)),
         ("smoothness_s", Box::new(|r| r.smoothness_s = Some(-1.0))),
         ("shadow_ratio", Box::new(|r| r.shadow_ratio = Some(1.5))),
         (
@@ -275,14 +276,18 @@ async fn auto_support_follows_the_object_and_is_reported() {
 }
 
 #[test]
-fn request_round_trip_keeps_the_mode() {
+fn request_round_trip_keeps_the_mode_and_far_field() {
     let sim = capture();
     let p = PsParams {
         initial_distance_mm: 200.0,
         mode: PsMode::BackscatterOnly,
+        far_field: murk::ps::physics::FarField::ConstantEpsilon,
         ..PsParams::default()
     };
     let r = ps_request_to_proto(&sim.capture, &p);
     assert_eq!(r.mode, pb::PsMode::BackscatterOnly as i32);
+    assert_eq!(r.far_field, pb::PsFarField::ConstantEpsilon as i32);
+    let d = ps_request_to_proto(&sim.capture, &PsParams::default());
+    assert_eq!(d.far_field, pb::PsFarField::PerPixel as i32);
     assert_eq!(r.lights.len(), sim.capture.lights.len());
 }

@@ -9,6 +9,7 @@ use murk::image::ImageF32;
 use murk::io::{write_colormap_png, write_exr, write_png_rgb8};
 use murk::metrics::mean_angular_error_deg;
 use murk::ps::mesh::{depth_mesh, encode_ply_mesh};
+use murk::ps::physics::FarField;
 use murk::ps::{PsMode, PsParams, PsResult};
 use murk::service::convert::{ps_from_result, ps_request_to_proto};
 use murk::service::proto::v1 as pb;
@@ -23,6 +24,15 @@ pub enum ModeArg {
     Full,
     /// Backscatter subtraction and attenuation only (the baseline [15]).
     BackscatterOnly,
+}
+
+/// `--far-field`: how the scatter from outside the kernel support is modelled.
+#[derive(Clone, Copy, Debug, ValueEnum)]
+pub enum FarFieldArg {
+    /// κ_p·(Σ of dA_q·L_s(q) outside p's support), κ_p computed per kernel build (murk's default).
+    PerPixel,
+    /// The reference's constant C = ε·Σ_q L_s(q) with ε from Eq. 4.53.
+    ConstantEpsilon,
 }
 
 /// Options of `murk ps`.
@@ -69,6 +79,9 @@ pub struct PsArgs {
     /// instead of refining normals on the exact G.
     #[arg(long)]
     pub linear_g: bool,
+    /// Model of the forward scatter from outside the support.
+    #[arg(long, value_enum, default_value_t = FarFieldArg::PerPixel)]
+    pub far_field: FarFieldArg,
 }
 
 /// Runs `murk ps`.
@@ -91,6 +104,10 @@ pub fn run(a: PsArgs) -> anyhow::Result<()> {
             ModeArg::BackscatterOnly => PsMode::BackscatterOnly,
         },
         exact_g: !a.linear_g,
+        far_field: match a.far_field {
+            FarFieldArg::PerPixel => FarField::PerPixel,
+            FarFieldArg::ConstantEpsilon => FarField::ConstantEpsilon,
+        },
         ..PsParams::default()
     };
     let mut request = ps_request_to_proto(&folder.capture, &params);

@@ -2,6 +2,7 @@
 
 use crate::metrics::mean_angular_error_deg;
 use crate::monitor::Monitor;
+use crate::ps::physics::FarField;
 use crate::ps::{photometric_stereo, PsMode, PsParams};
 use crate::simulate::ps::{simulate_ps, PsShape, PsSimConfig};
 
@@ -153,6 +154,22 @@ fn reference_table_full_size() {
                 initial_depth_mm: Some(sim.gt_depth_mm.clone()),
                 max_iterations: 1,
                 exact_g: false,
+                ..base.clone()
+            },
+        ),
+        (
+            "full, Eq. 4.52 constant ε (as published)",
+            PsParams {
+                far_field: FarField::ConstantEpsilon,
+                ..base.clone()
+            },
+        ),
+        (
+            "input GT, Eq. 4.52 constant ε",
+            PsParams {
+                initial_depth_mm: Some(sim.gt_depth_mm.clone()),
+                max_iterations: 1,
+                far_field: FarField::ConstantEpsilon,
                 ..base.clone()
             },
         ),

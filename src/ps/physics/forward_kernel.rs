@@ -844,12 +844,12 @@ pub(crate) fn dense_forward_scatter_radius(
 }
 
 #[cfg(test)]
-mod tests {
+pub(super) mod tests {
     use super::*;
     use crate::error::field_of;
     use crate::ps::physics::h::scatter_quadrature_cs;
 
-    fn medium() -> Medium {
+    pub(in crate::ps::physics) fn medium() -> Medium {
         Medium {
             beta_per_mm: 0.004,
             sigma_per_mm: 0.005,
@@ -858,7 +858,13 @@ mod tests {
 
     /// A sphere of radius `rad` centred on the optical axis at depth `z0` (mm), as seen by a
     /// w×h camera with focal length `f` px; the mask is where the rays hit it.
-    fn sphere(w: usize, h: usize, f: f64, z0: f64, rad: f64) -> SurfaceGeometry {
+    pub(in crate::ps::physics) fn sphere(
+        w: usize,
+        h: usize,
+        f: f64,
+        z0: f64,
+        rad: f64,
+    ) -> SurfaceGeometry {
         let k = Intrinsics::new(
             f,
             f,

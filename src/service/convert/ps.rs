@@ -5,7 +5,7 @@ use super::image::{image_from_proto, image_to_proto, ImageLimits};
 use super::tof::{intrinsics_from_proto, intrinsics_to_proto};
 use crate::error::{MurkError, Result};
 use crate::image::ImageF32;
-use crate::ps::physics::Medium;
+use crate::ps::physics::{FarField, Medium};
 use crate::ps::{validate_request, PointLight, PsCapture, PsMode, PsParams, PsResult};
 use crate::service::proto::v1 as pb;
 
@@ -190,6 +190,17 @@ fn params_from_proto(
             ))
         }
     };
+    let far_field = match pb::PsFarField::try_from(req.far_field) {
+        Ok(pb::PsFarField::Unspecified) => d.far_field,
+        Ok(pb::PsFarField::PerPixel) => FarField::PerPixel,
+        Ok(pb::PsFarField::ConstantEpsilon) => FarField::ConstantEpsilon,
+        Err(_) => {
+            return Err(MurkError::invalid(
+                "far_field",
+                format!("unknown far-field model {}", req.far_field),
+            ))
+        }
+    };
     Ok(PsParams {
         initial_distance_mm: req.initial_distance_mm,
         initial_depth_mm: None,
@@ -226,7 +237,7 @@ fn params_from_proto(
                 .map_or(d.solver.max_iterations, |v| v as usize),
         },
         max_kernel_bytes,
-        far_field: d.far_field,
+        far_field,
     })
 }
 
@@ -310,6 +321,10 @@ pub fn ps_request_to_proto(capture: &PsCapture, params: &PsParams) -> pb::Photom
         solver_max_iterations: Some(params.solver.max_iterations as u32),
         return_iteration_normals: false,
         linear_g: !params.exact_g,
+        far_field: match params.far_field {
+            FarField::PerPixel => pb::PsFarField::PerPixel,
+            FarField::ConstantEpsilon => pb::PsFarField::ConstantEpsilon,
+        } as i32,
         initial_depth_mm: params.initial_depth_mm.as_ref().map(|d| {
             image_to_proto(
                 &ImageF32::from_vec(w, h, 1, d.clone())
