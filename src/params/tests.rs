@@ -218,12 +218,25 @@ fn measure_search() {
     // MURK_A0=cnn: A₀ from the embedded CNN instead of the dark channel.
     let cnn = (std::env::var("MURK_A0").as_deref() == Ok("cnn"))
         .then(|| crate::params::airlight::AirlightCnn::embedded().unwrap());
+    // MURK_SWEEP=1: the published Eq. 3.10 sweep for β₀; MURK_FORWARD: forward motion.
+    let params = SearchParams {
+        beta_from_points: std::env::var("MURK_SWEEP").is_err(),
+        ..params
+    };
+    let forward: f64 = std::env::var("MURK_FORWARD")
+        .map(|s| s.parse().unwrap())
+        .unwrap_or(0.0);
     let (mut ea, mut eb, mut ea_dcp, mut cp_est, mut cp_gt, mut secs) =
         (0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
-    for seed in 100..100 + n {
+    // MURK_SEED0: first seed (default 100; held-out checks use others).
+    let seed0: u64 = std::env::var("MURK_SEED0")
+        .map(|s| s.parse().unwrap())
+        .unwrap_or(100);
+    for seed in seed0..seed0 + n {
         let cfg = MvsSimConfig {
             seed,
             beta_range: Some([0.4, 0.8]),
+            forward_motion: forward,
             ..MvsSimConfig::default()
         };
         let scene = simulate_mvs(&cfg, &Monitor::noop()).unwrap();
@@ -292,7 +305,11 @@ fn measure_search() {
             .take(params.beta_steps)
             .map(|g| format!("{:.2}:{:.4}", g.beta, g.residual))
             .collect();
-        println!("   step 1: {}", curve.join(" "));
+        println!(
+            "   step 1: {} | points {:?}",
+            curve.join(" "),
+            est.point_ratio
+        );
         ea += (est.airlight - scene.airlight).abs() as f64;
         ea_dcp += (a0 - scene.airlight).abs() as f64;
         eb += (est.beta - scene.beta).abs() as f64;
@@ -384,4 +401,119 @@ fn photometric_curves() {
         errs.push((betas[bi] - scene.beta).abs());
     }
     println!("MAE β {:.4}", errs.iter().sum::<f32>() / errs.len() as f32);
+}
+
+/// Experiment (issue 4): β from SfM tracks by the photometric ratio of Li et al. [41]:
+/// (I_r − A)/(I_s − A) = e^{−β (z_r − z_s)} for the same point seen at depths z_r and z_s, fitted
+/// through the origin with Tukey IRLS over every (reference, source, channel) observation.
+/// `MURK_FORWARD` (scene units, default 0) spreads the views along the optical axis as well.
+/// `cargo test --release --lib params::tests::beta_from_tracks -- --ignored --nocapture`
+#[test]
+#[ignore]
+fn beta_from_tracks() {
+    let n: u64 = std::env::var("MURK_SCENES")
+        .map(|s| s.parse().unwrap())
+        .unwrap_or(10);
+    let forward: f64 = std::env::var("MURK_FORWARD")
+        .map(|s| s.parse().unwrap())
+        .unwrap_or(0.0);
+    let cnn = crate::params::airlight::AirlightCnn::embedded().unwrap();
+    let bilinear = |img: &crate::image::ImageF32, x: f64, y: f64, c: usize| -> Option<f64> {
+        let (w, h) = (img.width(), img.height());
+        let (x, y) = (x - 0.5, y - 0.5);
+        if x < 0.0 || y < 0.0 || x >= (w - 1) as f64 || y >= (h - 1) as f64 {
+            return None;
+        }
+        let (x0, y0) = (x.floor() as usize, y.floor() as usize);
+        let (fx, fy) = (x - x0 as f64, y - y0 as f64);
+        let g = |xx, yy| f64::from(img.get(xx, yy, c));
+        Some(
+            (1.0 - fy) * ((1.0 - fx) * g(x0, y0) + fx * g(x0 + 1, y0))
+                + fy * ((1.0 - fx) * g(x0, y0 + 1) + fx * g(x0 + 1, y0 + 1)),
+        )
+    };
+    let (mut e_gt, mut e_cnn) = (0.0, 0.0);
+    for seed in 100..100 + n {
+        let cfg = MvsSimConfig {
+            seed,
+            beta_range: Some([0.4, 0.8]),
+            forward_motion: forward,
+            ..MvsSimConfig::default()
+        };
+        let scene = simulate_mvs(&cfg, &Monitor::noop()).unwrap();
+        let r = scene.reference;
+        let id_of = |name: &str| scene.sparse.image_by_name(name).unwrap().id;
+        let ref_id = id_of(&scene.views[r].name);
+        let a_cnn = cnn.estimate(&scene.views[r].hazy).unwrap();
+        let fit = |a: f64| -> (f64, usize, f64) {
+            // (Δz = z_s − z_r, y = ln((I_r − A)/(I_s − A))): y = β Δz.
+            let mut obs: Vec<(f64, f64)> = Vec::new();
+            for p in scene.sparse.points.values() {
+                let Some(te_r) = p.track.iter().find(|t| t.image_id == ref_id) else {
+                    continue;
+                };
+                let im_r = &scene.sparse.images[&ref_id];
+                let xy_r = im_r.points2d[te_r.point2d_idx as usize].xy;
+                let z_r = im_r.pose.transform(p.xyz)[2];
+                for te in p.track.iter().filter(|t| t.image_id != ref_id) {
+                    let im_s = &scene.sparse.images[&te.image_id];
+                    let v = scene
+                        .views
+                        .iter()
+                        .position(|v| v.name == im_s.name)
+                        .unwrap();
+                    let xy_s = im_s.points2d[te.point2d_idx as usize].xy;
+                    let z_s = im_s.pose.transform(p.xyz)[2];
+                    for c in 0..3 {
+                        let (Some(ir), Some(is)) = (
+                            bilinear(&scene.views[r].hazy, xy_r[0], xy_r[1], c),
+                            bilinear(&scene.views[v].hazy, xy_s[0], xy_s[1], c),
+                        ) else {
+                            continue;
+                        };
+                        let (dr, ds) = (ir - a, is - a);
+                        if dr * ds <= 0.0 || dr.abs() < 0.05 || ds.abs() < 0.05 {
+                            continue;
+                        }
+                        obs.push((z_s - z_r, (dr / ds).ln()));
+                    }
+                }
+            }
+            let spread =
+                (obs.iter().map(|o| o.0 * o.0).sum::<f64>() / obs.len().max(1) as f64).sqrt();
+            let mut beta = 0.6;
+            for _ in 0..20 {
+                let mut res: Vec<f64> = obs.iter().map(|(x, y)| (y - beta * x).abs()).collect();
+                res.sort_by(|a, b| a.partial_cmp(b).unwrap());
+                let mad = res.get(res.len() / 2).copied().unwrap_or(1.0).max(1e-6);
+                let c = 4.685 * 1.4826 * mad;
+                let (mut num, mut den) = (0.0, 0.0);
+                for (x, y) in &obs {
+                    let u = (y - beta * x) / c;
+                    if u.abs() < 1.0 {
+                        let wt = (1.0 - u * u).powi(2);
+                        num += wt * x * y;
+                        den += wt * x * x;
+                    }
+                }
+                if den > 0.0 {
+                    beta = num / den;
+                }
+            }
+            (beta, obs.len(), spread)
+        };
+        let (b_gt, nobs, spread) = fit(f64::from(scene.airlight));
+        let (b_cnn, _, _) = fit(f64::from(a_cnn));
+        println!(
+            "seed {seed}: β gt {:.3} | tracks, GT A {b_gt:.3}, CNN A ({a_cnn:.3} vs {:.3}) {b_cnn:.3} | {nobs} obs, rms Δz {spread:.3}",
+            scene.beta, scene.airlight
+        );
+        e_gt += (b_gt - f64::from(scene.beta)).abs();
+        e_cnn += (b_cnn - f64::from(scene.beta)).abs();
+    }
+    println!(
+        "forward {forward}: MAE_β tracks GT A {:.4}, CNN A {:.4}",
+        e_gt / n as f64,
+        e_cnn / n as f64
+    );
 }

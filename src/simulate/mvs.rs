@@ -100,6 +100,11 @@ pub struct MvsSimConfig {
     pub num_views: usize,
     /// Length of the camera trajectory (scene units): the largest baseline.
     pub trajectory_length: f64,
+    /// Spread of the camera centres along the optical axis (scene units; 0 = a purely lateral
+    /// trajectory): the views before the reference stand behind it, those after it ahead, as on
+    /// a vehicle or a walking camera. Only with such depth differences between the views does
+    /// the same point show different transmissions, the multi-view evidence for β.
+    pub forward_motion: f64,
     /// Two cameras, same orientation, pure x translation (rectified stereo).
     pub rectified_pair: bool,
     /// Airlight `A` is drawn uniformly from this range, within `(0, 1]`.
@@ -136,6 +141,7 @@ impl Default for MvsSimConfig {
             focal_px: 200.0,
             num_views: 5,
             trajectory_length: 0.4,
+            forward_motion: 0.0,
             rectified_pair: false,
             airlight_range: [0.7, 1.0],
             median_transmission_range: [0.2, 0.4],
@@ -201,6 +207,16 @@ impl MvsSimConfig {
                 format!(
                     "must be in (0, 2] scene units (the room is 6 wide), got {}",
                     self.trajectory_length
+                ),
+            ));
+        }
+        if !self.forward_motion.is_finite() || !(0.0..=1.5).contains(&self.forward_motion) {
+            return Err(bad(
+                "forward_motion",
+                format!(
+                    "must be in [0, 1.5] scene units (the wall behind the cameras is 1 \
+                     behind the reference), got {}",
+                    self.forward_motion
                 ),
             ));
         }
@@ -599,12 +615,13 @@ fn poses(cfg: &MvsSimConfig, rng: &mut ChaCha8Rng) -> Result<(Vec<Pose>, usize)>
             out.push(Pose::identity());
             continue;
         }
-        let x = b * (i as f64 / (k - 1) as f64 - reference as f64 / (k - 1) as f64);
+        let along = i as f64 / (k - 1) as f64 - reference as f64 / (k - 1) as f64;
+        let x = b * along;
         let jitter = 0.05 * b;
         let c = [
             x,
             rng.random_range(-jitter..=jitter),
-            rng.random_range(-jitter..=jitter),
+            cfg.forward_motion * along + rng.random_range(-jitter..=jitter),
         ];
         // Look roughly at the room centre (z ≈ 7) with ±0.3° of random wobble.
         let wobble = 0.3f64.to_radians();
@@ -1170,6 +1187,15 @@ mod tests {
             }),
             "num_views"
         );
+        for forward_motion in [-0.1, 1.6, f64::NAN] {
+            assert_eq!(
+                field(MvsSimConfig {
+                    forward_motion,
+                    ..small(0)
+                }),
+                "forward_motion"
+            );
+        }
         assert_eq!(
             field(MvsSimConfig {
                 airlight_range: [0.0, 1.0],

@@ -113,6 +113,7 @@ pub fn canonicalize_params_request(
     req.delta_beta.get_or_insert(d.delta_beta);
     req.delta_px.get_or_insert(d.delta_px as u32);
     req.min_improvement_t.get_or_insert(d.min_improvement_t);
+    req.beta_from_points.get_or_insert(d.beta_from_points);
     if req.num_planes == 0 {
         req.num_planes = DEFAULT_PLANES as u32;
     }
@@ -182,6 +183,7 @@ pub fn params_from_proto(
         cost: DehazingOptions::default(),
         sgm: sgm_of(req.sgm.as_ref()),
         min_improvement_t: req.min_improvement_t.unwrap_or(d.min_improvement_t),
+        beta_from_points: req.beta_from_points.unwrap_or(d.beta_from_points),
     };
     search.validate()?;
     let num_planes = or(req.num_planes, DEFAULT_PLANES);
@@ -328,6 +330,13 @@ impl ParamsInput {
                 })
                 .collect(),
             num_sparse_points: u32::try_from(est.num_sparse_points).unwrap_or(u32::MAX),
+            point_ratio: est.point_ratio.map(|f| pb::PointRatioFit {
+                beta: f.beta,
+                std_error: f.std_error,
+                equations: u32::try_from(f.equations).unwrap_or(u32::MAX),
+                rms_depth_difference: f.rms_depth_difference,
+                used: f.is_reliable(),
+            }),
             depth: Some(pb::MvsDepthResult {
                 z_depth: Some(image_to_proto(&depth.z_depth)),
                 inverse_depth: Some(image_to_proto(&depth.inverse_depth)),

@@ -1,0 +1,261 @@
+//! β from the transmission ratios at the SfM points (Li et al. [41], reference §3.3.2).
+//!
+//! A point seen by the reference at z-depth `z_r` and by a source at `z_s` has, by Eq. 3.3 and
+//! with the same clear radiance `J` in both views,
+//!
+//! `(I_r − A) / (I_s − A) = e^{−β z_r} / e^{−β z_s}`, i.e. `ln((I_r − A)/(I_s − A)) = β (z_s − z_r)`,
+//!
+//! one linear equation in β per point, source and colour channel, with the depths from the SfM
+//! cloud and the camera poses. The reference avoids pixel intensities because a single such
+//! equation is fragile: it needs a good `A`, equal radiance across views, and depths that
+//! differ. murk uses it only as step 1 of Algorithm 1 (β₀, in place of the sweep of Eq. 3.10)
+//! and only when the data carry the information: thousands of equations, fitted through the
+//! origin by Tukey-weighted IRLS (occlusions, specularities and mismatches are outliers), with
+//! a standard error small against β. Otherwise the caller falls back to the sweep. The depth
+//! differences need not be large: their spread over the fit is what counts (docs/ACCURACY.md
+//! measures lateral and forward trajectories).
+
+use crate::mvs::View;
+use crate::params::sparse::SparseDepth;
+
+/// Channel values closer to `A` than this are skipped: `ln` of a ratio of two small
+/// differences is dominated by noise (and its sign by chance).
+pub const MIN_AIRLIGHT_CONTRAST: f64 = 0.05;
+/// Fewest equations for an estimate.
+pub const MIN_RATIO_EQUATIONS: usize = 300;
+/// Largest accepted standard error of the estimate, relative to the estimate.
+pub const MAX_RELATIVE_STD_ERROR: f64 = 0.1;
+/// Tukey's biweight constant (95 % efficiency under Gaussian noise), in robust standard
+/// deviations (1.4826 · MAD).
+const TUKEY_C: f64 = 4.685;
+const IRLS_ITERATIONS: usize = 30;
+
+/// What [`beta_from_point_ratios`] found.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PointRatioFit {
+    /// β, per scene unit.
+    pub beta: f64,
+    /// Standard error of β from the weighted fit, per scene unit.
+    pub std_error: f64,
+    /// Equations (point × source × channel) that entered the fit.
+    pub equations: usize,
+    /// Root mean square of `z_s − z_r` over the equations, scene units.
+    pub rms_depth_difference: f64,
+}
+
+impl PointRatioFit {
+    /// Whether the fit pins β down: enough equations and a standard error below
+    /// [`MAX_RELATIVE_STD_ERROR`] of β (β > 0).
+    pub fn is_reliable(&self) -> bool {
+        self.equations >= MIN_RATIO_EQUATIONS
+            && self.beta > 0.0
+            && self.std_error < MAX_RELATIVE_STD_ERROR * self.beta
+    }
+}
+
+/// Bilinear sample of channel `c` at `(u, v)` (murk convention: pixel centres at integers);
+/// `None` outside the image.
+fn bilinear(view: &View<'_>, u: f64, v: f64, c: usize) -> Option<f64> {
+    let img = view.image;
+    let (w, h) = img.dims();
+    if !(u >= 0.0 && v >= 0.0 && u < (w - 1) as f64 && v < (h - 1) as f64) {
+        return None;
+    }
+    let (x0, y0) = (u as usize, v as usize);
+    let (fx, fy) = (u - x0 as f64, v - y0 as f64);
+    let g = |x, y| f64::from(img.get(x, y, c));
+    Some(
+        (1.0 - fy) * ((1.0 - fx) * g(x0, y0) + fx * g(x0 + 1, y0))
+            + fy * ((1.0 - fx) * g(x0, y0 + 1) + fx * g(x0 + 1, y0 + 1)),
+    )
+}
+
+/// The equations `(z_s − z_r, ln((I_r − A)/(I_s − A)))` of the module docs: every SfM pixel of
+/// `sparse` back-projected from the reference at its depth and projected into each source.
+pub fn ratio_equations(
+    reference: &View<'_>,
+    sources: &[View<'_>],
+    sparse: &SparseDepth,
+    airlight: f32,
+) -> Vec<(f64, f64)> {
+    let a = f64::from(airlight);
+    let channels = reference.image.channels();
+    let to_world = reference.pose.inverse();
+    let mut out = Vec::new();
+    for s in sparse.samples() {
+        let (u, v, z_r) = (f64::from(s.x), f64::from(s.y), f64::from(s.z));
+        let ray = reference.intrinsics.ray(u, v);
+        let cam = [ray[0] * z_r / ray[2], ray[1] * z_r / ray[2], z_r];
+        let world = to_world.transform(cam);
+        for src in sources {
+            if src.image.channels() != channels {
+                continue;
+            }
+            let p = src.pose.transform(world);
+            let Some((us, vs)) = src.intrinsics.project(p) else {
+                continue;
+            };
+            for c in 0..channels {
+                let (Some(ir), Some(is)) = (bilinear(reference, u, v, c), bilinear(src, us, vs, c))
+                else {
+                    continue;
+                };
+                let (dr, ds) = (ir - a, is - a);
+                if dr * ds <= 0.0
+                    || dr.abs() < MIN_AIRLIGHT_CONTRAST
+                    || ds.abs() < MIN_AIRLIGHT_CONTRAST
+                {
+                    continue;
+                }
+                out.push((p[2] - z_r, (dr / ds).ln()));
+            }
+        }
+    }
+    out
+}
+
+/// Fits `y = β x` through the origin with Tukey's biweight (IRLS from least squares, scale from
+/// the median absolute residual). `None` without equations or without depth differences.
+pub fn fit_through_origin(eqs: &[(f64, f64)]) -> Option<PointRatioFit> {
+    let sxx: f64 = eqs.iter().map(|(x, _)| x * x).sum();
+    if eqs.is_empty() || sxx <= 0.0 {
+        return None;
+    }
+    let mut beta = eqs.iter().map(|(x, y)| x * y).sum::<f64>() / sxx;
+    let mut residuals = vec![0.0f64; eqs.len()];
+    let mut scale = 0.0;
+    for _ in 0..IRLS_ITERATIONS {
+        for (r, (x, y)) in residuals.iter_mut().zip(eqs) {
+            *r = (y - beta * x).abs();
+        }
+        let mid = residuals.len() / 2;
+        let mad = *residuals
+            .select_nth_unstable_by(mid, |a, b| a.total_cmp(b))
+            .1;
+        scale = (1.4826 * mad).max(1e-12);
+        let c = TUKEY_C * scale;
+        let (mut num, mut den) = (0.0, 0.0);
+        for (x, y) in eqs {
+            let t = (y - beta * x) / c;
+            if t.abs() < 1.0 {
+                let w = (1.0 - t * t).powi(2);
+                num += w * x * y;
+                den += w * x * x;
+            }
+        }
+        if den <= 0.0 {
+            return None;
+        }
+        let next = num / den;
+        let done = (next - beta).abs() <= 1e-9 * beta.abs().max(1e-9);
+        beta = next;
+        if done {
+            break;
+        }
+    }
+    // Weighted least squares: var(β) ≈ s² / Σ w x² with s the robust residual scale.
+    let c = TUKEY_C * scale;
+    let (mut swxx, mut kept) = (0.0, 0usize);
+    for (x, y) in eqs {
+        let t = (y - beta * x) / c;
+        if t.abs() < 1.0 {
+            swxx += (1.0 - t * t).powi(2) * x * x;
+            kept += 1;
+        }
+    }
+    Some(PointRatioFit {
+        beta,
+        std_error: if swxx > 0.0 {
+            scale / swxx.sqrt()
+        } else {
+            f64::INFINITY
+        },
+        equations: kept,
+        rms_depth_difference: (sxx / eqs.len() as f64).sqrt(),
+    })
+}
+
+/// β from the SfM pixels' transmission ratios between the reference and every source (module
+/// docs) with airlight `airlight`; check [`PointRatioFit::is_reliable`] before using it.
+pub fn beta_from_point_ratios(
+    reference: &View<'_>,
+    sources: &[View<'_>],
+    sparse: &SparseDepth,
+    airlight: f32,
+) -> Option<PointRatioFit> {
+    fit_through_origin(&ratio_equations(reference, sources, sparse, airlight))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::monitor::Monitor;
+    use crate::params::sparse::PointSelection;
+    use crate::simulate::mvs::{simulate_mvs, MvsSimConfig};
+    use rand::{Rng, SeedableRng};
+
+    #[test]
+    fn robust_fit_ignores_outliers_and_reports_its_uncertainty() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+        let eqs: Vec<(f64, f64)> = (0..2000)
+            .map(|i| {
+                let x: f64 = rng.random_range(-0.2..0.2);
+                let noise: f64 = rng.random_range(-0.01..0.01);
+                // One equation in ten is an occlusion: an unrelated ratio.
+                let y = if i % 10 == 0 {
+                    rng.random_range(-1.0..1.0)
+                } else {
+                    0.55 * x + noise
+                };
+                (x, y)
+            })
+            .collect();
+        let fit = fit_through_origin(&eqs).unwrap();
+        assert!((fit.beta - 0.55).abs() < 0.01, "{fit:?}");
+        assert!(fit.std_error > 0.0 && fit.std_error < 0.01, "{fit:?}");
+        assert!(fit.is_reliable());
+        // No depth differences: nothing to fit.
+        assert!(fit_through_origin(&[(0.0, 0.1), (0.0, -0.2)]).is_none());
+        assert!(fit_through_origin(&[]).is_none());
+        // A handful of equations is never reliable, however well they fit.
+        let few = fit_through_origin(&eqs[1..50]).unwrap();
+        assert!(!few.is_reliable(), "{few:?}");
+    }
+
+    /// A simulated hazy room at reduced size with a walking trajectory: β within 0.05 with the
+    /// true airlight, and the estimate moves with a wrong one only a little.
+    #[test]
+    fn finds_beta_on_a_simulated_scene() {
+        let cfg = MvsSimConfig {
+            seed: 3,
+            beta_range: Some([0.4, 0.8]),
+            forward_motion: 0.5,
+            ..MvsSimConfig::with_size(128, 96)
+        };
+        let scene = simulate_mvs(&cfg, &Monitor::noop()).unwrap();
+        let views = scene.hazy_views();
+        let r = scene.reference;
+        let sources: Vec<View<'_>> = (0..views.len())
+            .filter(|&i| i != r)
+            .map(|i| views[i])
+            .collect();
+        let sparse = SparseDepth::from_colmap(
+            &scene.sparse,
+            &scene.views[r].name,
+            cfg.width,
+            cfg.height,
+            PointSelection::ObservedInReference,
+        )
+        .unwrap();
+        let fit = beta_from_point_ratios(&views[r], &sources, &sparse, scene.airlight).unwrap();
+        eprintln!("β gt {} fit {fit:?}", scene.beta);
+        assert!(fit.is_reliable(), "{fit:?}");
+        assert!(
+            (fit.beta - f64::from(scene.beta)).abs() < 0.05,
+            "gt {} fit {fit:?}",
+            scene.beta
+        );
+        // Without the sources there is nothing to compare.
+        assert!(beta_from_point_ratios(&views[r], &[], &sparse, scene.airlight).is_none());
+    }
+}
