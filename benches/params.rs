@@ -1,6 +1,8 @@
-//! Scattering-parameter estimation (issue 4) at 256×192 with 4 sources: the Algorithm 1 search
-//! with the reference's 10 + 4×4 = 26 depth evaluations (Δ_A = 0.05) and with murk's default
-//! 10 + 4 = 14 (Δ_A = 0), each plus the final 256-plane depth; the airlight estimators.
+//! Scattering-parameter estimation (issue 4) at 256×192 with 4 sources: the published
+//! Algorithm 1 search with the reference's 10 + 4×4 = 26 depth evaluations (Δ_A = 0.05, β₀ by
+//! the sweep of Eq. 3.10), plus the final 256-plane depth; murk's default (β₀ from the SfM
+//! points' transmission ratios, one depth evaluation) and the ratio fit alone; the airlight
+//! estimators.
 //!
 //! Run: `cargo bench --bench params`.
 
@@ -43,6 +45,7 @@ fn bench(c: &mut Criterion) {
     let planes = PlaneSet::new(near, far, 256).expect("planes");
     let params = SearchParams {
         delta_airlight: 0.05,
+        beta_from_points: false,
         ..SearchParams::default()
     };
     let defaults = SearchParams::default();
@@ -65,7 +68,13 @@ fn bench(c: &mut Criterion) {
             .expect("search")
         })
     });
-    g.bench_function("search_14_evaluations_default", |b| {
+    g.bench_function("point_ratio_fit", |b| {
+        b.iter(|| {
+            murk::params::point_ratio::beta_from_point_ratios(&reference, &sources, &sparse, 0.9)
+                .expect("fit")
+        })
+    });
+    g.bench_function("search_default_points_beta0", |b| {
         b.iter(|| {
             search_scattering(
                 &reference, &sources, &sparse, 0.9, &planes, &defaults, &monitor,

@@ -61,12 +61,15 @@ async fn unary_and_jobs_agree_and_the_result_is_complete() {
     req.search_planes = 16;
     // The published plain argmin, so A*, β* must be the grid's minimum.
     req.min_improvement_t = Some(0.0);
+    // The published sweep for β₀ (murk's default tries the points' ratios first).
+    req.beta_from_points = Some(false);
     let unary = recon(&server)
         .scattering_params(req.clone())
         .await
         .expect("unary")
         .into_inner();
     assert_eq!(unary.grid.len(), 3 + 4);
+    assert!(unary.point_ratio.is_none(), "the points were not asked for");
     assert_eq!(
         unary.airlight_source,
         pb::AirlightSource::DarkChannel as i32
@@ -116,6 +119,40 @@ async fn unary_and_jobs_agree_and_the_result_is_complete() {
     assert_eq!(p.airlight, unary.airlight);
     assert_eq!(p.beta, unary.beta);
     assert_eq!(last.method, "scattering_params");
+}
+
+/// murk's default over the API: β₀ from the points' ratios, reported with its fit, and a
+/// single depth evaluation in the search (walking trajectory at 128×96, where the fit is
+/// reliable; docs/ACCURACY.md).
+#[tokio::test]
+async fn default_request_takes_beta_from_the_points_and_reports_the_fit() {
+    let server = start(config(4)).await;
+    let cfg = MvsSimConfig {
+        seed: 5,
+        beta_range: Some([0.4, 0.8]),
+        forward_motion: 0.5,
+        ..MvsSimConfig::with_size(128, 96)
+    };
+    let s = simulate_mvs(&cfg, &Monitor::noop()).expect("simulate");
+    let mut req = request(&s, pb::AirlightSource::Given, s.airlight);
+    req.num_planes = 32;
+    req.search_planes = 16;
+    let out = recon(&server)
+        .scattering_params(req)
+        .await
+        .expect("unary")
+        .into_inner();
+    let fit = out.point_ratio.expect("the fit is reported");
+    assert!(fit.used && fit.equations >= 300, "{fit:?}");
+    assert_eq!(out.grid.len(), 1);
+    assert_eq!(out.beta, out.beta_initial);
+    assert!(
+        (out.beta - s.beta).abs() < 0.05,
+        "β {} vs true {}",
+        out.beta,
+        s.beta
+    );
+    server.stop().await.unwrap();
 }
 
 #[tokio::test]

@@ -86,6 +86,10 @@ pub struct ParamsArgs {
     /// Values per axis of the A x beta grid (default 4).
     #[arg(long)]
     pub grid_steps: Option<u32>,
+    /// Always take beta0 from the sweep of Eq. 3.10 and refine it on the grid (the published
+    /// Algorithm 1) instead of from the SfM points' transmission ratios when they pin it down.
+    #[arg(long)]
+    pub beta_sweep: bool,
     /// Planes of the final depth (default 256); the range comes from the SfM points unless
     /// --near/--far are given.
     #[arg(long)]
@@ -159,6 +163,9 @@ pub fn run(a: ParamsArgs) -> anyhow::Result<()> {
     request.beta_min = a.beta_min;
     request.beta_max = a.beta_max;
     request.beta_steps = a.beta_steps;
+    if a.beta_sweep {
+        request.beta_from_points = Some(false);
+    }
     request.grid_steps = a.grid_steps;
     request.num_planes = a.planes.unwrap_or(0);
     request.near = a.near.unwrap_or(0.0);
@@ -211,6 +218,21 @@ pub fn run(a: ParamsArgs) -> anyhow::Result<()> {
         depth.far,
         a.out.display()
     );
+    if let Some(f) = &r.point_ratio {
+        println!(
+            "beta from the points' transmission ratios: {:.5} ± {:.5} over {} equations \
+             (RMS depth difference {:.4}); {}",
+            f.beta,
+            f.std_error,
+            f.equations,
+            f.rms_depth_difference,
+            if f.used {
+                "used as beta0"
+            } else {
+                "not reliable, beta0 from the sweep"
+            }
+        );
+    }
     if let Some(meta) = find_scene_metadata(&a.model)? {
         println!(
             "ground truth ({}): A = {:.4} (error {:+.4}), beta = {:.5} (error {:+.5})",
