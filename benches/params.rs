@@ -9,10 +9,9 @@
 use criterion::{criterion_group, criterion_main, Criterion};
 
 use murk::atmosphere::AtmosphereParams;
-use murk::mvs::{estimate_depth, CostKind, DehazingOptions, PlaneSet, SgmParams, View};
+use murk::mvs::{estimate_depth, CostKind, DehazingOptions, PlaneSet, SgmParams};
 use murk::params::airlight::{dark_channel_airlight, DarkChannelParams};
 use murk::params::search::{plane_range_from_sparse, search_scattering, SearchParams};
-use murk::params::sparse::{PointSelection, SparseDepth};
 use murk::simulate::mvs::{simulate_mvs, MvsSimConfig};
 use murk::Monitor;
 
@@ -22,25 +21,8 @@ fn bench(c: &mut Criterion) {
         ..MvsSimConfig::default()
     };
     let scene = simulate_mvs(&cfg, &Monitor::noop()).expect("simulate");
-    let view = |i: usize| View {
-        image: &scene.views[i].hazy,
-        intrinsics: scene.views[i].intrinsics,
-        pose: scene.views[i].pose,
-    };
-    let r = scene.reference;
-    let reference = view(r);
-    let sources: Vec<View> = (0..scene.views.len())
-        .filter(|&i| i != r)
-        .map(view)
-        .collect();
-    let sparse = SparseDepth::from_colmap(
-        &scene.sparse,
-        &scene.views[r].name,
-        cfg.width,
-        cfg.height,
-        PointSelection::ObservedInReference,
-    )
-    .expect("sparse");
+    let (reference, sources) = scene.reference_and_sources();
+    let sparse = scene.sparse_depth().expect("sparse");
     let (near, far) = plane_range_from_sparse(&sparse).expect("points");
     let planes = PlaneSet::new(near, far, 256).expect("planes");
     let params = SearchParams {

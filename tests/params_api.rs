@@ -4,7 +4,6 @@
 mod common;
 
 use common::*;
-use murk::mvs::View;
 use murk::params::sparse::{selected_points, PointSelection};
 use murk::service::convert::{params_request_to_proto, MAX_SPARSE_POINTS};
 use murk::service::proto::v1 as pb;
@@ -25,19 +24,14 @@ fn request(
     source: pb::AirlightSource,
     airlight: f32,
 ) -> pb::ScatteringParamsRequest {
-    let views: Vec<View<'_>> = scene.hazy_views();
-    let r = scene.reference;
-    let sources: Vec<View<'_>> = (0..views.len())
-        .filter(|&i| i != r)
-        .map(|i| views[i])
-        .collect();
+    let (reference, sources) = scene.reference_and_sources();
     let points = selected_points(
         &scene.sparse,
-        &scene.views[r].name,
+        &scene.views[scene.reference].name,
         PointSelection::ObservedInReference,
     )
     .unwrap();
-    params_request_to_proto(&views[r], &sources, &points, source, airlight)
+    params_request_to_proto(&reference, &sources, &points, source, airlight)
 }
 
 fn job(req: pb::ScatteringParamsRequest) -> pb::SubmitJobRequest {

@@ -190,7 +190,6 @@ pub fn beta_from_point_ratios(
 mod tests {
     use super::*;
     use crate::monitor::Monitor;
-    use crate::params::sparse::PointSelection;
     use crate::simulate::mvs::{simulate_mvs, MvsSimConfig};
     use rand::{Rng, SeedableRng};
 
@@ -233,21 +232,9 @@ mod tests {
             ..MvsSimConfig::with_size(128, 96)
         };
         let scene = simulate_mvs(&cfg, &Monitor::noop()).unwrap();
-        let views = scene.hazy_views();
-        let r = scene.reference;
-        let sources: Vec<View<'_>> = (0..views.len())
-            .filter(|&i| i != r)
-            .map(|i| views[i])
-            .collect();
-        let sparse = SparseDepth::from_colmap(
-            &scene.sparse,
-            &scene.views[r].name,
-            cfg.width,
-            cfg.height,
-            PointSelection::ObservedInReference,
-        )
-        .unwrap();
-        let fit = beta_from_point_ratios(&views[r], &sources, &sparse, scene.airlight).unwrap();
+        let (reference, sources) = scene.reference_and_sources();
+        let sparse = scene.sparse_depth().unwrap();
+        let fit = beta_from_point_ratios(&reference, &sources, &sparse, scene.airlight).unwrap();
         eprintln!("β gt {} fit {fit:?}", scene.beta);
         assert!(fit.is_reliable(), "{fit:?}");
         assert!(
@@ -256,6 +243,6 @@ mod tests {
             scene.beta
         );
         // Without the sources there is nothing to compare.
-        assert!(beta_from_point_ratios(&views[r], &[], &sparse, scene.airlight).is_none());
+        assert!(beta_from_point_ratios(&reference, &[], &sparse, scene.airlight).is_none());
     }
 }

@@ -492,7 +492,6 @@ impl SparseDepth {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::params::sparse::PointSelection;
     use crate::simulate::mvs::{simulate_mvs, MvsScene, MvsSimConfig};
     use std::sync::atomic::AtomicBool;
     use std::sync::{Arc, Mutex};
@@ -552,20 +551,8 @@ mod tests {
             ..MvsSimConfig::with_size(128, 96)
         };
         let scene = simulate_mvs(&cfg, &Monitor::noop()).unwrap();
-        let views: Vec<View<'_>> = scene.hazy_views();
-        let r = scene.reference;
-        let sources: Vec<View<'_>> = (0..views.len())
-            .filter(|&i| i != r)
-            .map(|i| views[i])
-            .collect();
-        let sparse = SparseDepth::from_colmap(
-            &scene.sparse,
-            &scene.views[r].name,
-            128,
-            96,
-            PointSelection::ObservedInReference,
-        )
-        .unwrap();
+        let (reference, sources) = scene.reference_and_sources();
+        let sparse = scene.sparse_depth().unwrap();
         let (near, far) = plane_range_from_sparse(&sparse).unwrap();
         let planes = PlaneSet::new(near, far, 32).unwrap();
         let params = SearchParams {
@@ -573,7 +560,7 @@ mod tests {
             ..SearchParams::default()
         };
         let est = search_scattering(
-            &views[r],
+            &reference,
             &sources,
             &sparse,
             scene.airlight,
@@ -598,7 +585,7 @@ mod tests {
             ..params
         };
         let est = search_scattering(
-            &views[r],
+            &reference,
             &sources,
             &sparse,
             scene.airlight,
@@ -618,20 +605,8 @@ mod tests {
     #[test]
     fn search_bookkeeping_progress_and_cancel() {
         let scene = small_scene();
-        let views: Vec<View<'_>> = scene.hazy_views();
-        let r = scene.reference;
-        let sources: Vec<View<'_>> = (0..views.len())
-            .filter(|&i| i != r)
-            .map(|i| views[i])
-            .collect();
-        let sparse = SparseDepth::from_colmap(
-            &scene.sparse,
-            &scene.views[r].name,
-            64,
-            48,
-            PointSelection::ObservedInReference,
-        )
-        .unwrap();
+        let (reference, sources) = scene.reference_and_sources();
+        let sparse = scene.sparse_depth().unwrap();
         let (near, far) = plane_range_from_sparse(&sparse).unwrap();
         let planes = PlaneSet::new(near, far, 32).unwrap();
         let params = SearchParams {
@@ -664,7 +639,7 @@ mod tests {
         };
         let monitor = Monitor::new(Arc::new(AtomicBool::new(false)), Some(sink));
         let est = search_scattering(
-            &views[r], &sources, &sparse, 0.85, &planes, &params, &monitor,
+            &reference, &sources, &sparse, 0.85, &planes, &params, &monitor,
         )
         .unwrap();
         assert_eq!(est.grid.len(), 4 + 4);
@@ -699,23 +674,23 @@ mod tests {
 
         let cancelled = Monitor::new(Arc::new(AtomicBool::new(true)), None);
         assert_eq!(
-            search_scattering(&views[r], &sources, &sparse, 0.85, &planes, &params, &cancelled)
+            search_scattering(&reference, &sources, &sparse, 0.85, &planes, &params, &cancelled)
                 .unwrap_err(),
             MurkError::Cancelled
         );
         // Too few points, bad A₀, bad parameters: named.
         let few = SparseDepth::from_samples(64, 48, sparse.samples()[..3].to_vec());
-        let err = search_scattering(&views[r], &sources, &few, 0.85, &planes, &params, &monitor);
+        let err = search_scattering(&reference, &sources, &few, 0.85, &planes, &params, &monitor);
         assert_eq!(err.unwrap_err().field(), Some("sparse_points"));
         let err = search_scattering(
-            &views[r], &sources, &sparse, 0.0, &planes, &params, &monitor,
+            &reference, &sources, &sparse, 0.0, &planes, &params, &monitor,
         );
         assert_eq!(err.unwrap_err().field(), Some("airlight_initial"));
         let bad = SearchParams {
             beta_max: 0.4,
             ..params.clone()
         };
-        let err = search_scattering(&views[r], &sources, &sparse, 0.85, &planes, &bad, &monitor);
+        let err = search_scattering(&reference, &sources, &sparse, 0.85, &planes, &bad, &monitor);
         assert_eq!(err.unwrap_err().field(), Some("params.beta_max"));
     }
 }

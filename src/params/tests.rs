@@ -4,7 +4,6 @@ use crate::atmosphere::AtmosphereParams;
 use crate::monitor::Monitor;
 use crate::mvs::{
     estimate_depth, CostKind, DehazingOptions, DehazingResidual, PlaneSet, RangePenalty, SgmParams,
-    View,
 };
 use crate::params::residual::sparse_residual;
 use crate::params::sparse::{PointSelection, SparseDepth};
@@ -28,21 +27,9 @@ fn residual_curves() {
             ..MvsSimConfig::default()
         };
         let scene = simulate_mvs(&cfg, &Monitor::noop()).unwrap();
-        let views: Vec<View<'_>> = scene.hazy_views();
         let r = scene.reference;
-        let reference = views[r];
-        let mut others: Vec<usize> = (0..views.len()).filter(|&i| i != r).collect();
-        others.sort_by_key(|&i| i.abs_diff(r));
-        let sources: Vec<View<'_>> = others.iter().take(4).map(|&i| views[i]).collect();
-        let name = &scene.views[r].name;
-        let sparse = SparseDepth::from_colmap(
-            &scene.sparse,
-            name,
-            cfg.width,
-            cfg.height,
-            PointSelection::ObservedInReference,
-        )
-        .unwrap();
+        let (reference, sources) = scene.reference_and_sources();
+        let sparse = scene.sparse_depth().unwrap();
         let (lo, hi) = sparse.depth_range().unwrap();
         let planes = PlaneSet::new(f64::from(lo) * 0.7, f64::from(hi) * 1.5, n_planes).unwrap();
         let gt_res = sparse_residual(&scene.views[r].depth, &sparse, 5).unwrap();
@@ -240,27 +227,17 @@ fn measure_search() {
             ..MvsSimConfig::default()
         };
         let scene = simulate_mvs(&cfg, &Monitor::noop()).unwrap();
-        let views: Vec<View<'_>> = scene.hazy_views();
         let r = scene.reference;
-        let mut others: Vec<usize> = (0..views.len()).filter(|&i| i != r).collect();
-        others.sort_by_key(|&i| i.abs_diff(r));
-        let sources: Vec<View<'_>> = others.iter().take(4).map(|&i| views[i]).collect();
-        let sparse = SparseDepth::from_colmap(
-            &scene.sparse,
-            &scene.views[r].name,
-            cfg.width,
-            cfg.height,
-            PointSelection::ObservedInReference,
-        )
-        .unwrap();
+        let (reference, sources) = scene.reference_and_sources();
+        let sparse = scene.sparse_depth().unwrap();
         let (near, far) = plane_range_from_sparse(&sparse).unwrap();
         let planes = PlaneSet::new(near, far, 256).unwrap();
         let a0 = match &cnn {
-            Some(c) => c.estimate(views[r].image).unwrap(),
-            None => dark_channel_airlight(views[r].image, &DarkChannelParams::default()).unwrap(),
+            Some(c) => c.estimate(reference.image).unwrap(),
+            None => dark_channel_airlight(reference.image, &DarkChannelParams::default()).unwrap(),
         };
         let est = search_scattering(
-            &views[r],
+            &reference,
             &sources,
             &sparse,
             a0,
@@ -278,7 +255,7 @@ fn measure_search() {
                 DehazingOptions::default(),
             );
             let d = estimate_depth(
-                &views[r],
+                &reference,
                 &sources,
                 &planes,
                 kind,
@@ -344,20 +321,8 @@ fn photometric_curves() {
             ..MvsSimConfig::default()
         };
         let scene = simulate_mvs(&cfg, &Monitor::noop()).unwrap();
-        let views: Vec<View<'_>> = scene.hazy_views();
-        let r = scene.reference;
-        let sources: Vec<View<'_>> = (0..views.len())
-            .filter(|&i| i != r)
-            .map(|i| views[i])
-            .collect();
-        let sparse = SparseDepth::from_colmap(
-            &scene.sparse,
-            &scene.views[r].name,
-            cfg.width,
-            cfg.height,
-            PointSelection::ObservedInReference,
-        )
-        .unwrap();
+        let (reference, sources) = scene.reference_and_sources();
+        let sparse = scene.sparse_depth().unwrap();
         let (near, far) = crate::params::search::plane_range_from_sparse(&sparse).unwrap();
         let planes = PlaneSet::new(near, far, 128).unwrap();
         let betas: Vec<f32> = (0..21).map(|i| 0.2 + 0.04 * i as f32).collect();
@@ -371,7 +336,7 @@ fn photometric_curves() {
                 DehazingOptions::default(),
             );
             let vol =
-                build_cost_volume(&views[r], &sources, &planes, kind, &Monitor::noop()).unwrap();
+                build_cost_volume(&reference, &sources, &planes, kind, &Monitor::noop()).unwrap();
             let n = cfg.width * cfg.height;
             let d = vol.into_vec();
             let mut sum = 0.0f64;

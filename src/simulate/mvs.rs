@@ -69,6 +69,7 @@ use crate::mvs::colmap::{
 };
 use crate::mvs::pose::Pose;
 use crate::mvs::View;
+use crate::params::sparse::{PointSelection, SparseDepth};
 use crate::simulate::scene::{dot, Shape, V3};
 
 /// `format` tag of `meta.json`.
@@ -324,6 +325,28 @@ pub struct MvsScene {
 }
 
 impl MvsScene {
+    /// The reference's hazy view and every other hazy view as a source, nearest along the
+    /// trajectory first.
+    pub fn reference_and_sources(&self) -> (View<'_>, Vec<View<'_>>) {
+        let views = self.hazy_views();
+        let r = self.reference;
+        let mut others: Vec<usize> = (0..views.len()).filter(|&i| i != r).collect();
+        others.sort_by_key(|&i| i.abs_diff(r));
+        (views[r], others.into_iter().map(|i| views[i]).collect())
+    }
+
+    /// The sparse depth of Eq. 3.8 in the reference view: the SfM points whose track includes
+    /// it.
+    pub fn sparse_depth(&self) -> Result<SparseDepth> {
+        SparseDepth::from_colmap(
+            &self.sparse,
+            &self.views[self.reference].name,
+            self.config.width,
+            self.config.height,
+            PointSelection::ObservedInReference,
+        )
+    }
+
     /// Every view as the library's [`View`] of its *hazy* image, in order.
     pub fn hazy_views(&self) -> Vec<View<'_>> {
         self.views
