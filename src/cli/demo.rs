@@ -234,8 +234,8 @@ async fn mvs_demo(
     println!();
     println!(
         "Scattering parameters (Algorithm 1, {} SfM pixels, {} depth evaluations, {:.2} s): \
-         A* = {:.3} (A0 = {:.3} from {}; truth {:.3}), beta* = {:.3}/unit (beta0 = {:.3}; truth \
-         {:.3})",
+         A* = {:.3} (A0 = {:.3} from {}; truth {:.3}), beta* = {:.3}/unit (beta0 = {:.3} from \
+         {}; truth {:.3})",
         p.num_sparse_points,
         p.grid.len(),
         p.search_seconds,
@@ -245,6 +245,13 @@ async fn mvs_demo(
         scene.airlight,
         p.beta,
         p.beta_initial,
+        match &p.point_ratio {
+            Some(f) if f.used => format!(
+                "the SfM points' transmission ratios, {} equations, ± {:.3}",
+                f.equations, f.std_error
+            ),
+            _ => "the Eq. 3.10 sweep".to_string(),
+        },
         scene.beta
     );
     let atmosphere = AtmosphereParams {
