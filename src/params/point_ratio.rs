@@ -15,6 +15,7 @@
 //! differences need not be large: their spread over the fit is what counts (docs/ACCURACY.md
 //! measures lateral and forward trajectories).
 
+use crate::image::ImageF32;
 use crate::mvs::View;
 use crate::params::sparse::SparseDepth;
 
@@ -55,8 +56,7 @@ impl PointRatioFit {
 
 /// Bilinear sample of channel `c` at `(u, v)` (murk convention: pixel centres at integers);
 /// `None` outside the image.
-fn bilinear(view: &View<'_>, u: f64, v: f64, c: usize) -> Option<f64> {
-    let img = view.image;
+pub(crate) fn bilinear(img: &ImageF32, u: f64, v: f64, c: usize) -> Option<f64> {
     let (w, h) = img.dims();
     if !(u >= 0.0 && v >= 0.0 && u < (w - 1) as f64 && v < (h - 1) as f64) {
         return None;
@@ -96,8 +96,10 @@ pub fn ratio_equations(
                 continue;
             };
             for c in 0..channels {
-                let (Some(ir), Some(is)) = (bilinear(reference, u, v, c), bilinear(src, us, vs, c))
-                else {
+                let (Some(ir), Some(is)) = (
+                    bilinear(reference.image, u, v, c),
+                    bilinear(src.image, us, vs, c),
+                ) else {
                     continue;
                 };
                 let (dr, ds) = (ir - a, is - a);

@@ -376,6 +376,7 @@ fn photometric_curves() {
 #[test]
 #[ignore]
 fn beta_from_tracks() {
+    use crate::params::point_ratio::{bilinear, fit_through_origin, MIN_AIRLIGHT_CONTRAST};
     let n: u64 = std::env::var("MURK_SCENES")
         .map(|s| s.parse().unwrap())
         .unwrap_or(10);
@@ -383,20 +384,6 @@ fn beta_from_tracks() {
         .map(|s| s.parse().unwrap())
         .unwrap_or(0.0);
     let cnn = crate::params::airlight::AirlightCnn::embedded().unwrap();
-    let bilinear = |img: &crate::image::ImageF32, x: f64, y: f64, c: usize| -> Option<f64> {
-        let (w, h) = (img.width(), img.height());
-        let (x, y) = (x - 0.5, y - 0.5);
-        if x < 0.0 || y < 0.0 || x >= (w - 1) as f64 || y >= (h - 1) as f64 {
-            return None;
-        }
-        let (x0, y0) = (x.floor() as usize, y.floor() as usize);
-        let (fx, fy) = (x - x0 as f64, y - y0 as f64);
-        let g = |xx, yy| f64::from(img.get(xx, yy, c));
-        Some(
-            (1.0 - fy) * ((1.0 - fx) * g(x0, y0) + fx * g(x0 + 1, y0))
-                + fy * ((1.0 - fx) * g(x0, y0 + 1) + fx * g(x0 + 1, y0 + 1)),
-        )
-    };
     let (mut e_gt, mut e_cnn) = (0.0, 0.0);
     for seed in 100..100 + n {
         let cfg = MvsSimConfig {
@@ -431,41 +418,24 @@ fn beta_from_tracks() {
                     let z_s = im_s.pose.transform(p.xyz)[2];
                     for c in 0..3 {
                         let (Some(ir), Some(is)) = (
-                            bilinear(&scene.views[r].hazy, xy_r[0], xy_r[1], c),
-                            bilinear(&scene.views[v].hazy, xy_s[0], xy_s[1], c),
+                            bilinear(&scene.views[r].hazy, xy_r[0] - 0.5, xy_r[1] - 0.5, c),
+                            bilinear(&scene.views[v].hazy, xy_s[0] - 0.5, xy_s[1] - 0.5, c),
                         ) else {
                             continue;
                         };
                         let (dr, ds) = (ir - a, is - a);
-                        if dr * ds <= 0.0 || dr.abs() < 0.05 || ds.abs() < 0.05 {
+                        if dr * ds <= 0.0
+                            || dr.abs() < MIN_AIRLIGHT_CONTRAST
+                            || ds.abs() < MIN_AIRLIGHT_CONTRAST
+                        {
                             continue;
                         }
                         obs.push((z_s - z_r, (dr / ds).ln()));
                     }
                 }
             }
-            let spread =
-                (obs.iter().map(|o| o.0 * o.0).sum::<f64>() / obs.len().max(1) as f64).sqrt();
-            let mut beta = 0.6;
-            for _ in 0..20 {
-                let mut res: Vec<f64> = obs.iter().map(|(x, y)| (y - beta * x).abs()).collect();
-                res.sort_by(|a, b| a.partial_cmp(b).unwrap());
-                let mad = res.get(res.len() / 2).copied().unwrap_or(1.0).max(1e-6);
-                let c = 4.685 * 1.4826 * mad;
-                let (mut num, mut den) = (0.0, 0.0);
-                for (x, y) in &obs {
-                    let u = (y - beta * x) / c;
-                    if u.abs() < 1.0 {
-                        let wt = (1.0 - u * u).powi(2);
-                        num += wt * x * y;
-                        den += wt * x * x;
-                    }
-                }
-                if den > 0.0 {
-                    beta = num / den;
-                }
-            }
-            (beta, obs.len(), spread)
+            let fit = fit_through_origin(&obs).expect("equations with depth differences");
+            (fit.beta, fit.equations, fit.rms_depth_difference)
         };
         let (b_gt, nobs, spread) = fit(f64::from(scene.airlight));
         let (b_cnn, _, _) = fit(f64::from(a_cnn));
