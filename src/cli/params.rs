@@ -221,11 +221,13 @@ pub fn run(a: ParamsArgs) -> anyhow::Result<()> {
     if let Some(f) = &r.point_ratio {
         println!(
             "beta from the points' transmission ratios: {:.5} ± {:.5} over {} equations \
-             (RMS depth difference {:.4}); {}",
+             (RMS depth difference {:.4}, {} sources, consistency chi2 {:.1}); {}",
             f.beta,
             f.std_error,
             f.equations,
             f.rms_depth_difference,
+            f.sources,
+            f.source_consistency_chi2,
             if f.used {
                 "used as beta0"
             } else {

@@ -11,7 +11,9 @@
 //! differ. murk uses it only as step 1 of Algorithm 1 (β₀, in place of the sweep of Eq. 3.10)
 //! and only when the data carry the information: thousands of equations, fitted through the
 //! origin by Tukey-weighted IRLS (occlusions, specularities and mismatches are outliers), with
-//! a standard error small against β. Otherwise the caller falls back to the sweep. The depth
+//! a standard error small against β, and per-source fits that agree with each other (an
+//! exposure change between views biases each source differently; a 1 % step already moves β by
+//! ≈ 0.1 on a lateral trajectory). Otherwise the caller falls back to the sweep. The depth
 //! differences need not be large: their spread over the fit is what counts (docs/ACCURACY.md
 //! measures lateral and forward trajectories).
 
@@ -26,6 +28,9 @@ pub const MIN_AIRLIGHT_CONTRAST: f64 = 0.05;
 pub const MIN_RATIO_EQUATIONS: usize = 300;
 /// Largest accepted standard error of the estimate, relative to the estimate.
 pub const MAX_RELATIVE_STD_ERROR: f64 = 0.1;
+/// The airlight error the source-consistency check allows for: the CNN's held-out MAE_A
+/// (0.0145, docs/AIRLIGHT.md), rounded up.
+pub const AIRLIGHT_SIGMA: f32 = 0.015;
 /// Tukey's biweight constant (95 % efficiency under Gaussian noise), in robust standard
 /// deviations (1.4826 · MAD).
 const TUKEY_C: f64 = 4.685;
@@ -42,15 +47,33 @@ pub struct PointRatioFit {
     pub equations: usize,
     /// Root mean square of `z_s − z_r` over the equations, scene units.
     pub rms_depth_difference: f64,
+    /// Sources with a fit of their own.
+    pub sources: usize,
+    /// Σ_s ((β_s − β)/SE_s)² over the per-source fits: whether the sources agree within their
+    /// errors (about `sources − 1` when they do). An exposure change between views biases
+    /// each source's β differently, which the joint standard error cannot see.
+    pub source_consistency_chi2: f64,
+}
+
+/// The 99.9 % quantile of χ² with `dof` degrees of freedom (Wilson–Hilferty; 0 for `dof` 0).
+fn chi2_quantile_999(dof: usize) -> f64 {
+    if dof == 0 {
+        return 0.0;
+    }
+    let k = dof as f64;
+    let a = 2.0 / (9.0 * k);
+    k * (1.0 - a + 3.090 * a.sqrt()).powi(3)
 }
 
 impl PointRatioFit {
-    /// Whether the fit pins β down: enough equations and a standard error below
-    /// [`MAX_RELATIVE_STD_ERROR`] of β (β > 0).
+    /// Whether the fit pins β down: enough equations, a standard error below
+    /// [`MAX_RELATIVE_STD_ERROR`] of β (β > 0), and sources that agree with each other (χ²
+    /// below its 99.9 % quantile).
     pub fn is_reliable(&self) -> bool {
         self.equations >= MIN_RATIO_EQUATIONS
             && self.beta > 0.0
             && self.std_error < MAX_RELATIVE_STD_ERROR * self.beta
+            && self.source_consistency_chi2 <= chi2_quantile_999(self.sources.saturating_sub(1))
     }
 }
 
@@ -174,6 +197,8 @@ pub fn fit_through_origin(eqs: &[(f64, f64)]) -> Option<PointRatioFit> {
         },
         equations: kept,
         rms_depth_difference: (sxx / eqs.len() as f64).sqrt(),
+        sources: 1,
+        source_consistency_chi2: 0.0,
     })
 }
 
@@ -185,7 +210,42 @@ pub fn beta_from_point_ratios(
     sparse: &SparseDepth,
     airlight: f32,
 ) -> Option<PointRatioFit> {
-    fit_through_origin(&ratio_equations(reference, sources, sparse, airlight))
+    let per_source: Vec<Vec<(f64, f64)>> = sources
+        .iter()
+        .map(|s| ratio_equations(reference, std::slice::from_ref(s), sparse, airlight))
+        .collect();
+    let all: Vec<(f64, f64)> = per_source.concat();
+    let mut fit = fit_through_origin(&all)?;
+    // Each source's β with its standard error widened by what an airlight error of
+    // ±AIRLIGHT_SIGMA moves it: sources at different depth differences respond differently to
+    // a wrong A₀, and that disagreement is not evidence of an exposure change.
+    let mut terms = Vec::with_capacity(sources.len());
+    for (k, src) in sources.iter().enumerate() {
+        let Some(f) = fit_through_origin(&per_source[k]) else {
+            continue;
+        };
+        let shifted = |da: f32| {
+            let a = (airlight + da).clamp(1e-3, 1.0);
+            fit_through_origin(&ratio_equations(
+                reference,
+                std::slice::from_ref(src),
+                sparse,
+                a,
+            ))
+            .map(|g| g.beta)
+        };
+        let spread = match (shifted(AIRLIGHT_SIGMA), shifted(-AIRLIGHT_SIGMA)) {
+            (Some(hi), Some(lo)) => 0.5 * (hi - lo),
+            _ => 0.0,
+        };
+        let var = f.std_error.powi(2) + spread * spread;
+        if var.is_finite() && var > 0.0 {
+            terms.push((f.beta - fit.beta).powi(2) / var);
+        }
+    }
+    fit.sources = terms.len();
+    fit.source_consistency_chi2 = terms.iter().sum();
+    Some(fit)
 }
 
 #[cfg(test)]
@@ -194,6 +254,16 @@ mod tests {
     use crate::monitor::Monitor;
     use crate::simulate::mvs::{simulate_mvs, MvsSimConfig};
     use rand::{Rng, SeedableRng};
+
+    #[test]
+    fn chi2_quantile_matches_tables() {
+        // 99.9 % points: 10.83 (1 dof), 16.27 (3), 29.59 (10); Wilson–Hilferty is 3 % high at 1.
+        for (k, q) in [(1, 10.83), (3, 16.27), (10, 29.59)] {
+            let got = chi2_quantile_999(k);
+            assert!((got - q).abs() < 0.04 * q, "{k}: {got} vs {q}");
+        }
+        assert_eq!(chi2_quantile_999(0), 0.0);
+    }
 
     #[test]
     fn robust_fit_ignores_outliers_and_reports_its_uncertainty() {
@@ -224,7 +294,7 @@ mod tests {
     }
 
     /// A simulated hazy room at reduced size with a walking trajectory: β within 0.05 with the
-    /// true airlight, and the estimate moves with a wrong one only a little.
+    /// true airlight; an exposure change between the views is caught by the source check.
     #[test]
     fn finds_beta_on_a_simulated_scene() {
         let cfg = MvsSimConfig {
@@ -246,5 +316,24 @@ mod tests {
         );
         // Without the sources there is nothing to compare.
         assert!(beta_from_point_ratios(&reference, &[], &sparse, scene.airlight).is_none());
+        // A 3 % exposure step in every source: the sources disagree and the fit says so.
+        let brighter: Vec<ImageF32> = sources
+            .iter()
+            .map(|v| {
+                let mut img = v.image.clone();
+                for x in img.data_mut() {
+                    *x = (*x * 1.03).min(1.0);
+                }
+                img
+            })
+            .collect();
+        let exposed: Vec<View<'_>> = sources
+            .iter()
+            .zip(&brighter)
+            .map(|(v, image)| View { image, ..*v })
+            .collect();
+        let fit = beta_from_point_ratios(&reference, &exposed, &sparse, scene.airlight).unwrap();
+        assert!(!fit.is_reliable(), "{fit:?}");
+        assert!(fit.source_consistency_chi2 > chi2_quantile_999(fit.sources - 1));
     }
 }

@@ -336,6 +336,8 @@ impl ParamsInput {
                 equations: u32::try_from(f.equations).unwrap_or(u32::MAX),
                 rms_depth_difference: f.rms_depth_difference,
                 used: f.is_reliable(),
+                sources: u32::try_from(f.sources).unwrap_or(u32::MAX),
+                source_consistency_chi2: f.source_consistency_chi2,
             }),
             depth: Some(pb::MvsDepthResult {
                 z_depth: Some(image_to_proto(&depth.z_depth)),
