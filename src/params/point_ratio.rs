@@ -29,7 +29,8 @@ pub const MIN_RATIO_EQUATIONS: usize = 300;
 /// Largest accepted standard error of the estimate, relative to the estimate.
 pub const MAX_RELATIVE_STD_ERROR: f64 = 0.1;
 /// The airlight error the source-consistency check allows for: the CNN's held-out MAE_A
-/// (0.0145, docs/AIRLIGHT.md), rounded up.
+/// (0.0145, docs/AIRLIGHT.md), rounded up. A₀ from the dark-channel rule (MAE 0.05) is
+/// worse than this allows, so with it clean captures fail the check more often and fall back.
 pub const AIRLIGHT_SIGMA: f32 = 0.015;
 /// Tukey's biweight constant (95 % efficiency under Gaussian noise), in robust standard
 /// deviations (1.4826 · MAD).
@@ -51,7 +52,8 @@ pub struct PointRatioFit {
     pub sources: usize,
     /// Σ_s ((β_s − β)/SE_s)² over the per-source fits: whether the sources agree within their
     /// errors (about `sources − 1` when they do). An exposure change between views biases
-    /// each source's β differently, which the joint standard error cannot see.
+    /// each source's β differently, which the joint standard error cannot see. With one source
+    /// there is nothing to compare (0).
     pub source_consistency_chi2: f64,
 }
 
