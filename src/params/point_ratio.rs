@@ -253,8 +253,7 @@ pub fn beta_from_point_ratios(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::monitor::Monitor;
-    use crate::simulate::mvs::{simulate_mvs, MvsSimConfig};
+    use crate::simulate::mvs::walking_test_scene;
     use rand::{Rng, SeedableRng};
 
     #[test]
@@ -299,13 +298,7 @@ mod tests {
     /// true airlight; an exposure change between the views is caught by the source check.
     #[test]
     fn finds_beta_on_a_simulated_scene() {
-        let cfg = MvsSimConfig {
-            seed: 3,
-            beta_range: Some([0.4, 0.8]),
-            forward_motion: 0.5,
-            ..MvsSimConfig::with_size(128, 96)
-        };
-        let scene = simulate_mvs(&cfg, &Monitor::noop()).unwrap();
+        let scene = walking_test_scene(3);
         let (reference, sources) = scene.reference_and_sources();
         let sparse = scene.sparse_depth().unwrap();
         let fit = beta_from_point_ratios(&reference, &sources, &sparse, scene.airlight).unwrap();

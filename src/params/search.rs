@@ -544,13 +544,7 @@ mod tests {
     /// single evaluation and step 2 has nothing to do with `delta_airlight` 0.
     #[test]
     fn default_search_finds_beta_from_the_points() {
-        let cfg = MvsSimConfig {
-            seed: 5,
-            beta_range: Some([0.4, 0.8]),
-            forward_motion: 0.5,
-            ..MvsSimConfig::with_size(128, 96)
-        };
-        let scene = simulate_mvs(&cfg, &Monitor::noop()).unwrap();
+        let scene = crate::simulate::mvs::walking_test_scene(5);
         let (reference, sources) = scene.reference_and_sources();
         let sparse = scene.sparse_depth().unwrap();
         let (near, far) = plane_range_from_sparse(&sparse).unwrap();

@@ -9,6 +9,14 @@ use crate::params::residual::sparse_residual;
 use crate::params::sparse::{PointSelection, SparseDepth};
 use crate::simulate::mvs::{simulate_mvs, MvsSimConfig};
 
+/// `name` from the environment parsed as `T`, or `default` when unset (the experiments' knobs).
+fn env_or<T: std::str::FromStr>(name: &str, default: T) -> T
+where
+    T::Err: std::fmt::Debug,
+{
+    std::env::var(name).map_or(default, |s| s.parse().expect(name))
+}
+
 /// Prints the Eq. 3.8 residual against β (GT A) for several depth functions.
 /// `cargo test --release --lib params::tests::residual_curves -- --ignored --nocapture`
 #[test]
@@ -17,9 +25,7 @@ fn residual_curves() {
     let seeds: Vec<u64> = std::env::var("MURK_SEEDS")
         .map(|s| s.split(',').map(|x| x.parse().unwrap()).collect())
         .unwrap_or_else(|_| vec![0, 1, 2]);
-    let n_planes: usize = std::env::var("MURK_PLANES")
-        .map(|s| s.parse().unwrap())
-        .unwrap_or(128);
+    let n_planes: usize = env_or("MURK_PLANES", 128);
     for seed in seeds {
         let cfg = MvsSimConfig {
             seed,
@@ -181,9 +187,7 @@ fn measure_search() {
     use crate::metrics::depth_metrics;
     use crate::params::airlight::{dark_channel_airlight, DarkChannelParams};
     use crate::params::search::{plane_range_from_sparse, search_scattering, SearchParams};
-    let n: u64 = std::env::var("MURK_SCENES")
-        .map(|s| s.parse().unwrap())
-        .unwrap_or(10);
+    let n: u64 = env_or("MURK_SCENES", 10);
     let cost = match std::env::var("MURK_COST").as_deref() {
         Ok("obs+hard") => DehazingOptions {
             residual: DehazingResidual::ObservationSpace,
@@ -210,15 +214,11 @@ fn measure_search() {
         beta_from_points: std::env::var("MURK_SWEEP").is_err(),
         ..params
     };
-    let forward: f64 = std::env::var("MURK_FORWARD")
-        .map(|s| s.parse().unwrap())
-        .unwrap_or(0.0);
+    let forward: f64 = env_or("MURK_FORWARD", 0.0);
     let (mut ea, mut eb, mut ea_dcp, mut cp_est, mut cp_gt, mut secs) =
         (0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
     // MURK_SEED0: first seed (default 100; held-out checks use others).
-    let seed0: u64 = std::env::var("MURK_SEED0")
-        .map(|s| s.parse().unwrap())
-        .unwrap_or(100);
+    let seed0: u64 = env_or("MURK_SEED0", 100);
     for seed in seed0..seed0 + n {
         let cfg = MvsSimConfig {
             seed,
@@ -377,12 +377,8 @@ fn photometric_curves() {
 #[ignore]
 fn beta_from_tracks() {
     use crate::params::point_ratio::{bilinear, fit_through_origin, MIN_AIRLIGHT_CONTRAST};
-    let n: u64 = std::env::var("MURK_SCENES")
-        .map(|s| s.parse().unwrap())
-        .unwrap_or(10);
-    let forward: f64 = std::env::var("MURK_FORWARD")
-        .map(|s| s.parse().unwrap())
-        .unwrap_or(0.0);
+    let n: u64 = env_or("MURK_SCENES", 10);
+    let forward: f64 = env_or("MURK_FORWARD", 0.0);
     let cnn = crate::params::airlight::AirlightCnn::embedded().unwrap();
     let (mut e_gt, mut e_cnn) = (0.0, 0.0);
     for seed in 100..100 + n {
@@ -461,12 +457,8 @@ fn beta_from_tracks() {
 #[ignore]
 fn point_ratio_under_exposure_change() {
     use crate::params::point_ratio::beta_from_point_ratios;
-    let gain: f32 = std::env::var("MURK_GAIN")
-        .map(|s| s.parse().unwrap())
-        .unwrap_or(1.02);
-    let forward: f64 = std::env::var("MURK_FORWARD")
-        .map(|s| s.parse().unwrap())
-        .unwrap_or(0.0);
+    let gain: f32 = env_or("MURK_GAIN", 1.02);
+    let forward: f64 = env_or("MURK_FORWARD", 0.0);
     let cnn = crate::params::airlight::AirlightCnn::embedded().unwrap();
     let (mut err, mut reliable) = (0.0, 0);
     for seed in 100..110u64 {

@@ -728,6 +728,20 @@ fn median(v: &[f32]) -> f64 {
     f64::from(*m)
 }
 
+/// A hazy room at 128×96 with a walking trajectory (forward motion 0.5) and β ∈ [0.4, 0.8]:
+/// enough depth differences between views for the points' ratio fit at reduced size
+/// ([`crate::params::point_ratio`]).
+#[cfg(test)]
+pub(crate) fn walking_test_scene(seed: u64) -> MvsScene {
+    let cfg = MvsSimConfig {
+        seed,
+        beta_range: Some([0.4, 0.8]),
+        forward_motion: 0.5,
+        ..MvsSimConfig::with_size(128, 96)
+    };
+    simulate_mvs(&cfg, &Monitor::noop()).expect("simulate")
+}
+
 /// Simulates a hazy multi-view capture (see the module docs). Errors name config fields;
 /// cancellation through `monitor` returns `Cancelled`.
 pub fn simulate_mvs(cfg: &MvsSimConfig, monitor: &Monitor) -> Result<MvsScene> {
