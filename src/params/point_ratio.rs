@@ -95,50 +95,70 @@ pub(crate) fn bilinear(img: &ImageF32, u: f64, v: f64, c: usize) -> Option<f64> 
     )
 }
 
-/// The equations `(z_s − z_r, ln((I_r − A)/(I_s − A)))` of the module docs: every SfM pixel of
-/// `sparse` back-projected from the reference at its depth and projected into each source.
-pub fn ratio_equations(
+/// One channel of one point seen by the reference and a source: what the equation of the
+/// module docs needs before the airlight is chosen.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RatioSample {
+    /// `z_s − z_r`, scene units.
+    pub depth_difference: f64,
+    /// `I_r` of the channel.
+    pub reference: f64,
+    /// `I_s` of the channel.
+    pub source: f64,
+}
+
+/// Every SfM pixel of `sparse` back-projected from the reference at its depth and projected
+/// into `source`, sampled per channel (points that leave either image are skipped).
+pub fn ratio_samples(
     reference: &View<'_>,
-    sources: &[View<'_>],
+    source: &View<'_>,
     sparse: &SparseDepth,
-    airlight: f32,
-) -> Vec<(f64, f64)> {
-    let a = f64::from(airlight);
+) -> Vec<RatioSample> {
     let channels = reference.image.channels();
+    if source.image.channels() != channels {
+        return Vec::new();
+    }
     let to_world = reference.pose.inverse();
     let mut out = Vec::new();
     for s in sparse.samples() {
         let (u, v, z_r) = (f64::from(s.x), f64::from(s.y), f64::from(s.z));
         let ray = reference.intrinsics.ray(u, v);
         let cam = [ray[0] * z_r / ray[2], ray[1] * z_r / ray[2], z_r];
-        let world = to_world.transform(cam);
-        for src in sources {
-            if src.image.channels() != channels {
-                continue;
-            }
-            let p = src.pose.transform(world);
-            let Some((us, vs)) = src.intrinsics.project(p) else {
-                continue;
-            };
-            for c in 0..channels {
-                let (Some(ir), Some(is)) = (
-                    bilinear(reference.image, u, v, c),
-                    bilinear(src.image, us, vs, c),
-                ) else {
-                    continue;
-                };
-                let (dr, ds) = (ir - a, is - a);
-                if dr * ds <= 0.0
-                    || dr.abs() < MIN_AIRLIGHT_CONTRAST
-                    || ds.abs() < MIN_AIRLIGHT_CONTRAST
-                {
-                    continue;
-                }
-                out.push((p[2] - z_r, (dr / ds).ln()));
+        let p = source.pose.transform(to_world.transform(cam));
+        let Some((us, vs)) = source.intrinsics.project(p) else {
+            continue;
+        };
+        for c in 0..channels {
+            if let (Some(ir), Some(is)) = (
+                bilinear(reference.image, u, v, c),
+                bilinear(source.image, us, vs, c),
+            ) {
+                out.push(RatioSample {
+                    depth_difference: p[2] - z_r,
+                    reference: ir,
+                    source: is,
+                });
             }
         }
     }
     out
+}
+
+/// The equations `(z_s − z_r, ln((I_r − A)/(I_s − A)))` of the module docs for airlight
+/// `airlight`, skipping samples on opposite sides of `A` or within
+/// [`MIN_AIRLIGHT_CONTRAST`] of it.
+pub fn ratio_equations(samples: &[RatioSample], airlight: f32) -> Vec<(f64, f64)> {
+    let a = f64::from(airlight);
+    samples
+        .iter()
+        .filter_map(|s| {
+            let (dr, ds) = (s.reference - a, s.source - a);
+            let usable = dr * ds > 0.0
+                && dr.abs() >= MIN_AIRLIGHT_CONTRAST
+                && ds.abs() >= MIN_AIRLIGHT_CONTRAST;
+            usable.then(|| (s.depth_difference, (dr / ds).ln()))
+        })
+        .collect()
 }
 
 /// Fits `y = β x` through the origin with Tukey's biweight (IRLS from least squares, scale from
@@ -212,29 +232,27 @@ pub fn beta_from_point_ratios(
     sparse: &SparseDepth,
     airlight: f32,
 ) -> Option<PointRatioFit> {
-    let per_source: Vec<Vec<(f64, f64)>> = sources
+    // Sampled once; only the equations depend on A.
+    let samples: Vec<Vec<RatioSample>> = sources
         .iter()
-        .map(|s| ratio_equations(reference, std::slice::from_ref(s), sparse, airlight))
+        .map(|s| ratio_samples(reference, s, sparse))
         .collect();
-    let all: Vec<(f64, f64)> = per_source.concat();
-    let mut fit = fit_through_origin(&all)?;
+    let per_source: Vec<Vec<(f64, f64)>> = samples
+        .iter()
+        .map(|s| ratio_equations(s, airlight))
+        .collect();
+    let mut fit = fit_through_origin(&per_source.concat())?;
     // Each source's β with its standard error widened by what an airlight error of
     // ±AIRLIGHT_SIGMA moves it: sources at different depth differences respond differently to
     // a wrong A₀, and that disagreement is not evidence of an exposure change.
     let mut terms = Vec::with_capacity(sources.len());
-    for (k, src) in sources.iter().enumerate() {
-        let Some(f) = fit_through_origin(&per_source[k]) else {
+    for (eqs, samples) in per_source.iter().zip(&samples) {
+        let Some(f) = fit_through_origin(eqs) else {
             continue;
         };
         let shifted = |da: f32| {
             let a = (airlight + da).clamp(1e-3, 1.0);
-            fit_through_origin(&ratio_equations(
-                reference,
-                std::slice::from_ref(src),
-                sparse,
-                a,
-            ))
-            .map(|g| g.beta)
+            fit_through_origin(&ratio_equations(samples, a)).map(|g| g.beta)
         };
         let spread = match (shifted(AIRLIGHT_SIGMA), shifted(-AIRLIGHT_SIGMA)) {
             (Some(hi), Some(lo)) => 0.5 * (hi - lo),

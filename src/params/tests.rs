@@ -376,7 +376,7 @@ fn photometric_curves() {
 #[test]
 #[ignore]
 fn beta_from_tracks() {
-    use crate::params::point_ratio::{bilinear, fit_through_origin, MIN_AIRLIGHT_CONTRAST};
+    use crate::params::point_ratio::{bilinear, fit_through_origin, ratio_equations, RatioSample};
     let n: u64 = env_or("MURK_SCENES", 10);
     let forward: f64 = env_or("MURK_FORWARD", 0.0);
     let cnn = crate::params::airlight::AirlightCnn::embedded().unwrap();
@@ -393,48 +393,46 @@ fn beta_from_tracks() {
         let id_of = |name: &str| scene.sparse.image_by_name(name).unwrap().id;
         let ref_id = id_of(&scene.views[r].name);
         let a_cnn = cnn.estimate(&scene.views[r].hazy).unwrap();
-        let fit = |a: f64| -> (f64, usize, f64) {
-            // (Δz = z_s − z_r, y = ln((I_r − A)/(I_s − A))): y = β Δz.
-            let mut obs: Vec<(f64, f64)> = Vec::new();
-            for p in scene.sparse.points.values() {
-                let Some(te_r) = p.track.iter().find(|t| t.image_id == ref_id) else {
-                    continue;
-                };
-                let im_r = &scene.sparse.images[&ref_id];
-                let xy_r = im_r.points2d[te_r.point2d_idx as usize].xy;
-                let z_r = im_r.pose.transform(p.xyz)[2];
-                for te in p.track.iter().filter(|t| t.image_id != ref_id) {
-                    let im_s = &scene.sparse.images[&te.image_id];
-                    let v = scene
-                        .views
-                        .iter()
-                        .position(|v| v.name == im_s.name)
-                        .unwrap();
-                    let xy_s = im_s.points2d[te.point2d_idx as usize].xy;
-                    let z_s = im_s.pose.transform(p.xyz)[2];
-                    for c in 0..3 {
-                        let (Some(ir), Some(is)) = (
-                            bilinear(&scene.views[r].hazy, xy_r[0] - 0.5, xy_r[1] - 0.5, c),
-                            bilinear(&scene.views[v].hazy, xy_s[0] - 0.5, xy_s[1] - 0.5, c),
-                        ) else {
-                            continue;
-                        };
-                        let (dr, ds) = (ir - a, is - a);
-                        if dr * ds <= 0.0
-                            || dr.abs() < MIN_AIRLIGHT_CONTRAST
-                            || ds.abs() < MIN_AIRLIGHT_CONTRAST
-                        {
-                            continue;
-                        }
-                        obs.push((z_s - z_r, (dr / ds).ln()));
-                    }
+        // The tracks' own observations, sampled once for both airlights.
+        let mut samples: Vec<RatioSample> = Vec::new();
+        for p in scene.sparse.points.values() {
+            let Some(te_r) = p.track.iter().find(|t| t.image_id == ref_id) else {
+                continue;
+            };
+            let im_r = &scene.sparse.images[&ref_id];
+            let xy_r = im_r.points2d[te_r.point2d_idx as usize].xy;
+            let z_r = im_r.pose.transform(p.xyz)[2];
+            for te in p.track.iter().filter(|t| t.image_id != ref_id) {
+                let im_s = &scene.sparse.images[&te.image_id];
+                let v = scene
+                    .views
+                    .iter()
+                    .position(|v| v.name == im_s.name)
+                    .unwrap();
+                let xy_s = im_s.points2d[te.point2d_idx as usize].xy;
+                let z_s = im_s.pose.transform(p.xyz)[2];
+                for c in 0..3 {
+                    let (Some(ir), Some(is)) = (
+                        bilinear(&scene.views[r].hazy, xy_r[0] - 0.5, xy_r[1] - 0.5, c),
+                        bilinear(&scene.views[v].hazy, xy_s[0] - 0.5, xy_s[1] - 0.5, c),
+                    ) else {
+                        continue;
+                    };
+                    samples.push(RatioSample {
+                        depth_difference: z_s - z_r,
+                        reference: ir,
+                        source: is,
+                    });
                 }
             }
-            let fit = fit_through_origin(&obs).expect("equations with depth differences");
+        }
+        let fit = |a: f32| {
+            let fit = fit_through_origin(&ratio_equations(&samples, a))
+                .expect("equations with depth differences");
             (fit.beta, fit.equations, fit.rms_depth_difference)
         };
-        let (b_gt, nobs, spread) = fit(f64::from(scene.airlight));
-        let (b_cnn, _, _) = fit(f64::from(a_cnn));
+        let (b_gt, nobs, spread) = fit(scene.airlight);
+        let (b_cnn, _, _) = fit(a_cnn);
         println!(
             "seed {seed}: β gt {:.3} | tracks, GT A {b_gt:.3}, CNN A ({a_cnn:.3} vs {:.3}) {b_cnn:.3} | {nobs} obs, rms Δz {spread:.3}",
             scene.beta, scene.airlight
