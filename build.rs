@@ -21,6 +21,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         prost::Message::encode_to_vec(&fds),
     )?;
     tonic_prost_build::configure()
+        // Undecodable requests are the caller's fault: INVALID_ARGUMENT, not prost's INTERNAL.
+        .codec_path("crate::service::codec::ProtoCodec")
         .build_server(true)
         .build_client(true)
         .compile_fds(fds)?;

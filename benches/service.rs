@@ -31,6 +31,7 @@ fn request(width: usize, height: usize) -> pb::SubmitJobRequest {
         request: Some(pb::JobRequest {
             method: Some(pb::job_request::Method::TofDepth(tof)),
         }),
+        omit_result: false,
     }
 }
 

@@ -17,6 +17,10 @@ pub enum MurkError {
     /// The job was cancelled cooperatively (cancel RPC, shutdown, or the caller went away).
     #[error("cancelled")]
     Cancelled,
+    /// The server stopped the job because it is shutting down; resubmitting it (to this
+    /// server after its restart, or to another replica) runs it again.
+    #[error("server shutting down, resubmit")]
+    ShuttingDown,
     /// A numerical step failed on valid input (e.g. a solver diverged).
     #[error("numerical failure: {0}")]
     Numerical(String),

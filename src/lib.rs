@@ -20,6 +20,7 @@ pub mod ps;
 pub mod server;
 pub mod service;
 pub mod simulate;
+pub mod telemetry;
 pub mod tof;
 
 pub use error::{MurkError, Result};

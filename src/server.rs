@@ -1,6 +1,8 @@
 //! Assembling and running the gRPC server: Jobs + Reconstruction + grpc.health.v1 + reflection,
-//! with explicit limits and graceful shutdown (stop accepting, drain for a grace period, cancel
-//! the rest).
+//! behind tower layers for request metrics, request ids and bearer-token authentication, over
+//! plain TCP or TLS (optionally mutual), with a Prometheus endpoint, explicit limits and graceful
+//! shutdown (health goes NOT_SERVING, stop accepting, drain for a grace period, abort the rest
+//! with a retryable status).
 
 use std::future::Future;
 use std::net::SocketAddr;
@@ -8,17 +10,24 @@ use std::time::Duration;
 
 use thiserror::Error;
 use tokio::net::TcpListener;
-use tokio::sync::oneshot;
+use tokio::sync::{oneshot, watch};
+use tonic::codec::CompressionEncoding;
 use tonic::transport::server::TcpIncoming;
-use tonic::transport::Server;
+use tonic::transport::{Certificate, Identity, Server, ServerTlsConfig};
 
 use crate::jobs::{JobManager, JobsConfig};
 use crate::params::airlight::AirlightEstimator;
+use crate::service::auth::{AuthLayer, TokenStore};
 use crate::service::convert::{AirlightService, ImageLimits};
+use crate::service::grpc_metrics::MetricsLayer;
 use crate::service::proto::v1::jobs_server::JobsServer;
 use crate::service::proto::v1::reconstruction_server::ReconstructionServer;
 use crate::service::proto::FILE_DESCRIPTOR_SET;
-use crate::service::{JobsApi, ReconstructionApi, RequestLimits, ServiceState};
+use crate::service::request_id::RequestIdLayer;
+use crate::service::{
+    JobsApi, ReconstructionApi, RequestLimits, ServiceState, DEFAULT_MAX_UNARY_RESULT_BYTES,
+};
+use crate::telemetry::{serve_metrics, Telemetry};
 
 /// Default request limit: a dozen 16-bit 1-megapixel images (≈ 24 MiB) plus headroom.
 pub const DEFAULT_MAX_REQUEST_BYTES: usize = 32 << 20;
@@ -41,6 +50,33 @@ pub struct ServerConfig {
     /// The airlight estimator of scattering-parameter requests that do not name one (loaded
     /// by the caller, so a bad weights file fails before the server starts).
     pub airlight: AirlightEstimator,
+    /// Largest message a unary response may carry (see `ServiceState`).
+    pub max_unary_result_bytes: usize,
+    /// Bearer tokens and their tenants; `None` serves everyone as the default tenant.
+    pub auth: Option<TokenStore>,
+    /// TLS (optionally mutual); `None` serves plain HTTP/2.
+    pub tls: Option<TlsSettings>,
+}
+
+/// PEM material for TLS.
+#[derive(Clone)]
+pub struct TlsSettings {
+    /// The server's certificate chain.
+    pub cert_pem: Vec<u8>,
+    /// The server's private key.
+    pub key_pem: Vec<u8>,
+    /// CA certificates that client certificates must chain to; `Some` requires a client
+    /// certificate from every connection (mutual TLS).
+    pub client_ca_pem: Option<Vec<u8>>,
+}
+
+impl std::fmt::Debug for TlsSettings {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        // Never print key material.
+        f.debug_struct("TlsSettings")
+            .field("mutual", &self.client_ca_pem.is_some())
+            .finish()
+    }
 }
 
 impl Default for ServerConfig {
@@ -53,6 +89,9 @@ impl Default for ServerConfig {
             shutdown_grace: Duration::from_secs(10),
             airlight: AirlightEstimator::from_config(None, true)
                 .unwrap_or(AirlightEstimator::DarkChannel(Default::default())),
+            max_unary_result_bytes: DEFAULT_MAX_UNARY_RESULT_BYTES,
+            auth: None,
+            tls: None,
         }
     }
 }
@@ -71,22 +110,35 @@ pub enum ServerError {
     Reflection(#[from] tonic_reflection::server::Error),
 }
 
-/// Serves on `listener` until `shutdown` resolves, then shuts down gracefully.
+/// Serves on `listener` (and Prometheus metrics on `metrics`, if given) until `shutdown`
+/// resolves, then shuts down gracefully.
 pub async fn serve(
     config: ServerConfig,
     listener: TcpListener,
+    metrics: Option<TcpListener>,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> Result<(), ServerError> {
     let manager = JobManager::new(config.jobs.clone())?;
-    serve_with_manager(config, manager, listener, shutdown).await
+    serve_with_manager(config, manager, listener, metrics, shutdown).await
 }
 
 async fn serve_with_manager(
     config: ServerConfig,
     manager: JobManager,
     listener: TcpListener,
+    metrics: Option<TcpListener>,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> Result<(), ServerError> {
+    let telemetry = Telemetry::new(&manager);
+    // Tells the metrics endpoint to stop once the gRPC server has.
+    let (stopped_tx, stopped_rx) = watch::channel(false);
+    if let Some(l) = metrics {
+        tracing::info!(addr = %l.local_addr()?, "metrics at /metrics");
+        let mut rx = stopped_rx.clone();
+        tokio::spawn(serve_metrics(l, telemetry.clone(), async move {
+            let _ = rx.wait_for(|s| *s).await;
+        }));
+    }
     let state = ServiceState {
         manager: manager.clone(),
         limits: RequestLimits {
@@ -98,16 +150,26 @@ async fn serve_with_manager(
             max_ps_kernel_bytes: config.max_ps_kernel_bytes,
         },
         airlight: AirlightService::new(config.airlight.clone()),
+        max_unary_result_bytes: config.max_unary_result_bytes,
     };
     // The transport's hard ceiling; between 1× and 2× the handlers answer INVALID_ARGUMENT with
     // the field named, which is more useful to a client than a bare OUT_OF_RANGE.
     let transport_limit = config.max_request_bytes.saturating_mul(2);
+    // Responses are compressed only for clients that advertise the encoding.
     let jobs = JobsServer::new(JobsApi::new(state.clone()))
         .max_decoding_message_size(transport_limit)
-        .max_encoding_message_size(usize::MAX);
+        .max_encoding_message_size(usize::MAX)
+        .accept_compressed(CompressionEncoding::Gzip)
+        .accept_compressed(CompressionEncoding::Zstd)
+        .send_compressed(CompressionEncoding::Zstd)
+        .send_compressed(CompressionEncoding::Gzip);
     let recon = ReconstructionServer::new(ReconstructionApi::new(state))
         .max_decoding_message_size(transport_limit)
-        .max_encoding_message_size(usize::MAX);
+        .max_encoding_message_size(usize::MAX)
+        .accept_compressed(CompressionEncoding::Gzip)
+        .accept_compressed(CompressionEncoding::Zstd)
+        .send_compressed(CompressionEncoding::Zstd)
+        .send_compressed(CompressionEncoding::Gzip);
 
     let (health_reporter, health) = tonic_health::server::health_reporter();
     health_reporter.set_serving::<JobsServer<JobsApi>>().await;
@@ -117,10 +179,14 @@ async fn serve_with_manager(
     let reflection_v1 = tonic_reflection::server::Builder::configure()
         .register_encoded_file_descriptor_set(FILE_DESCRIPTOR_SET)
         .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+        // google.rpc.BadRequest / RetryInfo / PreconditionFailure, so grpcurl can decode the
+        // error details murk sends.
+        .register_encoded_file_descriptor_set(tonic_types::pb::FILE_DESCRIPTOR_SET)
         .build_v1()?;
     let reflection_v1alpha = tonic_reflection::server::Builder::configure()
         .register_encoded_file_descriptor_set(FILE_DESCRIPTOR_SET)
         .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+        .register_encoded_file_descriptor_set(tonic_types::pb::FILE_DESCRIPTOR_SET)
         .build_v1alpha()?;
 
     let addr = listener.local_addr()?;
@@ -129,6 +195,9 @@ async fn serve_with_manager(
         workers = manager.worker_threads(),
         queue = config.jobs.queue_capacity,
         max_request_bytes = config.max_request_bytes,
+        auth = config.auth.is_some(),
+        tls = config.tls.is_some(),
+        mutual_tls = config.tls.as_ref().is_some_and(|t| t.client_ca_pem.is_some()),
         "murk serving"
     );
     let grace = config.shutdown_grace;
@@ -136,6 +205,10 @@ async fn serve_with_manager(
     let stop = async move {
         shutdown.await;
         tracing::info!(?grace, "shutting down: draining jobs");
+        // The overall status first: balancers probing "" stop sending work at once.
+        health_reporter
+            .set_service_status("", tonic_health::ServingStatus::NotServing)
+            .await;
         health_reporter
             .set_not_serving::<JobsServer<JobsApi>>()
             .await;
@@ -144,7 +217,20 @@ async fn serve_with_manager(
             .await;
         drain_manager.shutdown(grace).await;
     };
-    Server::builder()
+    let mut builder = Server::builder();
+    if let Some(tls) = &config.tls {
+        let mut tls_config =
+            ServerTlsConfig::new().identity(Identity::from_pem(&tls.cert_pem, &tls.key_pem));
+        if let Some(ca) = &tls.client_ca_pem {
+            tls_config = tls_config.client_ca_root(Certificate::from_pem(ca));
+        }
+        builder = builder.tls_config(tls_config)?;
+    }
+    // Outermost first: every request is counted (refused ones too) and carries a request id.
+    let served = builder
+        .layer(MetricsLayer::new(telemetry.grpc().clone()))
+        .layer(RequestIdLayer)
+        .layer(AuthLayer::new(config.auth.clone()))
         .add_service(health)
         .add_service(reflection_v1)
         .add_service(reflection_v1alpha)
@@ -157,7 +243,9 @@ async fn serve_with_manager(
                 .with_keepalive(Some(Duration::from_secs(60))),
             stop,
         )
-        .await?;
+        .await;
+    let _ = stopped_tx.send(true);
+    served?;
     tracing::info!("murk stopped");
     Ok(())
 }
@@ -165,28 +253,34 @@ async fn serve_with_manager(
 /// A server running inside this process (tests, `murk demo`, benchmarks).
 pub struct InProcessServer {
     addr: SocketAddr,
+    metrics_addr: SocketAddr,
     manager: JobManager,
     stop: Option<oneshot::Sender<()>>,
     task: tokio::task::JoinHandle<Result<(), ServerError>>,
 }
 
 impl InProcessServer {
-    /// Binds 127.0.0.1:0 and starts serving on the current tokio runtime.
+    /// Binds 127.0.0.1:0 (and another ephemeral port for metrics) and starts serving on the
+    /// current tokio runtime.
     pub async fn start(config: ServerConfig) -> Result<Self, ServerError> {
         let listener = TcpListener::bind("127.0.0.1:0").await?;
         let addr = listener.local_addr()?;
+        let metrics = TcpListener::bind("127.0.0.1:0").await?;
+        let metrics_addr = metrics.local_addr()?;
         let manager = JobManager::new(config.jobs.clone())?;
         let (tx, rx) = oneshot::channel::<()>();
         let task = tokio::spawn(serve_with_manager(
             config,
             manager.clone(),
             listener,
+            Some(metrics),
             async move {
                 let _ = rx.await;
             },
         ));
         Ok(Self {
             addr,
+            metrics_addr,
             manager,
             stop: Some(tx),
             task,
@@ -201,6 +295,18 @@ impl InProcessServer {
     /// `http://127.0.0.1:PORT`, for clients.
     pub fn url(&self) -> String {
         format!("http://{}", self.addr)
+    }
+
+    /// Where Prometheus metrics are served (`/metrics`).
+    pub fn metrics_addr(&self) -> SocketAddr {
+        self.metrics_addr
+    }
+
+    /// Asks the server to shut down (health NOT_SERVING, drain, abort) without waiting.
+    pub fn begin_shutdown(&mut self) {
+        if let Some(tx) = self.stop.take() {
+            let _ = tx.send(());
+        }
     }
 
     /// The job system (for counters in tests and the demo).

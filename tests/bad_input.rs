@@ -136,7 +136,10 @@ async fn bad_tof_requests_name_the_field_and_the_server_keeps_serving() {
     );
 
     let e = jobs(&server)
-        .submit_job(pb::SubmitJobRequest { request: None })
+        .submit_job(pb::SubmitJobRequest {
+            request: None,
+            omit_result: false,
+        })
         .await
         .unwrap_err();
     assert_eq!(bad_field(&e), "request");

@@ -77,7 +77,7 @@ async fn graceful_shutdown_cancels_running_jobs_after_the_grace_period() {
     let id = submit_running_long_job(&mut c).await;
     let manager = server.manager().clone();
     server.stop().await.unwrap();
-    let snap = manager.get(&id).unwrap().snapshot();
+    let snap = manager.get("", &id).unwrap().snapshot();
     assert_eq!(snap.state, murk::jobs::JobState::Cancelled);
 }
 

@@ -39,6 +39,7 @@ fn job(req: pb::ScatteringParamsRequest) -> pb::SubmitJobRequest {
         request: Some(pb::JobRequest {
             method: Some(pb::job_request::Method::ScatteringParams(req)),
         }),
+        omit_result: false,
     }
 }
 

@@ -36,6 +36,7 @@ fn job(req: pb::PhotometricStereoRequest) -> pb::SubmitJobRequest {
         request: Some(pb::JobRequest {
             method: Some(pb::job_request::Method::PhotometricStereo(req)),
         }),
+        omit_result: false,
     }
 }
 

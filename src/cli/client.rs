@@ -1,32 +1,108 @@
 //! Client side shared by the method commands and the demo: connect, submit, follow the watch
-//! stream with a progress bar, fetch the result.
+//! stream with a progress bar, fetch the result in chunks.
+//!
+//! The client keeps gRPC's default 4 MiB receive limit, as a client in any other language
+//! would: results come through `GetJobResult`'s 1 MiB chunks, never in one message. A server
+//! that requires a bearer token gets the one in `MURK_TOKEN`.
 
 use std::time::Duration;
 
 use anyhow::{anyhow, bail, Context};
 use indicatif::{ProgressBar, ProgressStyle};
+use prost::Message;
+use sha2::{Digest, Sha256};
+use tonic::metadata::{Ascii, MetadataValue};
+use tonic::service::interceptor::InterceptedService;
+use tonic::service::Interceptor;
 use tonic::transport::{Channel, Endpoint};
 
 use murk::service::proto::v1 as pb;
 use pb::jobs_client::JobsClient;
 
-/// Connects to `url` with message limits large enough for megapixel results.
-pub async fn connect(url: &str) -> anyhow::Result<JobsClient<Channel>> {
+/// Adds `authorization: Bearer TOKEN` to every call when a token is configured.
+#[derive(Clone)]
+pub struct BearerToken(Option<MetadataValue<Ascii>>);
+
+impl Interceptor for BearerToken {
+    fn call(&mut self, mut req: tonic::Request<()>) -> Result<tonic::Request<()>, tonic::Status> {
+        if let Some(v) = &self.0 {
+            req.metadata_mut().insert("authorization", v.clone());
+        }
+        Ok(req)
+    }
+}
+
+/// The Jobs client of the CLI.
+pub type Client = JobsClient<InterceptedService<Channel, BearerToken>>;
+
+/// Connects to `url`, sending `MURK_TOKEN` as bearer token when set.
+pub async fn connect(url: &str) -> anyhow::Result<Client> {
     let channel = Endpoint::from_shared(url.to_string())
         .with_context(|| format!("bad server url {url}"))?
         .connect_timeout(Duration::from_secs(10))
         .connect()
         .await
         .with_context(|| format!("connecting to {url}"))?;
-    Ok(JobsClient::new(channel)
-        .max_decoding_message_size(usize::MAX)
+    let token = match std::env::var("MURK_TOKEN") {
+        Ok(t) if !t.is_empty() => Some(
+            format!("Bearer {t}")
+                .parse()
+                .context("MURK_TOKEN is not a valid header value")?,
+        ),
+        _ => None,
+    };
+    // Requests (megapixel image sets) may be large; responses stay within the default limit.
+    Ok(JobsClient::with_interceptor(channel, BearerToken(token))
         .max_encoding_message_size(usize::MAX))
+}
+
+/// Fetches a succeeded job's result through `GetJobResult`, checking its length and SHA-256.
+pub async fn fetch_result(client: &mut Client, id: &str) -> anyhow::Result<pb::JobResult> {
+    let mut stream = client
+        .get_job_result(pb::GetJobResultRequest {
+            id: id.to_string(),
+            chunk_bytes: 0,
+        })
+        .await
+        .map_err(|s| {
+            anyhow!(
+                "fetching the result failed: {:?}: {}",
+                s.code(),
+                s.message()
+            )
+        })?
+        .into_inner();
+    let mut bytes = Vec::new();
+    let mut expected: Option<(u64, String)> = None;
+    while let Some(chunk) = stream
+        .message()
+        .await
+        .map_err(|s| anyhow!("result stream failed: {}", s.message()))?
+    {
+        anyhow::ensure!(
+            chunk.offset == bytes.len() as u64,
+            "result chunk at offset {} where {} was expected",
+            chunk.offset,
+            bytes.len()
+        );
+        if expected.is_none() {
+            bytes.reserve(chunk.total_bytes.min(1 << 32) as usize);
+        }
+        expected = Some((chunk.total_bytes, chunk.sha256));
+        bytes.extend_from_slice(&chunk.data);
+    }
+    let (total, sha) = expected.ok_or_else(|| anyhow!("empty result stream"))?;
+    anyhow::ensure!(
+        bytes.len() as u64 == total && hex::encode(Sha256::digest(&bytes)) == sha,
+        "reassembled result does not match its length or SHA-256"
+    );
+    pb::JobResult::decode(bytes.as_slice()).context("decoding the result")
 }
 
 /// Submits `request`, shows progress until the job is terminal, and returns the result
 /// together with the final job record.
 pub async fn run_job(
-    client: &mut JobsClient<Channel>,
+    client: &mut Client,
     request: pb::JobRequest,
     label: &str,
     show_progress: bool,
@@ -34,6 +110,7 @@ pub async fn run_job(
     let job = client
         .submit_job(pb::SubmitJobRequest {
             request: Some(request),
+            omit_result: true,
         })
         .await
         .map_err(|s| anyhow!("submit failed: {:?}: {}", s.code(), s.message()))?
@@ -75,27 +152,18 @@ pub async fn run_job(
         }
     }
     bar.finish_and_clear();
-    let final_job = if matches!(last.outcome, Some(pb::job::Outcome::Result(_))) {
-        last
-    } else {
-        client
-            .get_job(pb::GetJobRequest {
-                id: job.id.clone(),
-                omit_result: false,
-            })
-            .await
-            .map_err(|s| anyhow!("get failed: {}", s.message()))?
-            .into_inner()
-    };
-    match &final_job.outcome {
-        Some(pb::job::Outcome::Result(r)) => Ok((final_job.clone(), r.clone())),
+    if last.state == pb::JobState::Succeeded as i32 {
+        let result = fetch_result(client, &last.id).await?;
+        return Ok((last, result));
+    }
+    match &last.outcome {
         Some(pb::job::Outcome::Error(e)) => {
-            bail!("job {} failed ({}): {}", final_job.id, e.code, e.message)
+            bail!("job {} failed ({}): {}", last.id, e.code, e.message)
         }
-        None => bail!(
+        _ => bail!(
             "job {} ended in state {:?} without a result",
-            final_job.id,
-            pb::JobState::try_from(final_job.state).unwrap_or(pb::JobState::Unspecified)
+            last.id,
+            pb::JobState::try_from(last.state).unwrap_or(pb::JobState::Unspecified)
         ),
     }
 }

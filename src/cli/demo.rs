@@ -25,7 +25,6 @@ use murk::simulate::ps::{simulate_ps, write_ps_capture, PsSimConfig};
 use murk::simulate::tof::{simulate_tof, FogPreset, TofSimConfig};
 use murk::simulate::write_tof_frame;
 use murk::Monitor;
-use tonic::transport::Channel;
 
 use super::client::{connect, run_job};
 use super::mvs::{print_metrics_header, print_metrics_row, write_mvs_result};
@@ -162,10 +161,7 @@ pub fn run(a: DemoArgs) -> anyhow::Result<()> {
 /// estimates A and β through the API (Algorithm 1 against the scene's SfM points), then runs
 /// the MVS depth with the ordinary cost volume, the dehazing one with the estimated parameters,
 /// and the dehazing one with the ground truth, printing the reference's depth metrics.
-async fn mvs_demo(
-    a: &DemoArgs,
-    client: &mut pb::jobs_client::JobsClient<Channel>,
-) -> anyhow::Result<()> {
+async fn mvs_demo(a: &DemoArgs, client: &mut super::client::Client) -> anyhow::Result<()> {
     let cfg = MvsSimConfig {
         seed: a.seed,
         beta_range: Some([0.4, 0.8]),
@@ -317,10 +313,7 @@ async fn mvs_demo(
 /// Simulates the reference's synthetic sphere in turbid water and runs photometric stereo
 /// through the API with the full model and with the backscatter-only baseline, printing the
 /// per-iteration mean angular error (the reference's Table 4.1).
-async fn ps_demo(
-    a: &DemoArgs,
-    client: &mut pb::jobs_client::JobsClient<Channel>,
-) -> anyhow::Result<()> {
+async fn ps_demo(a: &DemoArgs, client: &mut super::client::Client) -> anyhow::Result<()> {
     let cfg = PsSimConfig {
         seed: a.seed,
         ..PsSimConfig::with_size(PS_SIZE, PS_SIZE)

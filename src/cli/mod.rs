@@ -10,6 +10,9 @@ mod simulate;
 mod tof;
 mod train;
 
+use std::io::IsTerminal;
+
+use anyhow::Context;
 use clap::{Parser, Subcommand};
 use tracing_subscriber::EnvFilter;
 
@@ -17,8 +20,47 @@ use tracing_subscriber::EnvFilter;
 #[derive(Parser, Debug)]
 #[command(name = "murk", version, about)]
 struct Cli {
+    /// Log line format on stderr: `text` (ANSI colours only on a terminal) or `json` (one
+    /// object per line, for log collectors). Levels come from `MURK_LOG` (tracing filter syntax,
+    /// e.g. `info` or `murk=debug,h2=warn`).
+    #[arg(long, global = true, env = "MURK_LOG_FORMAT", value_enum, default_value_t = LogFormat::Text)]
+    log_format: LogFormat,
     #[command(subcommand)]
     command: Command,
+}
+
+/// See `--log-format`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+enum LogFormat {
+    Text,
+    Json,
+}
+
+/// The log filter from `MURK_LOG` (or `default_level` when unset). A value that is not a
+/// filter is an error naming the problem rather than a silently empty log: `EnvFilter` would
+/// read a bare word such as `json` as "only the target `json`" and drop every murk line.
+fn log_filter(value: Option<&str>, default_level: &str) -> anyhow::Result<EnvFilter> {
+    let Some(v) = value.filter(|v| !v.trim().is_empty()) else {
+        return Ok(EnvFilter::new(default_level));
+    };
+    const LEVELS: [&str; 6] = ["trace", "debug", "info", "warn", "error", "off"];
+    for directive in v.split(',').map(str::trim).filter(|d| !d.is_empty()) {
+        let bare = !directive.contains('=') && !directive.contains('[');
+        let word = directive.to_ascii_lowercase();
+        if bare && !LEVELS.contains(&word.as_str()) && !directive.contains("::") {
+            anyhow::bail!(
+                "MURK_LOG={v:?}: directive `{directive}` is neither a level ({}) nor \
+                 `target=level`{}",
+                LEVELS.join(", "),
+                if matches!(word.as_str(), "json" | "text") {
+                    "; the log format is chosen with --log-format / MURK_LOG_FORMAT"
+                } else {
+                    ""
+                }
+            );
+        }
+    }
+    EnvFilter::try_new(v).with_context(|| format!("MURK_LOG={v:?} is not a valid log filter"))
 }
 
 #[derive(Subcommand, Debug)]
@@ -54,12 +96,14 @@ pub fn run() -> anyhow::Result<()> {
         Command::Serve(_) => "info",
         _ => "warn",
     };
-    tracing_subscriber::fmt()
-        .with_env_filter(
-            EnvFilter::try_from_env("MURK_LOG").unwrap_or_else(|_| EnvFilter::new(default_level)),
-        )
-        .with_writer(std::io::stderr)
-        .init();
+    let filter = log_filter(std::env::var("MURK_LOG").ok().as_deref(), default_level)?;
+    let logs = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr);
+    match cli.log_format {
+        LogFormat::Json => logs.json().with_current_span(true).init(),
+        LogFormat::Text => logs.with_ansi(std::io::stderr().is_terminal()).init(),
+    }
     match cli.command {
         Command::Serve(a) => serve::run(a),
         Command::Simulate(c) => simulate::run(c),
@@ -69,5 +113,21 @@ pub fn run() -> anyhow::Result<()> {
         Command::Ps(a) => ps::run(a),
         Command::Demo(a) => demo::run(a),
         Command::Train(c) => train::run(c),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::log_filter;
+
+    #[test]
+    fn log_filters_are_checked() {
+        assert!(log_filter(None, "info").is_ok());
+        assert!(log_filter(Some("debug"), "info").is_ok());
+        assert!(log_filter(Some("murk=debug,h2=warn"), "info").is_ok());
+        assert!(log_filter(Some("murk::jobs"), "info").is_ok());
+        let e = log_filter(Some("json"), "info").unwrap_err().to_string();
+        assert!(e.contains("json") && e.contains("--log-format"), "{e}");
+        assert!(log_filter(Some("murk=loud"), "info").is_err());
     }
 }

@@ -8,14 +8,42 @@ use clap::Args;
 use murk::params::airlight::AirlightEstimator;
 
 use murk::jobs::JobsConfig;
-use murk::server::{serve, shutdown_signal, ServerConfig, DEFAULT_MAX_REQUEST_BYTES};
+use murk::server::{serve, shutdown_signal, ServerConfig, TlsSettings, DEFAULT_MAX_REQUEST_BYTES};
+use murk::service::auth::TokenStore;
+use murk::service::DEFAULT_MAX_UNARY_RESULT_BYTES;
 
 /// Server configuration; each flag is also an environment variable.
 #[derive(Args, Debug, Clone)]
 pub struct ServeArgs {
-    /// Address to listen on.
-    #[arg(long, env = "MURK_ADDR", default_value = "0.0.0.0:50051")]
+    /// Address to listen on. A non-loopback address needs `--auth-tokens-file` or an explicit
+    /// `--allow-unauthenticated`.
+    #[arg(long, env = "MURK_ADDR", default_value = "127.0.0.1:50051")]
     pub addr: String,
+    /// Bearer tokens: one `TENANT TOKEN` pair per line, `#` comments; re-read on SIGHUP.
+    /// Clients send `authorization: Bearer TOKEN`; jobs belong to the token's tenant.
+    #[arg(long, env = "MURK_AUTH_TOKENS_FILE")]
+    pub auth_tokens_file: Option<PathBuf>,
+    /// Serve a non-loopback address without authentication (anyone who can connect may submit,
+    /// read and cancel jobs).
+    #[arg(long, env = "MURK_ALLOW_UNAUTHENTICATED")]
+    pub allow_unauthenticated: bool,
+    /// TLS certificate chain (PEM); with `--tls-key` the server speaks TLS only.
+    #[arg(long, env = "MURK_TLS_CERT", requires = "tls_key")]
+    pub tls_cert: Option<PathBuf>,
+    /// TLS private key (PEM).
+    #[arg(long, env = "MURK_TLS_KEY", requires = "tls_cert")]
+    pub tls_key: Option<PathBuf>,
+    /// CA certificate(s) (PEM) that client certificates must chain to: mutual TLS, connections
+    /// without a valid client certificate are refused.
+    #[arg(long, env = "MURK_TLS_CLIENT_CA", requires = "tls_cert")]
+    pub tls_client_ca: Option<PathBuf>,
+    /// Serve Prometheus metrics at http://HOST:PORT/metrics.
+    #[arg(long, env = "MURK_METRICS_ADDR")]
+    pub metrics_addr: Option<String>,
+    /// Largest message a unary response may carry, bytes (default: gRPC clients' default 4 MiB
+    /// receive limit). Larger results are fetched with `Jobs.GetJobResult` in 1 MiB chunks.
+    #[arg(long, env = "MURK_MAX_UNARY_RESULT_BYTES", default_value_t = DEFAULT_MAX_UNARY_RESULT_BYTES)]
+    pub max_unary_result_bytes: usize,
     /// Compute threads (0 = number of cores).
     #[arg(long, env = "MURK_WORKERS", default_value_t = 0)]
     pub workers: usize,
@@ -84,6 +112,30 @@ impl ServeArgs {
             self.max_request_bytes >= 1024,
             "--max-request-bytes must be at least 1024"
         );
+        anyhow::ensure!(
+            self.max_unary_result_bytes >= 1024,
+            "--max-unary-result-bytes must be at least 1024"
+        );
+        let auth = match &self.auth_tokens_file {
+            Some(path) => {
+                let store = TokenStore::from_file(path).map_err(|e| anyhow::anyhow!("{e}"))?;
+                tracing::info!(tokens = store.len(), path = %path.display(), "bearer tokens loaded");
+                Some(store)
+            }
+            None => None,
+        };
+        let tls = match (&self.tls_cert, &self.tls_key) {
+            (Some(cert), Some(key)) => Some(TlsSettings {
+                cert_pem: read_pem(cert, "--tls-cert")?,
+                key_pem: read_pem(key, "--tls-key")?,
+                client_ca_pem: self
+                    .tls_client_ca
+                    .as_deref()
+                    .map(|p| read_pem(p, "--tls-client-ca"))
+                    .transpose()?,
+            }),
+            _ => None,
+        };
         Ok(ServerConfig {
             jobs: JobsConfig {
                 workers: self.workers,
@@ -94,6 +146,9 @@ impl ServeArgs {
                 retry_after: Duration::from_millis(self.retry_after_ms),
                 max_job_records: self.max_job_records.max(1),
             },
+            max_unary_result_bytes: self.max_unary_result_bytes,
+            auth,
+            tls,
             max_request_bytes: self.max_request_bytes,
             max_image_pixels: self.max_image_pixels,
             max_ps_kernel_bytes: self.max_ps_kernel_bytes,
@@ -110,7 +165,32 @@ impl ServeArgs {
     }
 }
 
-/// Runs the server until SIGTERM or Ctrl-C.
+fn read_pem(path: &std::path::Path, flag: &str) -> anyhow::Result<Vec<u8>> {
+    let bytes = std::fs::read(path).with_context(|| format!("{flag} {}", path.display()))?;
+    anyhow::ensure!(
+        bytes.windows(11).any(|w| w == b"-----BEGIN "),
+        "{flag} {} is not a PEM file",
+        path.display()
+    );
+    Ok(bytes)
+}
+
+/// Refuses to expose an unauthenticated server beyond this machine unless asked to.
+fn check_exposure(addr: &std::net::SocketAddr, args: &ServeArgs) -> anyhow::Result<()> {
+    if !addr.ip().is_loopback() && args.auth_tokens_file.is_none() && !args.allow_unauthenticated {
+        anyhow::bail!(
+            "refusing to serve {addr} without authentication: give --auth-tokens-file \
+             (MURK_AUTH_TOKENS_FILE), bind a loopback address, or pass \
+             --allow-unauthenticated to let anyone who can connect use and cancel every job"
+        );
+    }
+    if !addr.ip().is_loopback() && args.tls_cert.is_none() && args.auth_tokens_file.is_some() {
+        tracing::warn!(%addr, "bearer tokens travel in clear text without --tls-cert");
+    }
+    Ok(())
+}
+
+/// Runs the server until SIGTERM or Ctrl-C; SIGHUP re-reads the token file.
 pub fn run(args: ServeArgs) -> anyhow::Result<()> {
     let config = args.config()?;
     let rt = tokio::runtime::Runtime::new()?;
@@ -118,7 +198,41 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
         let listener = tokio::net::TcpListener::bind(&args.addr)
             .await
             .with_context(|| format!("binding {}", args.addr))?;
-        serve(config, listener, shutdown_signal()).await?;
+        check_exposure(&listener.local_addr()?, &args)?;
+        let metrics = match &args.metrics_addr {
+            Some(a) => Some(
+                tokio::net::TcpListener::bind(a)
+                    .await
+                    .with_context(|| format!("binding --metrics-addr {a}"))?,
+            ),
+            None => None,
+        };
+        if let Some(store) = config.auth.clone() {
+            reload_tokens_on_sighup(store);
+        }
+        serve(config, listener, metrics, shutdown_signal()).await?;
         Ok(())
     })
 }
+
+#[cfg(unix)]
+fn reload_tokens_on_sighup(store: TokenStore) {
+    use tokio::signal::unix::{signal, SignalKind};
+    let Ok(mut hup) = signal(SignalKind::hangup()) else {
+        tracing::warn!("cannot listen for SIGHUP; token file changes need a restart");
+        return;
+    };
+    tokio::spawn(async move {
+        while hup.recv().await.is_some() {
+            match store.reload() {
+                Ok(n) => tracing::info!(tokens = n, "SIGHUP: bearer tokens reloaded"),
+                Err(e) => {
+                    tracing::error!(error = %e, "SIGHUP: token file unusable; keeping the tokens in force")
+                }
+            }
+        }
+    });
+}
+
+#[cfg(not(unix))]
+fn reload_tokens_on_sighup(_store: TokenStore) {}

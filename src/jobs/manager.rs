@@ -1,12 +1,22 @@
-//! The job manager: a bounded FIFO queue, dispatcher threads that run jobs on a rayon pool, and
-//! the registry that deduplicates identical requests by their content-hash id.
+//! The job manager: a bounded queue (one FIFO per method, dispatched round-robin so short jobs
+//! do not starve behind long ones), dispatcher threads that run jobs on a rayon pool, and the
+//! registry that deduplicates identical requests by their content-hash id.
+//!
+//! Job records belong to a tenant (the authenticated caller; `""` when authentication is off):
+//! the registry is keyed by `(tenant, id)`, so another tenant's Get/Watch/Cancel never reaches a
+//! record it does not own. Results are shared across tenants through the cache, which is keyed
+//! by the content hash alone: identical work computes once, but records are never shared.
+//!
+//! Retry safety: a record whose cancellation was requested (or that ended cancelled, failed or
+//! aborted) is never handed to a new submission; an identical request submitted then starts a
+//! fresh computation under the same id.
 //!
 //! Why dispatcher threads in front of rayon instead of `pool.spawn` per job: rayon's own queue
 //! is unbounded and work-stealing may start a second job inside a first job's `join`, so a fixed
 //! number of dispatchers (`concurrent_jobs`) each `install` one job at a time on the shared pool;
 //! the algorithms' inner `par_iter`s use all the pool's threads.
 
-use std::collections::{HashMap, VecDeque};
+use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::panic::AssertUnwindSafe;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
@@ -16,6 +26,7 @@ use std::time::{Duration, Instant, SystemTime};
 use tokio::sync::{watch, Notify};
 
 use super::cache::{CacheStats, ResultCache};
+use super::metrics::JobMetrics;
 use super::state::{JobSnapshot, JobState};
 use crate::error::MurkError;
 use crate::monitor::{Monitor, ProgressSink};
@@ -36,7 +47,8 @@ pub struct JobsConfig {
     pub cache_bytes: u64,
     /// Optional directory where results persist across restarts.
     pub cache_dir: Option<PathBuf>,
-    /// Suggested client back-off when the queue is full.
+    /// Smallest client back-off suggested when the queue is full; the hint grows with the
+    /// estimated queue wait (queued jobs × mean compute time ÷ concurrent jobs), +0–50 % jitter.
     pub retry_after: Duration,
     /// Job records kept for Get/List; the oldest terminal ones are forgotten beyond this
     /// (their results stay in the cache).
@@ -71,9 +83,21 @@ pub enum SubmitError {
     ShuttingDown,
 }
 
+/// Registry key: the owning tenant and the job id.
+type JobKey = (String, String);
+
+/// Why a job's cancel flag was raised.
+const CANCEL_BY_CALLER: u8 = 0;
+const CANCEL_BY_SHUTDOWN: u8 = 1;
+
 struct JobEntry {
     id: String,
+    tenant: String,
+    method: String,
     cancel: Arc<AtomicBool>,
+    /// `CANCEL_BY_*`: what raised `cancel`, so shutdown ends jobs as retryable aborts rather
+    /// than as user cancels.
+    cancel_reason: std::sync::atomic::AtomicU8,
     tx: watch::Sender<JobSnapshot>,
     /// Unary callers currently waiting on this job.
     waiters: AtomicUsize,
@@ -91,8 +115,32 @@ impl JobEntry {
         self.tx.borrow().state
     }
 
-    /// Moves to a terminal state once; later calls are ignored.
-    fn finish(&self, state: JobState, result: Option<Arc<Vec<u8>>>, error: Option<MurkError>) {
+    fn key(&self) -> JobKey {
+        (self.tenant.clone(), self.id.clone())
+    }
+
+    /// True once cancellation was requested; such a record is never reused by a new submission.
+    fn cancelling(&self) -> bool {
+        self.cancel.load(Ordering::SeqCst)
+    }
+
+    /// The terminal state and error of a job stopped through its cancel flag: a user cancel, or
+    /// a retryable abort when the server stopped it on shutdown.
+    fn stopped_outcome(&self) -> (JobState, MurkError) {
+        if self.cancel_reason.load(Ordering::SeqCst) == CANCEL_BY_SHUTDOWN {
+            (JobState::Failed, MurkError::ShuttingDown)
+        } else {
+            (JobState::Cancelled, MurkError::Cancelled)
+        }
+    }
+
+    /// Moves to a terminal state once; later calls are ignored. True if this call did it.
+    fn finish(
+        &self,
+        state: JobState,
+        result: Option<Arc<Vec<u8>>>,
+        error: Option<MurkError>,
+    ) -> bool {
         self.tx.send_if_modified(|s| {
             if s.state.is_terminal() {
                 return false;
@@ -108,16 +156,75 @@ impl JobEntry {
             s.result = result;
             s.error = error;
             true
-        });
+        })
+    }
+}
+
+/// Waiting jobs: one FIFO per method, served round-robin.
+#[derive(Default)]
+struct FairQueue {
+    by_method: BTreeMap<String, VecDeque<Arc<JobEntry>>>,
+    /// The method served last; the next pop starts after it.
+    last: Option<String>,
+    len: usize,
+}
+
+impl FairQueue {
+    fn push(&mut self, e: Arc<JobEntry>) {
+        self.by_method
+            .entry(e.method.clone())
+            .or_default()
+            .push_back(e);
+        self.len += 1;
+    }
+
+    fn pop(&mut self) -> Option<Arc<JobEntry>> {
+        let after = self.last.clone();
+        let method = self
+            .by_method
+            .iter()
+            .filter(|(_, q)| !q.is_empty())
+            .map(|(m, _)| m)
+            .find(|m| after.as_ref().is_none_or(|a| *m > a))
+            .or_else(|| {
+                self.by_method
+                    .iter()
+                    .find(|(_, q)| !q.is_empty())
+                    .map(|(m, _)| m)
+            })?
+            .clone();
+        let e = self.by_method.get_mut(&method)?.pop_front()?;
+        self.len -= 1;
+        self.last = Some(method);
+        Some(e)
+    }
+
+    fn remove(&mut self, entry: &Arc<JobEntry>) -> bool {
+        let Some(q) = self.by_method.get_mut(&entry.method) else {
+            return false;
+        };
+        let before = q.len();
+        q.retain(|e| !Arc::ptr_eq(e, entry));
+        let removed = before - q.len();
+        self.len -= removed;
+        removed > 0
+    }
+
+    fn len(&self) -> usize {
+        self.len
+    }
+
+    fn is_empty(&self) -> bool {
+        self.len == 0
     }
 }
 
 #[derive(Default)]
 struct Registry {
-    jobs: HashMap<String, Arc<JobEntry>>,
-    /// Ids in submission order (oldest first), for listing and record eviction.
-    order: VecDeque<String>,
-    queue: VecDeque<Arc<JobEntry>>,
+    jobs: HashMap<JobKey, Arc<JobEntry>>,
+    /// Keys in submission order (oldest first), for listing and record eviction.
+    order: VecDeque<JobKey>,
+    queue: FairQueue,
     stopped: bool,
 }
 
@@ -131,6 +238,9 @@ struct Inner {
     executed: AtomicU64,
     running: AtomicUsize,
     idle: Notify,
+    metrics: JobMetrics,
+    /// Exponential moving average of compute time, seconds (f64 bits; 0 = no job yet).
+    mean_job_secs: AtomicU64,
 }
 
 impl Inner {
@@ -196,7 +306,7 @@ impl Drop for WaiterGuard {
             && !e.state().is_terminal()
         {
             tracing::info!(id = %e.id, "last caller went away; cancelling job");
-            cancel_entry(&self.handle.inner, e);
+            cancel_entry(&self.handle.inner, e, CANCEL_BY_CALLER);
         }
     }
 }
@@ -232,6 +342,8 @@ impl JobManager {
             executed: AtomicU64::new(0),
             running: AtomicUsize::new(0),
             idle: Notify::new(),
+            metrics: JobMetrics::default(),
+            mean_job_secs: AtomicU64::new(0),
         });
         for i in 0..concurrent {
             let inner = inner.clone();
@@ -267,20 +379,40 @@ impl JobManager {
         self.inner.cache.stats()
     }
 
-    /// The job with this id if it is live or succeeded, or a cached result. Failed and cancelled
-    /// jobs are not returned, so resubmitting them runs them again.
-    pub fn find(&self, id: &str, method: &str) -> Option<Submitted> {
-        let mut reg = self.inner.registry();
-        self.find_locked(&mut reg, id, method)
+    /// Jobs computing now.
+    pub fn running(&self) -> usize {
+        self.inner.running.load(Ordering::SeqCst)
     }
 
-    fn find_locked(&self, reg: &mut Registry, id: &str, method: &str) -> Option<Submitted> {
-        if let Some(e) = reg.jobs.get(id) {
+    /// The event metrics (register them with a Prometheus registry to export them).
+    pub fn metrics(&self) -> &JobMetrics {
+        &self.inner.metrics
+    }
+
+    /// `tenant`'s job with this id if it is live (and not being cancelled) or succeeded, or a
+    /// cached result. Failed, cancelled and cancelling jobs are not returned, so resubmitting
+    /// them runs them again.
+    pub fn find(&self, tenant: &str, id: &str, method: &str) -> Option<Submitted> {
+        let mut reg = self.inner.registry();
+        self.find_locked(&mut reg, tenant, id, method)
+    }
+
+    fn find_locked(
+        &self,
+        reg: &mut Registry,
+        tenant: &str,
+        id: &str,
+        method: &str,
+    ) -> Option<Submitted> {
+        let key = (tenant.to_string(), id.to_string());
+        if let Some(e) = reg.jobs.get(&key) {
             let st = e.state();
-            if matches!(
-                st,
-                JobState::Queued | JobState::Running | JobState::Succeeded
-            ) {
+            let reusable = match st {
+                JobState::Succeeded => true,
+                JobState::Queued | JobState::Running => !e.cancelling(),
+                JobState::Failed | JobState::Cancelled => false,
+            };
+            if reusable {
                 return Some(Submitted {
                     handle: self.handle(e.clone()),
                     cached: st == JobState::Succeeded,
@@ -288,7 +420,7 @@ impl JobManager {
             }
         }
         let bytes = self.inner.cache.get(id)?;
-        let entry = self.new_entry(JobSnapshot::from_cache(id, method, bytes), None);
+        let entry = self.new_entry(tenant, JobSnapshot::from_cache(id, method, bytes), None);
         self.insert_locked(reg, entry.clone());
         Some(Submitted {
             handle: self.handle(entry),
@@ -296,68 +428,98 @@ impl JobManager {
         })
     }
 
-    /// Any known job (including failed/cancelled ones), or a cached result.
-    pub fn get(&self, id: &str) -> Option<JobHandle> {
+    /// `tenant`'s job with this id (in any state), or a cached result. Another tenant's job is
+    /// `None`, exactly like an unknown id; a cached result computed for anyone is returned (the
+    /// caller proved it knows the content hash, i.e. it can compute the same request).
+    pub fn get(&self, tenant: &str, id: &str) -> Option<JobHandle> {
         let mut reg = self.inner.registry();
-        if let Some(e) = reg.jobs.get(id) {
+        if let Some(e) = reg.jobs.get(&(tenant.to_string(), id.to_string())) {
             return Some(self.handle(e.clone()));
         }
         let bytes = self.inner.cache.get(id)?;
-        let entry = self.new_entry(JobSnapshot::from_cache(id, "", bytes), None);
+        let entry = self.new_entry(tenant, JobSnapshot::from_cache(id, "", bytes), None);
         self.insert_locked(&mut reg, entry.clone());
         Some(self.handle(entry))
     }
 
-    /// Queues `work` under `id` unless an identical job is live/succeeded/cached (then that one is
-    /// returned and `work` is dropped unrun).
-    pub fn submit(&self, id: &str, method: &str, work: Work) -> Result<Submitted, SubmitError> {
+    /// Queues `work` under `(tenant, id)` unless that tenant's identical job is live/succeeded or
+    /// the result is cached (then that one is returned and `work` is dropped unrun).
+    pub fn submit(
+        &self,
+        tenant: &str,
+        id: &str,
+        method: &str,
+        work: Work,
+    ) -> Result<Submitted, SubmitError> {
         if self.inner.shutting_down.load(Ordering::SeqCst) {
             return Err(SubmitError::ShuttingDown);
         }
         let mut reg = self.inner.registry();
-        if let Some(found) = self.find_locked(&mut reg, id, method) {
+        if let Some(found) = self.find_locked(&mut reg, tenant, id, method) {
             return Ok(found);
         }
         if reg.queue.len() >= self.inner.cfg.queue_capacity {
             return Err(SubmitError::QueueFull {
                 capacity: self.inner.cfg.queue_capacity,
-                retry_after: self.inner.cfg.retry_after,
+                retry_after: self.retry_hint(reg.queue.len()),
             });
         }
-        let entry = self.new_entry(JobSnapshot::queued(id, method), Some(work));
+        let entry = self.new_entry(tenant, JobSnapshot::queued(id, method), Some(work));
         self.insert_locked(&mut reg, entry.clone());
-        reg.queue.push_back(entry.clone());
+        reg.queue.push(entry.clone());
         drop(reg);
         self.inner.queue_cv.notify_one();
-        tracing::info!(%id, %method, "job queued");
+        tracing::info!(%id, %method, %tenant, "job queued");
         Ok(Submitted {
             handle: self.handle(entry),
             cached: false,
         })
     }
 
-    /// Requests cancellation. Queued jobs end at once; running ones at their next checkpoint.
-    /// `None` for unknown ids.
-    pub fn cancel(&self, id: &str) -> Option<JobSnapshot> {
-        let entry = self.inner.registry().jobs.get(id).cloned()?;
-        cancel_entry(&self.inner, &entry);
+    /// The back-off to suggest with `queued` jobs waiting: the estimated time until a slot
+    /// frees (queued × mean compute time ÷ concurrent jobs, at least the configured minimum),
+    /// spread over +0–50 % so refused clients do not come back in one herd (never below the
+    /// configured minimum).
+    fn retry_hint(&self, queued: usize) -> Duration {
+        let mean = f64::from_bits(self.inner.mean_job_secs.load(Ordering::Relaxed));
+        let concurrent = self.inner.cfg.concurrent_jobs.max(1) as f64;
+        let estimate = mean * queued as f64 / concurrent;
+        let floor = self.inner.cfg.retry_after.as_secs_f64();
+        let base = estimate.clamp(floor, floor.max(300.0));
+        let jitter = 1.0 + 0.5 * rand::random::<f64>();
+        Duration::from_secs_f64(base * jitter)
+    }
+
+    /// Requests cancellation of `tenant`'s job. Queued jobs end at once; running ones at their
+    /// next checkpoint. `None` for unknown ids (and other tenants' jobs).
+    pub fn cancel(&self, tenant: &str, id: &str) -> Option<JobSnapshot> {
+        let entry = self
+            .inner
+            .registry()
+            .jobs
+            .get(&(tenant.to_string(), id.to_string()))
+            .cloned()?;
+        cancel_entry(&self.inner, &entry, CANCEL_BY_CALLER);
         Some(entry.snapshot())
     }
 
-    /// Snapshots of known jobs, newest first: `(page, next_offset)`.
-    pub fn list(&self, offset: usize, page_size: usize) -> (Vec<JobSnapshot>, Option<usize>) {
+    /// Snapshots of `tenant`'s known jobs, newest first: `(page, next_offset)`.
+    pub fn list(
+        &self,
+        tenant: &str,
+        offset: usize,
+        page_size: usize,
+    ) -> (Vec<JobSnapshot>, Option<usize>) {
         let reg = self.inner.registry();
-        let total = reg.order.len();
-        let page: Vec<JobSnapshot> = reg
-            .order
-            .iter()
-            .rev()
+        let mut own = reg.order.iter().rev().filter(|(t, _)| t == tenant);
+        let page: Vec<JobSnapshot> = own
+            .by_ref()
             .skip(offset)
             .take(page_size)
-            .filter_map(|id| reg.jobs.get(id).map(|e| e.snapshot()))
+            .filter_map(|k| reg.jobs.get(k).map(|e| e.snapshot()))
             .collect();
-        let next = offset + page_size;
-        (page, (next < total).then_some(next))
+        let more = own.next().is_some();
+        (page, more.then_some(offset + page_size))
     }
 
     /// Stops accepting work, lets queued and running jobs finish for up to `grace`, then cancels
@@ -383,7 +545,7 @@ impl JobManager {
         };
         for e in live {
             if !e.state().is_terminal() {
-                cancel_entry(&self.inner, &e);
+                cancel_entry(&self.inner, &e, CANCEL_BY_SHUTDOWN);
             }
         }
         self.inner.queue_cv.notify_all();
@@ -409,11 +571,14 @@ impl JobManager {
         }
     }
 
-    fn new_entry(&self, snap: JobSnapshot, work: Option<Work>) -> Arc<JobEntry> {
+    fn new_entry(&self, tenant: &str, snap: JobSnapshot, work: Option<Work>) -> Arc<JobEntry> {
         let (tx, _) = watch::channel(snap.clone());
         Arc::new(JobEntry {
             id: snap.id,
+            tenant: tenant.to_string(),
+            method: snap.method,
             cancel: Arc::new(AtomicBool::new(false)),
+            cancel_reason: std::sync::atomic::AtomicU8::new(CANCEL_BY_CALLER),
             tx,
             waiters: AtomicUsize::new(0),
             detached: AtomicBool::new(false),
@@ -422,11 +587,11 @@ impl JobManager {
     }
 
     fn insert_locked(&self, reg: &mut Registry, entry: Arc<JobEntry>) {
-        let id = entry.id.clone();
-        if reg.jobs.insert(id.clone(), entry).is_some() {
-            reg.order.retain(|x| x != &id);
+        let key = entry.key();
+        if reg.jobs.insert(key.clone(), entry).is_some() {
+            reg.order.retain(|x| x != &key);
         }
-        reg.order.push_back(id);
+        reg.order.push_back(key);
         // Forget the oldest terminal records beyond the limit; live jobs are never forgotten.
         let mut i = 0;
         while reg.jobs.len() > self.inner.cfg.max_job_records && i < reg.order.len() {
@@ -445,18 +610,46 @@ impl JobManager {
     }
 }
 
-fn cancel_entry(inner: &Inner, entry: &Arc<JobEntry>) {
-    entry.cancel.store(true, Ordering::SeqCst);
-    let was_queued = {
-        let mut reg = inner.registry();
-        let before = reg.queue.len();
-        reg.queue.retain(|e| !Arc::ptr_eq(e, entry));
-        reg.queue.len() != before
-    };
+fn cancel_entry(inner: &Inner, entry: &Arc<JobEntry>, reason: u8) {
+    if !entry.cancel.swap(true, Ordering::SeqCst) {
+        entry.cancel_reason.store(reason, Ordering::SeqCst);
+    }
+    let was_queued = inner.registry().queue.remove(entry);
     if was_queued {
-        entry.finish(JobState::Cancelled, None, Some(MurkError::Cancelled));
+        let (state, error) = entry.stopped_outcome();
+        finish(inner, entry, state, None, Some(error));
         inner.idle.notify_waiters();
     }
+}
+
+/// Moves `entry` to a terminal state and counts it.
+fn finish(
+    inner: &Inner,
+    entry: &JobEntry,
+    state: JobState,
+    result: Option<Arc<Vec<u8>>>,
+    error: Option<MurkError>,
+) {
+    if entry.finish(state, result, error.clone()) {
+        let label = match (state, &error) {
+            (JobState::Failed, Some(MurkError::ShuttingDown)) => "aborted",
+            (JobState::Succeeded, _) => "succeeded",
+            (JobState::Failed, _) => "failed",
+            _ => "cancelled",
+        };
+        inner.metrics.finished(&entry.method, label);
+    }
+}
+
+/// Folds one compute time into the moving average behind the retry hint.
+fn record_compute_time(inner: &Inner, seconds: f64) {
+    let old = f64::from_bits(inner.mean_job_secs.load(Ordering::Relaxed));
+    let new = if old == 0.0 {
+        seconds
+    } else {
+        0.8 * old + 0.2 * seconds
+    };
+    inner.mean_job_secs.store(new.to_bits(), Ordering::Relaxed);
 }
 
 fn dispatch_loop(inner: Arc<Inner>) {
@@ -464,7 +657,7 @@ fn dispatch_loop(inner: Arc<Inner>) {
         let entry = {
             let mut reg = inner.registry();
             loop {
-                if let Some(e) = reg.queue.pop_front() {
+                if let Some(e) = reg.queue.pop() {
                     // Counted under the lock so `is_idle` never sees an empty queue and zero
                     // running jobs while one is in hand.
                     inner.running.fetch_add(1, Ordering::SeqCst);
@@ -485,23 +678,29 @@ fn dispatch_loop(inner: Arc<Inner>) {
 fn run_job(inner: &Inner, entry: &Arc<JobEntry>) {
     let work = entry.work.lock().unwrap_or_else(|p| p.into_inner()).take();
     let Some(work) = work else {
-        entry.finish(
+        finish(
+            inner,
+            entry,
             JobState::Failed,
             None,
             Some(MurkError::Internal("job has no work attached".into())),
         );
         return;
     };
-    if entry.cancel.load(Ordering::SeqCst) {
-        entry.finish(JobState::Cancelled, None, Some(MurkError::Cancelled));
+    if entry.cancelling() {
+        let (state, error) = entry.stopped_outcome();
+        finish(inner, entry, state, None, Some(error));
         return;
     }
     let span = tracing::info_span!("job", id = %entry.id);
     let _enter = span.enter();
+    let now = SystemTime::now();
     entry.tx.send_modify(|s| {
         s.state = JobState::Running;
-        s.start_time = Some(SystemTime::now());
+        s.start_time = Some(now);
         s.stage = "starting".into();
+        let waited = now.duration_since(s.create_time).unwrap_or_default();
+        inner.metrics.waited(&entry.method, waited.as_secs_f64());
     });
     inner.executed.fetch_add(1, Ordering::SeqCst);
     let started = Instant::now();
@@ -524,21 +723,26 @@ fn run_job(inner: &Inner, entry: &Arc<JobEntry>) {
     let monitor = Monitor::new(entry.cancel.clone(), Some(sink));
     let outcome =
         std::panic::catch_unwind(AssertUnwindSafe(|| inner.pool.install(|| work(&monitor))));
-    let elapsed_ms = started.elapsed().as_secs_f64() * 1e3;
+    let seconds = started.elapsed().as_secs_f64();
+    let elapsed_ms = seconds * 1e3;
+    inner.metrics.ran(&entry.method, seconds);
     match outcome {
         Ok(Ok(bytes)) => {
+            record_compute_time(inner, seconds);
             let bytes = Arc::new(bytes);
+            // Only complete results are cached; a job stopped part-way never is.
             inner.cache.put(&entry.id, bytes.clone());
-            entry.finish(JobState::Succeeded, Some(bytes), None);
+            finish(inner, entry, JobState::Succeeded, Some(bytes), None);
             tracing::info!(elapsed_ms, "job succeeded");
         }
         Ok(Err(MurkError::Cancelled)) => {
-            entry.finish(JobState::Cancelled, None, Some(MurkError::Cancelled));
-            tracing::info!(elapsed_ms, "job cancelled");
+            let (state, error) = entry.stopped_outcome();
+            tracing::info!(elapsed_ms, reason = %error, "job stopped");
+            finish(inner, entry, state, None, Some(error));
         }
         Ok(Err(e)) => {
             tracing::warn!(elapsed_ms, error = %e, "job failed");
-            entry.finish(JobState::Failed, None, Some(e));
+            finish(inner, entry, JobState::Failed, None, Some(e));
         }
         Err(panic) => {
             let msg = panic
@@ -547,7 +751,9 @@ fn run_job(inner: &Inner, entry: &Arc<JobEntry>) {
                 .or_else(|| panic.downcast_ref::<String>().cloned())
                 .unwrap_or_else(|| "unknown panic".into());
             tracing::error!(elapsed_ms, panic = %msg, "job panicked");
-            entry.finish(
+            finish(
+                inner,
+                entry,
                 JobState::Failed,
                 None,
                 Some(MurkError::Internal(format!("worker panicked: {msg}"))),

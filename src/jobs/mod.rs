@@ -4,10 +4,12 @@
 
 mod cache;
 mod manager;
+mod metrics;
 mod state;
 
 pub use cache::{CacheStats, ResultCache};
 pub use manager::{JobHandle, JobManager, JobsConfig, SubmitError, Submitted, WaiterGuard, Work};
+pub use metrics::{JobMetrics, MethodLabel, MethodState};
 pub use state::{JobSnapshot, JobState, ResultBytes};
 
 #[cfg(test)]

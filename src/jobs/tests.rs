@@ -47,14 +47,14 @@ async fn identical_submissions_compute_once_and_hit_cache() {
             Ok(vec![1, 2, 3])
         })
     };
-    let a = m.submit("aa", "t", mk(runs.clone())).unwrap();
+    let a = m.submit("", "aa", "t", mk(runs.clone())).unwrap();
     assert!(!a.cached);
-    let b = m.submit("aa", "t", mk(runs.clone())).unwrap();
+    let b = m.submit("", "aa", "t", mk(runs.clone())).unwrap();
     let sa = wait_terminal(&a.handle).await;
     let sb = wait_terminal(&b.handle).await;
     assert_eq!(sa.state, JobState::Succeeded);
     assert_eq!(sb.result.as_deref(), Some(&vec![1u8, 2, 3]));
-    let c = m.submit("aa", "t", mk(runs.clone())).unwrap();
+    let c = m.submit("", "aa", "t", mk(runs.clone())).unwrap();
     assert!(c.cached);
     assert_eq!(runs.load(Ordering::SeqCst), 1);
     assert_eq!(m.executed(), 1);
@@ -66,13 +66,13 @@ async fn full_queue_is_refused_with_retry_hint() {
     let release = Arc::new(std::sync::atomic::AtomicBool::new(false));
     let (tx, rx) = mpsc::channel();
     let first = m
-        .submit("01", "t", gated(tx.clone(), release.clone()))
+        .submit("", "01", "t", gated(tx.clone(), release.clone()))
         .unwrap();
     rx.recv_timeout(Duration::from_secs(10)).unwrap(); // first is running, queue empty
-    m.submit("02", "t", gated(tx.clone(), release.clone()))
+    m.submit("", "02", "t", gated(tx.clone(), release.clone()))
         .unwrap();
     let err = m
-        .submit("03", "t", gated(tx, release.clone()))
+        .submit("", "03", "t", gated(tx, release.clone()))
         .err()
         .unwrap();
     assert!(matches!(err, SubmitError::QueueFull { capacity: 1, .. }));
@@ -89,13 +89,13 @@ async fn cancel_running_and_queued_jobs() {
     let release = Arc::new(std::sync::atomic::AtomicBool::new(false));
     let (tx, rx) = mpsc::channel();
     let running = m
-        .submit("0a", "t", gated(tx.clone(), release.clone()))
+        .submit("", "0a", "t", gated(tx.clone(), release.clone()))
         .unwrap();
     rx.recv_timeout(Duration::from_secs(10)).unwrap();
-    let queued = m.submit("0b", "t", gated(tx, release.clone())).unwrap();
-    let snap = m.cancel("0b").unwrap();
+    let queued = m.submit("", "0b", "t", gated(tx, release.clone())).unwrap();
+    let snap = m.cancel("", "0b").unwrap();
     assert_eq!(snap.state, JobState::Cancelled, "queued jobs end at once");
-    m.cancel("0a").unwrap();
+    m.cancel("", "0a").unwrap();
     assert_eq!(
         wait_terminal(&running.handle).await.state,
         JobState::Cancelled
@@ -104,9 +104,9 @@ async fn cancel_running_and_queued_jobs() {
         wait_terminal(&queued.handle).await.state,
         JobState::Cancelled
     );
-    assert!(m.cancel("unknown").is_none());
+    assert!(m.cancel("", "unknown").is_none());
     // A cancelled job runs again when resubmitted.
-    let again = m.submit("0a", "t", Box::new(|_| Ok(vec![9]))).unwrap();
+    let again = m.submit("", "0a", "t", Box::new(|_| Ok(vec![9]))).unwrap();
     assert_eq!(
         wait_terminal(&again.handle).await.state,
         JobState::Succeeded
@@ -119,7 +119,7 @@ async fn last_unary_waiter_leaving_cancels_but_detached_jobs_survive() {
     let release = Arc::new(std::sync::atomic::AtomicBool::new(false));
     let (tx, rx) = mpsc::channel();
     let s = m
-        .submit("0c", "t", gated(tx.clone(), release.clone()))
+        .submit("", "0c", "t", gated(tx.clone(), release.clone()))
         .unwrap();
     rx.recv_timeout(Duration::from_secs(10)).unwrap();
     let g1 = s.handle.attach();
@@ -129,7 +129,7 @@ async fn last_unary_waiter_leaving_cancels_but_detached_jobs_survive() {
     drop(g2);
     assert_eq!(wait_terminal(&s.handle).await.state, JobState::Cancelled);
 
-    let d = m.submit("0d", "t", gated(tx, release.clone())).unwrap();
+    let d = m.submit("", "0d", "t", gated(tx, release.clone())).unwrap();
     rx.recv_timeout(Duration::from_secs(10)).unwrap();
     d.handle.detach();
     drop(d.handle.attach());
@@ -142,6 +142,7 @@ async fn failures_and_panics_become_failed_jobs() {
     let m = manager(4);
     let f = m
         .submit(
+            "",
             "0e",
             "t",
             Box::new(|_| Err(MurkError::Numerical("diverged".into()))),
@@ -150,12 +151,14 @@ async fn failures_and_panics_become_failed_jobs() {
     let s = wait_terminal(&f.handle).await;
     assert_eq!(s.state, JobState::Failed);
     assert!(matches!(s.error, Some(MurkError::Numerical(_))));
-    let p = m.submit("0f", "t", Box::new(|_| panic!("boom"))).unwrap();
+    let p = m
+        .submit("", "0f", "t", Box::new(|_| panic!("boom")))
+        .unwrap();
     let s = wait_terminal(&p.handle).await;
     assert_eq!(s.state, JobState::Failed);
     assert!(matches!(s.error, Some(MurkError::Internal(ref msg)) if msg.contains("boom")));
     // The dispatcher survived the panic.
-    let ok = m.submit("10", "t", Box::new(|_| Ok(vec![]))).unwrap();
+    let ok = m.submit("", "10", "t", Box::new(|_| Ok(vec![]))).unwrap();
     assert_eq!(wait_terminal(&ok.handle).await.state, JobState::Succeeded);
 }
 
@@ -164,12 +167,15 @@ async fn shutdown_drains_then_cancels_and_refuses_new_work() {
     let m = manager(4);
     let release = Arc::new(std::sync::atomic::AtomicBool::new(false));
     let (tx, rx) = mpsc::channel();
-    let s = m.submit("11", "t", gated(tx, release)).unwrap();
+    let s = m.submit("", "11", "t", gated(tx, release)).unwrap();
     rx.recv_timeout(Duration::from_secs(10)).unwrap();
     m.shutdown(Duration::from_millis(50)).await;
-    assert_eq!(s.handle.snapshot().state, JobState::Cancelled);
+    // Stopped by the server, not by anyone who wanted it stopped: a retryable abort.
+    let snap = s.handle.snapshot();
+    assert_eq!(snap.state, JobState::Failed);
+    assert_eq!(snap.error, Some(MurkError::ShuttingDown));
     assert_eq!(
-        m.submit("12", "t", Box::new(|_| Ok(vec![]))).err(),
+        m.submit("", "12", "t", Box::new(|_| Ok(vec![]))).err(),
         Some(SubmitError::ShuttingDown)
     );
 }
@@ -179,17 +185,17 @@ async fn list_is_newest_first_and_paged() {
     let m = manager(16);
     for i in 0..5 {
         let h = m
-            .submit(&format!("{i:02x}"), "t", Box::new(|_| Ok(vec![])))
+            .submit("", &format!("{i:02x}"), "t", Box::new(|_| Ok(vec![])))
             .unwrap();
         wait_terminal(&h.handle).await;
     }
-    let (page, next) = m.list(0, 2);
+    let (page, next) = m.list("", 0, 2);
     assert_eq!(
         page.iter().map(|s| s.id.as_str()).collect::<Vec<_>>(),
         ["04", "03"]
     );
     assert_eq!(next, Some(2));
-    let (page, next) = m.list(4, 2);
+    let (page, next) = m.list("", 4, 2);
     assert_eq!(page.len(), 1);
     assert_eq!(next, None);
 }
@@ -199,6 +205,7 @@ async fn progress_reaches_watchers() {
     let m = manager(4);
     let h = m
         .submit(
+            "",
             "13",
             "t",
             Box::new(|mon| {
@@ -210,4 +217,210 @@ async fn progress_reaches_watchers() {
     let s = wait_terminal(&h.handle).await;
     assert_eq!(s.progress, 1.0);
     assert!(s.start_time.is_some() && s.end_time.is_some());
+}
+
+/// Work that signals when it starts and ignores cancellation until released (a stage without
+/// checkpoints), so a cancel stays pending.
+fn deaf(started: mpsc::Sender<()>, release: Arc<std::sync::atomic::AtomicBool>) -> Work {
+    Box::new(move |_| {
+        let _ = started.send(());
+        while !release.load(Ordering::SeqCst) {
+            std::thread::yield_now();
+        }
+        Ok(vec![7])
+    })
+}
+
+#[tokio::test]
+async fn resubmitting_during_a_pending_cancel_starts_a_fresh_job() {
+    let m = manager(4);
+    let release = Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let (tx, rx) = mpsc::channel();
+    let first = m
+        .submit("", "21", "t", deaf(tx.clone(), release.clone()))
+        .unwrap();
+    rx.recv_timeout(Duration::from_secs(10)).unwrap();
+    m.cancel("", "21").unwrap();
+    assert_eq!(
+        first.handle.snapshot().state,
+        JobState::Running,
+        "cancel pending"
+    );
+    let runs = Arc::new(AtomicUsize::new(0));
+    let r = runs.clone();
+    let retry = m
+        .submit(
+            "",
+            "21",
+            "t",
+            Box::new(move |_| {
+                r.fetch_add(1, Ordering::SeqCst);
+                Ok(vec![8])
+            }),
+        )
+        .unwrap();
+    assert!(!retry.cached);
+    assert_eq!(retry.handle.snapshot().state, JobState::Queued);
+    release.store(true, Ordering::SeqCst);
+    wait_terminal(&first.handle).await;
+    let s = wait_terminal(&retry.handle).await;
+    assert_eq!(s.state, JobState::Succeeded);
+    assert_eq!(runs.load(Ordering::SeqCst), 1, "the retry computed");
+    // The record the tenant sees now is the retry's.
+    assert_eq!(
+        m.get("", "21").unwrap().snapshot().result.as_deref(),
+        Some(&vec![8u8])
+    );
+}
+
+#[tokio::test]
+async fn resubmitting_after_a_cancel_never_inherits_it() {
+    let m = manager(4);
+    let release = Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let (tx, rx) = mpsc::channel();
+    let s = m
+        .submit("", "22", "t", gated(tx.clone(), release.clone()))
+        .unwrap();
+    rx.recv_timeout(Duration::from_secs(10)).unwrap();
+    drop(s.handle.attach()); // the unary caller's deadline passed: the job is cancelled
+    assert_eq!(wait_terminal(&s.handle).await.state, JobState::Cancelled);
+    let again = m.submit("", "22", "t", gated(tx, release.clone())).unwrap();
+    rx.recv_timeout(Duration::from_secs(10)).unwrap();
+    release.store(true, Ordering::SeqCst);
+    assert_eq!(
+        wait_terminal(&again.handle).await.state,
+        JobState::Succeeded
+    );
+}
+
+#[tokio::test]
+async fn job_records_belong_to_their_tenant_but_results_are_shared() {
+    let m = manager(4);
+    let a = m
+        .submit("alpha", "31", "t", Box::new(|_| Ok(vec![5])))
+        .unwrap();
+    assert_eq!(wait_terminal(&a.handle).await.state, JobState::Succeeded);
+    assert_eq!(m.list("alpha", 0, 10).0.len(), 1);
+    assert!(
+        m.list("beta", 0, 10).0.is_empty(),
+        "beta lists only its own"
+    );
+    assert!(
+        m.cancel("beta", "31").is_none(),
+        "beta cannot cancel alpha's job"
+    );
+    // beta submitting the same work gets the computed result in a record of its own.
+    let b = m
+        .submit("beta", "31", "t", Box::new(|_| panic!("recomputed")))
+        .unwrap();
+    assert!(b.cached);
+    assert_eq!(b.handle.snapshot().result.as_deref(), Some(&vec![5u8]));
+    assert_eq!(m.list("beta", 0, 10).0.len(), 1);
+    assert_eq!(m.executed(), 1);
+}
+
+#[tokio::test]
+async fn another_tenants_live_job_is_invisible() {
+    let m = manager(4);
+    let release = Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let (tx, rx) = mpsc::channel();
+    let a = m
+        .submit("alpha", "32", "t", gated(tx, release.clone()))
+        .unwrap();
+    rx.recv_timeout(Duration::from_secs(10)).unwrap();
+    assert!(m.get("beta", "32").is_none());
+    assert!(m.cancel("beta", "32").is_none());
+    assert_eq!(a.handle.snapshot().state, JobState::Running);
+    release.store(true, Ordering::SeqCst);
+    assert_eq!(wait_terminal(&a.handle).await.state, JobState::Succeeded);
+}
+
+#[tokio::test]
+async fn methods_are_served_round_robin() {
+    let m = manager(16);
+    let release = Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let (tx, rx) = mpsc::channel();
+    let blocker = m
+        .submit("", "40", "long", gated(tx, release.clone()))
+        .unwrap();
+    rx.recv_timeout(Duration::from_secs(10)).unwrap();
+    let order = Arc::new(std::sync::Mutex::new(Vec::new()));
+    let record = |name: &'static str| -> Work {
+        let order = order.clone();
+        Box::new(move |_| {
+            order.lock().unwrap().push(name);
+            Ok(vec![])
+        })
+    };
+    let mut handles = Vec::new();
+    for (id, method, name) in [
+        ("41", "long", "long1"),
+        ("42", "long", "long2"),
+        ("43", "long", "long3"),
+        ("44", "short", "short1"),
+    ] {
+        handles.push(m.submit("", id, method, record(name)).unwrap().handle);
+    }
+    release.store(true, Ordering::SeqCst);
+    wait_terminal(&blocker.handle).await;
+    for h in &handles {
+        wait_terminal(h).await;
+    }
+    // The short job waits behind one long job, not behind all three.
+    assert_eq!(
+        *order.lock().unwrap(),
+        ["short1", "long1", "long2", "long3"]
+    );
+}
+
+#[tokio::test]
+async fn retry_hint_follows_the_estimated_wait_with_jitter() {
+    let m = JobManager::new(JobsConfig {
+        workers: 1,
+        concurrent_jobs: 1,
+        queue_capacity: 2,
+        retry_after: Duration::from_millis(100),
+        ..JobsConfig::default()
+    })
+    .unwrap();
+    // One finished job of ~300 ms teaches the manager the mean compute time.
+    let h = m
+        .submit(
+            "",
+            "50",
+            "t",
+            Box::new(|_| {
+                std::thread::sleep(Duration::from_millis(300));
+                Ok(vec![])
+            }),
+        )
+        .unwrap();
+    wait_terminal(&h.handle).await;
+    let release = Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let (tx, rx) = mpsc::channel();
+    let running = m
+        .submit("", "51", "t", gated(tx.clone(), release.clone()))
+        .unwrap();
+    rx.recv_timeout(Duration::from_secs(10)).unwrap();
+    m.submit("", "52", "t", gated(tx.clone(), release.clone()))
+        .unwrap();
+    m.submit("", "53", "t", gated(tx.clone(), release.clone()))
+        .unwrap();
+    let mut hints = Vec::new();
+    for _ in 0..20 {
+        match m.submit("", "54", "t", Box::new(|_| Ok(vec![]))) {
+            Err(SubmitError::QueueFull { retry_after, .. }) => hints.push(retry_after),
+            other => panic!("expected a full queue, got {:?}", other.err()),
+        }
+    }
+    // Two queued × ~0.3 s: 0.6 s + 0–50 %, not the 0.1 s floor, and not all equal.
+    for h in &hints {
+        assert!(
+            (0.55..=0.95).contains(&h.as_secs_f64()),
+            "hint {h:?} outside 0.6 s + 0-50 %"
+        );
+    }
+    assert!(hints.iter().any(|h| *h != hints[0]), "hints are jittered");
+    release.store(true, Ordering::SeqCst);
+    wait_terminal(&running.handle).await;
 }

@@ -19,6 +19,12 @@ pub fn to_status(e: &MurkError) -> Status {
             ErrorDetails::with_bad_request_violation(field.clone(), reason.clone()),
         ),
         MurkError::Cancelled => Status::cancelled("job was cancelled"),
+        // Retryable: the work itself is fine, the server stopped it to shut down.
+        MurkError::ShuttingDown => Status::with_error_details(
+            Code::Unavailable,
+            e.to_string(),
+            ErrorDetails::with_retry_info(Some(Duration::from_secs(1))),
+        ),
         MurkError::Numerical(_) | MurkError::Internal(_) | MurkError::Io { .. } => {
             Status::internal(e.to_string())
         }
@@ -41,11 +47,7 @@ pub fn submit_status(e: &SubmitError) -> Status {
             format!("job queue is full ({capacity} jobs waiting); retry after {retry_after:?}"),
             ErrorDetails::with_retry_info(Some(*retry_after)),
         ),
-        SubmitError::ShuttingDown => Status::with_error_details(
-            Code::Unavailable,
-            "server is shutting down",
-            ErrorDetails::with_retry_info(Some(Duration::from_secs(1))),
-        ),
+        SubmitError::ShuttingDown => to_status(&MurkError::ShuttingDown),
     }
 }
 
@@ -73,6 +75,18 @@ mod tests {
         let details = s.get_error_details();
         let v = &details.bad_request().unwrap().field_violations[0];
         assert_eq!(v.field, "tof_depth.phase");
+    }
+
+    #[test]
+    fn shutdown_is_retryable_unavailable_not_cancelled() {
+        let s = to_status(&MurkError::ShuttingDown);
+        assert_eq!(s.code(), Code::Unavailable);
+        assert!(s.message().contains("resubmit"));
+        assert!(s.get_error_details().retry_info().is_some());
+        assert_eq!(
+            submit_status(&SubmitError::ShuttingDown).code(),
+            Code::Unavailable
+        );
     }
 
     #[test]

@@ -34,6 +34,9 @@ pub struct RequestLimits {
     pub max_ps_kernel_bytes: usize,
 }
 
+/// Default unary result limit: gRPC's default client receive limit (4 MiB).
+pub const DEFAULT_MAX_UNARY_RESULT_BYTES: usize = 4 << 20;
+
 /// What every gRPC handler shares.
 #[derive(Clone)]
 pub struct ServiceState {
@@ -41,6 +44,10 @@ pub struct ServiceState {
     pub manager: JobManager,
     /// Request limits.
     pub limits: RequestLimits,
+    /// Largest message a unary response may carry (a Job with its result, or a Reconstruction
+    /// result); larger results are left out of Jobs messages and refused by the Reconstruction
+    /// RPCs, pointing to `Jobs.GetJobResult`.
+    pub max_unary_result_bytes: usize,
     /// The airlight estimators (scattering-parameter requests).
     pub airlight: AirlightService,
 }
@@ -83,12 +90,13 @@ pub fn method_name(m: &pb::job_request::Method) -> &'static str {
     }
 }
 
-/// Validates, deduplicates and queues a request. Errors name fields relative to the method's
+/// Validates, deduplicates and queues a request for `tenant`. Errors name fields relative to the method's
 /// request message; `prefix` is where that message sits in the RPC's own message
 /// (`Some("request")` for SubmitJob → `request.tof_depth.phase`; `None` for unary RPCs, whose
 /// message *is* the method request → `phase`).
 pub async fn submit(
     state: &ServiceState,
+    tenant: &str,
     mut req: pb::JobRequest,
     prefix: Option<&str>,
 ) -> Result<Submitted, Status> {
@@ -104,7 +112,7 @@ pub async fn submit(
     };
     check_size(&req, state.limits.max_request_bytes).map_err(|e| to_status(&named(e)))?;
     let id = job_id(&req, &model_of(&req, &state.airlight));
-    if let Some(found) = state.manager.find(&id, name) {
+    if let Some(found) = state.manager.find(tenant, &id, name) {
         return Ok(found);
     }
     let limits = state.limits;
@@ -116,7 +124,7 @@ pub async fn submit(
         .map_err(|e| to_status(&named(e)))?;
     state
         .manager
-        .submit(&id, name, work)
+        .submit(tenant, &id, name, work)
         .map_err(|e| submit_status(&e))
 }
 

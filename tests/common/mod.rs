@@ -88,6 +88,7 @@ pub fn job(req: pb::TofDepthRequest) -> pb::SubmitJobRequest {
         request: Some(pb::JobRequest {
             method: Some(pb::job_request::Method::TofDepth(req)),
         }),
+        omit_result: false,
     }
 }
 
@@ -131,6 +132,7 @@ pub fn mvs_job(req: pb::MvsDepthRequest) -> pb::SubmitJobRequest {
         request: Some(pb::JobRequest {
             method: Some(pb::job_request::Method::MvsDepth(req)),
         }),
+        omit_result: false,
     }
 }
 

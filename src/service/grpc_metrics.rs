@@ -1,0 +1,248 @@
+//! Per-RPC metrics as a tower layer: `murk_grpc_requests_total{method,code}` and
+//! `murk_grpc_request_duration_seconds{method}`.
+//!
+//! The status code of a gRPC response is in its headers when the handler failed at once
+//! (a trailers-only response) and in its trailers otherwise, after the last message; the layer
+//! reads the headers and, failing that, watches the body for the trailers. A body dropped before
+//! its trailers (the client went away mid-stream) counts as CANCELLED.
+
+use std::pin::Pin;
+use std::sync::Arc;
+use std::task::{Context, Poll};
+use std::time::Instant;
+
+use bytes::Bytes;
+use http_body::{Body as HttpBody, Frame, SizeHint};
+use prometheus_client::encoding::EncodeLabelSet;
+use prometheus_client::metrics::counter::Counter;
+use prometheus_client::metrics::family::Family;
+use prometheus_client::metrics::histogram::{exponential_buckets, Histogram};
+use prometheus_client::registry::Registry;
+use tonic::body::Body;
+use tonic::Code;
+use tower::{Layer, Service};
+
+/// Labels of `murk_grpc_requests_total`.
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+pub struct RpcCode {
+    /// `package.Service/Method`.
+    pub method: String,
+    /// gRPC status code name (`OK`, `INVALID_ARGUMENT`, ...).
+    pub code: String,
+}
+
+/// Labels of `murk_grpc_request_duration_seconds`.
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+pub struct RpcMethod {
+    /// `package.Service/Method`.
+    pub method: String,
+}
+
+fn latency_histogram() -> Histogram {
+    // 0.1 ms … ~100 s: cache-hit round trips up to long unary waits.
+    Histogram::new(exponential_buckets(1e-4, 2.5, 16))
+}
+
+/// The RPC metric families. Cheap to clone (shared).
+#[derive(Clone, Debug)]
+pub struct GrpcMetrics {
+    requests: Family<RpcCode, Counter>,
+    duration: Family<RpcMethod, Histogram, fn() -> Histogram>,
+}
+
+impl Default for GrpcMetrics {
+    fn default() -> Self {
+        Self {
+            requests: Family::default(),
+            duration: Family::new_with_constructor(latency_histogram),
+        }
+    }
+}
+
+impl GrpcMetrics {
+    /// Registers the families (names relative to the registry's `murk` prefix).
+    pub fn register(&self, registry: &mut Registry) {
+        registry.register(
+            "grpc_requests",
+            "gRPC requests by method and status code",
+            self.requests.clone(),
+        );
+        registry.register(
+            "grpc_request_duration_seconds",
+            "Time from request headers to the status, by method (streams: until the stream ends)",
+            self.duration.clone(),
+        );
+    }
+
+    fn record(&self, method: &str, code: Code, started: Instant) {
+        self.requests
+            .get_or_create(&RpcCode {
+                method: method.to_string(),
+                code: code_name(code).to_string(),
+            })
+            .inc();
+        self.duration
+            .get_or_create(&RpcMethod {
+                method: method.to_string(),
+            })
+            .observe(started.elapsed().as_secs_f64());
+    }
+}
+
+/// The canonical upper-case name of a gRPC code, as other gRPC metrics use it.
+pub fn code_name(code: Code) -> &'static str {
+    match code {
+        Code::Ok => "OK",
+        Code::Cancelled => "CANCELLED",
+        Code::Unknown => "UNKNOWN",
+        Code::InvalidArgument => "INVALID_ARGUMENT",
+        Code::DeadlineExceeded => "DEADLINE_EXCEEDED",
+        Code::NotFound => "NOT_FOUND",
+        Code::AlreadyExists => "ALREADY_EXISTS",
+        Code::PermissionDenied => "PERMISSION_DENIED",
+        Code::ResourceExhausted => "RESOURCE_EXHAUSTED",
+        Code::FailedPrecondition => "FAILED_PRECONDITION",
+        Code::Aborted => "ABORTED",
+        Code::OutOfRange => "OUT_OF_RANGE",
+        Code::Unimplemented => "UNIMPLEMENTED",
+        Code::Internal => "INTERNAL",
+        Code::Unavailable => "UNAVAILABLE",
+        Code::DataLoss => "DATA_LOSS",
+        Code::Unauthenticated => "UNAUTHENTICATED",
+    }
+}
+
+fn status_code(headers: &http::HeaderMap) -> Option<Code> {
+    headers
+        .get("grpc-status")
+        .map(|v| Code::from_bytes(v.as_bytes()))
+}
+
+/// Installs [`MetricsService`].
+#[derive(Clone, Debug)]
+pub struct MetricsLayer {
+    metrics: GrpcMetrics,
+}
+
+impl MetricsLayer {
+    /// Records into `metrics`.
+    pub fn new(metrics: GrpcMetrics) -> Self {
+        Self { metrics }
+    }
+}
+
+impl<S> Layer<S> for MetricsLayer {
+    type Service = MetricsService<S>;
+    fn layer(&self, inner: S) -> Self::Service {
+        MetricsService {
+            inner,
+            metrics: self.metrics.clone(),
+        }
+    }
+}
+
+/// See [`MetricsLayer`].
+#[derive(Clone, Debug)]
+pub struct MetricsService<S> {
+    inner: S,
+    metrics: GrpcMetrics,
+}
+
+type BoxFuture<T, E> = Pin<Box<dyn std::future::Future<Output = Result<T, E>> + Send>>;
+
+impl<S> Service<http::Request<Body>> for MetricsService<S>
+where
+    S: Service<http::Request<Body>, Response = http::Response<Body>> + Clone + Send + 'static,
+    S::Future: Send + 'static,
+{
+    type Response = http::Response<Body>;
+    type Error = S::Error;
+    type Future = BoxFuture<Self::Response, Self::Error>;
+
+    fn poll_ready(&mut self, cx: &mut Context<'_>) -> Poll<Result<(), Self::Error>> {
+        self.inner.poll_ready(cx)
+    }
+
+    fn call(&mut self, req: http::Request<Body>) -> Self::Future {
+        let clone = self.inner.clone();
+        let mut inner = std::mem::replace(&mut self.inner, clone);
+        let metrics = self.metrics.clone();
+        let method: Arc<str> = req.uri().path().trim_start_matches('/').into();
+        let started = Instant::now();
+        Box::pin(async move {
+            let response = inner.call(req).await?;
+            if let Some(code) = status_code(response.headers()) {
+                metrics.record(&method, code, started);
+                return Ok(response);
+            }
+            let (parts, body) = response.into_parts();
+            let body = MeteredBody {
+                inner: body,
+                pending: Some(Pending {
+                    metrics,
+                    method,
+                    started,
+                }),
+            };
+            Ok(http::Response::from_parts(parts, Body::new(body)))
+        })
+    }
+}
+
+struct Pending {
+    metrics: GrpcMetrics,
+    method: Arc<str>,
+    started: Instant,
+}
+
+/// A response body that records the status from its trailers (or CANCELLED when dropped
+/// before them).
+struct MeteredBody {
+    inner: Body,
+    pending: Option<Pending>,
+}
+
+impl MeteredBody {
+    fn record(&mut self, code: Code) {
+        if let Some(p) = self.pending.take() {
+            p.metrics.record(&p.method, code, p.started);
+        }
+    }
+}
+
+impl HttpBody for MeteredBody {
+    type Data = Bytes;
+    type Error = tonic::Status;
+
+    fn poll_frame(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+    ) -> Poll<Option<Result<Frame<Bytes>, Self::Error>>> {
+        let polled = Pin::new(&mut self.inner).poll_frame(cx);
+        match &polled {
+            Poll::Ready(Some(Ok(frame))) => {
+                if let Some(code) = frame.trailers_ref().and_then(status_code) {
+                    self.record(code);
+                }
+            }
+            Poll::Ready(Some(Err(_))) => self.record(Code::Internal),
+            Poll::Ready(None) => self.record(Code::Ok),
+            Poll::Pending => {}
+        }
+        polled
+    }
+
+    fn is_end_stream(&self) -> bool {
+        self.inner.is_end_stream()
+    }
+
+    fn size_hint(&self) -> SizeHint {
+        self.inner.size_hint()
+    }
+}
+
+impl Drop for MeteredBody {
+    fn drop(&mut self) {
+        self.record(Code::Cancelled);
+    }
+}
