@@ -413,6 +413,9 @@ impl JobManager {
                 JobState::Failed | JobState::Cancelled => false,
             };
             if reusable {
+                if st == JobState::Succeeded {
+                    self.inner.metrics.cache_hits.inc();
+                }
                 return Some(Submitted {
                     handle: self.handle(e.clone()),
                     cached: st == JobState::Succeeded,
@@ -420,6 +423,7 @@ impl JobManager {
             }
         }
         let bytes = self.inner.cache.get(id)?;
+        self.inner.metrics.cache_hits.inc();
         let entry = self.new_entry(tenant, JobSnapshot::from_cache(id, method, bytes), None);
         self.insert_locked(reg, entry.clone());
         Some(Submitted {
@@ -428,13 +432,18 @@ impl JobManager {
         })
     }
 
-    /// `tenant`'s job with this id (in any state), or a cached result. Another tenant's job is
-    /// `None`, exactly like an unknown id; a cached result computed for anyone is returned (the
-    /// caller proved it knows the content hash, i.e. it can compute the same request).
+    /// `tenant`'s job with this id (in any state). Another tenant's job is `None`, exactly like
+    /// an unknown id: knowing an id (from a log line, say) gives no access. Without
+    /// authentication (the default tenant `""`) a result in the cache without a record (e.g.
+    /// after a restart) is returned as a succeeded job; an authenticated tenant reaches such a
+    /// result by resubmitting its request, which is a cache hit.
     pub fn get(&self, tenant: &str, id: &str) -> Option<JobHandle> {
         let mut reg = self.inner.registry();
         if let Some(e) = reg.jobs.get(&(tenant.to_string(), id.to_string())) {
             return Some(self.handle(e.clone()));
+        }
+        if !tenant.is_empty() {
+            return None;
         }
         let bytes = self.inner.cache.get(id)?;
         let entry = self.new_entry(tenant, JobSnapshot::from_cache(id, "", bytes), None);
@@ -467,6 +476,7 @@ impl JobManager {
         let entry = self.new_entry(tenant, JobSnapshot::queued(id, method), Some(work));
         self.insert_locked(&mut reg, entry.clone());
         reg.queue.push(entry.clone());
+        self.inner.metrics.cache_misses.inc();
         drop(reg);
         self.inner.queue_cv.notify_one();
         tracing::info!(%id, %method, %tenant, "job queued");
@@ -549,8 +559,10 @@ impl JobManager {
             }
         }
         self.inner.queue_cv.notify_all();
-        // Running jobs stop at their next checkpoint; wait briefly so their state is final.
-        let deadline = Instant::now() + Duration::from_secs(5);
+        // Running jobs stop at their next checkpoint (every stage checks within 250 ms); wait
+        // briefly so their state is final, but never so long that the process overstays its
+        // grace period by more than a second.
+        let deadline = Instant::now() + Duration::from_millis(750);
         while self.inner.running.load(Ordering::SeqCst) > 0 {
             let notified = self.inner.idle.notified();
             let left = deadline.saturating_duration_since(Instant::now());

@@ -38,6 +38,10 @@ pub struct JobMetrics {
     pub job_duration_seconds: Family<MethodLabel, Histogram, fn() -> Histogram>,
     /// Time from acceptance to a worker starting the job, seconds.
     pub queue_wait_seconds: Family<MethodLabel, Histogram, fn() -> Histogram>,
+    /// Submissions answered with a finished result (a record or the result cache).
+    pub cache_hits: Counter,
+    /// Submissions that queued a new computation.
+    pub cache_misses: Counter,
 }
 
 impl Default for JobMetrics {
@@ -46,6 +50,8 @@ impl Default for JobMetrics {
             jobs_total: Family::default(),
             job_duration_seconds: Family::new_with_constructor(seconds_histogram),
             queue_wait_seconds: Family::new_with_constructor(seconds_histogram),
+            cache_hits: Counter::default(),
+            cache_misses: Counter::default(),
         }
     }
 }
@@ -67,6 +73,16 @@ impl JobMetrics {
             "queue_wait_seconds",
             "Time jobs waited in the queue before a worker started them, by method",
             self.queue_wait_seconds.clone(),
+        );
+        registry.register(
+            "cache_hits",
+            "Submissions answered with an already computed result, without recomputation",
+            self.cache_hits.clone(),
+        );
+        registry.register(
+            "cache_misses",
+            "Submissions that queued a new computation",
+            self.cache_misses.clone(),
         );
     }
 

@@ -402,12 +402,13 @@ pub fn photometric_stereo(
                     normals: shape_normals.clone(),
                     mask: mask.clone(),
                 };
-                let kernel = ForwardKernel::build_with(
+                let kernel = ForwardKernel::build_monitored(
                     ft,
                     &medium,
                     &geom,
                     &params.kernel_layout()?,
                     params.far_field,
+                    monitor,
                 )?;
                 stats.kernel_s = t.elapsed().as_secs_f64();
                 stats.kernel_bytes = kernel.bytes();

@@ -27,6 +27,7 @@ use rayon::prelude::*;
 use super::f_table::FTable;
 use super::forward_kernel::{k_entry_fast, Pre};
 use super::{KernelLayout, Medium};
+use crate::monitor::Monitor;
 
 /// How the forward scatter from outside the support S(p) enters the system of Eq. 4.52.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -121,6 +122,7 @@ pub(super) fn outside_support_kappa(
     mask: &[bool],
     (w, h): (usize, usize),
     layout: &KernelLayout,
+    monitor: &Monitor,
 ) -> Vec<f64> {
     let (beta, sigma) = (medium.beta_per_mm, medium.sigma_per_mm);
     let s = layout.cell().max(1);
@@ -135,6 +137,10 @@ pub(super) fn outside_support_kappa(
     let kappa_cell: Vec<f64> = (0..fw * fh)
         .into_par_iter()
         .map(|c| {
+            // A cancelled build discards κ; stop spending time on it.
+            if monitor.is_cancelled() {
+                return 0.0;
+            }
             let Some(p) = fine[c] else { return 0.0 };
             let (pcx, pcy) = ((c % fw) as isize, (c / fw) as isize);
             let (x0, x1, y0, y1) = (pcx - hw, pcx + hw, pcy - hw, pcy + hw);

@@ -30,6 +30,7 @@ use super::kernel_layout::KernelLayout;
 use super::Medium;
 use crate::camera::Intrinsics;
 use crate::error::{MurkError, Result};
+use crate::monitor::Monitor;
 
 /// Lower clamp of v_q·n_q in the facet area of Eq. 4.44 (≈ 87°).
 pub const MIN_COS_VIEW: f64 = 0.05;
@@ -372,6 +373,21 @@ impl ForwardKernel {
         layout: &KernelLayout,
         far_field: FarField,
     ) -> Result<ForwardKernel> {
+        Self::build_monitored(ft, medium, geom, layout, far_field, &Monitor::noop())
+    }
+
+    /// [`ForwardKernel::build_with`] that stops with [`MurkError::Cancelled`] soon after
+    /// `monitor` is cancelled: the build is seconds of one parallel loop at r = 81, so every
+    /// pixel's row (a few µs to ms of work) first checks the flag, and a cancelled build skips
+    /// the rest instead of finishing it.
+    pub fn build_monitored(
+        ft: &FTable,
+        medium: &Medium,
+        geom: &SurfaceGeometry,
+        layout: &KernelLayout,
+        far_field: FarField,
+        monitor: &Monitor,
+    ) -> Result<ForwardKernel> {
         medium.validate()?;
         geom.validate()?;
         let (w, h) = (geom.width, geom.height);
@@ -419,7 +435,9 @@ impl ForwardKernel {
         let (far_coeff, kappa_mean) = match far_field {
             FarField::ConstantEpsilon => (vec![1.0; masked.len()], 0.0),
             FarField::PerPixel => {
-                let kappa = outside_support_kappa(ft, medium, &pre, &geom.mask, (w, h), layout);
+                let kappa =
+                    outside_support_kappa(ft, medium, &pre, &geom.mask, (w, h), layout, monitor);
+                monitor.checkpoint()?;
                 let kappa: Vec<f64> = masked.iter().map(|&p| kappa[p as usize]).collect();
                 let mean = kappa.iter().sum::<f64>() / kappa.len().max(1) as f64;
                 if mean > 0.0 {
@@ -441,6 +459,9 @@ impl ForwardKernel {
             .zip(masked.par_iter())
             .enumerate()
             .map(|(k, (win, &pi))| {
+                if monitor.is_cancelled() {
+                    return f64::INFINITY;
+                }
                 let pi = pi as usize;
                 let (px, py) = ((pi % w) as isize, (pi / w) as isize);
                 let (pcx, pcy) = (px / si, py / si);
@@ -520,6 +541,7 @@ impl ForwardKernel {
                 min
             })
             .reduce(|| f64::INFINITY, f64::min);
+        monitor.checkpoint()?;
         let epsilon = if epsilon.is_finite() { epsilon } else { 0.0 };
         let total_weight = match far_field {
             FarField::ConstantEpsilon => vec![epsilon; masked.len()],
