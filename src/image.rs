@@ -140,6 +140,43 @@ impl ImageF32 {
         Ok(())
     }
 
+    /// The image as one channel, for inputs that are single-channel by nature (ToF amplitude
+    /// and phase, photometric-stereo images and masks). The rule: one channel is kept; grey +
+    /// alpha (2 channels) keeps the grey channel; RGB or RGBA (3 or 4 channels) is accepted when
+    /// R, G and B are equal at every pixel (a grey image saved as colour) and gives that
+    /// channel, alpha ignored. Differing colour channels are an error naming the first pixel
+    /// where they differ, since averaging them would silently change the measurement.
+    pub fn into_mono(self) -> Result<ImageF32> {
+        match self.channels {
+            1 => Ok(self),
+            2 => Ok(self.channel(0)),
+            3 | 4 => {
+                let c = self.channels;
+                let differs = self.data.chunks_exact(c).position(|px| {
+                    px[0].to_bits() != px[1].to_bits() || px[0].to_bits() != px[2].to_bits()
+                });
+                match differs {
+                    None => Ok(self.channel(0)),
+                    Some(i) => Err(MurkError::invalid(
+                        "",
+                        format!(
+                            "a single-channel image is needed; this one has {c} channels whose \
+                             R, G, B differ (first at pixel ({}, {})). Store it as one channel \
+                             (grey PNG/TIFF, OpenEXR `Y`, `Z`, `R` or any single channel) or as \
+                             three equal channels",
+                            i % self.width,
+                            i / self.width
+                        ),
+                    )),
+                }
+            }
+            c => Err(MurkError::invalid(
+                "",
+                format!("a single-channel image is needed; this one has {c} channels"),
+            )),
+        }
+    }
+
     /// Single channel `ch` as a new one-channel image.
     pub fn channel(&self, ch: usize) -> ImageF32 {
         let data = self
@@ -159,6 +196,21 @@ impl ImageF32 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn into_mono_accepts_equal_colour_channels_only() {
+        let grey = ImageF32::from_vec(2, 1, 3, vec![0.5, 0.5, 0.5, 0.25, 0.25, 0.25]).unwrap();
+        assert_eq!(grey.into_mono().unwrap().data(), &[0.5, 0.25]);
+        let rgba = ImageF32::from_vec(1, 1, 4, vec![0.5, 0.5, 0.5, 1.0]).unwrap();
+        assert_eq!(rgba.into_mono().unwrap().data(), &[0.5]);
+        let ya = ImageF32::from_vec(1, 1, 2, vec![0.7, 1.0]).unwrap();
+        assert_eq!(ya.into_mono().unwrap().data(), &[0.7]);
+        let colour = ImageF32::from_vec(2, 1, 3, vec![0.5, 0.5, 0.5, 0.2, 0.3, 0.2]).unwrap();
+        let e = colour.into_mono().unwrap_err().to_string();
+        assert!(e.contains("(1, 0)"), "{e}");
+        let one = ImageF32::filled(2, 2, 1, 3.0);
+        assert_eq!(one.clone().into_mono().unwrap(), one);
+    }
 
     #[test]
     fn rejects_wrong_length_and_zero_size() {

@@ -640,3 +640,65 @@ async fn reflection_resolves_the_google_rpc_error_details() {
     }
     server.stop().await.unwrap();
 }
+
+/// The f32 samples of a raw single-channel image message.
+fn raw_samples(img: &pb::Image) -> Vec<f32> {
+    let Some(pb::image::Data::RawF32Le(bytes)) = &img.data else {
+        panic!("raw image expected");
+    };
+    bytes
+        .chunks_exact(4)
+        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+        .collect()
+}
+
+#[tokio::test]
+async fn mono_inputs_as_equal_colour_channels_or_float32_tiff_are_accepted() {
+    let server = start(config(4)).await;
+    let mut c = recon(&server);
+    let reference = c
+        .tof_depth(tof_request(32, 24, 6))
+        .await
+        .unwrap()
+        .into_inner();
+
+    let mut req = tof_request(32, 24, 6);
+    // Amplitude as three equal planes (raw is planar: all of R, then G, then B).
+    let amp = req.amplitude.as_mut().unwrap();
+    let a = raw_samples(amp);
+    amp.channels = 3;
+    amp.data = Some(pb::image::Data::RawF32Le(
+        a.iter()
+            .chain(&a)
+            .chain(&a)
+            .flat_map(|v| v.to_le_bytes())
+            .collect(),
+    ));
+    // Phase as a greyscale float32 TIFF, the usual layout of phase and depth maps.
+    let ph = req.phase.as_mut().unwrap();
+    let p = raw_samples(ph);
+    let mut tif = std::io::Cursor::new(Vec::new());
+    tiff::encoder::TiffEncoder::new(&mut tif)
+        .unwrap()
+        .write_image::<tiff::encoder::colortype::Gray32Float>(32, 24, &p)
+        .unwrap();
+    ph.data = Some(pb::image::Data::Encoded(tif.into_inner()));
+    let same = c
+        .tof_depth(req.clone())
+        .await
+        .expect("accepted")
+        .into_inner();
+    assert_eq!(same.range_m, reference.range_m, "same input, same depth");
+
+    // Colour channels that differ are refused, naming the field.
+    let amp = req.amplitude.as_mut().unwrap();
+    let mut planes: Vec<f32> = a.iter().chain(&a).chain(&a).copied().collect();
+    planes[a.len() + 5] += 0.25;
+    amp.data = Some(pb::image::Data::RawF32Le(
+        planes.iter().flat_map(|v| v.to_le_bytes()).collect(),
+    ));
+    let e = c.tof_depth(req).await.unwrap_err();
+    assert_eq!(e.code(), Code::InvalidArgument);
+    assert!(e.message().contains("amplitude"), "{e:?}");
+    server.stop().await.unwrap();
+}

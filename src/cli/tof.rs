@@ -73,8 +73,8 @@ pub fn run(a: TofArgs) -> anyhow::Result<()> {
             bail!("give --frame DIR, or --amplitude and --phase");
         };
         (
-            read_image(ap, &limits)?,
-            read_image(pp, &limits)?,
+            read_image(ap, &limits)?.into_mono()?,
+            read_image(pp, &limits)?.into_mono()?,
             None,
             None,
             None,

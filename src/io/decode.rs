@@ -139,9 +139,12 @@ pub fn decode_image(bytes: &[u8], limits: &DecodeLimits) -> Result<ImageF32> {
         ImageFormat::Png => png_complete(bytes)
             .and_then(|_| PngDecoder::new(Cursor::new(bytes)).map_err(|e| image_error(format, e)))
             .and_then(|d| decode_with(d, format, limits)),
-        ImageFormat::Tiff => TiffDecoder::new(Cursor::new(bytes))
-            .map_err(|e| image_error(format, e))
-            .and_then(|d| decode_with(d, format, limits)),
+        ImageFormat::Tiff => match float_grey_tiff(bytes, limits) {
+            Some(r) => r,
+            None => TiffDecoder::new(Cursor::new(bytes))
+                .map_err(|e| image_error(format, e))
+                .and_then(|d| decode_with(d, format, limits)),
+        },
         ImageFormat::Exr => super::exr::decode_exr(bytes, limits),
     }));
     decoded.unwrap_or_else(|_| {
@@ -206,6 +209,45 @@ fn image_error(format: ImageFormat, e: ImageError) -> MurkError {
         }
         other => MurkError::invalid("", format!("corrupt or unsupported {format} data: {other}")),
     }
+}
+
+/// Single-channel floating-point TIFF (32- or 64-bit IEEE samples: the usual layout of depth,
+/// range and phase maps), which the `image` crate does not decode; `None` for every other TIFF.
+fn float_grey_tiff(bytes: &[u8], limits: &DecodeLimits) -> Option<Result<ImageF32>> {
+    use tiff::decoder::{Decoder, DecodingResult};
+    use tiff::tags::{SampleFormat, Tag};
+    let mut d = Decoder::new(Cursor::new(bytes)).ok()?;
+    let bits = match d.colortype().ok()? {
+        tiff::ColorType::Gray(b @ (32 | 64)) => b,
+        _ => return None,
+    };
+    let float = d
+        .get_tag_u32(Tag::SampleFormat)
+        .is_ok_and(|f| f == SampleFormat::IEEEFP.to_u16() as u32);
+    if !float {
+        return None;
+    }
+    let fail = |e: tiff::TiffError| MurkError::invalid("", format!("corrupt TIFF data: {e}"));
+    Some((|| {
+        let (w, h) = d.dimensions().map_err(fail)?;
+        limits.check(u64::from(w), u64::from(h), 1)?;
+        let mut lim = tiff::decoder::Limits::default();
+        let budget = (limits.max_output_bytes().saturating_mul(2) as usize).max(64 << 20);
+        lim.decoding_buffer_size = budget;
+        lim.intermediate_buffer_size = budget;
+        let mut d = d.with_limits(lim);
+        let data: Vec<f32> = match d.read_image().map_err(fail)? {
+            DecodingResult::F32(v) => v,
+            DecodingResult::F64(v) => v.into_iter().map(|x| x as f32).collect(),
+            _ => {
+                return Err(MurkError::invalid(
+                    "",
+                    format!("unsupported {bits}-bit floating-point TIFF layout"),
+                ))
+            }
+        };
+        ImageF32::from_vec(w as usize, h as usize, 1, data)
+    })())
 }
 
 fn decode_with(
@@ -342,6 +384,23 @@ mod tests {
             .unwrap();
         let img = decode_image(&out.into_inner(), &lim).unwrap();
         assert_eq!(img.data(), &f[..]);
+
+        // Greyscale float32, the usual layout of depth and phase maps.
+        let mut out = Cursor::new(Vec::new());
+        tiff::encoder::TiffEncoder::new(&mut out)
+            .unwrap()
+            .write_image::<tiff::encoder::colortype::Gray32Float>(3, 2, &f)
+            .unwrap();
+        let bytes = out.into_inner();
+        let img = decode_image(&bytes, &lim).unwrap();
+        assert_eq!((img.width(), img.height(), img.channels()), (3, 2, 1));
+        assert_eq!(img.data(), &f[..]);
+        let tight = DecodeLimits {
+            max_pixels: 5,
+            ..lim
+        };
+        assert!(decode_image(&bytes, &tight).is_err(), "limits apply");
+        assert!(decode_image(&bytes[..bytes.len() - 7], &lim).is_err());
     }
 
     #[test]

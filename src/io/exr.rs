@@ -2,8 +2,9 @@
 //!
 //! Channel mapping, both ways: 1 channel ↔ `Y`; 2 ↔ `Y, A`; 3 ↔ `R, G, B`; 4 ↔ `R, G, B, A`.
 //! On reading, a layer with `R`, `G`, `B` yields `R, G, B` (+ `A` if present); otherwise one with
-//! `Y` yields `Y` (+ `A`); otherwise a layer with exactly one channel of any name (`Z`, `depth`, …)
-//! yields that channel. Other channels are ignored. Half, float and uint samples are converted to
+//! `Y` yields `Y` (+ `A`); otherwise one with `Z` (a depth layer) yields `Z`; otherwise one with
+//! `R` but no `G`/`B` (a red-only mono export) yields `R`; otherwise a layer with exactly one
+//! channel of any name (`depth`, …) yields that channel. Other channels are ignored. Half, float and uint samples are converted to
 //! f32 unchanged. Only the first layer's largest resolution level and its data window are read.
 
 use std::io::Cursor;
@@ -116,12 +117,16 @@ fn select_channels(names: &[String]) -> Result<Vec<String>> {
         vec!["R".into(), "G".into(), "B".into()]
     } else if has("Y") {
         vec!["Y".into()]
+    } else if has("Z") {
+        return Ok(vec!["Z".into()]);
+    } else if has("R") && !has("G") && !has("B") {
+        vec!["R".into()]
     } else if names.len() == 1 {
         return Ok(names.to_vec());
     } else {
         return Err(MurkError::invalid(
             "",
-            format!("OpenEXR channels {names:?}: expected Y, R/G/B, or a single channel"),
+            format!("OpenEXR channels {names:?}: expected Y, R/G/B, Z, R, or a single channel"),
         ));
     };
     if has("A") {
@@ -217,6 +222,13 @@ mod tests {
         let img = decode_image(&out.into_inner(), &DecodeLimits::default()).unwrap();
         assert_eq!(img.data(), &[1.0, 2.0]);
         assert!(select_channels(&["U".into(), "V".into()]).is_err());
+        let names = |v: &[&str]| v.iter().map(|s| s.to_string()).collect::<Vec<_>>();
+        assert_eq!(select_channels(&names(&["A", "Z"])).unwrap(), ["Z"]);
+        assert_eq!(select_channels(&names(&["A", "R"])).unwrap(), ["R", "A"]);
+        assert_eq!(
+            select_channels(&names(&["B", "G", "R", "Z"])).unwrap(),
+            ["R", "G", "B"]
+        );
         assert!(encode_exr(&ImageF32::filled(1, 1, 5, 0.0)).is_err());
     }
 }

@@ -25,7 +25,20 @@ impl Default for ImageLimits {
 
 /// Decodes a request image. Errors name sub-fields relative to the image (`width`,
 /// `raw_f32_le`, `encoded`, ...); callers prefix the image's own field name.
+/// [`image_from_proto`] for inputs that are single-channel by nature, under the rule of
+/// [`ImageF32::into_mono`] (3 equal channels are one): the declared `channels` may be 1 for such
+/// a file.
+pub fn mono_image_from_proto(img: &pb::Image, limits: &ImageLimits) -> Result<ImageF32> {
+    decode_proto(img, limits, true)?.into_mono()
+}
+
+/// Decodes (or unpacks) an image message, checking declared sizes and limits, and applies its
+/// value mapping.
 pub fn image_from_proto(img: &pb::Image, limits: &ImageLimits) -> Result<ImageF32> {
+    decode_proto(img, limits, false)
+}
+
+fn decode_proto(img: &pb::Image, limits: &ImageLimits, mono: bool) -> Result<ImageF32> {
     let decoded = match &img.data {
         None => {
             return Err(MurkError::invalid(
@@ -45,7 +58,9 @@ pub fn image_from_proto(img: &pb::Image, limits: &ImageLimits) -> Result<ImageF3
                 ("height", img.height as usize, decoded.height()),
                 ("channels", img.channels as usize, decoded.channels()),
             ] {
-                if declared != 0 && declared != actual {
+                // A mono input may declare 1 channel for a file with equal colour channels.
+                let mono_ok = mono && name == "channels" && declared == 1;
+                if declared != 0 && declared != actual && !mono_ok {
                     return Err(MurkError::invalid(
                         name,
                         format!("declared {declared} but the encoded image has {actual}"),

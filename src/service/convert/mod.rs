@@ -7,7 +7,7 @@ mod params;
 mod ps;
 mod tof;
 
-pub use image::{image_from_proto, image_to_proto, ImageLimits};
+pub use image::{image_from_proto, image_to_proto, mono_image_from_proto, ImageLimits};
 pub use job::{job_to_proto, timestamp};
 pub use mvs::{
     canonicalize_mvs_request, mvs_from_proto, mvs_request_to_proto, mvs_to_proto, pose_from_proto,

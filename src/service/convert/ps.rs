@@ -1,7 +1,7 @@
 //! `PhotometricStereoRequest` → ([`PsCapture`], [`PsParams`]) and [`PsResult`] →
 //! `PhotometricStereoResult`.
 
-use super::image::{image_from_proto, image_to_proto, ImageLimits};
+use super::image::{image_from_proto, image_to_proto, mono_image_from_proto, ImageLimits};
 use super::tof::{intrinsics_from_proto, intrinsics_to_proto};
 use crate::error::{MurkError, Result};
 use crate::image::ImageF32;
@@ -46,7 +46,9 @@ pub fn ps_from_proto(
             let img = img
                 .as_ref()
                 .ok_or_else(|| MurkError::invalid(field(name), "required"))
-                .and_then(|im| image_from_proto(im, limits).map_err(|e| e.within(&field(name))))?;
+                .and_then(|im| {
+                    mono_image_from_proto(im, limits).map_err(|e| e.within(&field(name)))
+                })?;
             Ok(img)
         };
         for (name, list) in [("image", &mut images), ("background", &mut backgrounds)] {
@@ -84,7 +86,7 @@ pub fn ps_from_proto(
         .mask
         .as_ref()
         .ok_or_else(|| MurkError::invalid("mask", "required"))
-        .and_then(|i| image_from_proto(i, limits).map_err(|e| e.within("mask")))?;
+        .and_then(|i| mono_image_from_proto(i, limits).map_err(|e| e.within("mask")))?;
     mask_img.ensure_channels(1).map_err(|e| e.within("mask"))?;
     mask_img.ensure_finite().map_err(|e| e.within("mask"))?;
     let (w, h) = dims.unwrap_or((0, 0));

@@ -1,6 +1,6 @@
 //! `TofDepthRequest` → ([`TofInput`], [`TofParams`]) and [`TofOutput`] → `TofDepthResult`.
 
-use super::image::{image_from_proto, image_to_proto, ImageLimits};
+use super::image::{image_to_proto, mono_image_from_proto, ImageLimits};
 use crate::camera::Intrinsics;
 use crate::error::{MurkError, Result};
 use crate::image::ImageF32;
@@ -16,12 +16,12 @@ pub fn tof_from_proto(
         .amplitude
         .as_ref()
         .ok_or_else(|| MurkError::invalid("amplitude", "required"))
-        .and_then(|i| image_from_proto(i, limits).map_err(|e| e.within("amplitude")))?;
+        .and_then(|i| mono_image_from_proto(i, limits).map_err(|e| e.within("amplitude")))?;
     let phase = req
         .phase
         .as_ref()
         .ok_or_else(|| MurkError::invalid("phase", "required"))
-        .and_then(|i| image_from_proto(i, limits).map_err(|e| e.within("phase")))?;
+        .and_then(|i| mono_image_from_proto(i, limits).map_err(|e| e.within("phase")))?;
     let intrinsics = req.intrinsics.as_ref().map(intrinsics_from_proto);
     let input = TofInput {
         amplitude,
