@@ -1,11 +1,13 @@
 //! Service overhead: a cache-hit round trip over loopback (SubmitJob of an already computed
-//! request: hashing, cache lookup, result encoding, HTTP/2 transfer, client decoding).
+//! request: hashing, cache lookup, result encoding, HTTP/2 transfer, client decoding), through
+//! the request-metrics and request-id layers, without and with bearer-token authentication.
 //!
 //! cargo bench --bench service
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use murk::jobs::JobsConfig;
 use murk::server::{InProcessServer, ServerConfig};
+use murk::service::auth::TokenStore;
 use murk::service::convert::tof_request_to_proto;
 use murk::service::proto::v1 as pb;
 use murk::simulate::tof::{simulate_tof, TofSimConfig};
@@ -35,7 +37,14 @@ fn request(width: usize, height: usize) -> pb::SubmitJobRequest {
     }
 }
 
+const TOKEN: &str = "bench-token-0123456789abcdef";
+
 fn cache_hit_round_trip(c: &mut Criterion) {
+    round_trips(c, "cache_hit_round_trip", false);
+    round_trips(c, "cache_hit_round_trip_auth", true);
+}
+
+fn round_trips(c: &mut Criterion, name: &str, auth: bool) {
     let rt = tokio::runtime::Runtime::new().expect("runtime");
     let server = rt
         .block_on(InProcessServer::start(ServerConfig {
@@ -43,9 +52,26 @@ fn cache_hit_round_trip(c: &mut Criterion) {
                 workers: 2,
                 ..JobsConfig::default()
             },
+            // The client below accepts any size: measure the full result in the response, as
+            // before the unary result limit existed.
+            max_unary_result_bytes: usize::MAX,
+            auth: auth.then(|| {
+                TokenStore::from_text(&format!("a {TOKEN}\nb other-token-0123456789\n"))
+                    .expect("tokens")
+            }),
             ..ServerConfig::default()
         }))
         .expect("server");
+    let with_token = move |req: pb::SubmitJobRequest| {
+        let mut r = tonic::Request::new(req);
+        if auth {
+            r.metadata_mut().insert(
+                "authorization",
+                format!("Bearer {TOKEN}").parse().expect("header"),
+            );
+        }
+        r
+    };
     // The lazy channel spawns its connection task on the current runtime.
     let _enter = rt.enter();
     let channel = Endpoint::from_shared(server.url())
@@ -55,7 +81,7 @@ fn cache_hit_round_trip(c: &mut Criterion) {
         .max_decoding_message_size(usize::MAX)
         .max_encoding_message_size(usize::MAX);
 
-    let mut group = c.benchmark_group("cache_hit_round_trip");
+    let mut group = c.benchmark_group(name);
     group.sample_size(20);
     for (label, w, h) in [("64x53", 64, 53), ("512x424", 512, 424)] {
         let req = request(w, h);
@@ -63,15 +89,12 @@ fn cache_hit_round_trip(c: &mut Criterion) {
         rt.block_on(async {
             let mut cl = client.clone();
             let job = cl
-                .submit_job(req.clone())
+                .submit_job(with_token(req.clone()))
                 .await
                 .expect("submit")
                 .into_inner();
             let mut s = cl
-                .watch_job(pb::WatchJobRequest {
-                    id: job.id,
-                    omit_result: true,
-                })
+                .watch_job(with_token_watch(auth, job.id))
                 .await
                 .expect("watch")
                 .into_inner();
@@ -83,7 +106,11 @@ fn cache_hit_round_trip(c: &mut Criterion) {
                 let mut cl = client.clone();
                 let req = req.clone();
                 async move {
-                    let job = cl.submit_job(req).await.expect("submit").into_inner();
+                    let job = cl
+                        .submit_job(with_token(req))
+                        .await
+                        .expect("submit")
+                        .into_inner();
                     assert!(job.cached);
                     job
                 }
@@ -93,6 +120,20 @@ fn cache_hit_round_trip(c: &mut Criterion) {
     }
     group.finish();
     rt.block_on(server.stop()).expect("stop");
+}
+
+fn with_token_watch(auth: bool, id: String) -> tonic::Request<pb::WatchJobRequest> {
+    let mut r = tonic::Request::new(pb::WatchJobRequest {
+        id,
+        omit_result: true,
+    });
+    if auth {
+        r.metadata_mut().insert(
+            "authorization",
+            format!("Bearer {TOKEN}").parse().expect("header"),
+        );
+    }
+    r
 }
 
 criterion_group!(benches, cache_hit_round_trip);

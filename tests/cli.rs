@@ -6,6 +6,7 @@ mod common;
 use std::process::Command;
 
 use common::*;
+use murk::service::proto::v1 as pb;
 
 fn murk() -> Command {
     Command::new(env!("CARGO_BIN_EXE_murk"))
@@ -71,14 +72,95 @@ async fn simulate_then_tof_client_writes_outputs() {
 }
 
 #[tokio::test]
-async fn graceful_shutdown_cancels_running_jobs_after_the_grace_period() {
+async fn graceful_shutdown_aborts_running_jobs_retryably_after_the_grace_period() {
     let server = start(config(4)).await;
     let mut c = jobs(&server);
     let id = submit_running_long_job(&mut c).await;
     let manager = server.manager().clone();
     server.stop().await.unwrap();
     let snap = manager.get("", &id).unwrap().snapshot();
-    assert_eq!(snap.state, murk::jobs::JobState::Cancelled);
+    // Stopped by the server, not cancelled by anyone: FAILED with a retryable error.
+    assert_eq!(snap.state, murk::jobs::JobState::Failed);
+    assert_eq!(snap.error, Some(murk::MurkError::ShuttingDown));
+}
+
+/// `murk serve` as a separate process on an ephemeral port: the bound address from its log.
+fn spawn_server(extra: &[&str]) -> (std::process::Child, String) {
+    use std::io::BufRead;
+    let mut child = murk()
+        .args(["serve", "--addr", "127.0.0.1:0", "--workers", "2"])
+        .args(extra)
+        .env("MURK_LOG", "info")
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let stderr = child.stderr.take().unwrap();
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        let mut sent = false;
+        for line in std::io::BufReader::new(stderr)
+            .lines()
+            .map_while(Result::ok)
+        {
+            if !sent && line.contains("murk serving") {
+                let addr = line
+                    .split_whitespace()
+                    .find_map(|w| w.strip_prefix("addr="))
+                    .map(str::to_string);
+                let _ = tx.send(addr);
+                sent = true;
+            }
+        }
+    });
+    let addr = rx
+        .recv_timeout(std::time::Duration::from_secs(60))
+        .expect("server started")
+        .expect("address in the log");
+    (child, format!("http://{addr}"))
+}
+
+#[cfg(unix)]
+#[tokio::test]
+async fn sigterm_exits_within_the_grace_period_plus_one_second() {
+    let (mut child, url) = spawn_server(&["--shutdown-grace-secs", "1"]);
+    let mut c = pb::jobs_client::JobsClient::connect(url).await.unwrap();
+    let id = submit_running_long_job(&mut c).await;
+    assert_eq!(id.len(), 64);
+    let sent = std::time::Instant::now();
+    // SAFETY: kill(2) on our own child's pid.
+    assert_eq!(unsafe { libc::kill(child.id() as i32, libc::SIGTERM) }, 0);
+    let status = tokio::task::spawn_blocking(move || child.wait())
+        .await
+        .unwrap()
+        .unwrap();
+    let took = sent.elapsed();
+    assert!(status.success(), "{status:?}");
+    assert!(
+        took < std::time::Duration::from_secs(2),
+        "exit took {took:?} with a 1 s grace period"
+    );
+}
+
+#[test]
+fn exposing_an_unauthenticated_server_needs_an_explicit_flag() {
+    let out = murk()
+        .args(["serve", "--addr", "0.0.0.0:0"])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("--allow-unauthenticated"), "{err}");
+    let bad_log = murk()
+        .args(["serve"])
+        .env("MURK_LOG", "json")
+        .output()
+        .unwrap();
+    assert!(!bad_log.status.success());
+    assert!(
+        String::from_utf8_lossy(&bad_log.stderr).contains("--log-format"),
+        "{}",
+        String::from_utf8_lossy(&bad_log.stderr)
+    );
 }
 
 #[test]

@@ -14,7 +14,7 @@ use sha2::{Digest, Sha256};
 use tonic::metadata::{Ascii, MetadataValue};
 use tonic::service::interceptor::InterceptedService;
 use tonic::service::Interceptor;
-use tonic::transport::{Channel, Endpoint};
+use tonic::transport::{Certificate, Channel, ClientTlsConfig, Endpoint, Identity};
 
 use murk::service::proto::v1 as pb;
 use pb::jobs_client::JobsClient;
@@ -35,11 +35,34 @@ impl Interceptor for BearerToken {
 /// The Jobs client of the CLI.
 pub type Client = JobsClient<InterceptedService<Channel, BearerToken>>;
 
-/// Connects to `url`, sending `MURK_TOKEN` as bearer token when set.
+/// Connects to `url`, sending `MURK_TOKEN` as bearer token when set. An `https://` URL uses TLS
+/// with the CA certificate(s) in the PEM file `MURK_TLS_CA` (and, for mutual TLS, the client
+/// certificate and key in `MURK_TLS_CLIENT_CERT` / `MURK_TLS_CLIENT_KEY`).
 pub async fn connect(url: &str) -> anyhow::Result<Client> {
-    let channel = Endpoint::from_shared(url.to_string())
+    let mut endpoint = Endpoint::from_shared(url.to_string())
         .with_context(|| format!("bad server url {url}"))?
-        .connect_timeout(Duration::from_secs(10))
+        .connect_timeout(Duration::from_secs(10));
+    if url.starts_with("https://") {
+        let pem = |var: &str| -> anyhow::Result<Option<Vec<u8>>> {
+            match std::env::var_os(var) {
+                Some(p) => {
+                    Ok(Some(std::fs::read(&p).with_context(|| {
+                        format!("{var}={}", p.to_string_lossy())
+                    })?))
+                }
+                None => Ok(None),
+            }
+        };
+        let ca = pem("MURK_TLS_CA")?
+            .ok_or_else(|| anyhow!("an https:// server needs MURK_TLS_CA (a PEM CA file)"))?;
+        let mut tls = ClientTlsConfig::new().ca_certificate(Certificate::from_pem(ca));
+        if let (Some(cert), Some(key)) = (pem("MURK_TLS_CLIENT_CERT")?, pem("MURK_TLS_CLIENT_KEY")?)
+        {
+            tls = tls.identity(Identity::from_pem(cert, key));
+        }
+        endpoint = endpoint.tls_config(tls).context("TLS configuration")?;
+    }
+    let channel = endpoint
         .connect()
         .await
         .with_context(|| format!("connecting to {url}"))?;
