@@ -72,8 +72,9 @@ pub struct ServeArgs {
     /// Seconds to drain jobs on SIGTERM/Ctrl-C before cancelling them.
     #[arg(long, env = "MURK_SHUTDOWN_GRACE_SECS", default_value_t = 10.0)]
     pub shutdown_grace_secs: f64,
-    /// Back-off suggested to clients when the queue is full, milliseconds.
-    #[arg(long, env = "MURK_RETRY_AFTER_MS", default_value_t = 2000)]
+    /// Smallest back-off suggested to clients when the queue is full, milliseconds (the hint is
+    /// the estimated time until a queue slot frees when that is longer, +0–50 % jitter).
+    #[arg(long, env = "MURK_RETRY_AFTER_MS", default_value_t = 500)]
     pub retry_after_ms: u64,
     /// Job records kept for Get/List (results stay in the cache regardless).
     #[arg(long, env = "MURK_MAX_JOB_RECORDS", default_value_t = 10_000)]

@@ -1,5 +1,5 @@
-//! The job manager: a bounded queue (one FIFO per method, dispatched round-robin so short jobs
-//! do not starve behind long ones), dispatcher threads that run jobs on a rayon pool, and the
+//! The job manager: a bounded queue (one FIFO per method, served by least compute time received
+//! so short jobs do not starve behind long ones), dispatcher threads that run jobs on a rayon pool, and the
 //! registry that deduplicates identical requests by their content-hash id.
 //!
 //! Job records belong to a tenant (the authenticated caller; `""` when authentication is off):
@@ -47,8 +47,8 @@ pub struct JobsConfig {
     pub cache_bytes: u64,
     /// Optional directory where results persist across restarts.
     pub cache_dir: Option<PathBuf>,
-    /// Smallest client back-off suggested when the queue is full; the hint grows with the
-    /// estimated queue wait (queued jobs × mean compute time ÷ concurrent jobs), +0–50 % jitter.
+    /// Smallest client back-off suggested when the queue is full; the hint is the estimated
+    /// time until a slot frees when that is longer, +0–50 % jitter.
     pub retry_after: Duration,
     /// Job records kept for Get/List; the oldest terminal ones are forgotten beyond this
     /// (their results stay in the cache).
@@ -63,7 +63,7 @@ impl Default for JobsConfig {
             queue_capacity: 64,
             cache_bytes: 512 << 20,
             cache_dir: None,
-            retry_after: Duration::from_secs(2),
+            retry_after: Duration::from_millis(500),
             max_job_records: 10_000,
         }
     }
@@ -160,43 +160,60 @@ impl JobEntry {
     }
 }
 
-/// Waiting jobs: one FIFO per method, served round-robin.
+/// Waiting jobs: one FIFO per method. The next job comes from the waiting method that has
+/// received the least compute time (fair queuing by time, not by job count): a method of
+/// millisecond jobs is not held to one job per multi-second job of another. A method that comes
+/// back after its queue ran empty starts level with the least-served active method, so idle time
+/// earns no credit.
 #[derive(Default)]
 struct FairQueue {
     by_method: BTreeMap<String, VecDeque<Arc<JobEntry>>>,
-    /// The method served last; the next pop starts after it.
-    last: Option<String>,
+    /// Compute seconds charged to each method.
+    served: HashMap<String, f64>,
     len: usize,
 }
 
 impl FairQueue {
     fn push(&mut self, e: Arc<JobEntry>) {
+        let q = self.by_method.entry(e.method.clone()).or_default();
+        if q.is_empty() {
+            let level = self
+                .by_method
+                .iter()
+                .filter(|(m, q)| !q.is_empty() && **m != e.method)
+                .filter_map(|(m, _)| self.served.get(m))
+                .copied()
+                .fold(f64::INFINITY, f64::min);
+            let own = self.served.entry(e.method.clone()).or_insert(0.0);
+            if level.is_finite() && *own < level {
+                *own = level;
+            }
+        }
         self.by_method
-            .entry(e.method.clone())
-            .or_default()
+            .get_mut(&e.method)
+            .expect("inserted above")
             .push_back(e);
         self.len += 1;
     }
 
     fn pop(&mut self) -> Option<Arc<JobEntry>> {
-        let after = self.last.clone();
+        let served = &self.served;
         let method = self
             .by_method
             .iter()
             .filter(|(_, q)| !q.is_empty())
-            .map(|(m, _)| m)
-            .find(|m| after.as_ref().is_none_or(|a| *m > a))
-            .or_else(|| {
-                self.by_method
-                    .iter()
-                    .find(|(_, q)| !q.is_empty())
-                    .map(|(m, _)| m)
-            })?
+            .map(|(m, _)| (m, served.get(m).copied().unwrap_or(0.0)))
+            .min_by(|a, b| a.1.total_cmp(&b.1))?
+            .0
             .clone();
         let e = self.by_method.get_mut(&method)?.pop_front()?;
         self.len -= 1;
-        self.last = Some(method);
         Some(e)
+    }
+
+    /// Charges `seconds` of compute to `method`.
+    fn charge(&mut self, method: &str, seconds: f64) {
+        *self.served.entry(method.to_string()).or_insert(0.0) += seconds;
     }
 
     fn remove(&mut self, entry: &Arc<JobEntry>) -> bool {
@@ -239,8 +256,10 @@ struct Inner {
     running: AtomicUsize,
     idle: Notify,
     metrics: JobMetrics,
-    /// Exponential moving average of compute time, seconds (f64 bits; 0 = no job yet).
-    mean_job_secs: AtomicU64,
+    /// Exponential moving average of compute time per method, seconds.
+    mean_secs: Mutex<HashMap<String, f64>>,
+    /// Method and start of every job being computed, by dispatcher.
+    in_progress: Mutex<HashMap<usize, (String, Instant)>>,
 }
 
 impl Inner {
@@ -343,13 +362,14 @@ impl JobManager {
             running: AtomicUsize::new(0),
             idle: Notify::new(),
             metrics: JobMetrics::default(),
-            mean_job_secs: AtomicU64::new(0),
+            mean_secs: Mutex::new(HashMap::new()),
+            in_progress: Mutex::new(HashMap::new()),
         });
         for i in 0..concurrent {
             let inner = inner.clone();
             std::thread::Builder::new()
                 .name(format!("murk-dispatch-{i}"))
-                .spawn(move || dispatch_loop(inner))?;
+                .spawn(move || dispatch_loop(inner, i))?;
         }
         Ok(Self { inner })
     }
@@ -468,10 +488,8 @@ impl JobManager {
             return Ok(found);
         }
         if reg.queue.len() >= self.inner.cfg.queue_capacity {
-            return Err(SubmitError::QueueFull {
-                capacity: self.inner.cfg.queue_capacity,
-                retry_after: self.retry_hint(reg.queue.len()),
-            });
+            drop(reg);
+            return Err(self.refusal());
         }
         let entry = self.new_entry(tenant, JobSnapshot::queued(id, method), Some(work));
         self.insert_locked(&mut reg, entry.clone());
@@ -486,18 +504,45 @@ impl JobManager {
         })
     }
 
-    /// The back-off to suggest with `queued` jobs waiting: the estimated time until a slot
-    /// frees (queued × mean compute time ÷ concurrent jobs, at least the configured minimum),
-    /// spread over +0–50 % so refused clients do not come back in one herd (never below the
-    /// configured minimum).
-    fn retry_hint(&self, queued: usize) -> Duration {
-        let mean = f64::from_bits(self.inner.mean_job_secs.load(Ordering::Relaxed));
-        let concurrent = self.inner.cfg.concurrent_jobs.max(1) as f64;
-        let estimate = mean * queued as f64 / concurrent;
+    /// The back-off to suggest when the queue is full: the estimated time until a slot frees,
+    /// i.e. until the first running job ends (its method's mean compute time minus the time it
+    /// has run), at least the configured minimum and at most 5 minutes, spread over +0–50 % so
+    /// refused clients do not come back in one herd. Waiting for the whole queue to drain
+    /// instead would keep clients of short jobs away long after the long ones are done.
+    fn retry_hint(&self) -> Duration {
+        let now = Instant::now();
+        let next_free = {
+            let means = lock(&self.inner.mean_secs);
+            lock(&self.inner.in_progress)
+                .values()
+                .map(|(method, started)| {
+                    let mean = means.get(method).copied().unwrap_or(0.0);
+                    (mean - now.duration_since(*started).as_secs_f64()).max(0.0)
+                })
+                .fold(f64::INFINITY, f64::min)
+        };
         let floor = self.inner.cfg.retry_after.as_secs_f64();
+        let estimate = if next_free.is_finite() {
+            next_free
+        } else {
+            0.0
+        };
         let base = estimate.clamp(floor, floor.max(300.0));
         let jitter = 1.0 + 0.5 * rand::random::<f64>();
         Duration::from_secs_f64(base * jitter)
+    }
+
+    /// The refusal a submission gets while the queue is full, with the current retry hint.
+    pub fn refusal(&self) -> SubmitError {
+        SubmitError::QueueFull {
+            capacity: self.inner.cfg.queue_capacity,
+            retry_after: self.retry_hint(),
+        }
+    }
+
+    /// True when the queue has no free slot (a cheap pre-check before decoding a request).
+    pub fn queue_full(&self) -> bool {
+        self.inner.registry().queue.len() >= self.inner.cfg.queue_capacity
     }
 
     /// Requests cancellation of `tenant`'s job. Queued jobs end at once; running ones at their
@@ -653,18 +698,20 @@ fn finish(
     }
 }
 
-/// Folds one compute time into the moving average behind the retry hint.
-fn record_compute_time(inner: &Inner, seconds: f64) {
-    let old = f64::from_bits(inner.mean_job_secs.load(Ordering::Relaxed));
-    let new = if old == 0.0 {
-        seconds
-    } else {
-        0.8 * old + 0.2 * seconds
-    };
-    inner.mean_job_secs.store(new.to_bits(), Ordering::Relaxed);
+/// Folds one compute time into the method's moving average behind the retry hint.
+fn record_compute_time(inner: &Inner, method: &str, seconds: f64) {
+    lock(&inner.mean_secs)
+        .entry(method.to_string())
+        .and_modify(|m| *m = 0.8 * *m + 0.2 * seconds)
+        .or_insert(seconds);
 }
 
-fn dispatch_loop(inner: Arc<Inner>) {
+/// Locks a mutex whose data stays consistent even if a holder panicked (plain maps of numbers).
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+fn dispatch_loop(inner: Arc<Inner>, slot: usize) {
     loop {
         let entry = {
             let mut reg = inner.registry();
@@ -681,7 +728,14 @@ fn dispatch_loop(inner: Arc<Inner>) {
                 reg = inner.queue_cv.wait(reg).unwrap_or_else(|p| p.into_inner());
             }
         };
+        let started = Instant::now();
+        lock(&inner.in_progress).insert(slot, (entry.method.clone(), started));
         run_job(&inner, &entry);
+        lock(&inner.in_progress).remove(&slot);
+        inner
+            .registry()
+            .queue
+            .charge(&entry.method, started.elapsed().as_secs_f64());
         inner.running.fetch_sub(1, Ordering::SeqCst);
         inner.idle.notify_waiters();
     }
@@ -740,7 +794,7 @@ fn run_job(inner: &Inner, entry: &Arc<JobEntry>) {
     inner.metrics.ran(&entry.method, seconds);
     match outcome {
         Ok(Ok(bytes)) => {
-            record_compute_time(inner, seconds);
+            record_compute_time(inner, &entry.method, seconds);
             let bytes = Arc::new(bytes);
             // Only complete results are cached; a job stopped part-way never is.
             inner.cache.put(&entry.id, bytes.clone());

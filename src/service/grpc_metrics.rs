@@ -7,7 +7,6 @@
 //! its trailers (the client went away mid-stream) counts as CANCELLED.
 
 use std::pin::Pin;
-use std::sync::Arc;
 use std::task::{Context, Poll};
 use std::time::Instant;
 
@@ -25,17 +24,47 @@ use tower::{Layer, Service};
 /// Labels of `murk_grpc_requests_total`.
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
 pub struct RpcCode {
-    /// `package.Service/Method`.
-    pub method: String,
+    /// `package.Service/Method`, or `other` (see [`method_label`]).
+    pub method: &'static str,
     /// gRPC status code name (`OK`, `INVALID_ARGUMENT`, ...).
-    pub code: String,
+    pub code: &'static str,
 }
 
 /// Labels of `murk_grpc_request_duration_seconds`.
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
 pub struct RpcMethod {
-    /// `package.Service/Method`.
-    pub method: String,
+    /// `package.Service/Method`, or `other`.
+    pub method: &'static str,
+}
+
+/// Every RPC the server serves. Paths outside this list are counted as `other`: the layer sits
+/// in front of authentication, so a label per arbitrary path would let anyone grow the metric
+/// set without bound.
+const METHODS: &[&str] = &[
+    "murk.v1.Jobs/SubmitJob",
+    "murk.v1.Jobs/GetJob",
+    "murk.v1.Jobs/WatchJob",
+    "murk.v1.Jobs/CancelJob",
+    "murk.v1.Jobs/ListJobs",
+    "murk.v1.Jobs/GetJobResult",
+    "murk.v1.Reconstruction/TofDepth",
+    "murk.v1.Reconstruction/MvsDepth",
+    "murk.v1.Reconstruction/ScatteringParams",
+    "murk.v1.Reconstruction/PhotometricStereo",
+    "grpc.health.v1.Health/Check",
+    "grpc.health.v1.Health/Watch",
+    "grpc.reflection.v1.ServerReflection/ServerReflectionInfo",
+    "grpc.reflection.v1alpha.ServerReflection/ServerReflectionInfo",
+];
+
+/// The metric label of a request path: the method's name when murk serves it, else `other`.
+pub fn method_label(path: &str) -> &'static str {
+    let name = path.trim_start_matches('/');
+    METHODS
+        .iter()
+        .find(|m| **m == name)
+        .copied()
+        .unwrap_or("other")
 }
 
 fn latency_histogram() -> Histogram {
@@ -74,17 +103,15 @@ impl GrpcMetrics {
         );
     }
 
-    fn record(&self, method: &str, code: Code, started: Instant) {
+    fn record(&self, method: &'static str, code: Code, started: Instant) {
         self.requests
             .get_or_create(&RpcCode {
-                method: method.to_string(),
-                code: code_name(code).to_string(),
+                method,
+                code: code_name(code),
             })
             .inc();
         self.duration
-            .get_or_create(&RpcMethod {
-                method: method.to_string(),
-            })
+            .get_or_create(&RpcMethod { method })
             .observe(started.elapsed().as_secs_f64());
     }
 }
@@ -167,7 +194,7 @@ where
         let clone = self.inner.clone();
         let mut inner = std::mem::replace(&mut self.inner, clone);
         let metrics = self.metrics.clone();
-        let method: Arc<str> = req.uri().path().trim_start_matches('/').into();
+        let method = method_label(req.uri().path());
         let started = Instant::now();
         Box::pin(async move {
             let response = inner.call(req).await?;
@@ -191,7 +218,7 @@ where
 
 struct Pending {
     metrics: GrpcMetrics,
-    method: Arc<str>,
+    method: &'static str,
     started: Instant,
 }
 
@@ -205,7 +232,7 @@ struct MeteredBody {
 impl MeteredBody {
     fn record(&mut self, code: Code) {
         if let Some(p) = self.pending.take() {
-            p.metrics.record(&p.method, code, p.started);
+            p.metrics.record(p.method, code, p.started);
         }
     }
 }
@@ -244,5 +271,20 @@ impl HttpBody for MeteredBody {
 impl Drop for MeteredBody {
     fn drop(&mut self) {
         self.record(Code::Cancelled);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn unknown_paths_share_one_label() {
+        assert_eq!(
+            method_label("/murk.v1.Jobs/SubmitJob"),
+            "murk.v1.Jobs/SubmitJob"
+        );
+        assert_eq!(method_label("/murk.v1.Jobs/Nope"), "other");
+        assert_eq!(method_label("/x/y/z"), "other");
     }
 }

@@ -115,6 +115,10 @@ pub async fn submit(
     if let Some(found) = state.manager.find(tenant, &id, name) {
         return Ok(found);
     }
+    // Under overload, refuse before paying for decoding (the queue is checked again on insert).
+    if state.manager.queue_full() {
+        return Err(submit_status(&state.manager.refusal()));
+    }
     let limits = state.limits;
     let airlight = state.airlight.clone();
     // Decoding megapixel PNG/EXR is CPU work: keep it off the async runtime's threads.
