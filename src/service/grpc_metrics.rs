@@ -199,7 +199,7 @@ where
         Box::pin(async move {
             let response = inner.call(req).await?;
             if let Some(code) = status_code(response.headers()) {
-                metrics.record(&method, code, started);
+                metrics.record(method, code, started);
                 return Ok(response);
             }
             let (parts, body) = response.into_parts();
