@@ -51,7 +51,7 @@ async fn call_until_accepted(url: String, req: Req) -> (f64, usize) {
     let mut refused = 0;
     loop {
         let outcome = match req.clone() {
-            Req::Tof(r) => client.tof_depth(r).await.map(|_| ()),
+            Req::Tof(r) => client.tof_depth(*r).await.map(|_| ()),
             Req::Ps(r) => client.photometric_stereo(*r).await.map(|_| ()),
         };
         match outcome {
@@ -76,7 +76,7 @@ async fn call_until_accepted(url: String, req: Req) -> (f64, usize) {
 
 #[derive(Clone)]
 enum Req {
-    Tof(pb::TofDepthRequest),
+    Tof(Box<pb::TofDepthRequest>),
     Ps(Box<pb::PhotometricStereoRequest>),
 }
 
@@ -157,7 +157,7 @@ fn main() {
         let results: Vec<(f64, usize)> = rt.block_on(async {
             let tasks: Vec<_> = requests
                 .into_iter()
-                .map(|r| tokio::spawn(call_until_accepted(url.clone(), Req::Tof(r))))
+                .map(|r| tokio::spawn(call_until_accepted(url.clone(), Req::Tof(Box::new(r)))))
                 .collect();
             let mut out = Vec::new();
             for t in tasks {
@@ -191,7 +191,7 @@ fn main() {
         }
         let tof_tasks: Vec<_> = tof
             .into_iter()
-            .map(|r| tokio::spawn(call_until_accepted(url.clone(), Req::Tof(r))))
+            .map(|r| tokio::spawn(call_until_accepted(url.clone(), Req::Tof(Box::new(r)))))
             .collect();
         let mut a = Vec::new();
         for t in ps_tasks {
