@@ -100,6 +100,11 @@ impl Collector for JobGauges {
                 "Results held in the in-memory cache",
                 cache.memory_entries as i64,
             ),
+            (
+                "cache_disk_bytes",
+                "Bytes of result files in the cache directory",
+                cache.disk_bytes as i64,
+            ),
         ];
         for (name, help, value) in gauges {
             let g = ConstGauge::new(value);

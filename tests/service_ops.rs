@@ -702,3 +702,51 @@ async fn mono_inputs_as_equal_colour_channels_or_float32_tiff_are_accepted() {
     assert!(e.message().contains("amplitude"), "{e:?}");
     server.stop().await.unwrap();
 }
+
+#[tokio::test]
+async fn a_cache_file_swapped_under_another_job_id_is_not_served() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = config(4);
+    cfg.jobs.cache_dir = Some(dir.path().to_path_buf());
+    let (ra, rb) = (tof_request(40, 30, 7), tof_request(40, 30, 8));
+    let a = start(cfg.clone()).await;
+    let mut c = recon(&a);
+    let res_a = c.tof_depth(ra).await.unwrap();
+    let id_a = res_a
+        .metadata()
+        .get(JOB_ID_HEADER)
+        .unwrap()
+        .to_str()
+        .unwrap()
+        .to_string();
+    let res_b = c.tof_depth(rb.clone()).await.unwrap();
+    let id_b = res_b
+        .metadata()
+        .get(JOB_ID_HEADER)
+        .unwrap()
+        .to_str()
+        .unwrap()
+        .to_string();
+    a.stop().await.unwrap();
+    // An operator (or an attacker with file access) copies A's entry over B's.
+    std::fs::copy(
+        dir.path().join(format!("{id_a}.murkres")),
+        dir.path().join(format!("{id_b}.murkres")),
+    )
+    .unwrap();
+
+    let b = start(cfg).await;
+    let again = recon(&b).tof_depth(rb).await.unwrap().into_inner();
+    assert_eq!(
+        again.range_m,
+        res_b.into_inner().range_m,
+        "B's own result, not A's"
+    );
+    assert_eq!(
+        b.manager().executed(),
+        1,
+        "B was recomputed, not served from A's file"
+    );
+    assert!(b.manager().cache_stats().disk_rejected >= 1);
+    b.stop().await.unwrap();
+}

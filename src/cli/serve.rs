@@ -59,6 +59,10 @@ pub struct ServeArgs {
     /// Directory where results persist across restarts (optional).
     #[arg(long, env = "MURK_CACHE_DIR")]
     pub cache_dir: Option<PathBuf>,
+    /// Largest total size of the result files in --cache-dir, bytes; least recently used go
+    /// first.
+    #[arg(long, env = "MURK_CACHE_DIR_BYTES", default_value_t = murk::jobs::DEFAULT_CACHE_DIR_BYTES)]
+    pub cache_dir_bytes: u64,
     /// Largest request, bytes (default fits a dozen 16-bit 1-megapixel images).
     #[arg(long, env = "MURK_MAX_REQUEST_BYTES", default_value_t = DEFAULT_MAX_REQUEST_BYTES)]
     pub max_request_bytes: usize,
@@ -144,6 +148,7 @@ impl ServeArgs {
                 queue_capacity: self.queue_capacity,
                 cache_bytes: self.cache_bytes,
                 cache_dir: self.cache_dir.clone(),
+                cache_dir_bytes: self.cache_dir_bytes,
                 retry_after: Duration::from_millis(self.retry_after_ms),
                 max_job_records: self.max_job_records.max(1),
             },

@@ -34,6 +34,9 @@ use crate::monitor::{Monitor, ProgressSink};
 /// The computation of one job: returns the encoded result message.
 pub type Work = Box<dyn FnOnce(&Monitor) -> Result<Vec<u8>, MurkError> + Send + 'static>;
 
+/// Default bound of the cache directory: 8 GiB.
+pub const DEFAULT_CACHE_DIR_BYTES: u64 = 8 << 30;
+
 /// Sizing of the job system. Every limit is explicit.
 #[derive(Clone, Debug)]
 pub struct JobsConfig {
@@ -47,6 +50,8 @@ pub struct JobsConfig {
     pub cache_bytes: u64,
     /// Optional directory where results persist across restarts.
     pub cache_dir: Option<PathBuf>,
+    /// Largest total size of the entry files in `cache_dir`; least recently used go first.
+    pub cache_dir_bytes: u64,
     /// Smallest client back-off suggested when the queue is full; the hint is the estimated
     /// time until a slot frees when that is longer, +0–50 % jitter.
     pub retry_after: Duration,
@@ -63,6 +68,7 @@ impl Default for JobsConfig {
             queue_capacity: 64,
             cache_bytes: 512 << 20,
             cache_dir: None,
+            cache_dir_bytes: DEFAULT_CACHE_DIR_BYTES,
             retry_after: Duration::from_millis(500),
             max_job_records: 10_000,
         }
@@ -349,7 +355,11 @@ impl JobManager {
             .thread_name(|i| format!("murk-worker-{i}"))
             .build()
             .map_err(std::io::Error::other)?;
-        let cache = ResultCache::new(cfg.cache_bytes, cfg.cache_dir.clone())?;
+        let cache = ResultCache::with_disk_bound(
+            cfg.cache_bytes,
+            cfg.cache_dir.clone(),
+            cfg.cache_dir_bytes,
+        )?;
         let concurrent = cfg.concurrent_jobs.max(1);
         let inner = Arc::new(Inner {
             cfg,

@@ -8,7 +8,10 @@ mod metrics;
 mod state;
 
 pub use cache::{CacheStats, ResultCache};
-pub use manager::{JobHandle, JobManager, JobsConfig, SubmitError, Submitted, WaiterGuard, Work};
+pub use manager::{
+    JobHandle, JobManager, JobsConfig, SubmitError, Submitted, WaiterGuard, Work,
+    DEFAULT_CACHE_DIR_BYTES,
+};
 pub use metrics::{JobMetrics, MethodLabel, MethodState};
 pub use state::{JobSnapshot, JobState, ResultBytes};
 
