@@ -18,3 +18,14 @@ pub use submit::{
     job_id, method_name, RequestLimits, ServiceState, ALGORITHM_VERSION,
     DEFAULT_MAX_UNARY_RESULT_BYTES,
 };
+
+/// The boxed response future of murk's tower layers.
+pub(crate) type BoxFuture<T, E> =
+    std::pin::Pin<Box<dyn std::future::Future<Output = Result<T, E>> + Send>>;
+
+/// The service that was polled ready, for the call at hand, leaving a fresh clone in its place
+/// (tower's rule: the readied instance must serve the request).
+pub(crate) fn take_ready<S: Clone>(slot: &mut S) -> S {
+    let fresh = slot.clone();
+    std::mem::replace(slot, fresh)
+}

@@ -2,7 +2,6 @@
 //! sane token) or gets a fresh one; the id is echoed in the response headers and every log line
 //! of the request carries it in its span, so a client's report can be matched to server logs.
 
-use std::pin::Pin;
 use std::task::{Context, Poll};
 
 use tonic::body::Body;
@@ -44,8 +43,6 @@ pub struct RequestIdService<S> {
     inner: S,
 }
 
-type BoxFuture<T, E> = Pin<Box<dyn std::future::Future<Output = Result<T, E>> + Send>>;
-
 impl<S> Service<http::Request<Body>> for RequestIdService<S>
 where
     S: Service<http::Request<Body>, Response = http::Response<Body>> + Clone + Send + 'static,
@@ -53,15 +50,14 @@ where
 {
     type Response = http::Response<Body>;
     type Error = S::Error;
-    type Future = BoxFuture<Self::Response, Self::Error>;
+    type Future = super::BoxFuture<Self::Response, Self::Error>;
 
     fn poll_ready(&mut self, cx: &mut Context<'_>) -> Poll<Result<(), Self::Error>> {
         self.inner.poll_ready(cx)
     }
 
     fn call(&mut self, mut req: http::Request<Body>) -> Self::Future {
-        let clone = self.inner.clone();
-        let mut inner = std::mem::replace(&mut self.inner, clone);
+        let mut inner = super::take_ready(&mut self.inner);
         let id = callers_id(req.headers()).unwrap_or_else(fresh_id);
         let span = tracing::info_span!(
             "rpc",
