@@ -152,6 +152,19 @@ async fn serve_with_manager(
         airlight: AirlightService::new(config.airlight.clone()),
         max_unary_result_bytes: config.max_unary_result_bytes,
     };
+    // Jobs accepted before a crash (or stopped by a shutdown) run again; decoding their images
+    // is CPU work, so off the runtime's threads.
+    let requeued = {
+        let (m, limits, airlight) = (manager.clone(), state.limits, state.airlight.clone());
+        tokio::task::spawn_blocking(move || {
+            m.recover(|_, bytes| crate::service::rebuild_work(bytes, &limits, &airlight))
+        })
+        .await
+        .unwrap_or(0)
+    };
+    if requeued > 0 {
+        tracing::info!(requeued, "jobs from the journal re-queued");
+    }
     // The transport's hard ceiling; between 1× and 2× the handlers answer INVALID_ARGUMENT with
     // the field named, which is more useful to a client than a bare OUT_OF_RANGE.
     let transport_limit = config.max_request_bytes.saturating_mul(2);

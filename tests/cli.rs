@@ -429,3 +429,52 @@ fn simulate_ps_then_ps_client_writes_normals_depth_and_mesh() {
     assert!(header.starts_with("ply\nformat binary_little_endian 1.0"));
     assert!(header.contains("element face"));
 }
+
+#[tokio::test]
+async fn kill_9_then_restart_requeues_accepted_jobs_from_the_journal() {
+    let dir = tempfile::tempdir().unwrap();
+    let cache = dir.path().to_str().unwrap().to_string();
+    let (mut child, url) = spawn_server(&["--cache-dir", &cache, "--concurrent-jobs", "1"]);
+    let mut c = pb::jobs_client::JobsClient::connect(url).await.unwrap();
+    // A long job runs; a small one waits behind it. Both were acknowledged.
+    let long_id = submit_running_long_job(&mut c).await;
+    let small = c
+        .submit_job(job(tof_request(48, 36, 11)))
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(small.state, pb::JobState::Queued as i32);
+    child.kill().unwrap(); // SIGKILL: no shutdown path runs
+    child.wait().unwrap();
+
+    let (mut child, url) = spawn_server(&["--cache-dir", &cache, "--concurrent-jobs", "1"]);
+    let mut c = pb::jobs_client::JobsClient::connect(url).await.unwrap();
+    let get = |id: &str| pb::GetJobRequest {
+        id: id.to_string(),
+        omit_result: true,
+    };
+    for id in [&long_id, &small.id] {
+        let j = c
+            .get_job(get(id))
+            .await
+            .expect("record re-queued")
+            .into_inner();
+        assert!(
+            j.state == pb::JobState::Queued as i32 || j.state == pb::JobState::Running as i32,
+            "{j:?}"
+        );
+    }
+    // The long one would take a while: cancel it, and the small one runs to completion.
+    c.cancel_job(pb::CancelJobRequest { id: long_id })
+        .await
+        .unwrap();
+    let seen = watch_to_end(&mut c, &small.id).await;
+    assert_eq!(state(seen.last().unwrap()), pb::JobState::Succeeded);
+    child.kill().unwrap();
+    child.wait().unwrap();
+    // Both ended: nothing is left to re-run.
+    let left = std::fs::read_dir(dir.path().join("journal"))
+        .unwrap()
+        .count();
+    assert_eq!(left, 0, "journal emptied as jobs ended");
+}

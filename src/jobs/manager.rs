@@ -26,6 +26,7 @@ use std::time::{Duration, Instant, SystemTime};
 use tokio::sync::{watch, Notify};
 
 use super::cache::{CacheStats, ResultCache};
+use super::journal::{Journal, JournalEntry};
 use super::metrics::JobMetrics;
 use super::state::{JobSnapshot, JobState};
 use crate::error::MurkError;
@@ -48,7 +49,8 @@ pub struct JobsConfig {
     pub queue_capacity: usize,
     /// In-memory result cache budget in bytes.
     pub cache_bytes: u64,
-    /// Optional directory where results persist across restarts.
+    /// Optional directory where results persist across restarts. It also holds the journal of
+    /// accepted jobs (`journal/`), so queued and running jobs survive a crash.
     pub cache_dir: Option<PathBuf>,
     /// Largest total size of the entry files in `cache_dir`; least recently used go first.
     pub cache_dir_bytes: u64,
@@ -109,6 +111,8 @@ struct JobEntry {
     waiters: AtomicUsize,
     /// Submitted through the Jobs API at least once: never auto-cancelled when waiters leave.
     detached: AtomicBool,
+    /// Has a journal file to remove when it ends.
+    journaled: AtomicBool,
     work: Mutex<Option<Work>>,
 }
 
@@ -266,6 +270,8 @@ struct Inner {
     mean_secs: Mutex<HashMap<String, f64>>,
     /// Method and start of every job being computed, by dispatcher.
     in_progress: Mutex<HashMap<usize, (String, Instant)>>,
+    /// Accepted jobs on disk (with a cache directory).
+    journal: Option<Journal>,
 }
 
 impl Inner {
@@ -360,6 +366,10 @@ impl JobManager {
             cfg.cache_dir.clone(),
             cfg.cache_dir_bytes,
         )?;
+        let journal = match &cfg.cache_dir {
+            Some(d) => Some(Journal::open(&d.join("journal"))?),
+            None => None,
+        };
         let concurrent = cfg.concurrent_jobs.max(1);
         let inner = Arc::new(Inner {
             cfg,
@@ -374,6 +384,7 @@ impl JobManager {
             metrics: JobMetrics::default(),
             mean_secs: Mutex::new(HashMap::new()),
             in_progress: Mutex::new(HashMap::new()),
+            journal,
         });
         for i in 0..concurrent {
             let inner = inner.clone();
@@ -490,28 +501,146 @@ impl JobManager {
         method: &str,
         work: Work,
     ) -> Result<Submitted, SubmitError> {
+        self.submit_durable(tenant, id, method, work, None)
+    }
+
+    /// True when accepted jobs are journalled (a cache directory is configured): callers then
+    /// pass the request's bytes to [`JobManager::submit_durable`].
+    pub fn journaling(&self) -> bool {
+        self.inner.journal.is_some()
+    }
+
+    /// [`JobManager::submit`] that, with a journal, writes `request` (the bytes
+    /// [`JobManager::recover`]'s rebuild function understands) to disk before the job is
+    /// accepted, so it survives a crash.
+    pub fn submit_durable(
+        &self,
+        tenant: &str,
+        id: &str,
+        method: &str,
+        work: Work,
+        request: Option<Vec<u8>>,
+    ) -> Result<Submitted, SubmitError> {
         if self.inner.shutting_down.load(Ordering::SeqCst) {
             return Err(SubmitError::ShuttingDown);
         }
+        {
+            let mut reg = self.inner.registry();
+            if let Some(found) = self.find_locked(&mut reg, tenant, id, method) {
+                return Ok(found);
+            }
+            if reg.queue.len() >= self.inner.cfg.queue_capacity {
+                drop(reg);
+                return Err(self.refusal());
+            }
+        }
+        // The fsync happens outside the registry lock; the checks are repeated after it.
+        let record = match (&self.inner.journal, request) {
+            (Some(j), Some(request)) => {
+                let entry = JournalEntry {
+                    tenant: tenant.to_string(),
+                    id: id.to_string(),
+                    method: method.to_string(),
+                    request,
+                };
+                match j.record(&entry) {
+                    Ok(()) => Some(entry),
+                    Err(e) => {
+                        // Not durable, but still correct: serve it, and say so.
+                        tracing::error!(%id, error = %e, "could not journal the job; it will not survive a crash");
+                        None
+                    }
+                }
+            }
+            _ => None,
+        };
+        let journaled = record.is_some();
         let mut reg = self.inner.registry();
         if let Some(found) = self.find_locked(&mut reg, tenant, id, method) {
+            // A twin got in first: its record (same tenant and id) owns the journal file when it
+            // is live; a finished result needs none.
+            if journaled && found.cached {
+                self.forget_journal(tenant, id);
+            }
             return Ok(found);
         }
         if reg.queue.len() >= self.inner.cfg.queue_capacity {
             drop(reg);
+            if journaled {
+                self.forget_journal(tenant, id);
+            }
             return Err(self.refusal());
         }
         let entry = self.new_entry(tenant, JobSnapshot::queued(id, method), Some(work));
+        entry.journaled.store(journaled, Ordering::SeqCst);
         self.insert_locked(&mut reg, entry.clone());
         reg.queue.push(entry.clone());
         self.inner.metrics.cache_misses.inc();
         drop(reg);
+        // A cancelled twin (same tenant and id) that ended between the journal write and the
+        // insert may have removed the file; from the insert on it no longer can.
+        if let (Some(j), Some(e)) = (&self.inner.journal, &record) {
+            if !j.contains(tenant, id) {
+                if let Err(err) = j.record(e) {
+                    tracing::error!(%id, error = %err, "could not journal the job; it will not survive a crash");
+                }
+            }
+        }
         self.inner.queue_cv.notify_one();
-        tracing::info!(%id, %method, %tenant, "job queued");
+        tracing::info!(%id, %method, %tenant, journaled, "job queued");
         Ok(Submitted {
             handle: self.handle(entry),
             cached: false,
         })
+    }
+
+    fn forget_journal(&self, tenant: &str, id: &str) {
+        if let Some(j) = &self.inner.journal {
+            j.remove(tenant, id);
+        }
+    }
+
+    /// Re-queues the jobs the journal holds (accepted before a crash or a shutdown, not
+    /// finished), rebuilding each job's work from its request bytes with `rebuild(method,
+    /// bytes)`. Jobs whose result is cached meanwhile, or that cannot be rebuilt, are dropped
+    /// from the journal. The queue bound does not apply: these jobs were accepted already.
+    /// Returns the number re-queued.
+    pub fn recover(&self, rebuild: impl Fn(&str, &[u8]) -> Result<Work, MurkError>) -> usize {
+        let Some(journal) = &self.inner.journal else {
+            return 0;
+        };
+        let mut requeued = 0;
+        for e in journal.load() {
+            if self.inner.cache.get(&e.id).is_some() {
+                journal.remove(&e.tenant, &e.id);
+                continue;
+            }
+            let work = match rebuild(&e.method, &e.request) {
+                Ok(w) => w,
+                Err(err) => {
+                    tracing::warn!(id = %e.id, error = %err, "journalled job cannot be rebuilt; dropped");
+                    journal.remove(&e.tenant, &e.id);
+                    continue;
+                }
+            };
+            let entry =
+                self.new_entry(&e.tenant, JobSnapshot::queued(&e.id, &e.method), Some(work));
+            entry.journaled.store(true, Ordering::SeqCst);
+            // Its submitter may be gone; nobody is waiting to cancel it.
+            entry.detached.store(true, Ordering::SeqCst);
+            let mut reg = self.inner.registry();
+            if reg.jobs.contains_key(&entry.key()) {
+                continue;
+            }
+            self.insert_locked(&mut reg, entry.clone());
+            reg.queue.push(entry);
+            requeued += 1;
+        }
+        if requeued > 0 {
+            tracing::info!(requeued, "re-queued journalled jobs");
+            self.inner.queue_cv.notify_all();
+        }
+        requeued
     }
 
     /// The back-off to suggest when the queue is full: the estimated time until a slot frees,
@@ -649,6 +778,7 @@ impl JobManager {
             tx,
             waiters: AtomicUsize::new(0),
             detached: AtomicBool::new(false),
+            journaled: AtomicBool::new(false),
             work: Mutex::new(work),
         })
     }
@@ -697,6 +827,25 @@ fn finish(
     result: Option<Arc<Vec<u8>>>,
     error: Option<MurkError>,
 ) {
+    if entry.state().is_terminal() {
+        return;
+    }
+    let aborted = matches!(error, Some(MurkError::ShuttingDown));
+    // Before the terminal state is published, so whoever sees it finds the journal settled.
+    // A job the shutdown stopped keeps its journal file, so a restart finishes it.
+    if !aborted && entry.journaled.load(Ordering::SeqCst) {
+        if let Some(j) = &inner.journal {
+            // A resubmission may own the same file by now (same tenant and id).
+            let superseded = inner
+                .registry()
+                .jobs
+                .get(&entry.key())
+                .is_some_and(|e| !std::ptr::eq(Arc::as_ptr(e), entry));
+            if !superseded {
+                j.remove(&entry.tenant, &entry.id);
+            }
+        }
+    }
     if entry.finish(state, result, error.clone()) {
         let label = match (state, &error) {
             (JobState::Failed, Some(MurkError::ShuttingDown)) => "aborted",

@@ -3,11 +3,13 @@
 //! Knows nothing of gRPC: work is an opaque closure returning encoded result bytes.
 
 mod cache;
+mod journal;
 mod manager;
 mod metrics;
 mod state;
 
 pub use cache::{CacheStats, ResultCache};
+pub use journal::{Journal, JournalEntry};
 pub use manager::{
     JobHandle, JobManager, JobsConfig, SubmitError, Submitted, WaiterGuard, Work,
     DEFAULT_CACHE_DIR_BYTES,

@@ -444,3 +444,49 @@ async fn retry_hint_is_the_time_until_a_slot_frees_with_jitter() {
     release.store(true, Ordering::SeqCst);
     wait_terminal(&running.handle).await;
 }
+
+#[tokio::test]
+async fn jobs_stopped_by_shutdown_run_again_after_a_restart() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = JobsConfig {
+        workers: 2,
+        concurrent_jobs: 1,
+        queue_capacity: 4,
+        cache_dir: Some(dir.path().to_path_buf()),
+        ..JobsConfig::default()
+    };
+    let m = JobManager::new(cfg.clone()).unwrap();
+    assert!(m.journaling());
+    let release = Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let (tx, rx) = mpsc::channel();
+    let s = m
+        .submit_durable(
+            "t1",
+            "61",
+            "t",
+            gated(tx, release),
+            Some(b"request-61".to_vec()),
+        )
+        .unwrap();
+    rx.recv_timeout(Duration::from_secs(10)).unwrap();
+    m.shutdown(Duration::from_millis(20)).await;
+    assert_eq!(s.handle.snapshot().error, Some(MurkError::ShuttingDown));
+
+    let again = JobManager::new(cfg).unwrap();
+    let requeued = again.recover(|method, bytes| {
+        assert_eq!((method, bytes), ("t", &b"request-61"[..]));
+        Ok(Box::new(|_| Ok(vec![6, 1])))
+    });
+    assert_eq!(requeued, 1);
+    let h = again.get("t1", "61").expect("the tenant's record is back");
+    let snap = wait_terminal(&h).await;
+    assert_eq!(snap.result.as_deref(), Some(&vec![6u8, 1]));
+    assert_eq!(
+        std::fs::read_dir(dir.path().join("journal"))
+            .unwrap()
+            .count(),
+        0,
+        "finished jobs leave the journal"
+    );
+    assert_eq!(again.recover(|_, _| panic!("nothing left")), 0);
+}

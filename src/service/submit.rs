@@ -121,6 +121,8 @@ pub async fn submit(
     }
     let limits = state.limits;
     let airlight = state.airlight.clone();
+    // With a journal the canonical request is kept on disk until the job ends.
+    let journal = state.manager.journaling().then(|| req.encode_to_vec());
     // Decoding megapixel PNG/EXR is CPU work: keep it off the async runtime's threads.
     let work = tokio::task::spawn_blocking(move || build_work(req, &limits, &airlight))
         .await
@@ -128,7 +130,7 @@ pub async fn submit(
         .map_err(|e| to_status(&named(e)))?;
     state
         .manager
-        .submit(tenant, &id, name, work)
+        .submit_durable(tenant, &id, name, work, journal)
         .map_err(|e| submit_status(&e))
 }
 
@@ -206,6 +208,18 @@ fn view_sizes(reference: Option<&pb::MvsView>, sources: &[pb::MvsView]) -> Vec<(
                 .map(|(k, s)| (format!("sources[{k}].image"), view(s))),
         )
         .collect()
+}
+
+/// The work of a journalled request (its canonical encoding), for `JobManager::recover` after a
+/// restart.
+pub fn rebuild_work(
+    bytes: &[u8],
+    limits: &RequestLimits,
+    airlight: &AirlightService,
+) -> Result<Work, MurkError> {
+    let req = pb::JobRequest::decode(bytes)
+        .map_err(|e| MurkError::Internal(format!("journalled request does not decode: {e}")))?;
+    build_work(req, limits, airlight)
 }
 
 /// Decodes and validates the request, returning the closure a worker will run.
