@@ -750,3 +750,34 @@ async fn a_cache_file_swapped_under_another_job_id_is_not_served() {
     assert!(b.manager().cache_stats().disk_rejected >= 1);
     b.stop().await.unwrap();
 }
+
+#[tokio::test]
+async fn compressed_requests_and_responses_round_trip() {
+    use tonic::codec::CompressionEncoding;
+    let server = start(config(4)).await;
+    let plain = recon(&server)
+        .tof_depth(tof_request(32, 24, 12))
+        .await
+        .unwrap()
+        .into_inner();
+    for enc in [CompressionEncoding::Gzip, CompressionEncoding::Zstd] {
+        let mut c = ReconstructionClient::new(channel(&server))
+            .send_compressed(enc)
+            .accept_compressed(enc);
+        let r = c
+            .tof_depth(tof_request(32, 24, 12))
+            .await
+            .expect("compressed call");
+        let encoding = r
+            .metadata()
+            .get("grpc-encoding")
+            .map(|v| v.to_str().unwrap().to_string());
+        assert_eq!(
+            encoding.as_deref(),
+            Some(enc.to_string().as_str()),
+            "{enc:?}"
+        );
+        assert_eq!(r.into_inner().range_m, plain.range_m);
+    }
+    server.stop().await.unwrap();
+}
