@@ -11,7 +11,7 @@ use tonic::{Request, Response, Status};
 use super::auth::Tenant;
 use super::convert::job_to_proto;
 use super::proto::v1 as pb;
-use super::status::to_status;
+use super::status::{ended_without_result, to_status};
 use super::submit::{submit, ServiceState};
 use crate::jobs::{JobHandle, JobState};
 
@@ -174,13 +174,7 @@ impl pb::jobs_server::Jobs for JobsApi {
             JobState::Succeeded => snap
                 .result
                 .ok_or_else(|| Status::internal("succeeded job without result"))?,
-            JobState::Failed | JobState::Cancelled => {
-                return Err(snap
-                    .error
-                    .as_ref()
-                    .map(to_status)
-                    .unwrap_or_else(|| Status::cancelled("job was cancelled")))
-            }
+            JobState::Failed | JobState::Cancelled => return Err(ended_without_result(&snap)),
             JobState::Queued | JobState::Running => {
                 return Err(Status::failed_precondition(format!(
                     "job `{}` is not finished (watch it with WatchJob first)",

@@ -13,7 +13,7 @@ use tonic_types::{ErrorDetails, StatusExt};
 
 use super::auth::Tenant;
 use super::proto::v1 as pb;
-use super::status::to_status;
+use super::status::ended_without_result;
 use super::submit::{submit, ServiceState};
 use crate::jobs::JobState;
 
@@ -106,11 +106,7 @@ impl ReconstructionApi {
                     .method
                     .ok_or_else(|| Status::internal("empty stored result"))
             }
-            _ => Err(snap
-                .error
-                .as_ref()
-                .map(to_status)
-                .unwrap_or_else(|| Status::cancelled("job was cancelled"))),
+            _ => Err(ended_without_result(&snap)),
         }
     }
 }

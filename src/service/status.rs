@@ -31,6 +31,14 @@ pub fn to_status(e: &MurkError) -> Status {
     }
 }
 
+/// The status of a job that ended without a result (failed, cancelled, or stopped by shutdown).
+pub fn ended_without_result(snap: &crate::jobs::JobSnapshot) -> Status {
+    snap.error
+        .as_ref()
+        .map(to_status)
+        .unwrap_or_else(|| Status::cancelled("job was cancelled"))
+}
+
 /// gRPC code of a library error (for `JobError.code`).
 pub fn code_of(e: &MurkError) -> Code {
     to_status(e).code()

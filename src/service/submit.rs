@@ -58,12 +58,17 @@ pub struct ServiceState {
 /// keeps results computed with other weights (another replica's, or before a redeploy) from
 /// being served from a shared cache.
 pub fn job_id(req: &pb::JobRequest, model: &str) -> String {
+    job_id_of_encoded(&req.encode_to_vec(), model)
+}
+
+/// [`job_id`] of a request already encoded (the submit path keeps the bytes for the journal).
+fn job_id_of_encoded(encoded: &[u8], model: &str) -> String {
     let mut h = Sha256::new();
     h.update(ALGORITHM_VERSION.as_bytes());
     h.update([0u8]);
     h.update(model.as_bytes());
     h.update([0u8]);
-    h.update(req.encode_to_vec());
+    h.update(encoded);
     hex::encode(h.finalize())
 }
 
@@ -111,7 +116,10 @@ pub async fn submit(
         None => e,
     };
     check_size(&req, state.limits.max_request_bytes).map_err(|e| to_status(&named(e)))?;
-    let id = job_id(&req, &model_of(&req, &state.airlight));
+    // One encoding serves the content hash and, with a journal, the copy kept on disk until the
+    // job ends.
+    let encoded = req.encode_to_vec();
+    let id = job_id_of_encoded(&encoded, &model_of(&req, &state.airlight));
     if let Some(found) = state.manager.find(tenant, &id, name) {
         return Ok(found);
     }
@@ -121,8 +129,7 @@ pub async fn submit(
     }
     let limits = state.limits;
     let airlight = state.airlight.clone();
-    // With a journal the canonical request is kept on disk until the job ends.
-    let journal = state.manager.journaling().then(|| req.encode_to_vec());
+    let journal = state.manager.journaling().then_some(encoded);
     // Decoding megapixel PNG/EXR is CPU work: keep it off the async runtime's threads.
     let work = tokio::task::spawn_blocking(move || build_work(req, &limits, &airlight))
         .await
