@@ -86,7 +86,7 @@ fn round_trips(c: &mut Criterion, name: &str, auth: bool) {
     for (label, w, h) in [("64x53", 64, 53), ("512x424", 512, 424)] {
         let req = request(w, h);
         // Compute once so every measured call is a cache hit.
-        rt.block_on(async {
+        let id = rt.block_on(async {
             let mut cl = client.clone();
             let job = cl
                 .submit_job(with_token(req.clone()))
@@ -94,11 +94,12 @@ fn round_trips(c: &mut Criterion, name: &str, auth: bool) {
                 .expect("submit")
                 .into_inner();
             let mut s = cl
-                .watch_job(with_token_watch(auth, job.id))
+                .watch_job(with_token_watch(auth, job.id.clone()))
                 .await
                 .expect("watch")
                 .into_inner();
             while s.message().await.expect("stream").is_some() {}
+            job.id
         });
         let executed = server.manager().executed();
         group.bench_function(format!("submit_job_with_result/{label}"), |b| {
@@ -116,6 +117,33 @@ fn round_trips(c: &mut Criterion, name: &str, auth: bool) {
                 }
             })
         });
+        if !auth {
+            // The path of clients left at the default 4 MiB limit: the result in 1 MiB chunks
+            // (with its SHA-256), reassembled.
+            let default_client = pb::jobs_client::JobsClient::new(
+                Endpoint::from_shared(server.url())
+                    .expect("url")
+                    .connect_lazy(),
+            );
+            group.bench_function(format!("get_job_result_chunks/{label}"), |b| {
+                b.to_async(&rt).iter(|| {
+                    let mut cl = default_client.clone();
+                    let id = id.clone();
+                    async move {
+                        let mut s = cl
+                            .get_job_result(pb::GetJobResultRequest { id, chunk_bytes: 0 })
+                            .await
+                            .expect("result stream")
+                            .into_inner();
+                        let mut bytes = Vec::new();
+                        while let Some(c) = s.message().await.expect("chunk") {
+                            bytes.extend_from_slice(&c.data);
+                        }
+                        bytes
+                    }
+                })
+            });
+        }
         assert_eq!(server.manager().executed(), executed, "no recomputation");
     }
     group.finish();
