@@ -15,7 +15,10 @@ use tonic::codec::CompressionEncoding;
 use tonic::transport::server::TcpIncoming;
 use tonic::transport::{Certificate, Identity, Server, ServerTlsConfig};
 
-use crate::jobs::{JobManager, JobsConfig};
+use std::sync::Arc;
+
+use crate::jobs::redis::{RedisConfig, RedisJobs};
+use crate::jobs::{JobBackend, JobManager, JobsConfig};
 use crate::params::airlight::AirlightEstimator;
 use crate::service::auth::{AuthLayer, TokenStore};
 use crate::service::convert::{AirlightService, ImageLimits};
@@ -56,6 +59,9 @@ pub struct ServerConfig {
     pub auth: Option<TokenStore>,
     /// TLS (optionally mutual); `None` serves plain HTTP/2.
     pub tls: Option<TlsSettings>,
+    /// Share jobs, queue and results with other replicas through Redis; `None` keeps them in
+    /// this process (the embedded default).
+    pub redis: Option<RedisConfig>,
 }
 
 /// PEM material for TLS.
@@ -92,6 +98,7 @@ impl Default for ServerConfig {
             max_unary_result_bytes: DEFAULT_MAX_UNARY_RESULT_BYTES,
             auth: None,
             tls: None,
+            redis: None,
         }
     }
 }
@@ -108,6 +115,9 @@ pub enum ServerError {
     /// Reflection descriptors could not be loaded.
     #[error("reflection: {0}")]
     Reflection(#[from] tonic_reflection::server::Error),
+    /// The job backend could not be set up (e.g. a malformed Redis URL).
+    #[error("job backend: {0}")]
+    Backend(#[from] crate::error::MurkError),
 }
 
 /// Serves on `listener` (and Prometheus metrics on `metrics`, if given) until `shutdown`
@@ -129,7 +139,25 @@ async fn serve_with_manager(
     metrics: Option<TcpListener>,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> Result<(), ServerError> {
-    let telemetry = Telemetry::new(&manager);
+    let limits = RequestLimits {
+        max_request_bytes: config.max_request_bytes,
+        images: ImageLimits {
+            max_pixels: config.max_image_pixels,
+            max_channels: 4,
+        },
+        max_ps_kernel_bytes: config.max_ps_kernel_bytes,
+    };
+    let airlight = AirlightService::new(config.airlight.clone());
+    let backend: Arc<dyn JobBackend> = match &config.redis {
+        None => Arc::new(manager.clone()),
+        Some(redis) => {
+            let airlight = airlight.clone();
+            let rebuild: crate::jobs::redis::Rebuild =
+                Arc::new(move |_, bytes| crate::service::rebuild_work(bytes, &limits, &airlight));
+            Arc::new(RedisJobs::start(manager.clone(), redis.clone(), rebuild)?)
+        }
+    };
+    let telemetry = Telemetry::new(backend.clone());
     // Tells the metrics endpoint to stop once the gRPC server has.
     let (stopped_tx, stopped_rx) = watch::channel(false);
     if let Some(l) = metrics {
@@ -140,21 +168,16 @@ async fn serve_with_manager(
         }));
     }
     let state = ServiceState {
-        manager: manager.clone(),
-        limits: RequestLimits {
-            max_request_bytes: config.max_request_bytes,
-            images: ImageLimits {
-                max_pixels: config.max_image_pixels,
-                max_channels: 4,
-            },
-            max_ps_kernel_bytes: config.max_ps_kernel_bytes,
-        },
-        airlight: AirlightService::new(config.airlight.clone()),
+        jobs: backend.clone(),
+        limits,
+        airlight,
         max_unary_result_bytes: config.max_unary_result_bytes,
     };
     // Jobs accepted before a crash (or stopped by a shutdown) run again; decoding their images
-    // is CPU work, so off the runtime's threads.
-    let requeued = {
+    // is CPU work, so off the runtime's threads. (With Redis the shared queue keeps them.)
+    let requeued = if config.redis.is_some() {
+        0
+    } else {
         let (m, limits, airlight) = (manager.clone(), state.limits, state.airlight.clone());
         tokio::task::spawn_blocking(move || {
             m.recover(|_, bytes| crate::service::rebuild_work(bytes, &limits, &airlight))
@@ -207,6 +230,7 @@ async fn serve_with_manager(
         %addr,
         workers = manager.worker_threads(),
         queue = config.jobs.queue_capacity,
+        backend = backend.kind(),
         max_request_bytes = config.max_request_bytes,
         auth = config.auth.is_some(),
         tls = config.tls.is_some(),
@@ -214,7 +238,7 @@ async fn serve_with_manager(
         "murk serving"
     );
     let grace = config.shutdown_grace;
-    let drain_manager = manager.clone();
+    let drain = backend.clone();
     let stop = async move {
         shutdown.await;
         tracing::info!(?grace, "shutting down: draining jobs");
@@ -228,7 +252,7 @@ async fn serve_with_manager(
         health_reporter
             .set_not_serving::<ReconstructionServer<ReconstructionApi>>()
             .await;
-        drain_manager.shutdown(grace).await;
+        drain.shutdown(grace).await;
     };
     let mut builder = Server::builder();
     if let Some(tls) = &config.tls {

@@ -20,7 +20,7 @@ use prometheus_client::metrics::gauge::ConstGauge;
 use prometheus_client::registry::Registry;
 use tokio::net::TcpListener;
 
-use crate::jobs::JobManager;
+use crate::jobs::JobBackend;
 use crate::service::grpc_metrics::GrpcMetrics;
 
 /// OpenMetrics text, which Prometheus scrapes natively.
@@ -34,15 +34,13 @@ pub struct Telemetry {
 }
 
 impl Telemetry {
-    /// The registry for a server around `manager`.
-    pub fn new(manager: &JobManager) -> Arc<Self> {
+    /// The registry for a server around `jobs`.
+    pub fn new(jobs: Arc<dyn JobBackend>) -> Arc<Self> {
         let mut registry = Registry::with_prefix("murk");
-        manager.metrics().register(&mut registry);
+        jobs.local().metrics().register(&mut registry);
         let grpc = GrpcMetrics::default();
         grpc.register(&mut registry);
-        registry.register_collector(Box::new(JobGauges {
-            manager: manager.clone(),
-        }));
+        registry.register_collector(Box::new(JobGauges { jobs }));
         Arc::new(Self { registry, grpc })
     }
 
@@ -62,7 +60,7 @@ impl Telemetry {
 
 /// Values read from the job manager at scrape time.
 struct JobGauges {
-    manager: JobManager,
+    jobs: Arc<dyn JobBackend>,
 }
 
 impl std::fmt::Debug for JobGauges {
@@ -73,22 +71,23 @@ impl std::fmt::Debug for JobGauges {
 
 impl Collector for JobGauges {
     fn encode(&self, mut encoder: DescriptorEncoder) -> Result<(), std::fmt::Error> {
-        let cache = self.manager.cache_stats();
+        let local = self.jobs.local();
+        let cache = local.cache_stats();
         let gauges = [
             (
                 "queue_depth",
-                "Jobs waiting in the queue",
-                self.manager.queued() as i64,
+                "Jobs waiting in the queue (the shared queue of all replicas with Redis)",
+                self.jobs.queue_depth() as i64,
             ),
             (
                 "queue_capacity",
                 "Jobs the queue may hold",
-                self.manager.config().queue_capacity as i64,
+                local.config().queue_capacity as i64,
             ),
             (
                 "jobs_running",
-                "Jobs being computed",
-                self.manager.running() as i64,
+                "Jobs being computed by this replica",
+                local.running() as i64,
             ),
             (
                 "cache_bytes",

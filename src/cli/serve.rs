@@ -7,6 +7,7 @@ use anyhow::Context;
 use clap::Args;
 use murk::params::airlight::AirlightEstimator;
 
+use murk::jobs::redis::RedisConfig;
 use murk::jobs::JobsConfig;
 use murk::server::{serve, shutdown_signal, ServerConfig, TlsSettings, DEFAULT_MAX_REQUEST_BYTES};
 use murk::service::auth::TokenStore;
@@ -90,6 +91,22 @@ pub struct ServeArgs {
     /// weights built into murk. A missing or corrupt file stops the server from starting.
     #[arg(long, env = "MURK_AIRLIGHT_WEIGHTS")]
     pub airlight_weights: Option<std::path::PathBuf>,
+    /// Share jobs, the queue and results with other replicas through Redis
+    /// (`redis://[:PASSWORD@]HOST:PORT/DB`, or `rediss://` for TLS). Without it murk keeps
+    /// everything in this process and needs no external service.
+    #[arg(long, env = "MURK_REDIS_URL")]
+    pub redis_url: Option<String>,
+    /// Prefix of murk's Redis keys (several deployments may share one Redis).
+    #[arg(long, env = "MURK_REDIS_PREFIX", default_value = "murk")]
+    pub redis_prefix: String,
+    /// Lease on a running job, seconds: a replica that stops renewing it for this long (it
+    /// died or hung) loses its jobs to the other replicas.
+    #[arg(long, env = "MURK_REDIS_LEASE_SECS", default_value_t = 10.0)]
+    pub redis_lease_secs: f64,
+    /// How long results stay in Redis, seconds (its maxmemory policy may evict them sooner;
+    /// finished job records are kept as long).
+    #[arg(long, env = "MURK_REDIS_RESULT_TTL_SECS", default_value_t = 7 * 24 * 3600)]
+    pub redis_result_ttl_secs: u64,
     /// With unusable CNN weights, log a warning and use the dark-channel estimator instead of
     /// refusing to start.
     #[arg(long, env = "MURK_AIRLIGHT_FALLBACK")]
@@ -141,7 +158,24 @@ impl ServeArgs {
             }),
             _ => None,
         };
+        anyhow::ensure!(
+            self.redis_lease_secs.is_finite() && self.redis_lease_secs >= 0.5,
+            "--redis-lease-secs must be at least 0.5"
+        );
+        anyhow::ensure!(
+            self.redis_result_ttl_secs >= 1,
+            "--redis-result-ttl-secs must be at least 1"
+        );
+        let redis = self.redis_url.as_ref().map(|url| {
+            let mut r = RedisConfig::new(url.clone());
+            r.prefix = self.redis_prefix.clone();
+            r.lease = Duration::from_secs_f64(self.redis_lease_secs);
+            r.result_ttl = Duration::from_secs(self.redis_result_ttl_secs);
+            r.record_ttl = r.result_ttl;
+            r
+        });
         Ok(ServerConfig {
+            redis,
             jobs: JobsConfig {
                 workers: self.workers,
                 concurrent_jobs: self.concurrent_jobs.max(1),

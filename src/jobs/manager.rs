@@ -77,9 +77,9 @@ impl Default for JobsConfig {
     }
 }
 
-/// Why a submission was refused.
+/// Why the job system refused a call (a submission, or with a shared backend any call).
 #[derive(Debug, Clone, PartialEq)]
-pub enum SubmitError {
+pub enum JobsError {
     /// The queue holds `capacity` jobs already; retry after `retry_after`.
     QueueFull {
         /// Queue capacity.
@@ -89,6 +89,20 @@ pub enum SubmitError {
     },
     /// The server is shutting down and accepts no new work.
     ShuttingDown,
+    /// The shared job store (Redis) cannot be reached; the call may succeed later.
+    Unavailable(String),
+}
+
+/// The other side of a job view whose job lives in a shared store (see `jobs::redis`): what a
+/// local handle's waiter and detach changes mean there.
+pub(crate) trait RemoteJob: Send + Sync {
+    /// The local count of unary waiters changed to `waiters`; `seq` orders the changes, so the
+    /// store keeps the latest whatever order the updates arrive in. A count of 0 on a job no
+    /// one detached cancels it.
+    fn waiters_changed(&self, tenant: &str, id: &str, waiters: usize, seq: u64);
+    /// The job was submitted through the Jobs API: it must never be cancelled for lack of
+    /// waiters.
+    fn detached(&self, tenant: &str, id: &str);
 }
 
 /// Registry key: the owning tenant and the job id.
@@ -114,6 +128,10 @@ struct JobEntry {
     /// Has a journal file to remove when it ends.
     journaled: AtomicBool,
     work: Mutex<Option<Work>>,
+    /// Set for a view of a job in a shared store: waiter and detach changes go there.
+    remote: Option<Arc<dyn RemoteJob>>,
+    /// Orders the waiter-count updates sent to `remote`.
+    waiter_seq: AtomicU64,
 }
 
 impl JobEntry {
@@ -310,17 +328,61 @@ impl JobHandle {
     pub fn subscribe(&self) -> watch::Receiver<JobSnapshot> {
         self.entry.tx.subscribe()
     }
+    /// Replaces a view's snapshot (see [`JobManager::view`]); a terminal snapshot is final.
+    pub(crate) fn publish(&self, snap: JobSnapshot) {
+        self.entry.tx.send_if_modified(|s| {
+            if s.state.is_terminal() {
+                return false;
+            }
+            *s = snap;
+            true
+        });
+    }
+
+    /// A handle that does not keep the job's record alive.
+    pub(crate) fn downgrade(&self) -> WeakJobHandle {
+        WeakJobHandle {
+            entry: Arc::downgrade(&self.entry),
+            inner: self.inner.clone(),
+        }
+    }
+
     /// Marks the job as owned by the Jobs API: it keeps running when unary waiters leave.
     pub fn detach(&self) {
-        self.entry.detached.store(true, Ordering::SeqCst);
+        if !self.entry.detached.swap(true, Ordering::SeqCst) {
+            if let Some(r) = &self.entry.remote {
+                r.detached(&self.entry.tenant, &self.entry.id);
+            }
+        }
     }
     /// Registers a unary caller; when the last guard drops before the job is terminal and the
     /// job was never detached, the job is cancelled (the caller went away).
     pub fn attach(&self) -> WaiterGuard {
-        self.entry.waiters.fetch_add(1, Ordering::SeqCst);
+        let n = self.entry.waiters.fetch_add(1, Ordering::SeqCst) + 1;
+        if let Some(r) = &self.entry.remote {
+            let seq = self.entry.waiter_seq.fetch_add(1, Ordering::SeqCst) + 1;
+            r.waiters_changed(&self.entry.tenant, &self.entry.id, n, seq);
+        }
         WaiterGuard {
             handle: self.clone(),
         }
+    }
+}
+
+/// A handle that does not keep its job's record alive (the Redis backend's table of views).
+#[derive(Clone)]
+pub(crate) struct WeakJobHandle {
+    entry: std::sync::Weak<JobEntry>,
+    inner: Arc<Inner>,
+}
+
+impl WeakJobHandle {
+    /// The handle, if anyone still holds it.
+    pub(crate) fn upgrade(&self) -> Option<JobHandle> {
+        Some(JobHandle {
+            entry: self.entry.upgrade()?,
+            inner: self.inner.clone(),
+        })
     }
 }
 
@@ -332,6 +394,12 @@ pub struct WaiterGuard {
 impl Drop for WaiterGuard {
     fn drop(&mut self) {
         let e = &self.handle.entry;
+        if let Some(r) = &e.remote {
+            let n = e.waiters.fetch_sub(1, Ordering::SeqCst) - 1;
+            let seq = e.waiter_seq.fetch_add(1, Ordering::SeqCst) + 1;
+            r.waiters_changed(&e.tenant, &e.id, n, seq);
+            return;
+        }
         if e.waiters.fetch_sub(1, Ordering::SeqCst) == 1
             && !e.detached.load(Ordering::SeqCst)
             && !e.state().is_terminal()
@@ -500,7 +568,7 @@ impl JobManager {
         id: &str,
         method: &str,
         work: Work,
-    ) -> Result<Submitted, SubmitError> {
+    ) -> Result<Submitted, JobsError> {
         self.submit_durable(tenant, id, method, work, None)
     }
 
@@ -520,9 +588,9 @@ impl JobManager {
         method: &str,
         work: Work,
         request: Option<Vec<u8>>,
-    ) -> Result<Submitted, SubmitError> {
+    ) -> Result<Submitted, JobsError> {
         if self.inner.shutting_down.load(Ordering::SeqCst) {
-            return Err(SubmitError::ShuttingDown);
+            return Err(JobsError::ShuttingDown);
         }
         {
             let mut reg = self.inner.registry();
@@ -672,8 +740,8 @@ impl JobManager {
     }
 
     /// The refusal a submission gets while the queue is full, with the current retry hint.
-    pub fn refusal(&self) -> SubmitError {
-        SubmitError::QueueFull {
+    pub fn refusal(&self) -> JobsError {
+        JobsError::QueueFull {
             capacity: self.inner.cfg.queue_capacity,
             retry_after: self.retry_hint(),
         }
@@ -756,6 +824,59 @@ impl JobManager {
         }
     }
 
+    /// The result cache (memory, and disk with a cache directory).
+    pub(crate) fn cache(&self) -> &ResultCache {
+        &self.inner.cache
+    }
+
+    /// True once shutdown began.
+    pub(crate) fn shutting_down(&self) -> bool {
+        self.inner.shutting_down.load(Ordering::SeqCst)
+    }
+
+    /// A handle on a job that lives elsewhere (a shared store): not in the local registry, its
+    /// snapshots come from [`JobHandle::publish`], and waiter/detach changes go to `remote`.
+    pub(crate) fn view(
+        &self,
+        tenant: &str,
+        snap: JobSnapshot,
+        remote: Arc<dyn RemoteJob>,
+    ) -> JobHandle {
+        let mut entry = self.new_entry(tenant, snap, None);
+        Arc::get_mut(&mut entry)
+            .expect("entry not shared yet")
+            .remote = Some(remote);
+        self.handle(entry)
+    }
+
+    /// Runs `work` here for a job claimed from a shared queue: it bypasses the local queue
+    /// bound (the claimer takes work only when a dispatcher is free) and is never cancelled for
+    /// lack of local waiters. A live local record of the same job is returned as is.
+    pub(crate) fn run_claimed(
+        &self,
+        tenant: &str,
+        id: &str,
+        method: &str,
+        work: Work,
+    ) -> Result<JobHandle, JobsError> {
+        if self.shutting_down() {
+            return Err(JobsError::ShuttingDown);
+        }
+        let mut reg = self.inner.registry();
+        if let Some(e) = reg.jobs.get(&(tenant.to_string(), id.to_string())) {
+            if !e.state().is_terminal() && !e.cancelling() {
+                return Ok(self.handle(e.clone()));
+            }
+        }
+        let entry = self.new_entry(tenant, JobSnapshot::queued(id, method), Some(work));
+        entry.detached.store(true, Ordering::SeqCst);
+        self.insert_locked(&mut reg, entry.clone());
+        reg.queue.push(entry.clone());
+        drop(reg);
+        self.inner.queue_cv.notify_one();
+        Ok(self.handle(entry))
+    }
+
     fn is_idle(&self) -> bool {
         self.inner.registry().queue.is_empty() && self.inner.running.load(Ordering::SeqCst) == 0
     }
@@ -780,6 +901,8 @@ impl JobManager {
             detached: AtomicBool::new(false),
             journaled: AtomicBool::new(false),
             work: Mutex::new(work),
+            remote: None,
+            waiter_seq: AtomicU64::new(0),
         })
     }
 

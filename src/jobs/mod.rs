@@ -2,16 +2,19 @@
 //! cooperative cancellation, progress snapshots and a byte-bounded result cache (memory + disk).
 //! Knows nothing of gRPC: work is an opaque closure returning encoded result bytes.
 
+mod backend;
 mod cache;
 mod journal;
 mod manager;
 mod metrics;
+pub mod redis;
 mod state;
 
+pub use backend::JobBackend;
 pub use cache::{CacheStats, ResultCache};
 pub use journal::{Journal, JournalEntry};
 pub use manager::{
-    JobHandle, JobManager, JobsConfig, SubmitError, Submitted, WaiterGuard, Work,
+    JobHandle, JobManager, JobsConfig, JobsError, Submitted, WaiterGuard, Work,
     DEFAULT_CACHE_DIR_BYTES,
 };
 pub use metrics::{JobMetrics, MethodLabel, MethodState};

@@ -75,7 +75,7 @@ async fn full_queue_is_refused_with_retry_hint() {
         .submit("", "03", "t", gated(tx, release.clone()))
         .err()
         .unwrap();
-    assert!(matches!(err, SubmitError::QueueFull { capacity: 1, .. }));
+    assert!(matches!(err, JobsError::QueueFull { capacity: 1, .. }));
     release.store(true, Ordering::SeqCst);
     assert_eq!(
         wait_terminal(&first.handle).await.state,
@@ -176,7 +176,7 @@ async fn shutdown_drains_then_cancels_and_refuses_new_work() {
     assert_eq!(snap.error, Some(MurkError::ShuttingDown));
     assert_eq!(
         m.submit("", "12", "t", Box::new(|_| Ok(vec![]))).err(),
-        Some(SubmitError::ShuttingDown)
+        Some(JobsError::ShuttingDown)
     );
 }
 
@@ -428,7 +428,7 @@ async fn retry_hint_is_the_time_until_a_slot_frees_with_jitter() {
     let mut hints = Vec::new();
     for _ in 0..20 {
         match m.submit("", "54", "t", Box::new(|_| Ok(vec![]))) {
-            Err(SubmitError::QueueFull { retry_after, .. }) => hints.push(retry_after),
+            Err(JobsError::QueueFull { retry_after, .. }) => hints.push(retry_after),
             other => panic!("expected a full queue, got {:?}", other.err()),
         }
     }

@@ -11,7 +11,7 @@ use tonic::{Request, Response, Status};
 use super::auth::Tenant;
 use super::convert::job_to_proto;
 use super::proto::v1 as pb;
-use super::status::{ended_without_result, to_status};
+use super::status::{ended_without_result, submit_status, to_status};
 use super::submit::{submit, ServiceState};
 use crate::jobs::{JobHandle, JobState};
 
@@ -33,13 +33,15 @@ impl JobsApi {
         Self { state }
     }
 
-    fn handle(&self, tenant: &str, id: &str) -> Result<JobHandle, Status> {
+    async fn handle(&self, tenant: &str, id: &str) -> Result<JobHandle, Status> {
         if id.is_empty() {
             return Err(to_status(&crate::MurkError::invalid("id", "required")));
         }
         self.state
-            .manager
+            .jobs
             .get(tenant, id)
+            .await
+            .map_err(|e| submit_status(&e))?
             .ok_or_else(|| Status::not_found(format!("no job with id `{id}`")))
     }
 
@@ -75,7 +77,7 @@ impl pb::jobs_server::Jobs for JobsApi {
     ) -> Result<Response<pb::Job>, Status> {
         let tenant = Tenant::of(&request);
         let r = request.into_inner();
-        let h = self.handle(&tenant, &r.id)?;
+        let h = self.handle(&tenant, &r.id).await?;
         Ok(Response::new(self.job(&h.snapshot(), r.omit_result)?))
     }
 
@@ -87,7 +89,7 @@ impl pb::jobs_server::Jobs for JobsApi {
     ) -> Result<Response<Self::WatchJobStream>, Status> {
         let tenant = Tenant::of(&request);
         let r = request.into_inner();
-        let h = self.handle(&tenant, &r.id)?;
+        let h = self.handle(&tenant, &r.id).await?;
         let rx = h.subscribe();
         let omit = r.omit_result;
         let limit = self.state.max_unary_result_bytes;
@@ -117,11 +119,13 @@ impl pb::jobs_server::Jobs for JobsApi {
     ) -> Result<Response<pb::Job>, Status> {
         let tenant = Tenant::of(&request);
         let id = request.into_inner().id;
-        self.handle(&tenant, &id)?;
+        self.handle(&tenant, &id).await?;
         let snap = self
             .state
-            .manager
+            .jobs
             .cancel(&tenant, &id)
+            .await
+            .map_err(|e| submit_status(&e))?
             .ok_or_else(|| Status::not_found(format!("no job with id `{id}`")))?;
         Ok(Response::new(self.job(&snap, true)?))
     }
@@ -146,7 +150,12 @@ impl pb::jobs_server::Jobs for JobsApi {
                 ))
             })?
         };
-        let (page, next) = self.state.manager.list(&tenant, offset, size);
+        let (page, next) = self
+            .state
+            .jobs
+            .list(&tenant, offset, size)
+            .await
+            .map_err(|e| submit_status(&e))?;
         let jobs = page
             .iter()
             .map(|s| self.job(s, true))
@@ -169,7 +178,7 @@ impl pb::jobs_server::Jobs for JobsApi {
             0 => MAX_RESULT_CHUNK_BYTES,
             n => n.min(MAX_RESULT_CHUNK_BYTES),
         };
-        let snap = self.handle(&tenant, &r.id)?.snapshot();
+        let snap = self.handle(&tenant, &r.id).await?.snapshot();
         let bytes = match snap.state {
             JobState::Succeeded => snap
                 .result

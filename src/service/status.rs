@@ -7,7 +7,7 @@ use tonic_types::{ErrorDetails, StatusExt};
 
 use super::proto::v1 as pb;
 use crate::error::MurkError;
-use crate::jobs::SubmitError;
+use crate::jobs::JobsError;
 
 /// Maps a library error to a status. `InvalidArgument` carries a google.rpc.BadRequest field
 /// violation so clients in any language can find the field programmatically.
@@ -45,9 +45,9 @@ pub fn code_of(e: &MurkError) -> Code {
 }
 
 /// A refused submission: queue full → RESOURCE_EXHAUSTED with google.rpc.RetryInfo.
-pub fn submit_status(e: &SubmitError) -> Status {
+pub fn submit_status(e: &JobsError) -> Status {
     match e {
-        SubmitError::QueueFull {
+        JobsError::QueueFull {
             capacity,
             retry_after,
         } => Status::with_error_details(
@@ -55,7 +55,12 @@ pub fn submit_status(e: &SubmitError) -> Status {
             format!("job queue is full ({capacity} jobs waiting); retry after {retry_after:?}"),
             ErrorDetails::with_retry_info(Some(*retry_after)),
         ),
-        SubmitError::ShuttingDown => to_status(&MurkError::ShuttingDown),
+        JobsError::ShuttingDown => to_status(&MurkError::ShuttingDown),
+        JobsError::Unavailable(why) => Status::with_error_details(
+            Code::Unavailable,
+            format!("job store unavailable: {why}"),
+            ErrorDetails::with_retry_info(Some(Duration::from_secs(1))),
+        ),
     }
 }
 
@@ -92,14 +97,14 @@ mod tests {
         assert!(s.message().contains("resubmit"));
         assert!(s.get_error_details().retry_info().is_some());
         assert_eq!(
-            submit_status(&SubmitError::ShuttingDown).code(),
+            submit_status(&JobsError::ShuttingDown).code(),
             Code::Unavailable
         );
     }
 
     #[test]
     fn queue_full_carries_retry_info() {
-        let s = submit_status(&SubmitError::QueueFull {
+        let s = submit_status(&JobsError::QueueFull {
             capacity: 3,
             retry_after: Duration::from_secs(2),
         });

@@ -16,7 +16,7 @@ use super::convert::{
 use super::proto::v1 as pb;
 use super::status::{submit_status, to_status};
 use crate::error::MurkError;
-use crate::jobs::{JobManager, Submitted, Work};
+use crate::jobs::{JobBackend, Submitted, Work};
 use crate::tof::estimate_tof_depth;
 
 /// Bumped whenever an algorithm's output for the same request may change, so cached results of
@@ -40,8 +40,8 @@ pub const DEFAULT_MAX_UNARY_RESULT_BYTES: usize = 4 << 20;
 /// What every gRPC handler shares.
 #[derive(Clone)]
 pub struct ServiceState {
-    /// The job system.
-    pub manager: JobManager,
+    /// The job system (embedded, or shared through Redis).
+    pub jobs: std::sync::Arc<dyn JobBackend>,
     /// Request limits.
     pub limits: RequestLimits,
     /// Largest message a unary response may carry (a Job with its result, or a Reconstruction
@@ -120,24 +120,35 @@ pub async fn submit(
     // job ends.
     let encoded = req.encode_to_vec();
     let id = job_id_of_encoded(&encoded, &model_of(&req, &state.airlight));
-    if let Some(found) = state.manager.find(tenant, &id, name) {
+    if let Some(found) = state
+        .jobs
+        .find(tenant, &id, name)
+        .await
+        .map_err(|e| submit_status(&e))?
+    {
         return Ok(found);
     }
     // Under overload, refuse before paying for decoding (the queue is checked again on insert).
-    if state.manager.queue_full() {
-        return Err(submit_status(&state.manager.refusal()));
+    if state
+        .jobs
+        .queue_full()
+        .await
+        .map_err(|e| submit_status(&e))?
+    {
+        return Err(submit_status(&state.jobs.refusal()));
     }
     let limits = state.limits;
     let airlight = state.airlight.clone();
-    let journal = state.manager.journaling().then_some(encoded);
+    let request = state.jobs.wants_request().then_some(encoded);
     // Decoding megapixel PNG/EXR is CPU work: keep it off the async runtime's threads.
     let work = tokio::task::spawn_blocking(move || build_work(req, &limits, &airlight))
         .await
         .map_err(|e| Status::internal(format!("decoder task failed: {e}")))?
         .map_err(|e| to_status(&named(e)))?;
     state
-        .manager
-        .submit_durable(tenant, &id, name, work, journal)
+        .jobs
+        .submit(tenant, &id, name, work, request)
+        .await
         .map_err(|e| submit_status(&e))
 }
 
@@ -217,8 +228,8 @@ fn view_sizes(reference: Option<&pb::MvsView>, sources: &[pb::MvsView]) -> Vec<(
         .collect()
 }
 
-/// The work of a journalled request (its canonical encoding), for `JobManager::recover` after a
-/// restart.
+/// The work of a request from its canonical encoding: for `JobManager::recover` after a restart,
+/// and for the replica that claims a job from the shared queue.
 pub fn rebuild_work(
     bytes: &[u8],
     limits: &RequestLimits,

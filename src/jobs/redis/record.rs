@@ -1,0 +1,175 @@
+//! A job record as Redis stores it (a hash of strings) ↔ the [`JobSnapshot`] handlers see.
+
+use std::collections::HashMap;
+use std::time::{Duration, SystemTime, UNIX_EPOCH};
+
+use crate::error::MurkError;
+use crate::jobs::state::{JobSnapshot, JobState, ResultBytes};
+
+/// The fields of one record (`HGETALL`).
+#[derive(Debug, Default, Clone)]
+pub(super) struct Record {
+    fields: HashMap<String, String>,
+}
+
+impl Record {
+    /// `None` for a missing key (an empty hash).
+    pub(super) fn from_fields(fields: HashMap<String, String>) -> Option<Self> {
+        (!fields.is_empty()).then_some(Self { fields })
+    }
+
+    pub(super) fn get(&self, k: &str) -> &str {
+        self.fields.get(k).map_or("", String::as_str)
+    }
+
+    pub(super) fn state(&self) -> Option<JobState> {
+        Some(match self.get("state") {
+            "queued" => JobState::Queued,
+            "running" => JobState::Running,
+            "succeeded" => JobState::Succeeded,
+            "failed" => JobState::Failed,
+            "cancelled" => JobState::Cancelled,
+            _ => return None,
+        })
+    }
+
+    /// The computation generation (changes when a resubmission restarts the record).
+    pub(super) fn gen(&self) -> &str {
+        self.get("gen")
+    }
+
+    pub(super) fn version(&self) -> u64 {
+        self.get("version").parse().unwrap_or(0)
+    }
+
+    /// Cancellation was requested (the record must not be reused by a resubmission).
+    pub(super) fn cancelling(&self) -> bool {
+        self.get("cancel") == "1"
+    }
+
+    /// Whether a new submission of the same request may attach to this record.
+    pub(super) fn reusable(&self) -> bool {
+        match self.state() {
+            Some(JobState::Succeeded) => true,
+            Some(JobState::Queued | JobState::Running) => !self.cancelling(),
+            _ => false,
+        }
+    }
+
+    /// The snapshot, with `result` attached to a succeeded job.
+    pub(super) fn snapshot(&self, result: Option<ResultBytes>) -> Option<JobSnapshot> {
+        let state = self.state()?;
+        let time = |k: &str| -> Option<SystemTime> {
+            let ms: u64 = self.get(k).parse().ok()?;
+            Some(UNIX_EPOCH + Duration::from_millis(ms))
+        };
+        Some(JobSnapshot {
+            id: self.get("id").to_string(),
+            method: self.get("method").to_string(),
+            state,
+            progress: self.get("progress").parse().unwrap_or(0.0),
+            stage: self.get("stage").to_string(),
+            create_time: time("create_ms").unwrap_or_else(SystemTime::now),
+            start_time: time("start_ms"),
+            end_time: time("end_ms"),
+            cached: self.get("cached") == "1",
+            result: if state == JobState::Succeeded {
+                result
+            } else {
+                None
+            },
+            error: match state {
+                JobState::Failed | JobState::Cancelled => Some(decode_error(
+                    self.get("err_kind"),
+                    self.get("err_a"),
+                    self.get("err_b"),
+                )),
+                _ => None,
+            },
+        })
+    }
+}
+
+/// Milliseconds since the Unix epoch.
+pub(super) fn now_ms() -> u64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| d.as_millis() as u64)
+}
+
+/// `(kind, a, b)` of an error, as the record stores it.
+pub(super) fn encode_error(e: &MurkError) -> (&'static str, String, String) {
+    match e {
+        MurkError::InvalidArgument { field, reason } => ("invalid", field.clone(), reason.clone()),
+        MurkError::Cancelled => ("cancelled", String::new(), String::new()),
+        MurkError::ShuttingDown => ("shutting_down", String::new(), String::new()),
+        MurkError::Numerical(m) => ("numerical", m.clone(), String::new()),
+        MurkError::Internal(m) => ("internal", m.clone(), String::new()),
+        MurkError::Io { path, reason } => ("io", path.clone(), reason.clone()),
+    }
+}
+
+/// Inverse of [`encode_error`]; an unknown kind (a newer replica's) reads as internal.
+pub(super) fn decode_error(kind: &str, a: &str, b: &str) -> MurkError {
+    match kind {
+        "invalid" => MurkError::invalid(a, b),
+        "cancelled" | "" => MurkError::Cancelled,
+        "shutting_down" => MurkError::ShuttingDown,
+        "numerical" => MurkError::Numerical(a.to_string()),
+        "io" => MurkError::Io {
+            path: a.to_string(),
+            reason: b.to_string(),
+        },
+        _ => MurkError::Internal(a.to_string()),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_error_survives_the_record() {
+        for e in [
+            MurkError::invalid("phase", "must be finite"),
+            MurkError::Cancelled,
+            MurkError::ShuttingDown,
+            MurkError::Numerical("diverged".into()),
+            MurkError::Internal("panic".into()),
+            MurkError::Io {
+                path: "/x".into(),
+                reason: "gone".into(),
+            },
+        ] {
+            let (k, a, b) = encode_error(&e);
+            assert_eq!(decode_error(k, &a, &b), e);
+        }
+    }
+
+    #[test]
+    fn snapshot_reads_state_times_and_errors() {
+        let fields: HashMap<String, String> = [
+            ("id", "ab"),
+            ("method", "tof_depth"),
+            ("state", "failed"),
+            ("progress", "0.5"),
+            ("stage", "failed"),
+            ("create_ms", "1000"),
+            ("end_ms", "3000"),
+            ("err_kind", "invalid"),
+            ("err_a", "phase"),
+            ("err_b", "bad"),
+        ]
+        .into_iter()
+        .map(|(k, v)| (k.to_string(), v.to_string()))
+        .collect();
+        let r = Record::from_fields(fields).unwrap();
+        let s = r.snapshot(None).unwrap();
+        assert_eq!(s.state, JobState::Failed);
+        assert_eq!(s.progress, 0.5);
+        assert_eq!(s.create_time, UNIX_EPOCH + Duration::from_secs(1));
+        assert_eq!(s.error, Some(MurkError::invalid("phase", "bad")));
+        assert!(!r.reusable());
+        assert!(Record::from_fields(HashMap::new()).is_none());
+    }
+}

@@ -1,0 +1,502 @@
+//! Scale-out on Redis: several `murk serve --redis-url` replicas, each a separate process, share
+//! one job registry, queue and result cache in a real `redis-server` started by the test on a
+//! free loopback port. Without `redis-server` on the PATH every test here prints why and
+//! passes vacuously (`.ci/run` installs it, so CI runs them).
+
+mod common;
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use common::{job, long_tof_request, tof_request};
+use murk::service::proto::v1 as pb;
+use pb::jobs_client::JobsClient;
+use tonic::transport::{Channel, Endpoint};
+use tonic::Code;
+use tonic_types::StatusExt;
+
+/// A `redis-server` with AOF persistence (fsync on every write), killed on drop.
+struct RedisServer {
+    child: Option<Child>,
+    port: u16,
+    dir: tempfile::TempDir,
+}
+
+fn redis_server_binary() -> Option<PathBuf> {
+    std::env::var_os("PATH").and_then(|paths| {
+        std::env::split_paths(&paths)
+            .map(|p| p.join("redis-server"))
+            .find(|p| p.is_file())
+    })
+}
+
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+impl RedisServer {
+    /// `None` (with the reason printed) when redis-server is not installed.
+    fn start() -> Option<Self> {
+        let Some(_) = redis_server_binary() else {
+            eprintln!(
+                "SKIPPED: redis-server is not installed (apt-get install redis-server); \
+                 .ci/run installs it"
+            );
+            return None;
+        };
+        let mut r = Self {
+            child: None,
+            port: free_port(),
+            dir: tempfile::tempdir().unwrap(),
+        };
+        r.spawn();
+        Some(r)
+    }
+
+    fn spawn(&mut self) {
+        let child = Command::new("redis-server")
+            .args(["--bind", "127.0.0.1", "--port", &self.port.to_string()])
+            .args([
+                "--appendonly",
+                "yes",
+                "--appendfsync",
+                "always",
+                "--save",
+                "",
+            ])
+            .arg("--dir")
+            .arg(self.dir.path())
+            .stdout(Stdio::null())
+            .spawn()
+            .expect("redis-server starts");
+        self.child = Some(child);
+        let deadline = Instant::now() + Duration::from_secs(10);
+        let client = redis::Client::open(self.url()).unwrap();
+        loop {
+            if let Ok(mut c) = client.get_connection() {
+                if redis::cmd("PING").query::<String>(&mut c).is_ok() {
+                    return;
+                }
+            }
+            assert!(Instant::now() < deadline, "redis-server did not come up");
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+
+    /// SIGKILL, then start again on the same port and data directory.
+    fn crash_and_restart(&mut self) {
+        if let Some(mut c) = self.child.take() {
+            c.kill().unwrap();
+            c.wait().unwrap();
+        }
+        self.spawn();
+    }
+
+    fn url(&self) -> String {
+        format!("redis://127.0.0.1:{}/", self.port)
+    }
+
+    fn conn(&self) -> redis::Connection {
+        redis::Client::open(self.url())
+            .unwrap()
+            .get_connection()
+            .unwrap()
+    }
+
+    /// A field of a job record (tenant "" = no authentication).
+    fn record_field(&self, id: &str, field: &str) -> Option<String> {
+        redis::cmd("HGET")
+            .arg(format!("murk:job::{id}"))
+            .arg(field)
+            .query(&mut self.conn())
+            .unwrap()
+    }
+}
+
+impl Drop for RedisServer {
+    fn drop(&mut self) {
+        if let Some(mut c) = self.child.take() {
+            let _ = c.kill();
+            let _ = c.wait();
+        }
+    }
+}
+
+/// A `murk serve` process in the Redis backend, killed on drop.
+struct Replica {
+    child: Child,
+    url: String,
+}
+
+impl Replica {
+    fn start(redis: &RedisServer, extra: &[&str]) -> Self {
+        Self::start_with_cache(redis, extra, None)
+    }
+
+    fn start_with_cache(redis: &RedisServer, extra: &[&str], cache: Option<&Path>) -> Self {
+        use std::io::BufRead;
+        let mut cmd = Command::new(env!("CARGO_BIN_EXE_murk"));
+        cmd.args(["serve", "--addr", "127.0.0.1:0", "--workers", "1"])
+            .args(["--redis-url", &redis.url(), "--redis-lease-secs", "1.5"])
+            .args(["--shutdown-grace-secs", "0.5"])
+            .args(extra)
+            .env("MURK_LOG", "info")
+            .stderr(Stdio::piped());
+        if let Some(dir) = cache {
+            cmd.arg("--cache-dir").arg(dir);
+        }
+        let mut child = cmd.spawn().unwrap();
+        let stderr = child.stderr.take().unwrap();
+        let (tx, rx) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            let mut sent = false;
+            for line in std::io::BufReader::new(stderr)
+                .lines()
+                .map_while(Result::ok)
+            {
+                if !sent && line.contains("murk serving") {
+                    let addr = line
+                        .split_whitespace()
+                        .find_map(|w| w.strip_prefix("addr="))
+                        .map(str::to_string);
+                    let _ = tx.send(addr);
+                    sent = true;
+                }
+                if std::env::var_os("MURK_TEST_REPLICA_LOGS").is_some() {
+                    eprintln!("[replica] {line}");
+                }
+            }
+        });
+        let addr = rx
+            .recv_timeout(Duration::from_secs(60))
+            .expect("replica started")
+            .expect("address in the log");
+        Self {
+            child,
+            url: format!("http://{addr}"),
+        }
+    }
+
+    fn jobs(&self) -> JobsClient<Channel> {
+        JobsClient::new(
+            Endpoint::from_shared(self.url.clone())
+                .unwrap()
+                .connect_lazy(),
+        )
+        .max_decoding_message_size(usize::MAX)
+    }
+
+    fn pid(&self) -> u32 {
+        self.child.id()
+    }
+
+    fn kill(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+impl Drop for Replica {
+    fn drop(&mut self) {
+        self.kill();
+    }
+}
+
+async fn submit(c: &mut JobsClient<Channel>, req: pb::TofDepthRequest) -> pb::Job {
+    c.submit_job(job(req))
+        .await
+        .expect("submitted")
+        .into_inner()
+}
+
+async fn get(c: &mut JobsClient<Channel>, id: &str) -> pb::Job {
+    c.get_job(pb::GetJobRequest {
+        id: id.into(),
+        omit_result: true,
+    })
+    .await
+    .expect("get")
+    .into_inner()
+}
+
+/// Polls GetJob until `pred` holds (bounded).
+async fn wait_until(
+    c: &mut JobsClient<Channel>,
+    id: &str,
+    limit: Duration,
+    pred: impl Fn(&pb::Job) -> bool,
+) -> pb::Job {
+    let deadline = Instant::now() + limit;
+    loop {
+        let j = get(c, id).await;
+        if pred(&j) {
+            return j;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "job {id} still {:?} after {limit:?}",
+            j.state()
+        );
+        tokio::time::sleep(Duration::from_millis(25)).await;
+    }
+}
+
+fn running(j: &pb::Job) -> bool {
+    j.state() == pb::JobState::Running
+}
+
+fn terminal(j: &pb::Job) -> bool {
+    matches!(
+        j.state(),
+        pb::JobState::Succeeded | pb::JobState::Failed | pb::JobState::Cancelled
+    )
+}
+
+/// The pid in a replica's consumer name (`host-pid-rand`).
+fn owner_pid(owner: &str) -> u32 {
+    owner.rsplit('-').nth(1).unwrap().parse().unwrap()
+}
+
+#[tokio::test]
+async fn a_job_submitted_on_one_replica_is_watched_and_fetched_on_another() {
+    let Some(redis) = RedisServer::start() else {
+        return;
+    };
+    let a = Replica::start(&redis, &[]);
+    let b = Replica::start(&redis, &[]);
+    let (mut ca, mut cb) = (a.jobs(), b.jobs());
+    let submitted = submit(&mut ca, tof_request(96, 80, 3)).await;
+    // Watch through B: progress from whichever replica computes it, then the result.
+    let mut stream = cb
+        .watch_job(pb::WatchJobRequest {
+            id: submitted.id.clone(),
+            omit_result: false,
+        })
+        .await
+        .expect("B knows the job")
+        .into_inner();
+    let mut last = None;
+    let mut updates = 0;
+    while let Some(j) = stream.message().await.unwrap() {
+        updates += 1;
+        last = Some(j);
+    }
+    let last = last.expect("at least one update");
+    assert_eq!(last.state(), pb::JobState::Succeeded, "{last:?}");
+    assert!(
+        matches!(last.outcome, Some(pb::job::Outcome::Result(_))),
+        "the result comes with the final update"
+    );
+    assert!(updates >= 2, "saw the job change, not only its end");
+    let on_b = get(&mut cb, &submitted.id).await;
+    assert_eq!(on_b.state(), pb::JobState::Succeeded);
+    // Both replicas list it.
+    for c in [&mut ca, &mut cb] {
+        let list = c
+            .list_jobs(pb::ListJobsRequest::default())
+            .await
+            .unwrap()
+            .into_inner();
+        assert_eq!(list.jobs.len(), 1);
+        assert_eq!(list.jobs[0].id, submitted.id);
+    }
+}
+
+#[tokio::test]
+async fn a_job_whose_replica_is_killed_is_completed_by_another() {
+    let Some(redis) = RedisServer::start() else {
+        return;
+    };
+    let mut replicas = [Replica::start(&redis, &[]), Replica::start(&redis, &[])];
+    let mut c = replicas[0].jobs();
+    // Long enough to be caught running, short enough to finish on the survivor.
+    let submitted = submit(&mut c, long_tof_request(150)).await;
+    wait_until(&mut c, &submitted.id, Duration::from_secs(30), running).await;
+    let owner = redis.record_field(&submitted.id, "owner").unwrap();
+    let victim = replicas
+        .iter()
+        .position(|r| r.pid() == owner_pid(&owner))
+        .expect("one of ours runs it");
+    replicas[victim].kill();
+    let mut survivor = replicas[1 - victim].jobs();
+    let done = wait_until(
+        &mut survivor,
+        &submitted.id,
+        Duration::from_secs(120),
+        terminal,
+    )
+    .await;
+    assert_eq!(done.state(), pb::JobState::Succeeded, "{done:?}");
+    let new_owner = redis.record_field(&submitted.id, "owner").unwrap();
+    assert_ne!(new_owner, owner, "the survivor took it over");
+    assert_eq!(
+        redis.record_field(&submitted.id, "attempts").as_deref(),
+        Some("2")
+    );
+}
+
+#[tokio::test]
+async fn a_result_computed_on_one_replica_is_a_cache_hit_on_another() {
+    let Some(redis) = RedisServer::start() else {
+        return;
+    };
+    let tokens = tempfile::NamedTempFile::new().unwrap();
+    std::fs::write(
+        tokens.path(),
+        "alpha alpha-token-0123456789\nbeta beta-token-9876543210\n",
+    )
+    .unwrap();
+    let auth = ["--auth-tokens-file", tokens.path().to_str().unwrap()];
+    let a = Replica::start(&redis, &auth);
+    let with = |token: &str, req: pb::SubmitJobRequest| {
+        let mut r = tonic::Request::new(req);
+        r.metadata_mut()
+            .insert("authorization", format!("Bearer {token}").parse().unwrap());
+        r
+    };
+    let req = tof_request(64, 48, 5);
+    let first = a
+        .jobs()
+        .submit_job(with("alpha-token-0123456789", job(req.clone())))
+        .await
+        .unwrap()
+        .into_inner();
+    let mut stream = a
+        .jobs()
+        .watch_job({
+            let mut r = tonic::Request::new(pb::WatchJobRequest {
+                id: first.id.clone(),
+                omit_result: true,
+            });
+            r.metadata_mut().insert(
+                "authorization",
+                "Bearer alpha-token-0123456789".parse().unwrap(),
+            );
+            r
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    while stream.message().await.unwrap().is_some() {}
+    // B starts only now, so it cannot have computed anything; another tenant has no record of
+    // the job, so the hit comes from the shared result cache.
+    let b = Replica::start(&redis, &auth);
+    let hit = b
+        .jobs()
+        .submit_job(with("beta-token-9876543210", job(req)))
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(hit.id, first.id);
+    assert!(hit.cached, "{hit:?}");
+    assert_eq!(hit.state(), pb::JobState::Succeeded);
+    assert!(matches!(hit.outcome, Some(pb::job::Outcome::Result(_))));
+}
+
+#[tokio::test]
+async fn cancel_through_one_replica_stops_the_job_running_on_another_within_a_second() {
+    let Some(redis) = RedisServer::start() else {
+        return;
+    };
+    let replicas = [Replica::start(&redis, &[]), Replica::start(&redis, &[])];
+    let mut c = replicas[0].jobs();
+    let submitted = submit(&mut c, long_tof_request(9_000)).await;
+    wait_until(&mut c, &submitted.id, Duration::from_secs(30), running).await;
+    let owner = owner_pid(&redis.record_field(&submitted.id, "owner").unwrap());
+    let other = replicas.iter().position(|r| r.pid() != owner).unwrap();
+    let runner = 1 - other;
+    let mut via = replicas[other].jobs();
+    let mut on_runner = replicas[runner].jobs();
+    let t0 = Instant::now();
+    via.cancel_job(pb::CancelJobRequest {
+        id: submitted.id.clone(),
+    })
+    .await
+    .unwrap();
+    let done = wait_until(
+        &mut on_runner,
+        &submitted.id,
+        Duration::from_secs(5),
+        terminal,
+    )
+    .await;
+    let took = t0.elapsed();
+    assert_eq!(done.state(), pb::JobState::Cancelled, "{done:?}");
+    assert!(took < Duration::from_secs(1), "took {took:?}");
+}
+
+#[tokio::test]
+async fn a_full_global_queue_is_refused_with_a_retry_hint() {
+    let Some(redis) = RedisServer::start() else {
+        return;
+    };
+    let cap = ["--queue-capacity", "1"];
+    let replicas = [Replica::start(&redis, &cap), Replica::start(&redis, &cap)];
+    let mut c = replicas[0].jobs();
+    let mut ids = Vec::new();
+    // One running on each replica …
+    for seed in 0..2u32 {
+        let j = submit(&mut c, long_tof_request(9_000 + seed)).await;
+        wait_until(&mut c, &j.id, Duration::from_secs(30), running).await;
+        ids.push(j.id);
+    }
+    // … one waiting, whichever replica it was sent to …
+    let mut other = replicas[1].jobs();
+    ids.push(submit(&mut other, long_tof_request(9_002)).await.id);
+    // … and the next is refused by both.
+    for client in [&mut c, &mut other] {
+        let err = client
+            .submit_job(job(long_tof_request(9_003)))
+            .await
+            .unwrap_err();
+        assert_eq!(err.code(), Code::ResourceExhausted, "{err:?}");
+        let hint = err.get_details_retry_info().expect("RetryInfo");
+        assert!(hint.retry_delay.is_some_and(|d| d > Duration::ZERO));
+    }
+    for id in ids {
+        c.cancel_job(pb::CancelJobRequest { id }).await.unwrap();
+    }
+}
+
+#[tokio::test]
+async fn no_accepted_job_is_lost_when_redis_crashes_and_restarts_with_aof() {
+    let Some(mut redis) = RedisServer::start() else {
+        return;
+    };
+    let replica = Replica::start(&redis, &[]);
+    let mut c = replica.jobs();
+    // Keep the replica busy so the next jobs wait in the queue.
+    let blocker = submit(&mut c, long_tof_request(9_000)).await;
+    wait_until(&mut c, &blocker.id, Duration::from_secs(30), running).await;
+    let mut waiting = Vec::new();
+    for seed in 0..3 {
+        waiting.push(submit(&mut c, tof_request(48, 40, 100 + seed)).await.id);
+    }
+    redis.crash_and_restart();
+    // While Redis was away the replica answered UNAVAILABLE; once it is back, it serves again.
+    let deadline = Instant::now() + Duration::from_secs(20);
+    loop {
+        match c
+            .cancel_job(pb::CancelJobRequest {
+                id: blocker.id.clone(),
+            })
+            .await
+        {
+            Ok(_) => break,
+            Err(e) => {
+                assert_eq!(e.code(), Code::Unavailable, "{e:?}");
+                assert!(Instant::now() < deadline, "replica did not reconnect");
+                tokio::time::sleep(Duration::from_millis(100)).await;
+            }
+        }
+    }
+    for id in &waiting {
+        let j = wait_until(&mut c, id, Duration::from_secs(60), terminal).await;
+        assert_eq!(j.state(), pb::JobState::Succeeded, "{j:?}");
+    }
+}
