@@ -39,6 +39,22 @@ pub type Client = JobsClient<InterceptedService<Channel, BearerToken>>;
 /// with the CA certificate(s) in the PEM file `MURK_TLS_CA` (and, for mutual TLS, the client
 /// certificate and key in `MURK_TLS_CLIENT_CERT` / `MURK_TLS_CLIENT_KEY`).
 pub async fn connect(url: &str) -> anyhow::Result<Client> {
+    let channel = channel(url).await?;
+    let token = match std::env::var("MURK_TOKEN") {
+        Ok(t) if !t.is_empty() => Some(
+            format!("Bearer {t}")
+                .parse()
+                .context("MURK_TOKEN is not a valid header value")?,
+        ),
+        _ => None,
+    };
+    // Requests (megapixel image sets) may be large; responses stay within the default limit.
+    Ok(JobsClient::with_interceptor(channel, BearerToken(token))
+        .max_encoding_message_size(usize::MAX))
+}
+
+/// A channel to `url` (TLS for `https://`, see [`connect`]).
+pub async fn channel(url: &str) -> anyhow::Result<Channel> {
     let mut endpoint = Endpoint::from_shared(url.to_string())
         .with_context(|| format!("bad server url {url}"))?
         .connect_timeout(Duration::from_secs(10));
@@ -62,21 +78,10 @@ pub async fn connect(url: &str) -> anyhow::Result<Client> {
         }
         endpoint = endpoint.tls_config(tls).context("TLS configuration")?;
     }
-    let channel = endpoint
+    endpoint
         .connect()
         .await
-        .with_context(|| format!("connecting to {url}"))?;
-    let token = match std::env::var("MURK_TOKEN") {
-        Ok(t) if !t.is_empty() => Some(
-            format!("Bearer {t}")
-                .parse()
-                .context("MURK_TOKEN is not a valid header value")?,
-        ),
-        _ => None,
-    };
-    // Requests (megapixel image sets) may be large; responses stay within the default limit.
-    Ok(JobsClient::with_interceptor(channel, BearerToken(token))
-        .max_encoding_message_size(usize::MAX))
+        .with_context(|| format!("connecting to {url}"))
 }
 
 /// Fetches a succeeded job's result through `GetJobResult`, checking its length and SHA-256.

@@ -2,6 +2,7 @@
 
 mod client;
 mod demo;
+mod health;
 mod mvs;
 mod params;
 mod ps;
@@ -85,6 +86,9 @@ enum Command {
     /// Train a learned estimator on simulated scenes (e.g. the airlight CNN).
     #[command(subcommand)]
     Train(train::TrainCommand),
+    /// Ask a server whether it serves (grpc.health.v1): exit 0 if SERVING, 1 otherwise. For
+    /// container health checks.
+    Health(health::HealthArgs),
 }
 
 /// Parses the command line and runs the chosen command.
@@ -113,6 +117,7 @@ pub fn run() -> anyhow::Result<()> {
         Command::Ps(a) => ps::run(a),
         Command::Demo(a) => demo::run(a),
         Command::Train(c) => train::run(c),
+        Command::Health(a) => health::run(a),
     }
 }
 

@@ -133,7 +133,11 @@ impl JobBackend for JobManager {
         offset: usize,
         page_size: usize,
     ) -> Result<(Vec<JobSnapshot>, Option<usize>), JobsError> {
-        Ok(JobManager::list(self, tenant, offset, page_size))
+        let (mut page, next) = JobManager::list(self, tenant, offset, page_size);
+        for s in &mut page {
+            s.result = None;
+        }
+        Ok((page, next))
     }
 
     async fn shutdown(&self, grace: Duration) {

@@ -1,0 +1,40 @@
+#!/usr/bin/env bash
+# Builds stand-ins for the Dockerfile's base images where the public image registry cannot be
+# reached (as on murk's build machines): a Debian bookworm root filesystem from debootstrap,
+# imported as `murk-standin/debian:bookworm-slim`, and a builder on top of it carrying this
+# machine's Rust toolchain, `murk-standin/rust:bookworm`. Then:
+#
+#   docker build --build-arg RUST_IMAGE=murk-standin/rust:bookworm \
+#                --build-arg RUNTIME_IMAGE=murk-standin/debian:bookworm-slim -t murk:latest .
+#
+# Needs root, debootstrap and a running dockerd. The mirror is the first argument
+# (default http://deb.debian.org/debian).
+set -euo pipefail
+mirror="${1:-http://deb.debian.org/debian}"
+work="$(mktemp -d)"
+trap 'rm -rf "$work"' EXIT
+
+rootfs="$work/rootfs"
+debootstrap --variant=minbase bookworm "$rootfs" "$mirror"
+# Keep the runtime base slim: no apt lists, docs or locales.
+rm -rf "$rootfs"/var/lib/apt/lists/* "$rootfs"/usr/share/doc/* "$rootfs"/usr/share/man/* \
+       "$rootfs"/usr/share/locale/*
+tar -C "$rootfs" -c . | docker import - murk-standin/debian:bookworm-slim
+
+# The builder: the runtime base plus a C toolchain and the Rust toolchain of this machine.
+toolchain="$(rustc --print sysroot)"
+cargo_bin="$(dirname "$(command -v cargo)")"
+mkdir -p "$work/ctx"
+cp -a "$toolchain" "$work/ctx/toolchain"
+cat > "$work/ctx/Dockerfile" <<'DOCKERFILE'
+FROM murk-standin/debian:bookworm-slim
+RUN apt-get update \
+    && apt-get install -y --no-install-recommends gcc libc6-dev ca-certificates \
+    && rm -rf /var/lib/apt/lists/*
+COPY toolchain /usr/local/rust
+ENV PATH=/usr/local/rust/bin:/usr/local/cargo/bin:$PATH \
+    CARGO_HOME=/usr/local/cargo
+RUN mkdir -p /usr/local/cargo/bin && rustc --version && cargo --version
+DOCKERFILE
+docker build -t murk-standin/rust:bookworm "$work/ctx"
+echo "stand-in images ready (cargo from ${cargo_bin})"
