@@ -24,14 +24,18 @@ tar -C "$rootfs" -c . | docker import - murk-standin/debian:bookworm-slim
 # The builder: the runtime base plus a C toolchain and the Rust toolchain of this machine.
 toolchain="$(rustc --print sysroot)"
 cargo_bin="$(dirname "$(command -v cargo)")"
-mkdir -p "$work/ctx"
-cp -a "$toolchain" "$work/ctx/toolchain"
+mkdir -p "$work/ctx/toolchain"
+cp -a "$toolchain/." "$work/ctx/toolchain/"
+# This machine's CA bundle, so cargo in the builder trusts what the host trusts (a TLS-inspecting
+# proxy's CA, say).
+cp "${SSL_CERT_FILE:-/etc/ssl/certs/ca-certificates.crt}" "$work/ctx/host-ca.crt"
 cat > "$work/ctx/Dockerfile" <<'DOCKERFILE'
 FROM murk-standin/debian:bookworm-slim
 RUN apt-get update \
     && apt-get install -y --no-install-recommends gcc libc6-dev ca-certificates \
     && rm -rf /var/lib/apt/lists/*
 COPY toolchain /usr/local/rust
+COPY host-ca.crt /etc/ssl/certs/ca-certificates.crt
 ENV PATH=/usr/local/rust/bin:/usr/local/cargo/bin:$PATH \
     CARGO_HOME=/usr/local/cargo
 RUN mkdir -p /usr/local/cargo/bin && rustc --version && cargo --version

@@ -28,17 +28,29 @@ impl Replica {
         Self::start_with_cache(redis, extra, None)
     }
 
+    fn start_url(url: &str, extra: &[&str]) -> Self {
+        Self::spawn(url, extra, None)
+    }
+
     fn start_with_cache(redis: &RedisServer, extra: &[&str], cache: Option<&Path>) -> Self {
+        Self::spawn(&redis.url(), extra, cache)
+    }
+
+    fn spawn(url: &str, extra: &[&str], cache: Option<&Path>) -> Self {
         use std::io::BufRead;
         let mut cmd = Command::new(env!("CARGO_BIN_EXE_murk"));
         cmd.args(["serve", "--addr", "127.0.0.1:0", "--workers", "1"])
-            .args(["--redis-url", &redis.url(), "--redis-lease-secs", "1.5"])
+            .args(["--redis-url", url])
             .args(["--shutdown-grace-secs", "0.5"])
             .args(extra)
             .env("MURK_LOG", "info")
             .stderr(Stdio::piped());
         if let Some(dir) = cache {
             cmd.arg("--cache-dir").arg(dir);
+        }
+        // A short lease so takeovers happen within the tests' patience.
+        if !extra.contains(&"--redis-lease-secs") {
+            cmd.args(["--redis-lease-secs", "1.5"]);
         }
         let mut child = cmd.spawn().unwrap();
         let stderr = child.stderr.take().unwrap();
@@ -389,4 +401,80 @@ async fn no_accepted_job_is_lost_when_redis_crashes_and_restarts_with_aof() {
         let j = wait_until(&mut c, id, Duration::from_secs(60), terminal).await;
         assert_eq!(j.state(), pb::JobState::Succeeded, "{j:?}");
     }
+}
+
+#[tokio::test]
+async fn a_replica_started_before_redis_answers_unavailable_then_serves() {
+    let Some(redis) = RedisServer::start() else {
+        return;
+    };
+    // A replica pointed at a port where nothing listens yet.
+    let port = common::redis_server::free_port();
+    let url = format!("redis://127.0.0.1:{port}/");
+    let replica = Replica::start_url(&url, &[]);
+    let mut c = replica.jobs();
+    let err = c.submit_job(job(tof_request(32, 24, 1))).await.unwrap_err();
+    assert_eq!(err.code(), Code::Unavailable, "{err:?}");
+    assert!(err.get_details_retry_info().is_some());
+    drop(redis);
+    // Redis appears on that port: the replica reconnects by itself.
+    let _late = RedisServer::start_on(port);
+    let deadline = Instant::now() + Duration::from_secs(20);
+    let submitted = loop {
+        match c.submit_job(job(tof_request(32, 24, 1))).await {
+            Ok(j) => break j.into_inner(),
+            Err(e) => {
+                assert_eq!(e.code(), Code::Unavailable, "{e:?}");
+                assert!(Instant::now() < deadline, "replica did not connect");
+                tokio::time::sleep(Duration::from_millis(100)).await;
+            }
+        }
+    };
+    let done = wait_until(&mut c, &submitted.id, Duration::from_secs(30), terminal).await;
+    assert_eq!(done.state(), pb::JobState::Succeeded);
+}
+
+#[cfg(unix)]
+#[tokio::test]
+async fn a_replica_stopped_with_sigterm_hands_its_job_to_another_at_once() {
+    let Some(redis) = RedisServer::start() else {
+        return;
+    };
+    // A long lease: a handover within it can only come from the stopping replica itself.
+    let lease = ["--redis-lease-secs", "60"];
+    let mut replicas = [
+        Replica::start(&redis, &lease),
+        Replica::start(&redis, &lease),
+    ];
+    let mut c = replicas[0].jobs();
+    let submitted = submit(&mut c, long_tof_request(150)).await;
+    wait_until(&mut c, &submitted.id, Duration::from_secs(30), running).await;
+    let owner = owner_pid(&redis.record_field(&submitted.id, "owner").unwrap());
+    let victim = replicas.iter().position(|r| r.pid() == owner).unwrap();
+    let status = Command::new("kill")
+        .args(["-TERM", &owner.to_string()])
+        .status()
+        .unwrap();
+    assert!(status.success());
+    // Waited for without blocking this runtime: the stopping server closes the connections of
+    // this test's clients, which this runtime drives.
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while replicas[victim].child.try_wait().unwrap().is_none() {
+        assert!(Instant::now() < deadline, "the replica did not stop");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    let mut survivor = replicas[1 - victim].jobs();
+    let done = wait_until(
+        &mut survivor,
+        &submitted.id,
+        Duration::from_secs(50),
+        terminal,
+    )
+    .await;
+    assert_eq!(done.state(), pb::JobState::Succeeded, "{done:?}");
+    assert_eq!(
+        redis.record_field(&submitted.id, "attempts").as_deref(),
+        Some("1"),
+        "a handover is not a failed attempt"
+    );
 }

@@ -21,7 +21,8 @@ fn redis_server_binary() -> Option<PathBuf> {
     })
 }
 
-fn free_port() -> u16 {
+/// A loopback port nothing listens on (at the time of asking).
+pub fn free_port() -> u16 {
     std::net::TcpListener::bind("127.0.0.1:0")
         .unwrap()
         .local_addr()
@@ -32,6 +33,11 @@ fn free_port() -> u16 {
 impl RedisServer {
     /// `None` (with the reason printed) when redis-server is not installed.
     pub fn start() -> Option<Self> {
+        Self::start_on(free_port())
+    }
+
+    /// [`RedisServer::start`] on a given port.
+    pub fn start_on(port: u16) -> Option<Self> {
         let Some(_) = redis_server_binary() else {
             eprintln!(
                 "SKIPPED: redis-server is not installed (apt-get install redis-server); \
@@ -41,7 +47,7 @@ impl RedisServer {
         };
         let mut r = Self {
             child: None,
-            port: free_port(),
+            port,
             dir: tempfile::tempdir().unwrap(),
         };
         r.spawn();

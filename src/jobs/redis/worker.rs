@@ -272,8 +272,8 @@ async fn run(shared: Arc<Shared>, c: Claimed, _permit: OwnedSemaphorePermit) {
     if let Ok(Some(bytes)) = s.load_result(&c.id).await {
         let mut snap = JobSnapshot::from_cache(&c.id, &c.method, bytes);
         snap.cached = false;
-        push_local(s, &c, snap);
         finish(s, &c, JobState::Succeeded, None).await;
+        push_local(s, &c, snap);
         return;
     }
     let rebuild = s.rebuild.clone();
@@ -301,16 +301,28 @@ async fn run(shared: Arc<Shared>, c: Claimed, _permit: OwnedSemaphorePermit) {
             s.local.cancel(&c.tenant, &c.id);
         }
         Outcome::Done(snap) => {
-            push_local(s, &c, snap.clone());
-            match (snap.state, snap.error) {
-                (JobState::Succeeded, _) => {
-                    if let Some(bytes) = &snap.result {
-                        store_result(s, &c.id, bytes).await;
+            let (state, error, result) = (snap.state, snap.error.clone(), snap.result.clone());
+            let record = async {
+                match (state, error) {
+                    (JobState::Succeeded, _) => {
+                        if let Some(bytes) = &result {
+                            store_result(s, &c.id, bytes).await;
+                        }
+                        finish(s, &c, JobState::Succeeded, None).await;
                     }
-                    finish(s, &c, JobState::Succeeded, None).await;
+                    (JobState::Failed, Some(MurkError::ShuttingDown)) => requeue(s, &c).await,
+                    (state, error) => finish(s, &c, state, error).await,
                 }
-                (JobState::Failed, Some(MurkError::ShuttingDown)) => requeue(s, &c).await,
-                (state, error) => finish(s, &c, state, error).await,
+            };
+            tokio::pin!(record);
+            // Callers here see the end once Redis has it too, so a Get right after a watch
+            // ended agrees with it; with Redis away they see it after a short wait anyway.
+            tokio::select! {
+                _ = &mut record => push_local(s, &c, snap),
+                _ = tokio::time::sleep(Duration::from_secs(2)) => {
+                    push_local(s, &c, snap);
+                    record.await;
+                }
             }
         }
     }
