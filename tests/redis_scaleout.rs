@@ -5,8 +5,7 @@
 
 mod common;
 
-use std::path::Path;
-use std::process::{Child, Command, Stdio};
+use std::process::{Child, Command};
 use std::time::{Duration, Instant};
 
 use common::redis_server::RedisServer;
@@ -25,63 +24,21 @@ struct Replica {
 
 impl Replica {
     fn start(redis: &RedisServer, extra: &[&str]) -> Self {
-        Self::start_with_cache(redis, extra, None)
+        Self::start_url(&redis.url(), extra)
     }
 
     fn start_url(url: &str, extra: &[&str]) -> Self {
-        Self::spawn(url, extra, None)
-    }
-
-    fn start_with_cache(redis: &RedisServer, extra: &[&str], cache: Option<&Path>) -> Self {
-        Self::spawn(&redis.url(), extra, cache)
-    }
-
-    fn spawn(url: &str, extra: &[&str], cache: Option<&Path>) -> Self {
-        use std::io::BufRead;
         let mut cmd = Command::new(env!("CARGO_BIN_EXE_murk"));
         cmd.args(["serve", "--addr", "127.0.0.1:0", "--workers", "1"])
             .args(["--redis-url", url])
             .args(["--shutdown-grace-secs", "0.5"])
-            .args(extra)
-            .env("MURK_LOG", "info")
-            .stderr(Stdio::piped());
-        if let Some(dir) = cache {
-            cmd.arg("--cache-dir").arg(dir);
-        }
+            .args(extra);
         // A short lease so takeovers happen within the tests' patience.
         if !extra.contains(&"--redis-lease-secs") {
             cmd.args(["--redis-lease-secs", "1.5"]);
         }
-        let mut child = cmd.spawn().unwrap();
-        let stderr = child.stderr.take().unwrap();
-        let (tx, rx) = std::sync::mpsc::channel();
-        std::thread::spawn(move || {
-            let mut sent = false;
-            for line in std::io::BufReader::new(stderr)
-                .lines()
-                .map_while(Result::ok)
-            {
-                if !sent && line.contains("murk serving") {
-                    let addr = line
-                        .split_whitespace()
-                        .find_map(|w| w.strip_prefix("addr="))
-                        .map(str::to_string);
-                    let _ = tx.send(addr);
-                    sent = true;
-                }
-                if std::env::var_os("MURK_TEST_REPLICA_LOGS").is_some() {
-                    eprintln!("[replica] {line}");
-                }
-            }
-        });
-        let addr = rx
-            .recv_timeout(Duration::from_secs(60))
-            .expect("replica started")
-            .expect("address in the log");
-        Self {
-            child,
-            url: format!("http://{addr}"),
-        }
+        let (child, url) = common::spawn_serve(cmd);
+        Self { child, url }
     }
 
     fn jobs(&self) -> JobsClient<Channel> {
