@@ -86,37 +86,10 @@ async fn graceful_shutdown_aborts_running_jobs_retryably_after_the_grace_period(
 
 /// `murk serve` as a separate process on an ephemeral port: the bound address from its log.
 fn spawn_server(extra: &[&str]) -> (std::process::Child, String) {
-    use std::io::BufRead;
-    let mut child = murk()
-        .args(["serve", "--addr", "127.0.0.1:0", "--workers", "2"])
-        .args(extra)
-        .env("MURK_LOG", "info")
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .unwrap();
-    let stderr = child.stderr.take().unwrap();
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        let mut sent = false;
-        for line in std::io::BufReader::new(stderr)
-            .lines()
-            .map_while(Result::ok)
-        {
-            if !sent && line.contains("murk serving") {
-                let addr = line
-                    .split_whitespace()
-                    .find_map(|w| w.strip_prefix("addr="))
-                    .map(str::to_string);
-                let _ = tx.send(addr);
-                sent = true;
-            }
-        }
-    });
-    let addr = rx
-        .recv_timeout(std::time::Duration::from_secs(60))
-        .expect("server started")
-        .expect("address in the log");
-    (child, format!("http://{addr}"))
+    let mut cmd = murk();
+    cmd.args(["serve", "--addr", "127.0.0.1:0", "--workers", "2"])
+        .args(extra);
+    common::spawn_serve(cmd)
 }
 
 #[cfg(unix)]
@@ -150,6 +123,21 @@ fn exposing_an_unauthenticated_server_needs_an_explicit_flag() {
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("--allow-unauthenticated"), "{err}");
+    // The environment form takes the usual spellings of true and false (containers set `1`).
+    for off in ["0", "false", "no"] {
+        let out = murk()
+            .args(["serve", "--addr", "0.0.0.0:0"])
+            .env("MURK_ALLOW_UNAUTHENTICATED", off)
+            .output()
+            .unwrap();
+        assert!(!out.status.success(), "{off}");
+    }
+    let mut cmd = murk();
+    cmd.args(["serve", "--addr", "0.0.0.0:0"])
+        .env("MURK_ALLOW_UNAUTHENTICATED", "1");
+    let (mut child, _) = spawn_serve(cmd);
+    child.kill().unwrap();
+    child.wait().unwrap();
     let bad_log = murk()
         .args(["serve"])
         .env("MURK_LOG", "json")

@@ -26,7 +26,7 @@ pub struct ServeArgs {
     pub auth_tokens_file: Option<PathBuf>,
     /// Serve a non-loopback address without authentication (anyone who can connect may submit,
     /// read and cancel jobs).
-    #[arg(long, env = "MURK_ALLOW_UNAUTHENTICATED")]
+    #[arg(long, env = "MURK_ALLOW_UNAUTHENTICATED", value_parser = clap::builder::BoolishValueParser::new())]
     pub allow_unauthenticated: bool,
     /// TLS certificate chain (PEM); with `--tls-key` the server speaks TLS only.
     #[arg(long, env = "MURK_TLS_CERT", requires = "tls_key")]
@@ -109,7 +109,7 @@ pub struct ServeArgs {
     pub redis_result_ttl_secs: u64,
     /// With unusable CNN weights, log a warning and use the dark-channel estimator instead of
     /// refusing to start.
-    #[arg(long, env = "MURK_AIRLIGHT_FALLBACK")]
+    #[arg(long, env = "MURK_AIRLIGHT_FALLBACK", value_parser = clap::builder::BoolishValueParser::new())]
     pub airlight_fallback: bool,
 }
 
