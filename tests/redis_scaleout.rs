@@ -8,8 +8,9 @@ mod common;
 use std::process::{Child, Command};
 use std::time::{Duration, Instant};
 
-use common::redis_server::RedisServer;
-use common::{job, long_tof_request, tof_request};
+use common::nginx::Nginx;
+use common::redis_server::{free_port, RedisServer};
+use common::{job, long_tof_request, sample, scrape, tof_request};
 use murk::service::proto::v1 as pb;
 use pb::jobs_client::JobsClient;
 use tonic::transport::{Channel, Endpoint};
@@ -434,4 +435,66 @@ async fn a_replica_stopped_with_sigterm_hands_its_job_to_another_at_once() {
         Some("1"),
         "a handover is not a failed attempt"
     );
+}
+
+/// Item 7: the shipped `deploy/nginx.conf` (listen address and upstreams rewritten) balances
+/// RPCs over two replicas, both of them serve requests and both compute jobs, and results come
+/// back through the balancer.
+#[tokio::test]
+async fn two_replicas_behind_nginx_both_receive_work() {
+    let Some(redis) = RedisServer::start() else {
+        return;
+    };
+    let metrics: Vec<String> = (0..2)
+        .map(|_| format!("127.0.0.1:{}", free_port()))
+        .collect();
+    let replicas: Vec<Replica> = metrics
+        .iter()
+        .map(|m| Replica::start(&redis, &["--metrics-addr", m]))
+        .collect();
+    let upstreams: Vec<String> = replicas
+        .iter()
+        .map(|r| r.url.trim_start_matches("http://").to_string())
+        .collect();
+    let Some(lb) = Nginx::start(&upstreams) else {
+        return;
+    };
+    let mut c = JobsClient::new(Endpoint::from_shared(lb.url()).unwrap().connect_lazy())
+        .max_decoding_message_size(usize::MAX);
+    // Distinct jobs (distinct ids) of a few hundred ms each, all submitted before the first can
+    // finish: with one slot per replica, the second job finds the first one's replica busy.
+    let mut ids = Vec::new();
+    for n in 0..6 {
+        ids.push(submit(&mut c, long_tof_request(20 + n)).await.id);
+    }
+    for id in &ids {
+        let j = wait_until(&mut c, id, Duration::from_secs(120), terminal).await;
+        assert_eq!(j.state(), pb::JobState::Succeeded, "{j:?}");
+    }
+    // A result of several MB comes back through nginx on the ordinary call.
+    let full = c
+        .get_job(pb::GetJobRequest {
+            id: ids[0].clone(),
+            omit_result: false,
+        })
+        .await
+        .expect("result through nginx")
+        .into_inner();
+    assert!(matches!(full.outcome, Some(pb::job::Outcome::Result(_))));
+    // nginx spread the RPCs: each replica answered some of the submissions...
+    let submits = r#"murk_grpc_requests_total{method="murk.v1.Jobs/SubmitJob",code="OK"}"#;
+    for m in &metrics {
+        let served = sample(&scrape(m.parse().unwrap()).await, submits);
+        assert!(
+            served >= 1.0,
+            "replica {m} answered {served} SubmitJob calls"
+        );
+    }
+    // ...and each computed some of the jobs.
+    let owners: std::collections::BTreeSet<u32> = ids
+        .iter()
+        .map(|id| owner_pid(&redis.record_field(id, "owner").unwrap()))
+        .collect();
+    let pids: std::collections::BTreeSet<u32> = replicas.iter().map(Replica::pid).collect();
+    assert_eq!(owners, pids, "jobs were computed by {owners:?}");
 }

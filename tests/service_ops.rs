@@ -294,24 +294,6 @@ async fn tls_round_trip_and_mutual_tls_refuses_clients_without_a_certificate() {
     server.stop().await.unwrap();
 }
 
-/// `GET /metrics` over a raw HTTP/1.1 connection.
-async fn scrape(server: &InProcessServer) -> String {
-    use tokio::io::{AsyncReadExt, AsyncWriteExt};
-    let mut s = tokio::net::TcpStream::connect(server.metrics_addr())
-        .await
-        .unwrap();
-    s.write_all(b"GET /metrics HTTP/1.1\r\nHost: murk\r\nConnection: close\r\n\r\n")
-        .await
-        .unwrap();
-    let mut out = String::new();
-    tokio::time::timeout(Duration::from_secs(10), s.read_to_string(&mut out))
-        .await
-        .expect("scrape answered")
-        .unwrap();
-    assert!(out.starts_with("HTTP/1.1 200"), "{out}");
-    out
-}
-
 #[tokio::test]
 async fn metrics_scrape_reports_queue_jobs_cache_and_rpcs() {
     let server = start(authed_config(4)).await;
@@ -323,7 +305,7 @@ async fn metrics_scrape_reports_queue_jobs_cache_and_rpcs() {
         .await
         .unwrap(); // a cache hit
     let _ = c.tof_depth(tof_request(32, 24, 4)).await; // refused: no token
-    let text = scrape(&server).await;
+    let text = scrape(server.metrics_addr()).await;
     for name in [
         "murk_queue_depth",
         "murk_jobs_running",

@@ -3,6 +3,7 @@
 
 #![allow(dead_code)]
 
+pub mod nginx;
 pub mod redis_server;
 
 use std::time::Duration;
@@ -247,4 +248,27 @@ pub fn spawn_serve(mut cmd: std::process::Command) -> (std::process::Child, Stri
         .expect("server started")
         .expect("address in the log");
     (child, format!("http://{addr}"))
+}
+
+/// `GET /metrics` over a raw HTTP/1.1 connection to a metrics endpoint.
+pub async fn scrape(addr: std::net::SocketAddr) -> String {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
+    s.write_all(b"GET /metrics HTTP/1.1\r\nHost: murk\r\nConnection: close\r\n\r\n")
+        .await
+        .unwrap();
+    let mut out = String::new();
+    tokio::time::timeout(Duration::from_secs(10), s.read_to_string(&mut out))
+        .await
+        .expect("scrape answered")
+        .unwrap();
+    assert!(out.starts_with("HTTP/1.1 200"), "{out}");
+    out
+}
+
+/// The value of one sample (`name{labels}` exactly as exposed), 0 when absent.
+pub fn sample(text: &str, series: &str) -> f64 {
+    text.lines()
+        .find_map(|l| l.strip_prefix(series)?.trim().parse().ok())
+        .unwrap_or(0.0)
 }
