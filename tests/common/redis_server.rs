@@ -1,16 +1,17 @@
-//! A throw-away `redis-server` for the scale-out tests: AOF with fsync on every write, a free
-//! loopback port, killed on drop. `start` returns `None` (printing why) when redis-server is not
+//! A throw-away `redis-server` for the scale-out tests: AOF (by default with fsync on every
+//! write), a free loopback port, killed on drop. `start` returns `None` (printing why) when redis-server is not
 //! installed, so tests skip rather than fail.
 
 use std::path::PathBuf;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-/// A `redis-server` with AOF persistence (fsync on every write), killed on drop.
+/// A `redis-server` with AOF persistence, killed on drop.
 pub struct RedisServer {
     child: Option<Child>,
     port: u16,
     dir: tempfile::TempDir,
+    appendfsync: &'static str,
 }
 
 fn redis_server_binary() -> Option<PathBuf> {
@@ -38,6 +39,16 @@ impl RedisServer {
 
     /// [`RedisServer::start`] on a given port.
     pub fn start_on(port: u16) -> Option<Self> {
+        Self::start_with(port, "always")
+    }
+
+    /// [`RedisServer::start`] with another AOF fsync policy (`everysec` is what
+    /// deploy/docker-compose.yml runs).
+    pub fn start_with_fsync(appendfsync: &'static str) -> Option<Self> {
+        Self::start_with(free_port(), appendfsync)
+    }
+
+    fn start_with(port: u16, appendfsync: &'static str) -> Option<Self> {
         let Some(_) = redis_server_binary() else {
             eprintln!(
                 "SKIPPED: redis-server is not installed (apt-get install redis-server); \
@@ -49,6 +60,7 @@ impl RedisServer {
             child: None,
             port,
             dir: tempfile::tempdir().unwrap(),
+            appendfsync,
         };
         r.spawn();
         Some(r)
@@ -61,7 +73,7 @@ impl RedisServer {
                 "--appendonly",
                 "yes",
                 "--appendfsync",
-                "always",
+                self.appendfsync,
                 "--save",
                 "",
             ])

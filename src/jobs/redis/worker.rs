@@ -18,7 +18,9 @@ use crate::jobs::state::{JobSnapshot, JobState};
 /// How long one blocking read waits before the loop looks at its stop flag again.
 const BLOCK: Duration = Duration::from_secs(1);
 
-/// Least time between two progress writes of one job (stage changes always go through).
+/// Least time between two progress writes of one job (stage changes always go through), and
+/// the time a job runs before its first one: a job of a few milliseconds writes only its start
+/// and its end, which with `appendfsync always` saves an fsync per stage.
 const PROGRESS_EVERY: Duration = Duration::from_millis(200);
 
 /// One stream entry: a job to compute.
@@ -334,7 +336,8 @@ async fn supervise(s: &Arc<Shared>, c: &Claimed, handle: &crate::jobs::JobHandle
     let mut rx = handle.subscribe();
     let mut beat = tokio::time::interval((s.cfg.lease / 3).max(Duration::from_millis(100)));
     beat.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-    let mut last_write = Instant::now() - PROGRESS_EVERY;
+    let started = Instant::now();
+    let mut last_write = started - PROGRESS_EVERY;
     let mut last_stage = String::new();
     loop {
         tokio::select! {
@@ -344,7 +347,9 @@ async fn supervise(s: &Arc<Shared>, c: &Claimed, handle: &crate::jobs::JobHandle
                     return Outcome::Done(snap);
                 }
                 push_local(s, c, snap.clone());
-                if snap.stage != last_stage || last_write.elapsed() >= PROGRESS_EVERY {
+                if started.elapsed() >= PROGRESS_EVERY
+                    && (snap.stage != last_stage || last_write.elapsed() >= PROGRESS_EVERY)
+                {
                     last_stage = snap.stage.clone();
                     last_write = Instant::now();
                     let r: redis::RedisResult<i64> = s
