@@ -1,8 +1,10 @@
 #!/usr/bin/env bash
 # Builds stand-ins for the Dockerfile's base images where the public image registry cannot be
 # reached (as on murk's build machines): a Debian bookworm root filesystem from debootstrap,
-# imported as `murk-standin/debian:bookworm-slim`, and a builder on top of it carrying this
-# machine's Rust toolchain, `murk-standin/rust:bookworm`. Then:
+# imported as `murk-standin/debian:bookworm-slim`, a builder on top of it carrying this
+# machine's Rust toolchain, `murk-standin/rust:bookworm`, and Debian's redis-server and nginx on
+# the same base for deploy/docker-compose.yml (`murk-standin/redis:bookworm`,
+# `murk-standin/nginx:bookworm`). Then:
 #
 #   docker build --build-arg RUST_IMAGE=murk-standin/rust:bookworm \
 #                --build-arg RUNTIME_IMAGE=murk-standin/debian:bookworm-slim -t murk:latest .
@@ -41,4 +43,30 @@ ENV PATH=/usr/local/rust/bin:/usr/local/cargo/bin:$PATH \
 RUN mkdir -p /usr/local/cargo/bin && rustc --version && cargo --version
 DOCKERFILE
 docker build -t murk-standin/rust:bookworm "$work/ctx"
+# The compose file's redis and nginx, from Debian's packages: the commands it runs
+# (`redis-server …` in /data, `nginx -g 'daemon off;' -c …`) work on them unchanged.
+mkdir -p "$work/redis" "$work/nginx"
+cat > "$work/redis/Dockerfile" <<'DOCKERFILE'
+FROM murk-standin/debian:bookworm-slim
+RUN apt-get update \
+    && apt-get install -y --no-install-recommends redis-server redis-tools \
+    && rm -rf /var/lib/apt/lists/* \
+    && mkdir -p /data && chown redis:redis /data
+USER redis
+WORKDIR /data
+EXPOSE 6379
+CMD ["redis-server"]
+DOCKERFILE
+docker build -t murk-standin/redis:bookworm "$work/redis"
+cat > "$work/nginx/Dockerfile" <<'DOCKERFILE'
+FROM murk-standin/debian:bookworm-slim
+RUN apt-get update \
+    && apt-get install -y --no-install-recommends nginx \
+    && rm -rf /var/lib/apt/lists/*
+EXPOSE 50051
+CMD ["nginx", "-g", "daemon off;"]
+DOCKERFILE
+docker build -t murk-standin/nginx:bookworm "$work/nginx"
 echo "stand-in images ready (cargo from ${cargo_bin})"
+echo "compose with them: MURK_IMAGE=murk:latest REDIS_IMAGE=murk-standin/redis:bookworm \\"
+echo "  NGINX_IMAGE=murk-standin/nginx:bookworm docker-compose -p murk -f deploy/docker-compose.yml …"

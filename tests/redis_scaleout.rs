@@ -13,7 +13,7 @@ use common::redis_server::{free_port, RedisServer};
 use common::{job, long_tof_request, sample, scrape, tof_request};
 use murk::service::proto::v1 as pb;
 use pb::jobs_client::JobsClient;
-use tonic::transport::{Channel, Endpoint};
+use tonic::transport::{Certificate, Channel, ClientTlsConfig, Endpoint};
 use tonic::Code;
 use tonic_types::StatusExt;
 
@@ -198,6 +198,67 @@ async fn a_job_whose_replica_is_killed_is_completed_by_another() {
         redis.record_field(&submitted.id, "attempts").as_deref(),
         Some("2")
     );
+}
+
+/// The computing replica's watchers see the end only once Redis has it, so that a Get through
+/// any other replica right after agrees, even when Redis is slow to take the write (here: its
+/// writes paused for 3.5 s, longer than the old 2 s local fallback and shorter than the 5 s
+/// response timeout after which Redis counts as unreachable and local callers see the end
+/// first).
+#[tokio::test]
+async fn a_watch_ends_only_once_every_replica_agrees() {
+    let Some(redis) = RedisServer::start() else {
+        return;
+    };
+    // A lease well beyond the pause, so no takeover muddles the picture.
+    let lease = ["--redis-lease-secs", "30"];
+    let replicas = [
+        Replica::start(&redis, &lease),
+        Replica::start(&redis, &lease),
+    ];
+    let mut c = replicas[0].jobs();
+    let submitted = submit(&mut c, long_tof_request(25)).await;
+    wait_until(&mut c, &submitted.id, Duration::from_secs(30), running).await;
+    let owner = owner_pid(&redis.record_field(&submitted.id, "owner").unwrap());
+    let computing = replicas.iter().position(|r| r.pid() == owner).unwrap();
+    let (mut on_owner, mut other) = (replicas[computing].jobs(), replicas[1 - computing].jobs());
+    let mut stream = on_owner
+        .watch_job(pb::WatchJobRequest {
+            id: submitted.id.clone(),
+            omit_result: true,
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    // The job finishes during the pause; its end cannot reach Redis until the pause is over.
+    let paused = Instant::now();
+    let _: () = redis::cmd("CLIENT")
+        .arg("PAUSE")
+        .arg(3500)
+        .arg("WRITE")
+        .query(&mut redis.conn())
+        .unwrap();
+    let mut last = None;
+    while let Some(j) = stream.message().await.unwrap() {
+        last = Some(j);
+    }
+    let last = last.unwrap();
+    assert_eq!(last.state(), pb::JobState::Succeeded, "{last:?}");
+    // What any replica reads (Redis, through a connection of its own that the pause does not
+    // hold up) already says so.
+    let recorded = redis.record_field(&submitted.id, "state");
+    let watch_ended = paused.elapsed();
+    assert_eq!(
+        recorded.as_deref(),
+        Some("succeeded"),
+        "the watch ended {watch_ended:?} after the pause began, Redis still says {recorded:?}"
+    );
+    assert!(
+        watch_ended >= Duration::from_millis(3000),
+        "{watch_ended:?}"
+    );
+    let elsewhere = get(&mut other, &submitted.id).await;
+    assert_eq!(elsewhere.state(), pb::JobState::Succeeded);
 }
 
 #[tokio::test]
@@ -439,7 +500,7 @@ async fn a_replica_stopped_with_sigterm_hands_its_job_to_another_at_once() {
 
 /// Item 7: the shipped `deploy/nginx.conf` (listen address and upstreams rewritten) balances
 /// RPCs over two replicas, both of them serve requests and both compute jobs, and results come
-/// back through the balancer.
+/// back through the balancer, in plaintext and over TLS with `deploy/nginx-tls.conf`.
 #[tokio::test]
 async fn two_replicas_behind_nginx_both_receive_work() {
     let Some(redis) = RedisServer::start() else {
@@ -456,7 +517,8 @@ async fn two_replicas_behind_nginx_both_receive_work() {
         .iter()
         .map(|r| r.url.trim_start_matches("http://").to_string())
         .collect();
-    let Some(lb) = Nginx::start(&upstreams) else {
+    let pki = common::pki::pki();
+    let Some(lb) = Nginx::start(&upstreams, Some(&pki)) else {
         return;
     };
     let mut c = JobsClient::new(Endpoint::from_shared(lb.url()).unwrap().connect_lazy())
@@ -481,6 +543,30 @@ async fn two_replicas_behind_nginx_both_receive_work() {
         .expect("result through nginx")
         .into_inner();
     assert!(matches!(full.outcome, Some(pb::job::Outcome::Result(_))));
+    // deploy/nginx-tls.conf: the same service over TLS terminated at the balancer.
+    let tls = ClientTlsConfig::new()
+        .ca_certificate(Certificate::from_pem(&pki.ca_pem))
+        .domain_name("localhost");
+    let channel = Endpoint::from_shared(lb.tls_url().unwrap())
+        .unwrap()
+        .tls_config(tls)
+        .unwrap()
+        .connect()
+        .await
+        .expect("TLS through nginx");
+    let over_tls = JobsClient::new(channel)
+        .max_decoding_message_size(usize::MAX)
+        .get_job(pb::GetJobRequest {
+            id: ids[1].clone(),
+            omit_result: false,
+        })
+        .await
+        .expect("a result over TLS")
+        .into_inner();
+    assert!(matches!(
+        over_tls.outcome,
+        Some(pb::job::Outcome::Result(_))
+    ));
     // nginx spread the RPCs: each replica answered some of the submissions...
     let submits = r#"murk_grpc_requests_total{method="murk.v1.Jobs/SubmitJob",code="OK"}"#;
     for m in &metrics {

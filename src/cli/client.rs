@@ -156,28 +156,35 @@ pub async fn run_job(
         ProgressBar::hidden()
     };
     let mut last = job.clone();
-    if !is_terminal(&job) {
-        let mut stream = client
-            .watch_job(pb::WatchJobRequest {
-                id: job.id.clone(),
-                omit_result: true,
-            })
-            .await
-            .map_err(|s| anyhow!("watch failed: {}", s.message()))?
-            .into_inner();
-        while let Some(update) = stream
-            .message()
-            .await
-            .map_err(|s| anyhow!("watch stream failed: {}", s.message()))?
-        {
-            bar.set_position((update.progress.clamp(0.0, 1.0) * 1000.0) as u64);
-            bar.set_message(update.stage.clone());
-            let done = is_terminal(&update);
-            last = update;
-            if done {
-                break;
-            }
+    // The job lives in the service, not in this connection: when the stream breaks (a replica
+    // behind the balancer died, say) or ends early, attach to the job again; another replica
+    // answers for it.
+    let mut breaks = 0;
+    while !is_terminal(&last) {
+        let id = last.id.clone();
+        let outcome = follow(client, &id, &bar, &mut last).await;
+        if is_terminal(&last) {
+            break;
         }
+        breaks += 1;
+        let why = match outcome {
+            Ok(()) => "the watch ended before the job did".to_string(),
+            Err(s) if transient(&s) => s.message().to_string(),
+            Err(s) => bail!(
+                "watching job {} failed: {:?}: {}",
+                last.id,
+                s.code(),
+                s.message()
+            ),
+        };
+        if breaks > WATCH_REATTACH_LIMIT {
+            bail!(
+                "watching job {} failed {breaks} times, last: {why}",
+                last.id
+            );
+        }
+        tracing::warn!(id = %last.id, %why, "watch interrupted; attaching to the job again");
+        tokio::time::sleep(Duration::from_millis(250 << breaks.min(4))).await;
     }
     bar.finish_and_clear();
     if last.state == pb::JobState::Succeeded as i32 {
@@ -193,6 +200,45 @@ pub async fn run_job(
             last.id,
             pb::JobState::try_from(last.state).unwrap_or(pb::JobState::Unspecified)
         ),
+    }
+}
+
+/// Times a broken watch is re-attached before giving up (≈ 30 s of back-off in all).
+const WATCH_REATTACH_LIMIT: u32 = 8;
+
+/// Follows job `id` until its stream ends, keeping `last` at the newest update.
+async fn follow(
+    client: &mut Client,
+    id: &str,
+    bar: &ProgressBar,
+    last: &mut pb::Job,
+) -> Result<(), tonic::Status> {
+    let mut stream = client
+        .watch_job(pb::WatchJobRequest {
+            id: id.to_string(),
+            omit_result: true,
+        })
+        .await?
+        .into_inner();
+    while let Some(update) = stream.message().await? {
+        bar.set_position((update.progress.clamp(0.0, 1.0) * 1000.0) as u64);
+        bar.set_message(update.stage.clone());
+        let done = is_terminal(&update);
+        *last = update;
+        if done {
+            break;
+        }
+    }
+    Ok(())
+}
+
+/// Failures of the connection rather than answers about the job: worth attaching again.
+fn transient(s: &tonic::Status) -> bool {
+    match s.code() {
+        tonic::Code::Unavailable | tonic::Code::Unknown => true,
+        // A stream reset by the balancer when its upstream died.
+        tonic::Code::Internal => s.message().contains("h2 protocol error"),
+        _ => false,
     }
 }
 

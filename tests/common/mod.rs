@@ -4,6 +4,7 @@
 #![allow(dead_code)]
 
 pub mod nginx;
+pub mod pki;
 pub mod redis_server;
 
 use std::time::Duration;

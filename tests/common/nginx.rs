@@ -1,19 +1,22 @@
 //! A throw-away nginx in front of test replicas, running the project's own
-//! `deploy/nginx.conf` with only the deployment-specific parts rewritten: the listen address
-//! (a free loopback port), the upstream servers (the replicas' addresses instead of Docker's
-//! `murk` name) and the pid/temp paths (a temporary directory, so no root is needed).
-//! `start` returns `None` (printing why) when nginx is not installed.
+//! `deploy/nginx.conf` (and, with TLS, `deploy/nginx-tls.conf`) with only the
+//! deployment-specific parts rewritten: the listen addresses (free loopback ports), the upstream
+//! servers (the replicas' addresses instead of Docker's `murk` name) and the file paths (a
+//! temporary directory, so no root is needed). `start` returns `None` (printing why) when nginx
+//! is not installed.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
+use super::pki::Pki;
 use super::redis_server::free_port;
 
 /// An nginx process (foreground, single process), killed on drop.
 pub struct Nginx {
     child: Child,
     port: u16,
+    tls_port: Option<u16>,
     _dir: tempfile::TempDir,
 }
 
@@ -28,10 +31,23 @@ fn nginx_binary() -> Option<PathBuf> {
         .find(|p| p.is_file())
 }
 
+/// `from` → `to` in `text`, once each; panics when a deploy file no longer has a line this
+/// rewrites, so the tests keep exercising the shipped configuration rather than silently a
+/// different one.
+fn rewrite(file: &str, text: &str, replaced: impl IntoIterator<Item = (String, String)>) -> String {
+    let mut text = text.to_string();
+    for (from, to) in replaced {
+        assert!(
+            text.contains(&from),
+            "{file} no longer contains `{from}`: update tests/common/nginx.rs"
+        );
+        text = text.replacen(&from, &to, 1);
+    }
+    text
+}
+
 /// `deploy/nginx.conf` with the listen port, the upstream servers and the file paths replaced.
-/// Panics when the deploy file no longer has the lines this rewrites, so the test keeps
-/// exercising the shipped configuration rather than silently a different one.
-pub fn test_config(deploy_conf: &str, port: u16, upstreams: &[String], dir: &str) -> String {
+fn test_config(deploy_conf: &str, port: u16, upstreams: &[String], dir: &str) -> String {
     let servers: String = upstreams
         .iter()
         .map(|u| format!("server {u};\n        "))
@@ -42,6 +58,10 @@ pub fn test_config(deploy_conf: &str, port: u16, upstreams: &[String], dir: &str
         (
             "listen 50051 http2;",
             format!("listen 127.0.0.1:{port} http2;"),
+        ),
+        (
+            "include /etc/murk/tls/*.conf;",
+            format!("include {dir}/tls/*.conf;"),
         ),
         (
             "http {",
@@ -56,20 +76,46 @@ pub fn test_config(deploy_conf: &str, port: u16, upstreams: &[String], dir: &str
             .join("\n"),
         ),
     ];
-    let mut conf = deploy_conf.to_string();
-    for (from, to) in replaced {
-        assert!(
-            conf.contains(from),
-            "deploy/nginx.conf no longer contains `{from}`: update tests/common/nginx.rs"
-        );
-        conf = conf.replacen(from, &to, 1);
-    }
-    conf
+    rewrite(
+        "deploy/nginx.conf",
+        deploy_conf,
+        replaced.map(|(a, b)| (a.to_string(), b)),
+    )
+}
+
+/// Writes `deploy/nginx-tls.conf` (listening on `port`) and the server certificate into
+/// `dir/tls`, where the rewritten nginx.conf includes it.
+fn write_tls(dir: &Path, port: u16, pki: &Pki) {
+    let tls = dir.join("tls");
+    std::fs::create_dir_all(&tls).unwrap();
+    std::fs::write(tls.join("cert.pem"), &pki.server_cert).unwrap();
+    std::fs::write(tls.join("key.pem"), &pki.server_key).unwrap();
+    let deploy = concat!(env!("CARGO_MANIFEST_DIR"), "/deploy/nginx-tls.conf");
+    let conf = rewrite(
+        "deploy/nginx-tls.conf",
+        &std::fs::read_to_string(deploy).unwrap(),
+        [
+            (
+                "listen 50443 ssl http2;".to_string(),
+                format!("listen 127.0.0.1:{port} ssl http2;"),
+            ),
+            (
+                "/etc/murk/tls/cert.pem".to_string(),
+                tls.join("cert.pem").display().to_string(),
+            ),
+            (
+                "/etc/murk/tls/key.pem".to_string(),
+                tls.join("key.pem").display().to_string(),
+            ),
+        ],
+    );
+    std::fs::write(tls.join("listen.conf"), conf).unwrap();
 }
 
 impl Nginx {
-    /// nginx balancing over `upstreams` (`host:port`), or `None` when nginx is not installed.
-    pub fn start(upstreams: &[String]) -> Option<Self> {
+    /// nginx balancing over `upstreams` (`host:port`), with a TLS listener as well when `tls`
+    /// is given, or `None` when nginx is not installed.
+    pub fn start(upstreams: &[String], tls: Option<&Pki>) -> Option<Self> {
         let Some(bin) = nginx_binary() else {
             eprintln!(
                 "SKIPPED: nginx is not installed (apt-get install nginx); .ci/run installs it"
@@ -85,6 +131,11 @@ impl Nginx {
             upstreams,
             &dir.path().display().to_string(),
         );
+        let tls_port = tls.map(|pki| {
+            let p = free_port();
+            write_tls(dir.path(), p, pki);
+            p
+        });
         let conf_path = dir.path().join("nginx.conf");
         std::fs::write(&conf_path, conf).unwrap();
         let child = Command::new(bin)
@@ -102,22 +153,33 @@ impl Nginx {
         let mut n = Self {
             child,
             port,
+            tls_port,
             _dir: dir,
         };
         let deadline = Instant::now() + Duration::from_secs(10);
-        while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
-            if let Ok(Some(status)) = n.child.try_wait() {
-                panic!("nginx exited at start: {status}");
+        for p in std::iter::once(port).chain(tls_port) {
+            while std::net::TcpStream::connect(("127.0.0.1", p)).is_err() {
+                if let Ok(Some(status)) = n.child.try_wait() {
+                    panic!("nginx exited at start: {status}");
+                }
+                assert!(
+                    Instant::now() < deadline,
+                    "nginx did not come up on port {p}"
+                );
+                std::thread::sleep(Duration::from_millis(20));
             }
-            assert!(Instant::now() < deadline, "nginx did not come up");
-            std::thread::sleep(Duration::from_millis(20));
         }
         Some(n)
     }
 
-    /// The balancer's gRPC URL.
+    /// The balancer's plaintext gRPC URL.
     pub fn url(&self) -> String {
         format!("http://127.0.0.1:{}", self.port)
+    }
+
+    /// The balancer's TLS URL (the certificate is for `localhost`), when started with TLS.
+    pub fn tls_url(&self) -> Option<String> {
+        self.tls_port.map(|p| format!("https://localhost:{p}"))
     }
 }
 

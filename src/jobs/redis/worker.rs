@@ -6,6 +6,7 @@ use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+use futures::future::BoxFuture;
 use redis::aio::ConnectionManager;
 use redis::Value;
 use tokio::sync::OwnedSemaphorePermit;
@@ -317,11 +318,18 @@ async fn run(shared: Arc<Shared>, c: Claimed, _permit: OwnedSemaphorePermit) {
                 }
             };
             tokio::pin!(record);
-            // Callers here see the end once Redis has it too, so a Get right after a watch
-            // ended agrees with it; with Redis away they see it after a short wait anyway.
+            // Callers here see the end once Redis has it too, so that a Get through any replica
+            // right after a watch ended agrees with it, however long a loaded Redis takes to
+            // store a large result. Only with Redis unreachable do they see it first (and the
+            // record follows when Redis returns).
+            let redis_away = async {
+                while s.reachable.load(Ordering::SeqCst) {
+                    tokio::time::sleep(Duration::from_millis(100)).await;
+                }
+            };
             tokio::select! {
                 _ = &mut record => push_local(s, &c, snap),
-                _ = tokio::time::sleep(Duration::from_secs(2)) => {
+                _ = redis_away => {
                     push_local(s, &c, snap);
                     record.await;
                 }
@@ -339,6 +347,9 @@ async fn supervise(s: &Arc<Shared>, c: &Claimed, handle: &crate::jobs::JobHandle
     let started = Instant::now();
     let mut last_write = started - PROGRESS_EVERY;
     let mut last_stage = String::new();
+    // At most one progress write in flight, outside the loop's way: a slow Redis delays the
+    // job's progress in the record, never the detection of its end or its heartbeats.
+    let mut writing: Option<BoxFuture<'_, redis::RedisResult<i64>>> = None;
     loop {
         tokio::select! {
             changed = rx.changed() => {
@@ -347,28 +358,30 @@ async fn supervise(s: &Arc<Shared>, c: &Claimed, handle: &crate::jobs::JobHandle
                     return Outcome::Done(snap);
                 }
                 push_local(s, c, snap.clone());
-                if started.elapsed() >= PROGRESS_EVERY
+                if writing.is_none()
+                    && started.elapsed() >= PROGRESS_EVERY
                     && (snap.stage != last_stage || last_write.elapsed() >= PROGRESS_EVERY)
                 {
                     last_stage = snap.stage.clone();
                     last_write = Instant::now();
-                    let r: redis::RedisResult<i64> = s
-                        .scripts
-                        .progress
-                        .key(s.keys.record(&c.tenant, &c.id))
+                    let mut inv = s.scripts.progress.prepare_invoke();
+                    inv.key(s.keys.record(&c.tenant, &c.id))
                         .arg(&c.gen)
                         .arg(snap.progress)
                         .arg(&snap.stage)
                         .arg(s.keys.channel())
-                        .arg(member(&c.tenant, &c.id))
-                        .invoke_async(&mut s.conn())
-                        .await;
-                    match r {
-                        Ok(1) => { s.local.cancel(&c.tenant, &c.id); }
-                        Ok(-1) => return Outcome::Lost,
-                        // Redis away: the job goes on; progress catches up later.
-                        _ => {}
-                    }
+                        .arg(member(&c.tenant, &c.id));
+                    let mut conn = s.conn();
+                    writing = Some(Box::pin(async move { inv.invoke_async(&mut conn).await }));
+                }
+            }
+            r = async { writing.as_mut().expect("guarded").await }, if writing.is_some() => {
+                writing = None;
+                match r {
+                    Ok(1) => { s.local.cancel(&c.tenant, &c.id); }
+                    Ok(-1) => return Outcome::Lost,
+                    // Redis away: the job goes on; progress catches up later.
+                    _ => {}
                 }
             }
             _ = beat.tick() => {
