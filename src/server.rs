@@ -180,7 +180,14 @@ async fn serve_with_manager(
     } else {
         let (m, limits, airlight) = (manager.clone(), state.limits, state.airlight.clone());
         tokio::task::spawn_blocking(move || {
-            m.recover(|_, bytes| crate::service::rebuild_work(bytes, &limits, &airlight))
+            let requeued =
+                m.recover(|_, bytes| crate::service::rebuild_work(bytes, &limits, &airlight));
+            // Records of jobs that ended before the restart; after the re-queue, so a job
+            // resubmitted since an old record of it wins.
+            if let Err(e) = m.restore_records() {
+                tracing::error!(error = %e, "could not read the job-record log; earlier jobs' records are not restored");
+            }
+            requeued
         })
         .await
         .unwrap_or(0)

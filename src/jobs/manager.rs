@@ -20,7 +20,7 @@ use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::panic::AssertUnwindSafe;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
-use std::sync::{Arc, Condvar, Mutex, MutexGuard};
+use std::sync::{Arc, Condvar, Mutex, MutexGuard, OnceLock};
 use std::time::{Duration, Instant, SystemTime};
 
 use tokio::sync::{watch, Notify};
@@ -28,6 +28,7 @@ use tokio::sync::{watch, Notify};
 use super::cache::{CacheStats, ResultCache};
 use super::journal::{Journal, JournalEntry};
 use super::metrics::JobMetrics;
+use super::record_log::{LoggedRecord, RecordLog};
 use super::state::{JobSnapshot, JobState};
 use crate::error::MurkError;
 use crate::monitor::{Monitor, ProgressSink};
@@ -290,6 +291,9 @@ struct Inner {
     in_progress: Mutex<HashMap<usize, (String, Instant)>>,
     /// Accepted jobs on disk (with a cache directory).
     journal: Option<Journal>,
+    /// Finished records across restarts (`--cache-dir/records.log`), once
+    /// [`JobManager::restore_records`] opened it (the embedded default; not in Redis mode).
+    record_log: OnceLock<RecordLog>,
 }
 
 impl Inner {
@@ -453,6 +457,7 @@ impl JobManager {
             mean_secs: Mutex::new(HashMap::new()),
             in_progress: Mutex::new(HashMap::new()),
             journal,
+            record_log: OnceLock::new(),
         });
         for i in 0..concurrent {
             let inner = inner.clone();
@@ -514,7 +519,7 @@ impl JobManager {
         method: &str,
     ) -> Option<Submitted> {
         let key = (tenant.to_string(), id.to_string());
-        if let Some(e) = reg.jobs.get(&key) {
+        if let Some(e) = self.hydrated(reg, &key) {
             let st = e.state();
             let reusable = match st {
                 JobState::Succeeded => true,
@@ -534,6 +539,19 @@ impl JobManager {
         let bytes = self.inner.cache.get(id)?;
         self.inner.metrics.cache_hits.inc();
         let entry = self.new_entry(tenant, JobSnapshot::from_cache(id, method, bytes), None);
+        // An authenticated tenant's record of a cache hit is its own: keep it across restarts
+        // (the default tenant's comes back from the cache anyway). Not fsynced: a killed
+        // process keeps it, and this is the hot path of repeated requests.
+        if !tenant.is_empty() {
+            if let Some(log) = self.inner.record_log.get() {
+                let snap = entry.snapshot();
+                if let Some(r) = LoggedRecord::ended(tenant, &snap, snap.state, None) {
+                    if let Err(e) = log.append(&r, false) {
+                        tracing::warn!(%id, error = %e, "could not log the job record");
+                    }
+                }
+            }
+        }
         self.insert_locked(reg, entry.clone());
         Some(Submitted {
             handle: self.handle(entry),
@@ -548,8 +566,8 @@ impl JobManager {
     /// result by resubmitting its request, which is a cache hit.
     pub fn get(&self, tenant: &str, id: &str) -> Option<JobHandle> {
         let mut reg = self.inner.registry();
-        if let Some(e) = reg.jobs.get(&(tenant.to_string(), id.to_string())) {
-            return Some(self.handle(e.clone()));
+        if let Some(e) = self.hydrated(&mut reg, &(tenant.to_string(), id.to_string())) {
+            return Some(self.handle(e));
         }
         if !tenant.is_empty() {
             return None;
@@ -660,6 +678,68 @@ impl JobManager {
             handle: self.handle(entry),
             cached: false,
         })
+    }
+
+    /// The registry's entry for `key`, with the result of a succeeded record restored from the
+    /// record log loaded from the cache; such a record whose result the cache no longer holds
+    /// is forgotten (`None`: a resubmission recomputes it).
+    fn hydrated(&self, reg: &mut Registry, key: &JobKey) -> Option<Arc<JobEntry>> {
+        let e = reg.jobs.get(key)?.clone();
+        let needs_result = {
+            let s = e.tx.borrow();
+            s.state == JobState::Succeeded && s.result.is_none()
+        };
+        if !needs_result {
+            return Some(e);
+        }
+        match self.inner.cache.get(&e.id) {
+            Some(bytes) => {
+                e.tx.send_modify(|s| s.result = Some(bytes));
+                Some(e)
+            }
+            None => {
+                reg.jobs.remove(key);
+                reg.order.retain(|k| k != key);
+                None
+            }
+        }
+    }
+
+    /// Brings back the records of jobs that ended before the last stop or crash, from
+    /// `--cache-dir/records.log` (at most `max_job_records`, the newest), and from now on logs
+    /// every job's end there. Call once at start, after [`JobManager::recover`] (a re-queued job
+    /// takes precedence over an old record of the same id). Returns the number restored; 0
+    /// without a cache directory.
+    pub fn restore_records(&self) -> std::io::Result<usize> {
+        let Some(dir) = &self.inner.cfg.cache_dir else {
+            return Ok(0);
+        };
+        let log = RecordLog::open(&dir.join("records.log"))?;
+        let mut records = log.load()?;
+        let keep = self.inner.cfg.max_job_records;
+        if records.len() > keep {
+            records.drain(..records.len() - keep);
+        }
+        let mut restored = 0;
+        {
+            let mut reg = self.inner.registry();
+            for r in &records {
+                let Some(snap) = r.snapshot() else { continue };
+                let key = (r.tenant.clone(), r.id.clone());
+                if reg.jobs.contains_key(&key) {
+                    continue;
+                }
+                let entry = self.new_entry(&r.tenant, snap, None);
+                self.insert_locked(&mut reg, entry);
+                restored += 1;
+            }
+        }
+        log.rewrite(&records)?;
+        let _ = self.inner.record_log.set(log);
+        if restored > 0 {
+            tracing::info!(restored, "restored finished job records");
+        }
+        Ok(restored)
     }
 
     fn forget_journal(&self, tenant: &str, id: &str) {
@@ -969,6 +1049,9 @@ fn finish(
             }
         }
     }
+    if !aborted && entry.remote.is_none() {
+        log_end(inner, entry, state, error.as_ref());
+    }
     if entry.finish(state, result, error.clone()) {
         let label = match (state, &error) {
             (JobState::Failed, Some(MurkError::ShuttingDown)) => "aborted",
@@ -977,6 +1060,39 @@ fn finish(
             _ => "cancelled",
         };
         inner.metrics.finished(&entry.method, label);
+    }
+}
+
+/// Appends a job's end to the record log (fsynced, before the end is published), and rewrites
+/// the log from the registry once it has grown well past the records kept.
+fn log_end(inner: &Inner, entry: &JobEntry, state: JobState, error: Option<&MurkError>) {
+    let Some(log) = inner.record_log.get() else {
+        return;
+    };
+    let Some(r) = LoggedRecord::ended(&entry.tenant, &entry.snapshot(), state, error) else {
+        return;
+    };
+    if let Err(e) = log.append(&r, true) {
+        tracing::warn!(id = %entry.id, error = %e, "could not log the job record");
+    }
+    let bound = 2 * inner.cfg.max_job_records + 1024;
+    if log.appended() > bound {
+        // Under the registry lock, so no record is appended between the gathering and the
+        // rewrite (appenders take the registry lock first, then the log's).
+        let reg = inner.registry();
+        let kept: Vec<LoggedRecord> = reg
+            .order
+            .iter()
+            .filter_map(|k| reg.jobs.get(k))
+            .filter(|e| e.remote.is_none())
+            .filter_map(|e| {
+                let s = e.snapshot();
+                LoggedRecord::ended(&e.tenant, &s, s.state, s.error.as_ref())
+            })
+            .collect();
+        if let Err(e) = log.rewrite(&kept) {
+            tracing::warn!(error = %e, "could not compact the job-record log");
+        }
     }
 }
 

@@ -4,9 +4,11 @@
 
 mod backend;
 mod cache;
+mod error_codec;
 mod journal;
 mod manager;
 mod metrics;
+mod record_log;
 pub mod redis;
 mod state;
 
@@ -18,6 +20,7 @@ pub use manager::{
     DEFAULT_CACHE_DIR_BYTES,
 };
 pub use metrics::{JobMetrics, MethodLabel, MethodState};
+pub use record_log::{LoggedRecord, RecordLog};
 pub use state::{JobSnapshot, JobState, ResultBytes};
 
 #[cfg(test)]

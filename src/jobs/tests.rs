@@ -490,3 +490,71 @@ async fn jobs_stopped_by_shutdown_run_again_after_a_restart() {
     );
     assert_eq!(again.recover(|_, _| panic!("nothing left")), 0);
 }
+
+#[tokio::test]
+async fn finished_records_of_every_tenant_come_back_after_a_restart() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = JobsConfig {
+        workers: 2,
+        concurrent_jobs: 1,
+        queue_capacity: 4,
+        cache_dir: Some(dir.path().to_path_buf()),
+        ..JobsConfig::default()
+    };
+    let m = JobManager::new(cfg.clone()).unwrap();
+    assert_eq!(m.restore_records().unwrap(), 0);
+    let ok = m
+        .submit("alpha", "a1", "t", Box::new(|_| Ok(vec![1, 2, 3])))
+        .unwrap();
+    wait_terminal(&ok.handle).await;
+    let bad = m
+        .submit(
+            "alpha",
+            "a2",
+            "t",
+            Box::new(|_| Err(MurkError::invalid("phase", "must be finite"))),
+        )
+        .unwrap();
+    wait_terminal(&bad.handle).await;
+    let release = Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let (tx, rx) = mpsc::channel();
+    let stopped = m.submit("beta", "b1", "t", gated(tx, release)).unwrap();
+    rx.recv_timeout(Duration::from_secs(10)).unwrap();
+    m.cancel("beta", "b1").unwrap();
+    wait_terminal(&stopped.handle).await;
+    // Beta's cache hit on alpha's result is beta's own record.
+    assert!(m.find("beta", "a1", "t").unwrap().cached);
+    m.shutdown(Duration::from_millis(20)).await;
+    drop(m);
+
+    let again = JobManager::new(cfg).unwrap();
+    assert_eq!(again.recover(|_, _| panic!("nothing was unfinished")), 0);
+    assert_eq!(again.restore_records().unwrap(), 4);
+    let snap = |t: &str, id: &str| again.get(t, id).expect("record is back").snapshot();
+    let s = snap("alpha", "a1");
+    assert_eq!(s.state, JobState::Succeeded);
+    assert_eq!(
+        s.result.as_deref(),
+        Some(&vec![1u8, 2, 3]),
+        "result from the cache"
+    );
+    assert!(s.start_time.is_some() && s.end_time.is_some());
+    let s = snap("alpha", "a2");
+    assert_eq!(s.state, JobState::Failed);
+    assert!(
+        matches!(s.error, Some(MurkError::InvalidArgument { ref field, .. }) if field == "phase")
+    );
+    assert_eq!(snap("beta", "b1").state, JobState::Cancelled);
+    let hit = snap("beta", "a1");
+    assert!(hit.cached && hit.result.is_some());
+    assert!(
+        again.get("beta", "a2").is_none(),
+        "records stay with their tenant"
+    );
+    let (alpha, _) = again.list("alpha", 0, 10);
+    let ids: Vec<&str> = alpha.iter().map(|s| s.id.as_str()).collect();
+    assert_eq!(ids, ["a2", "a1"], "newest first, as before the restart");
+    // Resubmitting the failed job runs it again; the succeeded one is a hit on its record.
+    assert!(again.find("alpha", "a2", "t").is_none());
+    assert!(again.find("alpha", "a1", "t").unwrap().cached);
+}

@@ -11,9 +11,10 @@ use redis::aio::ConnectionManager;
 use redis::Value;
 use tokio::sync::OwnedSemaphorePermit;
 
-use super::record::{encode_error, now_ms};
+use super::record::now_ms;
 use super::{conn_config, member, Shared, GROUP};
 use crate::error::MurkError;
+use crate::jobs::error_codec::encode_error;
 use crate::jobs::state::{JobSnapshot, JobState};
 
 /// How long one blocking read waits before the loop looks at its stop flag again.
