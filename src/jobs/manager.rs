@@ -550,6 +550,7 @@ impl JobManager {
                         tracing::warn!(%id, error = %e, "could not log the job record");
                     }
                 }
+                compact_if_grown(&self.inner, log, reg);
             }
         }
         self.insert_locked(reg, entry.clone());
@@ -1063,8 +1064,7 @@ fn finish(
     }
 }
 
-/// Appends a job's end to the record log (fsynced, before the end is published), and rewrites
-/// the log from the registry once it has grown well past the records kept.
+/// Appends a job's end to the record log (fsynced, before the end is published).
 fn log_end(inner: &Inner, entry: &JobEntry, state: JobState, error: Option<&MurkError>) {
     let Some(log) = inner.record_log.get() else {
         return;
@@ -1072,14 +1072,35 @@ fn log_end(inner: &Inner, entry: &JobEntry, state: JobState, error: Option<&Murk
     let Some(r) = LoggedRecord::ended(&entry.tenant, &entry.snapshot(), state, error) else {
         return;
     };
-    if let Err(e) = log.append(&r, true) {
-        tracing::warn!(id = %entry.id, error = %e, "could not log the job record");
+    let appended_at = match log.append(&r, true) {
+        Ok(n) => n,
+        Err(e) => {
+            tracing::warn!(id = %entry.id, error = %e, "could not log the job record");
+            return;
+        }
+    };
+    if log.appended() > compaction_bound(inner) {
+        compact_if_grown(inner, log, &inner.registry());
     }
-    let bound = 2 * inner.cfg.max_job_records + 1024;
-    if log.appended() > bound {
-        // Under the registry lock, so no record is appended between the gathering and the
-        // rewrite (appenders take the registry lock first, then the log's).
-        let reg = inner.registry();
+    // A compaction between the append and now gathered the registry before this job's end
+    // was published there, so without this its line would be lost.
+    if log.rewrites() != appended_at {
+        if let Err(e) = log.append(&r, true) {
+            tracing::warn!(id = %entry.id, error = %e, "could not log the job record");
+        }
+    }
+}
+
+/// Lines the record log may hold before it is compacted.
+fn compaction_bound(inner: &Inner) -> usize {
+    2 * inner.cfg.max_job_records + 1024
+}
+
+/// Rewrites the record log from the registry once it has grown well past the records kept.
+/// Called with the registry locked (lock order: registry, then log); a job's end logged
+/// concurrently, before its state reached the registry, is appended again by its writer.
+fn compact_if_grown(inner: &Inner, log: &RecordLog, reg: &Registry) {
+    if log.appended() > compaction_bound(inner) {
         let kept: Vec<LoggedRecord> = reg
             .order
             .iter()

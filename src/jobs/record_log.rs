@@ -122,8 +122,8 @@ impl LoggedRecord {
 #[derive(Debug)]
 pub struct RecordLog {
     path: PathBuf,
-    /// The open file and the lines appended since the last rewrite.
-    file: Mutex<(std::fs::File, usize)>,
+    /// The open file, the lines appended since the last rewrite, and the number of rewrites.
+    file: Mutex<(std::fs::File, usize, u64)>,
 }
 
 fn open_append(path: &Path) -> std::io::Result<std::fs::File> {
@@ -138,12 +138,13 @@ impl RecordLog {
     pub fn open(path: &Path) -> std::io::Result<Self> {
         Ok(Self {
             path: path.to_path_buf(),
-            file: Mutex::new((open_append(path)?, 0)),
+            file: Mutex::new((open_append(path)?, 0, 0)),
         })
     }
 
-    /// Appends `record`; with `sync`, returns once it is on disk.
-    pub fn append(&self, record: &LoggedRecord, sync: bool) -> std::io::Result<()> {
+    /// Appends `record`; with `sync`, returns once it is on disk. Returns the log's rewrite
+    /// count at the time (see [`RecordLog::rewrites`]).
+    pub fn append(&self, record: &LoggedRecord, sync: bool) -> std::io::Result<u64> {
         let mut line = serde_json::to_vec(record).map_err(std::io::Error::other)?;
         line.push(b'\n');
         let mut guard = self.file.lock().unwrap_or_else(|p| p.into_inner());
@@ -153,7 +154,13 @@ impl RecordLog {
         if sync {
             guard.0.sync_data()?;
         }
-        Ok(())
+        Ok(guard.2)
+    }
+
+    /// How many times the log was rewritten: a line appended before a rewrite that did not
+    /// gather its record is gone, and its writer appends it again.
+    pub fn rewrites(&self) -> u64 {
+        self.file.lock().unwrap_or_else(|p| p.into_inner()).2
     }
 
     /// Lines appended since the log was last rewritten.
@@ -209,7 +216,7 @@ impl RecordLog {
         if let Some(dir) = self.path.parent() {
             std::fs::File::open(dir)?.sync_all()?;
         }
-        *guard = (open_append(&self.path)?, 0);
+        *guard = (open_append(&self.path)?, 0, guard.2 + 1);
         Ok(())
     }
 }
