@@ -248,7 +248,10 @@ async fn results_survive_a_restart_through_the_cache_directory() {
         .unwrap()
         .into_inner();
     assert_eq!(state(&got), pb::JobState::Succeeded);
-    assert!(got.cached);
+    // The record as it was (computed, not a cache hit), from the record log, with its result
+    // from the cache directory.
+    assert!(!got.cached);
+    assert!(matches!(got.outcome, Some(pb::job::Outcome::Result(_))));
     let again = c.submit_job(req).await.unwrap().into_inner();
     assert!(again.cached);
     assert_eq!(
