@@ -63,17 +63,14 @@ impl LoggedRecord {
         state: JobState,
         error: Option<&MurkError>,
     ) -> Option<Self> {
-        let state = match state {
-            JobState::Succeeded => "succeeded",
-            JobState::Failed => "failed",
-            JobState::Cancelled => "cancelled",
-            JobState::Queued | JobState::Running => return None,
-        };
+        if !state.is_terminal() {
+            return None;
+        }
         Some(Self {
             tenant: tenant.to_string(),
             id: snap.id.clone(),
             method: snap.method.clone(),
-            state: state.to_string(),
+            state: state.name().to_string(),
             create_ms: to_ms(snap.create_time),
             start_ms: snap.start_time.map(to_ms),
             end_ms: to_ms(snap.end_time.unwrap_or_else(SystemTime::now)),
@@ -88,12 +85,7 @@ impl LoggedRecord {
     /// The job as a snapshot, without its result (a succeeded one gets it from the cache).
     /// `None` when the state is not one this log writes.
     pub fn snapshot(&self) -> Option<JobSnapshot> {
-        let state = match self.state.as_str() {
-            "succeeded" => JobState::Succeeded,
-            "failed" => JobState::Failed,
-            "cancelled" => JobState::Cancelled,
-            _ => return None,
-        };
+        let state = JobState::from_name(&self.state).filter(|s| s.is_terminal())?;
         Some(JobSnapshot {
             id: self.id.clone(),
             method: self.method.clone(),

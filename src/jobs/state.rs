@@ -21,6 +21,29 @@ pub enum JobState {
 }
 
 impl JobState {
+    /// The lowercase name stores outside the process use (`queued`, …, `cancelled`).
+    pub fn name(self) -> &'static str {
+        match self {
+            JobState::Queued => "queued",
+            JobState::Running => "running",
+            JobState::Succeeded => "succeeded",
+            JobState::Failed => "failed",
+            JobState::Cancelled => "cancelled",
+        }
+    }
+
+    /// Inverse of [`JobState::name`].
+    pub fn from_name(name: &str) -> Option<Self> {
+        Some(match name {
+            "queued" => JobState::Queued,
+            "running" => JobState::Running,
+            "succeeded" => JobState::Succeeded,
+            "failed" => JobState::Failed,
+            "cancelled" => JobState::Cancelled,
+            _ => return None,
+        })
+    }
+
     /// True for `Succeeded`, `Failed` and `Cancelled`.
     pub fn is_terminal(self) -> bool {
         matches!(

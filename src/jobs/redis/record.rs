@@ -23,14 +23,7 @@ impl Record {
     }
 
     pub(super) fn state(&self) -> Option<JobState> {
-        Some(match self.get("state") {
-            "queued" => JobState::Queued,
-            "running" => JobState::Running,
-            "succeeded" => JobState::Succeeded,
-            "failed" => JobState::Failed,
-            "cancelled" => JobState::Cancelled,
-            _ => return None,
-        })
+        JobState::from_name(self.get("state"))
     }
 
     /// The computation generation (changes when a resubmission restarts the record).

@@ -17,6 +17,13 @@ local function live(rec)
   local st = redis.call('HGET', rec, 'state')
   return st == 'queued' or st == 'running'
 end
+-- Acknowledges and deletes a claimed stream entry; true when the record is still live and in
+-- the generation that entry computed.
+local function settle(rec, stream, group, entry, gen)
+  redis.call('XACK', stream, group, entry)
+  redis.call('XDEL', stream, entry)
+  return redis.call('HGET', rec, 'gen') == gen and live(rec)
+end
 local function close(rec, state, now, kind, a, b, ttl)
   if state == 'succeeded' then
     redis.call('HSET', rec, 'state', state, 'end_ms', now, 'progress', '1', 'stage', 'done')
@@ -154,9 +161,7 @@ return 0
 /// is still this generation's. KEYS: record, stream, queued set. ARGV: gen, entry, group, state,
 /// now_ms, err_kind, err_a, err_b, ttl_s, channel, member. Returns 1 when the record changed.
 const FINISH: &str = r#"
-redis.call('XACK', KEYS[2], ARGV[3], ARGV[2])
-redis.call('XDEL', KEYS[2], ARGV[2])
-if redis.call('HGET', KEYS[1], 'gen') ~= ARGV[1] or not live(KEYS[1]) then return 0 end
+if not settle(KEYS[1], KEYS[2], ARGV[3], ARGV[2], ARGV[1]) then return 0 end
 redis.call('ZREM', KEYS[3], ARGV[11])
 close(KEYS[1], ARGV[4], ARGV[5], ARGV[6], ARGV[7], ARGV[8], ARGV[9])
 redis.call('PUBLISH', ARGV[10], 'u\t' .. ARGV[11])
@@ -168,9 +173,7 @@ return 1
 /// stream, queued set. ARGV: gen, entry, group, now_ms, channel, member, tenant, id, method,
 /// request, ttl_s. Returns 1 when re-queued.
 const REQUEUE: &str = r#"
-redis.call('XACK', KEYS[2], ARGV[3], ARGV[2])
-redis.call('XDEL', KEYS[2], ARGV[2])
-if redis.call('HGET', KEYS[1], 'gen') ~= ARGV[1] or not live(KEYS[1]) then return 0 end
+if not settle(KEYS[1], KEYS[2], ARGV[3], ARGV[2], ARGV[1]) then return 0 end
 if redis.call('HGET', KEYS[1], 'cancel') == '1' then
   close(KEYS[1], 'cancelled', ARGV[4], 'cancelled', '', '', ARGV[11])
   redis.call('PUBLISH', ARGV[5], 'u\t' .. ARGV[6])

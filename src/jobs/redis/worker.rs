@@ -469,30 +469,33 @@ async fn store_result(s: &Shared, id: &str, bytes: &[u8]) {
     .await;
 }
 
+/// An invocation of a script that settles a claimed stream entry (FINISH, REQUEUE): KEYS
+/// record, stream, queued set; ARGV gen, entry, group, then the script's own arguments.
+fn settle_invocation<'a>(
+    s: &Shared,
+    script: &'a redis::Script,
+    c: &Claimed,
+) -> redis::ScriptInvocation<'a> {
+    let mut inv = script.prepare_invoke();
+    inv.key(s.keys.record(&c.tenant, &c.id))
+        .key(s.keys.stream())
+        .key(s.keys.queued())
+        .arg(&c.gen)
+        .arg(&c.entry)
+        .arg(GROUP);
+    inv
+}
+
 /// Acknowledges the entry and closes the record (if it is still this generation's).
 async fn finish(s: &Shared, c: &Claimed, state: JobState, error: Option<MurkError>) {
-    let state_name = match state {
-        JobState::Succeeded => "succeeded",
-        JobState::Failed => "failed",
-        _ => "cancelled",
-    };
     let (kind, a, b) = error
         .as_ref()
-        .map_or(("", String::new(), String::new()), |e| {
-            let (k, a, b) = encode_error(e);
-            (k, a, b)
-        });
+        .map_or(("", String::new(), String::new()), encode_error);
     let end = now_ms();
     persist(s, "recording the job's end", &c.id, || {
         let mut conn = s.conn();
-        let mut inv = s.scripts.finish.prepare_invoke();
-        inv.key(s.keys.record(&c.tenant, &c.id))
-            .key(s.keys.stream())
-            .key(s.keys.queued())
-            .arg(&c.gen)
-            .arg(&c.entry)
-            .arg(GROUP)
-            .arg(state_name)
+        let mut inv = settle_invocation(s, &s.scripts.finish, c);
+        inv.arg(state.name())
             .arg(end)
             .arg(kind)
             .arg(&a)
@@ -510,14 +513,8 @@ async fn requeue(s: &Shared, c: &Claimed) {
     let now = now_ms();
     let done = persist(s, "handing the job back", &c.id, || {
         let mut conn = s.conn();
-        let mut inv = s.scripts.requeue.prepare_invoke();
-        inv.key(s.keys.record(&c.tenant, &c.id))
-            .key(s.keys.stream())
-            .key(s.keys.queued())
-            .arg(&c.gen)
-            .arg(&c.entry)
-            .arg(GROUP)
-            .arg(now)
+        let mut inv = settle_invocation(s, &s.scripts.requeue, c);
+        inv.arg(now)
             .arg(s.keys.channel())
             .arg(member(&c.tenant, &c.id))
             .arg(&c.tenant)
