@@ -60,6 +60,16 @@ async fn health(server: &InProcessServer, service: &str) -> ServingStatus {
         .status()
 }
 
+/// The job id a unary call's response (or error) carries in its metadata.
+fn job_id(metadata: &tonic::metadata::MetadataMap) -> String {
+    metadata
+        .get(JOB_ID_HEADER)
+        .expect("job id header")
+        .to_str()
+        .unwrap()
+        .to_string()
+}
+
 #[tokio::test]
 async fn tokens_are_required_except_for_health_and_reflection() {
     let server = start(authed_config(4)).await;
@@ -321,13 +331,7 @@ async fn a_retry_after_the_deadline_computes_afresh_and_succeeds() {
     let mut retry = tonic::Request::new(req);
     retry.set_timeout(Duration::from_secs(120));
     let ok = c.tof_depth(retry).await.expect("the retry succeeds");
-    let id = ok
-        .metadata()
-        .get(JOB_ID_HEADER)
-        .expect("job id header")
-        .to_str()
-        .unwrap()
-        .to_string();
+    let id = job_id(ok.metadata());
     assert_eq!(id.len(), 64, "a content hash");
     let job = jobs(&server)
         .get_job(pb::GetJobRequest {
@@ -424,15 +428,7 @@ async fn a_512x424_tof_result_reaches_a_client_left_at_the_4_mib_default() {
         .unwrap_err();
     assert_eq!(unary.code(), Code::FailedPrecondition, "{unary:?}");
     assert!(unary.message().contains("GetJobResult"), "{unary:?}");
-    assert_eq!(
-        unary
-            .metadata()
-            .get(JOB_ID_HEADER)
-            .unwrap()
-            .to_str()
-            .unwrap(),
-        id
-    );
+    assert_eq!(job_id(unary.metadata()), id);
     server.stop().await.unwrap();
 }
 
@@ -661,21 +657,9 @@ async fn a_cache_file_swapped_under_another_job_id_is_not_served() {
     let a = start(cfg.clone()).await;
     let mut c = recon(&a);
     let res_a = c.tof_depth(ra).await.unwrap();
-    let id_a = res_a
-        .metadata()
-        .get(JOB_ID_HEADER)
-        .unwrap()
-        .to_str()
-        .unwrap()
-        .to_string();
+    let id_a = job_id(res_a.metadata());
     let res_b = c.tof_depth(rb.clone()).await.unwrap();
-    let id_b = res_b
-        .metadata()
-        .get(JOB_ID_HEADER)
-        .unwrap()
-        .to_str()
-        .unwrap()
-        .to_string();
+    let id_b = job_id(res_b.metadata());
     a.stop().await.unwrap();
     // An operator (or an attacker with file access) copies A's entry over B's.
     std::fs::copy(

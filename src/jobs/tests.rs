@@ -28,6 +28,17 @@ fn gated(started: mpsc::Sender<()>, release: Arc<std::sync::atomic::AtomicBool>)
     })
 }
 
+/// A small manager keeping results, journal and records in `dir`.
+fn durable_config(dir: &std::path::Path) -> JobsConfig {
+    JobsConfig {
+        workers: 2,
+        concurrent_jobs: 1,
+        queue_capacity: 4,
+        cache_dir: Some(dir.to_path_buf()),
+        ..JobsConfig::default()
+    }
+}
+
 async fn wait_terminal(h: &JobHandle) -> JobSnapshot {
     let mut rx = h.subscribe();
     let s = rx
@@ -448,13 +459,7 @@ async fn retry_hint_is_the_time_until_a_slot_frees_with_jitter() {
 #[tokio::test]
 async fn jobs_stopped_by_shutdown_run_again_after_a_restart() {
     let dir = tempfile::tempdir().unwrap();
-    let cfg = JobsConfig {
-        workers: 2,
-        concurrent_jobs: 1,
-        queue_capacity: 4,
-        cache_dir: Some(dir.path().to_path_buf()),
-        ..JobsConfig::default()
-    };
+    let cfg = durable_config(dir.path());
     let m = JobManager::new(cfg.clone()).unwrap();
     assert!(m.journaling());
     let release = Arc::new(std::sync::atomic::AtomicBool::new(false));
@@ -494,13 +499,7 @@ async fn jobs_stopped_by_shutdown_run_again_after_a_restart() {
 #[tokio::test]
 async fn finished_records_of_every_tenant_come_back_after_a_restart() {
     let dir = tempfile::tempdir().unwrap();
-    let cfg = JobsConfig {
-        workers: 2,
-        concurrent_jobs: 1,
-        queue_capacity: 4,
-        cache_dir: Some(dir.path().to_path_buf()),
-        ..JobsConfig::default()
-    };
+    let cfg = durable_config(dir.path());
     let m = JobManager::new(cfg.clone()).unwrap();
     assert_eq!(m.restore_records().unwrap(), 0);
     let ok = m

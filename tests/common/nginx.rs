@@ -5,7 +5,7 @@
 //! temporary directory, so no root is needed). `start` returns `None` (printing why) when nginx
 //! is not installed.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
@@ -18,17 +18,6 @@ pub struct Nginx {
     port: u16,
     tls_port: Option<u16>,
     _dir: tempfile::TempDir,
-}
-
-fn nginx_binary() -> Option<PathBuf> {
-    let mut dirs: Vec<PathBuf> = std::env::var_os("PATH")
-        .map(|p| std::env::split_paths(&p).collect())
-        .unwrap_or_default();
-    // Debian installs it in sbin, which a non-root PATH may lack.
-    dirs.extend(["/usr/sbin", "/usr/local/sbin"].map(PathBuf::from));
-    dirs.into_iter()
-        .map(|d| d.join("nginx"))
-        .find(|p| p.is_file())
 }
 
 /// `from` → `to` in `text`, once each; panics when a deploy file no longer has a line this
@@ -116,7 +105,8 @@ impl Nginx {
     /// nginx balancing over `upstreams` (`host:port`), with a TLS listener as well when `tls`
     /// is given, or `None` when nginx is not installed.
     pub fn start(upstreams: &[String], tls: Option<&Pki>) -> Option<Self> {
-        let Some(bin) = nginx_binary() else {
+        // Debian installs it in sbin, which a non-root PATH may lack.
+        let Some(bin) = super::find_binary("nginx", &["/usr/sbin", "/usr/local/sbin"]) else {
             eprintln!(
                 "SKIPPED: nginx is not installed (apt-get install nginx); .ci/run installs it"
             );

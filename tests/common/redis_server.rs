@@ -2,7 +2,6 @@
 //! write), a free loopback port, killed on drop. `start` returns `None` (printing why) when redis-server is not
 //! installed, so tests skip rather than fail.
 
-use std::path::PathBuf;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
@@ -12,14 +11,6 @@ pub struct RedisServer {
     port: u16,
     dir: tempfile::TempDir,
     appendfsync: &'static str,
-}
-
-fn redis_server_binary() -> Option<PathBuf> {
-    std::env::var_os("PATH").and_then(|paths| {
-        std::env::split_paths(&paths)
-            .map(|p| p.join("redis-server"))
-            .find(|p| p.is_file())
-    })
 }
 
 /// A loopback port nothing listens on (at the time of asking).
@@ -49,7 +40,7 @@ impl RedisServer {
     }
 
     fn start_with(port: u16, appendfsync: &'static str) -> Option<Self> {
-        let Some(_) = redis_server_binary() else {
+        let Some(_) = super::find_binary("redis-server", &[]) else {
             eprintln!(
                 "SKIPPED: redis-server is not installed (apt-get install redis-server); \
                  .ci/run installs it"
