@@ -14,12 +14,12 @@
 use std::io::{BufRead, Write};
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
-use std::time::{Duration, SystemTime, UNIX_EPOCH};
+use std::time::SystemTime;
 
 use serde::{Deserialize, Serialize};
 
 use super::error_codec::{decode_error, encode_error};
-use super::state::{JobSnapshot, JobState};
+use super::state::{from_unix_ms, unix_ms, JobSnapshot, JobState};
 use crate::error::MurkError;
 
 /// One finished job as the log keeps it (no result bytes: those live in the result cache).
@@ -45,15 +45,6 @@ pub struct LoggedRecord {
     pub error: Option<(String, String, String)>,
 }
 
-fn to_ms(t: SystemTime) -> u64 {
-    t.duration_since(UNIX_EPOCH)
-        .map_or(0, |d| d.as_millis() as u64)
-}
-
-fn from_ms(ms: u64) -> SystemTime {
-    UNIX_EPOCH + Duration::from_millis(ms)
-}
-
 impl LoggedRecord {
     /// The record of `tenant`'s job `snap` as it ends in `state` with `error`; `None` for a
     /// non-terminal state.
@@ -71,9 +62,9 @@ impl LoggedRecord {
             id: snap.id.clone(),
             method: snap.method.clone(),
             state: state.name().to_string(),
-            create_ms: to_ms(snap.create_time),
-            start_ms: snap.start_time.map(to_ms),
-            end_ms: to_ms(snap.end_time.unwrap_or_else(SystemTime::now)),
+            create_ms: unix_ms(snap.create_time),
+            start_ms: snap.start_time.map(unix_ms),
+            end_ms: unix_ms(snap.end_time.unwrap_or_else(SystemTime::now)),
             cached: snap.cached,
             error: error.map(|e| {
                 let (k, a, b) = encode_error(e);
@@ -100,9 +91,9 @@ impl LoggedRecord {
             } else {
                 self.state.clone()
             },
-            create_time: from_ms(self.create_ms),
-            start_time: self.start_ms.map(from_ms),
-            end_time: Some(from_ms(self.end_ms)),
+            create_time: from_unix_ms(self.create_ms),
+            start_time: self.start_ms.map(from_unix_ms),
+            end_time: Some(from_unix_ms(self.end_ms)),
             cached: self.cached,
             result: None,
             error: self.error.as_ref().map(|(k, a, b)| decode_error(k, a, b)),
@@ -216,6 +207,7 @@ impl RecordLog {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::time::Duration;
 
     fn record(tenant: &str, id: &str, state: JobState, error: Option<MurkError>) -> LoggedRecord {
         let mut snap = JobSnapshot::queued(id, "tof_depth");

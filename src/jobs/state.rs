@@ -1,7 +1,7 @@
 //! What a job looks like from outside: its state machine and snapshots.
 
 use std::sync::Arc;
-use std::time::SystemTime;
+use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
 use crate::error::MurkError;
 
@@ -51,6 +51,17 @@ impl JobState {
             JobState::Succeeded | JobState::Failed | JobState::Cancelled
         )
     }
+}
+
+/// Milliseconds since the Unix epoch (0 before it): how stores outside the process keep times.
+pub(crate) fn unix_ms(t: SystemTime) -> u64 {
+    t.duration_since(UNIX_EPOCH)
+        .map_or(0, |d| d.as_millis() as u64)
+}
+
+/// Inverse of [`unix_ms`].
+pub(crate) fn from_unix_ms(ms: u64) -> SystemTime {
+    UNIX_EPOCH + Duration::from_millis(ms)
 }
 
 /// Result payload of a finished job: the encoded result message, shared without copying.

@@ -1,10 +1,10 @@
 //! A job record as Redis stores it (a hash of strings) ↔ the [`JobSnapshot`] handlers see.
 
 use std::collections::HashMap;
-use std::time::{Duration, SystemTime, UNIX_EPOCH};
+use std::time::SystemTime;
 
 use crate::jobs::error_codec::decode_error;
-use crate::jobs::state::{JobSnapshot, JobState, ResultBytes};
+use crate::jobs::state::{from_unix_ms, unix_ms, JobSnapshot, JobState, ResultBytes};
 
 /// The fields of one record (`HGETALL`).
 #[derive(Debug, Default, Clone)]
@@ -52,10 +52,8 @@ impl Record {
     /// The snapshot, with `result` attached to a succeeded job.
     pub(super) fn snapshot(&self, result: Option<ResultBytes>) -> Option<JobSnapshot> {
         let state = self.state()?;
-        let time = |k: &str| -> Option<SystemTime> {
-            let ms: u64 = self.get(k).parse().ok()?;
-            Some(UNIX_EPOCH + Duration::from_millis(ms))
-        };
+        let time =
+            |k: &str| -> Option<SystemTime> { Some(from_unix_ms(self.get(k).parse().ok()?)) };
         Some(JobSnapshot {
             id: self.get("id").to_string(),
             method: self.get("method").to_string(),
@@ -85,9 +83,7 @@ impl Record {
 
 /// Milliseconds since the Unix epoch.
 pub(super) fn now_ms() -> u64 {
-    SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map_or(0, |d| d.as_millis() as u64)
+    unix_ms(SystemTime::now())
 }
 
 #[cfg(test)]
@@ -116,7 +112,7 @@ mod tests {
         let s = r.snapshot(None).unwrap();
         assert_eq!(s.state, JobState::Failed);
         assert_eq!(s.progress, 0.5);
-        assert_eq!(s.create_time, UNIX_EPOCH + Duration::from_secs(1));
+        assert_eq!(s.create_time, from_unix_ms(1000));
         assert_eq!(s.error, Some(MurkError::invalid("phase", "bad")));
         assert!(!r.reusable());
         assert!(Record::from_fields(HashMap::new()).is_none());
