@@ -2,6 +2,8 @@
 //! request: hashing, cache lookup, result encoding, HTTP/2 transfer, client decoding), through
 //! the request-metrics and request-id layers, without and with bearer-token authentication.
 //!
+//! Also the record log's append, fsynced and not (`record_log_append`).
+//!
 //! cargo bench --bench service
 
 use criterion::{criterion_group, criterion_main, Criterion};
@@ -164,5 +166,37 @@ fn with_token_watch(auth: bool, id: String) -> tonic::Request<pb::WatchJobReques
     r
 }
 
-criterion_group!(benches, cache_hit_round_trip);
+/// What the record log (`--cache-dir/records.log`) adds to a job's end: one fsynced line for a
+/// computed job, one unsynced line for an authenticated tenant's cache hit.
+fn record_log_append(c: &mut Criterion) {
+    use murk::jobs::{JobSnapshot, JobState, LoggedRecord, RecordLog};
+    let dir = tempfile::tempdir().expect("temp dir");
+    let log = RecordLog::open(&dir.path().join("records.log")).expect("log");
+    let now = std::time::SystemTime::now();
+    let snap = JobSnapshot {
+        id: "ab".repeat(32),
+        method: "tof_depth".into(),
+        state: JobState::Running,
+        progress: 0.9,
+        stage: "fine".into(),
+        create_time: now,
+        start_time: Some(now),
+        end_time: None,
+        cached: false,
+        result: None,
+        error: None,
+    };
+    let record =
+        LoggedRecord::ended("alpha", &snap, JobState::Succeeded, None).expect("terminal record");
+    let mut group = c.benchmark_group("record_log_append");
+    group.sample_size(30);
+    for (label, sync) in [("fsynced", true), ("written", false)] {
+        group.bench_function(label, |b| {
+            b.iter(|| log.append(&record, sync).expect("append"))
+        });
+    }
+    group.finish();
+}
+
+criterion_group!(benches, cache_hit_round_trip, record_log_append);
 criterion_main!(benches);
