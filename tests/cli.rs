@@ -453,9 +453,11 @@ async fn kill_9_then_restart_requeues_accepted_jobs_from_the_journal() {
         );
     }
     // The long one would take a while: cancel it, and the small one runs to completion.
-    c.cancel_job(pb::CancelJobRequest { id: long_id })
-        .await
-        .unwrap();
+    c.cancel_job(pb::CancelJobRequest {
+        id: long_id.clone(),
+    })
+    .await
+    .unwrap();
     let seen = watch_to_end(&mut c, &small.id).await;
     assert_eq!(state(seen.last().unwrap()), pb::JobState::Succeeded);
     child.kill().unwrap();
@@ -465,4 +467,97 @@ async fn kill_9_then_restart_requeues_accepted_jobs_from_the_journal() {
         .unwrap()
         .count();
     assert_eq!(left, 0, "journal emptied as jobs ended");
+
+    // Their records survive the next kill -9 too (the record log), with their outcomes.
+    let (mut child, url) = spawn_server(&["--cache-dir", &cache, "--concurrent-jobs", "1"]);
+    let mut c = pb::jobs_client::JobsClient::connect(url).await.unwrap();
+    let long = c
+        .get_job(get(&long_id))
+        .await
+        .expect("record back")
+        .into_inner();
+    assert_eq!(long.state, pb::JobState::Cancelled as i32, "{long:?}");
+    let small = c
+        .get_job(get(&small.id))
+        .await
+        .expect("record back")
+        .into_inner();
+    assert_eq!(small.state, pb::JobState::Succeeded as i32, "{small:?}");
+    child.kill().unwrap();
+    child.wait().unwrap();
+}
+
+/// `murk tof` follows its job across a server crash: the server is killed (-9) while the job
+/// runs and restarted on the same port and cache directory, the journal re-queues the job under
+/// the same id, and the client, attaching to the job again, writes its outputs.
+#[tokio::test]
+async fn the_tof_client_follows_its_job_across_a_server_restart() {
+    let dir = tempfile::tempdir().unwrap();
+    let (frame, out) = (dir.path().join("frame"), dir.path().join("out"));
+    // A full-size frame: about 2 s of compute, long enough to be caught running.
+    let st = murk()
+        .args(["simulate", "tof", "--seed", "6", "--out"])
+        .arg(&frame)
+        .status()
+        .unwrap();
+    assert!(st.success());
+    let cache = dir.path().join("cache").to_str().unwrap().to_string();
+    let addr = format!("127.0.0.1:{}", common::redis_server::free_port());
+    let serve = || {
+        let mut cmd = murk();
+        cmd.args([
+            "serve",
+            "--addr",
+            &addr,
+            "--workers",
+            "2",
+            "--cache-dir",
+            &cache,
+        ]);
+        common::spawn_serve(cmd)
+    };
+    let (mut a, url) = serve();
+    let client = murk()
+        .args(["tof", "--server", &url, "--frame"])
+        .arg(&frame)
+        .arg("--out")
+        .arg(&out)
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut c = pb::jobs_client::JobsClient::connect(url.clone())
+        .await
+        .unwrap();
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(60);
+    loop {
+        let jobs = c
+            .list_jobs(pb::ListJobsRequest::default())
+            .await
+            .unwrap()
+            .into_inner()
+            .jobs;
+        if jobs.iter().any(|j| j.state == pb::JobState::Running as i32) {
+            break;
+        }
+        assert!(std::time::Instant::now() < deadline, "the job never ran");
+        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+    }
+    a.kill().unwrap(); // SIGKILL: the client's watch breaks mid-job
+    a.wait().unwrap();
+    drop(c);
+    let (mut b, _) = serve();
+    let output = tokio::time::timeout(
+        std::time::Duration::from_secs(120),
+        tokio::task::spawn_blocking(move || client.wait_with_output()),
+    )
+    .await
+    .expect("the client finished")
+    .unwrap()
+    .unwrap();
+    b.kill().unwrap();
+    b.wait().unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(output.status.success(), "{stderr}");
+    assert!(out.join("range_m.exr").exists(), "{stderr}");
 }
