@@ -1,0 +1,257 @@
+"""Builders of the ``JobRequest`` each method takes, for :meth:`murk_client.Client.submit`.
+
+The ``Client`` methods of the same names build these and wait for the result; call the builders
+directly to submit now and collect later. Optional tuning (``options``, ``sgm``, ...) is given as
+the proto message or as a mapping with the proto's field names, e.g.
+``options={"fine_iterations": 20, "bilateral": {"disabled": True}}``; the proto files in
+``proto/murk/v1`` document every field with its units and default.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Mapping, Optional, Sequence, TypeVar, Union
+
+import numpy as np
+import numpy.typing as npt
+from google.protobuf import json_format
+from google.protobuf.message import Message
+
+from ._proto.murk.v1 import jobs_pb2, mvs_pb2, params_pb2, ps_pb2, tof_pb2
+from .errors import ClientInputError
+from .images import ImageLike, to_proto
+from .types import IntrinsicsLike, PsLight, View, intrinsics_proto, vector3_proto
+
+M = TypeVar("M", bound=Message)
+Tuning = Union[Message, Mapping[str, Any]]
+
+_COST_VOLUMES = {
+    "dehazing": mvs_pb2.COST_VOLUME_KIND_DEHAZING,
+    "eq37": mvs_pb2.COST_VOLUME_KIND_DEHAZING_EQ37,
+    "ordinary": mvs_pb2.COST_VOLUME_KIND_ORDINARY,
+}
+_AIRLIGHT_SOURCES = {
+    "server": params_pb2.AIRLIGHT_SOURCE_UNSPECIFIED,
+    "cnn": params_pb2.AIRLIGHT_SOURCE_CNN,
+    "dark_channel": params_pb2.AIRLIGHT_SOURCE_DARK_CHANNEL,
+    "given": params_pb2.AIRLIGHT_SOURCE_GIVEN,
+}
+_PS_MODES = {"full": ps_pb2.PS_MODE_FULL, "backscatter_only": ps_pb2.PS_MODE_BACKSCATTER_ONLY}
+
+
+def _tuning(value: Optional[Tuning], cls: type[M], field: str) -> Optional[M]:
+    if value is None:
+        return None
+    if isinstance(value, cls):
+        return value
+    if isinstance(value, Message):
+        raise ClientInputError(field, f"expected {cls.DESCRIPTOR.full_name}, got {value.DESCRIPTOR.full_name}")
+    msg = cls()
+    try:
+        json_format.ParseDict(dict(value), msg)
+    except json_format.ParseError as e:
+        raise ClientInputError(field, str(e)) from e
+    return msg
+
+
+def _finite(value: float, field: str, *, positive: bool = False, non_negative: bool = False) -> float:
+    v = float(value)
+    if not math.isfinite(v):
+        raise ClientInputError(field, f"must be finite, got {value}")
+    if positive and v <= 0:
+        raise ClientInputError(field, f"must be > 0, got {value}")
+    if non_negative and v < 0:
+        raise ClientInputError(field, f"must be >= 0, got {value}")
+    return v
+
+
+def _view(v: View, field: str) -> mvs_pb2.MvsView:
+    return mvs_pb2.MvsView(
+        image=to_proto(v.image, field=f"{field}.image"),
+        intrinsics=intrinsics_proto(v.intrinsics, f"{field}.intrinsics"),
+        pose=v.pose.to_proto(),
+    )
+
+
+def tof_depth_request(
+    amplitude: ImageLike,
+    phase: ImageLike,
+    *,
+    modulation_frequency_hz: float,
+    intrinsics: Optional[IntrinsicsLike] = None,
+    light_position_m: Optional[Sequence[float]] = None,
+    options: Optional[Tuning] = None,
+) -> jobs_pb2.JobRequest:
+    """ToF depth in fog (Ch. 5).
+
+    ``amplitude`` linear sensor units and ``phase`` in **radians** [0, 2π), one channel each, same
+    size. ``modulation_frequency_hz`` in Hz (e.g. ``16e6``). ``intrinsics`` (pixels) enable the
+    z-depth output; ``light_position_m`` (camera frame, metres) needs them.
+    """
+    f = _finite(modulation_frequency_hz, "request.tof_depth.modulation_frequency_hz", positive=True)
+    if f < 1e3:
+        # Catches MHz given for Hz (16 instead of 16e6), which would put every range at 9e6 m.
+        raise ClientInputError(
+            "request.tof_depth.modulation_frequency_hz", f"{f} Hz is not a ToF modulation frequency; it is in Hz (e.g. 16e6)"
+        )
+    if isinstance(phase, np.ndarray) and phase.dtype.kind == "f" and phase.size:
+        hi = float(np.nanmax(phase))
+        if hi > 2 * math.pi + 1e-3:
+            raise ClientInputError("request.tof_depth.phase", f"must be radians in [0, 2pi), max is {hi:.4g} (degrees?)")
+    if light_position_m is not None and intrinsics is None:
+        raise ClientInputError("request.tof_depth.light_position_m", "needs intrinsics (each pixel's ray)")
+    req = tof_pb2.TofDepthRequest(
+        amplitude=to_proto(amplitude, field="request.tof_depth.amplitude", channels=1),
+        phase=to_proto(phase, field="request.tof_depth.phase", channels=1),
+        modulation_frequency_hz=f,
+    )
+    if intrinsics is not None:
+        req.intrinsics.CopyFrom(intrinsics_proto(intrinsics, "request.tof_depth.intrinsics"))
+    if light_position_m is not None:
+        req.light_position_m.CopyFrom(vector3_proto(light_position_m, "request.tof_depth.light_position_m"))
+    opts = _tuning(options, tof_pb2.TofOptions, "request.tof_depth.options")
+    if opts is not None:
+        req.options.CopyFrom(opts)
+    return jobs_pb2.JobRequest(tof_depth=req)
+
+
+def mvs_depth_request(
+    reference: View,
+    sources: Sequence[View],
+    *,
+    cost_volume: str = "dehazing",
+    airlight: Optional[float] = None,
+    beta_per_scene_unit: Optional[float] = None,
+    near_scene_units: Optional[float] = None,
+    far_scene_units: Optional[float] = None,
+    num_planes: Optional[int] = None,
+    sgm: Optional[Tuning] = None,
+) -> jobs_pb2.JobRequest:
+    """MVS depth of ``reference`` in haze (Ch. 3.2) from 1 to 16 ``sources``.
+
+    ``cost_volume``: ``"dehazing"`` (default; needs ``airlight`` in (0, 1] and
+    ``beta_per_scene_unit`` >= 0), ``"eq37"`` (also needs them) or ``"ordinary"`` (Eq. 3.1).
+    Planes span ``near_scene_units``…``far_scene_units`` z-depth (default 0.5…50: pass the range
+    of your scene — for a COLMAP model, of its points).
+    """
+    if cost_volume not in _COST_VOLUMES:
+        raise ClientInputError("request.mvs_depth.cost_volume", f"one of {sorted(_COST_VOLUMES)}, got {cost_volume!r}")
+    if cost_volume != "ordinary" and (airlight is None or beta_per_scene_unit is None):
+        raise ClientInputError(
+            "request.mvs_depth.airlight",
+            f"the {cost_volume} cost volume needs airlight and beta_per_scene_unit (Client.scattering_params estimates them)",
+        )
+    req = mvs_pb2.MvsDepthRequest(
+        reference=_view(reference, "request.mvs_depth.reference"),
+        sources=[_view(s, f"request.mvs_depth.sources[{i}]") for i, s in enumerate(sources)],
+        cost_volume=_COST_VOLUMES[cost_volume],
+        airlight=_finite(airlight or 0.0, "request.mvs_depth.airlight", non_negative=True),
+        beta=_finite(beta_per_scene_unit or 0.0, "request.mvs_depth.beta", non_negative=True),
+        near=_finite(near_scene_units or 0.0, "request.mvs_depth.near", non_negative=True),
+        far=_finite(far_scene_units or 0.0, "request.mvs_depth.far", non_negative=True),
+        num_planes=int(num_planes or 0),
+    )
+    s = _tuning(sgm, mvs_pb2.SgmOptions, "request.mvs_depth.sgm")
+    if s is not None:
+        req.sgm.CopyFrom(s)
+    return jobs_pb2.JobRequest(mvs_depth=req)
+
+
+def scattering_params_request(
+    reference: View,
+    sources: Sequence[View],
+    sparse_points_scene_units: npt.ArrayLike,
+    *,
+    airlight_source: str = "server",
+    airlight: Optional[float] = None,
+    beta_min_per_scene_unit: Optional[float] = None,
+    beta_max_per_scene_unit: Optional[float] = None,
+    near_scene_units: Optional[float] = None,
+    far_scene_units: Optional[float] = None,
+    options: Optional[Tuning] = None,
+) -> jobs_pb2.JobRequest:
+    """Airlight A and scattering coefficient β by Algorithm 1 (Ch. 3.3), then the depth with them.
+
+    ``sparse_points_scene_units``: an ``(n, 3)`` array of SfM points, world coordinates.
+    ``airlight_source``: ``"server"`` (its configured estimator), ``"cnn"``, ``"dark_channel"``
+    or ``"given"`` (then ``airlight`` in (0, 1]). β bounds are per scene unit. ``options`` sets
+    any other ``ScatteringParamsRequest`` field (``beta_steps``, ``grid_steps``, ``sgm``, ...).
+    """
+    if airlight_source not in _AIRLIGHT_SOURCES:
+        raise ClientInputError(
+            "request.scattering_params.airlight_source", f"one of {sorted(_AIRLIGHT_SOURCES)}, got {airlight_source!r}"
+        )
+    if (airlight is not None) != (airlight_source == "given"):
+        raise ClientInputError("request.scattering_params.airlight", "give airlight exactly when airlight_source='given'")
+    pts = np.asarray(sparse_points_scene_units, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ClientInputError("request.scattering_params.sparse_points", f"expected shape (n, 3), got {pts.shape}")
+    req = _tuning(options, params_pb2.ScatteringParamsRequest, "request.scattering_params.options")
+    req = req if req is not None else params_pb2.ScatteringParamsRequest()
+    req.reference.CopyFrom(_view(reference, "request.scattering_params.reference"))
+    del req.sources[:]
+    req.sources.extend(_view(s, f"request.scattering_params.sources[{i}]") for i, s in enumerate(sources))
+    del req.sparse_points[:]
+    req.sparse_points.extend(vector3_proto(p, "request.scattering_params.sparse_points") for p in pts.tolist())
+    req.airlight_source = _AIRLIGHT_SOURCES[airlight_source]
+    if airlight is not None:
+        req.airlight = _finite(airlight, "request.scattering_params.airlight", positive=True)
+    if beta_min_per_scene_unit is not None:
+        req.beta_min = _finite(beta_min_per_scene_unit, "request.scattering_params.beta_min", non_negative=True)
+    if beta_max_per_scene_unit is not None:
+        req.beta_max = _finite(beta_max_per_scene_unit, "request.scattering_params.beta_max", positive=True)
+    if near_scene_units is not None:
+        req.near = _finite(near_scene_units, "request.scattering_params.near", positive=True)
+    if far_scene_units is not None:
+        req.far = _finite(far_scene_units, "request.scattering_params.far", positive=True)
+    return jobs_pb2.JobRequest(scattering_params=req)
+
+
+def photometric_stereo_request(
+    lights: Sequence[PsLight],
+    mask: ImageLike,
+    *,
+    intrinsics: IntrinsicsLike,
+    beta_per_mm: float,
+    sigma_per_mm: float,
+    initial_distance_mm: float,
+    mode: str = "full",
+    options: Optional[Tuning] = None,
+) -> jobs_pb2.JobRequest:
+    """Photometric stereo in turbid water (Ch. 4): normals, albedo and depth in mm.
+
+    3 to 64 ``lights`` (positions in **mm**, camera frame), a single-channel ``mask`` (> 0.5 =
+    object), ``beta_per_mm`` and ``sigma_per_mm`` (extinction, >= beta) **per millimetre**, and
+    ``initial_distance_mm``: the object's mean z-depth, which sets the absolute scale of the
+    returned depth. ``mode``: ``"full"`` or ``"backscatter_only"`` (the baseline). ``options``
+    sets any other ``PhotometricStereoRequest`` field (``support_r``, ``max_iterations``, ...).
+    """
+    if mode not in _PS_MODES:
+        raise ClientInputError("request.photometric_stereo.mode", f"one of {sorted(_PS_MODES)}, got {mode!r}")
+    beta = _finite(beta_per_mm, "request.photometric_stereo.beta_per_mm", non_negative=True)
+    sigma = _finite(sigma_per_mm, "request.photometric_stereo.sigma_per_mm", non_negative=True)
+    if beta > 0.5 or sigma > 0.5:
+        # Per-metre values given as per-mm would mean a medium opaque within 2 mm.
+        raise ClientInputError(
+            "request.photometric_stereo.beta_per_mm", f"{beta}/{sigma} per mm is implausibly turbid (per metre given?)"
+        )
+    req = _tuning(options, ps_pb2.PhotometricStereoRequest, "request.photometric_stereo.options")
+    req = req if req is not None else ps_pb2.PhotometricStereoRequest()
+    del req.lights[:]
+    for i, light in enumerate(lights):
+        field = f"request.photometric_stereo.lights[{i}]"
+        req.lights.append(
+            ps_pb2.PsLight(
+                position_mm=vector3_proto(light.position_mm, f"{field}.position_mm"),
+                intensity=_finite(light.intensity, f"{field}.intensity", positive=True),
+                image=to_proto(light.image, field=f"{field}.image", channels=1),
+                background=to_proto(light.background, field=f"{field}.background", channels=1),
+            )
+        )
+    req.mask.CopyFrom(to_proto(mask, field="request.photometric_stereo.mask", channels=1))
+    req.intrinsics.CopyFrom(intrinsics_proto(intrinsics, "request.photometric_stereo.intrinsics"))
+    req.beta_per_mm = beta
+    req.sigma_per_mm = sigma
+    req.initial_distance_mm = _finite(initial_distance_mm, "request.photometric_stereo.initial_distance_mm", positive=True)
+    req.mode = _PS_MODES[mode]
+    return jobs_pb2.JobRequest(photometric_stereo=req)

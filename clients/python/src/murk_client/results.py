@@ -1,0 +1,214 @@
+"""Results as numpy arrays, named as in the proto's result messages.
+
+Every result keeps the message it came from in ``proto`` (for fields not surfaced here) and the
+job's id in ``job_id``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import List, Optional, Union
+
+from ._proto.murk.v1 import jobs_pb2, mvs_pb2, params_pb2, ps_pb2, tof_pb2
+from .errors import MurkError
+from .images import FloatImage, from_proto
+
+
+@dataclass(frozen=True)
+class TofDepthResult:
+    """ToF depth in fog; every array is ``(h, w)`` float32 of the input size."""
+
+    #: Corrected range along the viewing ray, metres.
+    range_m: FloatImage
+    #: Corrected z-depth, metres (None without intrinsics).
+    z_depth_m: Optional[FloatImage]
+    #: Range from the raw (foggy) phase, metres.
+    raw_range_m: FloatImage
+    #: Object mask: 1 = object, 0 = background.
+    mask: FloatImage
+    #: Estimated scattering component: amplitude (sensor units) and phase (radians).
+    scatter_amplitude: FloatImage
+    scatter_phase: FloatImage
+    #: Final IRLS weights in [0, 1].
+    weight_amplitude: FloatImage
+    weight_phase: FloatImage
+    #: Direct component: amplitude and phase (radians).
+    corrected_amplitude: FloatImage
+    corrected_phase: FloatImage
+    job_id: str
+    proto: tof_pb2.TofDepthResult
+
+    @classmethod
+    def from_proto(cls, r: tof_pb2.TofDepthResult, job_id: str = "") -> TofDepthResult:
+        """From the result message."""
+        f = "tof_depth"
+        return cls(
+            range_m=from_proto(r.range_m, field=f"{f}.range_m"),
+            z_depth_m=from_proto(r.z_depth_m, field=f"{f}.z_depth_m") if r.HasField("z_depth_m") else None,
+            raw_range_m=from_proto(r.raw_range_m, field=f"{f}.raw_range_m"),
+            mask=from_proto(r.mask, field=f"{f}.mask"),
+            scatter_amplitude=from_proto(r.scatter_amplitude, field=f"{f}.scatter_amplitude"),
+            scatter_phase=from_proto(r.scatter_phase, field=f"{f}.scatter_phase"),
+            weight_amplitude=from_proto(r.weight_amplitude, field=f"{f}.weight_amplitude"),
+            weight_phase=from_proto(r.weight_phase, field=f"{f}.weight_phase"),
+            corrected_amplitude=from_proto(r.corrected_amplitude, field=f"{f}.corrected_amplitude"),
+            corrected_phase=from_proto(r.corrected_phase, field=f"{f}.corrected_phase"),
+            job_id=job_id,
+            proto=r,
+        )
+
+
+@dataclass(frozen=True)
+class MvsDepthResult:
+    """MVS depth of the reference view; arrays ``(h, w)`` float32 of the reference's size."""
+
+    #: z-depth along the reference camera's optical axis, scene units.
+    z_depth: FloatImage
+    #: Inverse z-depth, per scene unit.
+    inverse_depth: FloatImage
+    #: Confidence in [0, 1] (0 = no preference among planes).
+    confidence: FloatImage
+    #: The plane set used: nearest and farthest z-depth (scene units) and count.
+    near: float
+    far: float
+    num_planes: int
+    #: ``"dehazing"``, ``"eq37"`` or ``"ordinary"``.
+    cost_volume: str
+    compute_seconds: float
+    job_id: str
+    proto: mvs_pb2.MvsDepthResult
+
+    @classmethod
+    def from_proto(cls, r: mvs_pb2.MvsDepthResult, job_id: str = "") -> MvsDepthResult:
+        """From the result message."""
+        kinds = {
+            mvs_pb2.COST_VOLUME_KIND_ORDINARY: "ordinary",
+            mvs_pb2.COST_VOLUME_KIND_DEHAZING_EQ37: "eq37",
+        }
+        return cls(
+            z_depth=from_proto(r.z_depth, field="mvs_depth.z_depth"),
+            inverse_depth=from_proto(r.inverse_depth, field="mvs_depth.inverse_depth"),
+            confidence=from_proto(r.confidence, field="mvs_depth.confidence"),
+            near=r.near,
+            far=r.far,
+            num_planes=r.num_planes,
+            cost_volume=kinds.get(r.cost_volume, "dehazing"),
+            compute_seconds=r.compute_seconds,
+            job_id=job_id,
+            proto=r,
+        )
+
+
+@dataclass(frozen=True)
+class ResidualSample:
+    """One evaluation of Algorithm 1's objective."""
+
+    #: ``"beta"`` (Eq. 3.10, A = A0) or ``"joint"`` (the A x β grid of Eq. 3.8).
+    stage: str
+    airlight: float
+    beta_per_scene_unit: float
+    #: Mean Eq. 3.9 residual over the SfM pixels, scene units.
+    residual: float
+
+
+@dataclass(frozen=True)
+class ScatteringParamsResult:
+    """A*, β* of Algorithm 1 and the depth with them."""
+
+    airlight: float
+    #: β*, per scene unit.
+    beta_per_scene_unit: float
+    airlight_initial: float
+    #: ``"cnn"``, ``"dark_channel"`` or ``"given"``.
+    airlight_source: str
+    beta_initial_per_scene_unit: float
+    #: Mean Eq. 3.9 residual at (A*, β*), scene units.
+    residual: float
+    grid: List[ResidualSample]
+    num_sparse_points: int
+    depth: MvsDepthResult
+    job_id: str
+    proto: params_pb2.ScatteringParamsResult
+
+    @classmethod
+    def from_proto(cls, r: params_pb2.ScatteringParamsResult, job_id: str = "") -> ScatteringParamsResult:
+        """From the result message."""
+        sources = {
+            params_pb2.AIRLIGHT_SOURCE_CNN: "cnn",
+            params_pb2.AIRLIGHT_SOURCE_DARK_CHANNEL: "dark_channel",
+            params_pb2.AIRLIGHT_SOURCE_GIVEN: "given",
+        }
+        return cls(
+            airlight=r.airlight,
+            beta_per_scene_unit=r.beta,
+            airlight_initial=r.airlight_initial,
+            airlight_source=sources.get(r.airlight_source, "unspecified"),
+            beta_initial_per_scene_unit=r.beta_initial,
+            residual=r.residual,
+            grid=[
+                ResidualSample(
+                    "joint" if g.stage == params_pb2.SEARCH_STAGE_JOINT else "beta",
+                    g.airlight,
+                    g.beta,
+                    g.residual,
+                )
+                for g in r.grid
+            ],
+            num_sparse_points=r.num_sparse_points,
+            depth=MvsDepthResult.from_proto(r.depth, job_id),
+            job_id=job_id,
+            proto=r,
+        )
+
+
+@dataclass(frozen=True)
+class PhotometricStereoResult:
+    """Shape of the object in turbid water; arrays of the images' size."""
+
+    #: Unit normals ``(h, w, 3)``, camera frame, towards the camera; (0, 0, -1) off the object.
+    normals: FloatImage
+    #: Albedo ``(h, w)``; 0 off the object.
+    albedo: FloatImage
+    #: z-depth ``(h, w)``, millimetres; NaN off the object.
+    depth_mm: FloatImage
+    #: Normals after each iteration, when requested (``return_iteration_normals``).
+    iteration_normals: List[FloatImage]
+    #: Per-iteration diagnostics (``PsIteration`` messages).
+    iterations: List[ps_pb2.PsIteration]
+    total_seconds: float
+    job_id: str
+    proto: ps_pb2.PhotometricStereoResult
+
+    @classmethod
+    def from_proto(cls, r: ps_pb2.PhotometricStereoResult, job_id: str = "") -> PhotometricStereoResult:
+        """From the result message."""
+        return cls(
+            normals=from_proto(r.normals, field="photometric_stereo.normals"),
+            albedo=from_proto(r.albedo, field="photometric_stereo.albedo"),
+            depth_mm=from_proto(r.depth_mm, field="photometric_stereo.depth_mm"),
+            iteration_normals=[
+                from_proto(n, field=f"photometric_stereo.iteration_normals[{i}]")
+                for i, n in enumerate(r.iteration_normals)
+            ],
+            iterations=list(r.iterations),
+            total_seconds=r.total_seconds,
+            job_id=job_id,
+            proto=r,
+        )
+
+
+Result = Union[TofDepthResult, MvsDepthResult, ScatteringParamsResult, PhotometricStereoResult]
+
+
+def from_job_result(r: jobs_pb2.JobResult, job_id: str) -> Result:
+    """The typed result of whichever method ``r`` holds."""
+    which = r.WhichOneof("method")
+    if which == "tof_depth":
+        return TofDepthResult.from_proto(r.tof_depth, job_id)
+    if which == "mvs_depth":
+        return MvsDepthResult.from_proto(r.mvs_depth, job_id)
+    if which == "scattering_params":
+        return ScatteringParamsResult.from_proto(r.scattering_params, job_id)
+    if which == "photometric_stereo":
+        return PhotometricStereoResult.from_proto(r.photometric_stereo, job_id)
+    raise MurkError(f"job {job_id}: result of an unknown method (a newer server?)", job_id=job_id)

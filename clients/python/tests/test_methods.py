@@ -1,0 +1,111 @@
+"""Every reconstruction method through the client against a real server, checked against the
+simulator's ground truth (loose bounds: the point is that the client's conversions — planar
+layout, units, the COLMAP principal point — are right, which a wrong one breaks by far)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+import murk_client as mc
+from murk_client import Client
+
+from .conftest import read_meta
+
+
+def test_tof_depth_beats_the_raw_range(client: Client, tof_scene: Path) -> None:
+    frame = mc.load_tof_frame(tof_scene)
+    assert frame.modulation_frequency_hz == 16e6 and frame.intrinsics is not None
+    seen: list[mc.JobStatus] = []
+    r = client.tof_depth(
+        frame.amplitude,
+        frame.phase,
+        modulation_frequency_hz=frame.modulation_frequency_hz,
+        intrinsics=frame.intrinsics,
+        light_position_m=frame.light_position_m,
+        progress=seen.append,
+    )
+    h, w = frame.amplitude.shape
+    for name in ("range_m", "raw_range_m", "mask", "scatter_amplitude", "weight_phase", "corrected_phase"):
+        assert getattr(r, name).shape == (h, w), name
+        assert getattr(r, name).dtype == np.float32, name
+    assert r.z_depth_m is not None and r.z_depth_m.shape == (h, w)
+    gt = mc.read_image(tof_scene / "gt_range_m.exr")
+    obj = mc.read_image(tof_scene / "gt_object_mask.png") > 0.5
+    sel = obj & (r.mask > 0.5)
+    assert sel.sum() > 0.5 * obj.sum()
+    raw_err = float(np.median(np.abs(r.raw_range_m[sel] - gt[sel])))
+    err = float(np.median(np.abs(r.range_m[sel] - gt[sel])))
+    assert err < 0.5 * raw_err, (err, raw_err)
+    # z-depth is range projected on the optical axis: never longer than the range.
+    assert np.all(r.z_depth_m[sel] <= r.range_m[sel] + 1e-4)
+    assert seen and seen[-1].state == mc.JobState.SUCCEEDED and seen[-1].method == "tof_depth"
+    assert r.job_id == seen[-1].id
+
+
+def test_mvs_depth_with_colmap_model(client: Client, mvs_scene: Path) -> None:
+    meta = read_meta(mvs_scene)
+    model = mc.load_colmap_model(mvs_scene / "sparse")
+    ref = meta["reference"]
+    sources = model.nearest_sources(ref, 4)
+    assert len(sources) == 4 and ref not in sources
+    z = model.points_scene_units @ model.image(ref).pose.rotation.T + model.image(ref).pose.translation_scene_units
+    zs = z[:, 2][z[:, 2] > 0]
+    kwargs = dict(near_scene_units=0.75 * float(zs.min()), far_scene_units=1.5 * float(zs.max()), num_planes=64)
+    views = [model.view(n, mvs_scene / "images") for n in sources]
+    reference = model.view(ref, mvs_scene / "images")
+    r = client.mvs_depth(
+        reference, views, airlight=meta["airlight"], beta_per_scene_unit=meta["beta"], **kwargs
+    )
+    gt = mc.read_image(mvs_scene / "depth" / ref.replace(".png", ".exr"))
+    assert r.z_depth.shape == gt.shape == reference.image.shape[:2]  # type: ignore[union-attr]
+    assert r.cost_volume == "dehazing" and r.num_planes == 64
+    valid = gt > 0
+    l1_rel = float(np.mean(np.abs(r.z_depth[valid] - gt[valid]) / gt[valid]))
+    assert l1_rel < 0.15, l1_rel
+    # The ordinary volume runs without A and β.
+    o = client.mvs_depth(reference, views, cost_volume="ordinary", **kwargs)
+    assert o.cost_volume == "ordinary" and o.job_id != r.job_id
+
+
+def test_scattering_params_recovers_a_and_beta(client: Client, mvs_scene: Path) -> None:
+    meta = read_meta(mvs_scene)
+    model = mc.load_colmap_model(mvs_scene / "sparse")
+    ref = meta["reference"]
+    r = client.scattering_params(
+        model.view(ref, mvs_scene / "images"),
+        [model.view(n, mvs_scene / "images") for n in model.nearest_sources(ref, 4)],
+        model.points_scene_units,
+        airlight_source="dark_channel",
+        options={"num_planes": 64, "search_planes": 32},
+    )
+    assert abs(r.airlight - meta["airlight"]) < 0.1, (r.airlight, meta["airlight"])
+    assert r.beta_per_scene_unit > 0 and r.grid and r.num_sparse_points >= 10
+    assert r.airlight_source == "dark_channel"
+    assert r.depth.z_depth.shape == (72, 96) and r.depth.num_planes == 64
+
+
+def test_photometric_stereo_normals(client: Client, ps_scene: Path) -> None:
+    cap = mc.load_ps_capture(ps_scene)
+    assert len(cap.lights) == 8 and cap.initial_distance_mm is not None
+    r = client.photometric_stereo(
+        cap.lights,
+        cap.mask,
+        intrinsics=cap.intrinsics,
+        beta_per_mm=cap.beta_per_mm,
+        sigma_per_mm=cap.sigma_per_mm,
+        initial_distance_mm=cap.initial_distance_mm,
+        options={"support_r": 21, "max_iterations": 2, "return_iteration_normals": True},
+    )
+    assert r.normals.shape == (48, 48, 3) and r.depth_mm.shape == (48, 48)
+    assert len(r.iteration_normals) == len(r.iterations) >= 1
+    obj = cap.mask > 0.5
+    assert cap.gt_normals is not None
+    cos = np.clip(np.sum(r.normals[obj] * cap.gt_normals[obj], axis=1), -1.0, 1.0)
+    mean_err_deg = float(np.degrees(np.arccos(cos)).mean())
+    assert mean_err_deg < 10.0, mean_err_deg
+    # Off the object: depth NaN, normal (0, 0, -1).
+    assert np.isnan(r.depth_mm[~obj]).all()
+    # Depth in mm around the initial plane.
+    assert abs(float(np.nanmean(r.depth_mm)) - cap.initial_distance_mm) < 0.2 * cap.initial_distance_mm
