@@ -38,8 +38,8 @@ def _rewrite_imports(text: str) -> str:
 
 def generate(out: Path) -> None:
     """Writes the generated package tree under ``out`` (which must be empty or absent)."""
-    from grpc_tools import protoc  # type: ignore[import-untyped]
     import grpc_tools
+    from grpc_tools import protoc  # type: ignore[import-untyped]
 
     protos = sorted(str(p.relative_to(PROTO_ROOT)) for p in PROTO_ROOT.rglob("*.proto"))
     if not protos:
@@ -80,9 +80,7 @@ def _differences(a: Path, b: Path) -> list[str]:
     diff = [f"only in checked-in copy: {p}" for p in sorted(files_a - files_b)]
     diff += [f"missing from checked-in copy: {p}" for p in sorted(files_b - files_a)]
     diff += [
-        f"differs: {p}"
-        for p in sorted(files_a & files_b)
-        if not filecmp.cmp(a / p, b / p, shallow=False)
+        f"differs: {p}" for p in sorted(files_a & files_b) if not filecmp.cmp(a / p, b / p, shallow=False)
     ]
     return diff
 

@@ -63,7 +63,10 @@ def main() -> None:
     np.save(a.out / "confidence.npy", r.confidence)
     mc.write_exr(a.out / "z_depth.exr", r.z_depth)
     mc.write_png16(a.out / "inverse_depth.png", r.inverse_depth, 1.0 / r.far, 1.0 / r.near)
-    print(f"job {r.job_id[:12]}: {r.cost_volume} volume, {r.num_planes} planes, {r.compute_seconds:.2f} s; outputs in {a.out}")
+    print(
+        f"job {r.job_id[:12]}: {r.cost_volume} volume, {r.num_planes} planes, "
+        f"{r.compute_seconds:.2f} s; outputs in {a.out}"
+    )
     gt = a.images.parent / "depth" / (Path(a.reference).stem + ".exr")
     if gt.exists():
         g = mc.read_image(gt)

@@ -21,7 +21,9 @@ import murk_client as mc
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("capture", type=Path, help="folder with meta.json (murk.ps_capture), images, mask.png")
-    ap.add_argument("--initial-distance-mm", type=float, help="mean z-depth of the object, mm (default: meta.json)")
+    ap.add_argument(
+        "--initial-distance-mm", type=float, help="mean z-depth of the object, mm (default: meta.json)"
+    )
     ap.add_argument("--out", type=Path, default=Path("ps-result"))
     ap.add_argument("--server", default=os.environ.get("MURK_SERVER", "http://127.0.0.1:50051"))
     ap.add_argument("--token", default=os.environ.get("MURK_TOKEN"))

@@ -52,7 +52,10 @@ def main() -> None:
     (a.out / "params.json").write_text(json.dumps(summary, indent=2))
     np.save(a.out / "z_depth.npy", r.depth.z_depth)
     mc.write_exr(a.out / "z_depth.exr", r.depth.z_depth)
-    print(f"A = {r.airlight:.3f} ({r.airlight_source} gave {r.airlight_initial:.3f}), β = {r.beta_per_scene_unit:.4f} per scene unit")
+    print(
+        f"A = {r.airlight:.3f} ({r.airlight_source} gave {r.airlight_initial:.3f}), "
+        f"β = {r.beta_per_scene_unit:.4f} per scene unit"
+    )
     meta = a.model.parent / "meta.json"
     if meta.exists():
         m = json.loads(meta.read_text())

@@ -23,7 +23,9 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=Path("tof-result"))
     ap.add_argument("--server", default=os.environ.get("MURK_SERVER", "http://127.0.0.1:50051"))
     ap.add_argument("--token", default=os.environ.get("MURK_TOKEN"))
-    ap.add_argument("--ca", type=Path, default=os.environ.get("MURK_TLS_CA"), help="CA certificate (PEM) for https")
+    ap.add_argument(
+        "--ca", type=Path, default=os.environ.get("MURK_TLS_CA"), help="CA certificate (PEM) for https"
+    )
     a = ap.parse_args()
 
     frame = mc.load_tof_frame(a.frame)
@@ -37,7 +39,9 @@ def main() -> None:
             modulation_frequency_hz=frame.modulation_frequency_hz,  # Hz
             intrinsics=frame.intrinsics,
             light_position_m=frame.light_position_m if frame.intrinsics else None,
-            progress=lambda job: print(f"\r{job.state.name:9} {job.progress:4.0%} {job.stage:24}", end="", flush=True),
+            progress=lambda job: print(
+                f"\r{job.state.name:9} {job.progress:4.0%} {job.stage:24}", end="", flush=True
+            ),
         )
     print()
     a.out.mkdir(parents=True, exist_ok=True)

@@ -12,8 +12,8 @@ import os
 import signal
 import subprocess
 import threading
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator, List, Optional
 
 import pytest
 
@@ -35,9 +35,9 @@ def murk_binary() -> Path:
 class MurkServer:
     """``murk serve`` on an ephemeral loopback port; stderr (JSON logs) kept for diagnostics."""
 
-    def __init__(self, args: List[str], cwd: Path) -> None:
+    def __init__(self, args: list[str], cwd: Path) -> None:
         self.args = args
-        self.log: List[str] = []
+        self.log: list[str] = []
         cmd = [str(murk_binary()), "serve", "--addr", "127.0.0.1:0", "--log-format", "json", *args]
         self.proc = subprocess.Popen(
             cmd, cwd=cwd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True
@@ -93,9 +93,9 @@ def server(workdir: Path) -> Iterator[MurkServer]:
 
 
 @pytest.fixture()
-def start_server(workdir: Path) -> Iterator["ServerFactory"]:
+def start_server(workdir: Path) -> Iterator[ServerFactory]:
     """Starts servers with given flags; stops them after the test."""
-    started: List[MurkServer] = []
+    started: list[MurkServer] = []
 
     def start(*args: str) -> MurkServer:
         s = MurkServer(list(args), workdir)
@@ -152,7 +152,7 @@ def read_meta(folder: Path) -> dict:  # type: ignore[type-arg]
     return json.loads((folder / "meta.json").read_text())
 
 
-def optional_tool(name: str) -> Optional[str]:
+def optional_tool(name: str) -> str | None:
     from shutil import which
 
     return which(name)

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import subprocess
 from pathlib import Path
-from typing import Dict
 
 import pytest
 
@@ -14,7 +13,7 @@ from murk_client import Client, RetryPolicy
 from .conftest import ServerFactory, optional_tool
 
 
-def make_pki(d: Path) -> Dict[str, Path]:
+def make_pki(d: Path) -> dict[str, Path]:
     """A throw-away CA, a server certificate for localhost and a client certificate (openssl)."""
     if optional_tool("openssl") is None:
         pytest.skip("SKIPPED: openssl not installed")
@@ -22,17 +21,55 @@ def make_pki(d: Path) -> Dict[str, Path]:
     def run(*args: str) -> None:
         subprocess.run(["openssl", *args], check=True, capture_output=True, cwd=d)
 
-    run("req", "-x509", "-newkey", "rsa:2048", "-nodes", "-keyout", "ca.key", "-out", "ca.pem",
-        "-days", "2", "-subj", "/CN=murk test CA")
+    run(
+        "req",
+        "-x509",
+        "-newkey",
+        "rsa:2048",
+        "-nodes",
+        "-keyout",
+        "ca.key",
+        "-out",
+        "ca.pem",
+        "-days",
+        "2",
+        "-subj",
+        "/CN=murk test CA",
+    )
     for name, subject, ext in (
         ("server", "/CN=localhost", "subjectAltName=DNS:localhost,IP:127.0.0.1"),
         ("client", "/CN=drone-17", "extendedKeyUsage=clientAuth"),
     ):
-        run("req", "-newkey", "rsa:2048", "-nodes", "-keyout", f"{name}.key", "-out", f"{name}.csr",
-            "-subj", subject)
+        run(
+            "req",
+            "-newkey",
+            "rsa:2048",
+            "-nodes",
+            "-keyout",
+            f"{name}.key",
+            "-out",
+            f"{name}.csr",
+            "-subj",
+            subject,
+        )
         (d / f"{name}.ext").write_text(ext + "\n")
-        run("x509", "-req", "-in", f"{name}.csr", "-CA", "ca.pem", "-CAkey", "ca.key",
-            "-CAcreateserial", "-out", f"{name}.pem", "-days", "2", "-extfile", f"{name}.ext")
+        run(
+            "x509",
+            "-req",
+            "-in",
+            f"{name}.csr",
+            "-CA",
+            "ca.pem",
+            "-CAkey",
+            "ca.key",
+            "-CAcreateserial",
+            "-out",
+            f"{name}.pem",
+            "-days",
+            "2",
+            "-extfile",
+            f"{name}.ext",
+        )
     return {n: d / n for n in ("ca.pem", "server.pem", "server.key", "client.pem", "client.key")}
 
 
@@ -44,24 +81,34 @@ def tokens_file(d: Path) -> Path:
 
 def small_request(tof_scene: Path) -> mc.pb.JobRequest:
     f = mc.load_tof_frame(tof_scene)
-    return mc.tof_depth_request(f.amplitude, f.phase, modulation_frequency_hz=16e6, options={"fine_iterations": 3})
+    return mc.tof_depth_request(
+        f.amplitude, f.phase, modulation_frequency_hz=16e6, options={"fine_iterations": 3}
+    )
 
 
 def test_tokens_over_tls(start_server: ServerFactory, tmp_path: Path, tof_scene: Path) -> None:
     pki = make_pki(tmp_path)
     s = start_server(
-        "--auth-tokens-file", str(tokens_file(tmp_path)),
-        "--tls-cert", str(pki["server.pem"]), "--tls-key", str(pki["server.key"]),
+        "--auth-tokens-file",
+        str(tokens_file(tmp_path)),
+        "--tls-cert",
+        str(pki["server.pem"]),
+        "--tls-key",
+        str(pki["server.key"]),
     )
     port = s.addr.rsplit(":", 1)[1]
     ca = pki["ca.pem"].read_bytes()
     no_retry = RetryPolicy.never()
-    with Client(f"https://localhost:{port}", root_certificates=ca, token="tok-alpha-0123456789abcdef") as alpha:
+    with Client(
+        f"https://localhost:{port}", root_certificates=ca, token="tok-alpha-0123456789abcdef"
+    ) as alpha:
         job_id = alpha.submit(small_request(tof_scene))
         assert alpha.wait(job_id).state == mc.JobState.SUCCEEDED
         assert isinstance(alpha.result(job_id), mc.TofDepthResult)
     # Another tenant does not see alpha's job.
-    with Client(f"localhost:{port}", root_certificates=ca, token="tok-beta-0123456789abcdef", retry=no_retry) as beta:
+    with Client(
+        f"localhost:{port}", root_certificates=ca, token="tok-beta-0123456789abcdef", retry=no_retry
+    ) as beta:
         with pytest.raises(mc.NotFound):
             beta.job(job_id)
     with Client(f"https://localhost:{port}", root_certificates=ca, token="wrong", retry=no_retry) as bad:
@@ -71,7 +118,9 @@ def test_tokens_over_tls(start_server: ServerFactory, tmp_path: Path, tof_scene:
         with pytest.raises(mc.Unauthenticated):
             anonymous.submit(small_request(tof_scene))
     # Plaintext to a TLS port fails as unavailable (no silent downgrade).
-    with Client(f"http://localhost:{port}", token="tok-alpha-0123456789abcdef", retry=no_retry, timeout_s=5) as plain:
+    with Client(
+        f"http://localhost:{port}", token="tok-alpha-0123456789abcdef", retry=no_retry, timeout_s=5
+    ) as plain:
         with pytest.raises(mc.Unavailable):
             plain.job(job_id)
 
@@ -79,8 +128,12 @@ def test_tokens_over_tls(start_server: ServerFactory, tmp_path: Path, tof_scene:
 def test_mutual_tls(start_server: ServerFactory, tmp_path: Path, tof_scene: Path) -> None:
     pki = make_pki(tmp_path)
     s = start_server(
-        "--tls-cert", str(pki["server.pem"]), "--tls-key", str(pki["server.key"]),
-        "--tls-client-ca", str(pki["ca.pem"]),
+        "--tls-cert",
+        str(pki["server.pem"]),
+        "--tls-key",
+        str(pki["server.key"]),
+        "--tls-client-ca",
+        str(pki["ca.pem"]),
     )
     port = s.addr.rsplit(":", 1)[1]
     ca = pki["ca.pem"].read_bytes()
@@ -92,6 +145,8 @@ def test_mutual_tls(start_server: ServerFactory, tmp_path: Path, tof_scene: Path
     ) as c:
         job_id = c.submit(small_request(tof_scene))
         assert c.wait(job_id).state == mc.JobState.SUCCEEDED
-    with Client(f"https://localhost:{port}", root_certificates=ca, retry=RetryPolicy.never(), timeout_s=5) as anonymous:
+    with Client(
+        f"https://localhost:{port}", root_certificates=ca, retry=RetryPolicy.never(), timeout_s=5
+    ) as anonymous:
         with pytest.raises(mc.Unavailable):  # the handshake fails: no client certificate
             anonymous.job(job_id)

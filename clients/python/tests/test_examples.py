@@ -35,8 +35,15 @@ def test_tof_example(server: MurkServer, tof_scene: Path, tmp_path: Path) -> Non
 
 def test_mvs_example(server: MurkServer, mvs_scene: Path, tmp_path: Path) -> None:
     out = run_example(
-        "mvs_depth.py", server, str(mvs_scene / "sparse"), str(mvs_scene / "images"), "view_02.png",
-        "--planes", "48", "--out", str(tmp_path),
+        "mvs_depth.py",
+        server,
+        str(mvs_scene / "sparse"),
+        str(mvs_scene / "images"),
+        "view_02.png",
+        "--planes",
+        "48",
+        "--out",
+        str(tmp_path),
     )
     l1_rel = float(out.rsplit("L1-rel against ground truth:", 1)[1])
     assert l1_rel < 0.2, out
@@ -45,8 +52,15 @@ def test_mvs_example(server: MurkServer, mvs_scene: Path, tmp_path: Path) -> Non
 
 def test_params_example(server: MurkServer, mvs_scene: Path, tmp_path: Path) -> None:
     run_example(
-        "scattering_params.py", server, str(mvs_scene / "sparse"), str(mvs_scene / "images"), "view_02.png",
-        "--airlight-source", "dark_channel", "--out", str(tmp_path),
+        "scattering_params.py",
+        server,
+        str(mvs_scene / "sparse"),
+        str(mvs_scene / "images"),
+        "view_02.png",
+        "--airlight-source",
+        "dark_channel",
+        "--out",
+        str(tmp_path),
     )
     params = json.loads((tmp_path / "params.json").read_text())
     assert 0 < params["airlight"] <= 1 and params["beta_per_scene_unit"] > 0 and params["search"]

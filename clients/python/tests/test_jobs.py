@@ -4,7 +4,6 @@ RetryInfo under a full queue, and a result over gRPC's 4 MiB default through a d
 from __future__ import annotations
 
 from pathlib import Path
-from typing import List
 
 import grpc
 import numpy as np
@@ -28,7 +27,9 @@ def slow_tof_request(frame: mc.TofFrame, variant: int) -> mc.pb.JobRequest:
 
 def test_submit_watch_result_and_dedupe(client: Client, tof_scene: Path) -> None:
     frame = mc.load_tof_frame(tof_scene)
-    req = mc.tof_depth_request(frame.amplitude, frame.phase, modulation_frequency_hz=16e6, options={"fine_iterations": 7})
+    req = mc.tof_depth_request(
+        frame.amplitude, frame.phase, modulation_frequency_hz=16e6, options={"fine_iterations": 7}
+    )
     job_id = client.submit(req)
     assert len(job_id) == 64
     updates = list(client.watch(job_id))
@@ -113,7 +114,7 @@ def test_full_queue_is_retried_as_retry_info_says(start_server: ServerFactory, t
 
         # A retrying client waits the hinted time (plus jitter, under the cap); the queue frees
         # while it waits (the sleep hook cancels the two jobs), so the retry is accepted.
-        delays: List[float] = []
+        delays: list[float] = []
 
         def sleep(seconds: float) -> None:
             delays.append(seconds)

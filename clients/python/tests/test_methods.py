@@ -50,9 +50,14 @@ def test_mvs_depth_with_colmap_model(client: Client, mvs_scene: Path) -> None:
     ref = meta["reference"]
     sources = model.nearest_sources(ref, 4)
     assert len(sources) == 4 and ref not in sources
-    z = model.points_scene_units @ model.image(ref).pose.rotation.T + model.image(ref).pose.translation_scene_units
+    z = (
+        model.points_scene_units @ model.image(ref).pose.rotation.T
+        + model.image(ref).pose.translation_scene_units
+    )
     zs = z[:, 2][z[:, 2] > 0]
-    kwargs = dict(near_scene_units=0.75 * float(zs.min()), far_scene_units=1.5 * float(zs.max()), num_planes=64)
+    kwargs = dict(
+        near_scene_units=0.75 * float(zs.min()), far_scene_units=1.5 * float(zs.max()), num_planes=64
+    )
     views = [model.view(n, mvs_scene / "images") for n in sources]
     reference = model.view(ref, mvs_scene / "images")
     r = client.mvs_depth(

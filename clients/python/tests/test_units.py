@@ -113,7 +113,9 @@ def test_colmap_quaternion_and_principal_point() -> None:
 def write_colmap_bin(d: Path) -> None:
     """A two-image, two-point model in COLMAP's binary format."""
     with open(d / "cameras.bin", "wb") as f:
-        f.write(struct.pack("<Q", 1) + struct.pack("<iiQQ", 7, 1, 64, 48) + struct.pack("<4d", 50, 51, 32, 24))
+        f.write(
+            struct.pack("<Q", 1) + struct.pack("<iiQQ", 7, 1, 64, 48) + struct.pack("<4d", 50, 51, 32, 24)
+        )
     with open(d / "images.bin", "wb") as f:
         f.write(struct.pack("<Q", 2))
         for iid, name, tx in ((1, b"a.png", 0.0), (2, b"b.png", 0.5)):

@@ -15,7 +15,7 @@ import json
 import struct
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, BinaryIO, Dict, List, Optional, Tuple, Union
+from typing import Any, BinaryIO
 
 import numpy as np
 import numpy.typing as npt
@@ -24,10 +24,10 @@ from .errors import ClientInputError
 from .images import FloatImage, read_image
 from .types import Intrinsics, Pose, PsLight, View
 
-PathLike = Union[str, Path]
+PathLike = str | Path
 
 
-def _read_json(path: Path) -> Dict[str, Any]:
+def _read_json(path: Path) -> dict[str, Any]:
     try:
         value = json.loads(path.read_text())
     except (OSError, ValueError) as e:
@@ -41,7 +41,10 @@ def _intrinsics(value: Any, where: str) -> Intrinsics:
     if isinstance(value, dict):
         try:
             return Intrinsics(
-                float(value["fx"]), float(value["fy"]), float(value["cx"]), float(value["cy"]),
+                float(value["fx"]),
+                float(value["fy"]),
+                float(value["cx"]),
+                float(value["cy"]),
                 float(value.get("skew", 0.0)),
             )
         except (KeyError, TypeError, ValueError) as e:
@@ -58,9 +61,9 @@ class TofFrame:
 
     amplitude: FloatImage
     phase: FloatImage
-    modulation_frequency_hz: Optional[float]
-    intrinsics: Optional[Intrinsics]
-    light_position_m: Optional[Tuple[float, float, float]]
+    modulation_frequency_hz: float | None
+    intrinsics: Intrinsics | None
+    light_position_m: tuple[float, float, float] | None
 
 
 def load_tof_frame(folder: PathLike) -> TofFrame:
@@ -70,7 +73,8 @@ def load_tof_frame(folder: PathLike) -> TofFrame:
     phase = read_image(d / "phase.exr")
     if amplitude.ndim != 2 or phase.shape != amplitude.shape:
         raise ClientInputError(
-            str(d / "phase.exr"), f"amplitude {amplitude.shape} and phase {phase.shape} must be one-channel and equal"
+            str(d / "phase.exr"),
+            f"amplitude {amplitude.shape} and phase {phase.shape} must be one-channel and equal",
         )
     meta = _read_json(d / "meta.json") if (d / "meta.json").exists() else {}
     k = _intrinsics(meta["intrinsics"], "meta.json.intrinsics") if meta.get("intrinsics") else None
@@ -89,16 +93,16 @@ def load_tof_frame(folder: PathLike) -> TofFrame:
 class PsCapture:
     """A photometric-stereo capture: the arguments of ``Client.photometric_stereo``."""
 
-    lights: List[PsLight]
+    lights: list[PsLight]
     mask: FloatImage
     intrinsics: Intrinsics
     beta_per_mm: float
     sigma_per_mm: float
     #: The suggested initial plane's z-distance, mm (None when meta.json gives none).
-    initial_distance_mm: Optional[float]
+    initial_distance_mm: float | None
     #: Ground truth of a simulated capture, when present: normals (h, w, 3), depth (h, w) mm.
-    gt_normals: Optional[FloatImage] = None
-    gt_depth_mm: Optional[FloatImage] = None
+    gt_normals: FloatImage | None = None
+    gt_depth_mm: FloatImage | None = None
 
 
 def load_ps_capture(folder: PathLike) -> PsCapture:
@@ -122,7 +126,7 @@ def load_ps_capture(folder: PathLike) -> PsCapture:
             image=read_image(d / img),
             background=read_image(d / bg),
         )
-        for spec, img, bg in zip(specs, images, backgrounds)
+        for spec, img, bg in zip(specs, images, backgrounds, strict=True)
     ]
     gt_n = read_image(d / "gt_normals.exr") if (d / "gt_normals.exr").exists() else None
     gt_z = read_image(d / "gt_depth_mm.exr") if (d / "gt_depth_mm.exr").exists() else None
@@ -140,7 +144,7 @@ def load_ps_capture(folder: PathLike) -> PsCapture:
 
 
 # COLMAP camera model ids and parameter counts (colmap/src/colmap/sensor/models.h).
-_MODELS: Dict[int, Tuple[str, int]] = {
+_MODELS: dict[int, tuple[str, int]] = {
     0: ("SIMPLE_PINHOLE", 3),
     1: ("PINHOLE", 4),
     2: ("SIMPLE_RADIAL", 4),
@@ -163,7 +167,7 @@ class ColmapCamera:
     model: str
     width: int
     height: int
-    params: Tuple[float, ...]
+    params: tuple[float, ...]
 
     def intrinsics(self) -> Intrinsics:
         """murk intrinsics (principal point −0.5 px); undistorted pinhole models only."""
@@ -192,12 +196,12 @@ class ColmapImage:
 class ColmapModel:
     """A COLMAP sparse model: cameras, registered images and the 3D points (scene units)."""
 
-    cameras: Dict[int, ColmapCamera]
-    images: Dict[int, ColmapImage]
+    cameras: dict[int, ColmapCamera]
+    images: dict[int, ColmapImage]
     #: ``(n, 3)`` world coordinates, scene units.
     points_scene_units: npt.NDArray[np.float64]
     #: Per point, the ids of the images whose track includes it.
-    point_tracks: List[Tuple[int, ...]] = field(default_factory=list)
+    point_tracks: list[tuple[int, ...]] = field(default_factory=list)
 
     def image(self, name: str) -> ColmapImage:
         """The registered image called ``name``."""
@@ -216,7 +220,7 @@ class ColmapModel:
             name=name,
         )
 
-    def nearest_sources(self, reference: str, n: int = 4) -> List[str]:
+    def nearest_sources(self, reference: str, n: int = 4) -> list[str]:
         """The ``n`` images whose camera centres are nearest the reference's (the CLI's choice),
         skipping those at the reference's own position (no baseline, no depth)."""
         c = self.image(reference).pose.camera_centre
@@ -250,11 +254,11 @@ def load_colmap_model(folder: PathLike) -> ColmapModel:
     return ColmapModel(cameras, images, points, tracks)
 
 
-def _lines(path: Path) -> List[str]:
+def _lines(path: Path) -> list[str]:
     return [ln.strip() for ln in path.read_text().splitlines() if ln.strip() and not ln.startswith("#")]
 
 
-def _cameras_txt(path: Path) -> Dict[int, ColmapCamera]:
+def _cameras_txt(path: Path) -> dict[int, ColmapCamera]:
     out = {}
     for ln in _lines(path):
         t = ln.split()
@@ -263,7 +267,7 @@ def _cameras_txt(path: Path) -> Dict[int, ColmapCamera]:
     return out
 
 
-def _images_txt(path: Path) -> Dict[int, ColmapImage]:
+def _images_txt(path: Path) -> dict[int, ColmapImage]:
     out = {}
     # Two lines per image; the second (its 2D points) may be empty, so blank lines count here.
     lines = [ln for ln in path.read_text().splitlines() if not ln.startswith("#")]
@@ -276,12 +280,14 @@ def _images_txt(path: Path) -> Dict[int, ColmapImage]:
         iid = int(t[0])
         q = [float(v) for v in t[1:5]]
         tv = [float(v) for v in t[5:8]]
-        out[iid] = ColmapImage(iid, " ".join(t[9:]), Pose.from_quaternion(q[0], q[1], q[2], q[3], tv), int(t[8]))
+        out[iid] = ColmapImage(
+            iid, " ".join(t[9:]), Pose.from_quaternion(q[0], q[1], q[2], q[3], tv), int(t[8])
+        )
         i += 2
     return out
 
 
-def _points_txt(path: Path) -> Tuple[npt.NDArray[np.float64], List[Tuple[int, ...]]]:
+def _points_txt(path: Path) -> tuple[npt.NDArray[np.float64], list[tuple[int, ...]]]:
     xyz, tracks = [], []
     for ln in _lines(path):
         t = ln.split()
@@ -290,7 +296,7 @@ def _points_txt(path: Path) -> Tuple[npt.NDArray[np.float64], List[Tuple[int, ..
     return np.asarray(xyz, dtype=np.float64).reshape(-1, 3), tracks
 
 
-def _read(f: BinaryIO, fmt: str) -> Tuple[Any, ...]:
+def _read(f: BinaryIO, fmt: str) -> tuple[Any, ...]:
     size = struct.calcsize(fmt)
     data = f.read(size)
     if len(data) != size:
@@ -298,7 +304,7 @@ def _read(f: BinaryIO, fmt: str) -> Tuple[Any, ...]:
     return struct.unpack(fmt, data)
 
 
-def _cameras_bin(f: BinaryIO) -> Dict[int, ColmapCamera]:
+def _cameras_bin(f: BinaryIO) -> dict[int, ColmapCamera]:
     out = {}
     for _ in range(_read(f, "<Q")[0]):
         cid, model_id, w, h = _read(f, "<iiQQ")
@@ -309,7 +315,7 @@ def _cameras_bin(f: BinaryIO) -> Dict[int, ColmapCamera]:
     return out
 
 
-def _images_bin(f: BinaryIO) -> Dict[int, ColmapImage]:
+def _images_bin(f: BinaryIO) -> dict[int, ColmapImage]:
     out = {}
     for _ in range(_read(f, "<Q")[0]):
         iid, qw, qx, qy, qz, tx, ty, tz, cid = _read(f, "<i7di")
@@ -327,7 +333,7 @@ def _images_bin(f: BinaryIO) -> Dict[int, ColmapImage]:
     return out
 
 
-def _points_bin(f: BinaryIO) -> Tuple[npt.NDArray[np.float64], List[Tuple[int, ...]]]:
+def _points_bin(f: BinaryIO) -> tuple[npt.NDArray[np.float64], list[tuple[int, ...]]]:
     xyz, tracks = [], []
     for _ in range(_read(f, "<Q")[0]):
         _pid, x, y, z, _r, _g, _b, _err, n = _read(f, "<Q3d3BdQ")

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import hashlib
 import time
-from typing import Any, Callable, Iterator, Optional, Sequence, Tuple, TypeVar
+from collections.abc import Callable, Iterator, Sequence
+from typing import Any, TypeVar
 
 import grpc
 import numpy.typing as npt
@@ -38,7 +39,7 @@ T = TypeVar("T")
 R = TypeVar("R", TofDepthResult, MvsDepthResult, ScatteringParamsResult, PhotometricStereoResult)
 
 
-def _parse_target(target: str, tls: bool) -> Tuple[str, bool]:
+def _parse_target(target: str, tls: bool) -> tuple[str, bool]:
     for scheme, secure in (("https://", True), ("http://", False), ("grpcs://", True), ("grpc://", False)):
         if target.startswith(scheme):
             return target[len(scheme) :].rstrip("/"), secure
@@ -67,13 +68,13 @@ class Client:
         self,
         target: str,
         *,
-        token: Optional[str] = None,
-        root_certificates: Optional[bytes] = None,
-        private_key: Optional[bytes] = None,
-        certificate_chain: Optional[bytes] = None,
-        retry: Optional[RetryPolicy] = None,
-        timeout_s: Optional[float] = 60.0,
-        channel_options: Sequence[Tuple[str, Any]] = (),
+        token: str | None = None,
+        root_certificates: bytes | None = None,
+        private_key: bytes | None = None,
+        certificate_chain: bytes | None = None,
+        retry: RetryPolicy | None = None,
+        timeout_s: float | None = 60.0,
+        channel_options: Sequence[tuple[str, Any]] = (),
     ) -> None:
         address, secure = _parse_target(target, root_certificates is not None)
         options = list(channel_options)
@@ -87,9 +88,7 @@ class Client:
         else:
             self._channel = grpc.insecure_channel(address, options=options)
         self._jobs = jobs_pb2_grpc.JobsStub(self._channel)
-        self._metadata: Tuple[Tuple[str, str], ...] = (
-            (("authorization", f"Bearer {token}"),) if token else ()
-        )
+        self._metadata: tuple[tuple[str, str], ...] = (("authorization", f"Bearer {token}"),) if token else ()
         self.retry = retry if retry is not None else RetryPolicy()
         self.timeout_s = timeout_s
 
@@ -113,9 +112,7 @@ class Client:
         Identical work returns the same id (the content hash of the request), so this is safe to
         repeat; a cached result makes the job SUCCEEDED at once.
         """
-        job = self._unary(
-            self._jobs.SubmitJob, jobs_pb2.SubmitJobRequest(request=request, omit_result=True)
-        )
+        job = self._unary(self._jobs.SubmitJob, jobs_pb2.SubmitJobRequest(request=request, omit_result=True))
         return job.id
 
     def job(self, job_id: str) -> JobStatus:
@@ -125,7 +122,7 @@ class Client:
         )
         return JobStatus.from_proto(job)
 
-    def watch(self, job_id: str, *, timeout_s: Optional[float] = None) -> Iterator[JobStatus]:
+    def watch(self, job_id: str, *, timeout_s: float | None = None) -> Iterator[JobStatus]:
         """Yields the job on every change; the last item is terminal.
 
         A broken stream (a restarted server or replica, a load balancer reset) is re-attached
@@ -163,10 +160,10 @@ class Client:
             attempt += 1
 
     def wait(
-        self, job_id: str, *, progress: Optional[ProgressCallback] = None, timeout_s: Optional[float] = None
+        self, job_id: str, *, progress: ProgressCallback | None = None, timeout_s: float | None = None
     ) -> JobStatus:
         """Blocks until the job is terminal (calling ``progress`` on every update) and returns it."""
-        last: Optional[JobStatus] = None
+        last: JobStatus | None = None
         for status in self.watch(job_id, timeout_s=timeout_s):
             last = status
             if progress is not None:
@@ -207,8 +204,8 @@ class Client:
         self,
         request: jobs_pb2.JobRequest,
         *,
-        progress: Optional[ProgressCallback] = None,
-        timeout_s: Optional[float] = None,
+        progress: ProgressCallback | None = None,
+        timeout_s: float | None = None,
     ) -> Result:
         """Submits ``request``, waits for it and returns its result (raising its error)."""
         job_id = self.submit(request)
@@ -230,11 +227,11 @@ class Client:
         phase: ImageLike,
         *,
         modulation_frequency_hz: float,
-        intrinsics: Optional[IntrinsicsLike] = None,
-        light_position_m: Optional[Sequence[float]] = None,
-        options: Optional[Tuning] = None,
-        progress: Optional[ProgressCallback] = None,
-        timeout_s: Optional[float] = None,
+        intrinsics: IntrinsicsLike | None = None,
+        light_position_m: Sequence[float] | None = None,
+        options: Tuning | None = None,
+        progress: ProgressCallback | None = None,
+        timeout_s: float | None = None,
     ) -> TofDepthResult:
         """ToF depth in fog (Ch. 5); see :func:`murk_client.requests.tof_depth_request` for units."""
         req = build.tof_depth_request(
@@ -253,14 +250,14 @@ class Client:
         sources: Sequence[View],
         *,
         cost_volume: str = "dehazing",
-        airlight: Optional[float] = None,
-        beta_per_scene_unit: Optional[float] = None,
-        near_scene_units: Optional[float] = None,
-        far_scene_units: Optional[float] = None,
-        num_planes: Optional[int] = None,
-        sgm: Optional[Tuning] = None,
-        progress: Optional[ProgressCallback] = None,
-        timeout_s: Optional[float] = None,
+        airlight: float | None = None,
+        beta_per_scene_unit: float | None = None,
+        near_scene_units: float | None = None,
+        far_scene_units: float | None = None,
+        num_planes: int | None = None,
+        sgm: Tuning | None = None,
+        progress: ProgressCallback | None = None,
+        timeout_s: float | None = None,
     ) -> MvsDepthResult:
         """MVS depth in haze (Ch. 3.2); see :func:`murk_client.requests.mvs_depth_request`."""
         req = build.mvs_depth_request(
@@ -283,14 +280,14 @@ class Client:
         sparse_points_scene_units: npt.ArrayLike,
         *,
         airlight_source: str = "server",
-        airlight: Optional[float] = None,
-        beta_min_per_scene_unit: Optional[float] = None,
-        beta_max_per_scene_unit: Optional[float] = None,
-        near_scene_units: Optional[float] = None,
-        far_scene_units: Optional[float] = None,
-        options: Optional[Tuning] = None,
-        progress: Optional[ProgressCallback] = None,
-        timeout_s: Optional[float] = None,
+        airlight: float | None = None,
+        beta_min_per_scene_unit: float | None = None,
+        beta_max_per_scene_unit: float | None = None,
+        near_scene_units: float | None = None,
+        far_scene_units: float | None = None,
+        options: Tuning | None = None,
+        progress: ProgressCallback | None = None,
+        timeout_s: float | None = None,
     ) -> ScatteringParamsResult:
         """A and β by Algorithm 1 (Ch. 3.3); see :func:`murk_client.requests.scattering_params_request`."""
         req = build.scattering_params_request(
@@ -317,11 +314,14 @@ class Client:
         sigma_per_mm: float,
         initial_distance_mm: float,
         mode: str = "full",
-        options: Optional[Tuning] = None,
-        progress: Optional[ProgressCallback] = None,
-        timeout_s: Optional[float] = None,
+        options: Tuning | None = None,
+        progress: ProgressCallback | None = None,
+        timeout_s: float | None = None,
     ) -> PhotometricStereoResult:
-        """Photometric stereo in turbid water (Ch. 4); see :func:`murk_client.requests.photometric_stereo_request`."""
+        """Photometric stereo in turbid water (Ch. 4).
+
+        See :func:`murk_client.requests.photometric_stereo_request` for units.
+        """
         req = build.photometric_stereo_request(
             lights,
             mask,
@@ -336,12 +336,12 @@ class Client:
 
     # -- plumbing ------------------------------------------------------------------------------
 
-    def _unary(self, method: Callable[..., T], request: Any, *, job_id: Optional[str] = None) -> T:
+    def _unary(self, method: Callable[..., T], request: Any, *, job_id: str | None = None) -> T:
         return self._with_retry(
             lambda: method(request, metadata=self._metadata, timeout=self.timeout_s), job_id
         )
 
-    def _with_retry(self, call: Callable[[], T], job_id: Optional[str]) -> T:
+    def _with_retry(self, call: Callable[[], T], job_id: str | None) -> T:
         attempt = 0
         while True:
             try:
@@ -359,7 +359,7 @@ class Client:
 
     def _fetch_result(self, job_id: str) -> bytes:
         parts = []
-        total: Optional[int] = None
+        total: int | None = None
         digest = ""
         offset = 0
         stream = self._jobs.GetJobResult(
@@ -396,5 +396,3 @@ def _expect(result: Result, cls: type[R]) -> R:
     if not isinstance(result, cls):
         raise MurkError(f"expected a {cls.__name__}, got {type(result).__name__}")
     return result
-
-

@@ -9,8 +9,9 @@ touch the wire format.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, Optional, Sequence
+from typing import Any
 
 import grpc
 
@@ -35,10 +36,10 @@ class MurkError(Exception):
         self,
         message: str,
         *,
-        code: Optional[grpc.StatusCode] = None,
-        job_id: Optional[str] = None,
+        code: grpc.StatusCode | None = None,
+        job_id: str | None = None,
         field_violations: Sequence[FieldViolation] = (),
-        retry_after_s: Optional[float] = None,
+        retry_after_s: float | None = None,
         precondition_types: Sequence[str] = (),
     ) -> None:
         super().__init__(message)
@@ -55,7 +56,7 @@ class MurkError(Exception):
         self.precondition_types = tuple(precondition_types)
 
     @property
-    def field(self) -> Optional[str]:
+    def field(self) -> str | None:
         """The dotted path of the first bad field, e.g. ``"tof_depth.phase"``, or None."""
         return self.field_violations[0].field if self.field_violations else None
 
@@ -74,9 +75,7 @@ class ClientInputError(InvalidArgument, ValueError):
     """An argument this package rejected before sending anything (same fields as the server's)."""
 
     def __init__(self, field: str, description: str) -> None:
-        super().__init__(
-            f"{field}: {description}", field_violations=[FieldViolation(field, description)]
-        )
+        super().__init__(f"{field}: {description}", field_violations=[FieldViolation(field, description)])
 
 
 class NotFound(MurkError):
@@ -162,9 +161,9 @@ def error_for(
     code: grpc.StatusCode,
     message: str,
     *,
-    job_id: Optional[str] = None,
+    job_id: str | None = None,
     field_violations: Sequence[FieldViolation] = (),
-    retry_after_s: Optional[float] = None,
+    retry_after_s: float | None = None,
     precondition_types: Sequence[str] = (),
 ) -> MurkError:
     """The typed exception for ``code`` (``MurkError`` itself for codes without a subclass)."""
@@ -186,7 +185,7 @@ def from_job_error(code: int, message: str, field: str, job_id: str) -> MurkErro
     return error_for(status, message, job_id=job_id, field_violations=violations)
 
 
-def from_rpc_error(err: grpc.RpcError, *, job_id: Optional[str] = None) -> MurkError:
+def from_rpc_error(err: grpc.RpcError, *, job_id: str | None = None) -> MurkError:
     """Decodes a failed call, its ``google.rpc`` details included."""
     from google.rpc import error_details_pb2
     from grpc_status import rpc_status
@@ -195,7 +194,7 @@ def from_rpc_error(err: grpc.RpcError, *, job_id: Optional[str] = None) -> MurkE
     code: grpc.StatusCode = call.code() if hasattr(call, "code") else grpc.StatusCode.UNKNOWN
     message: str = (call.details() if hasattr(call, "details") else None) or str(err)
     violations: list[FieldViolation] = []
-    retry_after: Optional[float] = None
+    retry_after: float | None = None
     preconditions: list[str] = []
     try:
         status = rpc_status.from_call(call)

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Union
 
 import numpy as np
 import numpy.typing as npt
@@ -40,17 +39,17 @@ class EncodedImage:
 
     @classmethod
     def from_file(
-        cls, path: Union[str, Path], *, value_scale: float = 1.0, value_offset: float = 0.0
+        cls, path: str | Path, *, value_scale: float = 1.0, value_offset: float = 0.0
     ) -> EncodedImage:
         """Reads ``path`` without decoding it."""
         return cls(Path(path).read_bytes(), value_scale, value_offset)
 
 
 #: What every image argument accepts.
-ImageLike = Union[npt.ArrayLike, EncodedImage]
+ImageLike = npt.ArrayLike | EncodedImage
 
 
-def to_proto(image: ImageLike, *, field: str, channels: Union[int, None] = None) -> common_pb2.Image:
+def to_proto(image: ImageLike, *, field: str, channels: int | None = None) -> common_pb2.Image:
     """Converts an array (``(h, w)`` or ``(h, w, c)``, any real dtype) or an :class:`EncodedImage`.
 
     ``field`` names the argument in errors; ``channels``, when given, is the channel count the
@@ -108,7 +107,7 @@ def from_proto(image: common_pb2.Image, *, field: str = "image") -> FloatImage:
     return arr[:, :, 0] if arr.shape[2] == 1 else arr
 
 
-def read_image(path: Union[str, Path]) -> FloatImage:
+def read_image(path: str | Path) -> FloatImage:
     """Reads an image file as the server would decode it: float32, integer formats in [0, 1].
 
     OpenEXR (every channel, as stored; ``Y`` or ``R,G,B``), PNG 8/16-bit and TIFF.
@@ -179,7 +178,7 @@ def _decode_exr(data: bytes, label: str) -> FloatImage:
     return np.ascontiguousarray(out, dtype=np.float32)
 
 
-def write_exr(path: Union[str, Path], image: npt.ArrayLike) -> None:
+def write_exr(path: str | Path, image: npt.ArrayLike) -> None:
     """Writes a float32 OpenEXR file: channel ``Y`` for ``(h, w)``, ``R,G,B`` for ``(h, w, 3)``."""
     import OpenEXR
 
@@ -195,7 +194,7 @@ def write_exr(path: Union[str, Path], image: npt.ArrayLike) -> None:
         exr.write(str(path))
 
 
-def write_png16(path: Union[str, Path], image: npt.ArrayLike, lo: float, hi: float) -> None:
+def write_png16(path: str | Path, image: npt.ArrayLike, lo: float, hi: float) -> None:
     """Writes ``(h, w)`` values mapped from [lo, hi] to a 16-bit greyscale PNG (NaN -> 0)."""
     from PIL import Image as PilImage
 

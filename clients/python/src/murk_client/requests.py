@@ -10,7 +10,8 @@ the proto message or as a mapping with the proto's field names, e.g.
 from __future__ import annotations
 
 import math
-from typing import Any, Mapping, Optional, Sequence, TypeVar, Union
+from collections.abc import Mapping, Sequence
+from typing import Any, TypeVar
 
 import numpy as np
 import numpy.typing as npt
@@ -23,7 +24,7 @@ from .images import ImageLike, to_proto
 from .types import IntrinsicsLike, PsLight, View, intrinsics_proto, vector3_proto
 
 M = TypeVar("M", bound=Message)
-Tuning = Union[Message, Mapping[str, Any]]
+Tuning = Message | Mapping[str, Any]
 
 _COST_VOLUMES = {
     "dehazing": mvs_pb2.COST_VOLUME_KIND_DEHAZING,
@@ -39,13 +40,15 @@ _AIRLIGHT_SOURCES = {
 _PS_MODES = {"full": ps_pb2.PS_MODE_FULL, "backscatter_only": ps_pb2.PS_MODE_BACKSCATTER_ONLY}
 
 
-def _tuning(value: Optional[Tuning], cls: type[M], field: str) -> Optional[M]:
+def _tuning(value: Tuning | None, cls: type[M], field: str) -> M | None:
     if value is None:
         return None
     if isinstance(value, cls):
         return value
     if isinstance(value, Message):
-        raise ClientInputError(field, f"expected {cls.DESCRIPTOR.full_name}, got {value.DESCRIPTOR.full_name}")
+        raise ClientInputError(
+            field, f"expected {cls.DESCRIPTOR.full_name}, got {value.DESCRIPTOR.full_name}"
+        )
     msg = cls()
     try:
         json_format.ParseDict(dict(value), msg)
@@ -78,9 +81,9 @@ def tof_depth_request(
     phase: ImageLike,
     *,
     modulation_frequency_hz: float,
-    intrinsics: Optional[IntrinsicsLike] = None,
-    light_position_m: Optional[Sequence[float]] = None,
-    options: Optional[Tuning] = None,
+    intrinsics: IntrinsicsLike | None = None,
+    light_position_m: Sequence[float] | None = None,
+    options: Tuning | None = None,
 ) -> jobs_pb2.JobRequest:
     """ToF depth in fog (Ch. 5).
 
@@ -92,12 +95,15 @@ def tof_depth_request(
     if f < 1e3:
         # Catches MHz given for Hz (16 instead of 16e6), which would put every range at 9e6 m.
         raise ClientInputError(
-            "request.tof_depth.modulation_frequency_hz", f"{f} Hz is not a ToF modulation frequency; it is in Hz (e.g. 16e6)"
+            "request.tof_depth.modulation_frequency_hz",
+            f"{f} Hz is not a ToF modulation frequency; it is in Hz (e.g. 16e6)",
         )
     if isinstance(phase, np.ndarray) and phase.dtype.kind == "f" and phase.size:
         hi = float(np.nanmax(phase))
         if hi > 2 * math.pi + 1e-3:
-            raise ClientInputError("request.tof_depth.phase", f"must be radians in [0, 2pi), max is {hi:.4g} (degrees?)")
+            raise ClientInputError(
+                "request.tof_depth.phase", f"must be radians in [0, 2pi), max is {hi:.4g} (degrees?)"
+            )
     if light_position_m is not None and intrinsics is None:
         raise ClientInputError("request.tof_depth.light_position_m", "needs intrinsics (each pixel's ray)")
     req = tof_pb2.TofDepthRequest(
@@ -120,12 +126,12 @@ def mvs_depth_request(
     sources: Sequence[View],
     *,
     cost_volume: str = "dehazing",
-    airlight: Optional[float] = None,
-    beta_per_scene_unit: Optional[float] = None,
-    near_scene_units: Optional[float] = None,
-    far_scene_units: Optional[float] = None,
-    num_planes: Optional[int] = None,
-    sgm: Optional[Tuning] = None,
+    airlight: float | None = None,
+    beta_per_scene_unit: float | None = None,
+    near_scene_units: float | None = None,
+    far_scene_units: float | None = None,
+    num_planes: int | None = None,
+    sgm: Tuning | None = None,
 ) -> jobs_pb2.JobRequest:
     """MVS depth of ``reference`` in haze (Ch. 3.2) from 1 to 16 ``sources``.
 
@@ -135,11 +141,14 @@ def mvs_depth_request(
     of your scene — for a COLMAP model, of its points).
     """
     if cost_volume not in _COST_VOLUMES:
-        raise ClientInputError("request.mvs_depth.cost_volume", f"one of {sorted(_COST_VOLUMES)}, got {cost_volume!r}")
+        raise ClientInputError(
+            "request.mvs_depth.cost_volume", f"one of {sorted(_COST_VOLUMES)}, got {cost_volume!r}"
+        )
     if cost_volume != "ordinary" and (airlight is None or beta_per_scene_unit is None):
         raise ClientInputError(
             "request.mvs_depth.airlight",
-            f"the {cost_volume} cost volume needs airlight and beta_per_scene_unit (Client.scattering_params estimates them)",
+            f"the {cost_volume} cost volume needs airlight and beta_per_scene_unit "
+            "(Client.scattering_params estimates them)",
         )
     req = mvs_pb2.MvsDepthRequest(
         reference=_view(reference, "request.mvs_depth.reference"),
@@ -163,12 +172,12 @@ def scattering_params_request(
     sparse_points_scene_units: npt.ArrayLike,
     *,
     airlight_source: str = "server",
-    airlight: Optional[float] = None,
-    beta_min_per_scene_unit: Optional[float] = None,
-    beta_max_per_scene_unit: Optional[float] = None,
-    near_scene_units: Optional[float] = None,
-    far_scene_units: Optional[float] = None,
-    options: Optional[Tuning] = None,
+    airlight: float | None = None,
+    beta_min_per_scene_unit: float | None = None,
+    beta_max_per_scene_unit: float | None = None,
+    near_scene_units: float | None = None,
+    far_scene_units: float | None = None,
+    options: Tuning | None = None,
 ) -> jobs_pb2.JobRequest:
     """Airlight A and scattering coefficient β by Algorithm 1 (Ch. 3.3), then the depth with them.
 
@@ -179,25 +188,34 @@ def scattering_params_request(
     """
     if airlight_source not in _AIRLIGHT_SOURCES:
         raise ClientInputError(
-            "request.scattering_params.airlight_source", f"one of {sorted(_AIRLIGHT_SOURCES)}, got {airlight_source!r}"
+            "request.scattering_params.airlight_source",
+            f"one of {sorted(_AIRLIGHT_SOURCES)}, got {airlight_source!r}",
         )
     if (airlight is not None) != (airlight_source == "given"):
-        raise ClientInputError("request.scattering_params.airlight", "give airlight exactly when airlight_source='given'")
+        raise ClientInputError(
+            "request.scattering_params.airlight", "give airlight exactly when airlight_source='given'"
+        )
     pts = np.asarray(sparse_points_scene_units, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3:
-        raise ClientInputError("request.scattering_params.sparse_points", f"expected shape (n, 3), got {pts.shape}")
+        raise ClientInputError(
+            "request.scattering_params.sparse_points", f"expected shape (n, 3), got {pts.shape}"
+        )
     req = _tuning(options, params_pb2.ScatteringParamsRequest, "request.scattering_params.options")
     req = req if req is not None else params_pb2.ScatteringParamsRequest()
     req.reference.CopyFrom(_view(reference, "request.scattering_params.reference"))
     del req.sources[:]
     req.sources.extend(_view(s, f"request.scattering_params.sources[{i}]") for i, s in enumerate(sources))
     del req.sparse_points[:]
-    req.sparse_points.extend(vector3_proto(p, "request.scattering_params.sparse_points") for p in pts.tolist())
+    req.sparse_points.extend(
+        vector3_proto(p, "request.scattering_params.sparse_points") for p in pts.tolist()
+    )
     req.airlight_source = _AIRLIGHT_SOURCES[airlight_source]
     if airlight is not None:
         req.airlight = _finite(airlight, "request.scattering_params.airlight", positive=True)
     if beta_min_per_scene_unit is not None:
-        req.beta_min = _finite(beta_min_per_scene_unit, "request.scattering_params.beta_min", non_negative=True)
+        req.beta_min = _finite(
+            beta_min_per_scene_unit, "request.scattering_params.beta_min", non_negative=True
+        )
     if beta_max_per_scene_unit is not None:
         req.beta_max = _finite(beta_max_per_scene_unit, "request.scattering_params.beta_max", positive=True)
     if near_scene_units is not None:
@@ -216,7 +234,7 @@ def photometric_stereo_request(
     sigma_per_mm: float,
     initial_distance_mm: float,
     mode: str = "full",
-    options: Optional[Tuning] = None,
+    options: Tuning | None = None,
 ) -> jobs_pb2.JobRequest:
     """Photometric stereo in turbid water (Ch. 4): normals, albedo and depth in mm.
 
@@ -233,7 +251,8 @@ def photometric_stereo_request(
     if beta > 0.5 or sigma > 0.5:
         # Per-metre values given as per-mm would mean a medium opaque within 2 mm.
         raise ClientInputError(
-            "request.photometric_stereo.beta_per_mm", f"{beta}/{sigma} per mm is implausibly turbid (per metre given?)"
+            "request.photometric_stereo.beta_per_mm",
+            f"{beta}/{sigma} per mm is implausibly turbid (per metre given?)",
         )
     req = _tuning(options, ps_pb2.PhotometricStereoRequest, "request.photometric_stereo.options")
     req = req if req is not None else ps_pb2.PhotometricStereoRequest()
@@ -252,6 +271,8 @@ def photometric_stereo_request(
     req.intrinsics.CopyFrom(intrinsics_proto(intrinsics, "request.photometric_stereo.intrinsics"))
     req.beta_per_mm = beta
     req.sigma_per_mm = sigma
-    req.initial_distance_mm = _finite(initial_distance_mm, "request.photometric_stereo.initial_distance_mm", positive=True)
+    req.initial_distance_mm = _finite(
+        initial_distance_mm, "request.photometric_stereo.initial_distance_mm", positive=True
+    )
     req.mode = _PS_MODES[mode]
     return jobs_pb2.JobRequest(photometric_stereo=req)

@@ -7,7 +7,6 @@ job's id in ``job_id``.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import List, Optional, Union
 
 from ._proto.murk.v1 import jobs_pb2, mvs_pb2, params_pb2, ps_pb2, tof_pb2
 from .errors import MurkError
@@ -21,7 +20,7 @@ class TofDepthResult:
     #: Corrected range along the viewing ray, metres.
     range_m: FloatImage
     #: Corrected z-depth, metres (None without intrinsics).
-    z_depth_m: Optional[FloatImage]
+    z_depth_m: FloatImage | None
     #: Range from the raw (foggy) phase, metres.
     raw_range_m: FloatImage
     #: Object mask: 1 = object, 0 = background.
@@ -124,7 +123,7 @@ class ScatteringParamsResult:
     beta_initial_per_scene_unit: float
     #: Mean Eq. 3.9 residual at (A*, β*), scene units.
     residual: float
-    grid: List[ResidualSample]
+    grid: list[ResidualSample]
     num_sparse_points: int
     depth: MvsDepthResult
     job_id: str
@@ -172,9 +171,9 @@ class PhotometricStereoResult:
     #: z-depth ``(h, w)``, millimetres; NaN off the object.
     depth_mm: FloatImage
     #: Normals after each iteration, when requested (``return_iteration_normals``).
-    iteration_normals: List[FloatImage]
+    iteration_normals: list[FloatImage]
     #: Per-iteration diagnostics (``PsIteration`` messages).
-    iterations: List[ps_pb2.PsIteration]
+    iterations: list[ps_pb2.PsIteration]
     total_seconds: float
     job_id: str
     proto: ps_pb2.PhotometricStereoResult
@@ -197,7 +196,7 @@ class PhotometricStereoResult:
         )
 
 
-Result = Union[TofDepthResult, MvsDepthResult, ScatteringParamsResult, PhotometricStereoResult]
+Result = TofDepthResult | MvsDepthResult | ScatteringParamsResult | PhotometricStereoResult
 
 
 def from_job_result(r: jobs_pb2.JobResult, job_id: str) -> Result:

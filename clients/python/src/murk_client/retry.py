@@ -9,15 +9,15 @@ from __future__ import annotations
 
 import random
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable, FrozenSet, Optional
 
 import grpc
 
 from .errors import MurkError
 
 
-def _default_codes() -> FrozenSet[grpc.StatusCode]:
+def _default_codes() -> frozenset[grpc.StatusCode]:
     # DATA_LOSS is what a chunked result that did not reassemble raises (ResultIntegrityError):
     # fetching it again is the remedy.
     return frozenset(
@@ -44,7 +44,7 @@ class RetryPolicy:
     max_backoff_s: float = 10.0
     #: Relative random extra delay, >= 0.
     jitter: float = 0.5
-    retryable: FrozenSet[grpc.StatusCode] = field(default_factory=_default_codes)
+    retryable: frozenset[grpc.StatusCode] = field(default_factory=_default_codes)
     #: Waits ``seconds``; replaceable in tests.
     sleep: Callable[[float], None] = time.sleep
     #: Uniform random numbers in [0, 1); replaceable for reproducible delays.
@@ -73,7 +73,7 @@ class RetryPolicy:
 
     def delay_s(self, error: MurkError, attempt: int) -> float:
         """Seconds to wait before retrying after ``error`` on 0-based ``attempt``."""
-        base: Optional[float] = error.retry_after_s
+        base: float | None = error.retry_after_s
         if base is None:
             base = self.initial_backoff_s * self.multiplier**attempt
         return min(self.max_backoff_s, base * (1.0 + self.jitter * self.random()))

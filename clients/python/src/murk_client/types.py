@@ -8,9 +8,9 @@ poses: a COLMAP model's arbitrary SfM scale, metres only for a metric model).
 from __future__ import annotations
 
 import enum
+from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import datetime, timezone
-from typing import Optional, Sequence, Tuple, Union
 
 import numpy as np
 import numpy.typing as npt
@@ -19,7 +19,7 @@ from ._proto.murk.v1 import common_pb2, jobs_pb2
 from .errors import ClientInputError
 from .images import ImageLike
 
-Vec3 = Tuple[float, float, float]
+Vec3 = tuple[float, float, float]
 
 
 @dataclass(frozen=True)
@@ -44,12 +44,10 @@ class Intrinsics:
 
     def to_proto(self) -> common_pb2.CameraIntrinsics:
         """The ``CameraIntrinsics`` message."""
-        return common_pb2.CameraIntrinsics(
-            fx=self.fx, fy=self.fy, cx=self.cx, cy=self.cy, skew=self.skew
-        )
+        return common_pb2.CameraIntrinsics(fx=self.fx, fy=self.fy, cx=self.cx, cy=self.cy, skew=self.skew)
 
 
-IntrinsicsLike = Union[Intrinsics, Sequence[float]]
+IntrinsicsLike = Intrinsics | Sequence[float]
 
 
 def intrinsics_proto(k: IntrinsicsLike, field: str) -> common_pb2.CameraIntrinsics:
@@ -108,7 +106,9 @@ class Pose:
         r = np.asarray(self.rotation, dtype=np.float64)
         t = np.asarray(self.translation_scene_units, dtype=np.float64)
         if r.shape != (3, 3) or t.shape != (3,):
-            raise ClientInputError("pose", f"rotation must be 3x3 and translation 3, got {r.shape}, {t.shape}")
+            raise ClientInputError(
+                "pose", f"rotation must be 3x3 and translation 3, got {r.shape}, {t.shape}"
+            )
         return common_pb2.Pose(rotation=r.reshape(9).tolist(), translation=t.tolist())
 
 
@@ -154,7 +154,7 @@ class JobState(enum.Enum):
         return self in (JobState.SUCCEEDED, JobState.FAILED, JobState.CANCELLED)
 
 
-def _time(ts: object, present: bool) -> Optional[datetime]:
+def _time(ts: object, present: bool) -> datetime | None:
     if not present:
         return None
     seconds = getattr(ts, "seconds", 0)
@@ -178,11 +178,11 @@ class JobStatus:
     cached: bool
     #: Size of the encoded result, bytes, once SUCCEEDED.
     result_size_bytes: int
-    create_time: Optional[datetime]
-    start_time: Optional[datetime]
-    end_time: Optional[datetime]
+    create_time: datetime | None
+    start_time: datetime | None
+    end_time: datetime | None
     #: ``(google.rpc code, message, field)`` of a FAILED or CANCELLED job.
-    error: Optional[Tuple[int, str, str]]
+    error: tuple[int, str, str] | None
 
     @classmethod
     def from_proto(cls, job: jobs_pb2.Job) -> JobStatus:
