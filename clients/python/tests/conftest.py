@@ -35,10 +35,10 @@ def murk_binary() -> Path:
 class MurkServer:
     """``murk serve`` on an ephemeral loopback port; stderr (JSON logs) kept for diagnostics."""
 
-    def __init__(self, args: list[str], cwd: Path) -> None:
+    def __init__(self, args: list[str], cwd: Path, addr: str = "127.0.0.1:0") -> None:
         self.args = args
         self.log: list[str] = []
-        cmd = [str(murk_binary()), "serve", "--addr", "127.0.0.1:0", "--log-format", "json", *args]
+        cmd = [str(murk_binary()), "serve", "--addr", addr, "--log-format", "json", *args]
         self.proc = subprocess.Popen(
             cmd, cwd=cwd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True
         )
@@ -68,6 +68,11 @@ class MurkServer:
     @property
     def url(self) -> str:
         return f"http://{self.addr}"
+
+    def kill(self) -> None:
+        """SIGKILL: no drain, no goodbye to clients (a crashed or OOM-killed replica)."""
+        self.proc.kill()
+        self.proc.wait()
 
     def stop(self) -> None:
         if self.proc.poll() is None:

@@ -128,3 +128,53 @@ def test_full_queue_is_retried_as_retry_info_says(start_server: ServerFactory, t
             assert len(delays) == 1
             assert 1.5 * 0.3 <= delays[0] <= 30.0
             assert retrying.cancel(job_id).id == job_id
+
+
+def test_watch_follows_a_job_across_a_server_crash(workdir: Path, tmp_path: Path, tof_scene: Path) -> None:
+    """kill -9 mid-job, the server restarts on the same address with the same journal: the
+    client's watch re-attaches (UNAVAILABLE is retried), the recovered job finishes and its result
+    arrives, without the caller seeing the crash."""
+    from .conftest import MurkServer
+
+    cache = tmp_path / "cache"
+    flags = ["--cache-dir", str(cache), "--concurrent-jobs", "1"]
+    first = MurkServer(flags, workdir)
+    servers = [first]
+    frame = mc.load_tof_frame(tof_scene)
+    try:
+        policy = RetryPolicy(max_attempts=8, initial_backoff_s=0.05, max_backoff_s=1.0)
+        with Client(first.url, retry=policy) as c:
+            job_id = c.submit(slow_tof_request(frame, 4))
+            states: list[str] = []
+
+            def crash_once(status: mc.JobStatus) -> None:
+                states.append(status.state.name)
+                if status.state == mc.JobState.RUNNING and len(servers) == 1:
+                    first.kill()
+                    servers.append(MurkServer(flags, workdir, addr=first.addr))
+
+            final = c.wait(job_id, progress=crash_once)
+            assert len(servers) == 2, "the job never ran"
+            assert final.state == mc.JobState.SUCCEEDED, states
+            result = c.result(job_id)
+            assert isinstance(result, mc.TofDepthResult) and result.job_id == job_id
+    finally:
+        for s in servers:
+            s.stop()
+
+
+def test_stream_resets_are_transient() -> None:
+    class Reset(grpc.RpcError):
+        def code(self) -> grpc.StatusCode:
+            return grpc.StatusCode.INTERNAL
+
+        def details(self) -> str:
+            return "Stream removed (RST_STREAM (Received RST_STREAM with error code 2))"
+
+    class Boom(Reset):
+        def details(self) -> str:
+            return "numerical breakdown in tof.phase.fine"
+
+    assert isinstance(mc.errors.from_rpc_error(Reset()), mc.Unavailable)
+    assert RetryPolicy().should_retry(mc.errors.from_rpc_error(Reset()), 0)
+    assert isinstance(mc.errors.from_rpc_error(Boom()), mc.Internal)

@@ -185,6 +185,11 @@ def from_job_error(code: int, message: str, field: str, job_id: str) -> MurkErro
     return error_for(status, message, job_id=job_id, field_violations=violations)
 
 
+# How gRPC core reports an HTTP/2 stream the other side reset (RST_STREAM), which it maps to
+# INTERNAL although nothing ran on the server.
+_TRANSPORT_RESETS = ("RST_STREAM", "Stream removed")
+
+
 def from_rpc_error(err: grpc.RpcError, *, job_id: str | None = None) -> MurkError:
     """Decodes a failed call, its ``google.rpc`` details included."""
     from google.rpc import error_details_pb2
@@ -193,6 +198,10 @@ def from_rpc_error(err: grpc.RpcError, *, job_id: str | None = None) -> MurkErro
     call: Any = err
     code: grpc.StatusCode = call.code() if hasattr(call, "code") else grpc.StatusCode.UNKNOWN
     message: str = (call.details() if hasattr(call, "details") else None) or str(err)
+    if code == grpc.StatusCode.INTERNAL and any(m in message for m in _TRANSPORT_RESETS):
+        # A stream reset by the peer or a proxy, e.g. nginx when the replica behind a watch dies:
+        # the transport failed, not the server's work, so it is as retryable as UNAVAILABLE.
+        code = grpc.StatusCode.UNAVAILABLE
     violations: list[FieldViolation] = []
     retry_after: float | None = None
     preconditions: list[str] = []
