@@ -25,9 +25,14 @@ fn bench(c: &mut Criterion) {
     let sparse = scene.sparse_depth().expect("sparse");
     let (near, far) = plane_range_from_sparse(&sparse).expect("points");
     let planes = PlaneSet::new(near, far, 256).expect("planes");
+    // The published algorithm: the sweep over the reference's range and the 4×4 grid.
     let params = SearchParams {
         delta_airlight: 0.05,
         beta_from_points: false,
+        joint_fit: false,
+        beta_min: Some(0.4),
+        beta_max: Some(0.8),
+        delta_beta: Some(0.05),
         ..SearchParams::default()
     };
     let defaults = SearchParams::default();

@@ -56,8 +56,13 @@ async fn unary_and_jobs_agree_and_the_result_is_complete() {
     req.search_planes = 16;
     // The published plain argmin, so A*, β* must be the grid's minimum.
     req.min_improvement_t = Some(0.0);
-    // The published sweep for β₀ (murk's default tries the points' ratios first).
+    // The published sweep for β₀ over the reference's range (murk's default tries the points
+    // first and takes the range from their depths).
     req.beta_from_points = Some(false);
+    req.joint_fit = Some(false);
+    req.beta_min = Some(0.4);
+    req.beta_max = Some(0.8);
+    req.delta_beta = Some(0.05);
     let unary = recon(&server)
         .scattering_params(req.clone())
         .await
@@ -65,6 +70,13 @@ async fn unary_and_jobs_agree_and_the_result_is_complete() {
         .into_inner();
     assert_eq!(unary.grid.len(), 3 + 4);
     assert!(unary.point_ratio.is_none(), "the points were not asked for");
+    assert_eq!(unary.beta_source, pb::BetaSource::Sweep as i32);
+    assert!(!unary.identifiable && unary.beta_std_error.is_none());
+    assert!(!unary.beta_range_from_points && (unary.beta_min, unary.beta_max) == (0.4, 0.8));
+    assert!(
+        unary.joint_fit.is_some(),
+        "the joint fit runs for the verdict"
+    );
     assert_eq!(
         unary.airlight_source,
         pb::AirlightSource::DarkChannel as i32
@@ -116,11 +128,11 @@ async fn unary_and_jobs_agree_and_the_result_is_complete() {
     assert_eq!(last.method, "scattering_params");
 }
 
-/// murk's default over the API: β₀ from the points' ratios, reported with its fit, and a
-/// single depth evaluation in the search (walking trajectory at 128×96, where the fit is
-/// reliable; docs/ACCURACY.md).
+/// murk's default over the API: A and β from the joint fit to the points, with standard errors
+/// and the identifiability verdict, a single depth evaluation in the search (walking trajectory
+/// at 128×96; docs/ACCURACY.md); and the points' ratios when the joint fit is turned off.
 #[tokio::test]
-async fn default_request_takes_beta_from_the_points_and_reports_the_fit() {
+async fn default_request_fits_a_and_beta_to_the_points_and_reports_the_fit() {
     let server = start(config(4)).await;
     let cfg = MvsSimConfig {
         seed: 5,
@@ -129,14 +141,39 @@ async fn default_request_takes_beta_from_the_points_and_reports_the_fit() {
         ..MvsSimConfig::with_size(128, 96)
     };
     let s = simulate_mvs(&cfg, &Monitor::noop()).expect("simulate");
-    let mut req = request(&s, pb::AirlightSource::Given, s.airlight);
+    // A₀ given 0.06 off: the joint fit moves A to the data.
+    let mut req = request(&s, pb::AirlightSource::Given, s.airlight - 0.06);
     req.num_planes = 32;
     req.search_planes = 16;
+    let out = recon(&server)
+        .scattering_params(req.clone())
+        .await
+        .expect("unary")
+        .into_inner();
+    assert_eq!(out.beta_source, pb::BetaSource::JointFit as i32);
+    assert!(out.identifiable);
+    assert_eq!(
+        out.identifiability,
+        pb::Identifiability::Identifiable as i32
+    );
+    assert_eq!(out.grid.len(), 1);
+    assert!((out.airlight - s.airlight).abs() < 0.03, "{out:?}");
+    assert!((out.beta - s.beta).abs() < 0.05, "{out:?}");
+    let (se_a, se_b) = (out.airlight_std_error.unwrap(), out.beta_std_error.unwrap());
+    assert!(se_a > 0.0 && se_b > 0.0 && se_b < 0.15 * f64::from(out.beta));
+    let joint = out.joint_fit.expect("joint fit reported");
+    assert_eq!(joint.source_gains.len(), s.views.len() - 1);
+    assert!(out.beta_range_from_points && out.beta_bound == pb::BetaBound::None as i32);
+
+    // Without the joint fit: β₀ from the points' ratios at the given A₀ (here the true A).
+    req.airlight = s.airlight;
+    req.joint_fit = Some(false);
     let out = recon(&server)
         .scattering_params(req)
         .await
         .expect("unary")
         .into_inner();
+    assert_eq!(out.beta_source, pb::BetaSource::PointRatio as i32);
     let fit = out.point_ratio.expect("the fit is reported");
     assert!(fit.used && fit.equations >= 300, "{fit:?}");
     assert_eq!(out.grid.len(), 1);
@@ -176,7 +213,12 @@ async fn bad_params_requests_name_the_field() {
             "sparse_points[2]",
             Box::new(|r| r.sparse_points[2].y = f64::NAN),
         ),
-        ("beta_max", Box::new(|r| r.beta_max = Some(0.3))),
+        ("beta_max", Box::new(|r| r.beta_max = Some(0.0))),
+        ("beta_max", Box::new(|r| r.beta_max = Some(f32::INFINITY))),
+        (
+            "airlight_prior_sigma",
+            Box::new(|r| r.airlight_prior_sigma = Some(0.0)),
+        ),
         (
             "beta_max",
             Box::new(|r| {

@@ -74,10 +74,13 @@ pub struct ParamsArgs {
     /// the reference image.
     #[arg(long)]
     pub all_points: bool,
-    /// Lower end of the beta search range, per scene unit (default 0.4).
+    /// Lower end of the beta range, per model unit (default: from the SfM points, the beta that
+    /// gives the median point a transmission of 0.98). An estimate below it is clamped and
+    /// reported.
     #[arg(long)]
     pub beta_min: Option<f32>,
-    /// Upper end of the beta search range, per scene unit (default 0.8).
+    /// Upper end of the beta range, per model unit (default: from the SfM points, the beta that
+    /// gives the median point a transmission of 0.02).
     #[arg(long)]
     pub beta_max: Option<f32>,
     /// Values of beta in the first step (default 10).
@@ -87,9 +90,13 @@ pub struct ParamsArgs {
     #[arg(long)]
     pub grid_steps: Option<u32>,
     /// Always take beta0 from the sweep of Eq. 3.10 and refine it on the grid (the published
-    /// Algorithm 1) instead of from the SfM points' transmission ratios when they pin it down.
+    /// Algorithm 1) instead of from the SfM points when they pin it down.
     #[arg(long)]
     pub beta_sweep: bool,
+    /// Keep A = A0 from the estimator instead of fitting A, beta and a gain per source jointly
+    /// to the SfM points' intensities (beta then comes from the points' ratios at A0).
+    #[arg(long, conflicts_with = "beta_sweep")]
+    pub no_joint_fit: bool,
     /// Planes of the final depth (default 256); the range comes from the SfM points unless
     /// --near/--far are given.
     #[arg(long)]
@@ -100,7 +107,9 @@ pub struct ParamsArgs {
     /// Farthest plane z-depth, scene units (with --near).
     #[arg(long, requires = "near")]
     pub far: Option<f64>,
-    /// Output folder (created): depth files as `murk mvs` writes them, residuals.csv.
+    /// Output folder (created): params.json (A*, beta*, their standard errors,
+    /// identifiability, units, the searches run), depth files as `murk mvs` writes them,
+    /// residuals.csv.
     #[arg(long)]
     pub out: PathBuf,
     /// Server URL; without it a server is started in this process.
@@ -133,17 +142,17 @@ pub fn run(a: ParamsArgs) -> anyhow::Result<()> {
     if points.is_empty() {
         bail!("the model has no 3D points");
     }
+    let sparse = SparseDepth::from_points(
+        &points,
+        &reference.intrinsics,
+        &reference.pose,
+        reference.image.width(),
+        reference.image.height(),
+    )?;
     println!(
         "{} SfM points project into {} pixels of the reference view",
         points.len(),
-        SparseDepth::from_points(
-            &points,
-            &reference.intrinsics,
-            &reference.pose,
-            reference.image.width(),
-            reference.image.height()
-        )?
-        .len()
+        sparse.len()
     );
     let source_views: Vec<_> = sources.iter().map(LoadedView::view).collect();
     let mut request = params_request_to_proto(
@@ -165,6 +174,10 @@ pub fn run(a: ParamsArgs) -> anyhow::Result<()> {
     request.beta_steps = a.beta_steps;
     if a.beta_sweep {
         request.beta_from_points = Some(false);
+        request.joint_fit = Some(false);
+    }
+    if a.no_joint_fit {
+        request.joint_fit = Some(false);
     }
     request.grid_steps = a.grid_steps;
     request.num_planes = a.planes.unwrap_or(0);
@@ -180,6 +193,11 @@ pub fn run(a: ParamsArgs) -> anyhow::Result<()> {
     let depth = r.depth.as_ref().context("result lacks the depth")?;
     let images = write_mvs_result(&a.out, depth)?;
     write_residuals_csv(&a.out.join("residuals.csv"), &r)?;
+    std::fs::write(
+        a.out.join("params.json"),
+        serde_json::to_string_pretty(&params_json(&r, &job.id))? + "\n",
+    )
+    .context("writing params.json")?;
     let cloud = backproject(
         &images.z_depth,
         &images.confidence,
@@ -193,19 +211,72 @@ pub fn run(a: ParamsArgs) -> anyhow::Result<()> {
         &cloud,
         PlyFormat::BinaryLittleEndian,
     )?;
+    let pm = |v: Option<f64>| v.map_or(String::new(), |e| format!(" ± {e:.4}"));
     println!(
-        "job {}{}: A* = {:.4}, beta* = {:.5} per scene unit (A0 = {:.4} from {}, beta0 = {:.5}); \
-         mean residual {:.4} scene units over {} SfM pixels",
+        "job {}{}: A* = {:.4}{}, beta* = {:.5}{} per model unit ({}; A0 = {:.4} from {}); \
+         mean residual {:.4} model units over {} SfM pixels",
         &job.id[..12.min(job.id.len())],
         if job.cached { " (cached)" } else { "" },
         r.airlight,
+        pm(r.airlight_std_error),
         r.beta,
+        pm(r.beta_std_error),
+        beta_source_name(r.beta_source),
         r.airlight_initial,
         source_name(r.airlight_source),
-        r.beta_initial,
         r.residual,
         r.num_sparse_points
     );
+    if !r.identifiable {
+        println!(
+            "warning: beta is NOT identifiable from these views ({}); beta* is a guess",
+            identifiability_text(r.identifiability)
+        );
+    }
+    let bound = matches!(
+        pb::BetaBound::try_from(r.beta_bound),
+        Ok(pb::BetaBound::Min | pb::BetaBound::Max)
+    );
+    let range = format!(
+        "[{:.5}, {:.5}]{}",
+        r.beta_min,
+        r.beta_max,
+        if r.beta_range_from_points {
+            " (from the SfM points)"
+        } else {
+            ""
+        }
+    );
+    if bound && r.beta_unclamped != r.beta {
+        println!(
+            "warning: the estimate {:.5} lies outside the beta range {range} and was clamped to \
+             {:.5}; widen --beta-min/--beta-max",
+            r.beta_unclamped, r.beta
+        );
+    } else if bound {
+        println!(
+            "warning: the sweep's smallest residual lies at the end of the beta range {range}: the \
+             minimum may lie beyond it"
+        );
+    }
+    if let Some(j) = &r.joint_fit {
+        println!(
+            "joint fit of A, beta and the source gains: A {:.4} ± {:.4}, beta {:.5} ± {:.5}, \
+             gains [{}] over {} equations (RMS depth difference {:.4} model units); {}",
+            j.airlight,
+            j.airlight_std_error,
+            j.beta,
+            j.beta_std_error,
+            j.source_gains
+                .iter()
+                .map(|g| format!("{g:.3}"))
+                .collect::<Vec<_>>()
+                .join(", "),
+            j.equations,
+            j.rms_depth_difference,
+            identifiability_text(j.identifiability)
+        );
+    }
     println!(
         "times: airlight {:.3} s, search ({} depth evaluations) {:.2} s, final depth {:.2} s \
          ({} planes over z {:.3}..{:.3}); outputs in {}",
@@ -231,28 +302,189 @@ pub fn run(a: ParamsArgs) -> anyhow::Result<()> {
             if f.used {
                 "used as beta0"
             } else {
-                "not reliable, beta0 from the sweep"
+                "not reliable"
             }
         );
     }
-    if let Some(meta) = find_scene_metadata(&a.model)? {
+    // Ground truth of a simulated scene, compared in one unit: a model reconstructed by SfM from
+    // the simulator's images has its own scale, measured here from the SfM points against the
+    // ground-truth depth at their pixels (β per model unit = β per scene unit × the scale).
+    let meta = find_scene_metadata(&a.model)?;
+    let gt = match find_gt_depth(&a.images, &reference.name) {
+        Some(p) => Some(
+            read_image(&p, &limits)
+                .with_context(|| format!("reading ground truth {}", p.display()))?,
+        ),
+        None => None,
+    };
+    let scale = gt
+        .as_ref()
+        .and_then(|g| model_unit_in_scene_units(&sparse, g));
+    if let Some(meta) = &meta {
+        let s = f64::from(scale.unwrap_or(1.0));
         println!(
-            "ground truth ({}): A = {:.4} (error {:+.4}), beta = {:.5} (error {:+.5})",
+            "ground truth ({}): A = {:.4} (error {:+.4}), beta = {:.5} per model unit (error \
+             {:+.5}){}",
             meta.path.display(),
             meta.atmosphere.airlight,
             r.airlight - meta.atmosphere.airlight,
-            meta.atmosphere.beta,
-            r.beta - meta.atmosphere.beta
+            f64::from(meta.atmosphere.beta) * s,
+            f64::from(r.beta) - f64::from(meta.atmosphere.beta) * s,
+            unit_note(scale)
         );
     }
-    if let Some(gt_path) = find_gt_depth(&a.images, &reference.name) {
-        let gt = read_image(&gt_path, &limits)
-            .with_context(|| format!("reading ground truth {}", gt_path.display()))?;
-        let m = depth_metrics(&images.z_depth, &gt, None)?;
+    if let Some(gt) = &gt {
+        let mut z = images.z_depth.clone();
+        let s = scale.unwrap_or(1.0);
+        for v in z.data_mut() {
+            *v *= s;
+        }
+        let m = depth_metrics(&z, gt, None)?;
         print_metrics_header();
-        print_metrics_row("estimated", &m, r.depth_seconds, "");
+        print_metrics_row("estimated", &m, r.depth_seconds, &unit_note(scale));
     }
     Ok(())
+}
+
+/// How many ground-truth (scene) units one model unit is: the median of `z_gt / z_sfm` over
+/// the SfM pixels. `None` without usable pixels; `Some(1)` within 1 % of 1 (the simulator's own
+/// model).
+fn model_unit_in_scene_units(sparse: &SparseDepth, gt: &murk::image::ImageF32) -> Option<f32> {
+    if gt.dims() != (sparse.width(), sparse.height()) {
+        return None;
+    }
+    let mut ratios: Vec<f32> = sparse
+        .samples()
+        .iter()
+        .map(|s| gt.get(s.x as usize, s.y as usize, 0) / s.z)
+        .filter(|r| r.is_finite() && *r > 0.0)
+        .collect();
+    if ratios.is_empty() {
+        return None;
+    }
+    let mid = ratios.len() / 2;
+    let s = *ratios.select_nth_unstable_by(mid, f32::total_cmp).1;
+    Some(if (s - 1.0).abs() < 0.01 { 1.0 } else { s })
+}
+
+fn unit_note(scale: Option<f32>) -> String {
+    match scale {
+        Some(s) if s != 1.0 => format!(
+            " (the model's unit is {s:.4} scene units, from its points against the ground truth; \
+             compared in one unit)"
+        ),
+        _ => String::new(),
+    }
+}
+
+/// What `params.json` holds: the estimates with their errors, identifiability, the β range
+/// and whether it bound, the units, and every evaluation of the search.
+fn params_json(r: &pb::ScatteringParamsResult, job_id: &str) -> serde_json::Value {
+    let bound = match pb::BetaBound::try_from(r.beta_bound) {
+        Ok(pb::BetaBound::Min) => "min",
+        Ok(pb::BetaBound::Max) => "max",
+        _ => "none",
+    };
+    serde_json::json!({
+        "format": "murk.scattering_params",
+        "version": 1,
+        "job_id": job_id,
+        "airlight": r.airlight,
+        "airlight_std_error": r.airlight_std_error,
+        "beta": r.beta,
+        "beta_std_error": r.beta_std_error,
+        "identifiable": r.identifiable,
+        "identifiability": identifiability_name(r.identifiability),
+        "beta_source": beta_source_name(r.beta_source),
+        "beta_range": {
+            "min": r.beta_min,
+            "max": r.beta_max,
+            "from_points": r.beta_range_from_points,
+            "bound": bound,
+            "beta_unclamped": r.beta_unclamped,
+        },
+        "airlight_initial": r.airlight_initial,
+        "airlight_source": source_name(r.airlight_source),
+        "joint_fit": r.joint_fit.as_ref().map(|j| serde_json::json!({
+            "airlight": j.airlight,
+            "airlight_std_error": j.airlight_std_error,
+            "beta": j.beta,
+            "beta_std_error": finite_or_null(j.beta_std_error),
+            "source_gains": j.source_gains,
+            "equations": j.equations,
+            "rms_depth_difference": j.rms_depth_difference,
+            "residual_scale": j.residual_scale,
+            "identifiability": identifiability_name(j.identifiability),
+        })),
+        "point_ratio": r.point_ratio.as_ref().map(|f| serde_json::json!({
+            "beta": f.beta,
+            "std_error": finite_or_null(f.std_error),
+            "equations": f.equations,
+            "used": f.used,
+        })),
+        "residual": r.residual,
+        "sparse_pixels": r.num_sparse_points,
+        "searches": r.grid.iter().map(|g| serde_json::json!({
+            "stage": match pb::SearchStage::try_from(g.stage) {
+                Ok(pb::SearchStage::Joint) => "joint",
+                _ => "beta",
+            },
+            "airlight": g.airlight,
+            "beta": g.beta,
+            "residual": g.residual,
+        })).collect::<Vec<_>>(),
+        "seconds": {
+            "airlight": r.airlight_seconds,
+            "search": r.search_seconds,
+            "depth": r.depth_seconds,
+        },
+        "units": {
+            "airlight": "pixel value, [0, 1]",
+            "beta": "per model unit (the COLMAP model's length unit; per metre for a metric model)",
+            "residual": "model units (mean |z - z_sfm| of Eq. 3.9)",
+            "depth": "z-depth, model units",
+        },
+    })
+}
+
+fn finite_or_null(v: f64) -> serde_json::Value {
+    if v.is_finite() {
+        serde_json::json!(v)
+    } else {
+        serde_json::Value::Null
+    }
+}
+
+fn identifiability_name(v: i32) -> &'static str {
+    match pb::Identifiability::try_from(v) {
+        Ok(pb::Identifiability::Identifiable) => "identifiable",
+        Ok(pb::Identifiability::NoDepthDifference) => "no_depth_difference",
+        Ok(pb::Identifiability::TooFewPoints) => "too_few_points",
+        Ok(pb::Identifiability::FlatResidual) => "flat_residual",
+        _ => "unknown",
+    }
+}
+
+fn identifiability_text(v: i32) -> &'static str {
+    match pb::Identifiability::try_from(v) {
+        Ok(pb::Identifiability::Identifiable) => "beta determined",
+        Ok(pb::Identifiability::NoDepthDifference) => {
+            "the views see every point at the same depth (a rectified pair or sideways motion), \
+             so every beta explains them equally"
+        }
+        Ok(pb::Identifiability::TooFewPoints) => "too few usable SfM points",
+        Ok(pb::Identifiability::FlatResidual) => "the points' residual is too flat in beta",
+        _ => "unknown",
+    }
+}
+
+fn beta_source_name(v: i32) -> &'static str {
+    match pb::BetaSource::try_from(v) {
+        Ok(pb::BetaSource::JointFit) => "joint fit of A, beta and gains to the points",
+        Ok(pb::BetaSource::PointRatio) => "the points' ratios at A0",
+        Ok(pb::BetaSource::Sweep) => "the sweep of Eq. 3.10",
+        _ => "unknown",
+    }
 }
 
 /// `stage,airlight,beta,residual` per evaluation.

@@ -96,6 +96,18 @@ pub struct SimMvsArgs {
     /// the room's size.
     #[arg(long, value_delimiter = ',', value_name = "LO,HI")]
     pub beta_range: Option<Vec<f32>>,
+    /// Draw the airlight A from LO,HI, within (0, 1] (default 0.7,1.0).
+    #[arg(long, value_delimiter = ',', value_name = "LO,HI")]
+    pub airlight_range: Option<Vec<f32>>,
+    /// Draw the reference view's median transmission from LO,HI, within (0, 1) (default
+    /// 0.2,0.4; the reference's hazy scenes span 0.1 to 0.4).
+    #[arg(long, value_delimiter = ',', value_name = "LO,HI")]
+    pub median_transmission_range: Option<Vec<f64>>,
+    /// Spread of the camera centres along the optical axis, scene units (default 0: a purely
+    /// sideways trajectory). Views then see the same point at different depths, the evidence
+    /// that determines beta.
+    #[arg(long)]
+    pub forward_motion: Option<f64>,
 }
 
 /// Options of `murk simulate tof`.
@@ -191,16 +203,27 @@ fn simulate_ps_capture(a: &SimPsArgs) -> anyhow::Result<()> {
 
 fn simulate_mvs_scene(a: &SimMvsArgs) -> anyhow::Result<()> {
     let base = MvsSimConfig::with_size(a.width, a.height);
-    if let Some(r) = &a.beta_range {
-        anyhow::ensure!(
-            r.len() == 2,
-            "--beta-range takes two values LO,HI, got {r:?}"
-        );
-    }
+    let pair = |flag: &str, r: Option<&[f32]>| -> anyhow::Result<Option<[f32; 2]>> {
+        match r {
+            None => Ok(None),
+            Some(&[lo, hi]) => Ok(Some([lo, hi])),
+            Some(r) => anyhow::bail!("{flag} takes two values LO,HI, got {r:?}"),
+        }
+    };
+    let beta_range = pair("--beta-range", a.beta_range.as_deref())?;
+    let airlight_range = pair("--airlight-range", a.airlight_range.as_deref())?;
+    let median_transmission_range = match a.median_transmission_range.as_deref() {
+        None => base.median_transmission_range,
+        Some(&[lo, hi]) => [lo, hi],
+        Some(r) => anyhow::bail!("--median-transmission-range takes two values LO,HI, got {r:?}"),
+    };
     let cfg = MvsSimConfig {
         seed: a.seed,
         rectified_pair: a.rectified_pair,
-        beta_range: a.beta_range.as_deref().map(|r| [r[0], r[1]]),
+        beta_range,
+        airlight_range: airlight_range.unwrap_or(base.airlight_range),
+        median_transmission_range,
+        forward_motion: a.forward_motion.unwrap_or(base.forward_motion),
         num_views: a
             .views
             .unwrap_or(if a.rectified_pair { 2 } else { base.num_views }),

@@ -3,6 +3,7 @@
 //! MVS depth agrees with a sparse SfM point cloud.
 
 pub mod airlight;
+pub mod joint_fit;
 pub mod point_ratio;
 pub mod residual;
 pub mod search;

@@ -2,13 +2,22 @@
 //! scattering coefficient `β` (per scene unit) that make the dense dehazing-cost-volume depth
 //! `z_{A,β} = F(A, β)` agree with the sparse SfM depth (Eq. 3.8, residual ρ of Eq. 3.9).
 //!
-//! 1. `β₀ = argmin_β` over `beta_steps` values uniform in `[β_min, β_max]` with `A = A₀`
-//!    (Eq. 3.10), `A₀` from an airlight estimator — or, murk's default when the data pin it
-//!    down, β₀ from the SfM points' transmission ratios ([`crate::params::point_ratio`]): the
-//!    classical depth function barely depends on β (docs/ACCURACY.md), the ratios do;
+//! 1. `β₀ = argmin_β` over `beta_steps` values in `[β_min, β_max]` with `A = A₀` (Eq. 3.10),
+//!    `A₀` from an airlight estimator — or, murk's default when the data pin them down, `A` and
+//!    β fitted jointly to the SfM points' intensities with a gain per source
+//!    ([`crate::params::joint_fit`], `A₀` as a prior), else β₀ from the points' transmission
+//!    ratios at `A₀` ([`crate::params::point_ratio`]): the classical depth function barely
+//!    depends on β (docs/ACCURACY.md), the points do;
 //! 2. `A*, β* = argmin` over a `grid_steps × grid_steps` grid uniform in
 //!    `[A₀ − Δ_A, A₀ + Δ_A] × [β₀ − Δ_β, β₀ + Δ_β]` (clamped to `A ∈ (0, 1]`, `β ≥ 0`); the
 //!    step-1 evaluation at `(A₀, β₀)` lies in that box and stays a candidate.
+//!
+//! **Units.** β is per scene unit, and a COLMAP model's unit is arbitrary, so no fixed β range
+//! suits every model. Unless the caller gives one, `[β_min, β_max]` is the range that keeps the
+//! median SfM point's transmission within [0.02, 0.98] ([`beta_range_from_points`]); the sweep
+//! is then geometric. An estimate outside the range is clamped *and reported*
+//! ([`ScatteringEstimate::beta_bound`]), and [`ScatteringEstimate::identifiability`] says whether
+//! the data determine β at all (a rectified pair does not).
 //!
 //! The reference's settings are 10 steps, a 4×4 grid, `Δ_A = Δ_β = 0.05`, `δ = 5` px (26 depth
 //! evaluations); all are parameters. Two deviations in murk's defaults, both measured
@@ -30,6 +39,7 @@ use crate::error::{MurkError, Result};
 use crate::image::ImageF32;
 use crate::monitor::Monitor;
 use crate::mvs::{estimate_depth, CostKind, DehazingOptions, PlaneSet, SgmParams, View};
+use crate::params::joint_fit::{fit_joint, Identifiability, JointFit, JointPriors};
 use crate::params::point_ratio::{beta_from_point_ratios, PointRatioFit};
 use crate::params::residual::{paired_improvement_t, sparse_residuals};
 use crate::params::sparse::{SparseDepth, SparseSample};
@@ -40,13 +50,20 @@ pub const MIN_SPARSE_POINTS: usize = 10;
 /// Most values along one axis of either search stage.
 pub const MAX_GRID_STEPS: usize = 64;
 
+/// Transmission range of the median SfM point that [`beta_range_from_points`] allows.
+pub const POINT_TRANSMISSION_RANGE: [f64; 2] = [0.02, 0.98];
+/// Default standard deviation of the prior on `A` around the estimator's `A₀` in the joint fit:
+/// the CNN's errors on unseen scenes reached 0.07.
+pub const AIRLIGHT_PRIOR_SIGMA: f32 = 0.1;
+
 /// Settings of [`search_scattering`]. Lengths in scene units, `β` per scene unit.
 #[derive(Clone, Debug, PartialEq)]
 pub struct SearchParams {
-    /// Lower end of the β range of step 1, `≥ 0`.
-    pub beta_min: f32,
-    /// Upper end of the β range of step 1, `> beta_min`.
-    pub beta_max: f32,
+    /// Lower end of the β range, `≥ 0`; `None` = from the SfM points
+    /// ([`beta_range_from_points`]).
+    pub beta_min: Option<f32>,
+    /// Upper end of the β range, `> beta_min`; `None` = from the SfM points.
+    pub beta_max: Option<f32>,
     /// Values of β in step 1, `1..=MAX_GRID_STEPS` (reference: 10).
     pub beta_steps: usize,
     /// Values per axis of the step-2 grid, `1..=MAX_GRID_STEPS` (reference: 4).
@@ -56,8 +73,9 @@ pub struct SearchParams {
     /// the CNN's `A₀` worse, MAE 0.008 → 0.034, see docs/ACCURACY.md). With 0 the grid has one
     /// airlight, `A₀`, and `grid_steps` values of β.
     pub delta_airlight: f32,
-    /// Half-width of the step-2 β range, `≥ 0`, per scene unit (reference: 0.05).
-    pub delta_beta: f32,
+    /// Half-width of the step-2 β range, `≥ 0`, per scene unit (reference: 0.05); `None` = 10 %
+    /// of β₀ (unit-free).
+    pub delta_beta: Option<f32>,
     /// δ of Eq. 3.9, pixels at full resolution, `≤ 64` (reference: 5).
     pub delta_px: usize,
     /// Box-downsampling factor of the images during the search, `1..=8`.
@@ -78,17 +96,23 @@ pub struct SearchParams {
     /// published algorithm) it sweeps Eq. 3.10. With β₀ from the points step 2 keeps β and
     /// searches A only (nothing with `delta_airlight` 0).
     pub beta_from_points: bool,
+    /// Step 1 takes `A` and β from the joint fit of the points' intensities
+    /// ([`crate::params::joint_fit`]) when it determines β, and step 2 is skipped (the fit has
+    /// placed `A` already). The fit always runs, for the identifiability verdict.
+    pub joint_fit: bool,
+    /// Standard deviation of the joint fit's prior on `A` around `A₀`, in (0, 1].
+    pub airlight_prior_sigma: f32,
 }
 
 impl Default for SearchParams {
     fn default() -> Self {
         Self {
-            beta_min: 0.4,
-            beta_max: 0.8,
+            beta_min: None,
+            beta_max: None,
             beta_steps: 10,
             grid_steps: 4,
             delta_airlight: 0.0,
-            delta_beta: 0.05,
+            delta_beta: None,
             delta_px: 5,
             search_downsample: 2,
             search_planes: 64,
@@ -96,6 +120,8 @@ impl Default for SearchParams {
             sgm: SgmParams::default(),
             min_improvement_t: 3.0,
             beta_from_points: true,
+            joint_fit: true,
+            airlight_prior_sigma: AIRLIGHT_PRIOR_SIGMA,
         }
     }
 }
@@ -104,19 +130,29 @@ impl SearchParams {
     /// Fails naming the first bad field.
     pub fn validate(&self) -> Result<()> {
         let bad = |f: &str, r: String| Err(MurkError::invalid(f, r));
-        if !self.beta_min.is_finite() || self.beta_min < 0.0 {
-            return bad(
-                "beta_min",
-                format!("must be finite and >= 0, got {}", self.beta_min),
-            );
+        if let Some(lo) = self.beta_min {
+            if !lo.is_finite() || lo < 0.0 {
+                return bad("beta_min", format!("must be finite and >= 0, got {lo}"));
+            }
         }
-        if !self.beta_max.is_finite() || self.beta_max <= self.beta_min {
+        if let Some(hi) = self.beta_max {
+            if !hi.is_finite() || hi <= 0.0 {
+                return bad("beta_max", format!("must be finite and > 0, got {hi}"));
+            }
+            if let Some(lo) = self.beta_min.filter(|&lo| hi <= lo) {
+                return bad(
+                    "beta_max",
+                    format!("must be > beta_min ({lo}), got {hi} (the β range is empty)"),
+                );
+            }
+        }
+        if !(self.airlight_prior_sigma.is_finite()
+            && self.airlight_prior_sigma > 0.0
+            && self.airlight_prior_sigma <= 1.0)
+        {
             return bad(
-                "beta_max",
-                format!(
-                    "must be finite and > beta_min ({}), got {} (the β range is empty)",
-                    self.beta_min, self.beta_max
-                ),
+                "airlight_prior_sigma",
+                format!("must be in (0, 1], got {}", self.airlight_prior_sigma),
             );
         }
         for (f, v) in [
@@ -129,7 +165,7 @@ impl SearchParams {
         }
         for (f, v) in [
             ("delta_airlight", self.delta_airlight),
-            ("delta_beta", self.delta_beta),
+            ("delta_beta", self.delta_beta.unwrap_or(0.0)),
         ] {
             if !v.is_finite() || !(0.0..=1.0).contains(&v) {
                 return bad(f, format!("must be in [0, 1], got {v}"));
@@ -204,6 +240,26 @@ pub struct GridEvaluation {
     pub residual: f64,
 }
 
+/// Where β* came from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum BetaSource {
+    /// The joint fit of `A`, β and the source gains to the points' intensities.
+    JointFit,
+    /// The points' transmission ratios at `A₀`.
+    PointRatio,
+    /// The sweep of Eq. 3.10 (and step 2's grid) over the depth residual.
+    Sweep,
+}
+
+/// Which end of the β range an estimate was clamped to.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum BetaBound {
+    /// `beta_min`.
+    Min,
+    /// `beta_max`.
+    Max,
+}
+
 /// Result of [`search_scattering`].
 #[derive(Clone, Debug, PartialEq)]
 pub struct ScatteringEstimate {
@@ -215,8 +271,30 @@ pub struct ScatteringEstimate {
     pub airlight_initial: f32,
     /// `β₀` of step 1.
     pub beta_initial: f32,
+    /// Standard error of `A*`: from the joint fit when `A*` came from it, `None` when `A*` is the
+    /// estimator's value or a grid point (no error model).
+    pub airlight_std_error: Option<f64>,
+    /// Standard error of `β*` per scene unit, from the fit it came from; `None` after the sweep.
+    pub beta_std_error: Option<f64>,
+    /// Which estimate `β*` is.
+    pub beta_source: BetaSource,
+    /// Whether the SfM points determine β (and with the joint fit `A`), and if not why. After a
+    /// sweep this is the joint fit's verdict: the depth residual alone did not pin β down in
+    /// any measurement (docs/ACCURACY.md), so a swept β is reported as not identifiable.
+    pub identifiability: Identifiability,
+    /// The β range used, per scene unit.
+    pub beta_range: [f32; 2],
+    /// Whether an end of the range came from the points ([`beta_range_from_points`]).
+    pub beta_range_from_points: bool,
+    /// The bound `β*` sits on when the estimate fell outside the range (or, after a sweep, its
+    /// minimum lay at an end): the true minimum may lie beyond it.
+    pub beta_bound: Option<BetaBound>,
+    /// The estimate before clamping to the range, per scene unit.
+    pub beta_unclamped: f32,
+    /// The joint fit (always run, used when `joint_fit` is set and it determines β).
+    pub joint: Option<JointFit>,
     /// The points' transmission-ratio fit when step 1 tried it (reliable or not); β₀ came from
-    /// it when [`PointRatioFit::is_reliable`].
+    /// it when [`PointRatioFit::is_reliable`] and the joint fit was not used.
     pub point_ratio: Option<PointRatioFit>,
     /// Mean Eq. 3.9 residual at `(A*, β*)`, scene units.
     pub residual: f64,
@@ -236,6 +314,29 @@ fn linspace(lo: f32, hi: f32, n: usize) -> Vec<f32> {
     (0..n)
         .map(|i| lo + (hi - lo) * i as f32 / (n - 1) as f32)
         .collect()
+}
+
+/// `n` values in geometric progression from `lo` to `hi` (both > 0).
+fn geomspace(lo: f32, hi: f32, n: usize) -> Vec<f32> {
+    if n == 1 {
+        return vec![(lo * hi).sqrt()];
+    }
+    let r = f64::from(hi / lo);
+    (0..n)
+        .map(|i| lo * r.powf(i as f64 / (n - 1) as f64) as f32)
+        .collect()
+}
+
+/// The β range, per scene unit, within which the median SfM point's transmission lies in
+/// [`POINT_TRANSMISSION_RANGE`]: `[−ln 0.98, −ln 0.02] / z_med`. It scales with the model's
+/// unit, so a COLMAP model in any unit gets a sensible range (the reference's fixed [0.4, 0.8]
+/// is for metric indoor scenes). `None` without points.
+pub fn beta_range_from_points(sparse: &SparseDepth) -> Option<[f32; 2]> {
+    let z = f64::from(sparse.depth_quantile(0.5)?);
+    (z > 0.0).then(|| {
+        let [t_lo, t_hi] = POINT_TRANSMISSION_RANGE;
+        [(-t_hi.ln() / z) as f32, (-t_lo.ln() / z) as f32]
+    })
 }
 
 /// Mean over `f×f` blocks (the image cropped to a multiple of `f`).
@@ -271,6 +372,32 @@ fn downsample_intrinsics(k: &Intrinsics, f: usize) -> Intrinsics {
         cy: (k.cy - shift) / f,
         skew: k.skew / f,
     }
+}
+
+/// The β range of a search: the caller's ends, the missing ones from the points. Errors name
+/// `params.beta_min`/`params.beta_max` when a given end leaves the range empty.
+fn resolve_beta_range(params: &SearchParams, sparse: &SparseDepth) -> Result<([f32; 2], bool)> {
+    let derived = beta_range_from_points(sparse);
+    let from_points = params.beta_min.is_none() || params.beta_max.is_none();
+    let [d_lo, d_hi] = derived.unwrap_or([0.0, f32::INFINITY]);
+    let lo = params.beta_min.unwrap_or(d_lo);
+    let hi = params.beta_max.unwrap_or(d_hi);
+    if !(hi > lo && hi.is_finite()) {
+        let field = if params.beta_min.is_some() {
+            "params.beta_min"
+        } else {
+            "params.beta_max"
+        };
+        return Err(MurkError::invalid(
+            field,
+            format!(
+                "leaves an empty β range [{lo}, {hi}] per scene unit with the end taken from the \
+                 SfM points ([{d_lo:.4}, {d_hi:.4}], median point transmission 0.98 to 0.02); \
+                 give both ends"
+            ),
+        ));
+    }
+    Ok(([lo, hi], from_points))
 }
 
 /// Runs Algorithm 1 (see the module docs) from the initial airlight `airlight_initial` over the
@@ -336,6 +463,7 @@ pub fn search_scattering(
             ),
         ));
     }
+    let ([beta_lo, beta_hi], beta_range_from_points) = resolve_beta_range(params, sparse)?;
     let reference_view = View {
         image: &ref_small.0,
         intrinsics: ref_small.1,
@@ -353,25 +481,47 @@ pub fn search_scattering(
     let search_planes = PlaneSet::new(planes.near, planes.far, params.search_planes)
         .map_err(|e| e.within("planes"))?;
     let delta = (params.delta_px as f64 / f as f64).round() as usize;
-    // Step 1 from the points, at full resolution (the ratios need the images' own pixels).
-    let point_ratio = params
-        .beta_from_points
+    // Step 1 from the points, at full resolution (the equations need the images' own pixels).
+    // The joint fit always runs: its verdict says whether the data determine β at all.
+    let joint = fit_joint(
+        reference,
+        sources,
+        sparse,
+        &JointPriors {
+            airlight: f64::from(airlight_initial),
+            airlight_sigma: f64::from(params.airlight_prior_sigma),
+            gain_sigma: 0.2,
+            beta_start: f64::from((beta_lo.max(1e-6) * beta_hi).sqrt()),
+        },
+    );
+    let from_joint = joint
+        .as_ref()
+        .filter(|j| params.joint_fit && j.is_identifiable())
+        .map(|j| ((j.airlight as f32).clamp(1e-3, 1.0), j.beta as f32));
+    let point_ratio = (from_joint.is_none() && params.beta_from_points)
         .then(|| beta_from_point_ratios(reference, sources, sparse, airlight_initial))
         .flatten();
-    let beta_from_points = point_ratio
+    let from_ratio = point_ratio
         .filter(PointRatioFit::is_reliable)
-        .map(|fit| (fit.beta as f32).clamp(params.beta_min, params.beta_max));
-    let step1: Vec<f32> = match beta_from_points {
-        Some(b) => vec![b],
-        None => linspace(params.beta_min, params.beta_max, params.beta_steps),
+        .map(|fit| (airlight_initial, fit.beta as f32));
+    let (beta_source, airlight_step1, fitted_beta) = match (from_joint, from_ratio) {
+        (Some((a, b)), _) => (BetaSource::JointFit, a, Some(b)),
+        (None, Some((a, b))) => (BetaSource::PointRatio, a, Some(b)),
+        (None, None) => (BetaSource::Sweep, airlight_initial, None),
     };
-    let step2 = match (beta_from_points.is_some(), params.airlight_steps()) {
-        (true, 1) => 0,
-        (true, a) => a,
-        (false, a) => a * params.grid_steps,
+    let clamped = fitted_beta.map(|b| b.clamp(beta_lo, beta_hi));
+    let step1: Vec<f32> = match clamped {
+        Some(b) => vec![b],
+        None if beta_range_from_points => geomspace(beta_lo.max(1e-6), beta_hi, params.beta_steps),
+        None => linspace(beta_lo, beta_hi, params.beta_steps),
+    };
+    let step2 = match (beta_source, params.airlight_steps()) {
+        (BetaSource::JointFit, _) | (BetaSource::PointRatio, 1) => 0,
+        (BetaSource::PointRatio, a) => a,
+        (BetaSource::Sweep, a) => a * params.grid_steps,
     };
     let total = (step1.len() + step2) as f32;
-    let mut grid: Vec<GridEvaluation> = Vec::with_capacity(params.evaluations());
+    let mut grid: Vec<GridEvaluation> = Vec::with_capacity(step1.len() + step2);
     let mut evaluate = |stage: SearchStage, airlight: f32, beta: f32| -> Result<(f64, Vec<f32>)> {
         monitor.checkpoint()?;
         let i = grid.len() as f32;
@@ -396,17 +546,21 @@ pub fn search_scattering(
         monitor.progress("params.search", (i + 1.0) / total);
         Ok((residual, per_point))
     };
-    // Step 1 (Eq. 3.10).
-    let mut best = (f64::INFINITY, airlight_initial, params.beta_min);
+    // Step 1 (Eq. 3.10, or the points' estimate).
+    let mut best = (f64::INFINITY, airlight_step1, beta_lo);
     let mut incumbent: Vec<f32> = Vec::new();
-    for beta in step1 {
-        let (r, per_point) = evaluate(SearchStage::Beta, airlight_initial, beta)?;
+    for &beta in &step1 {
+        let (r, per_point) = evaluate(SearchStage::Beta, airlight_step1, beta)?;
         if r < best.0 {
-            best = (r, airlight_initial, beta);
+            best = (r, airlight_step1, beta);
             incumbent = per_point;
         }
     }
     let beta_initial = best.2;
+    // A swept minimum at an end of the range may lie beyond it.
+    let sweep_at_end = beta_source == BetaSource::Sweep
+        && step1.len() > 1
+        && (beta_initial == step1[0] || beta_initial == step1[step1.len() - 1]);
     // Step 2 (Eq. 3.8 over Ω_A × Ω_β).
     let a_values = linspace(
         airlight_initial - params.delta_airlight,
@@ -416,20 +570,21 @@ pub fn search_scattering(
     // With β₀ from the points step 2 refines A only: the depth residual's preference in β is
     // a bias of the classical depth function (it moved the points' β₀ by +0.05 on 8 of 10
     // scenes past a paired t of 3, MAE_β 0.032 → 0.154; docs/ACCURACY.md), not information.
-    let b_values = if beta_from_points.is_some() {
-        vec![beta_initial]
-    } else {
-        linspace(
-            beta_initial - params.delta_beta,
-            beta_initial + params.delta_beta,
-            params.grid_steps,
-        )
-    };
-    let a_values = if beta_from_points.is_some() && a_values.len() == 1 {
+    // After the joint fit, which placed A with the points, step 2 does not run.
+    let delta_beta = params.delta_beta.unwrap_or(0.1 * beta_initial);
+    let (a_values, b_values) = match beta_source {
+        BetaSource::JointFit => (Vec::new(), Vec::new()),
         // (A₀, β₀) is step 1's evaluation already.
-        Vec::new()
-    } else {
-        a_values
+        BetaSource::PointRatio if a_values.len() == 1 => (Vec::new(), Vec::new()),
+        BetaSource::PointRatio => (a_values, vec![beta_initial]),
+        BetaSource::Sweep => (
+            a_values,
+            linspace(
+                beta_initial - delta_beta,
+                beta_initial + delta_beta,
+                params.grid_steps,
+            ),
+        ),
     };
     for &a in &a_values {
         let a = a.clamp(1e-3, 1.0);
@@ -445,11 +600,43 @@ pub fn search_scattering(
             }
         }
     }
+    let beta_unclamped = fitted_beta.unwrap_or(best.2);
+    let beta_bound = if beta_unclamped < beta_lo || (sweep_at_end && best.2 <= step1[0]) {
+        Some(BetaBound::Min)
+    } else if beta_unclamped > beta_hi || (sweep_at_end && best.2 >= step1[step1.len() - 1]) {
+        Some(BetaBound::Max)
+    } else {
+        None
+    };
+    let identifiability = match beta_source {
+        BetaSource::JointFit | BetaSource::PointRatio => Identifiability::Identifiable,
+        BetaSource::Sweep => match joint.as_ref().map(|j| j.identifiability) {
+            // The fit determined β but the caller turned it off: the sweep's β is still a guess.
+            Some(Identifiability::Identifiable) | None => Identifiability::FlatResidual,
+            Some(other) => other,
+        },
+    };
+    let (airlight_std_error, beta_std_error) = match beta_source {
+        BetaSource::JointFit => joint.as_ref().map_or((None, None), |j| {
+            (Some(j.airlight_std_error), Some(j.beta_std_error))
+        }),
+        BetaSource::PointRatio => (None, point_ratio.map(|p| p.std_error)),
+        BetaSource::Sweep => (None, None),
+    };
     Ok(ScatteringEstimate {
         airlight: best.1,
         beta: best.2,
         airlight_initial,
         beta_initial,
+        airlight_std_error,
+        beta_std_error,
+        beta_source,
+        identifiability,
+        beta_range: [beta_lo, beta_hi],
+        beta_range_from_points,
+        beta_bound,
+        beta_unclamped,
+        joint,
         point_ratio,
         residual: best.0,
         grid,
@@ -538,58 +725,172 @@ mod tests {
         simulate_mvs(&cfg, &Monitor::noop()).unwrap()
     }
 
-    /// murk's default on a simulated room at reduced size (walking trajectory: at 128×96 a
-    /// lateral one leaves too few equations for a reliable fit): β₀ from the points' ratios
-    /// lands within 0.05 of the true β (MAE 0.032 at full size, docs/ACCURACY.md), step 1 is a
-    /// single evaluation and step 2 has nothing to do with `delta_airlight` 0.
-    #[test]
-    fn default_search_finds_beta_from_the_points() {
-        let scene = crate::simulate::mvs::walking_test_scene(5);
+    /// The walking scene of `walking_test_scene` with its β drawn from `beta_range`: the same
+    /// images, the world scaled so that β is in other units (×10 bigger for a range ÷10).
+    fn walking_scene_in(beta_range: [f32; 2], seed: u64) -> MvsScene {
+        let cfg = MvsSimConfig {
+            seed,
+            beta_range: Some(beta_range),
+            forward_motion: 0.5,
+            ..MvsSimConfig::with_size(128, 96)
+        };
+        simulate_mvs(&cfg, &Monitor::noop()).unwrap()
+    }
+
+    fn run(scene: &MvsScene, a0: f32, params: &SearchParams) -> ScatteringEstimate {
         let (reference, sources) = scene.reference_and_sources();
         let sparse = scene.sparse_depth().unwrap();
         let (near, far) = plane_range_from_sparse(&sparse).unwrap();
         let planes = PlaneSet::new(near, far, 32).unwrap();
-        let params = SearchParams {
+        search_scattering(
+            &reference,
+            &sources,
+            &sparse,
+            a0,
+            &planes,
+            params,
+            &Monitor::noop(),
+        )
+        .unwrap()
+    }
+
+    fn fast() -> SearchParams {
+        SearchParams {
             search_planes: 16,
             ..SearchParams::default()
-        };
-        let est = search_scattering(
-            &reference,
-            &sources,
-            &sparse,
-            scene.airlight,
-            &planes,
-            &params,
-            &Monitor::noop(),
-        )
-        .unwrap();
-        let fit = est.point_ratio.expect("the points were tried");
-        assert!(fit.is_reliable(), "{fit:?}");
+        }
+    }
+
+    /// murk's default on a simulated room at reduced size (walking trajectory): A and β from
+    /// the joint fit, although A₀ is 0.06 off, with standard errors; one depth evaluation; the
+    /// range from the points, not binding. Without the joint fit the points' ratios at the true
+    /// A; without either the published sweep, reported as not identifiable.
+    #[test]
+    fn default_search_fits_a_and_beta_from_the_points() {
+        let scene = crate::simulate::mvs::walking_test_scene(5);
+        let est = run(&scene, scene.airlight - 0.06, &fast());
+        assert_eq!(est.beta_source, BetaSource::JointFit);
+        assert_eq!(est.identifiability, Identifiability::Identifiable);
         assert_eq!(est.grid.len(), 1);
-        assert_eq!(est.beta, est.beta_initial);
-        assert!(
-            (est.beta - scene.beta).abs() < 0.05,
-            "β {} vs true {} ({fit:?})",
-            est.beta,
-            scene.beta
-        );
-        // The published algorithm on the same data: the full sweep and grid.
-        let published = SearchParams {
-            beta_from_points: false,
-            ..params
+        assert!((est.airlight - scene.airlight).abs() < 0.03, "{est:?}");
+        assert!((est.beta - scene.beta).abs() < 0.05, "{est:?}");
+        let (se_a, se_b) = (est.airlight_std_error.unwrap(), est.beta_std_error.unwrap());
+        assert!(se_a > 0.0 && se_a < 0.05 && se_b > 0.0 && se_b < 0.15 * f64::from(est.beta));
+        assert!(est.beta_range_from_points && est.beta_bound.is_none());
+        assert!(est.beta_range[0] < est.beta && est.beta < est.beta_range[1]);
+
+        let ratio = SearchParams {
+            joint_fit: false,
+            ..fast()
         };
-        let est = search_scattering(
-            &reference,
-            &sources,
-            &sparse,
-            scene.airlight,
-            &planes,
-            &published,
-            &Monitor::noop(),
-        )
-        .unwrap();
-        assert!(est.point_ratio.is_none());
+        let est = run(&scene, scene.airlight, &ratio);
+        assert_eq!(est.beta_source, BetaSource::PointRatio);
+        assert!(est.point_ratio.unwrap().is_reliable());
+        assert_eq!((est.grid.len(), est.airlight), (1, scene.airlight));
+        assert!((est.beta - scene.beta).abs() < 0.05, "{est:?}");
+        assert!(est.airlight_std_error.is_none() && est.beta_std_error.is_some());
+
+        let published = SearchParams {
+            joint_fit: false,
+            beta_from_points: false,
+            beta_min: Some(0.4),
+            beta_max: Some(0.8),
+            delta_beta: Some(0.05),
+            ..fast()
+        };
+        let est = run(&scene, scene.airlight, &published);
+        assert_eq!(est.beta_source, BetaSource::Sweep);
+        assert!(est.point_ratio.is_none() && est.beta_std_error.is_none());
         assert_eq!(est.grid.len(), published.evaluations());
+        assert_ne!(est.identifiability, Identifiability::Identifiable);
+        assert!(!est.beta_range_from_points);
+    }
+
+    /// The same scene in units ten times smaller (β ten times larger... here: the world ten
+    /// times bigger, β per unit ÷10): the default range follows the points and the estimate
+    /// scales with the unit, where a fixed range (the reference's [0.4, 0.8]) would clamp it —
+    /// and a clamp is reported, never silent.
+    #[test]
+    fn the_beta_range_follows_the_models_unit_and_a_clamp_is_reported() {
+        let metric = walking_scene_in([0.4, 0.8], 6);
+        let big = walking_scene_in([0.04, 0.08], 6);
+        assert!((big.beta * 10.0 - metric.beta).abs() < 1e-4);
+        let (m, b) = (
+            run(&metric, metric.airlight, &fast()),
+            run(&big, big.airlight, &fast()),
+        );
+        assert!(
+            (m.beta_range[0] / b.beta_range[0] - 10.0).abs() < 0.1,
+            "{m:?} {b:?}"
+        );
+        assert!((m.beta - metric.beta).abs() < 0.05, "{m:?}");
+        assert!((b.beta * 10.0 - metric.beta).abs() < 0.05, "{b:?}");
+        assert!(b.beta_bound.is_none() && b.identifiability == Identifiability::Identifiable);
+        // The reference's fixed range on the bigger model: clamped at 0.4, and said so.
+        let fixed = SearchParams {
+            beta_min: Some(0.4),
+            beta_max: Some(0.8),
+            ..fast()
+        };
+        let c = run(&big, big.airlight, &fixed);
+        assert_eq!((c.beta, c.beta_bound), (0.4, Some(BetaBound::Min)));
+        assert!(
+            (c.beta_unclamped * 10.0 - metric.beta).abs() < 0.05,
+            "{c:?}"
+        );
+        assert!(!c.beta_range_from_points);
+    }
+
+    /// A rectified pair sees every point at the same depth in both views: β does not change
+    /// the cost, the points say so, and the result is marked not identifiable.
+    #[test]
+    fn a_rectified_pair_is_reported_as_not_identifiable() {
+        let cfg = MvsSimConfig {
+            seed: 8,
+            rectified_pair: true,
+            num_views: 2,
+            ..MvsSimConfig::with_size(128, 96)
+        };
+        let scene = simulate_mvs(&cfg, &Monitor::noop()).unwrap();
+        let est = run(&scene, scene.airlight, &fast());
+        assert_eq!(
+            est.identifiability,
+            Identifiability::NoDepthDifference,
+            "{est:?}"
+        );
+        assert_eq!(est.beta_source, BetaSource::Sweep);
+        assert!(est.beta_std_error.is_none());
+        let joint = est.joint.unwrap();
+        assert!(!joint.is_identifiable() && joint.rms_depth_difference < 1e-6);
+    }
+
+    #[test]
+    fn beta_range_from_points_scales_with_depth() {
+        let near = SparseDepth::from_samples(
+            8,
+            8,
+            (0..5)
+                .map(|i| SparseSample { x: i, y: 0, z: 2.0 })
+                .collect(),
+        );
+        let far = SparseDepth::from_samples(
+            8,
+            8,
+            (0..5)
+                .map(|i| SparseSample {
+                    x: i,
+                    y: 0,
+                    z: 20.0,
+                })
+                .collect(),
+        );
+        let [lo, hi] = beta_range_from_points(&near).unwrap();
+        // Median point transmission 0.98 … 0.02.
+        assert!(((-lo * 2.0).exp() - 0.98).abs() < 1e-4 && ((-hi * 2.0).exp() - 0.02).abs() < 1e-4);
+        let [lo10, hi10] = beta_range_from_points(&far).unwrap();
+        assert!((lo / lo10 - 10.0).abs() < 1e-3 && (hi / hi10 - 10.0).abs() < 1e-3);
+        let g = geomspace(0.1, 10.0, 3);
+        assert!((g[1] - 1.0).abs() < 1e-6 && (g[2] - 10.0).abs() < 1e-5);
     }
 
     /// The search's bookkeeping: `beta_steps + grid_steps²` evaluations in order, the step-2
@@ -611,6 +912,10 @@ mod tests {
             // The published plain argmin, so the estimate must be the grid's minimum.
             min_improvement_t: 0.0,
             beta_from_points: false,
+            joint_fit: false,
+            beta_min: Some(0.4),
+            beta_max: Some(0.8),
+            delta_beta: Some(0.05),
             ..SearchParams::default()
         };
         assert_eq!(params.evaluations(), 8);
@@ -681,7 +986,8 @@ mod tests {
         );
         assert_eq!(err.unwrap_err().field(), Some("airlight_initial"));
         let bad = SearchParams {
-            beta_max: 0.4,
+            beta_min: Some(0.5),
+            beta_max: Some(0.4),
             ..params.clone()
         };
         let err = search_scattering(&reference, &sources, &sparse, 0.85, &planes, &bad, &monitor);

@@ -210,8 +210,10 @@ fn measure_search() {
     let cnn = (std::env::var("MURK_A0").as_deref() == Ok("cnn"))
         .then(|| crate::params::airlight::AirlightCnn::embedded().unwrap());
     // MURK_SWEEP=1: the published Eq. 3.10 sweep for β₀; MURK_FORWARD: forward motion.
+    let sweep = std::env::var("MURK_SWEEP").is_ok();
     let params = SearchParams {
-        beta_from_points: std::env::var("MURK_SWEEP").is_err(),
+        beta_from_points: !sweep,
+        joint_fit: !sweep && std::env::var("MURK_NO_JOINT").is_err(),
         ..params
     };
     let forward: f64 = env_or("MURK_FORWARD", 0.0);
@@ -500,4 +502,104 @@ fn point_ratio_under_exposure_change() {
         "gain {gain}, forward {forward}: MAE_β (clamped to [0.4, 0.8]) {:.4}, reliable on {reliable}/10",
         err / 10.0
     );
+}
+
+/// The joint fit of A, β and the source gains ([`crate::params::joint_fit`]) on `MURK_SCENES`
+/// (default 10) scenes from `MURK_SEED0` (default 300) with A ∈ [0.5, 1.0] and median
+/// transmission ∈ [0.1, 0.4] (β derived from the room, no range imposed), the prior A₀ from the
+/// CNN and from the dark channel; `MURK_GAIN` multiplies every source image (exposure change),
+/// `MURK_FORWARD` adds forward motion. Prints MAE_A, MAE_β and how often β was identifiable.
+/// `cargo test --release --lib params::tests::measure_joint_fit -- --ignored --nocapture`
+#[test]
+#[ignore]
+fn measure_joint_fit() {
+    use crate::params::airlight::{dark_channel_airlight, AirlightCnn, DarkChannelParams};
+    use crate::params::joint_fit::{fit_joint, JointPriors};
+    use crate::params::point_ratio::beta_from_point_ratios;
+    let n: u64 = env_or("MURK_SCENES", 10);
+    let seed0: u64 = env_or("MURK_SEED0", 300);
+    let gain: f32 = env_or("MURK_GAIN", 1.0);
+    let forward: f64 = env_or("MURK_FORWARD", 0.0);
+    let sigma: f64 = env_or("MURK_PRIOR_SIGMA", 0.1);
+    let cnn = AirlightCnn::embedded().unwrap();
+    // [prior][A err, β err, identifiable]; priors: CNN, dark channel; then the old ratio fit
+    // at the CNN's A₀ for comparison.
+    let mut sums = [[0.0f64; 3]; 3];
+    for seed in seed0..seed0 + n {
+        let cfg = MvsSimConfig {
+            seed,
+            airlight_range: [0.5, 1.0],
+            median_transmission_range: [0.1, 0.4],
+            forward_motion: forward,
+            ..MvsSimConfig::default()
+        };
+        let scene = simulate_mvs(&cfg, &Monitor::noop()).unwrap();
+        let (reference, sources) = scene.reference_and_sources();
+        let scaled: Vec<crate::image::ImageF32> = sources
+            .iter()
+            .map(|v| {
+                let mut img = v.image.clone();
+                for x in img.data_mut() {
+                    *x = (*x * gain).min(1.0);
+                }
+                img
+            })
+            .collect();
+        let sources: Vec<crate::mvs::View<'_>> = sources
+            .iter()
+            .zip(&scaled)
+            .map(|(v, image)| crate::mvs::View { image, ..*v })
+            .collect();
+        let sparse = scene.sparse_depth().unwrap();
+        let (a, b) = (f64::from(scene.airlight), f64::from(scene.beta));
+        let a_cnn = cnn.estimate(reference.image).unwrap();
+        let a_dcp = dark_channel_airlight(reference.image, &DarkChannelParams::default()).unwrap();
+        let z_med = f64::from(sparse.depth_quantile(0.5).unwrap());
+        let mut line = format!(
+            "seed {seed}: A {a:.3} β {b:.3} (t_med {:.2}) |",
+            (-b * z_med).exp()
+        );
+        for (k, a0) in [a_cnn, a_dcp].into_iter().enumerate() {
+            let priors = JointPriors {
+                airlight: f64::from(a0),
+                airlight_sigma: sigma,
+                gain_sigma: 0.2,
+                beta_start: 0.5 / z_med,
+            };
+            let fit = fit_joint(&reference, &sources, &sparse, &priors).unwrap();
+            sums[k][0] += (fit.airlight - a).abs();
+            sums[k][1] += (fit.beta - b).abs();
+            sums[k][2] += f64::from(u8::from(fit.is_identifiable()));
+            line += &format!(
+                " A0 {a0:.3} → A {:.3}±{:.3} β {:.3}±{:.3} g {:.3} {} |",
+                fit.airlight,
+                fit.airlight_std_error,
+                fit.beta,
+                fit.beta_std_error,
+                fit.source_gains.iter().sum::<f64>() / fit.source_gains.len() as f64,
+                fit.identifiability.name()
+            );
+        }
+        let old = beta_from_point_ratios(&reference, &sources, &sparse, a_cnn).unwrap();
+        sums[2][0] += f64::from((a_cnn - scene.airlight).abs());
+        sums[2][1] += (old.beta - b).abs();
+        sums[2][2] += f64::from(u8::from(old.is_reliable()));
+        println!("{line} ratio@CNN β {:.3}", old.beta);
+    }
+    let k = n as f64;
+    for (name, s) in [
+        "joint, CNN prior",
+        "joint, dark-channel prior",
+        "ratio fit at CNN A0",
+    ]
+    .iter()
+    .zip(sums)
+    {
+        println!(
+            "{name}: MAE_A {:.4} MAE_β {:.4} identifiable {}/{n}",
+            s[0] / k,
+            s[1] / k,
+            s[2]
+        );
+    }
 }

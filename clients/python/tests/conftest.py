@@ -149,6 +149,24 @@ def mvs_scene(workdir: Path) -> Path:
 
 
 @pytest.fixture(scope="session")
+def mvs_scene_forward(workdir: Path) -> Path:
+    """Views spread along the optical axis too: the points' depths differ between views, which
+    is what determines β."""
+    return simulate(
+        "mvs",
+        workdir / "mvs_forward",
+        "--width",
+        "96",
+        "--height",
+        "72",
+        "--seed",
+        "2",
+        "--forward-motion",
+        "0.5",
+    )
+
+
+@pytest.fixture(scope="session")
 def ps_scene(workdir: Path) -> Path:
     return simulate("ps", workdir / "ps", "--width", "48", "--height", "48")
 

@@ -74,20 +74,39 @@ def test_mvs_depth_with_colmap_model(client: Client, mvs_scene: Path) -> None:
     assert o.cost_volume == "ordinary" and o.job_id != r.job_id
 
 
-def test_scattering_params_recovers_a_and_beta(client: Client, mvs_scene: Path) -> None:
-    meta = read_meta(mvs_scene)
-    model = mc.load_colmap_model(mvs_scene / "sparse")
+def params_of(client: Client, scene: Path) -> mc.ScatteringParamsResult:
+    meta = read_meta(scene)
+    model = mc.load_colmap_model(scene / "sparse")
     ref = meta["reference"]
-    r = client.scattering_params(
-        model.view(ref, mvs_scene / "images"),
-        [model.view(n, mvs_scene / "images") for n in model.nearest_sources(ref, 4)],
+    return client.scattering_params(
+        model.view(ref, scene / "images"),
+        [model.view(n, scene / "images") for n in model.nearest_sources(ref, 4)],
         model.points_scene_units,
         airlight_source="dark_channel",
         options={"num_planes": 64, "search_planes": 32},
     )
-    assert abs(r.airlight - meta["airlight"]) < 0.1, (r.airlight, meta["airlight"])
+
+
+def test_scattering_params_says_when_beta_is_not_determined(client: Client, mvs_scene: Path) -> None:
+    # A small sideways trajectory: the points' depths barely differ between views.
+    r = params_of(client, mvs_scene)
+    assert not r.identifiable and r.identifiability in ("flat_residual", "no_depth_difference")
+    assert r.beta_source == "sweep" and r.beta_std_error_per_scene_unit is None
+
+
+def test_scattering_params_recovers_a_and_beta(client: Client, mvs_scene_forward: Path) -> None:
+    meta = read_meta(mvs_scene_forward)
+    r = params_of(client, mvs_scene_forward)
+    assert abs(r.airlight - meta["airlight"]) < 0.03, (r.airlight, meta["airlight"])
     assert r.beta_per_scene_unit > 0 and r.grid and r.num_sparse_points >= 10
     assert r.airlight_source == "dark_channel"
+    # What is known is said: the points determine A and β here, with standard errors, and the
+    # truth lies within a few of them; the range came from the points and did not bind.
+    assert r.identifiable and r.identifiability == "identifiable" and r.beta_source == "joint_fit"
+    assert r.airlight_std_error is not None and r.beta_std_error_per_scene_unit is not None
+    assert abs(r.beta_per_scene_unit - meta["beta"]) < 4 * r.beta_std_error_per_scene_unit + 0.01
+    assert r.beta_range_from_points and r.beta_bound is None
+    assert len(r.source_gains) == 4 and all(abs(g - 1) < 0.05 for g in r.source_gains)
     assert r.depth.z_depth.shape == (72, 96) and r.depth.num_planes == 64
 
 

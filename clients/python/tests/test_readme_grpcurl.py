@@ -52,6 +52,6 @@ def test_readme_grpcurl_sessions_run(server: MurkServer, tmp_path: Path) -> None
     # Each watch ends SUCCEEDED; the estimates, the plane set and the chunk header are printed.
     assert out.count('"state":"JOB_STATE_SUCCEEDED"') >= 3, out
     assert '"costVolume":"COST_VOLUME_KIND_DEHAZING"' in out and '"numPlanes":64' in out
-    assert '"airlightSource":"AIRLIGHT_SOURCE_DARK_CHANNEL"' in out
+    assert '"identifiable":true' in out and '"betaSource":"BETA_SOURCE_JOINT_FIT"' in out
     assert '"totalBytes"' in out and "refused, as expected" in out
     assert "request.photometric_stereo.lights" in done.stderr, done.stderr

@@ -19,8 +19,10 @@ use crate::monitor::Monitor;
 use crate::mvs::cost_volume::MAX_VOXELS;
 use crate::mvs::{estimate_depth, CostKind, DehazingOptions, PlaneSet, View, MAX_PLANES};
 use crate::params::airlight::{dark_channel_airlight, AirlightEstimator, DarkChannelParams};
+use crate::params::joint_fit::Identifiability;
 use crate::params::search::{
-    plane_range_from_sparse, search_scattering, SearchParams, SearchStage, MIN_SPARSE_POINTS,
+    plane_range_from_sparse, search_scattering, BetaBound, BetaSource, SearchParams, SearchStage,
+    MIN_SPARSE_POINTS,
 };
 use crate::params::sparse::SparseDepth;
 use crate::service::proto::v1 as pb;
@@ -105,15 +107,17 @@ pub fn canonicalize_params_request(
     if req.airlight_source == pb::AirlightSource::Unspecified as i32 {
         req.airlight_source = airlight.default_source() as i32;
     }
-    req.beta_min.get_or_insert(d.beta_min);
-    req.beta_max.get_or_insert(d.beta_max);
+    // beta_min/beta_max/delta_beta stay unset: "from the SfM points" / "10 % of beta0" are
+    // themselves deterministic in the request.
     req.beta_steps.get_or_insert(d.beta_steps as u32);
     req.grid_steps.get_or_insert(d.grid_steps as u32);
     req.delta_airlight.get_or_insert(d.delta_airlight);
-    req.delta_beta.get_or_insert(d.delta_beta);
     req.delta_px.get_or_insert(d.delta_px as u32);
     req.min_improvement_t.get_or_insert(d.min_improvement_t);
     req.beta_from_points.get_or_insert(d.beta_from_points);
+    req.joint_fit.get_or_insert(d.joint_fit);
+    req.airlight_prior_sigma
+        .get_or_insert(d.airlight_prior_sigma);
     if req.num_planes == 0 {
         req.num_planes = DEFAULT_PLANES as u32;
     }
@@ -171,12 +175,12 @@ pub fn params_from_proto(
     let d = SearchParams::default();
     let or = |v: u32, def: usize| if v == 0 { def } else { v as usize };
     let search = SearchParams {
-        beta_min: req.beta_min.unwrap_or(d.beta_min),
-        beta_max: req.beta_max.unwrap_or(d.beta_max),
+        beta_min: req.beta_min,
+        beta_max: req.beta_max,
         beta_steps: req.beta_steps.map_or(d.beta_steps, |v| v as usize),
         grid_steps: req.grid_steps.map_or(d.grid_steps, |v| v as usize),
         delta_airlight: req.delta_airlight.unwrap_or(d.delta_airlight),
-        delta_beta: req.delta_beta.unwrap_or(d.delta_beta),
+        delta_beta: req.delta_beta,
         delta_px: req.delta_px.map_or(d.delta_px, |v| v as usize),
         search_downsample: or(req.search_downsample, d.search_downsample),
         search_planes: or(req.search_planes, d.search_planes),
@@ -184,6 +188,8 @@ pub fn params_from_proto(
         sgm: sgm_of(req.sgm.as_ref()),
         min_improvement_t: req.min_improvement_t.unwrap_or(d.min_improvement_t),
         beta_from_points: req.beta_from_points.unwrap_or(d.beta_from_points),
+        joint_fit: req.joint_fit.unwrap_or(d.joint_fit),
+        airlight_prior_sigma: req.airlight_prior_sigma.unwrap_or(d.airlight_prior_sigma),
     };
     search.validate()?;
     let num_planes = or(req.num_planes, DEFAULT_PLANES);
@@ -352,7 +358,45 @@ impl ParamsInput {
             airlight_seconds,
             search_seconds: est.seconds,
             depth_seconds,
+            airlight_std_error: est.airlight_std_error,
+            beta_std_error: est.beta_std_error,
+            identifiable: est.identifiability == Identifiability::Identifiable,
+            identifiability: identifiability_to_proto(est.identifiability) as i32,
+            beta_source: match est.beta_source {
+                BetaSource::JointFit => pb::BetaSource::JointFit,
+                BetaSource::PointRatio => pb::BetaSource::PointRatio,
+                BetaSource::Sweep => pb::BetaSource::Sweep,
+            } as i32,
+            beta_min: est.beta_range[0],
+            beta_max: est.beta_range[1],
+            beta_range_from_points: est.beta_range_from_points,
+            beta_bound: match est.beta_bound {
+                None => pb::BetaBound::None,
+                Some(BetaBound::Min) => pb::BetaBound::Min,
+                Some(BetaBound::Max) => pb::BetaBound::Max,
+            } as i32,
+            beta_unclamped: est.beta_unclamped,
+            joint_fit: est.joint.as_ref().map(|j| pb::JointFit {
+                airlight: j.airlight,
+                airlight_std_error: j.airlight_std_error,
+                beta: j.beta,
+                beta_std_error: j.beta_std_error,
+                source_gains: j.source_gains.clone(),
+                equations: u32::try_from(j.equations).unwrap_or(u32::MAX),
+                rms_depth_difference: j.rms_depth_difference,
+                residual_scale: j.residual_scale,
+                identifiability: identifiability_to_proto(j.identifiability) as i32,
+            }),
         })
+    }
+}
+
+fn identifiability_to_proto(i: Identifiability) -> pb::Identifiability {
+    match i {
+        Identifiability::Identifiable => pb::Identifiability::Identifiable,
+        Identifiability::NoDepthDifference => pb::Identifiability::NoDepthDifference,
+        Identifiability::TooFewPoints => pb::Identifiability::TooFewPoints,
+        Identifiability::FlatResidual => pb::Identifiability::FlatResidual,
     }
 }
 

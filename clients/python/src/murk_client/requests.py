@@ -183,8 +183,10 @@ def scattering_params_request(
 
     ``sparse_points_scene_units``: an ``(n, 3)`` array of SfM points, world coordinates.
     ``airlight_source``: ``"server"`` (its configured estimator), ``"cnn"``, ``"dark_channel"``
-    or ``"given"`` (then ``airlight`` in (0, 1]). β bounds are per scene unit. ``options`` sets
-    any other ``ScatteringParamsRequest`` field (``beta_steps``, ``grid_steps``, ``sgm``, ...).
+    or ``"given"`` (then ``airlight`` in (0, 1]); by default A is then fitted with β to the
+    points, A0 as a prior. β bounds are per scene unit; unset ends come from the points' depths
+    (any model unit works), and a bound that binds is reported in the result. ``options`` sets
+    any other ``ScatteringParamsRequest`` field (``joint_fit``, ``beta_steps``, ``sgm``, ...).
     """
     if airlight_source not in _AIRLIGHT_SOURCES:
         raise ClientInputError(

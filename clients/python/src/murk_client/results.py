@@ -112,11 +112,32 @@ class ResidualSample:
 
 @dataclass(frozen=True)
 class ScatteringParamsResult:
-    """A*, β* of Algorithm 1 and the depth with them."""
+    """A*, β* of Algorithm 1 and the depth with them, with what the data say about them."""
 
     airlight: float
     #: β*, per scene unit.
     beta_per_scene_unit: float
+    #: Standard errors of A* and β* (per scene unit); None when A* is the estimator's A0 or β*
+    #: came from the sweep (no error model).
+    airlight_std_error: float | None
+    beta_std_error_per_scene_unit: float | None
+    #: Whether the SfM points determine β*; when False β* is a guess, see ``identifiability``.
+    identifiable: bool
+    #: ``"identifiable"``, ``"no_depth_difference"`` (a rectified pair or sideways motion),
+    #: ``"too_few_points"`` or ``"flat_residual"``.
+    identifiability: str
+    #: ``"joint_fit"`` (A, β and source gains fitted to the points), ``"point_ratio"`` or
+    #: ``"sweep"``.
+    beta_source: str
+    #: The β range used, per scene unit, and whether it came from the points' depths.
+    beta_range_per_scene_unit: tuple[float, float]
+    beta_range_from_points: bool
+    #: ``None``, or ``"min"``/``"max"``: the end of the range β* was clamped to (the estimate
+    #: before clamping is ``beta_unclamped_per_scene_unit``).
+    beta_bound: str | None
+    beta_unclamped_per_scene_unit: float
+    #: Per source, its exposure gain relative to the reference from the joint fit.
+    source_gains: list[float]
     airlight_initial: float
     #: ``"cnn"``, ``"dark_channel"`` or ``"given"``.
     airlight_source: str
@@ -137,9 +158,31 @@ class ScatteringParamsResult:
             params_pb2.AIRLIGHT_SOURCE_DARK_CHANNEL: "dark_channel",
             params_pb2.AIRLIGHT_SOURCE_GIVEN: "given",
         }
+        identifiability = {
+            params_pb2.IDENTIFIABILITY_IDENTIFIABLE: "identifiable",
+            params_pb2.IDENTIFIABILITY_NO_DEPTH_DIFFERENCE: "no_depth_difference",
+            params_pb2.IDENTIFIABILITY_TOO_FEW_POINTS: "too_few_points",
+            params_pb2.IDENTIFIABILITY_FLAT_RESIDUAL: "flat_residual",
+        }
+        beta_sources = {
+            params_pb2.BETA_SOURCE_JOINT_FIT: "joint_fit",
+            params_pb2.BETA_SOURCE_POINT_RATIO: "point_ratio",
+            params_pb2.BETA_SOURCE_SWEEP: "sweep",
+        }
+        bounds = {params_pb2.BETA_BOUND_MIN: "min", params_pb2.BETA_BOUND_MAX: "max"}
         return cls(
             airlight=r.airlight,
             beta_per_scene_unit=r.beta,
+            airlight_std_error=r.airlight_std_error if r.HasField("airlight_std_error") else None,
+            beta_std_error_per_scene_unit=r.beta_std_error if r.HasField("beta_std_error") else None,
+            identifiable=r.identifiable,
+            identifiability=identifiability.get(r.identifiability, "unspecified"),
+            beta_source=beta_sources.get(r.beta_source, "unspecified"),
+            beta_range_per_scene_unit=(r.beta_min, r.beta_max),
+            beta_range_from_points=r.beta_range_from_points,
+            beta_bound=bounds.get(r.beta_bound),
+            beta_unclamped_per_scene_unit=r.beta_unclamped,
+            source_gains=list(r.joint_fit.source_gains),
             airlight_initial=r.airlight_initial,
             airlight_source=sources.get(r.airlight_source, "unspecified"),
             beta_initial_per_scene_unit=r.beta_initial,

@@ -71,6 +71,78 @@ SEARCH_STAGE_JOINT: SearchStage.ValueType  # 2
 """The A x beta grid (Eq. 3.8)."""
 Global___SearchStage: _TypeAlias = SearchStage  # noqa: Y015
 
+class _Identifiability:
+    ValueType = _typing.NewType("ValueType", _builtins.int)
+    V: _TypeAlias = ValueType  # noqa: Y015
+
+class _IdentifiabilityEnumTypeWrapper(_enum_type_wrapper._EnumTypeWrapper[_Identifiability.ValueType], _builtins.type):
+    DESCRIPTOR: _descriptor.EnumDescriptor
+    IDENTIFIABILITY_UNSPECIFIED: _Identifiability.ValueType  # 0
+    IDENTIFIABILITY_IDENTIFIABLE: _Identifiability.ValueType  # 1
+    """The standard error of beta is below 15 % of beta."""
+    IDENTIFIABILITY_NO_DEPTH_DIFFERENCE: _Identifiability.ValueType  # 2
+    """The views see every point at the same depth (a rectified pair, purely sideways motion):
+    transmission is the same in every view and no beta explains the images better than another.
+    """
+    IDENTIFIABILITY_TOO_FEW_POINTS: _Identifiability.ValueType  # 3
+    """Fewer than 300 usable point x source x channel equations."""
+    IDENTIFIABILITY_FLAT_RESIDUAL: _Identifiability.ValueType  # 4
+    """Equations and depth differences exist, but beta's standard error is too large."""
+
+class Identifiability(_Identifiability, metaclass=_IdentifiabilityEnumTypeWrapper):
+    """Whether the SfM points determine beta."""
+
+IDENTIFIABILITY_UNSPECIFIED: Identifiability.ValueType  # 0
+IDENTIFIABILITY_IDENTIFIABLE: Identifiability.ValueType  # 1
+"""The standard error of beta is below 15 % of beta."""
+IDENTIFIABILITY_NO_DEPTH_DIFFERENCE: Identifiability.ValueType  # 2
+"""The views see every point at the same depth (a rectified pair, purely sideways motion):
+transmission is the same in every view and no beta explains the images better than another.
+"""
+IDENTIFIABILITY_TOO_FEW_POINTS: Identifiability.ValueType  # 3
+"""Fewer than 300 usable point x source x channel equations."""
+IDENTIFIABILITY_FLAT_RESIDUAL: Identifiability.ValueType  # 4
+"""Equations and depth differences exist, but beta's standard error is too large."""
+Global___Identifiability: _TypeAlias = Identifiability  # noqa: Y015
+
+class _BetaSource:
+    ValueType = _typing.NewType("ValueType", _builtins.int)
+    V: _TypeAlias = ValueType  # noqa: Y015
+
+class _BetaSourceEnumTypeWrapper(_enum_type_wrapper._EnumTypeWrapper[_BetaSource.ValueType], _builtins.type):
+    DESCRIPTOR: _descriptor.EnumDescriptor
+    BETA_SOURCE_UNSPECIFIED: _BetaSource.ValueType  # 0
+    BETA_SOURCE_JOINT_FIT: _BetaSource.ValueType  # 1
+    BETA_SOURCE_POINT_RATIO: _BetaSource.ValueType  # 2
+    BETA_SOURCE_SWEEP: _BetaSource.ValueType  # 3
+
+class BetaSource(_BetaSource, metaclass=_BetaSourceEnumTypeWrapper):
+    """Where beta* came from."""
+
+BETA_SOURCE_UNSPECIFIED: BetaSource.ValueType  # 0
+BETA_SOURCE_JOINT_FIT: BetaSource.ValueType  # 1
+BETA_SOURCE_POINT_RATIO: BetaSource.ValueType  # 2
+BETA_SOURCE_SWEEP: BetaSource.ValueType  # 3
+Global___BetaSource: _TypeAlias = BetaSource  # noqa: Y015
+
+class _BetaBound:
+    ValueType = _typing.NewType("ValueType", _builtins.int)
+    V: _TypeAlias = ValueType  # noqa: Y015
+
+class _BetaBoundEnumTypeWrapper(_enum_type_wrapper._EnumTypeWrapper[_BetaBound.ValueType], _builtins.type):
+    DESCRIPTOR: _descriptor.EnumDescriptor
+    BETA_BOUND_NONE: _BetaBound.ValueType  # 0
+    BETA_BOUND_MIN: _BetaBound.ValueType  # 1
+    BETA_BOUND_MAX: _BetaBound.ValueType  # 2
+
+class BetaBound(_BetaBound, metaclass=_BetaBoundEnumTypeWrapper):
+    """Which end of the beta range bound the estimate."""
+
+BETA_BOUND_NONE: BetaBound.ValueType  # 0
+BETA_BOUND_MIN: BetaBound.ValueType  # 1
+BETA_BOUND_MAX: BetaBound.ValueType  # 2
+Global___BetaBound: _TypeAlias = BetaBound  # noqa: Y015
+
 @_typing.final
 class ScatteringParamsRequest(_message.Message):
     """Scattering-parameter estimation (reference Ch. 3.3, Algorithm 1): the airlight A and the
@@ -79,10 +151,11 @@ class ScatteringParamsRequest(_message.Message):
     point cloud, followed by the final depth with the estimated parameters.
 
     1. A0 from an airlight estimator (the CNN of Table 3.1, or the dark-channel rule, or given);
-    2. beta0 = the best of beta_steps values uniform in [beta_min, beta_max] with A = A0 (Eq. 3.10),
-       or by default, when the fit is reliable, beta0 from the SfM points' transmission ratios
-       ln((I_r - A0)/(I_s - A0)) = beta (z_s - z_r) over every point, source and channel (robust
-       fit; see beta_from_points and docs/ACCURACY.md);
+    2. by default, when the SfM points determine them, A and beta fitted jointly to the points'
+       intensities I_r - A = (I_s / g_s - A) exp(beta (z_s - z_r)) over every point, source and
+       channel, with an exposure gain g_s per source and A0 as a prior (see joint_fit and
+       docs/ACCURACY.md); else beta0 from the points' transmission ratios at A0 (beta_from_points);
+       else beta0 = the best of beta_steps values in [beta_min, beta_max] with A = A0 (Eq. 3.10);
     3. A*, beta* = the best of a grid_steps x grid_steps grid over [A0 +- delta_airlight] x
        [beta0 +- delta_beta] (Eq. 3.8), the step-2 point (A0, beta0) included, a grid point
        winning only by a significant margin (min_improvement_t);
@@ -90,7 +163,12 @@ class ScatteringParamsRequest(_message.Message):
     pixels where SfM points project.
 
     Units: lengths in scene units (the poses' unit: a COLMAP model's arbitrary SfM scale, metres
-    when the model is metric); beta per scene unit (per metre for a metric model).
+    when the model is metric); beta per scene unit (per metre for a metric model). No default is
+    tied to a unit: the beta range comes from the points' depths unless given.
+
+    What is known: the result says whether the points determine beta (identifiable, with the
+    reason when not: a rectified pair sees every point at the same transmission), gives standard
+    errors, and reports an estimate clamped to the beta range (beta_bound) instead of hiding it.
     """
 
     DESCRIPTOR: _descriptor.Descriptor
@@ -115,22 +193,29 @@ class ScatteringParamsRequest(_message.Message):
     SGM_FIELD_NUMBER: _builtins.int
     MIN_IMPROVEMENT_T_FIELD_NUMBER: _builtins.int
     BETA_FROM_POINTS_FIELD_NUMBER: _builtins.int
+    JOINT_FIT_FIELD_NUMBER: _builtins.int
+    AIRLIGHT_PRIOR_SIGMA_FIELD_NUMBER: _builtins.int
     airlight_source: Global___AirlightSource.ValueType
     """Where A0 comes from. UNSPECIFIED = the server's configured estimator (the CNN by default)."""
     airlight: _builtins.float
     """A0 for AIRLIGHT_SOURCE_GIVEN, in (0, 1]; must be 0 otherwise."""
     beta_min: _builtins.float
-    """beta range of step 2, per scene unit: 0 <= beta_min < beta_max. Unset = the reference's
-    indoor setting [0.4, 0.8].
+    """beta range, per scene unit: 0 <= beta_min < beta_max. An unset end comes from the SfM points:
+    the range that keeps the median point's transmission within [0.02, 0.98], i.e.
+    [0.0202, 3.91] / (median point z-depth), whatever the model's unit. (The reference's indoor
+    setting is [0.4, 0.8] per metre.) Estimates outside it are clamped and reported (beta_bound).
     """
     beta_max: _builtins.float
     beta_steps: _builtins.int
-    """Values of beta in step 2, 1 to 64. Unset = 10."""
+    """Values of beta in the sweep of step 2, 1 to 64 (geometric when a range end comes from the
+    points, uniform otherwise). Unset = 10.
+    """
     grid_steps: _builtins.int
     """Values per axis of the step-3 grid, 1 to 64. Unset = 4."""
     delta_airlight: _builtins.float
-    """Half-widths of the step-3 ranges, in [0, 1]. Unset: delta_beta = 0.05 (the reference's),
-    delta_airlight = 0 (the reference uses 0.05, but the residual of murk's classical depth
+    """Half-widths of the step-3 ranges, in [0, 1]. Unset: delta_beta = 10 % of beta0 (the
+    reference's 0.05 per metre, made unit-free), delta_airlight = 0 (the reference uses 0.05, but
+    the residual of murk's classical depth
     function is biased towards larger A, so A* = A0 and step 3 refines beta alone with
     grid_steps values; docs/ACCURACY.md).
     """
@@ -155,9 +240,18 @@ class ScatteringParamsRequest(_message.Message):
     function barely depends on A, and a plain argmin drifts over noise).
     """
     beta_from_points: _builtins.bool
-    """Step 2 from the SfM points' transmission ratios when their fit is reliable (at least 300
-    equations, standard error below 10 % of beta, sources consistent), clamped to [beta_min, beta_max]; false = the
-    published sweep of Eq. 3.10 always. Unset = true.
+    """Step 2 from the SfM points' transmission ratios at A0 when their fit is reliable (at least
+    300 equations, standard error below 10 % of beta, sources consistent) and the joint fit was
+    not used; false = the published sweep of Eq. 3.10 then. Unset = true.
+    """
+    joint_fit: _builtins.bool
+    """Step 2 from the joint fit of A, beta and the source gains when it determines beta (standard
+    error below 15 % of beta); step 3 then does not run. The fit runs either way for the
+    identifiability verdict. Unset = true.
+    """
+    airlight_prior_sigma: _builtins.float
+    """Standard deviation of the joint fit's prior on A around A0, in (0, 1]. Unset = 0.1 (wide:
+    the CNN's error on unseen scenes reached 0.07).
     """
     @_builtins.property
     def reference(self) -> _mvs_pb2.MvsView:
@@ -201,11 +295,15 @@ class ScatteringParamsRequest(_message.Message):
         sgm: _mvs_pb2.SgmOptions | None = ...,
         min_improvement_t: _builtins.float | None = ...,
         beta_from_points: _builtins.bool | None = ...,
+        joint_fit: _builtins.bool | None = ...,
+        airlight_prior_sigma: _builtins.float | None = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _typing.Literal["_beta_from_points", b"_beta_from_points", "_beta_max", b"_beta_max", "_beta_min", b"_beta_min", "_beta_steps", b"_beta_steps", "_delta_airlight", b"_delta_airlight", "_delta_beta", b"_delta_beta", "_delta_px", b"_delta_px", "_grid_steps", b"_grid_steps", "_min_improvement_t", b"_min_improvement_t", "beta_from_points", b"beta_from_points", "beta_max", b"beta_max", "beta_min", b"beta_min", "beta_steps", b"beta_steps", "delta_airlight", b"delta_airlight", "delta_beta", b"delta_beta", "delta_px", b"delta_px", "grid_steps", b"grid_steps", "min_improvement_t", b"min_improvement_t", "reference", b"reference", "sgm", b"sgm"]  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["_airlight_prior_sigma", b"_airlight_prior_sigma", "_beta_from_points", b"_beta_from_points", "_beta_max", b"_beta_max", "_beta_min", b"_beta_min", "_beta_steps", b"_beta_steps", "_delta_airlight", b"_delta_airlight", "_delta_beta", b"_delta_beta", "_delta_px", b"_delta_px", "_grid_steps", b"_grid_steps", "_joint_fit", b"_joint_fit", "_min_improvement_t", b"_min_improvement_t", "airlight_prior_sigma", b"airlight_prior_sigma", "beta_from_points", b"beta_from_points", "beta_max", b"beta_max", "beta_min", b"beta_min", "beta_steps", b"beta_steps", "delta_airlight", b"delta_airlight", "delta_beta", b"delta_beta", "delta_px", b"delta_px", "grid_steps", b"grid_steps", "joint_fit", b"joint_fit", "min_improvement_t", b"min_improvement_t", "reference", b"reference", "sgm", b"sgm"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["_beta_from_points", b"_beta_from_points", "_beta_max", b"_beta_max", "_beta_min", b"_beta_min", "_beta_steps", b"_beta_steps", "_delta_airlight", b"_delta_airlight", "_delta_beta", b"_delta_beta", "_delta_px", b"_delta_px", "_grid_steps", b"_grid_steps", "_min_improvement_t", b"_min_improvement_t", "airlight", b"airlight", "airlight_source", b"airlight_source", "beta_from_points", b"beta_from_points", "beta_max", b"beta_max", "beta_min", b"beta_min", "beta_steps", b"beta_steps", "delta_airlight", b"delta_airlight", "delta_beta", b"delta_beta", "delta_px", b"delta_px", "far", b"far", "grid_steps", b"grid_steps", "min_improvement_t", b"min_improvement_t", "near", b"near", "num_planes", b"num_planes", "reference", b"reference", "search_downsample", b"search_downsample", "search_planes", b"search_planes", "sgm", b"sgm", "sources", b"sources", "sparse_points", b"sparse_points"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["_airlight_prior_sigma", b"_airlight_prior_sigma", "_beta_from_points", b"_beta_from_points", "_beta_max", b"_beta_max", "_beta_min", b"_beta_min", "_beta_steps", b"_beta_steps", "_delta_airlight", b"_delta_airlight", "_delta_beta", b"_delta_beta", "_delta_px", b"_delta_px", "_grid_steps", b"_grid_steps", "_joint_fit", b"_joint_fit", "_min_improvement_t", b"_min_improvement_t", "airlight", b"airlight", "airlight_prior_sigma", b"airlight_prior_sigma", "airlight_source", b"airlight_source", "beta_from_points", b"beta_from_points", "beta_max", b"beta_max", "beta_min", b"beta_min", "beta_steps", b"beta_steps", "delta_airlight", b"delta_airlight", "delta_beta", b"delta_beta", "delta_px", b"delta_px", "far", b"far", "grid_steps", b"grid_steps", "joint_fit", b"joint_fit", "min_improvement_t", b"min_improvement_t", "near", b"near", "num_planes", b"num_planes", "reference", b"reference", "search_downsample", b"search_downsample", "search_planes", b"search_planes", "sgm", b"sgm", "sources", b"sources", "sparse_points", b"sparse_points"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    _WhichOneofReturnType__airlight_prior_sigma: _TypeAlias = _typing.Literal["airlight_prior_sigma"]  # noqa: Y015
+    _WhichOneofArgType__airlight_prior_sigma: _TypeAlias = _typing.Literal["_airlight_prior_sigma", b"_airlight_prior_sigma"]  # noqa: Y015
     _WhichOneofReturnType__beta_from_points: _TypeAlias = _typing.Literal["beta_from_points"]  # noqa: Y015
     _WhichOneofArgType__beta_from_points: _TypeAlias = _typing.Literal["_beta_from_points", b"_beta_from_points"]  # noqa: Y015
     _WhichOneofReturnType__beta_max: _TypeAlias = _typing.Literal["beta_max"]  # noqa: Y015
@@ -222,8 +320,12 @@ class ScatteringParamsRequest(_message.Message):
     _WhichOneofArgType__delta_px: _TypeAlias = _typing.Literal["_delta_px", b"_delta_px"]  # noqa: Y015
     _WhichOneofReturnType__grid_steps: _TypeAlias = _typing.Literal["grid_steps"]  # noqa: Y015
     _WhichOneofArgType__grid_steps: _TypeAlias = _typing.Literal["_grid_steps", b"_grid_steps"]  # noqa: Y015
+    _WhichOneofReturnType__joint_fit: _TypeAlias = _typing.Literal["joint_fit"]  # noqa: Y015
+    _WhichOneofArgType__joint_fit: _TypeAlias = _typing.Literal["_joint_fit", b"_joint_fit"]  # noqa: Y015
     _WhichOneofReturnType__min_improvement_t: _TypeAlias = _typing.Literal["min_improvement_t"]  # noqa: Y015
     _WhichOneofArgType__min_improvement_t: _TypeAlias = _typing.Literal["_min_improvement_t", b"_min_improvement_t"]  # noqa: Y015
+    @_typing.overload
+    def WhichOneof(self, oneof_group: _WhichOneofArgType__airlight_prior_sigma) -> _WhichOneofReturnType__airlight_prior_sigma | None: ...
     @_typing.overload
     def WhichOneof(self, oneof_group: _WhichOneofArgType__beta_from_points) -> _WhichOneofReturnType__beta_from_points | None: ...
     @_typing.overload
@@ -240,6 +342,8 @@ class ScatteringParamsRequest(_message.Message):
     def WhichOneof(self, oneof_group: _WhichOneofArgType__delta_px) -> _WhichOneofReturnType__delta_px | None: ...
     @_typing.overload
     def WhichOneof(self, oneof_group: _WhichOneofArgType__grid_steps) -> _WhichOneofReturnType__grid_steps | None: ...
+    @_typing.overload
+    def WhichOneof(self, oneof_group: _WhichOneofArgType__joint_fit) -> _WhichOneofReturnType__joint_fit | None: ...
     @_typing.overload
     def WhichOneof(self, oneof_group: _WhichOneofArgType__min_improvement_t) -> _WhichOneofReturnType__min_improvement_t | None: ...
 
@@ -294,6 +398,17 @@ class ScatteringParamsResult(_message.Message):
     SEARCH_SECONDS_FIELD_NUMBER: _builtins.int
     DEPTH_SECONDS_FIELD_NUMBER: _builtins.int
     POINT_RATIO_FIELD_NUMBER: _builtins.int
+    AIRLIGHT_STD_ERROR_FIELD_NUMBER: _builtins.int
+    BETA_STD_ERROR_FIELD_NUMBER: _builtins.int
+    IDENTIFIABLE_FIELD_NUMBER: _builtins.int
+    IDENTIFIABILITY_FIELD_NUMBER: _builtins.int
+    BETA_SOURCE_FIELD_NUMBER: _builtins.int
+    BETA_MIN_FIELD_NUMBER: _builtins.int
+    BETA_MAX_FIELD_NUMBER: _builtins.int
+    BETA_RANGE_FROM_POINTS_FIELD_NUMBER: _builtins.int
+    BETA_BOUND_FIELD_NUMBER: _builtins.int
+    BETA_UNCLAMPED_FIELD_NUMBER: _builtins.int
+    JOINT_FIT_FIELD_NUMBER: _builtins.int
     airlight: _builtins.float
     """A* and beta* (per scene unit)."""
     beta: _builtins.float
@@ -309,6 +424,27 @@ class ScatteringParamsResult(_message.Message):
     """Wall times, seconds: airlight estimator, search, final depth."""
     search_seconds: _builtins.float
     depth_seconds: _builtins.float
+    airlight_std_error: _builtins.float
+    """Standard errors of A* and beta* (per scene unit), from the fit they came from; unset when
+    there is none (A* is the estimator's A0, or beta* came from the sweep).
+    """
+    beta_std_error: _builtins.float
+    identifiable: _builtins.bool
+    """Whether the SfM points determine beta* (and with the joint fit A*); when false beta* is a
+    guess and identifiability says why.
+    """
+    identifiability: Global___Identifiability.ValueType
+    beta_source: Global___BetaSource.ValueType
+    """Which estimate beta* is."""
+    beta_min: _builtins.float
+    """The beta range used, per scene unit, and whether an end of it came from the points."""
+    beta_max: _builtins.float
+    beta_range_from_points: _builtins.bool
+    beta_bound: Global___BetaBound.ValueType
+    """The end of the range beta* was clamped to (or, after the sweep, where its minimum lay): the
+    estimate before clamping is beta_unclamped. NONE when the range did not bind.
+    """
+    beta_unclamped: _builtins.float
     @_builtins.property
     def grid(self) -> _containers.RepeatedCompositeFieldContainer[Global___ResidualSample]:
         """Every evaluation in order (step 2, then step 3), e.g. to plot residual against beta."""
@@ -320,6 +456,10 @@ class ScatteringParamsResult(_message.Message):
     @_builtins.property
     def point_ratio(self) -> Global___PointRatioFit:
         """The points' transmission-ratio fit of step 2, when it was tried."""
+
+    @_builtins.property
+    def joint_fit(self) -> Global___JointFit:
+        """The joint fit, which always runs."""
 
     def __init__(
         self,
@@ -337,14 +477,86 @@ class ScatteringParamsResult(_message.Message):
         search_seconds: _builtins.float = ...,
         depth_seconds: _builtins.float = ...,
         point_ratio: Global___PointRatioFit | None = ...,
+        airlight_std_error: _builtins.float | None = ...,
+        beta_std_error: _builtins.float | None = ...,
+        identifiable: _builtins.bool = ...,
+        identifiability: Global___Identifiability.ValueType = ...,
+        beta_source: Global___BetaSource.ValueType = ...,
+        beta_min: _builtins.float = ...,
+        beta_max: _builtins.float = ...,
+        beta_range_from_points: _builtins.bool = ...,
+        beta_bound: Global___BetaBound.ValueType = ...,
+        beta_unclamped: _builtins.float = ...,
+        joint_fit: Global___JointFit | None = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _typing.Literal["depth", b"depth", "point_ratio", b"point_ratio"]  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["_airlight_std_error", b"_airlight_std_error", "_beta_std_error", b"_beta_std_error", "airlight_std_error", b"airlight_std_error", "beta_std_error", b"beta_std_error", "depth", b"depth", "joint_fit", b"joint_fit", "point_ratio", b"point_ratio"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["airlight", b"airlight", "airlight_initial", b"airlight_initial", "airlight_seconds", b"airlight_seconds", "airlight_source", b"airlight_source", "beta", b"beta", "beta_initial", b"beta_initial", "depth", b"depth", "depth_seconds", b"depth_seconds", "grid", b"grid", "num_sparse_points", b"num_sparse_points", "point_ratio", b"point_ratio", "residual", b"residual", "search_seconds", b"search_seconds"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["_airlight_std_error", b"_airlight_std_error", "_beta_std_error", b"_beta_std_error", "airlight", b"airlight", "airlight_initial", b"airlight_initial", "airlight_seconds", b"airlight_seconds", "airlight_source", b"airlight_source", "airlight_std_error", b"airlight_std_error", "beta", b"beta", "beta_bound", b"beta_bound", "beta_initial", b"beta_initial", "beta_max", b"beta_max", "beta_min", b"beta_min", "beta_range_from_points", b"beta_range_from_points", "beta_source", b"beta_source", "beta_std_error", b"beta_std_error", "beta_unclamped", b"beta_unclamped", "depth", b"depth", "depth_seconds", b"depth_seconds", "grid", b"grid", "identifiability", b"identifiability", "identifiable", b"identifiable", "joint_fit", b"joint_fit", "num_sparse_points", b"num_sparse_points", "point_ratio", b"point_ratio", "residual", b"residual", "search_seconds", b"search_seconds"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    _WhichOneofReturnType__airlight_std_error: _TypeAlias = _typing.Literal["airlight_std_error"]  # noqa: Y015
+    _WhichOneofArgType__airlight_std_error: _TypeAlias = _typing.Literal["_airlight_std_error", b"_airlight_std_error"]  # noqa: Y015
+    _WhichOneofReturnType__beta_std_error: _TypeAlias = _typing.Literal["beta_std_error"]  # noqa: Y015
+    _WhichOneofArgType__beta_std_error: _TypeAlias = _typing.Literal["_beta_std_error", b"_beta_std_error"]  # noqa: Y015
+    @_typing.overload
+    def WhichOneof(self, oneof_group: _WhichOneofArgType__airlight_std_error) -> _WhichOneofReturnType__airlight_std_error | None: ...
+    @_typing.overload
+    def WhichOneof(self, oneof_group: _WhichOneofArgType__beta_std_error) -> _WhichOneofReturnType__beta_std_error | None: ...
+
+Global___ScatteringParamsResult: _TypeAlias = ScatteringParamsResult  # noqa: Y015
+
+@_typing.final
+class JointFit(_message.Message):
+    """A, beta and a gain per source fitted to the SfM points' intensities, A0 as a prior."""
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    AIRLIGHT_FIELD_NUMBER: _builtins.int
+    AIRLIGHT_STD_ERROR_FIELD_NUMBER: _builtins.int
+    BETA_FIELD_NUMBER: _builtins.int
+    BETA_STD_ERROR_FIELD_NUMBER: _builtins.int
+    SOURCE_GAINS_FIELD_NUMBER: _builtins.int
+    EQUATIONS_FIELD_NUMBER: _builtins.int
+    RMS_DEPTH_DIFFERENCE_FIELD_NUMBER: _builtins.int
+    RESIDUAL_SCALE_FIELD_NUMBER: _builtins.int
+    IDENTIFIABILITY_FIELD_NUMBER: _builtins.int
+    airlight: _builtins.float
+    airlight_std_error: _builtins.float
+    beta: _builtins.float
+    """Per scene unit; the standard error is infinite when the fit could not determine beta at all."""
+    beta_std_error: _builtins.float
+    equations: _builtins.int
+    """Equations with a non-zero robust weight."""
+    rms_depth_difference: _builtins.float
+    """RMS of z_s - z_r over the equations, scene units."""
+    residual_scale: _builtins.float
+    """Robust scale of the intensity residuals, pixel-value units."""
+    identifiability: Global___Identifiability.ValueType
+    @_builtins.property
+    def source_gains(self) -> _containers.RepeatedScalarFieldContainer[_builtins.float]:
+        """Per source, its exposure gain relative to the reference (I_s observed = g_s x I_s at the
+        reference's exposure).
+        """
+
+    def __init__(
+        self,
+        *,
+        airlight: _builtins.float = ...,
+        airlight_std_error: _builtins.float = ...,
+        beta: _builtins.float = ...,
+        beta_std_error: _builtins.float = ...,
+        source_gains: _abc.Iterable[_builtins.float] | None = ...,
+        equations: _builtins.int = ...,
+        rms_depth_difference: _builtins.float = ...,
+        residual_scale: _builtins.float = ...,
+        identifiability: Global___Identifiability.ValueType = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["airlight", b"airlight", "airlight_std_error", b"airlight_std_error", "beta", b"beta", "beta_std_error", b"beta_std_error", "equations", b"equations", "identifiability", b"identifiability", "residual_scale", b"residual_scale", "rms_depth_difference", b"rms_depth_difference", "source_gains", b"source_gains"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
-Global___ScatteringParamsResult: _TypeAlias = ScatteringParamsResult  # noqa: Y015
+Global___JointFit: _TypeAlias = JointFit  # noqa: Y015
 
 @_typing.final
 class PointRatioFit(_message.Message):

@@ -1,0 +1,524 @@
+//! A, β and a per-view exposure gain fitted jointly to the SfM points' intensities.
+//!
+//! A point seen by the reference at z-depth `z_r` and by source `s` at `z_s` obeys Eq. 3.3 in
+//! both views with the same clear radiance `J`: `I_r = J t_r + A (1 − t_r)` and, for a source
+//! whose exposure differs by a gain `g_s`, `I_s / g_s = J t_s + A (1 − t_s)`. Eliminating `J`,
+//!
+//! `I_r − A = (u_s I_s − A) · e^{β (z_s − z_r)}`, `u_s = 1 / g_s`,
+//!
+//! one equation per point, source and colour channel. [`crate::params::point_ratio`] takes its
+//! logarithm and fits β with `A` fixed; here the equation stays in intensity space, where the
+//! sensor noise is additive and nearly the same for every equation (the log form divides it by
+//! `I − A`, which is why it had to skip values near `A`), and `A`, β and every `u_s` are fitted
+//! together by Gauss–Newton with Tukey-weighted IRLS (occlusions, specularities and mismatched
+//! points are outliers). What makes `A` identifiable: at a depth difference `Δz` the equation is
+//! a line `I_r = A (1 − k) + k u_s I_s` with `k = e^{β Δz}`, whose intercept gives `A` once `k ≠ 1`,
+//! and points at many `Δz` separate the gain (a slope common to the source) from `k`.
+//!
+//! The airlight estimators (CNN, dark channel) enter as a Gaussian prior on `A`, the gains as a
+//! prior around 1; the fit says how well the data pin each parameter down (standard errors from
+//! the Gauss–Newton covariance) and, through [`Identifiability`], when they do not: no depth
+//! differences between the views (a rectified pair or a purely sideways move leaves `k = 1`
+//! and every `A` and β fit), too few usable points, or a residual too flat in β.
+
+use faer::linalg::solvers::{DenseSolveCore, Solve};
+use faer::{Mat, Side};
+
+use crate::mvs::View;
+use crate::params::point_ratio::{ratio_samples, RatioSample};
+use crate::params::sparse::SparseDepth;
+
+/// Fewest equations (point × source × channel) for a fit.
+pub const MIN_EQUATIONS: usize = 300;
+/// β counts as determined when its standard error is below this fraction of β.
+pub const MAX_RELATIVE_BETA_ERROR: f64 = 0.15;
+/// RMS depth difference between the views, relative to the median point depth, below which the
+/// views see every point at the same transmission: β changes nothing.
+pub const MIN_RELATIVE_DEPTH_DIFFERENCE: f64 = 1e-4;
+/// Samples this close to 0 or 1 are skipped: a clipped value does not follow Eq. 3.3, and
+/// with sensor noise a value near the clip is biased as well (its noise is truncated). Measured
+/// on 10 scenes (`params::tests::measure_joint_fit`): 0.002 → MAE_β 0.035 (0.063 with sources
+/// 3 % brighter), 0.01 → 0.033 (0.062), 0.03 → 0.043 (0.078: with A near 1 it removes the
+/// haze-dominated samples that carry A).
+const CLIP_MARGIN: f64 = 0.01;
+/// Tukey's biweight constant in robust standard deviations (95 % efficiency under Gaussian noise).
+const TUKEY_C: f64 = 4.685;
+const MAX_ITERATIONS: usize = 60;
+
+/// Priors of [`fit_joint`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct JointPriors {
+    /// The airlight estimator's value `A₀`, in (0, 1].
+    pub airlight: f64,
+    /// Standard deviation of the prior on `A` around `A₀` (the estimator's error on unseen
+    /// scenes; the CNN's errors reached 0.07 there, so the default is wide).
+    pub airlight_sigma: f64,
+    /// Standard deviation of the prior on each `u_s = 1/g_s` around 1 (auto-exposure steps of a
+    /// few per cent are common; 0.2 barely constrains them).
+    pub gain_sigma: f64,
+    /// β to start from, per scene unit (> 0), e.g. the middle of the plausible range.
+    pub beta_start: f64,
+}
+
+/// Why the points do or do not determine β (and with it `A`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Identifiability {
+    /// Standard error of β below [`MAX_RELATIVE_BETA_ERROR`] of β.
+    Identifiable,
+    /// Fewer than [`MIN_EQUATIONS`] usable equations.
+    TooFewPoints,
+    /// The views see the points at the same depths (rectified pair, sideways motion): every
+    /// β explains the images equally well.
+    NoDepthDifference,
+    /// Equations and depth differences exist, but β's standard error is too large.
+    FlatResidual,
+}
+
+impl Identifiability {
+    /// Stable lower-case name (API and `params.json`).
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Identifiable => "identifiable",
+            Self::TooFewPoints => "too_few_points",
+            Self::NoDepthDifference => "no_depth_difference",
+            Self::FlatResidual => "flat_residual",
+        }
+    }
+}
+
+/// Result of [`fit_joint`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct JointFit {
+    /// `A`.
+    pub airlight: f64,
+    /// Standard error of `A` (the prior's width when the data say nothing).
+    pub airlight_std_error: f64,
+    /// β, per scene unit.
+    pub beta: f64,
+    /// Standard error of β, per scene unit (infinite when β is not determined at all).
+    pub beta_std_error: f64,
+    /// Per source, the exposure gain `g_s` relative to the reference (1 = same exposure).
+    pub source_gains: Vec<f64>,
+    /// Equations with a non-zero robust weight at the end.
+    pub equations: usize,
+    /// RMS of `z_s − z_r` over the usable equations, scene units.
+    pub rms_depth_difference: f64,
+    /// Robust scale (1.4826 · MAD) of the intensity residuals, pixel-value units.
+    pub residual_scale: f64,
+    /// Whether β (and `A`) are determined, and if not why.
+    pub identifiability: Identifiability,
+}
+
+impl JointFit {
+    /// Whether β is determined by the points.
+    pub fn is_identifiable(&self) -> bool {
+        self.identifiability == Identifiability::Identifiable
+    }
+}
+
+/// One equation: source index, `z_s − z_r`, `I_r`, `I_s`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Equation {
+    source: usize,
+    dz: f64,
+    ir: f64,
+    is: f64,
+}
+
+/// Samples every SfM pixel of `sparse` in the reference and each source (see
+/// [`ratio_samples`]) and fits `A`, β and the gains ([`fit_equations`]). `None` without sources.
+pub fn fit_joint(
+    reference: &View<'_>,
+    sources: &[View<'_>],
+    sparse: &SparseDepth,
+    priors: &JointPriors,
+) -> Option<JointFit> {
+    if sources.is_empty() {
+        return None;
+    }
+    let samples: Vec<Vec<RatioSample>> = sources
+        .iter()
+        .map(|s| ratio_samples(reference, s, sparse))
+        .collect();
+    let median_depth = f64::from(sparse.depth_quantile(0.5)?);
+    Some(fit_equations(&samples, median_depth, priors))
+}
+
+/// The fit of the module docs over per-source samples; `median_depth` (scene units) scales the
+/// depth-difference test.
+pub fn fit_equations(
+    samples: &[Vec<RatioSample>],
+    median_depth: f64,
+    priors: &JointPriors,
+) -> JointFit {
+    let usable = |v: f64| v > CLIP_MARGIN && v < 1.0 - CLIP_MARGIN;
+    let eqs: Vec<Equation> = samples
+        .iter()
+        .enumerate()
+        .flat_map(|(source, ss)| {
+            ss.iter()
+                .filter(|s| usable(s.reference) && usable(s.source))
+                .map(move |s| Equation {
+                    source,
+                    dz: s.depth_difference,
+                    ir: s.reference,
+                    is: s.source,
+                })
+        })
+        .collect();
+    let n_src = samples.len();
+    let rms_dz = if eqs.is_empty() {
+        0.0
+    } else {
+        (eqs.iter().map(|e| e.dz * e.dz).sum::<f64>() / eqs.len() as f64).sqrt()
+    };
+    let not_determined = |why: Identifiability, airlight: f64| JointFit {
+        airlight,
+        airlight_std_error: priors.airlight_sigma,
+        beta: priors.beta_start,
+        beta_std_error: f64::INFINITY,
+        source_gains: vec![1.0; n_src],
+        equations: eqs.len(),
+        rms_depth_difference: rms_dz,
+        residual_scale: 0.0,
+        identifiability: why,
+    };
+    if eqs.len() < MIN_EQUATIONS {
+        return not_determined(Identifiability::TooFewPoints, priors.airlight);
+    }
+    if rms_dz <= MIN_RELATIVE_DEPTH_DIFFERENCE * median_depth.abs().max(f64::MIN_POSITIVE) {
+        return not_determined(Identifiability::NoDepthDifference, priors.airlight);
+    }
+    let mut solver = Solver::new(&eqs, n_src, priors);
+    let Some(cov) = solver.run() else {
+        return not_determined(Identifiability::FlatResidual, solver.theta[0]);
+    };
+    let se = |i: usize| cov[i].max(0.0).sqrt();
+    let (beta, beta_se) = (solver.theta[1], se(1));
+    let identifiability = if beta > 0.0 && beta_se < MAX_RELATIVE_BETA_ERROR * beta {
+        Identifiability::Identifiable
+    } else {
+        Identifiability::FlatResidual
+    };
+    JointFit {
+        airlight: solver.theta[0],
+        airlight_std_error: se(0),
+        beta,
+        beta_std_error: beta_se,
+        source_gains: solver.theta[2..].iter().map(|u| 1.0 / u).collect(),
+        equations: solver.kept,
+        rms_depth_difference: rms_dz,
+        residual_scale: solver.scale,
+        identifiability,
+    }
+}
+
+/// Gauss–Newton with Levenberg damping on `θ = (A, β, u_1 … u_S)`, Tukey weights re-estimated
+/// every iteration.
+struct Solver<'a> {
+    eqs: &'a [Equation],
+    priors: &'a JointPriors,
+    theta: Vec<f64>,
+    /// Robust residual scale.
+    scale: f64,
+    /// Equations with a non-zero weight.
+    kept: usize,
+}
+
+impl<'a> Solver<'a> {
+    fn new(eqs: &'a [Equation], n_src: usize, priors: &'a JointPriors) -> Self {
+        let mut theta = vec![1.0; 2 + n_src];
+        theta[0] = priors.airlight;
+        theta[1] = priors.beta_start;
+        Self {
+            eqs,
+            priors,
+            theta,
+            scale: 0.0,
+            kept: 0,
+        }
+    }
+
+    /// The equation's residual divided by `√(1 + (u k)²)`: both intensities carry the same
+    /// sensor noise, and this is the orthogonal (errors-in-variables) distance to the line
+    /// `I_r = A (1 − k) + u k I_s`. The plain residual treats `I_s` as exact and attenuates the
+    /// slope, which biased β by 6 % at 1 % noise.
+    fn residual(theta: &[f64], e: &Equation) -> f64 {
+        let (a, b, u) = (theta[0], theta[1], theta[2 + e.source]);
+        let k = (b * e.dz).exp();
+        (e.ir - a - (u * e.is - a) * k) / (1.0 + (u * k).powi(2)).sqrt()
+    }
+
+    /// Robust scale (1.4826 · MAD) of the residuals at `theta`.
+    fn robust_scale(&self, theta: &[f64]) -> f64 {
+        let mut r: Vec<f64> = self
+            .eqs
+            .iter()
+            .map(|e| Self::residual(theta, e).abs())
+            .collect();
+        let mid = r.len() / 2;
+        (1.4826 * *r.select_nth_unstable_by(mid, f64::total_cmp).1).max(1e-9)
+    }
+
+    /// Tukey cost at `theta` with scale `scale`, plus the priors (in the same units: squared
+    /// residuals over `scale²`, so the priors keep their weight whatever the noise).
+    fn cost(&self, theta: &[f64], scale: f64) -> f64 {
+        let c = TUKEY_C * scale;
+        let rho = |r: f64| {
+            let t = (r / c).min(1.0);
+            c * c / 6.0 * (1.0 - (1.0 - t * t).powi(3))
+        };
+        let data: f64 = self
+            .eqs
+            .iter()
+            .map(|e| rho(Self::residual(theta, e).abs()))
+            .sum();
+        data / (scale * scale) + 0.5 * self.prior_terms(theta)
+    }
+
+    fn prior_terms(&self, theta: &[f64]) -> f64 {
+        let p = self.priors;
+        let a = ((theta[0] - p.airlight) / p.airlight_sigma).powi(2);
+        let g: f64 = theta[2..]
+            .iter()
+            .map(|u| ((u - 1.0) / p.gain_sigma).powi(2))
+            .sum();
+        a + g
+    }
+
+    /// Normal equations `H`, gradient `g` (of ½·Σ w r²/s² + ½·priors) at the current θ with the
+    /// Tukey weights of scale `self.scale`.
+    fn normal_equations(&mut self) -> (Mat<f64>, Vec<f64>) {
+        let n = self.theta.len();
+        let mut h = Mat::<f64>::zeros(n, n);
+        let mut g = vec![0.0; n];
+        let c = TUKEY_C * self.scale;
+        let inv_s2 = 1.0 / (self.scale * self.scale);
+        self.kept = 0;
+        let (a, b) = (self.theta[0], self.theta[1]);
+        for e in self.eqs {
+            let u = self.theta[2 + e.source];
+            let k = (b * e.dz).exp();
+            let raw = e.ir - a - (u * e.is - a) * k;
+            let m = u * k;
+            let d = 1.0 + m * m;
+            let sd = d.sqrt();
+            let r = raw / sd;
+            let t = r / c;
+            if t.abs() >= 1.0 {
+                continue;
+            }
+            self.kept += 1;
+            let w = (1.0 - t * t).powi(2) * inv_s2;
+            // ∂r/∂θ of r = raw / √(1 + m²), m = u k: ∂r = ∂raw/√d − raw · m · ∂m / d^{3/2}.
+            let norm = raw * m / (d * sd);
+            let j = [
+                (k - 1.0) / sd,
+                -(u * e.is - a) * e.dz * k / sd - norm * m * e.dz,
+                -e.is * k / sd - norm * k,
+            ];
+            let idx = [0, 1, 2 + e.source];
+            for (p, &jp) in idx.iter().zip(&j) {
+                g[*p] += w * jp * r;
+                for (q, &jq) in idx.iter().zip(&j) {
+                    h[(*p, *q)] += w * jp * jq;
+                }
+            }
+        }
+        let p = self.priors;
+        let pa = 1.0 / (p.airlight_sigma * p.airlight_sigma);
+        h[(0, 0)] += pa;
+        g[0] += pa * (self.theta[0] - p.airlight);
+        let pu = 1.0 / (p.gain_sigma * p.gain_sigma);
+        for i in 2..n {
+            h[(i, i)] += pu;
+            g[i] += pu * (self.theta[i] - 1.0);
+        }
+        (h, g)
+    }
+
+    /// Iterates to convergence; returns the diagonal of the covariance of θ, or `None` when the
+    /// normal equations are singular (β undetermined).
+    fn run(&mut self) -> Option<Vec<f64>> {
+        let mut lambda = 1e-3;
+        self.scale = self.robust_scale(&self.theta);
+        for _ in 0..MAX_ITERATIONS {
+            let (h, g) = self.normal_equations();
+            let current = self.cost(&self.theta, self.scale);
+            let mut improved = false;
+            for _ in 0..12 {
+                let mut damped = h.clone();
+                for i in 0..damped.nrows() {
+                    damped[(i, i)] *= 1.0 + lambda;
+                }
+                let llt = damped.llt(Side::Lower).ok()?;
+                let rhs = Mat::<f64>::from_fn(g.len(), 1, |i, _| -g[i]);
+                let step = llt.solve(&rhs);
+                let mut next = self.theta.clone();
+                for (i, v) in next.iter_mut().enumerate() {
+                    *v += step[(i, 0)];
+                }
+                // Physical ranges: A in (0, 1], β ≥ 0, gains positive.
+                next[0] = next[0].clamp(1e-3, 1.0);
+                next[1] = next[1].max(0.0);
+                for u in &mut next[2..] {
+                    *u = u.max(1e-3);
+                }
+                if self.cost(&next, self.scale) <= current {
+                    let moved = next
+                        .iter()
+                        .zip(&self.theta)
+                        .map(|(a, b)| (a - b).abs())
+                        .fold(0.0, f64::max);
+                    self.theta = next;
+                    lambda = (lambda * 0.3).max(1e-9);
+                    improved = true;
+                    if moved < 1e-9 {
+                        return self.covariance();
+                    }
+                    break;
+                }
+                lambda *= 10.0;
+            }
+            if !improved {
+                break;
+            }
+            self.scale = self.robust_scale(&self.theta);
+        }
+        self.covariance()
+    }
+
+    fn covariance(&mut self) -> Option<Vec<f64>> {
+        let (h, _) = self.normal_equations();
+        let llt = h.llt(Side::Lower).ok()?;
+        let inv = llt.inverse();
+        Some((0..h.nrows()).map(|i| inv[(i, i)]).collect())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    /// Equations rendered from Eq. 3.3 with known A, β and source gains, plus noise and
+    /// outliers.
+    fn synthetic(
+        a: f64,
+        beta: f64,
+        gains: &[f64],
+        dz_spread: f64,
+        noise: f64,
+        seed: u64,
+    ) -> Vec<Vec<RatioSample>> {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        gains
+            .iter()
+            .map(|&g| {
+                (0..1500)
+                    .map(|i| {
+                        let z_r: f64 = rng.random_range(2.0..8.0);
+                        let dz: f64 = if dz_spread > 0.0 {
+                            rng.random_range(-dz_spread..dz_spread)
+                        } else {
+                            0.0
+                        };
+                        let j: f64 = rng.random_range(0.0..1.0);
+                        let render = |z: f64| {
+                            let t = (-beta * z).exp();
+                            j * t + a * (1.0 - t)
+                        };
+                        let mut ir = render(z_r) + noise * rng.random_range(-1.7..1.7);
+                        let is = (g * render(z_r + dz) + noise * rng.random_range(-1.7..1.7))
+                            .clamp(0.0, 1.0);
+                        if i % 20 == 0 {
+                            ir = rng.random_range(0.0..1.0); // occlusion
+                        }
+                        RatioSample {
+                            depth_difference: dz,
+                            reference: ir.clamp(0.0, 1.0),
+                            source: is,
+                        }
+                    })
+                    .collect()
+            })
+            .collect()
+    }
+
+    fn priors(a0: f64) -> JointPriors {
+        JointPriors {
+            airlight: a0,
+            airlight_sigma: 0.1,
+            gain_sigma: 0.2,
+            beta_start: 0.3,
+        }
+    }
+
+    #[test]
+    fn recovers_airlight_beta_and_gains_from_a_wrong_prior() {
+        let gains = [1.0, 1.04, 0.97, 1.1];
+        let eqs = synthetic(0.62, 0.35, &gains, 1.0, 0.01, 3);
+        // The prior is 0.08 off, as the CNN was on unseen scenes.
+        let fit = fit_equations(&eqs, 5.0, &priors(0.70));
+        assert!(fit.is_identifiable(), "{fit:?}");
+        assert!((fit.airlight - 0.62).abs() < 0.01, "{fit:?}");
+        assert!((fit.beta - 0.35).abs() < 0.01, "{fit:?}");
+        for (g, t) in fit.source_gains.iter().zip(gains) {
+            assert!((g - t).abs() < 0.01, "{fit:?}");
+        }
+        // The standard errors are honest: the truth lies within a few of them.
+        assert!(
+            (fit.airlight - 0.62).abs() < 4.0 * fit.airlight_std_error,
+            "{fit:?}"
+        );
+        assert!(
+            (fit.beta - 0.35).abs() < 4.0 * fit.beta_std_error,
+            "{fit:?}"
+        );
+        assert!(
+            fit.airlight_std_error < 0.02 && fit.beta_std_error < 0.02,
+            "{fit:?}"
+        );
+    }
+
+    #[test]
+    fn a_rectified_pair_determines_nothing() {
+        let eqs = synthetic(0.8, 0.4, &[1.0], 0.0, 0.01, 4);
+        let fit = fit_equations(&eqs, 5.0, &priors(0.8));
+        assert_eq!(fit.identifiability, Identifiability::NoDepthDifference);
+        assert!(!fit.is_identifiable() && fit.beta_std_error.is_infinite());
+        // Depth differences far below the noise: the residual is flat in β.
+        let eqs = synthetic(0.8, 0.4, &[1.0], 0.002, 0.02, 5);
+        let fit = fit_equations(&eqs, 5.0, &priors(0.8));
+        assert_eq!(
+            fit.identifiability,
+            Identifiability::FlatResidual,
+            "{fit:?}"
+        );
+        // Too few points.
+        let few: Vec<Vec<RatioSample>> = synthetic(0.8, 0.4, &[1.0], 1.0, 0.01, 6)
+            .into_iter()
+            .map(|v| v[..100].to_vec())
+            .collect();
+        let fit = fit_equations(&few, 5.0, &priors(0.8));
+        assert_eq!(fit.identifiability, Identifiability::TooFewPoints);
+    }
+
+    /// On the simulator's walking scene the joint fit finds A and β from a prior 0.06 off.
+    #[test]
+    fn finds_a_and_beta_on_a_simulated_scene() {
+        let scene = crate::simulate::mvs::walking_test_scene(3);
+        let (reference, sources) = scene.reference_and_sources();
+        let sparse = scene.sparse_depth().unwrap();
+        let a0 = (f64::from(scene.airlight) - 0.06).max(0.3);
+        let fit = fit_joint(&reference, &sources, &sparse, &priors(a0)).unwrap();
+        eprintln!("A {} β {} fit {fit:?}", scene.airlight, scene.beta);
+        assert!(fit.is_identifiable(), "{fit:?}");
+        assert!(
+            (fit.airlight - f64::from(scene.airlight)).abs() < 0.03,
+            "{fit:?}"
+        );
+        assert!((fit.beta - f64::from(scene.beta)).abs() < 0.05, "{fit:?}");
+    }
+}
