@@ -91,7 +91,8 @@ def test_scattering_params_says_when_beta_is_not_determined(client: Client, mvs_
     # A small sideways trajectory: the points' depths barely differ between views.
     r = params_of(client, mvs_scene)
     assert not r.identifiable and r.identifiability in ("flat_residual", "no_depth_difference")
-    assert r.beta_source == "sweep" and r.beta_std_error_per_scene_unit is None
+    # The best estimate is still returned (the joint fit when it converged), marked as a guess.
+    assert r.beta_source in ("joint_fit", "sweep") and r.beta_per_scene_unit > 0
 
 
 def test_scattering_params_recovers_a_and_beta(client: Client, mvs_scene_forward: Path) -> None:

@@ -153,7 +153,7 @@ class ScatteringParamsRequest(_message.Message):
     1. A0 from an airlight estimator (the CNN of Table 3.1, or the dark-channel rule, or given);
     2. by default, when the SfM points determine them, A and beta fitted jointly to the points'
        intensities I_r - A = (I_s / g_s - A) exp(beta (z_s - z_r)) over every point, source and
-       channel, with an exposure gain g_s per source and A0 as a prior (see joint_fit and
+       channel, with an exposure gain g_s per source and A0 as a (Cauchy) prior (see joint_fit and
        docs/ACCURACY.md); else beta0 from the points' transmission ratios at A0 (beta_from_points);
        else beta0 = the best of beta_steps values in [beta_min, beta_max] with A = A0 (Eq. 3.10);
     3. A*, beta* = the best of a grid_steps x grid_steps grid over [A0 +- delta_airlight] x
@@ -250,8 +250,10 @@ class ScatteringParamsRequest(_message.Message):
     identifiability verdict. Unset = true.
     """
     airlight_prior_sigma: _builtins.float
-    """Standard deviation of the joint fit's prior on A around A0, in (0, 1]. Unset = 0.1 (wide:
-    the CNN's error on unseen scenes reached 0.07).
+    """Scale of the joint fit's prior on A around A0, in (0, 1]. The prior is Cauchy: within a few
+    scales it pulls like a Gaussian of this width, beyond that the points decide, so an A0 that
+    is far off (the CNN's error on unseen scenes reached 0.07) does not drag the fit. Unset =
+    0.015.
     """
     @_builtins.property
     def reference(self) -> _mvs_pb2.MvsView:
