@@ -314,7 +314,8 @@ fn simulate_mvs_then_params_estimates_and_writes_the_residual_grid() {
         .env_remove("MURK_SERVER")
         .args(["params", "--reference", &reference, "--num-sources", "2"])
         .args(["--beta-steps", "3", "--grid-steps", "2", "--planes", "32"])
-        .args(["--airlight-source", "dark-channel"])
+        .args(["--airlight-source", "dark-channel", "--beta-sweep"])
+        .args(["--beta-min", "0.4", "--beta-max", "0.8"])
         .arg("--model")
         .arg(scene.join("sparse"))
         .arg("--images")
@@ -343,6 +344,23 @@ fn simulate_mvs_then_params_estimates_and_writes_the_residual_grid() {
     for f in ["depth.exr", "confidence.exr", "depth.png", "points.ply"] {
         assert!(out.join(f).exists(), "{f} missing");
     }
+    // params.json: the estimates, what is known about them, the range, the searches, units.
+    let params: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("params.json")).unwrap()).unwrap();
+    assert_eq!(params["format"], "murk.scattering_params");
+    assert!(params["airlight"].as_f64().unwrap() > 0.0 && params["beta"].as_f64().is_some());
+    // The published sweep: β* is a guess, and said to be one.
+    assert_eq!(params["identifiable"], false, "{params}");
+    assert!(params["beta_std_error"].is_null());
+    assert_eq!(params["beta_source"], "the sweep of Eq. 3.10");
+    assert_eq!(params["beta_range"]["from_points"], false);
+    assert_eq!(params["searches"].as_array().unwrap().len(), 3 + 2);
+    assert!(params["units"]["beta"]
+        .as_str()
+        .unwrap()
+        .contains("per model unit"));
+    assert!(params["joint_fit"]["equations"].as_u64().unwrap() > 0);
+    assert!(stdout.contains("NOT identifiable"), "{stdout}");
     // A given airlight without --airlight-source given is refused by the CLI.
     let bad = murk()
         .args(["params", "--reference", &reference, "--airlight", "0.9"])

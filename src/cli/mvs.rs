@@ -13,6 +13,8 @@ use murk::mvs_io::{
     backproject, find_gt_depth, find_scene_metadata, load_view, nearest_sources, write_ply,
     LoadedView, PlyFormat,
 };
+use murk::params::search::plane_range_from_sparse;
+use murk::params::sparse::{selected_points, PointSelection, SparseDepth};
 use murk::server::{InProcessServer, ServerConfig};
 use murk::service::convert::{
     image_from_proto, mvs_request_to_proto, ImageLimits, MAX_SOURCE_VIEWS,
@@ -71,13 +73,15 @@ pub struct MvsArgs {
     /// Cost volume.
     #[arg(long, value_enum, default_value_t = CostVolumeArg::Dehazing)]
     pub cost_volume: CostVolumeArg,
-    /// Nearest plane z-depth, scene units (default 0.5).
-    #[arg(long)]
+    /// Nearest plane z-depth, model units (with --far; default: 0.75 × the 1st percentile of the
+    /// depths of the SfM points the reference sees).
+    #[arg(long, requires = "far")]
     pub near: Option<f64>,
-    /// Farthest plane z-depth, scene units (default 50).
-    #[arg(long)]
+    /// Farthest plane z-depth, model units (with --near; default: 1.5 × their 99th percentile).
+    #[arg(long, requires = "near")]
     pub far: Option<f64>,
-    /// Number of planes, uniform in inverse depth (default 256).
+    /// Number of planes, uniform in inverse depth (default: about one per pixel of the largest
+    /// displacement of a reference pixel in any source across the range, 16 to 256).
     #[arg(long)]
     pub planes: Option<u32>,
     /// σ of the Gaussian applied to every view before the cost volume, pixels, 0..=4
@@ -126,9 +130,36 @@ pub fn run(a: MvsArgs) -> anyhow::Result<()> {
     let kind = a.cost_volume;
     let atmosphere = atmosphere_for(&a)?;
     let mut request = build_request(&reference, &sources, kind, atmosphere);
-    // Unset flags stay 0 on the wire: the server's defaults, echoed in the result.
-    request.near = a.near.unwrap_or(0.0);
-    request.far = a.far.unwrap_or(0.0);
+    // The plane range from the model's points seen by the reference unless given (the API's
+    // own default, 0.5…50, knows nothing of the scene or the model's unit); an unset count stays
+    // 0 on the wire: the server picks about one plane per pixel of displacement.
+    let (near, far) = match (a.near, a.far) {
+        (Some(n), Some(f)) => (n, f),
+        _ => {
+            let points =
+                selected_points(&model, &reference.name, PointSelection::ObservedInReference)?;
+            let sparse = SparseDepth::from_points(
+                &points,
+                &reference.intrinsics,
+                &reference.pose,
+                reference.image.width(),
+                reference.image.height(),
+            )?;
+            match plane_range_from_sparse(&sparse) {
+                Some((n, f)) => {
+                    println!(
+                        "planes over z {n:.4}..{f:.4} model units, from the {} SfM points seen \
+                         by the reference (--near/--far override)",
+                        sparse.len()
+                    );
+                    (n, f)
+                }
+                None => (0.0, 0.0),
+            }
+        }
+    };
+    request.near = near;
+    request.far = far;
     request.num_planes = a.planes.unwrap_or(0);
     if a.presmooth_sigma.is_some() || a.contrast_max_weight.is_some() {
         request.sgm = Some(pb::SgmOptions {

@@ -14,6 +14,7 @@
 pub mod colmap;
 pub mod cost_volume;
 pub mod depth;
+pub mod plane_count;
 pub mod plane_sweep;
 pub mod pose;
 
@@ -27,5 +28,6 @@ pub use cost_volume::{
 pub use depth::{
     depth_from_cost_volume, depth_from_costs, estimate_depth, DepthResult, PostFilter, SgmParams,
 };
+pub use plane_count::{planes_for_displacement, Camera, AUTO_PLANES_MAX, AUTO_PLANES_MIN};
 pub use plane_sweep::{PlaneSet, PlaneWarp, MAX_PLANES};
 pub use pose::Pose;

@@ -15,7 +15,8 @@ use crate::image::ImageF32;
 use crate::monitor::Monitor;
 use crate::mvs::cost_volume::MAX_VOXELS;
 use crate::mvs::{
-    estimate_depth, CostKind, DehazingOptions, DepthResult, PlaneSet, Pose, SgmParams, View,
+    estimate_depth, planes_for_displacement, Camera, CostKind, DehazingOptions, DepthResult,
+    PlaneSet, Pose, SgmParams, View,
 };
 use crate::service::proto::v1 as pb;
 
@@ -111,17 +112,39 @@ fn resolve_kind(v: i32) -> Result<pb::CostVolumeKind> {
     }
 }
 
-/// The plane set a request asks for, 0 meaning the reference's default for each field.
-fn planes_of(req: &pb::MvsDepthRequest) -> (f64, f64, usize) {
+/// The plane range a request asks for, 0 meaning the reference's default, and the plane count
+/// (`None` for 0: chosen from the views, [`auto_planes`]).
+fn planes_of(req: &pb::MvsDepthRequest) -> (f64, f64, Option<usize>) {
     let d = PlaneSet::default();
     (
         if req.near == 0.0 { d.near } else { req.near },
         if req.far == 0.0 { d.far } else { req.far },
-        if req.num_planes == 0 {
-            d.num_planes
-        } else {
-            req.num_planes as usize
-        },
+        (req.num_planes != 0).then_some(req.num_planes as usize),
+    )
+}
+
+/// About one plane per pixel of the largest displacement of a reference pixel in any source
+/// across `near..far` ([`planes_for_displacement`]), within the voxel limit.
+pub(super) fn auto_planes(
+    reference: &MvsViewInput,
+    sources: &[MvsViewInput],
+    near: f64,
+    far: f64,
+) -> usize {
+    let camera = |v: &MvsViewInput| Camera {
+        intrinsics: v.intrinsics,
+        pose: v.pose,
+        width: v.image.width(),
+        height: v.image.height(),
+    };
+    let (w, h) = reference.image.dims();
+    let cams: Vec<Camera> = sources.iter().map(camera).collect();
+    planes_for_displacement(
+        &camera(reference),
+        &cams,
+        near,
+        far,
+        MAX_VOXELS / (w * h).max(1),
     )
 }
 
@@ -148,12 +171,10 @@ pub(super) fn sgm_of(o: Option<&pb::SgmOptions>) -> SgmParams {
 /// which ignores them. Values that will be rejected (NaN, unknown enum values) are left alone
 /// so validation still sees them.
 pub fn canonicalize_mvs_request(req: &mut pb::MvsDepthRequest) {
-    let (near, far, num_planes) = planes_of(req);
+    // num_planes 0 stays 0: "from the views' displacement" is itself deterministic in the request.
+    let (near, far, _) = planes_of(req);
     req.near = near;
     req.far = far;
-    if let Ok(n) = u32::try_from(num_planes) {
-        req.num_planes = n;
-    }
     if let Ok(kind) = resolve_kind(req.cost_volume) {
         req.cost_volume = kind as i32;
         if kind == pb::CostVolumeKind::Ordinary && req.airlight.is_finite() && req.beta.is_finite()
@@ -215,8 +236,9 @@ pub fn mvs_from_proto(req: &pb::MvsDepthRequest, limits: &ImageLimits) -> Result
             }
         })?;
     }
-    let (near, far, num_planes) = planes_of(req);
-    let planes = PlaneSet::new(near, far, num_planes)?;
+    let (near, far, requested_planes) = planes_of(req);
+    // The range is checked now, the count once the views are decoded.
+    PlaneSet::new(near, far, requested_planes.unwrap_or(2))?;
     let sgm = sgm_of(req.sgm.as_ref());
     sgm.validate().map_err(|e| e.within("sgm"))?;
     if req.sources.is_empty() {
@@ -238,17 +260,22 @@ pub fn mvs_from_proto(req: &pb::MvsDepthRequest, limits: &ImageLimits) -> Result
     let reference =
         view_from_proto(req.reference.as_ref(), None, limits).map_err(|e| e.within("reference"))?;
     let (w, h) = reference.image.dims();
-    let voxels = w.checked_mul(h).and_then(|p| p.checked_mul(num_planes));
-    if voxels.is_none_or(|v| v > MAX_VOXELS) {
-        return Err(MurkError::invalid(
-            "num_planes",
-            format!(
-                "{w}x{h} pixels x {num_planes} planes exceeds the cost-volume limit of \
-                 {MAX_VOXELS} voxels; use fewer planes or smaller images"
-            ),
-        ));
+    if let Some(n) = requested_planes {
+        let voxels = w.checked_mul(h).and_then(|p| p.checked_mul(n));
+        if voxels.is_none_or(|v| v > MAX_VOXELS) {
+            return Err(MurkError::invalid(
+                "num_planes",
+                format!(
+                    "{w}x{h} pixels x {n} planes exceeds the cost-volume limit of \
+                     {MAX_VOXELS} voxels; use fewer planes or smaller images"
+                ),
+            ));
+        }
     }
     let sources = sources_from_proto(&req.sources, &reference, limits)?;
+    let num_planes =
+        requested_planes.unwrap_or_else(|| auto_planes(&reference, &sources, near, far));
+    let planes = PlaneSet::new(near, far, num_planes)?;
     Ok(MvsInput {
         reference,
         sources,
@@ -449,7 +476,15 @@ mod tests {
         req.far = 0.0;
         req.num_planes = 0;
         let input = mvs_from_proto(&req, &ImageLimits::default()).unwrap();
-        assert_eq!(input.planes, PlaneSet::default());
+        let d = PlaneSet::default();
+        assert_eq!((input.planes.near, input.planes.far), (d.near, d.far));
+        // The count from the views: one plane per pixel of the largest displacement.
+        assert_eq!(
+            input.planes.num_planes,
+            auto_planes(&input.reference, &input.sources, d.near, d.far)
+        );
+        assert!((crate::mvs::AUTO_PLANES_MIN..=crate::mvs::AUTO_PLANES_MAX)
+            .contains(&input.planes.num_planes));
         assert_eq!(input.wire_kind, pb::CostVolumeKind::Dehazing);
         assert!(
             matches!(input.kind, CostKind::DehazingWith(_, o) if o == DehazingOptions::default())
@@ -471,7 +506,8 @@ mod tests {
             let mut r = request(pb::CostVolumeKind::Dehazing);
             r.near = PlaneSet::default().near;
             r.far = PlaneSet::default().far;
-            r.num_planes = 256;
+            // 0 = from the views in both (a fixed count is another computation).
+            r.num_planes = 0;
             r.sgm = Some(pb::SgmOptions {
                 p1: Some(SgmParams::default().p1),
                 ..Default::default()

@@ -11,7 +11,8 @@ use std::time::Instant;
 
 use super::image::{image_to_proto, ImageLimits};
 use super::mvs::{
-    sgm_of, sources_from_proto, view_from_proto, view_to_proto, MvsViewInput, MAX_SOURCE_VIEWS,
+    auto_planes, sgm_of, sources_from_proto, view_from_proto, view_to_proto, MvsViewInput,
+    MAX_SOURCE_VIEWS,
 };
 use crate::atmosphere::AtmosphereParams;
 use crate::error::{MurkError, Result};
@@ -29,9 +30,6 @@ use crate::service::proto::v1 as pb;
 
 /// Most SfM points per request (COLMAP reconstructions of a few hundred images have ~10⁵).
 pub const MAX_SPARSE_POINTS: usize = 1_000_000;
-
-/// Default plane count of the final depth (the reference's 256).
-const DEFAULT_PLANES: usize = 256;
 
 /// The airlight estimators a server offers: its configured estimator (the CNN, or the dark
 /// channel when configured so or fallen back to), used for `AIRLIGHT_SOURCE_UNSPECIFIED`.
@@ -118,9 +116,6 @@ pub fn canonicalize_params_request(
     req.joint_fit.get_or_insert(d.joint_fit);
     req.airlight_prior_sigma
         .get_or_insert(d.airlight_prior_sigma);
-    if req.num_planes == 0 {
-        req.num_planes = DEFAULT_PLANES as u32;
-    }
     if req.search_planes == 0 {
         req.search_planes = d.search_planes as u32;
     }
@@ -192,7 +187,9 @@ pub fn params_from_proto(
         airlight_prior_sigma: req.airlight_prior_sigma.unwrap_or(d.airlight_prior_sigma),
     };
     search.validate()?;
-    let num_planes = or(req.num_planes, DEFAULT_PLANES);
+    // 0 = from the views' displacement across the plane range, once both are known.
+    let requested_planes = (req.num_planes != 0).then_some(req.num_planes as usize);
+    let num_planes = requested_planes.unwrap_or(2);
     if num_planes > MAX_PLANES {
         return Err(MurkError::invalid(
             "num_planes",
@@ -253,6 +250,8 @@ pub fn params_from_proto(
     } else {
         (req.near, req.far)
     };
+    let num_planes =
+        requested_planes.unwrap_or_else(|| auto_planes(&reference, &sources, near, far));
     let planes = PlaneSet::new(near, far, num_planes)?;
     if w * h * num_planes.max(search.search_planes) > MAX_VOXELS {
         return Err(MurkError::invalid(

@@ -101,15 +101,18 @@ class MvsDepthRequest(_message.Message):
     """
     near: _builtins.float
     """z-depth of the nearest plane, scene units, finite and > 0. 0 = the reference's default 0.5
-    (inverse depth 2).
+    (inverse depth 2), which knows nothing of the scene: give the range of the scene's points
+    (murk mvs takes it from the COLMAP model's points).
     """
     far: _builtins.float
     """z-depth of the farthest plane, scene units, finite and > near. 0 = the reference's default
     50 (inverse depth 0.02).
     """
     num_planes: _builtins.int
-    """Number of planes, uniform in inverse depth between 1/far and 1/near; 1 to 1024. 0 = 256 (the
-    reference's default). width * height * num_planes must stay within 2^29 voxels.
+    """Number of planes, uniform in inverse depth between 1/far and 1/near; 1 to 1024. 0 = about one
+    plane per pixel of the largest displacement of a reference pixel in any source between near
+    and far, 16 to 256 (the reference's fixed 256 is too many for a short baseline and too few
+    for a long one). width * height * num_planes must stay within 2^29 voxels.
     """
     cost_volume: Global___CostVolumeKind.ValueType
     """Which photometric cost to build. UNSPECIFIED = DEHAZING."""

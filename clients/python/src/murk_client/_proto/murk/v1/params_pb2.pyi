@@ -228,7 +228,9 @@ class ScatteringParamsRequest(_message.Message):
     """
     far: _builtins.float
     num_planes: _builtins.int
-    """Planes of the final depth, 1 to 1024. 0 = 256."""
+    """Planes of the final depth, 1 to 1024. 0 = about one per pixel of the largest displacement
+    across the plane range (see MvsDepthRequest.num_planes).
+    """
     search_planes: _builtins.int
     """Planes of the depth evaluations during the search, 2 to 1024. 0 = 64."""
     search_downsample: _builtins.int
