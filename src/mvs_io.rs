@@ -16,6 +16,7 @@ use crate::image::ImageF32;
 use crate::io::{self, decode_image, DecodeLimits};
 use crate::mvs::colmap::{ColmapModel, IMAGES_FIELD};
 use crate::mvs::{Pose, View};
+use crate::params::sparse::SparseDepth;
 use crate::simulate::mvs::MVS_SCENE_FORMAT;
 
 /// A registered image loaded from disk with its calibration.
@@ -178,15 +179,14 @@ pub struct SceneMetadata {
     pub reference: String,
 }
 
-/// Looks for the `meta.json` of a simulated scene next to a COLMAP model: in `model_dir` or its
-/// parent (the simulator writes `<scene>/meta.json` and `<scene>/sparse/`). `Ok(None)` when there
-/// is none or it is not an MVS scene's; an MVS scene's file that cannot be read is an error.
+/// Looks for the `meta.json` of a simulated scene next to a COLMAP model: in `model_dir` or up to
+/// three folders above it (the simulator writes `<scene>/meta.json` and `<scene>/sparse/`; a
+/// COLMAP reconstruction of its images typically sits in `<scene>/colmap/sparse/0`). `Ok(None)`
+/// when there is none or it is not an MVS scene's; an MVS scene's file that cannot be read is an
+/// error.
 pub fn find_scene_metadata(model_dir: &Path) -> Result<Option<SceneMetadata>> {
-    let candidates = [
-        Some(model_dir.join("meta.json")),
-        model_dir.parent().map(|p| p.join("meta.json")),
-    ];
-    for path in candidates.into_iter().flatten() {
+    let candidates = model_dir.ancestors().take(4).map(|d| d.join("meta.json"));
+    for path in candidates {
         if !path.is_file() {
             continue;
         }
@@ -230,6 +230,38 @@ pub fn find_gt_depth(images_dir: &Path, name: &str) -> Option<PathBuf> {
     let rel = relative_image_path(name).ok()?.with_extension("exr");
     let path = images_dir.parent()?.join("depth").join(rel);
     path.is_file().then_some(path)
+}
+
+/// How many ground-truth (scene) units one model unit is: the median of `z_gt / z_sfm` over
+/// the SfM pixels. `None` without usable pixels; `Some(1)` within 1 % of 1 (the simulator's own
+/// model).
+pub fn model_unit_in_scene_units(sparse: &SparseDepth, gt: &ImageF32) -> Option<f32> {
+    if gt.dims() != (sparse.width(), sparse.height()) {
+        return None;
+    }
+    let mut ratios: Vec<f32> = sparse
+        .samples()
+        .iter()
+        .map(|s| gt.get(s.x as usize, s.y as usize, 0) / s.z)
+        .filter(|r| r.is_finite() && *r > 0.0)
+        .collect();
+    if ratios.is_empty() {
+        return None;
+    }
+    let mid = ratios.len() / 2;
+    let s = *ratios.select_nth_unstable_by(mid, f32::total_cmp).1;
+    Some(if (s - 1.0).abs() < 0.01 { 1.0 } else { s })
+}
+
+/// A note for printouts when the model's unit differs from the ground truth's ([`model_unit_in_scene_units`]).
+pub fn unit_note(scale: Option<f32>) -> String {
+    match scale {
+        Some(s) if s != 1.0 => format!(
+            " (the model's unit is {s:.4} scene units, from its points against the ground truth; \
+             compared in one unit)"
+        ),
+        _ => String::new(),
+    }
 }
 
 /// A world-space point with a colour.

@@ -10,8 +10,8 @@ use murk::io::{read_image, write_colormap_png, write_exr, DecodeLimits};
 use murk::metrics::{depth_metrics, DepthMetrics};
 use murk::mvs::colmap::{read_colmap_dir, ColmapModel};
 use murk::mvs_io::{
-    backproject, find_gt_depth, find_scene_metadata, load_view, nearest_sources, write_ply,
-    LoadedView, PlyFormat,
+    backproject, find_gt_depth, find_scene_metadata, load_view, model_unit_in_scene_units,
+    nearest_sources, unit_note, write_ply, LoadedView, PlyFormat,
 };
 use murk::params::search::plane_range_from_sparse;
 use murk::params::sparse::{selected_points, PointSelection, SparseDepth};
@@ -206,9 +206,28 @@ pub fn run(a: MvsArgs) -> anyhow::Result<()> {
     if let Some(gt_path) = find_gt_depth(&a.images, &reference.name) {
         let gt = read_image(&gt_path, &limits)
             .with_context(|| format!("reading ground truth {}", gt_path.display()))?;
-        let m = depth_metrics(&images.z_depth, &gt, None)
+        // A model reconstructed by SfM from the simulator's images has its own unit: compare in
+        // the ground truth's, the scale measured from the model's points.
+        let points = selected_points(&model, &reference.name, PointSelection::ObservedInReference)?;
+        let sparse = SparseDepth::from_points(
+            &points,
+            &reference.intrinsics,
+            &reference.pose,
+            reference.image.width(),
+            reference.image.height(),
+        )?;
+        let scale = model_unit_in_scene_units(&sparse, &gt);
+        let mut z = images.z_depth.clone();
+        for v in z.data_mut() {
+            *v *= scale.unwrap_or(1.0);
+        }
+        let m = depth_metrics(&z, &gt, None)
             .with_context(|| format!("comparing with {}", gt_path.display()))?;
-        println!("against ground truth {}:", gt_path.display());
+        println!(
+            "against ground truth {}{}:",
+            gt_path.display(),
+            unit_note(scale)
+        );
         print_metrics_header();
         print_metrics_row(
             kind_name(r.cost_volume),
@@ -321,7 +340,13 @@ fn atmosphere_for(a: &MvsArgs) -> anyhow::Result<Option<AtmosphereParams>> {
     if a.cost_volume == CostVolumeArg::Ordinary {
         return Ok(None);
     }
-    match find_scene_metadata(&a.model)? {
+    // Only the simulator's own model (`<scene>/sparse`) shares the ground truth's unit; a model
+    // reconstructed from its images further down has its own scale.
+    let own_model = |meta: &murk::mvs_io::SceneMetadata| {
+        let dir = meta.path.parent();
+        dir == Some(a.model.as_path()) || dir == a.model.parent()
+    };
+    match find_scene_metadata(&a.model)?.filter(own_model) {
         Some(meta) => {
             println!(
                 "using the ground-truth airlight A = {:.4} and beta = {:.5} per scene unit from {} \

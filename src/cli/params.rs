@@ -11,7 +11,8 @@ use murk::io::{read_image, DecodeLimits};
 use murk::metrics::depth_metrics;
 use murk::mvs::colmap::read_colmap_dir;
 use murk::mvs_io::{
-    backproject, find_gt_depth, find_scene_metadata, write_ply, LoadedView, PlyFormat,
+    backproject, find_gt_depth, find_scene_metadata, model_unit_in_scene_units, unit_note,
+    write_ply, LoadedView, PlyFormat,
 };
 use murk::params::sparse::{selected_points, PointSelection, SparseDepth};
 use murk::service::convert::params_request_to_proto;
@@ -344,37 +345,6 @@ pub fn run(a: ParamsArgs) -> anyhow::Result<()> {
         print_metrics_row("estimated", &m, r.depth_seconds, &unit_note(scale));
     }
     Ok(())
-}
-
-/// How many ground-truth (scene) units one model unit is: the median of `z_gt / z_sfm` over
-/// the SfM pixels. `None` without usable pixels; `Some(1)` within 1 % of 1 (the simulator's own
-/// model).
-fn model_unit_in_scene_units(sparse: &SparseDepth, gt: &murk::image::ImageF32) -> Option<f32> {
-    if gt.dims() != (sparse.width(), sparse.height()) {
-        return None;
-    }
-    let mut ratios: Vec<f32> = sparse
-        .samples()
-        .iter()
-        .map(|s| gt.get(s.x as usize, s.y as usize, 0) / s.z)
-        .filter(|r| r.is_finite() && *r > 0.0)
-        .collect();
-    if ratios.is_empty() {
-        return None;
-    }
-    let mid = ratios.len() / 2;
-    let s = *ratios.select_nth_unstable_by(mid, f32::total_cmp).1;
-    Some(if (s - 1.0).abs() < 0.01 { 1.0 } else { s })
-}
-
-fn unit_note(scale: Option<f32>) -> String {
-    match scale {
-        Some(s) if s != 1.0 => format!(
-            " (the model's unit is {s:.4} scene units, from its points against the ground truth; \
-             compared in one unit)"
-        ),
-        _ => String::new(),
-    }
 }
 
 /// What `params.json` holds: the estimates with their errors, identifiability, the β range
