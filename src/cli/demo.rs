@@ -230,23 +230,32 @@ async fn mvs_demo(a: &DemoArgs, client: &mut super::client::Client) -> anyhow::R
     println!();
     println!(
         "Scattering parameters (Algorithm 1, {} SfM pixels, {} depth evaluations, {:.2} s): \
-         A* = {:.3} (A0 = {:.3} from {}; truth {:.3}), beta* = {:.3}/unit (beta0 = {:.3} from \
-         {}; truth {:.3})",
+         A* = {:.3}{} (A0 = {:.3} from {}; truth {:.3}), beta* = {:.3}{}/unit from {}{}; \
+         truth {:.3}",
         p.num_sparse_points,
         p.grid.len(),
         p.search_seconds,
         p.airlight,
+        p.airlight_std_error
+            .map_or(String::new(), |e| format!(" ± {e:.3}")),
         p.airlight_initial,
         source_name(p.airlight_source),
         scene.airlight,
         p.beta,
-        p.beta_initial,
-        match &p.point_ratio {
-            Some(f) if f.used => format!(
-                "the SfM points' transmission ratios, {} equations, ± {:.3}",
-                f.equations, f.std_error
-            ),
+        p.beta_std_error
+            .map_or(String::new(), |e| format!(" ± {e:.3}")),
+        match pb::BetaSource::try_from(p.beta_source) {
+            Ok(pb::BetaSource::JointFit) => {
+                let eqs = p.joint_fit.as_ref().map_or(0, |j| j.equations);
+                format!("the joint fit of A, beta and gains to the SfM points ({eqs} equations)")
+            }
+            Ok(pb::BetaSource::PointRatio) => "the SfM points' transmission ratios".to_string(),
             _ => "the Eq. 3.10 sweep".to_string(),
+        },
+        if p.identifiable {
+            ""
+        } else {
+            " (NOT identifiable from these views: a guess)"
         },
         scene.beta
     );
