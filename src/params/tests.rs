@@ -17,6 +17,36 @@ where
     std::env::var(name).map_or(default, |s| s.parse().expect(name))
 }
 
+/// Every source image multiplied by `gain` and clipped to [0, 1]: an exposure change.
+fn with_gain(sources: &[crate::mvs::View<'_>], gain: f32) -> Vec<crate::image::ImageF32> {
+    sources
+        .iter()
+        .map(|v| {
+            let mut img = v.image.clone();
+            for x in img.data_mut() {
+                *x = (*x * gain).clamp(0.0, 1.0);
+            }
+            img
+        })
+        .collect()
+}
+
+/// `sources` with their images replaced by `images`.
+fn views_with<'a>(
+    sources: &[crate::mvs::View<'_>],
+    images: &'a [crate::image::ImageF32],
+) -> Vec<crate::mvs::View<'a>> {
+    sources
+        .iter()
+        .zip(images)
+        .map(|(v, image)| crate::mvs::View {
+            image,
+            intrinsics: v.intrinsics,
+            pose: v.pose,
+        })
+        .collect()
+}
+
 /// Prints the Eq. 3.8 residual against β (GT A) for several depth functions.
 /// `cargo test --release --lib params::tests::residual_curves -- --ignored --nocapture`
 #[test]
@@ -495,21 +525,8 @@ fn point_ratio_under_exposure_change() {
         };
         let scene = simulate_mvs(&cfg, &Monitor::noop()).unwrap();
         let (reference, sources) = scene.reference_and_sources();
-        let scaled: Vec<crate::image::ImageF32> = sources
-            .iter()
-            .map(|v| {
-                let mut img = v.image.clone();
-                for x in img.data_mut() {
-                    *x = (*x * gain).clamp(0.0, 1.0);
-                }
-                img
-            })
-            .collect();
-        let views: Vec<crate::mvs::View<'_>> = sources
-            .iter()
-            .zip(&scaled)
-            .map(|(v, img)| crate::mvs::View { image: img, ..*v })
-            .collect();
+        let scaled = with_gain(&sources, gain);
+        let views = views_with(&sources, &scaled);
         let sparse = scene.sparse_depth().unwrap();
         let a0 = cnn.estimate(reference.image).unwrap();
         let fit = beta_from_point_ratios(&reference, &views, &sparse, a0).unwrap();
@@ -561,21 +578,8 @@ fn measure_joint_fit() {
         };
         let scene = simulate_mvs(&cfg, &Monitor::noop()).unwrap();
         let (reference, sources) = scene.reference_and_sources();
-        let scaled: Vec<crate::image::ImageF32> = sources
-            .iter()
-            .map(|v| {
-                let mut img = v.image.clone();
-                for x in img.data_mut() {
-                    *x = (*x * gain).min(1.0);
-                }
-                img
-            })
-            .collect();
-        let sources: Vec<crate::mvs::View<'_>> = sources
-            .iter()
-            .zip(&scaled)
-            .map(|(v, image)| crate::mvs::View { image, ..*v })
-            .collect();
+        let scaled = with_gain(&sources, gain);
+        let sources = views_with(&sources, &scaled);
         let sparse = scene.sparse_depth().unwrap();
         let (a, b) = (f64::from(scene.airlight), f64::from(scene.beta));
         let a_cnn = cnn.estimate(reference.image).unwrap();
