@@ -12,14 +12,15 @@ use murk::service::proto::v1 as pb;
 use murk::simulate::read_tof_capture;
 use murk::ImageF32;
 
-use super::client::{connect, run_job};
+use super::mvs::run_here_or_remote;
 
 /// Options of `murk tof`.
 #[derive(Args, Debug)]
 pub struct TofArgs {
-    /// Server URL.
-    #[arg(long, env = "MURK_SERVER", default_value = "http://127.0.0.1:50051")]
-    pub server: String,
+    /// Server URL; without it a server is started in this process (as `murk mvs` and
+    /// `murk ps` do).
+    #[arg(long, env = "MURK_SERVER")]
+    pub server: Option<String>,
     /// A folder in the simulator's layout (amplitude.exr, phase.exr, optional meta.json).
     #[arg(long, conflicts_with_all = ["amplitude", "phase"])]
     pub frame: Option<PathBuf>,
@@ -93,12 +94,23 @@ pub fn run(a: TofArgs) -> anyhow::Result<()> {
         Some(s) => Some(parse_intrinsics(s)?),
         None => meta_k,
     };
+    // The correction needs each pixel's ray: a light position without intrinsics is refused when
+    // asked for on the command line, and said to be unused when it only came with meta.json.
     let light = match &a.light_position_m {
+        Some(_) if intrinsics.is_none() => bail!(
+            "--light-position-m needs intrinsics (--intrinsics fx,fy,cx,cy or meta.json): the \
+             range correction depends on each pixel's ray"
+        ),
         Some(s) => Some(parse_numbers::<3>(s, "--light-position-m", "x,y,z")?),
+        None if intrinsics.is_none() && meta_light.is_some() => {
+            eprintln!(
+                "note: meta.json's light_position_m is not used without intrinsics; range is \
+                 half the light path"
+            );
+            None
+        }
         None => meta_light,
-    }
-    // The correction needs each pixel's ray; without intrinsics fall back to half the path.
-    .filter(|_| intrinsics.is_some());
+    };
     let mut request =
         tof_request_to_proto(&amplitude, &phase, intrinsics.as_ref(), frequency, light);
     request.options = Some(pb::TofOptions {
@@ -107,19 +119,13 @@ pub fn run(a: TofArgs) -> anyhow::Result<()> {
         symmetry_row: a.symmetry_row,
         ..Default::default()
     });
-    let rt = tokio::runtime::Runtime::new()?;
-    let (job, result) = rt.block_on(async {
-        let mut client = connect(&a.server).await?;
-        run_job(
-            &mut client,
-            pb::JobRequest {
-                method: Some(pb::job_request::Method::TofDepth(request)),
-            },
-            "tof",
-            true,
-        )
-        .await
-    })?;
+    let (job, result) = run_here_or_remote(
+        a.server.as_deref(),
+        pb::JobRequest {
+            method: Some(pb::job_request::Method::TofDepth(request)),
+        },
+        "tof",
+    )?;
     let Some(pb::job_result::Method::TofDepth(r)) = result.method else {
         bail!("server returned a result of another method");
     };

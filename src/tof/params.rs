@@ -166,10 +166,18 @@ impl TofParams {
     /// Checks every parameter against its documented range; the error names the field.
     pub fn validate(&self, width: usize, height: usize) -> Result<()> {
         let f = self.modulation_frequency_hz;
-        if !f.is_finite() || f <= 0.0 || f > 1e10 {
+        if !f.is_finite() || !(MIN_MODULATION_HZ..=MAX_MODULATION_HZ).contains(&f) {
             return Err(MurkError::invalid(
                 "modulation_frequency_hz",
-                format!("must be finite and in (0, 1e10] Hz, got {f}"),
+                format!(
+                    "must be in [{MIN_MODULATION_HZ:e}, {MAX_MODULATION_HZ:e}] Hz (CW-ToF cameras \
+                     modulate at 10-200 MHz, e.g. 16e6), got {f}{}",
+                    if f > 0.0 && f < 1e4 {
+                        " (MHz given for Hz?)"
+                    } else {
+                        ""
+                    }
+                ),
             ));
         }
         for (name, p, dim) in [
@@ -263,6 +271,12 @@ impl TofParams {
     }
 }
 
+/// Lowest modulation frequency accepted, Hz: below it the unambiguous range exceeds 1500 km, and
+/// a value this small is a unit slip (16 for 16 MHz gave ranges of 9.4e6 m).
+pub const MIN_MODULATION_HZ: f64 = 1e5;
+/// Highest modulation frequency accepted, Hz.
+pub const MAX_MODULATION_HZ: f64 = 1e10;
+
 impl TofParams {
     /// [`TofParams::validate`] plus the checks that need the input (image size, intrinsics).
     pub fn validate_for(&self, input: &TofInput) -> Result<()> {
@@ -277,6 +291,9 @@ impl TofParams {
         Ok(())
     }
 }
+
+/// How far outside [0, 2π) a phase sample may lie (radians): rounding and calibration offsets.
+pub const PHASE_TOLERANCE_RAD: f32 = 0.01;
 
 /// One CW-ToF frame: amplitude (arbitrary linear units) and phase (radians, wrapped to [0, 2π)).
 #[derive(Clone, Debug)]
@@ -300,6 +317,29 @@ impl TofInput {
             .ensure_channels(1)
             .and_then(|_| self.phase.ensure_finite())
             .map_err(|e| e.within("phase"))?;
+        // Radians wrapped to [0, 2π): degrees (up to 360) would otherwise be taken as radians
+        // and give plausible-looking wrong depths.
+        let (lo, hi) = self
+            .phase
+            .data()
+            .iter()
+            .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), &v| {
+                (lo.min(v), hi.max(v))
+            });
+        let tau = std::f32::consts::TAU;
+        if lo < -PHASE_TOLERANCE_RAD || hi > tau + PHASE_TOLERANCE_RAD {
+            return Err(MurkError::invalid(
+                "phase",
+                format!(
+                    "must be radians in [0, 2pi), got values in [{lo}, {hi}]{}",
+                    if hi > 7.0 {
+                        " (degrees? scale by pi/180, e.g. with Image.value_scale)"
+                    } else {
+                        ""
+                    }
+                ),
+            ));
+        }
         if self.amplitude.dims() != self.phase.dims() {
             return Err(MurkError::invalid(
                 "phase",
@@ -342,4 +382,38 @@ pub struct TofOutput {
     pub corrected_amplitude: ImageF32,
     /// Direct phase φ_d (Eq. 5.9), radians in [0, 2π).
     pub corrected_phase: ImageF32,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn input(phase: f32) -> TofInput {
+        TofInput {
+            amplitude: ImageF32::filled(8, 6, 1, 100.0),
+            phase: ImageF32::filled(8, 6, 1, phase),
+            intrinsics: None,
+        }
+    }
+
+    /// Unit slips are refused with the field named: MHz given for Hz, phase in degrees.
+    #[test]
+    fn unit_slips_are_refused_naming_the_field() {
+        let mhz = TofParams {
+            modulation_frequency_hz: 16.0,
+            ..TofParams::default()
+        };
+        let err = mhz.validate(64, 48).unwrap_err();
+        assert_eq!(err.field(), Some("modulation_frequency_hz"));
+        assert!(err.to_string().contains("MHz given for Hz"), "{err}");
+        assert!(TofParams::default().validate(64, 48).is_ok());
+
+        let err = input(180.0).validate().unwrap_err();
+        assert_eq!(err.field(), Some("phase"));
+        assert!(err.to_string().contains("degrees"), "{err}");
+        assert_eq!(input(-0.5).validate().unwrap_err().field(), Some("phase"));
+        // The ends of [0, 2π) and a rounding step past them are fine.
+        assert!(input(0.0).validate().is_ok());
+        assert!(input(std::f32::consts::TAU + 0.005).validate().is_ok());
+    }
 }
