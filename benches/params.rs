@@ -61,7 +61,18 @@ fn bench(c: &mut Criterion) {
                 .expect("fit")
         })
     });
-    g.bench_function("search_default_points_beta0", |b| {
+    g.bench_function("joint_fit", |b| {
+        let priors = murk::params::joint_fit::JointPriors {
+            airlight: 0.9,
+            airlight_sigma: 0.015,
+            gain_sigma: 0.2,
+            beta_start: 0.5,
+        };
+        b.iter(|| {
+            murk::params::joint_fit::fit_joint(&reference, &sources, &sparse, &priors).expect("fit")
+        })
+    });
+    g.bench_function("search_default_joint_fit", |b| {
         b.iter(|| {
             search_scattering(
                 &reference, &sources, &sparse, 0.9, &planes, &defaults, &monitor,
