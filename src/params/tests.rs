@@ -259,7 +259,7 @@ fn measure_search() {
     // MURK_WIDE=1: A ∈ [0.5, 1.0], median transmission ∈ [0.1, 0.4], β from the room (no
     // range imposed) — the protocol of docs/ACCURACY.md's unit-free table.
     let wide = std::env::var("MURK_WIDE").is_ok();
-    let mut identified = 0;
+    let (mut identified, mut beyond_2se) = (0, 0);
     for seed in seed0..seed0 + n {
         let cfg = if wide {
             MvsSimConfig {
@@ -324,9 +324,12 @@ fn measure_search() {
             depth_with(est.airlight, est.beta),
             depth_with(scene.airlight, scene.beta),
         );
-        identified += usize::from(
-            est.identifiability == crate::params::joint_fit::Identifiability::Identifiable,
-        );
+        let ok = est.identifiability == crate::params::joint_fit::Identifiability::Identifiable;
+        identified += usize::from(ok);
+        // Honest errors: how often an identifiable β is more than 2 standard errors off.
+        if let (true, Some(se)) = (ok, est.beta_std_error) {
+            beyond_2se += usize::from(f64::from((est.beta - scene.beta).abs()) > 2.0 * se);
+        }
         println!(
             "seed {seed}: A gt {:.3} A0 {a0:.3} A* {:.3} | β gt {:.3} β0 {:.3} β* {:.3} ({:?}, {:?}, se {:?}) | C.P. est {:.1} gt {:.1} | {:.2} s, {} pts",
             scene.airlight, est.airlight, scene.beta, est.beta_initial, est.beta,
@@ -353,7 +356,7 @@ fn measure_search() {
     }
     let k = n as f64;
     println!(
-        "MAE_A {:.4} (A0 alone {:.4}) MAE_β {:.4} C.P. est {:.1} % gt {:.1} % search {:.2} s/scene, identifiable {identified}/{n}",
+        "MAE_A {:.4} (A0 alone {:.4}) MAE_β {:.4} C.P. est {:.1} % gt {:.1} % search {:.2} s/scene, identifiable {identified}/{n} ({beyond_2se} of them > 2 SE off)",
         ea / k,
         ea_dcp / k,
         eb / k,
