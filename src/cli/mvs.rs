@@ -133,30 +133,20 @@ pub fn run(a: MvsArgs) -> anyhow::Result<()> {
     // The plane range from the model's points seen by the reference unless given (the API's
     // own default, 0.5…50, knows nothing of the scene or the model's unit); an unset count stays
     // 0 on the wire: the server picks about one plane per pixel of displacement.
+    let sparse = reference_sparse_depth(&model, &reference, PointSelection::ObservedInReference)?;
     let (near, far) = match (a.near, a.far) {
         (Some(n), Some(f)) => (n, f),
-        _ => {
-            let points =
-                selected_points(&model, &reference.name, PointSelection::ObservedInReference)?;
-            let sparse = SparseDepth::from_points(
-                &points,
-                &reference.intrinsics,
-                &reference.pose,
-                reference.image.width(),
-                reference.image.height(),
-            )?;
-            match plane_range_from_sparse(&sparse) {
-                Some((n, f)) => {
-                    println!(
-                        "planes over z {n:.4}..{f:.4} model units, from the {} SfM points seen \
+        _ => match plane_range_from_sparse(&sparse) {
+            Some((n, f)) => {
+                println!(
+                    "planes over z {n:.4}..{f:.4} model units, from the {} SfM points seen \
                          by the reference (--near/--far override)",
-                        sparse.len()
-                    );
-                    (n, f)
-                }
-                None => (0.0, 0.0),
+                    sparse.len()
+                );
+                (n, f)
             }
-        }
+            None => (0.0, 0.0),
+        },
     };
     request.near = near;
     request.far = far;
@@ -208,14 +198,6 @@ pub fn run(a: MvsArgs) -> anyhow::Result<()> {
             .with_context(|| format!("reading ground truth {}", gt_path.display()))?;
         // A model reconstructed by SfM from the simulator's images has its own unit: compare in
         // the ground truth's, the scale measured from the model's points.
-        let points = selected_points(&model, &reference.name, PointSelection::ObservedInReference)?;
-        let sparse = SparseDepth::from_points(
-            &points,
-            &reference.intrinsics,
-            &reference.pose,
-            reference.image.width(),
-            reference.image.height(),
-        )?;
         let scale = model_unit_in_scene_units(&sparse, &gt);
         let mut z = images.z_depth.clone();
         for v in z.data_mut() {
@@ -237,6 +219,23 @@ pub fn run(a: MvsArgs) -> anyhow::Result<()> {
         );
     }
     Ok(())
+}
+
+/// The sparse depth of Eq. 3.8: the model's points picked by `selection`, projected into the
+/// reference view.
+pub fn reference_sparse_depth(
+    model: &ColmapModel,
+    reference: &LoadedView,
+    selection: PointSelection,
+) -> anyhow::Result<SparseDepth> {
+    let points = selected_points(model, &reference.name, selection)?;
+    Ok(SparseDepth::from_points(
+        &points,
+        &reference.intrinsics,
+        &reference.pose,
+        reference.image.width(),
+        reference.image.height(),
+    )?)
 }
 
 /// Reads the reference and the source views (named, or the `num_sources` nearest cameras).

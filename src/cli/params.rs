@@ -14,13 +14,13 @@ use murk::mvs_io::{
     backproject, find_gt_depth, find_scene_metadata, model_unit_in_scene_units, unit_note,
     write_ply, LoadedView, PlyFormat,
 };
-use murk::params::sparse::{selected_points, PointSelection, SparseDepth};
+use murk::params::sparse::{selected_points, PointSelection};
 use murk::service::convert::params_request_to_proto;
 use murk::service::proto::v1 as pb;
 
 use super::mvs::{
-    load_views, print_metrics_header, print_metrics_row, run_here_or_remote, use_encoded_images,
-    write_mvs_result,
+    load_views, print_metrics_header, print_metrics_row, reference_sparse_depth,
+    run_here_or_remote, use_encoded_images, write_mvs_result,
 };
 
 /// Where the initial airlight comes from, as named on the command line.
@@ -143,13 +143,7 @@ pub fn run(a: ParamsArgs) -> anyhow::Result<()> {
     if points.is_empty() {
         bail!("the model has no 3D points");
     }
-    let sparse = SparseDepth::from_points(
-        &points,
-        &reference.intrinsics,
-        &reference.pose,
-        reference.image.width(),
-        reference.image.height(),
-    )?;
+    let sparse = reference_sparse_depth(&model, &reference, selection)?;
     println!(
         "{} SfM points project into {} pixels of the reference view",
         points.len(),
