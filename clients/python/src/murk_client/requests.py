@@ -37,6 +37,9 @@ _AIRLIGHT_SOURCES = {
     "dark_channel": params_pb2.AIRLIGHT_SOURCE_DARK_CHANNEL,
     "given": params_pb2.AIRLIGHT_SOURCE_GIVEN,
 }
+#: The modulation frequencies the server accepts, Hz.
+MIN_MODULATION_HZ = 1e5
+MAX_MODULATION_HZ = 1e10
 _PS_MODES = {"full": ps_pb2.PS_MODE_FULL, "backscatter_only": ps_pb2.PS_MODE_BACKSCATTER_ONLY}
 
 
@@ -92,11 +95,12 @@ def tof_depth_request(
     z-depth output; ``light_position_m`` (camera frame, metres) needs them.
     """
     f = _finite(modulation_frequency_hz, "request.tof_depth.modulation_frequency_hz", positive=True)
-    if f < 1e3:
-        # Catches MHz given for Hz (16 instead of 16e6), which would put every range at 9e6 m.
+    if not MIN_MODULATION_HZ <= f <= MAX_MODULATION_HZ:
+        # The server's own range (src/tof/params.rs), checked before the images are uploaded:
+        # 16 given for 16 MHz would put every range at 9e6 m.
         raise ClientInputError(
             "request.tof_depth.modulation_frequency_hz",
-            f"{f} Hz is not a ToF modulation frequency; it is in Hz (e.g. 16e6)",
+            f"must be in [1e5, 1e10] Hz (CW-ToF cameras modulate at 10-200 MHz, e.g. 16e6), got {f}",
         )
     if isinstance(phase, np.ndarray) and phase.dtype.kind == "f" and phase.size:
         hi = float(np.nanmax(phase))
