@@ -52,6 +52,7 @@ fn bench(c: &mut Criterion) {
         points_mm: points,
         normals: sim.gt_normals.clone(),
         mask: cap.mask.clone(),
+        emission: murk::ps::physics::FacetEmission::default(),
     };
     let object_pixels = cap.mask.iter().filter(|&&b| b).count();
     let mut g = c.benchmark_group(format!("ps_{w}x{h}_r{R}_{object_pixels}px"));

@@ -9,7 +9,7 @@ use murk::image::ImageF32;
 use murk::io::{write_colormap_png, write_exr, write_png_rgb8};
 use murk::metrics::mean_angular_error_deg;
 use murk::ps::mesh::{depth_mesh, encode_ply_mesh};
-use murk::ps::physics::FarField;
+use murk::ps::physics::{FacetEmission, FarField};
 use murk::ps::{PsMode, PsParams, PsResult};
 use murk::service::convert::{ps_from_result, ps_request_to_proto};
 use murk::service::proto::v1 as pb;
@@ -33,6 +33,24 @@ pub enum FarFieldArg {
     PerPixel,
     /// The reference's constant C = ε·Σ_q L_s(q) with ε from Eq. 4.53.
     ConstantEpsilon,
+}
+
+/// `--facet-emission`: how a surface facet radiates into the medium.
+#[derive(Clone, Copy, Debug, ValueEnum)]
+pub enum FacetEmissionArg {
+    /// L_s·dA·cos θ, the physics of a Lambertian surface (murk's default).
+    Lambertian,
+    /// L_s·dA in every direction: Eq. 4.41 as published.
+    Isotropic,
+}
+
+impl From<FacetEmissionArg> for FacetEmission {
+    fn from(a: FacetEmissionArg) -> Self {
+        match a {
+            FacetEmissionArg::Lambertian => FacetEmission::Lambertian,
+            FacetEmissionArg::Isotropic => FacetEmission::Isotropic,
+        }
+    }
 }
 
 /// Options of `murk ps`.
@@ -82,6 +100,9 @@ pub struct PsArgs {
     /// Model of the forward scatter from outside the support.
     #[arg(long, value_enum, default_value_t = FarFieldArg::PerPixel)]
     pub far_field: FarFieldArg,
+    /// How a facet radiates into the medium in the surface-camera forward scatter.
+    #[arg(long, value_enum, default_value_t = FacetEmissionArg::Lambertian)]
+    pub facet_emission: FacetEmissionArg,
 }
 
 /// Runs `murk ps`.
@@ -108,6 +129,7 @@ pub fn run(a: PsArgs) -> anyhow::Result<()> {
             FarFieldArg::PerPixel => FarField::PerPixel,
             FarFieldArg::ConstantEpsilon => FarField::ConstantEpsilon,
         },
+        facet_emission: a.facet_emission.into(),
         ..PsParams::default()
     };
     let mut request = ps_request_to_proto(&folder.capture, &params);

@@ -68,6 +68,9 @@ pub struct SimPsArgs {
     /// Far-field sampling stride of the forward-scatter sum (1 = exact, slower).
     #[arg(long, default_value_t = 2)]
     pub far_stride: usize,
+    /// How object facets radiate into the water in the surface-camera forward scatter.
+    #[arg(long, value_enum, default_value_t = crate::cli::ps::FacetEmissionArg::Lambertian)]
+    pub facet_emission: crate::cli::ps::FacetEmissionArg,
 }
 
 /// Options of `murk simulate mvs`.
@@ -175,6 +178,7 @@ fn simulate_ps_capture(a: &SimPsArgs) -> anyhow::Result<()> {
         textured: a.textured,
         noise_std: a.noise_std,
         far_stride: a.far_stride,
+        facet_emission: a.facet_emission.into(),
         ..PsSimConfig::with_size(a.width, a.height)
     };
     let started = std::time::Instant::now();

@@ -14,7 +14,9 @@ use crate::ps::integrate::{
     depth_from_log, integrate_normals, normals_from_depth, IntegrationParams,
 };
 use crate::ps::near_light::{solve_normals, ShadingModel};
-use crate::ps::physics::{FTable, FarField, ForwardKernel, GTable, KernelLayout, SurfaceGeometry};
+use crate::ps::physics::{
+    FTable, FacetEmission, FarField, ForwardKernel, GTable, KernelLayout, SurfaceGeometry,
+};
 
 /// Largest kernel support `r` accepted (an r×r window per pixel is stored; 201² f32 = 160 kB
 /// per object pixel).
@@ -66,6 +68,9 @@ pub struct PsParams {
     /// How the forward scatter from outside the support enters Eq. 4.52: the reference's
     /// constant ε (Eq. 4.53) or murk's per-pixel far field ([`FarField`]).
     pub far_field: FarField,
+    /// How a facet radiates into the medium in the surface-camera forward scatter: the
+    /// physical Lambertian cosine (default) or Eq. 4.41's isotropic facet ([`FacetEmission`]).
+    pub facet_emission: FacetEmission,
     /// Full model or the backscatter-only baseline.
     pub mode: PsMode,
     /// Apply the 3×3 median after backscatter subtraction (§4.3.4).
@@ -93,6 +98,7 @@ impl Default for PsParams {
             far_cell: DEFAULT_FAR_CELL,
             near_radius_px: DEFAULT_NEAR_RADIUS_PX,
             far_field: FarField::default(),
+            facet_emission: FacetEmission::default(),
             max_iterations: 5,
             tolerance: 1e-3,
             mode: PsMode::Full,
@@ -401,6 +407,7 @@ pub fn photometric_stereo(
                     points_mm: points.clone(),
                     normals: shape_normals.clone(),
                     mask: mask.clone(),
+                    emission: params.facet_emission,
                 };
                 let kernel = ForwardKernel::build_monitored(
                     ft,

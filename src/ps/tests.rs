@@ -2,7 +2,7 @@
 
 use crate::metrics::mean_angular_error_deg;
 use crate::monitor::Monitor;
-use crate::ps::physics::FarField;
+use crate::ps::physics::{FacetEmission, FarField};
 use crate::ps::{photometric_stereo, PsMode, PsParams};
 use crate::simulate::ps::{simulate_ps, PsShape, PsSimConfig};
 
@@ -79,14 +79,21 @@ fn reference_table_full_size() {
         .ok()
         .and_then(|v| v.parse().ok())
         .unwrap_or(300);
+    // MURK_PS_SIM_EMISSION=isotropic renders with Eq. 4.41's facet instead of the physical one.
+    let facet_emission = match std::env::var("MURK_PS_SIM_EMISSION").as_deref() {
+        Ok("isotropic") => FacetEmission::Isotropic,
+        _ => FacetEmission::Lambertian,
+    };
     let cfg = PsSimConfig {
         shape,
+        facet_emission,
         ..PsSimConfig::with_size(side, side)
     };
     let t0 = std::time::Instant::now();
     let sim = simulate_ps(&cfg, &Monitor::noop()).unwrap();
     eprintln!(
-        "{shape:?} {side}x{side}: {} object px, simulated in {:.1} s, initial plane {:.1} mm",
+        "{shape:?} {side}x{side} ({facet_emission:?} facets): {} object px, simulated in {:.1} s, \
+         initial plane {:.1} mm",
         sim.capture.mask.iter().filter(|&&b| b).count(),
         t0.elapsed().as_secs_f64(),
         sim.initial_distance_mm
@@ -126,6 +133,13 @@ fn reference_table_full_size() {
     };
     let variants = [
         ("full, exact G (murk default)", PsParams { ..base.clone() }),
+        (
+            "full, Eq. 4.41 isotropic facet",
+            PsParams {
+                facet_emission: FacetEmission::Isotropic,
+                ..base.clone()
+            },
+        ),
         (
             "full, Eq. 4.55 linear G (as published)",
             PsParams {
@@ -380,6 +394,7 @@ fn experiment_error_floors() {
         points_mm: pts.clone(),
         normals: sim.gt_normals.clone(),
         mask: mask.clone(),
+        emission: FacetEmission::default(),
     };
     let kernel = ForwardKernel::build(FTable::global(), &cap.medium, &geom, r).unwrap();
     let masked: Vec<usize> = (0..w * h).filter(|&p| mask[p]).collect();
@@ -506,6 +521,7 @@ fn experiment_kernel_build_time() {
             points_mm: back_project(&cap.intrinsics, w, &depth, &cap.mask),
             normals,
             mask: cap.mask.clone(),
+            emission: FacetEmission::default(),
         };
         let t = std::time::Instant::now();
         let k = ForwardKernel::build(FTable::global(), &cap.medium, &geom, r).unwrap();

@@ -50,8 +50,8 @@ use crate::io::{self, DecodeLimits};
 use crate::monitor::Monitor;
 use crate::ps::capture::{PointLight, PsCapture};
 use crate::ps::physics::{
-    backscatter, dense_forward_scatter, source_surface_forward, FTable, GTable, Medium,
-    SurfaceGeometry,
+    backscatter, dense_forward_scatter, source_surface_forward, FTable, FacetEmission, GTable,
+    Medium, SurfaceGeometry,
 };
 use crate::simulate::IntrinsicsJson;
 
@@ -110,6 +110,10 @@ pub struct PsSimConfig {
     pub far_stride: usize,
     /// Seed of the light intensities, the texture phase and the noise.
     pub seed: u64,
+    /// How object facets radiate into the medium in the surface-camera forward scatter: the
+    /// physical Lambertian cosine (default) or Eq. 4.41's isotropic facet.
+    #[serde(default)]
+    pub facet_emission: FacetEmission,
 }
 
 impl Default for PsSimConfig {
@@ -133,6 +137,7 @@ impl Default for PsSimConfig {
             noise_std: 0.0,
             far_stride: 2,
             seed: 0,
+            facet_emission: FacetEmission::default(),
         }
     }
 }
@@ -530,6 +535,7 @@ pub fn simulate_ps(cfg: &PsSimConfig, monitor: &Monitor) -> Result<PsSimCapture>
         points_mm: points,
         normals: gt_normals.clone(),
         mask: mask.clone(),
+        emission: cfg.facet_emission,
     };
     let refs: Vec<&[f32]> = gt_reflected.iter().map(Vec::as_slice).collect();
     let forward = if scattering {

@@ -15,6 +15,13 @@
 //! 1/(1 + τ²) ≈ 1 − τ² + τ⁴ in F = ∫₀^{tan v} e^{−uτ}/(1 + τ²) dτ, whose error is below
 //! 720/u⁷ ≤ 1.6·10⁻⁷ there. Arguments are clamped: u < 0 reads as 0, v outside [0, π/2] as the
 //! nearest end.
+//!
+//! The same grid also holds, built on first use, the two weighted companions that the
+//! Lambertian facet's forward scatter needs ([`super::facet_emission`]):
+//! F_c(u, v) = ∫₀^v e^{−u tan ξ} cos 2ξ dξ and F_s(u, v) = ∫₀^v e^{−u tan ξ} sin 2ξ dξ. Their
+//! integrands are bounded by F's, so the grid's accuracy carries over; beyond [`U_MAX`] they use
+//! the same asymptotic expansion with (1 − τ²)/(1 + τ²)² and 2τ/(1 + τ²)² in place of
+//! 1/(1 + τ²).
 
 use std::f64::consts::FRAC_PI_2;
 use std::sync::OnceLock;
@@ -40,6 +47,8 @@ pub struct FTable {
     sv_scale: f64,
     /// Row-major, `values[i·nv + j] = F(u_i, v_j)`.
     values: Vec<f32>,
+    /// Row-major `[F_c, F_s]` on the same grid, built on first use (module documentation).
+    facet: OnceLock<Vec<[f32; 2]>>,
 }
 
 /// u at grid index i.
@@ -80,7 +89,34 @@ impl FTable {
             su_scale: (nu - 1) as f64 / U_MAX.sqrt(),
             sv_scale: (nv - 1) as f64,
             values,
+            facet: OnceLock::new(),
         }
+    }
+
+    /// `[F_c, F_s]` at every grid node, integrated like F (8-point Gauss–Legendre per cell).
+    fn facet_values(&self) -> &[[f32; 2]] {
+        self.facet.get_or_init(|| {
+            let (nu, nv) = (self.nu, self.nv);
+            let rule = quad::gauss_legendre(8);
+            let mut values = vec![[0f32; 2]; nu * nv];
+            values.par_chunks_mut(nv).enumerate().for_each(|(i, row)| {
+                let u = u_at(i, nu);
+                let (mut acc_c, mut acc_s) = (0.0f64, 0.0f64);
+                let mut v0 = 0.0;
+                for (j, slot) in row.iter_mut().enumerate().skip(1) {
+                    let v1 = v_at(j, nv);
+                    acc_c += quad::gl_apply(&rule, v0, v1, &mut |xi| {
+                        integrand(u, xi) * (2.0 * xi).cos()
+                    });
+                    acc_s += quad::gl_apply(&rule, v0, v1, &mut |xi| {
+                        integrand(u, xi) * (2.0 * xi).sin()
+                    });
+                    *slot = [acc_c as f32, acc_s as f32];
+                    v0 = v1;
+                }
+            });
+            values
+        })
     }
 
     /// The process-wide table (2048 × 1024, 8 MiB), built on first use (~0.1 s).
@@ -89,9 +125,13 @@ impl FTable {
         T.get_or_init(|| FTable::new(DEFAULT_NU, DEFAULT_NV))
     }
 
-    /// Memory held by the table, bytes.
+    /// Memory held by the table (and its facet companions once built), bytes.
     pub fn bytes(&self) -> usize {
         self.values.len() * std::mem::size_of::<f32>()
+            + self
+                .facet
+                .get()
+                .map_or(0, |f| f.len() * std::mem::size_of::<[f32; 2]>())
     }
 
     /// Fractional u index, clamped to the table.
@@ -139,6 +179,69 @@ impl FTable {
         let iu = self.u_index(u);
         self.bilinear(iu, self.v_index(v2)) - self.bilinear(iu, self.v_index(v1))
     }
+
+    /// [F_c(u, v2) − F_c(u, v1), F_s(u, v2) − F_s(u, v1)] (module documentation), sharing the
+    /// index computations between both tables and both ends. The first call builds the
+    /// companions (about twice F's build time).
+    #[inline]
+    pub fn eval_facet_diff(&self, u: f64, v1: f64, v2: f64) -> [f64; 2] {
+        if u > U_MAX {
+            return [
+                series_asymptotic(u, v2, &FC_SERIES) - series_asymptotic(u, v1, &FC_SERIES),
+                series_asymptotic(u, v2, &FS_SERIES) - series_asymptotic(u, v1, &FS_SERIES),
+            ];
+        }
+        let t = self.facet_values();
+        let iu = self.u_index(u);
+        let b = |(j, fv): (usize, f64)| -> [f64; 2] {
+            let r0 = iu.0 * self.nv + j;
+            let r1 = r0 + self.nv;
+            let mut out = [0.0; 2];
+            for (k, o) in out.iter_mut().enumerate() {
+                let a = t[r0][k] as f64 + fv * (t[r0 + 1][k] - t[r0][k]) as f64;
+                let c = t[r1][k] as f64 + fv * (t[r1 + 1][k] - t[r1][k]) as f64;
+                *o = a + iu.1 * (c - a);
+            }
+            out
+        };
+        let (hi, lo) = (b(self.v_index(v2)), b(self.v_index(v1)));
+        [hi[0] - lo[0], hi[1] - lo[1]]
+    }
+
+    /// [F_c(u, v), F_s(u, v)], interpolated (asymptotic beyond [`U_MAX`]).
+    pub fn eval_facet(&self, u: f64, v: f64) -> [f64; 2] {
+        self.eval_facet_diff(u, 0.0, v)
+    }
+}
+
+/// Taylor coefficients in τ = tan ξ of (1 − τ²)/(1 + τ²)² = Σ (−1)^k (2k+1) τ^{2k}, the weight of
+/// F_c after dξ = dτ/(1 + τ²).
+const FC_SERIES: [f64; 7] = [1.0, 0.0, -3.0, 0.0, 5.0, 0.0, -7.0];
+/// The same for 2τ/(1 + τ²)² = Σ (−1)^k 2(k+1) τ^{2k+1}, the weight of F_s.
+const FS_SERIES: [f64; 7] = [0.0, 2.0, 0.0, -4.0, 0.0, 6.0, 0.0];
+
+/// ∫₀^{tan v} Σ_k c_k τ^k e^{−uτ} dτ for large u (the tail of an alternating series, bounded by
+/// its first omitted term: ≤ 8·7!/u⁸ ≈ 4·10⁻⁷ at u = [`U_MAX`] for both series above).
+fn series_asymptotic(u: f64, v: f64, coeffs: &[f64; 7]) -> f64 {
+    let tau = v.clamp(0.0, FRAC_PI_2).tan();
+    let w = u * tau;
+    let e = if w < 700.0 { (-w).exp() } else { 0.0 };
+    // ∫₀^τ t^k e^{−ut} dt = k!/u^{k+1}·(1 − e^{−w} Σ_{i≤k} wⁱ/i!).
+    let (mut term, mut partial, mut fact, mut upow) = (1.0, 1.0, 1.0, u);
+    let mut total = 0.0;
+    for (k, &c) in coeffs.iter().enumerate() {
+        if k > 0 {
+            term *= w / k as f64;
+            partial += term;
+            fact *= k as f64;
+            upow *= u;
+        }
+        if c != 0.0 {
+            let tail = if e == 0.0 { 1.0 } else { 1.0 - e * partial };
+            total += c * fact / upow * tail;
+        }
+    }
+    total
 }
 
 #[inline(always)]
@@ -182,6 +285,16 @@ pub fn f_quadrature(u: f64, v: f64) -> f64 {
     quad::adaptive(&mut |xi| integrand(u, xi), 0.0, v, 1e-13)
 }
 
+/// [F_c(u, v), F_s(u, v)] by adaptive quadrature to ~1e-13 absolute: the reference the facet
+/// companions are tested against. Same clamping as [`FTable::eval`].
+pub fn facet_quadrature(u: f64, v: f64) -> [f64; 2] {
+    let (u, v) = (u.max(0.0), v.clamp(0.0, FRAC_PI_2));
+    [
+        quad::adaptive(&mut |xi| integrand(u, xi) * (2.0 * xi).cos(), 0.0, v, 1e-13),
+        quad::adaptive(&mut |xi| integrand(u, xi) * (2.0 * xi).sin(), 0.0, v, 1e-13),
+    ]
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -215,6 +328,43 @@ mod tests {
         }
         eprintln!(
             "F table worst abs error {:.2e} at u={} v={}",
+            worst.0, worst.1, worst.2
+        );
+        assert!(worst.0 < TOL, "{worst:?}");
+    }
+
+    /// The facet companions meet F's accuracy over the same grid, including the corner and the
+    /// asymptotic region; F_s has the closed form 1 − cos²v·e^{−u tan v} − u·F(u, v)
+    /// (integration by parts), which checks the quadrature reference itself.
+    #[test]
+    fn facet_companions_match_quadrature_and_closed_form() {
+        let t = FTable::global();
+        let mut worst = (0.0f64, 0.0, 0.0);
+        for &u in &[
+            0.0, 1e-6, 1e-3, 0.01, 0.1, 0.5, 1.0, 3.0, 15.0, 23.9, 24.1, 40.0, 300.0,
+        ] {
+            for k in 0..=30 {
+                let frac = k as f64 / 30.0;
+                for v in [FRAC_PI_2 * frac, FRAC_PI_2 * (1.0 - 1e-3 * frac)] {
+                    let q = facet_quadrature(u, v);
+                    let closed =
+                        1.0 - v.cos().powi(2) * (-u * v.tan()).exp() - u * f_quadrature(u, v);
+                    assert!(
+                        (q[1] - closed).abs() < 1e-9,
+                        "F_s closed form at u={u} v={v}"
+                    );
+                    let got = t.eval_facet(u, v);
+                    for c in 0..2 {
+                        let e = (got[c] - q[c]).abs();
+                        if e > worst.0 {
+                            worst = (e, u, v);
+                        }
+                    }
+                }
+            }
+        }
+        eprintln!(
+            "facet tables worst abs error {:.2e} at u={} v={}",
             worst.0, worst.1, worst.2
         );
         assert!(worst.0 < TOL, "{worst:?}");

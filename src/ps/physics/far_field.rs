@@ -24,9 +24,8 @@
 
 use rayon::prelude::*;
 
-use super::f_table::FTable;
-use super::forward_kernel::{k_entry_fast, Pre};
-use super::{KernelLayout, Medium};
+use super::forward_kernel::{k_entry_fast, Physics, Pre};
+use super::KernelLayout;
 use crate::monitor::Monitor;
 
 /// How the forward scatter from outside the support S(p) enters the system of Eq. 4.52.
@@ -116,15 +115,14 @@ fn aggregate(
 /// into their s-cells. Cost: about (object area / 81 px²) + 4·(r/9 + 2)·(9/s)² evaluations
 /// per s-cell.
 pub(super) fn outside_support_kappa(
-    ft: &FTable,
-    medium: &Medium,
+    ph: &Physics,
     pre: &[Pre],
     mask: &[bool],
     (w, h): (usize, usize),
     layout: &KernelLayout,
     monitor: &Monitor,
 ) -> Vec<f64> {
-    let (beta, sigma) = (medium.beta_per_mm, medium.sigma_per_mm);
+    let sigma = ph.sigma;
     let s = layout.cell().max(1);
     let half_cells = layout.far_cells();
     let m = outer_cell_multiple(mask_extent(mask, w), s);
@@ -150,7 +148,7 @@ pub(super) fn outside_support_kappa(
                 let (ox0, oy0) = (((o % ow) * m) as isize, ((o / ow) * m) as isize);
                 let (ox1, oy1) = (ox0 + m as isize - 1, oy0 + m as isize - 1);
                 if ox1 < x0 || ox0 > x1 || oy1 < y0 || oy0 > y1 {
-                    num += k_entry_fast(ft, beta, sigma, &p, q);
+                    num += k_entry_fast(ph, &p, q);
                     den += q.da;
                     continue;
                 }
@@ -163,7 +161,7 @@ pub(super) fn outside_support_kappa(
                             continue;
                         }
                         if let Some(q) = &fine[fy as usize * fw + fx as usize] {
-                            num += k_entry_fast(ft, beta, sigma, &p, q);
+                            num += k_entry_fast(ph, &p, q);
                             den += q.da;
                         }
                     }

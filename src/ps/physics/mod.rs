@@ -5,7 +5,8 @@
 //! ([`f_table`]), the `H` functions of Eq. 4.34–4.36 and the point-source scatter integral
 //! ([`h`]), the backscatter of Eq. 4.32/4.33 ([`backscatter`]), the `G` table of Eq. 4.40 with the
 //! source-surface forward scatter of Eq. 4.39 ([`g_table`]), and the surface-camera forward
-//! scatter kernel of Eq. 4.41–4.53 ([`forward_kernel`]).
+//! scatter kernel of Eq. 4.41–4.53 ([`forward_kernel`]) with the facet's emission model
+//! ([`facet_emission`]: Eq. 4.41's isotropic facet or the Lambertian cosine).
 //!
 //! Conventions: camera at the origin, +x right, +y down, +z forward; lengths in mm; β and σ per
 //! mm; isotropic phase function P = 1/(4π); unit normals point towards the camera.
@@ -14,6 +15,7 @@ use crate::error::{MurkError, Result};
 
 pub mod backscatter;
 pub mod f_table;
+pub mod facet_emission;
 pub mod far_field;
 pub mod forward_kernel;
 pub mod g_table;
@@ -22,7 +24,8 @@ pub mod kernel_layout;
 pub(crate) mod quad;
 
 pub use backscatter::{backscatter, backscatter_quadrature};
-pub use f_table::{f_quadrature, FTable};
+pub use f_table::{f_quadrature, facet_quadrature, FTable};
+pub use facet_emission::FacetEmission;
 pub use far_field::FarField;
 pub use forward_kernel::{
     dense_forward_scatter, kernel_entry, pixel_solid_angle, ForwardKernel, SurfaceGeometry,

@@ -5,7 +5,7 @@ use super::image::{image_from_proto, image_to_proto, mono_image_from_proto, Imag
 use super::tof::{intrinsics_from_proto, intrinsics_to_proto};
 use crate::error::{MurkError, Result};
 use crate::image::ImageF32;
-use crate::ps::physics::{FarField, Medium};
+use crate::ps::physics::{FacetEmission, FarField, Medium};
 use crate::ps::{validate_request, PointLight, PsCapture, PsMode, PsParams, PsResult};
 use crate::service::proto::v1 as pb;
 
@@ -203,6 +203,17 @@ fn params_from_proto(
             ))
         }
     };
+    let facet_emission = match pb::PsFacetEmission::try_from(req.facet_emission) {
+        Ok(pb::PsFacetEmission::Unspecified) => d.facet_emission,
+        Ok(pb::PsFacetEmission::Lambertian) => FacetEmission::Lambertian,
+        Ok(pb::PsFacetEmission::Isotropic) => FacetEmission::Isotropic,
+        Err(_) => {
+            return Err(MurkError::invalid(
+                "facet_emission",
+                format!("unknown facet emission model {}", req.facet_emission),
+            ))
+        }
+    };
     Ok(PsParams {
         initial_distance_mm: req.initial_distance_mm,
         initial_depth_mm: None,
@@ -240,6 +251,7 @@ fn params_from_proto(
         },
         max_kernel_bytes,
         far_field,
+        facet_emission,
     })
 }
 
@@ -263,12 +275,32 @@ pub fn canonicalize_ps_request(req: &mut pb::PhotometricStereoRequest) {
     if req.mode == pb::PsMode::Unspecified as i32 {
         req.mode = pb::PsMode::Full as i32;
     }
+    if req.far_field == pb::PsFarField::Unspecified as i32 {
+        req.far_field = far_field_to_proto(d.far_field) as i32;
+    }
+    if req.facet_emission == pb::PsFacetEmission::Unspecified as i32 {
+        req.facet_emission = facet_emission_to_proto(d.facet_emission) as i32;
+    }
     req.tolerance.get_or_insert(d.tolerance);
     req.smoothness_s.get_or_insert(d.smoothness_s);
     req.shadow_ratio.get_or_insert(d.shadow_ratio);
     req.solver_tolerance.get_or_insert(d.solver.rel_tolerance);
     req.solver_max_iterations
         .get_or_insert(d.solver.max_iterations as u32);
+}
+
+fn far_field_to_proto(f: FarField) -> pb::PsFarField {
+    match f {
+        FarField::PerPixel => pb::PsFarField::PerPixel,
+        FarField::ConstantEpsilon => pb::PsFarField::ConstantEpsilon,
+    }
+}
+
+fn facet_emission_to_proto(e: FacetEmission) -> pb::PsFacetEmission {
+    match e {
+        FacetEmission::Lambertian => pb::PsFacetEmission::Lambertian,
+        FacetEmission::Isotropic => pb::PsFacetEmission::Isotropic,
+    }
 }
 
 /// A request for `capture` (clients: CLI, demo, tests, benchmarks). Images travel as raw f32.
@@ -323,10 +355,8 @@ pub fn ps_request_to_proto(capture: &PsCapture, params: &PsParams) -> pb::Photom
         solver_max_iterations: Some(params.solver.max_iterations as u32),
         return_iteration_normals: false,
         linear_g: !params.exact_g,
-        far_field: match params.far_field {
-            FarField::PerPixel => pb::PsFarField::PerPixel,
-            FarField::ConstantEpsilon => pb::PsFarField::ConstantEpsilon,
-        } as i32,
+        far_field: far_field_to_proto(params.far_field) as i32,
+        facet_emission: facet_emission_to_proto(params.facet_emission) as i32,
         initial_depth_mm: params.initial_depth_mm.as_ref().map(|d| {
             image_to_proto(
                 &ImageF32::from_vec(w, h, 1, d.clone())

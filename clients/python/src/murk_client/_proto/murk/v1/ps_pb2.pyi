@@ -20,6 +20,31 @@ else:
 
 DESCRIPTOR: _descriptor.FileDescriptor
 
+class _PsFacetEmission:
+    ValueType = _typing.NewType("ValueType", _builtins.int)
+    V: _TypeAlias = ValueType  # noqa: Y015
+
+class _PsFacetEmissionEnumTypeWrapper(_enum_type_wrapper._EnumTypeWrapper[_PsFacetEmission.ValueType], _builtins.type):
+    DESCRIPTOR: _descriptor.EnumDescriptor
+    PS_FACET_EMISSION_UNSPECIFIED: _PsFacetEmission.ValueType  # 0
+    PS_FACET_EMISSION_LAMBERTIAN: _PsFacetEmission.ValueType  # 1
+    """murk's default, the physics of a Lambertian surface: a facet's radiant intensity toward a
+    scattering point is L_s dA cos(theta), theta measured from the facet normal.
+    """
+    PS_FACET_EMISSION_ISOTROPIC: _PsFacetEmission.ValueType  # 2
+    """The reference as published (Eq. 4.41): the facet radiates L_s dA in every direction."""
+
+class PsFacetEmission(_PsFacetEmission, metaclass=_PsFacetEmissionEnumTypeWrapper): ...
+
+PS_FACET_EMISSION_UNSPECIFIED: PsFacetEmission.ValueType  # 0
+PS_FACET_EMISSION_LAMBERTIAN: PsFacetEmission.ValueType  # 1
+"""murk's default, the physics of a Lambertian surface: a facet's radiant intensity toward a
+scattering point is L_s dA cos(theta), theta measured from the facet normal.
+"""
+PS_FACET_EMISSION_ISOTROPIC: PsFacetEmission.ValueType  # 2
+"""The reference as published (Eq. 4.41): the facet radiates L_s dA in every direction."""
+Global___PsFacetEmission: _TypeAlias = PsFacetEmission  # noqa: Y015
+
 class _PsFarField:
     ValueType = _typing.NewType("ValueType", _builtins.int)
     V: _TypeAlias = ValueType  # noqa: Y015
@@ -104,6 +129,7 @@ class PhotometricStereoRequest(_message.Message):
     NEAR_RADIUS_PX_FIELD_NUMBER: _builtins.int
     AUTO_SUPPORT_FIELD_NUMBER: _builtins.int
     FAR_FIELD_FIELD_NUMBER: _builtins.int
+    FACET_EMISSION_FIELD_NUMBER: _builtins.int
     beta_per_mm: _builtins.float
     """Scattering coefficient beta, per mm, finite and >= 0."""
     sigma_per_mm: _builtins.float
@@ -162,6 +188,10 @@ class PhotometricStereoRequest(_message.Message):
     """
     far_field: Global___PsFarField.ValueType
     """How the forward scatter from outside the support enters Eq. 4.52. UNSPECIFIED = PER_PIXEL."""
+    facet_emission: Global___PsFacetEmission.ValueType
+    """How a surface facet radiates into the medium in the surface-camera forward scatter.
+    UNSPECIFIED = LAMBERTIAN.
+    """
     @_builtins.property
     def lights(self) -> _containers.RepeatedCompositeFieldContainer[Global___PsLight]:
         """One entry per light, 3 to 64. Every image must be single-channel and have the same size as
@@ -207,10 +237,11 @@ class PhotometricStereoRequest(_message.Message):
         near_radius_px: _builtins.int = ...,
         auto_support: _builtins.bool = ...,
         far_field: Global___PsFarField.ValueType = ...,
+        facet_emission: Global___PsFacetEmission.ValueType = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["_shadow_ratio", b"_shadow_ratio", "_smoothness_s", b"_smoothness_s", "_solver_max_iterations", b"_solver_max_iterations", "_solver_tolerance", b"_solver_tolerance", "_tolerance", b"_tolerance", "initial_depth_mm", b"initial_depth_mm", "intrinsics", b"intrinsics", "mask", b"mask", "shadow_ratio", b"shadow_ratio", "smoothness_s", b"smoothness_s", "solver_max_iterations", b"solver_max_iterations", "solver_tolerance", b"solver_tolerance", "tolerance", b"tolerance"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["_shadow_ratio", b"_shadow_ratio", "_smoothness_s", b"_smoothness_s", "_solver_max_iterations", b"_solver_max_iterations", "_solver_tolerance", b"_solver_tolerance", "_tolerance", b"_tolerance", "auto_support", b"auto_support", "beta_per_mm", b"beta_per_mm", "far_cell", b"far_cell", "far_field", b"far_field", "initial_depth_mm", b"initial_depth_mm", "initial_distance_mm", b"initial_distance_mm", "intrinsics", b"intrinsics", "lights", b"lights", "linear_g", b"linear_g", "mask", b"mask", "max_iterations", b"max_iterations", "mode", b"mode", "near_radius_px", b"near_radius_px", "no_median_filter", b"no_median_filter", "return_iteration_normals", b"return_iteration_normals", "shadow_ratio", b"shadow_ratio", "sigma_per_mm", b"sigma_per_mm", "smoothness_s", b"smoothness_s", "solver_max_iterations", b"solver_max_iterations", "solver_tolerance", b"solver_tolerance", "support_r", b"support_r", "tolerance", b"tolerance"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["_shadow_ratio", b"_shadow_ratio", "_smoothness_s", b"_smoothness_s", "_solver_max_iterations", b"_solver_max_iterations", "_solver_tolerance", b"_solver_tolerance", "_tolerance", b"_tolerance", "auto_support", b"auto_support", "beta_per_mm", b"beta_per_mm", "facet_emission", b"facet_emission", "far_cell", b"far_cell", "far_field", b"far_field", "initial_depth_mm", b"initial_depth_mm", "initial_distance_mm", b"initial_distance_mm", "intrinsics", b"intrinsics", "lights", b"lights", "linear_g", b"linear_g", "mask", b"mask", "max_iterations", b"max_iterations", "mode", b"mode", "near_radius_px", b"near_radius_px", "no_median_filter", b"no_median_filter", "return_iteration_normals", b"return_iteration_normals", "shadow_ratio", b"shadow_ratio", "sigma_per_mm", b"sigma_per_mm", "smoothness_s", b"smoothness_s", "solver_max_iterations", b"solver_max_iterations", "solver_tolerance", b"solver_tolerance", "support_r", b"support_r", "tolerance", b"tolerance"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     _WhichOneofReturnType__shadow_ratio: _TypeAlias = _typing.Literal["shadow_ratio"]  # noqa: Y015
     _WhichOneofArgType__shadow_ratio: _TypeAlias = _typing.Literal["_shadow_ratio", b"_shadow_ratio"]  # noqa: Y015
