@@ -166,9 +166,17 @@ async fn bad_requests_name_the_field_and_nothing_is_queued() {
         ),
         ("beta_per_mm", Box::new(|r| r.beta_per_mm = -1e-3)),
         ("beta_per_mm", Box::new(|r| r.beta_per_mm = f64::NAN)),
+        // 0 means "unknown, estimate it", which a fixed distance cannot use.
         (
             "initial_distance_mm",
-            Box::new(|r| r.initial_distance_mm = 0.0),
+            Box::new(|r| {
+                r.initial_distance_mm = 0.0;
+                r.fix_distance = true;
+            }),
+        ),
+        (
+            "initial_distance_mm",
+            Box::new(|r| r.initial_distance_mm = -5.0),
         ),
         (
             "initial_distance_mm",
@@ -182,6 +190,7 @@ async fn bad_requests_name_the_field_and_nothing_is_queued() {
         ("intrinsics", Box::new(|r| r.intrinsics = None)),
         ("mode", Box::new(|r| r.mode = 42)),
         ("far_field", Box::new(|r| r.far_field = 42)),
+        ("facet_emission", Box::new(|r| r.facet_emission = 42)),
         ("smoothness_s", Box::new(|r| r.smoothness_s = Some(-1.0))),
         ("shadow_ratio", Box::new(|r| r.shadow_ratio = Some(1.5))),
         (

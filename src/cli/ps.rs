@@ -10,6 +10,7 @@ use murk::io::{write_colormap_png, write_exr, write_png_rgb8};
 use murk::metrics::mean_angular_error_deg;
 use murk::ps::mesh::{depth_mesh, encode_ply_mesh};
 use murk::ps::physics::{FacetEmission, FarField};
+use murk::ps::DistanceMode;
 use murk::ps::{PsMode, PsParams, PsResult};
 use murk::service::convert::{ps_from_result, ps_request_to_proto};
 use murk::service::proto::v1 as pb;
@@ -67,7 +68,9 @@ pub struct PsArgs {
     #[arg(long)]
     pub server: Option<String>,
     /// z-distance of the initial plane, mm: the mean z-depth of the object's visible surface
-    /// (default: meta.json's initial_distance_mm). It sets the absolute scale of the depth.
+    /// (default: meta.json's initial_distance_mm; without either murk searches for it). murk
+    /// fits the distance to the lights' 1/d² fall-off, so this is a starting guess unless
+    /// --fix-distance is given.
     #[arg(long)]
     pub initial_distance_mm: Option<f64>,
     /// Kernel support r (odd).
@@ -103,16 +106,29 @@ pub struct PsArgs {
     /// How a facet radiates into the medium in the surface-camera forward scatter.
     #[arg(long, value_enum, default_value_t = FacetEmissionArg::Lambertian)]
     pub facet_emission: FacetEmissionArg,
+    /// Keep the mean depth at --initial-distance-mm instead of estimating it (the reference as
+    /// published).
+    #[arg(long)]
+    pub fix_distance: bool,
+    /// Do not add back the backscatter beyond the surface that the no-object image's
+    /// subtraction removed in excess (the reference as published).
+    #[arg(long)]
+    pub no_backscatter_tail: bool,
 }
 
 /// Runs `murk ps`.
 pub fn run(a: PsArgs) -> anyhow::Result<()> {
     let folder = read_ps_capture(&a.capture)
         .with_context(|| format!("reading capture {}", a.capture.display()))?;
-    let initial = a
-        .initial_distance_mm
-        .or(folder.initial_distance_mm)
-        .context("no initial distance: pass --initial-distance-mm (meta.json has none)")?;
+    let initial = a.initial_distance_mm.or(folder.initial_distance_mm);
+    if initial.is_none() {
+        anyhow::ensure!(
+            !a.fix_distance,
+            "--fix-distance needs a distance: pass --initial-distance-mm (meta.json has none)"
+        );
+        println!("no initial distance given: murk searches for it from the lights' fall-off");
+    }
+    let initial = initial.unwrap_or(0.0);
     let params = PsParams {
         initial_distance_mm: initial,
         support_r: a.support_r,
@@ -130,6 +146,12 @@ pub fn run(a: PsArgs) -> anyhow::Result<()> {
             FarFieldArg::ConstantEpsilon => FarField::ConstantEpsilon,
         },
         facet_emission: a.facet_emission.into(),
+        backscatter_tail: !a.no_backscatter_tail,
+        distance: if a.fix_distance {
+            DistanceMode::Fixed
+        } else {
+            DistanceMode::Estimate
+        },
         ..PsParams::default()
     };
     let mut request = ps_request_to_proto(&folder.capture, &params);
@@ -158,6 +180,7 @@ pub fn run(a: PsArgs) -> anyhow::Result<()> {
         "kernel support r = {} px, far cell {} px",
         out.support_r, out.far_cell
     );
+    print_distance(&out);
     println!(
         "job {}{}: {:.2} s; wrote {}",
         job.id,
@@ -226,6 +249,43 @@ pub fn write_ps_result(
     std::fs::write(dir.join("mesh.ply"), encode_ply_mesh(&v, &n, &f))
         .with_context(|| format!("writing {}", dir.join("mesh.ply").display()))?;
     Ok(())
+}
+
+/// Says where the object's distance came from and warns when a fit hit its search range.
+pub fn print_distance(out: &PsResult) {
+    if let Some(f) = &out.initial_distance_fit {
+        println!(
+            "initial distance searched: {:.1} mm ({} px){}",
+            f.mean_depth_mm,
+            f.pixels,
+            if f.at_bound {
+                " — at the end of the search range, the distance is not reliable"
+            } else {
+                ""
+            }
+        );
+    }
+    let fits: Vec<_> = out
+        .iterations
+        .iter()
+        .filter_map(|s| s.distance_fit)
+        .collect();
+    match fits.last() {
+        None => println!("distance fixed at the initial distance (not estimated)"),
+        Some(f) => {
+            println!(
+                "distance fitted to the lights' 1/d² fall-off: mean z {:.1} mm (relative residual \
+                 {:.2e}, {} px)",
+                f.mean_depth_mm, f.objective, f.pixels
+            );
+            if fits.iter().any(|f| f.at_bound) {
+                println!(
+                    "warning: a distance fit ended at its search range (±60 % per iteration); \
+                     check the initial distance and the light positions"
+                );
+            }
+        }
+    }
 }
 
 /// Prints one row per iteration; with ground truth also the mean angular error of that

@@ -49,8 +49,9 @@ impl PsCapture {
 
     /// Checks every rule the pipeline relies on; errors name the field (`images[2]`,
     /// `lights[1].intensity`, `mask`, `medium.sigma_per_mm`, ...). `object_distance_mm` is
-    /// where the object is expected (the initial plane); light directions are judged from there.
-    pub fn validate(&self, object_distance_mm: f64) -> Result<()> {
+    /// where the object is expected (the initial plane); light directions are judged from there
+    /// ([`PsCapture::check_light_directions`]), or not at all when it is unknown (`None`).
+    pub fn validate(&self, object_distance_mm: Option<f64>) -> Result<()> {
         let m = self.lights.len();
         if m < 3 {
             return Err(MurkError::invalid(
@@ -121,6 +122,15 @@ impl PsCapture {
                 ));
             }
         }
+        match object_distance_mm {
+            Some(d) => self.check_light_directions(d),
+            None => Ok(()),
+        }
+    }
+
+    /// Fails when the lights' directions, seen from the mask's centre at z-depth
+    /// `object_distance_mm`, are (nearly) coplanar: normals are then not determined.
+    pub fn check_light_directions(&self, object_distance_mm: f64) -> Result<()> {
         let spread = light_spread(&self.lights, self.mask_centre_at(object_distance_mm));
         if spread < MIN_LIGHT_SPREAD {
             return Err(MurkError::invalid(

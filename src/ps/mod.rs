@@ -16,6 +16,7 @@
 pub mod backscatter;
 pub mod bicgstab;
 pub mod capture;
+pub mod distance;
 pub mod integrate;
 pub mod mesh;
 pub mod near_light;
@@ -29,6 +30,7 @@ mod tests;
 pub use capture::{PointLight, PsCapture};
 pub use near_light::ShadingModel;
 pub use pipeline::{
-    photometric_stereo, validate_request, PsIterationStats, PsMode, PsParams, PsResult,
+    photometric_stereo, validate_request, DistanceMode, PsIterationStats, PsMode, PsParams,
+    PsResult,
 };
 pub use support::{choose_support, SupportChoice};

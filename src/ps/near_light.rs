@@ -94,24 +94,20 @@ pub fn solve_normals(
                 .map(|img| f64::from(img[p]))
                 .fold(0.0f64, f64::max);
             let thresh = (shadow_ratio * max_obs).max(0.0);
-            // Normal equations DᵀD ñ = Dᵀ L, accumulated in f64.
-            let mut ata = [[0.0f64; 3]; 3];
-            let mut atb = [0.0f64; 3];
+            // The lit observations (light index, value); m ≤ 64 (the capture's limit), on the
+            // stack so nothing is allocated per pixel.
+            let mut lit = [(0usize, 0.0f64); MAX_LIT];
             let mut count = 0;
-            for (light, img) in lights.iter().zip(reflected) {
+            for (i, img) in reflected.iter().enumerate().take(MAX_LIT) {
                 let obs = f64::from(img[p]);
-                if obs.partial_cmp(&thresh) != Some(std::cmp::Ordering::Greater) {
-                    continue;
+                if obs.partial_cmp(&thresh) == Some(std::cmp::Ordering::Greater) {
+                    lit[count] = (i, obs);
+                    count += 1;
                 }
-                let row = shading_row(light, medium, g, model, x);
-                for r in 0..3 {
-                    for c in 0..3 {
-                        ata[r][c] += row[r] * row[c];
-                    }
-                    atb[r] += row[r] * obs;
-                }
-                count += 1;
             }
+            let lit = &lit[..count];
+            // Normal equations DᵀD ñ = Dᵀ L, accumulated in f64.
+            let (ata, atb) = normal_equations(lights, medium, g, model, x, lit);
             if count < 3 {
                 return;
             }
@@ -125,9 +121,7 @@ pub fn solve_normals(
             let mut n = [sol[0] / len, sol[1] / len, sol[2] / len];
             let mut albedo = len;
             if refine && model == ShadingModel::ForwardScatter {
-                if let Some((rn, ra)) =
-                    refine_exact_g(reflected, lights, medium, g, x, p, thresh, n, albedo)
-                {
+                if let Some((rn, ra)) = refine_exact_g(lights, medium, g, x, lit, n, albedo) {
                     n = rn;
                     albedo = ra;
                 }
@@ -144,6 +138,56 @@ pub fn solve_normals(
     }
 }
 
+/// Most lit observations one pixel keeps (the capture allows at most 64 lights).
+pub(crate) const MAX_LIT: usize = 64;
+
+/// DᵀD and DᵀL of Eq. 4.57 over the lit observations `lit` (light index, value) at `x_mm`.
+pub(crate) fn normal_equations(
+    lights: &[PointLight],
+    medium: &Medium,
+    g: &GTable,
+    model: ShadingModel,
+    x_mm: [f64; 3],
+    lit: &[(usize, f64)],
+) -> ([[f64; 3]; 3], [f64; 3]) {
+    let mut ata = [[0.0f64; 3]; 3];
+    let mut atb = [0.0f64; 3];
+    for &(i, obs) in lit {
+        let row = shading_row(&lights[i], medium, g, model, x_mm);
+        for r in 0..3 {
+            for c in 0..3 {
+                ata[r][c] += row[r] * row[c];
+            }
+            atb[r] += row[r] * obs;
+        }
+    }
+    (ata, atb)
+}
+
+/// The exact reflected component of Eq. 4.54 for albedo 1 and unit normal `n` at `x_mm` under
+/// `light`: `I0·(e^{−T}/d²·max(n·l, 0) + β/(2π d)·G(T, n·l))`.
+pub(crate) fn exact_shading(
+    light: &PointLight,
+    medium: &Medium,
+    g: &GTable,
+    x_mm: [f64; 3],
+    n: [f64; 3],
+) -> f64 {
+    let dv = [
+        light.position_mm[0] - x_mm[0],
+        light.position_mm[1] - x_mm[1],
+        light.position_mm[2] - x_mm[2],
+    ];
+    let d = (dv[0] * dv[0] + dv[1] * dv[1] + dv[2] * dv[2])
+        .sqrt()
+        .max(1e-9);
+    let c = (n[0] * dv[0] + n[1] * dv[1] + n[2] * dv[2]) / d;
+    let t = medium.sigma_per_mm * d;
+    let direct = light.intensity * (-t).exp() / (d * d);
+    let fwd = medium.beta_per_mm * light.intensity / (2.0 * std::f64::consts::PI * d);
+    direct * c.max(0.0) + fwd * g.eval(t, c)
+}
+
 /// Gauss–Newton on the exact reflected component of Eq. 4.54 (no linearisation of `G`):
 /// `L_i = ρ·I0_i·(e^{−T_i}/d_i²·max(n·l_i, 0) + β/(2π d_i)·G(T_i, n·l_i))` over the lit
 /// observations, for the unit normal (two tangent-plane parameters) and ρ, started from the
@@ -152,15 +196,12 @@ pub fn solve_normals(
 /// T = 1), which biases normals by several degrees when forward scatter is comparable to the
 /// direct light (β·d_sp ≈ 1); the exact model removes that bias. Returns `None` (keep the
 /// linear solution) if a step fails.
-#[allow(clippy::too_many_arguments)]
-fn refine_exact_g(
-    reflected: &[Vec<f32>],
+pub(crate) fn refine_exact_g(
     lights: &[PointLight],
     medium: &Medium,
     g: &GTable,
     x: [f64; 3],
-    p: usize,
-    thresh: f64,
+    lit: &[(usize, f64)],
     mut n: [f64; 3],
     mut rho: f64,
 ) -> Option<([f64; 3], f64)> {
@@ -179,11 +220,8 @@ fn refine_exact_g(
         let e2 = cross(n, e1);
         let mut jtj = [[0.0f64; 3]; 3];
         let mut jtr = [0.0f64; 3];
-        for (light, img) in lights.iter().zip(reflected) {
-            let obs = f64::from(img[p]);
-            if obs.partial_cmp(&thresh) != Some(std::cmp::Ordering::Greater) {
-                continue;
-            }
+        for &(i, obs) in lit {
+            let light = &lights[i];
             let dv = [
                 light.position_mm[0] - x[0],
                 light.position_mm[1] - x[1],

@@ -7,9 +7,10 @@ use std::time::Instant;
 
 use crate::error::{MurkError, Result};
 use crate::monitor::Monitor;
-use crate::ps::backscatter::remove_backscatter;
+use crate::ps::backscatter::{backscatter_tail, remove_backscatter};
 use crate::ps::bicgstab::{bicgstab_block, BicgstabParams, BlockOperator};
 use crate::ps::capture::PsCapture;
+use crate::ps::distance::{default_range_mm, fit_mean_depth, DistanceFit};
 use crate::ps::integrate::{
     depth_from_log, integrate_normals, normals_from_depth, IntegrationParams,
 };
@@ -32,6 +33,23 @@ pub const DEFAULT_FAR_CELL: usize = 3;
 /// Default [`PsParams::near_radius_px`].
 pub const DEFAULT_NEAR_RADIUS_PX: usize = 9;
 
+/// How the pipeline fixes the shape's absolute scale.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub enum DistanceMode {
+    /// Fit the mean distance to the lights' 1/d² fall-off after every integration; the given
+    /// distance is a starting guess (murk's default).
+    #[default]
+    Estimate,
+    /// Keep the mean z-depth at `initial_distance_mm` (the reference as published).
+    Fixed,
+}
+
+/// Each iteration's distance fit searches within this factor of the previous mean depth.
+const DISTANCE_STEP: f64 = 1.6;
+
+/// Share (in log-distance) of each distance fit's step that is taken.
+const DISTANCE_RELAXATION: f64 = 0.6;
+
 /// Which scattering effects the pipeline removes.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub enum PsMode {
@@ -45,11 +63,15 @@ pub enum PsMode {
 #[derive(Clone, Debug, PartialEq)]
 pub struct PsParams {
     /// z-distance of the initial fronto-parallel plane, mm (§4.4.4 initialises with a plane):
-    /// the mean z-depth of the object's visible surface as well as the rig knows it. Every
-    /// integrated shape keeps this mean depth: perspective integration fixes the shape only up
-    /// to scale, so this value sets the absolute scale (docs/ACCURACY.md measures the cost of
-    /// getting it wrong).
+    /// the mean z-depth of the object's visible surface as well as the rig knows it, or 0 when
+    /// it is not known. Perspective integration fixes the shape only up to scale; with
+    /// [`DistanceMode::Estimate`] (the default) every iteration fits the scale to the lights'
+    /// 1/d² fall-off ([`crate::ps::distance`]) and this is only the starting guess (0: found
+    /// by a search over [`crate::ps::distance::default_range_mm`] before the first iteration).
+    /// With [`DistanceMode::Fixed`] it sets the absolute scale and must be > 0.
     pub initial_distance_mm: f64,
+    /// Whether the object's distance is estimated or fixed at `initial_distance_mm`.
+    pub distance: DistanceMode,
     /// An initial shape instead of the plane: z-depth per pixel, mm (finite and > 0 on the
     /// mask). With the true shape this is the reference's "Input GT" experiment.
     pub initial_depth_mm: Option<Vec<f32>>,
@@ -75,6 +97,10 @@ pub struct PsParams {
     pub mode: PsMode,
     /// Apply the 3×3 median after backscatter subtraction (§4.3.4).
     pub median_filter: bool,
+    /// Add back the backscatter beyond the surface that subtracting the no-object image
+    /// removed in excess ([`crate::ps::backscatter::backscatter_tail`]), from each iteration's
+    /// shape. Off reproduces the reference, which neglects it.
+    pub backscatter_tail: bool,
     /// Observations below this fraction of a pixel's brightest one count as shadowed.
     pub shadow_ratio: f64,
     /// Refine each pixel's Eq. 4.57 solution by Gauss–Newton on the exact `G(T, n·l)` of
@@ -93,6 +119,7 @@ impl Default for PsParams {
     fn default() -> Self {
         Self {
             initial_distance_mm: 300.0,
+            distance: DistanceMode::default(),
             initial_depth_mm: None,
             support_r: 61,
             far_cell: DEFAULT_FAR_CELL,
@@ -103,6 +130,7 @@ impl Default for PsParams {
             tolerance: 1e-3,
             mode: PsMode::Full,
             median_filter: true,
+            backscatter_tail: true,
             shadow_ratio: 0.05,
             exact_g: true,
             smoothness_s: 0.02,
@@ -117,7 +145,8 @@ impl Default for PsParams {
 pub fn validate_request(capture: &PsCapture, params: &PsParams) -> Result<()> {
     let (width, height) = capture.dims();
     params.validate(width, height)?;
-    capture.validate(params.initial_distance_mm)?;
+    // An unknown distance (0) is searched for first; the light directions are judged there.
+    capture.validate((params.initial_distance_mm > 0.0).then_some(params.initial_distance_mm))?;
     if let Some(d) = &params.initial_depth_mm {
         if d.len() != width * height {
             return Err(MurkError::invalid(
@@ -159,10 +188,17 @@ impl PsParams {
 
     /// Checks the settings against an image of `width × height`; errors name the field.
     pub fn validate(&self, width: usize, height: usize) -> Result<()> {
-        if !self.initial_distance_mm.is_finite() || self.initial_distance_mm <= 0.0 {
+        let d = self.initial_distance_mm;
+        let needs_distance =
+            self.distance == DistanceMode::Fixed && self.initial_depth_mm.is_none();
+        if !d.is_finite() || d < 0.0 || (d == 0.0 && needs_distance) {
             return Err(MurkError::invalid(
                 "initial_distance_mm",
-                format!("must be finite and > 0, got {}", self.initial_distance_mm),
+                if needs_distance {
+                    format!("must be finite and > 0 when the distance is fixed, got {d}")
+                } else {
+                    format!("must be finite and > 0 (or 0: unknown, estimated), got {d}")
+                },
             ));
         }
         let r = self.support_r;
@@ -255,6 +291,9 @@ pub struct PsIterationStats {
     pub normals_s: f64,
     /// Seconds in integration, scale choice and the normal update.
     pub integrate_s: f64,
+    /// The distance fit that set this iteration's scale (`None` with a fixed distance, or
+    /// when the fit had too few usable pixels and the previous mean depth was kept).
+    pub distance_fit: Option<DistanceFit>,
 }
 
 /// Output of [`photometric_stereo`].
@@ -286,6 +325,9 @@ pub struct PsResult {
     /// Far-field cell size the run used, pixels: 1 for the exact window, also when a support
     /// within the near radius made the requested cells moot ([`KernelLayout::coarse_far`]).
     pub far_cell: usize,
+    /// The search before the first iteration when no distance was given (its mean depth is
+    /// where the initial plane was put).
+    pub initial_distance_fit: Option<DistanceFit>,
 }
 
 /// The augmented operator of Eq. 4.52 over K̂.
@@ -337,12 +379,47 @@ pub fn photometric_stereo(
     let backscatter_s = t0.elapsed().as_secs_f64();
     monitor.checkpoint()?;
 
-    // Step 1: a fronto-parallel plane, or the given shape.
+    // Step 1: a fronto-parallel plane, or the given shape. An unknown distance is searched
+    // for with the plane and the observations as they are (the forward scatter still in them):
+    // a rough start that the fits after each integration refine.
+    let estimate = params.distance == DistanceMode::Estimate;
+    let model_for_fit = model;
+    let mut initial_distance_fit = None;
+    let plane_distance = if params.initial_distance_mm > 0.0 || params.initial_depth_mm.is_some() {
+        params.initial_distance_mm
+    } else {
+        monitor.progress("distance search", 0.0);
+        let unit: Vec<f32> = (0..n)
+            .map(|p| if mask[p] { 1.0 } else { f32::NAN })
+            .collect();
+        let pts = back_project(&intr, width, &unit, &mask);
+        let fit = fit_mean_depth(
+            &pts,
+            &mask,
+            &observed,
+            &capture.lights,
+            &medium,
+            gt,
+            model_for_fit,
+            params.shadow_ratio,
+            default_range_mm(&capture.lights),
+        )
+        .ok_or_else(|| {
+            MurkError::invalid(
+                "initial_distance_mm",
+                "no distance was given and too few object pixels have four lit observations \
+                 to estimate one: give the object's approximate distance",
+            )
+        })?;
+        initial_distance_fit = Some(fit);
+        capture.check_light_directions(fit.mean_depth_mm)?;
+        fit.mean_depth_mm
+    };
     let mut depth: Vec<f32> = (0..n)
         .map(|p| match (&params.initial_depth_mm, mask[p]) {
             (_, false) => f32::NAN,
             (Some(d), true) => d[p],
-            (None, true) => params.initial_distance_mm as f32,
+            (None, true) => plane_distance as f32,
         })
         .collect();
     let mut shape_normals = match &params.initial_depth_mm {
@@ -362,6 +439,18 @@ pub fn photometric_stereo(
             )
         };
         let points = back_project(&intr, width, &depth, &mask);
+        let tail_corrected;
+        let observed: &[Vec<f32>] = if params.backscatter_tail && medium.beta_per_mm > 0.0 {
+            let tail = backscatter_tail(ft, &medium, &capture.lights, &points, &mask);
+            tail_corrected = observed
+                .iter()
+                .zip(tail)
+                .map(|(obs, t)| obs.iter().zip(t).map(|(o, t)| o + t).collect())
+                .collect::<Vec<Vec<f32>>>();
+            &tail_corrected
+        } else {
+            &observed
+        };
         let mut stats = PsIterationStats {
             iteration: it + 1,
             relative_depth_change: 0.0,
@@ -376,6 +465,7 @@ pub fn photometric_stereo(
             solve_s: 0.0,
             normals_s: 0.0,
             integrate_s: 0.0,
+            distance_fit: None,
         };
 
         // Step 3: reflected component L_s per light.
@@ -491,7 +581,33 @@ pub fn photometric_stereo(
             },
         )?;
         let prev_mean = mean_masked(&depth, &masked);
-        let new_depth = depth_from_log(&g, &mask, prev_mean);
+        let mut new_depth = depth_from_log(&g, &mask, prev_mean);
+        if estimate {
+            // The new shape at the distance its observations fit best; the range is wide
+            // enough for a 20 % error in the starting guess to be corrected in one step, and
+            // later iterations can move further.
+            let fit = fit_mean_depth(
+                &back_project(&intr, width, &new_depth, &mask),
+                &mask,
+                &reflected,
+                &capture.lights,
+                &medium,
+                gt,
+                model_for_fit,
+                params.shadow_ratio,
+                (prev_mean / DISTANCE_STEP, prev_mean * DISTANCE_STEP),
+            );
+            if let Some(f) = fit {
+                // Under-relaxed: the fit is made with this iteration's reflected component,
+                // which still carries the previous distance's errors, and the full step
+                // overshoots by about 1.6× (docs/ACCURACY.md).
+                let s = (f.mean_depth_mm / prev_mean).powf(DISTANCE_RELAXATION) as f32;
+                for z in new_depth.iter_mut() {
+                    *z *= s;
+                }
+            }
+            stats.distance_fit = fit;
+        }
         let change = masked
             .iter()
             .map(|&p| f64::from((new_depth[p] - depth[p]).abs()))
@@ -526,6 +642,7 @@ pub fn photometric_stereo(
         total_s: started.elapsed().as_secs_f64(),
         support_r: params.support_r,
         far_cell: params.kernel_layout()?.cell(),
+        initial_distance_fit,
     })
 }
 

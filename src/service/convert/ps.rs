@@ -5,8 +5,11 @@ use super::image::{image_from_proto, image_to_proto, mono_image_from_proto, Imag
 use super::tof::{intrinsics_from_proto, intrinsics_to_proto};
 use crate::error::{MurkError, Result};
 use crate::image::ImageF32;
+use crate::ps::distance::DistanceFit;
 use crate::ps::physics::{FacetEmission, FarField, Medium};
-use crate::ps::{validate_request, PointLight, PsCapture, PsMode, PsParams, PsResult};
+use crate::ps::{
+    validate_request, DistanceMode, PointLight, PsCapture, PsMode, PsParams, PsResult,
+};
 use crate::service::proto::v1 as pb;
 
 /// Decodes and fully validates a request (images, lights, medium, every setting and the
@@ -216,6 +219,11 @@ fn params_from_proto(
     };
     Ok(PsParams {
         initial_distance_mm: req.initial_distance_mm,
+        distance: if req.fix_distance {
+            DistanceMode::Fixed
+        } else {
+            DistanceMode::Estimate
+        },
         initial_depth_mm: None,
         support_r: if req.support_r == 0 {
             d.support_r
@@ -240,6 +248,7 @@ fn params_from_proto(
         tolerance: req.tolerance.unwrap_or(d.tolerance),
         mode,
         median_filter: !req.no_median_filter,
+        backscatter_tail: !req.no_backscatter_tail,
         shadow_ratio: req.shadow_ratio.unwrap_or(d.shadow_ratio),
         exact_g: !req.linear_g,
         smoothness_s: req.smoothness_s.unwrap_or(d.smoothness_s),
@@ -338,6 +347,7 @@ pub fn ps_request_to_proto(capture: &PsCapture, params: &PsParams) -> pb::Photom
         beta_per_mm: capture.medium.beta_per_mm,
         sigma_per_mm: capture.medium.sigma_per_mm,
         initial_distance_mm: params.initial_distance_mm,
+        fix_distance: params.distance == DistanceMode::Fixed,
         support_r: params.support_r as u32,
         far_cell: params.far_cell as u32,
         near_radius_px: params.near_radius_px as u32,
@@ -349,6 +359,7 @@ pub fn ps_request_to_proto(capture: &PsCapture, params: &PsParams) -> pb::Photom
             PsMode::BackscatterOnly => pb::PsMode::BackscatterOnly,
         } as i32,
         no_median_filter: !params.median_filter,
+        no_backscatter_tail: !params.backscatter_tail,
         smoothness_s: Some(params.smoothness_s),
         shadow_ratio: Some(params.shadow_ratio),
         solver_tolerance: Some(params.solver.rel_tolerance),
@@ -401,12 +412,32 @@ pub fn ps_to_proto(out: &PsResult, with_history: bool) -> pb::PhotometricStereoR
                 solve_seconds: s.solve_s,
                 normals_seconds: s.normals_s,
                 integrate_seconds: s.integrate_s,
+                distance_fit: s.distance_fit.as_ref().map(distance_fit_to_proto),
             })
             .collect(),
+        initial_distance_fit: out.initial_distance_fit.as_ref().map(distance_fit_to_proto),
         backscatter_seconds: out.backscatter_s,
         total_seconds: out.total_s,
         support_r: out.support_r as u32,
         far_cell: out.far_cell as u32,
+    }
+}
+
+fn distance_fit_to_proto(f: &DistanceFit) -> pb::PsDistanceFit {
+    pb::PsDistanceFit {
+        mean_depth_mm: f.mean_depth_mm,
+        residual: f.objective,
+        pixels: f.pixels as u32,
+        at_bound: f.at_bound,
+    }
+}
+
+fn distance_fit_from_proto(f: &pb::PsDistanceFit) -> DistanceFit {
+    DistanceFit {
+        mean_depth_mm: f.mean_depth_mm,
+        objective: f.residual,
+        pixels: f.pixels as usize,
+        at_bound: f.at_bound,
     }
 }
 
@@ -448,6 +479,7 @@ pub fn ps_from_result(r: &pb::PhotometricStereoResult, mask: &[bool]) -> Result<
                 solve_s: s.solve_seconds,
                 normals_s: s.normals_seconds,
                 integrate_s: s.integrate_seconds,
+                distance_fit: s.distance_fit.as_ref().map(distance_fit_from_proto),
             })
             .collect(),
         normals_history: r
@@ -469,5 +501,6 @@ pub fn ps_from_result(r: &pb::PhotometricStereoResult, mask: &[bool]) -> Result<
         total_s: r.total_seconds,
         support_r: r.support_r as usize,
         far_cell: r.far_cell as usize,
+        initial_distance_fit: r.initial_distance_fit.as_ref().map(distance_fit_from_proto),
     })
 }

@@ -130,15 +130,19 @@ class PhotometricStereoRequest(_message.Message):
     AUTO_SUPPORT_FIELD_NUMBER: _builtins.int
     FAR_FIELD_FIELD_NUMBER: _builtins.int
     FACET_EMISSION_FIELD_NUMBER: _builtins.int
+    FIX_DISTANCE_FIELD_NUMBER: _builtins.int
+    NO_BACKSCATTER_TAIL_FIELD_NUMBER: _builtins.int
     beta_per_mm: _builtins.float
     """Scattering coefficient beta, per mm, finite and >= 0."""
     sigma_per_mm: _builtins.float
     """Extinction coefficient sigma = absorption + beta, per mm, finite and >= beta."""
     initial_distance_mm: _builtins.float
-    """z-distance of the initial fronto-parallel plane, mm, finite and > 0: the mean z-depth of the
-    object's visible surface as well as the rig knows it. Required. Every integrated shape keeps
-    this mean depth (perspective integration fixes the shape only up to scale), so it sets the
-    absolute scale of `depth_mm`.
+    """z-distance of the initial fronto-parallel plane, mm: the mean z-depth of the object's
+    visible surface as well as the rig knows it, finite and >= 0. Perspective integration fixes
+    the shape only up to scale; by default murk fits the scale to the lights' 1/d^2 fall-off
+    after every iteration, so this is a starting guess (20 % off is fine; see docs/ACCURACY.md).
+    0 = unknown: murk searches from a tenth to a hundred times the lights' spread before the
+    first iteration. With fix_distance it sets the absolute scale of `depth_mm` and must be > 0.
     """
     support_r: _builtins.int
     """Kernel support r (odd, 3 to 201 and at most the image's larger side). 0 = 61."""
@@ -192,6 +196,16 @@ class PhotometricStereoRequest(_message.Message):
     """How a surface facet radiates into the medium in the surface-camera forward scatter.
     UNSPECIFIED = LAMBERTIAN.
     """
+    fix_distance: _builtins.bool
+    """Keep the mean z-depth at initial_distance_mm instead of estimating it (the reference as
+    published; for rigs that know the distance better than the lights' fall-off tells it).
+    """
+    no_backscatter_tail: _builtins.bool
+    """Do not add back the backscatter beyond the surface (the reference as published). The
+    no-object image integrates backscatter along the whole ray and the object image only up to
+    the surface, so the subtraction removes too much; murk adds the excess back from each
+    iteration's shape (Eq. 4.33 over [d, infinity)).
+    """
     @_builtins.property
     def lights(self) -> _containers.RepeatedCompositeFieldContainer[Global___PsLight]:
         """One entry per light, 3 to 64. Every image must be single-channel and have the same size as
@@ -238,10 +252,12 @@ class PhotometricStereoRequest(_message.Message):
         auto_support: _builtins.bool = ...,
         far_field: Global___PsFarField.ValueType = ...,
         facet_emission: Global___PsFacetEmission.ValueType = ...,
+        fix_distance: _builtins.bool = ...,
+        no_backscatter_tail: _builtins.bool = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["_shadow_ratio", b"_shadow_ratio", "_smoothness_s", b"_smoothness_s", "_solver_max_iterations", b"_solver_max_iterations", "_solver_tolerance", b"_solver_tolerance", "_tolerance", b"_tolerance", "initial_depth_mm", b"initial_depth_mm", "intrinsics", b"intrinsics", "mask", b"mask", "shadow_ratio", b"shadow_ratio", "smoothness_s", b"smoothness_s", "solver_max_iterations", b"solver_max_iterations", "solver_tolerance", b"solver_tolerance", "tolerance", b"tolerance"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["_shadow_ratio", b"_shadow_ratio", "_smoothness_s", b"_smoothness_s", "_solver_max_iterations", b"_solver_max_iterations", "_solver_tolerance", b"_solver_tolerance", "_tolerance", b"_tolerance", "auto_support", b"auto_support", "beta_per_mm", b"beta_per_mm", "facet_emission", b"facet_emission", "far_cell", b"far_cell", "far_field", b"far_field", "initial_depth_mm", b"initial_depth_mm", "initial_distance_mm", b"initial_distance_mm", "intrinsics", b"intrinsics", "lights", b"lights", "linear_g", b"linear_g", "mask", b"mask", "max_iterations", b"max_iterations", "mode", b"mode", "near_radius_px", b"near_radius_px", "no_median_filter", b"no_median_filter", "return_iteration_normals", b"return_iteration_normals", "shadow_ratio", b"shadow_ratio", "sigma_per_mm", b"sigma_per_mm", "smoothness_s", b"smoothness_s", "solver_max_iterations", b"solver_max_iterations", "solver_tolerance", b"solver_tolerance", "support_r", b"support_r", "tolerance", b"tolerance"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["_shadow_ratio", b"_shadow_ratio", "_smoothness_s", b"_smoothness_s", "_solver_max_iterations", b"_solver_max_iterations", "_solver_tolerance", b"_solver_tolerance", "_tolerance", b"_tolerance", "auto_support", b"auto_support", "beta_per_mm", b"beta_per_mm", "facet_emission", b"facet_emission", "far_cell", b"far_cell", "far_field", b"far_field", "fix_distance", b"fix_distance", "initial_depth_mm", b"initial_depth_mm", "initial_distance_mm", b"initial_distance_mm", "intrinsics", b"intrinsics", "lights", b"lights", "linear_g", b"linear_g", "mask", b"mask", "max_iterations", b"max_iterations", "mode", b"mode", "near_radius_px", b"near_radius_px", "no_backscatter_tail", b"no_backscatter_tail", "no_median_filter", b"no_median_filter", "return_iteration_normals", b"return_iteration_normals", "shadow_ratio", b"shadow_ratio", "sigma_per_mm", b"sigma_per_mm", "smoothness_s", b"smoothness_s", "solver_max_iterations", b"solver_max_iterations", "solver_tolerance", b"solver_tolerance", "support_r", b"support_r", "tolerance", b"tolerance"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     _WhichOneofReturnType__shadow_ratio: _TypeAlias = _typing.Literal["shadow_ratio"]  # noqa: Y015
     _WhichOneofArgType__shadow_ratio: _TypeAlias = _typing.Literal["_shadow_ratio", b"_shadow_ratio"]  # noqa: Y015
@@ -319,6 +335,7 @@ class PhotometricStereoResult(_message.Message):
     ITERATION_NORMALS_FIELD_NUMBER: _builtins.int
     SUPPORT_R_FIELD_NUMBER: _builtins.int
     FAR_CELL_FIELD_NUMBER: _builtins.int
+    INITIAL_DISTANCE_FIT_FIELD_NUMBER: _builtins.int
     backscatter_seconds: _builtins.float
     """Seconds in backscatter removal and in total."""
     total_seconds: _builtins.float
@@ -349,6 +366,12 @@ class PhotometricStereoResult(_message.Message):
     def iteration_normals(self) -> _containers.RepeatedCompositeFieldContainer[_common_pb2.Image]:
         """Normals after each iteration (3 channels), when `return_iteration_normals` was set."""
 
+    @_builtins.property
+    def initial_distance_fit(self) -> Global___PsDistanceFit:
+        """The distance search before the first iteration, when initial_distance_mm was 0 (the
+        initial plane was put at its mean depth).
+        """
+
     def __init__(
         self,
         *,
@@ -361,14 +384,49 @@ class PhotometricStereoResult(_message.Message):
         iteration_normals: _abc.Iterable[_common_pb2.Image] | None = ...,
         support_r: _builtins.int = ...,
         far_cell: _builtins.int = ...,
+        initial_distance_fit: Global___PsDistanceFit | None = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _typing.Literal["albedo", b"albedo", "depth_mm", b"depth_mm", "normals", b"normals"]  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["albedo", b"albedo", "depth_mm", b"depth_mm", "initial_distance_fit", b"initial_distance_fit", "normals", b"normals"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["albedo", b"albedo", "backscatter_seconds", b"backscatter_seconds", "depth_mm", b"depth_mm", "far_cell", b"far_cell", "iteration_normals", b"iteration_normals", "iterations", b"iterations", "normals", b"normals", "support_r", b"support_r", "total_seconds", b"total_seconds"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["albedo", b"albedo", "backscatter_seconds", b"backscatter_seconds", "depth_mm", b"depth_mm", "far_cell", b"far_cell", "initial_distance_fit", b"initial_distance_fit", "iteration_normals", b"iteration_normals", "iterations", b"iterations", "normals", b"normals", "support_r", b"support_r", "total_seconds", b"total_seconds"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
 Global___PhotometricStereoResult: _TypeAlias = PhotometricStereoResult  # noqa: Y015
+
+@_typing.final
+class PsDistanceFit(_message.Message):
+    """A fit of the object's mean z-depth to the lights' 1/d^2 fall-off (src/ps/distance.rs)."""
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    MEAN_DEPTH_MM_FIELD_NUMBER: _builtins.int
+    RESIDUAL_FIELD_NUMBER: _builtins.int
+    PIXELS_FIELD_NUMBER: _builtins.int
+    AT_BOUND_FIELD_NUMBER: _builtins.int
+    mean_depth_mm: _builtins.float
+    """The mean z-depth that explains the observations best, mm."""
+    residual: _builtins.float
+    """Trimmed mean over pixels of the least-squares residual relative to the observations."""
+    pixels: _builtins.int
+    """Pixels with at least four lit observations that entered the fit."""
+    at_bound: _builtins.bool
+    """The best value was at an end of the searched range: the distance may lie beyond it."""
+    def __init__(
+        self,
+        *,
+        mean_depth_mm: _builtins.float = ...,
+        residual: _builtins.float = ...,
+        pixels: _builtins.int = ...,
+        at_bound: _builtins.bool = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["at_bound", b"at_bound", "mean_depth_mm", b"mean_depth_mm", "pixels", b"pixels", "residual", b"residual"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___PsDistanceFit: _TypeAlias = PsDistanceFit  # noqa: Y015
 
 @_typing.final
 class PsIteration(_message.Message):
@@ -387,6 +445,7 @@ class PsIteration(_message.Message):
     SOLVE_SECONDS_FIELD_NUMBER: _builtins.int
     NORMALS_SECONDS_FIELD_NUMBER: _builtins.int
     INTEGRATE_SECONDS_FIELD_NUMBER: _builtins.int
+    DISTANCE_FIT_FIELD_NUMBER: _builtins.int
     iteration: _builtins.int
     relative_depth_change: _builtins.float
     """Mean |dz| against the previous shape over the mean depth."""
@@ -407,6 +466,12 @@ class PsIteration(_message.Message):
 
     @_builtins.property
     def constant_term(self) -> _containers.RepeatedScalarFieldContainer[_builtins.float]: ...
+    @_builtins.property
+    def distance_fit(self) -> Global___PsDistanceFit:
+        """The distance fit that set this iteration's scale; unset with fix_distance or when too
+        few pixels had four lit observations (the previous mean depth was kept).
+        """
+
     def __init__(
         self,
         *,
@@ -423,10 +488,11 @@ class PsIteration(_message.Message):
         solve_seconds: _builtins.float = ...,
         normals_seconds: _builtins.float = ...,
         integrate_seconds: _builtins.float = ...,
+        distance_fit: Global___PsDistanceFit | None = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["distance_fit", b"distance_fit"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["constant_term", b"constant_term", "epsilon", b"epsilon", "filled_pixels", b"filled_pixels", "integrate_seconds", b"integrate_seconds", "iteration", b"iteration", "kernel_bytes", b"kernel_bytes", "kernel_seconds", b"kernel_seconds", "mean_depth_mm", b"mean_depth_mm", "normals_seconds", b"normals_seconds", "relative_depth_change", b"relative_depth_change", "solve_seconds", b"solve_seconds", "solver_iterations", b"solver_iterations", "solver_residual", b"solver_residual"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["constant_term", b"constant_term", "distance_fit", b"distance_fit", "epsilon", b"epsilon", "filled_pixels", b"filled_pixels", "integrate_seconds", b"integrate_seconds", "iteration", b"iteration", "kernel_bytes", b"kernel_bytes", "kernel_seconds", b"kernel_seconds", "mean_depth_mm", b"mean_depth_mm", "normals_seconds", b"normals_seconds", "relative_depth_change", b"relative_depth_change", "solve_seconds", b"solve_seconds", "solver_iterations", b"solver_iterations", "solver_residual", b"solver_residual"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
