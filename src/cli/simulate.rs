@@ -30,6 +30,8 @@ pub enum ShapeArg {
     Sphere,
     /// A vase-like surface of revolution with concave parts.
     Vase,
+    /// A bumpy sphere (radius ±6 %).
+    Bumps,
 }
 
 /// Options of `murk simulate ps`. Defaults are the reference's synthetic setting (§4.4.1).
@@ -170,6 +172,7 @@ fn simulate_ps_capture(a: &SimPsArgs) -> anyhow::Result<()> {
         shape: match a.shape {
             ShapeArg::Sphere => PsShape::Sphere,
             ShapeArg::Vase => PsShape::Vase,
+            ShapeArg::Bumps => PsShape::Bumps,
         },
         seed: a.seed,
         beta_per_mm: a.beta_per_mm,

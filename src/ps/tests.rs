@@ -150,6 +150,7 @@ fn physical_facet_emission_beats_eq_4_41_on_a_physical_scene() {
 fn reference_table_full_size() {
     let shape = match std::env::var("MURK_PS_SHAPE").as_deref() {
         Ok("vase") => PsShape::Vase,
+        Ok("bumps") => PsShape::Bumps,
         _ => PsShape::Sphere,
     };
     let r: usize = std::env::var("MURK_PS_R")
@@ -203,108 +204,111 @@ fn reference_table_full_size() {
     } else {
         (r, far_cell)
     };
-    // MURK_PS_INIT_SCALE: start from the true mean depth times this (0 = no distance given).
-    let init_scale: f64 = std::env::var("MURK_PS_INIT_SCALE")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(1.0);
-    let base = PsParams {
-        initial_distance_mm: sim.initial_distance_mm * init_scale,
-        far_cell,
-        near_radius_px,
-        support_r: r,
-        max_iterations: 5,
-        tolerance: 0.0,
-        ..PsParams::default()
-    };
-    let variants = [
-        ("full, exact G (murk default)", PsParams { ..base.clone() }),
-        (
-            "full, Eq. 4.41 isotropic facet",
-            PsParams {
-                facet_emission: FacetEmission::Isotropic,
-                ..base.clone()
-            },
-        ),
-        (
-            "full, Eq. 4.55 linear G (as published)",
-            PsParams {
-                exact_g: false,
-                ..base.clone()
-            },
-        ),
-        (
-            "backscatter only [15]",
-            PsParams {
-                mode: PsMode::BackscatterOnly,
-                ..base.clone()
-            },
-        ),
-        (
-            "input GT, exact G",
-            PsParams {
-                initial_depth_mm: Some(sim.gt_depth_mm.clone()),
-                max_iterations: 1,
-                ..base.clone()
-            },
-        ),
-        (
-            "input GT, linear G",
-            PsParams {
-                initial_depth_mm: Some(sim.gt_depth_mm.clone()),
-                max_iterations: 1,
-                exact_g: false,
-                ..base.clone()
-            },
-        ),
-        (
-            "full, Eq. 4.52 constant ε (as published)",
-            PsParams {
-                far_field: FarField::ConstantEpsilon,
-                ..base.clone()
-            },
-        ),
-        (
-            "input GT, Eq. 4.52 constant ε",
-            PsParams {
-                initial_depth_mm: Some(sim.gt_depth_mm.clone()),
-                max_iterations: 1,
-                far_field: FarField::ConstantEpsilon,
-                ..base.clone()
-            },
-        ),
-    ];
-    let count: usize = std::env::var("MURK_PS_VARIANTS")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(variants.len());
-    for (name, params) in variants.into_iter().take(count) {
-        let out = photometric_stereo(&sim.capture, &params, &Monitor::noop()).unwrap();
-        let e: Vec<String> = out
-            .normals_history
-            .iter()
-            .map(|n| {
-                format!(
-                    "{:.2}",
-                    mean_angular_error_deg(n, &sim.gt_normals, &sim.capture.mask).unwrap()
-                )
-            })
-            .collect();
-        let kernel: f64 = out.iterations.iter().map(|s| s.kernel_s).sum();
-        let solve: f64 = out.iterations.iter().map(|s| s.solve_s).sum();
-        let depth_mae = depth_mae_mm(&out.depth_mm, &sim.gt_depth_mm, &sim.capture.mask);
-        let means: Vec<String> = out
-            .iterations
-            .iter()
-            .map(|s| format!("{:.1}", s.mean_depth_mm))
-            .collect();
-        eprintln!(
+    // MURK_PS_INIT_SCALE: start from the true mean depth times each of these (comma-separated;
+    // 0 = no distance given).
+    let scales: Vec<f64> = std::env::var("MURK_PS_INIT_SCALE")
+        .map(|v| v.split(',').filter_map(|x| x.trim().parse().ok()).collect())
+        .unwrap_or_else(|_| vec![1.0]);
+    for init_scale in scales {
+        eprintln!("start at {init_scale} × the true mean depth:");
+        let base = PsParams {
+            initial_distance_mm: sim.initial_distance_mm * init_scale,
+            far_cell,
+            near_radius_px,
+            support_r: r,
+            max_iterations: 5,
+            tolerance: 0.0,
+            ..PsParams::default()
+        };
+        let variants = [
+            ("full, exact G (murk default)", PsParams { ..base.clone() }),
+            (
+                "full, Eq. 4.41 isotropic facet",
+                PsParams {
+                    facet_emission: FacetEmission::Isotropic,
+                    ..base.clone()
+                },
+            ),
+            (
+                "full, Eq. 4.55 linear G (as published)",
+                PsParams {
+                    exact_g: false,
+                    ..base.clone()
+                },
+            ),
+            (
+                "backscatter only [15]",
+                PsParams {
+                    mode: PsMode::BackscatterOnly,
+                    ..base.clone()
+                },
+            ),
+            (
+                "input GT, exact G",
+                PsParams {
+                    initial_depth_mm: Some(sim.gt_depth_mm.clone()),
+                    max_iterations: 1,
+                    ..base.clone()
+                },
+            ),
+            (
+                "input GT, linear G",
+                PsParams {
+                    initial_depth_mm: Some(sim.gt_depth_mm.clone()),
+                    max_iterations: 1,
+                    exact_g: false,
+                    ..base.clone()
+                },
+            ),
+            (
+                "full, Eq. 4.52 constant ε (as published)",
+                PsParams {
+                    far_field: FarField::ConstantEpsilon,
+                    ..base.clone()
+                },
+            ),
+            (
+                "input GT, Eq. 4.52 constant ε",
+                PsParams {
+                    initial_depth_mm: Some(sim.gt_depth_mm.clone()),
+                    max_iterations: 1,
+                    far_field: FarField::ConstantEpsilon,
+                    ..base.clone()
+                },
+            ),
+        ];
+        let count: usize = std::env::var("MURK_PS_VARIANTS")
+            .ok()
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(variants.len());
+        for (name, params) in variants.into_iter().take(count) {
+            let out = photometric_stereo(&sim.capture, &params, &Monitor::noop()).unwrap();
+            let e: Vec<String> = out
+                .normals_history
+                .iter()
+                .map(|n| {
+                    format!(
+                        "{:.2}",
+                        mean_angular_error_deg(n, &sim.gt_normals, &sim.capture.mask).unwrap()
+                    )
+                })
+                .collect();
+            let kernel: f64 = out.iterations.iter().map(|s| s.kernel_s).sum();
+            let solve: f64 = out.iterations.iter().map(|s| s.solve_s).sum();
+            let depth_mae = depth_mae_mm(&out.depth_mm, &sim.gt_depth_mm, &sim.capture.mask);
+            let means: Vec<String> = out
+                .iterations
+                .iter()
+                .map(|s| format!("{:.1}", s.mean_depth_mm))
+                .collect();
+            eprintln!(
             "| {name} | {} | depth MAE {depth_mae:.2} mm | {:.1} s (kernel {kernel:.1}, BiCGStab \
              {solve:.1}) | mean z {} |",
             e.join(" | "),
             out.total_s,
             means.join(" → ")
         );
+        }
     }
 }
 

@@ -70,6 +70,9 @@ pub enum PsShape {
     /// profile; it has concave parts, so it casts shadows on itself and the forward scatter
     /// differs from a sphere's.
     Vase,
+    /// A bumpy sphere: the radius varies by ±6 % as sin(6·u_x)·sin(6·u_y) of the direction u
+    /// from the centre, so the normals vary on a scale of a few kernel widths.
+    Bumps,
 }
 
 /// Everything that defines a simulated capture.
@@ -325,6 +328,20 @@ impl Solid {
         )
     }
 
+    /// Bumpy-sphere radius in the unit direction `u` from the centre, and its gradient with
+    /// respect to u (the z component is 0).
+    fn bumps_radius(&self, u: [f64; 3]) -> (f64, [f64; 3]) {
+        const A: f64 = 0.06;
+        const K: f64 = 6.0;
+        let (sx, cx) = (K * u[0]).sin_cos();
+        let (sy, cy) = (K * u[1]).sin_cos();
+        let r = self.radius;
+        (
+            r * (1.0 + A * sx * sy),
+            [r * A * K * cx * sy, r * A * K * sx * cy, 0.0],
+        )
+    }
+
     fn half_height(&self) -> f64 {
         0.9 * self.radius
     }
@@ -344,6 +361,10 @@ impl Solid {
                 let (r, _) = self.vase_radius(d[1]);
                 d[0] * d[0] + d[2] * d[2] < r * r
             }
+            PsShape::Bumps => {
+                let l = dot(d, d).sqrt();
+                l == 0.0 || l < self.bumps_radius([d[0] / l, d[1] / l, d[2] / l]).0
+            }
         }
     }
 
@@ -358,6 +379,18 @@ impl Solid {
             PsShape::Vase => {
                 let (r, dr) = self.vase_radius(d[1]);
                 normalize([d[0], -r * dr, d[2]])
+            }
+            PsShape::Bumps => {
+                // ∇(|d| − r(u)) = u − (I − u uᵀ)·∇_u r/|d|.
+                let l = dot(d, d).sqrt();
+                let u = [d[0] / l, d[1] / l, d[2] / l];
+                let (_, g) = self.bumps_radius(u);
+                let gu = dot(g, u);
+                normalize([
+                    u[0] - (g[0] - gu * u[0]) / l,
+                    u[1] - (g[1] - gu * u[1]) / l,
+                    u[2] - (g[2] - gu * u[2]) / l,
+                ])
             }
         }
     }
@@ -834,4 +867,73 @@ pub fn read_ps_capture(dir: &Path) -> Result<PsFolder> {
         gt_normals,
         gt_depth_mm,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Each shape's analytic normal is the direction in which the solid's inside test flips:
+    /// stepping a little along it leaves the solid, against it enters, and a small step
+    /// sideways stays on the surface's side within the second-order error.
+    #[test]
+    fn analytic_normals_match_the_inside_test() {
+        for shape in [PsShape::Sphere, PsShape::Vase, PsShape::Bumps] {
+            let solid = Solid {
+                shape,
+                centre: [0.0, 0.0, 250.0],
+                radius: 50.0,
+            };
+            let mut checked = 0;
+            for k in 0..200 {
+                // Rays from the camera over the object's silhouette.
+                let a = k as f64 * 0.731;
+                let r = 0.18 * ((k as f64 * 0.37).sin() * 0.5 + 0.5);
+                let dir = normalize([r * a.cos(), r * a.sin(), 1.0]);
+                let Some(t) = solid.first_hit([0.0; 3], dir, 1e-6, 1e4) else {
+                    continue;
+                };
+                let p = [t * dir[0], t * dir[1], t * dir[2]];
+                let n = solid.normal_at(p);
+                assert!((dot(n, n) - 1.0).abs() < 1e-9);
+                assert!(
+                    dot(n, dir) < 0.0,
+                    "{shape:?}: the visible side faces the camera"
+                );
+                let h = 0.05;
+                let at = |s: f64| [p[0] + s * n[0], p[1] + s * n[1], p[2] + s * n[2]];
+                assert!(!solid.inside(at(h)), "{shape:?}: outside along the normal");
+                assert!(solid.inside(at(-h)), "{shape:?}: inside against the normal");
+                // Half a millimetre along the tangent plane the surface is within 0.01 mm of
+                // it (curvature), so a normal off by more than ~6° fails one of these.
+                let t1 = normalize([n[1], -n[0], 0.0]);
+                let t2 = [
+                    n[1] * t1[2] - n[2] * t1[1],
+                    n[2] * t1[0] - n[0] * t1[2],
+                    n[0] * t1[1] - n[1] * t1[0],
+                ];
+                for t in [t1, t2] {
+                    for sgn in [-0.5, 0.5] {
+                        let q = |s: f64| {
+                            [
+                                p[0] + sgn * t[0] + s * n[0],
+                                p[1] + sgn * t[1] + s * n[1],
+                                p[2] + sgn * t[2] + s * n[2],
+                            ]
+                        };
+                        if shape == PsShape::Vase && !solid.inside(q(-h)) && !solid.inside(q(h)) {
+                            // Off the vase's top or bottom rim.
+                            continue;
+                        }
+                        assert!(
+                            !solid.inside(q(h)) && solid.inside(q(-h)),
+                            "{shape:?} at {p:?}"
+                        );
+                    }
+                }
+                checked += 1;
+            }
+            assert!(checked > 50, "{shape:?}: {checked}");
+        }
+    }
 }
