@@ -169,6 +169,7 @@ fn reference_table_full_size() {
     let cfg = PsSimConfig {
         shape,
         facet_emission,
+        textured: std::env::var("MURK_PS_TEXTURED").is_ok(),
         ..PsSimConfig::with_size(side, side)
     };
     let t0 = std::time::Instant::now();
