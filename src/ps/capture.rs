@@ -122,10 +122,47 @@ impl PsCapture {
                 ));
             }
         }
+        self.check_units(object_distance_mm)?;
         match object_distance_mm {
             Some(d) => self.check_light_directions(d),
             None => Ok(()),
         }
+    }
+
+    /// Refuses the unit slips a finite, positive value cannot catch, naming the likely mistake:
+    /// lights given in metres (all within [`MIN_RIG_SIZE_MM`] of each other and of the camera),
+    /// and β or σ given per metre (the medium would hide the object: transmission below e^{−30}
+    /// over the scene's scale, the object distance or else the rig's size).
+    fn check_units(&self, object_distance_mm: Option<f64>) -> Result<()> {
+        let rig = rig_size_mm(&self.lights);
+        if rig < MIN_RIG_SIZE_MM {
+            return Err(MurkError::invalid(
+                "lights",
+                format!(
+                    "every light lies within {rig:.3} mm of the others and of the camera: \
+                     light positions are in millimetres (values in metres must be multiplied \
+                     by 1000)"
+                ),
+            ));
+        }
+        let scale = object_distance_mm.unwrap_or(rig);
+        for (field, v) in [
+            ("medium.sigma_per_mm", self.medium.sigma_per_mm),
+            ("medium.beta_per_mm", self.medium.beta_per_mm),
+        ] {
+            if v * scale > MAX_OPTICAL_DEPTH {
+                return Err(MurkError::invalid(
+                    field,
+                    format!(
+                        "{v} per mm over the scene's {scale:.0} mm is an optical depth of {:.0}: \
+                         the medium would hide the object completely. Coefficients are per \
+                         millimetre (values per metre must be divided by 1000)",
+                        v * scale
+                    ),
+                ));
+            }
+        }
+        Ok(())
     }
 
     /// Fails when the lights' directions, seen from the mask's centre at z-depth
@@ -156,6 +193,32 @@ impl PsCapture {
         let ray = self.intrinsics.ray(su / n.max(1.0), sv / n.max(1.0));
         [ray[0] / ray[2] * z_mm, ray[1] / ray[2] * z_mm, z_mm]
     }
+}
+
+/// Smallest rig accepted: the largest distance between two lights or between a light and the
+/// camera, mm. Near-light photometric stereo rigs span centimetres to metres; a rig below 5 mm
+/// is a rig given in metres.
+pub const MIN_RIG_SIZE_MM: f64 = 5.0;
+
+/// Largest σ·(scene scale) accepted: e^{−30} ≈ 10⁻¹³ leaves nothing of the object to see in
+/// any image format.
+pub const MAX_OPTICAL_DEPTH: f64 = 30.0;
+
+/// The largest distance between two lights, or between a light and the camera, mm.
+pub fn rig_size_mm(lights: &[PointLight]) -> f64 {
+    let mut size = 0.0f64;
+    for (i, a) in lights.iter().enumerate() {
+        size = size.max(norm(a.position_mm));
+        for b in &lights[i + 1..] {
+            let d = [
+                a.position_mm[0] - b.position_mm[0],
+                a.position_mm[1] - b.position_mm[1],
+                a.position_mm[2] - b.position_mm[2],
+            ];
+            size = size.max(norm(d));
+        }
+    }
+    size
 }
 
 fn norm(v: [f64; 3]) -> f64 {
@@ -193,4 +256,49 @@ pub fn light_spread(lights: &[PointLight], point: [f64; 3]) -> f64 {
     s[0][0] * (s[1][1] * s[2][2] - s[1][2] * s[2][1])
         - s[0][1] * (s[1][0] * s[2][2] - s[1][2] * s[2][0])
         + s[0][2] * (s[1][0] * s[2][1] - s[1][1] * s[2][0])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::monitor::Monitor;
+    use crate::simulate::ps::{simulate_ps, PsSimConfig};
+
+    fn capture() -> PsCapture {
+        simulate_ps(&PsSimConfig::with_size(24, 24), &Monitor::noop())
+            .unwrap()
+            .capture
+    }
+
+    /// Unit slips get an error that names the field and the likely mistake.
+    #[test]
+    fn unit_mistakes_name_the_likely_unit() {
+        let good = capture();
+        assert!(good.validate(Some(212.0)).is_ok());
+        assert!(good.validate(None).is_ok());
+
+        let mut metres = good.clone();
+        for l in &mut metres.lights {
+            l.position_mm = l.position_mm.map(|v| v / 1000.0);
+        }
+        for d in [Some(0.212), None] {
+            let e = metres.validate(d).unwrap_err();
+            assert!(e.to_string().contains("multiplied by 1000"), "{e}");
+            assert_eq!(crate::error::field_of(e), "lights");
+        }
+
+        // β = σ = 5 per metre given as 5 per mm.
+        let mut per_metre = good.clone();
+        per_metre.medium.beta_per_mm = 5.0;
+        per_metre.medium.sigma_per_mm = 5.0;
+        for d in [Some(212.0), None] {
+            let e = per_metre.validate(d).unwrap_err();
+            assert!(e.to_string().contains("divided by 1000"), "{e}");
+            assert_eq!(crate::error::field_of(e), "medium.sigma_per_mm");
+        }
+        // Turbid but plausible water passes: σ = 0.05 /mm over 212 mm is an optical depth of 11.
+        let mut turbid = good;
+        turbid.medium.sigma_per_mm = 0.05;
+        assert!(turbid.validate(Some(212.0)).is_ok());
+    }
 }

@@ -16,7 +16,7 @@
 
 use rayon::prelude::*;
 
-use crate::ps::capture::PointLight;
+use crate::ps::capture::{rig_size_mm, PointLight};
 use crate::ps::near_light::{
     exact_shading, normal_equations, refine_exact_g, shading_row, solve3, ShadingModel, MAX_LIT,
 };
@@ -221,23 +221,12 @@ fn pixel_residual(
 }
 
 /// A search range for the object's mean distance when none is known: from a tenth of the
-/// lights' spread (largest distance between two lights, or of a light from the camera) to a
-/// hundred times it. Near-light photometric stereo needs the object within a few spreads of
-/// the lights, so this brackets every setting where the method works at all.
+/// rig's size ([`rig_size_mm`]: the largest distance between two lights or of a light from the
+/// camera) to a hundred times it. Near-light photometric stereo needs the object within a few
+/// rig sizes of the lights, so this brackets every setting where the method works at all.
 pub fn default_range_mm(lights: &[PointLight]) -> (f64, f64) {
-    let mut spread = 0.0f64;
-    for (i, a) in lights.iter().enumerate() {
-        let n = a.position_mm.iter().map(|v| v * v).sum::<f64>().sqrt();
-        spread = spread.max(n);
-        for b in &lights[i + 1..] {
-            let d = (0..3)
-                .map(|k| (a.position_mm[k] - b.position_mm[k]).powi(2))
-                .sum::<f64>()
-                .sqrt();
-            spread = spread.max(d);
-        }
-    }
-    (0.1 * spread, 100.0 * spread)
+    let size = rig_size_mm(lights);
+    (0.1 * size, 100.0 * size)
 }
 
 #[cfg(test)]

@@ -16,8 +16,10 @@
 //! would in a tank with a distant back wall.
 //!
 //! Folder layout written by [`write_ps_capture`] (and read by [`read_ps_capture`] — real
-//! captures need only `meta.json` without `config`, the `image_*`/`background_*` files and
-//! `mask.png`):
+//! captures need only `meta.json` with `medium`, `lights`, `images`, `backgrounds` and either
+//! `intrinsics` or a 3×3 `K`; `format`, `version`, `width` and `height` may be left out (the
+//! size comes from the images), file names may name subfolders, and `mask` names the mask if
+//! it is not `mask.png`):
 //!
 //! ```text
 //! <dir>/
@@ -666,15 +668,28 @@ struct MediumJson {
 
 #[derive(Serialize, Deserialize)]
 struct PsMeta {
-    format: String,
-    version: u32,
-    width: usize,
-    height: usize,
-    intrinsics: IntrinsicsJson,
+    /// Optional when reading; must be [`PS_CAPTURE_FORMAT`] when given.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    format: Option<String>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    version: Option<u32>,
+    /// Optional when reading (taken from the images); must match them when given.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    width: Option<usize>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    height: Option<usize>,
+    /// Either `intrinsics` {fx, fy, cx, cy, skew} or `K`, the 3×3 camera matrix (rows).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    intrinsics: Option<IntrinsicsJson>,
+    #[serde(rename = "K", default, skip_serializing_if = "Option::is_none")]
+    k: Option<[[f64; 3]; 3]>,
     medium: MediumJson,
     lights: Vec<PointLight>,
     images: Vec<String>,
     backgrounds: Vec<String>,
+    /// The mask's file name (default `mask.png`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    mask: Option<String>,
     #[serde(default)]
     initial_distance_mm: Option<f64>,
     #[serde(default)]
@@ -746,11 +761,12 @@ pub fn write_ps_capture(dir: &Path, sim: &PsSimCapture) -> Result<()> {
         &ImageF32::from_vec(w, h, 1, sim.gt_albedo.clone())?,
     )?;
     let meta = PsMeta {
-        format: PS_CAPTURE_FORMAT.into(),
-        version: 1,
-        width: w,
-        height: h,
-        intrinsics: cap.intrinsics.into(),
+        format: Some(PS_CAPTURE_FORMAT.into()),
+        version: Some(1),
+        width: Some(w),
+        height: Some(h),
+        intrinsics: Some(cap.intrinsics.into()),
+        k: None,
         medium: MediumJson {
             beta_per_mm: cap.medium.beta_per_mm,
             sigma_per_mm: cap.medium.sigma_per_mm,
@@ -758,6 +774,7 @@ pub fn write_ps_capture(dir: &Path, sim: &PsSimCapture) -> Result<()> {
         lights: cap.lights.clone(),
         images,
         backgrounds,
+        mask: None,
         initial_distance_mm: Some(sim.initial_distance_mm),
         units: Some(serde_json::json!({
             "lengths": "mm, camera frame (+x right, +y down, +z forward)",
@@ -773,37 +790,82 @@ pub fn write_ps_capture(dir: &Path, sim: &PsSimCapture) -> Result<()> {
     io::write_file(&dir.join("meta.json"), &json)
 }
 
+/// Intrinsics from a 3×3 camera matrix K = [[fx, skew, cx], [0, fy, cy], [0, 0, 1]] (pixels).
+fn intrinsics_from_matrix(k: &[[f64; 3]; 3]) -> Result<Intrinsics> {
+    let tol = 1e-9;
+    if k[1][0].abs() > tol
+        || k[2][0].abs() > tol
+        || k[2][1].abs() > tol
+        || (k[2][2] - 1.0).abs() > tol
+    {
+        return Err(MurkError::invalid(
+            "meta.json.K",
+            format!(
+                "expected [[fx, skew, cx], [0, fy, cy], [0, 0, 1]] in pixels, got {k:?} (a \
+                 transposed or unnormalised matrix?)"
+            ),
+        ));
+    }
+    let intr = Intrinsics {
+        fx: k[0][0],
+        fy: k[1][1],
+        cx: k[0][2],
+        cy: k[1][2],
+        skew: k[0][1],
+    };
+    intr.validate().map_err(|e| e.within("meta.json.K"))?;
+    Ok(intr)
+}
+
 /// Reads a capture folder (simulated or real) in the layout of the module docs.
 pub fn read_ps_capture(dir: &Path) -> Result<PsFolder> {
     let path = dir.join("meta.json");
     let text = std::fs::read(&path).map_err(|e| io::io_error(&path, e))?;
     let meta: PsMeta = serde_json::from_slice(&text)
         .map_err(|e| MurkError::invalid("meta.json", format!("not valid capture metadata: {e}")))?;
-    if meta.format != PS_CAPTURE_FORMAT {
-        return Err(MurkError::invalid(
-            "meta.json.format",
-            format!("expected {PS_CAPTURE_FORMAT:?}, got {:?}", meta.format),
-        ));
+    if let Some(format) = &meta.format {
+        if format != PS_CAPTURE_FORMAT {
+            return Err(MurkError::invalid(
+                "meta.json.format",
+                format!("expected {PS_CAPTURE_FORMAT:?} (or no format), got {format:?}"),
+            ));
+        }
     }
-    if meta.width > MAX_PS_SIDE || meta.height > MAX_PS_SIDE {
-        return Err(MurkError::invalid(
-            "meta.json.width",
-            format!("images larger than {MAX_PS_SIDE} px per side are not accepted"),
-        ));
-    }
-    let dims = (meta.width, meta.height);
-    let load = |name: &str, channels: usize| -> Result<ImageF32> {
-        if name.contains('/') || name.contains('\\') || name.contains("..") {
+    let intrinsics = match (meta.intrinsics, &meta.k) {
+        (Some(_), Some(_)) => {
+            return Err(MurkError::invalid(
+                "meta.json.K",
+                "give either intrinsics or K, not both",
+            ))
+        }
+        (None, None) => {
+            return Err(MurkError::invalid(
+                "meta.json.intrinsics",
+                "missing: give intrinsics {fx, fy, cx, cy} or K (3x3, pixels)",
+            ))
+        }
+        (Some(k), None) => Intrinsics::from(k),
+        (None, Some(k)) => intrinsics_from_matrix(k)?,
+    };
+    let load = |name: &str, channels: usize, dims: Option<(usize, usize)>| -> Result<ImageF32> {
+        let rel = Path::new(name);
+        // Relative paths below the capture folder only: no root, no "..", no drive prefix.
+        if name.is_empty()
+            || !rel
+                .components()
+                .all(|c| matches!(c, std::path::Component::Normal(_)))
+        {
             return Err(MurkError::invalid(
                 name,
-                "file names must not contain path separators",
+                "must be a path relative to the capture folder, without \"..\"",
             ));
         }
         let limits = DecodeLimits {
             max_pixels: (MAX_PS_SIDE * MAX_PS_SIDE) as u64,
             max_channels: channels,
         };
-        let img = io::read_image(&dir.join(name), &limits).map_err(|e| e.within(name))?;
+        let img = io::read_image(&dir.join(rel), &limits).map_err(|e| e.within(name))?;
+        let dims = dims.unwrap_or(img.dims());
         if img.dims() != dims || img.channels() != channels {
             return Err(MurkError::invalid(
                 name,
@@ -819,24 +881,43 @@ pub fn read_ps_capture(dir: &Path) -> Result<PsFolder> {
         }
         Ok(img)
     };
+    let first = meta
+        .images
+        .first()
+        .ok_or_else(|| MurkError::invalid("meta.json.images", "no images listed"))?;
+    let dims = load(first, 1, None)?.dims();
+    for (field, given, actual) in [
+        ("meta.json.width", meta.width, dims.0),
+        ("meta.json.height", meta.height, dims.1),
+    ] {
+        if let Some(v) = given {
+            if v != actual {
+                return Err(MurkError::invalid(
+                    field,
+                    format!("{v} disagrees with {first} ({actual}); it may be left out"),
+                ));
+            }
+        }
+    }
+    let dims = Some(dims);
     let images = meta
         .images
         .iter()
-        .map(|n| load(n, 1))
+        .map(|n| load(n, 1, dims))
         .collect::<Result<Vec<_>>>()?;
     let backgrounds = meta
         .backgrounds
         .iter()
-        .map(|n| load(n, 1))
+        .map(|n| load(n, 1, dims))
         .collect::<Result<Vec<_>>>()?;
-    let mask: Vec<bool> = load("mask.png", 1)?
+    let mask: Vec<bool> = load(meta.mask.as_deref().unwrap_or("mask.png"), 1, dims)?
         .data()
         .iter()
         .map(|&v| v > 0.5)
         .collect();
     let gt_normals = if dir.join("gt_normals.exr").exists() {
         Some(
-            load("gt_normals.exr", 3)?
+            load("gt_normals.exr", 3, dims)?
                 .data()
                 .chunks_exact(3)
                 .map(|c| [c[0], c[1], c[2]])
@@ -846,7 +927,7 @@ pub fn read_ps_capture(dir: &Path) -> Result<PsFolder> {
         None
     };
     let gt_depth_mm = if dir.join("gt_depth_mm.exr").exists() {
-        Some(load("gt_depth_mm.exr", 1)?.into_vec())
+        Some(load("gt_depth_mm.exr", 1, dims)?.into_vec())
     } else {
         None
     };
@@ -856,7 +937,7 @@ pub fn read_ps_capture(dir: &Path) -> Result<PsFolder> {
             backgrounds,
             lights: meta.lights,
             mask,
-            intrinsics: meta.intrinsics.into(),
+            intrinsics,
             medium: Medium {
                 beta_per_mm: meta.medium.beta_per_mm,
                 sigma_per_mm: meta.medium.sigma_per_mm,
@@ -935,5 +1016,93 @@ mod tests {
             }
             assert!(checked > 50, "{shape:?}: {checked}");
         }
+    }
+
+    /// A hand-made capture needs no format, version, width or height; it may give `K` instead
+    /// of `intrinsics`, keep its files in subfolders and name its mask; it reads back to the
+    /// same capture. Paths leaving the folder, a transposed K and a width that contradicts the
+    /// images are refused with the field named.
+    #[test]
+    fn hand_made_meta_json_is_accepted() {
+        let sim = simulate_ps(&PsSimConfig::with_size(24, 20), &Monitor::noop()).unwrap();
+        let dir = tempfile::tempdir().unwrap();
+        write_ps_capture(dir.path(), &sim).unwrap();
+        let root = dir.path();
+        std::fs::create_dir_all(root.join("raw/bg")).unwrap();
+        let mut meta: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(root.join("meta.json")).unwrap()).unwrap();
+        let m = meta.as_object_mut().unwrap();
+        for key in ["format", "version", "width", "height", "units", "config"] {
+            m.remove(key);
+        }
+        let k = sim.capture.intrinsics;
+        m.remove("intrinsics");
+        m.insert(
+            "K".into(),
+            serde_json::json!([[k.fx, k.skew, k.cx], [0.0, k.fy, k.cy], [0.0, 0.0, 1.0]]),
+        );
+        for (list, sub) in [("images", "raw"), ("backgrounds", "raw/bg")] {
+            let names: Vec<String> = m[list]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|n| {
+                    let n = n.as_str().unwrap();
+                    let to = format!("{sub}/{n}");
+                    std::fs::rename(root.join(n), root.join(&to)).unwrap();
+                    to
+                })
+                .collect();
+            m.insert(list.into(), serde_json::json!(names));
+        }
+        std::fs::rename(root.join("mask.png"), root.join("raw/object.png")).unwrap();
+        m.insert("mask".into(), serde_json::json!("raw/object.png"));
+        let write = |v: &serde_json::Value| {
+            std::fs::write(root.join("meta.json"), serde_json::to_vec(v).unwrap()).unwrap()
+        };
+        write(&meta);
+        let read = read_ps_capture(root).unwrap();
+        assert_eq!(read.capture.intrinsics, sim.capture.intrinsics);
+        assert_eq!(read.capture.mask, sim.capture.mask);
+        assert_eq!(read.capture.images, sim.capture.images);
+        assert_eq!(read.capture.backgrounds, sim.capture.backgrounds);
+
+        let field = |edit: &dyn Fn(&mut serde_json::Value)| {
+            let mut v = meta.clone();
+            edit(&mut v);
+            write(&v);
+            crate::error::field_of(read_ps_capture(root).unwrap_err())
+        };
+        assert_eq!(
+            field(&|v| v["images"][0] = serde_json::json!("../image_00.exr")),
+            "../image_00.exr"
+        );
+        assert_eq!(
+            field(&|v| v["images"][0] = serde_json::json!("/etc/passwd")),
+            "/etc/passwd"
+        );
+        assert_eq!(
+            field(&|v| v["K"] =
+                serde_json::json!([[k.fx, 0.0, 0.0], [0.0, k.fy, 0.0], [k.cx, k.cy, 1.0]])),
+            "meta.json.K"
+        );
+        assert_eq!(
+            field(&|v| v["width"] = serde_json::json!(25)),
+            "meta.json.width"
+        );
+        assert_eq!(
+            field(&|v| v["intrinsics"] = serde_json::json!({"fx": 1, "fy": 1, "cx": 0, "cy": 0})),
+            "meta.json.K"
+        );
+        assert_eq!(
+            field(&|v| {
+                v.as_object_mut().unwrap().remove("K");
+            }),
+            "meta.json.intrinsics"
+        );
+        assert_eq!(
+            field(&|v| v["format"] = serde_json::json!("something.else")),
+            "meta.json.format"
+        );
     }
 }
