@@ -183,7 +183,7 @@ impl FTable {
     /// [F_c(u, v2) − F_c(u, v1), F_s(u, v2) − F_s(u, v1)] (module documentation), sharing the
     /// index computations between both tables and both ends. The first call builds the
     /// companions (about twice F's build time).
-    #[inline]
+    #[inline(always)]
     pub fn eval_facet_diff(&self, u: f64, v1: f64, v2: f64) -> [f64; 2] {
         if u > U_MAX {
             return [
@@ -192,19 +192,9 @@ impl FTable {
             ];
         }
         let t = self.facet_values();
-        let iu = self.u_index(u);
-        let b = |(j, fv): (usize, f64)| -> [f64; 2] {
-            let r0 = iu.0 * self.nv + j;
-            let r1 = r0 + self.nv;
-            let mut out = [0.0; 2];
-            for (k, o) in out.iter_mut().enumerate() {
-                let a = t[r0][k] as f64 + fv * (t[r0 + 1][k] - t[r0][k]) as f64;
-                let c = t[r1][k] as f64 + fv * (t[r1 + 1][k] - t[r1][k]) as f64;
-                *o = a + iu.1 * (c - a);
-            }
-            out
-        };
-        let (hi, lo) = (b(self.v_index(v2)), b(self.v_index(v1)));
+        let (i, fu) = self.u_index(u);
+        let hi = bilinear_pair(t, self.nv, i, fu, self.v_index(v2));
+        let lo = bilinear_pair(t, self.nv, i, fu, self.v_index(v1));
         [hi[0] - lo[0], hi[1] - lo[1]]
     }
 
@@ -212,6 +202,20 @@ impl FTable {
     pub fn eval_facet(&self, u: f64, v: f64) -> [f64; 2] {
         self.eval_facet_diff(u, 0.0, v)
     }
+}
+
+/// Bilinear interpolation of both companions at row `i` (fraction `fu`) and column `j`
+/// (fraction `fv`) of the row-major pair table with `nv` columns.
+#[inline(always)]
+fn bilinear_pair(t: &[[f32; 2]], nv: usize, i: usize, fu: f64, (j, fv): (usize, f64)) -> [f64; 2] {
+    let r0 = i * nv + j;
+    let (a, b) = (&t[r0..r0 + 2], &t[r0 + nv..r0 + nv + 2]);
+    let lerp = |k: usize| {
+        let x = a[0][k] as f64 + fv * (a[1][k] - a[0][k]) as f64;
+        let y = b[0][k] as f64 + fv * (b[1][k] - b[0][k]) as f64;
+        x + fu * (y - x)
+    };
+    [lerp(0), lerp(1)]
 }
 
 /// Taylor coefficients in τ = tan ξ of (1 − τ²)/(1 + τ²)² = Σ (−1)^k (2k+1) τ^{2k}, the weight of

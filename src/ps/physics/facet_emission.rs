@@ -78,11 +78,17 @@ fn bracket_table(table: &FTable, u: f64, v1: f64, v2: f64, a: f64, b: f64) -> f6
     -a * fc - b * fs
 }
 
+/// e^{−u tan ξ}(−a cos 2ξ − b sin 2ξ), with cos 2ξ = (1 − τ²)/(1 + τ²) and sin 2ξ = 2τ/(1 + τ²)
+/// from τ = tan ξ (one `tan`, no `sin_cos`).
 #[inline(always)]
 fn weighted(u: f64, a: f64, b: f64, xi: f64) -> f64 {
-    let xi = xi.min(FRAC_PI_2);
-    let (s2, c2) = (2.0 * xi).sin_cos();
-    (-u * xi.tan()).exp() * (-a * c2 - b * s2)
+    let tau = xi.min(FRAC_PI_2).tan();
+    if !tau.is_finite() || tau > 1e150 {
+        // ξ = π/2: cos 2ξ = −1, sin 2ξ = 0, and e^{−u·∞} = 0 unless u = 0.
+        return if u == 0.0 { a } else { 0.0 };
+    }
+    let inv = 1.0 / (1.0 + tau * tau);
+    (-u * tau).exp() * (-a * (1.0 - tau * tau) * inv - b * 2.0 * tau * inv)
 }
 
 /// The Lambertian facet's forward scatter collected along a viewing ray of length `len` (mm)

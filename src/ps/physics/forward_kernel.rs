@@ -1449,6 +1449,19 @@ pub(super) mod tests {
         let ft = FTable::global();
         let m = medium();
         let g = sphere(300, 300, 300.0, 400.0, 145.0);
+        // The production layout (far cells 3×3 beyond 9 px, per-pixel far field) per emission,
+        // on the simulator's default sphere (radius 50 mm at 250 mm, f = 550 px).
+        let layout = KernelLayout::coarse_far(81, 3, 9).unwrap();
+        for emission in [FacetEmission::Isotropic, FacetEmission::Lambertian] {
+            let g = SurfaceGeometry {
+                emission,
+                ..sphere(300, 300, 550.0, 250.0, 50.0)
+            };
+            let _ = ForwardKernel::build_with(ft, &m, &g, &layout, FarField::PerPixel).unwrap();
+            let t = std::time::Instant::now();
+            ForwardKernel::build_with(ft, &m, &g, &layout, FarField::PerPixel).unwrap();
+            eprintln!("{emission:?}: production layout build {:?}", t.elapsed());
+        }
         let t0 = std::time::Instant::now();
         let kern = ForwardKernel::build(ft, &m, &g, 81).unwrap();
         let build = t0.elapsed();
