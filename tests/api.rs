@@ -95,6 +95,7 @@ async fn submit_watch_result_then_identical_resubmit_is_a_cache_hit() {
     let range = r.range_m.expect("range");
     assert_eq!((range.width, range.height), (64, 53));
     assert!(r.z_depth_m.is_some(), "intrinsics given → z-depth");
+    assert!(r.raw_z_depth_m.is_some(), "intrinsics given → raw z-depth");
 
     let executed = server.manager().executed();
     let again = c.submit_job(req).await.unwrap().into_inner();

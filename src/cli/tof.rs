@@ -183,6 +183,7 @@ pub fn write_tof_result(dir: &Path, r: &pb::TofDepthResult) -> anyhow::Result<To
         ("range_m", &r.range_m),
         ("z_depth_m", &r.z_depth_m),
         ("raw_range_m", &r.raw_range_m),
+        ("raw_z_depth_m", &r.raw_z_depth_m),
         ("mask", &r.mask),
         ("scatter_amplitude", &r.scatter_amplitude),
         ("scatter_phase", &r.scatter_phase),

@@ -368,6 +368,8 @@ pub struct TofOutput {
     pub z_depth_m: Option<ImageF32>,
     /// Range computed from the raw (foggy) phase, metres, for comparison.
     pub raw_range_m: ImageF32,
+    /// z-depth from the raw phase, metres (only with intrinsics), for comparison.
+    pub raw_z_depth_m: Option<ImageF32>,
     /// Object mask: 1 where both amplitude and phase IRLS weights mark an outlier, else 0.
     pub mask: ImageF32,
     /// Estimated scattering amplitude α_s.

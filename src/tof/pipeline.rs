@@ -203,20 +203,26 @@ fn compose(
             });
         }
     }
-    let z_depth = input.intrinsics.map(|k| {
-        let mut z = vec![0.0f32; n];
-        z.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
-            for (x, zv) in row.iter_mut().enumerate() {
-                *zv = (range[y * w + x] as f64 * k.ray(x as f64, y as f64)[2]) as f32;
-            }
-        });
-        z
-    });
+    // z = range · (the unit ray's z component).
+    let z_of = |range: &[f32]| {
+        input.intrinsics.map(|k| {
+            let mut z = vec![0.0f32; n];
+            z.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+                for (x, zv) in row.iter_mut().enumerate() {
+                    *zv = (range[y * w + x] as f64 * k.ray(x as f64, y as f64)[2]) as f32;
+                }
+            });
+            z
+        })
+    };
+    let z_depth = z_of(&range);
+    let raw_z_depth = z_of(&raw_range);
     let to_f32 = |v: &[f64]| v.iter().map(|&x| x as f32).collect::<Vec<f32>>();
     Ok(TofOutput {
         range_m: image(w, h, range)?,
         z_depth_m: z_depth.map(|z| image(w, h, z)).transpose()?,
         raw_range_m: image(w, h, raw_range)?,
+        raw_z_depth_m: raw_z_depth.map(|z| image(w, h, z)).transpose()?,
         mask: image(w, h, mask)?,
         scatter_amplitude: image(w, h, scatter_a)?,
         scatter_phase: image(w, h, scatter_p)?,
@@ -395,6 +401,14 @@ mod tests {
             assert!(img.data().iter().all(|v| v.is_finite()));
         }
         assert!(out.z_depth_m.unwrap().data().iter().all(|v| v.is_finite()));
+        // The raw z-depth is the raw range times the ray's z component: below the range off
+        // the optical axis, equal on it.
+        let raw_z = out.raw_z_depth_m.unwrap();
+        let k = c.intrinsics.unwrap();
+        for (i, (&z, &r)) in raw_z.data().iter().zip(out.raw_range_m.data()).enumerate() {
+            let ray = k.ray((i % W) as f64, (i / W) as f64);
+            assert!((f64::from(z) - f64::from(r) * ray[2]).abs() < 1e-5 * f64::from(r));
+        }
         assert!(out.mask.data().iter().all(|&v| v == 0.0));
     }
 

@@ -22,7 +22,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("capture", type=Path, help="folder with meta.json (murk.ps_capture), images, mask.png")
     ap.add_argument(
-        "--initial-distance-mm", type=float, help="mean z-depth of the object, mm (default: meta.json)"
+        "--initial-distance-mm",
+        type=float,
+        help="mean z-depth of the object, mm, a starting guess (default: meta.json, else searched for)",
     )
     ap.add_argument("--out", type=Path, default=Path("ps-result"))
     ap.add_argument("--server", default=os.environ.get("MURK_SERVER", "http://127.0.0.1:50051"))
@@ -31,8 +33,6 @@ def main() -> None:
 
     cap = mc.load_ps_capture(a.capture)
     distance = a.initial_distance_mm or cap.initial_distance_mm
-    if distance is None:
-        raise SystemExit("give --initial-distance-mm (meta.json has none)")
     with mc.Client(a.server, token=a.token) as murk:
         r = murk.photometric_stereo(
             cap.lights,
@@ -49,7 +49,10 @@ def main() -> None:
         mc.write_exr(a.out / f"{name}.exr", getattr(r, name))
     rgb = np.clip((r.normals * np.array([1, -1, -1]) + 1) * 127.5, 0, 255).astype(np.uint8)
     Image.fromarray(rgb).save(a.out / "normals.png")
-    print(f"job {r.job_id[:12]}: {len(r.iterations)} iterations, {r.total_seconds:.2f} s; outputs in {a.out}")
+    print(
+        f"job {r.job_id[:12]}: {len(r.iterations)} iterations, {r.total_seconds:.2f} s, "
+        f"mean z {r.mean_depth_mm:.1f} mm; outputs in {a.out}"
+    )
     if cap.gt_normals is not None:
         obj = cap.mask > 0.5
         cos = np.clip(np.sum(r.normals[obj] * cap.gt_normals[obj], axis=1), -1, 1)

@@ -7,6 +7,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 import murk_client as mc
 from murk_client import Client
@@ -134,3 +135,33 @@ def test_photometric_stereo_normals(client: Client, ps_scene: Path) -> None:
     assert np.isnan(r.depth_mm[~obj]).all()
     # Depth in mm around the initial plane.
     assert abs(float(np.nanmean(r.depth_mm)) - cap.initial_distance_mm) < 0.2 * cap.initial_distance_mm
+
+
+def test_photometric_stereo_finds_the_distance(client: Client, ps_scene: Path) -> None:
+    """No distance given: the server searches for it and fits it to the lights' fall-off."""
+    cap = mc.load_ps_capture(ps_scene)
+    assert cap.gt_depth_mm is not None
+    obj = cap.mask > 0.5
+    truth = float(cap.gt_depth_mm[obj].mean())
+    r = client.photometric_stereo(
+        cap.lights,
+        cap.mask,
+        intrinsics=cap.intrinsics,
+        beta_per_mm=cap.beta_per_mm,
+        sigma_per_mm=cap.sigma_per_mm,
+        initial_distance_mm=None,
+        options={"support_r": 21, "max_iterations": 4},
+    )
+    assert r.proto.HasField("initial_distance_fit")
+    assert all(it.HasField("distance_fit") for it in r.iterations)
+    assert abs(r.mean_depth_mm / truth - 1) < 0.05, (r.mean_depth_mm, truth)
+    with pytest.raises(mc.ClientInputError) as e:
+        mc.photometric_stereo_request(
+            cap.lights,
+            cap.mask,
+            intrinsics=cap.intrinsics,
+            beta_per_mm=cap.beta_per_mm,
+            sigma_per_mm=cap.sigma_per_mm,
+            fix_distance=True,
+        )
+    assert e.value.field == "request.photometric_stereo.initial_distance_mm"

@@ -157,6 +157,7 @@ pub fn tof_to_proto(out: &TofOutput) -> pb::TofDepthResult {
         range_m: Some(image_to_proto(&out.range_m)),
         z_depth_m: out.z_depth_m.as_ref().map(image_to_proto),
         raw_range_m: Some(image_to_proto(&out.raw_range_m)),
+        raw_z_depth_m: out.raw_z_depth_m.as_ref().map(image_to_proto),
         mask: Some(image_to_proto(&out.mask)),
         scatter_amplitude: Some(image_to_proto(&out.scatter_amplitude)),
         scatter_phase: Some(image_to_proto(&out.scatter_phase)),

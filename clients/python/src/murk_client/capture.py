@@ -37,6 +37,14 @@ def _read_json(path: Path) -> dict[str, Any]:
     return value
 
 
+def _inside(folder: Path, name: str, where: str) -> Path:
+    """``folder / name`` for a relative path that stays inside the folder (as the server reads it)."""
+    rel = Path(name)
+    if not name or rel.is_absolute() or any(part == ".." for part in rel.parts):
+        raise ClientInputError(where, f"{name!r} must be a path relative to the capture folder, without '..'")
+    return folder / rel
+
+
 def _intrinsics(value: Any, where: str) -> Intrinsics:
     if isinstance(value, dict):
         try:
@@ -51,6 +59,8 @@ def _intrinsics(value: Any, where: str) -> Intrinsics:
             raise ClientInputError(where, f"expected {{fx, fy, cx, cy[, skew]}}: {e}") from e
     arr = np.asarray(value, dtype=np.float64)
     if arr.shape == (3, 3):
+        if not np.allclose(arr[1:, 0], 0) or arr[2, 1] != 0 or arr[2, 2] != 1:
+            raise ClientInputError(where, "expected K = [[fx, skew, cx], [0, fy, cy], [0, 0, 1]] (transposed?)")
         return Intrinsics(arr[0, 0], arr[1, 1], arr[0, 2], arr[1, 2], arr[0, 1])
     raise ClientInputError(where, "expected {fx, fy, cx, cy[, skew]} or a 3x3 K")
 
@@ -109,7 +119,7 @@ def load_ps_capture(folder: PathLike) -> PsCapture:
     """Reads a capture folder (``meta.json`` format ``murk.ps_capture``, images beside it)."""
     d = Path(folder)
     meta = _read_json(d / "meta.json")
-    if meta.get("format") != "murk.ps_capture":
+    if meta.get("format", "murk.ps_capture") != "murk.ps_capture":
         raise ClientInputError("meta.json.format", f"expected 'murk.ps_capture', got {meta.get('format')!r}")
     try:
         medium = meta["medium"]
@@ -123,18 +133,23 @@ def load_ps_capture(folder: PathLike) -> PsCapture:
         PsLight(
             position_mm=[float(v) for v in spec["position_mm"]],
             intensity=float(spec["intensity"]),
-            image=read_image(d / img),
-            background=read_image(d / bg),
+            image=read_image(_inside(d, img, f"meta.json.images[{i}]")),
+            background=read_image(_inside(d, bg, f"meta.json.backgrounds[{i}]")),
         )
-        for spec, img, bg in zip(specs, images, backgrounds, strict=True)
+        for i, (spec, img, bg) in enumerate(zip(specs, images, backgrounds, strict=True))
     ]
+    if "intrinsics" in meta and "K" in meta:
+        raise ClientInputError("meta.json.K", "give either intrinsics or K, not both")
+    k_key = "K" if "K" in meta else "intrinsics"
+    if k_key not in meta:
+        raise ClientInputError("meta.json.intrinsics", "missing: give intrinsics {fx, fy, cx, cy} or K (3x3)")
     gt_n = read_image(d / "gt_normals.exr") if (d / "gt_normals.exr").exists() else None
     gt_z = read_image(d / "gt_depth_mm.exr") if (d / "gt_depth_mm.exr").exists() else None
     dist = meta.get("initial_distance_mm")
     return PsCapture(
         lights=lights,
-        mask=read_image(d / "mask.png"),
-        intrinsics=_intrinsics(meta["intrinsics"], "meta.json.intrinsics"),
+        mask=read_image(_inside(d, meta.get("mask", "mask.png"), "meta.json.mask")),
+        intrinsics=_intrinsics(meta[k_key], f"meta.json.{k_key}"),
         beta_per_mm=float(medium["beta_per_mm"]),
         sigma_per_mm=float(medium["sigma_per_mm"]),
         initial_distance_mm=float(dist) if dist is not None else None,

@@ -312,7 +312,8 @@ class Client:
         intrinsics: IntrinsicsLike,
         beta_per_mm: float,
         sigma_per_mm: float,
-        initial_distance_mm: float,
+        initial_distance_mm: float | None = None,
+        fix_distance: bool = False,
         mode: str = "full",
         options: Tuning | None = None,
         progress: ProgressCallback | None = None,
@@ -329,6 +330,7 @@ class Client:
             beta_per_mm=beta_per_mm,
             sigma_per_mm=sigma_per_mm,
             initial_distance_mm=initial_distance_mm,
+            fix_distance=fix_distance,
             mode=mode,
             options=options,
         )

@@ -238,7 +238,8 @@ def photometric_stereo_request(
     intrinsics: IntrinsicsLike,
     beta_per_mm: float,
     sigma_per_mm: float,
-    initial_distance_mm: float,
+    initial_distance_mm: float | None = None,
+    fix_distance: bool = False,
     mode: str = "full",
     options: Tuning | None = None,
 ) -> jobs_pb2.JobRequest:
@@ -246,8 +247,10 @@ def photometric_stereo_request(
 
     3 to 64 ``lights`` (positions in **mm**, camera frame), a single-channel ``mask`` (> 0.5 =
     object), ``beta_per_mm`` and ``sigma_per_mm`` (extinction, >= beta) **per millimetre**, and
-    ``initial_distance_mm``: the object's mean z-depth, which sets the absolute scale of the
-    returned depth. ``mode``: ``"full"`` or ``"backscatter_only"`` (the baseline). ``options``
+    ``initial_distance_mm``: the object's mean z-depth as far as the rig knows it. The server
+    fits the distance to the lights' 1/d² fall-off, so this is a starting guess (20 % off is
+    fine); ``None`` lets the server search for it. ``fix_distance=True`` keeps the depth's mean
+    at ``initial_distance_mm`` instead (the published method). ``mode``: ``"full"`` or ``"backscatter_only"`` (the baseline). ``options``
     sets any other ``PhotometricStereoRequest`` field (``support_r``, ``max_iterations``, ...).
     """
     if mode not in _PS_MODES:
@@ -277,8 +280,16 @@ def photometric_stereo_request(
     req.intrinsics.CopyFrom(intrinsics_proto(intrinsics, "request.photometric_stereo.intrinsics"))
     req.beta_per_mm = beta
     req.sigma_per_mm = sigma
-    req.initial_distance_mm = _finite(
-        initial_distance_mm, "request.photometric_stereo.initial_distance_mm", positive=True
-    )
+    if initial_distance_mm is None:
+        if fix_distance:
+            raise ClientInputError(
+                "request.photometric_stereo.initial_distance_mm", "fix_distance needs a distance"
+            )
+        req.initial_distance_mm = 0.0
+    else:
+        req.initial_distance_mm = _finite(
+            initial_distance_mm, "request.photometric_stereo.initial_distance_mm", positive=True
+        )
+    req.fix_distance = fix_distance
     req.mode = _PS_MODES[mode]
     return jobs_pb2.JobRequest(photometric_stereo=req)

@@ -23,6 +23,8 @@ class TofDepthResult:
     z_depth_m: FloatImage | None
     #: Range from the raw (foggy) phase, metres.
     raw_range_m: FloatImage
+    #: z-depth from the raw phase, metres (None without intrinsics).
+    raw_z_depth_m: FloatImage | None
     #: Object mask: 1 = object, 0 = background.
     mask: FloatImage
     #: Estimated scattering component: amplitude (sensor units) and phase (radians).
@@ -45,6 +47,9 @@ class TofDepthResult:
             range_m=from_proto(r.range_m, field=f"{f}.range_m"),
             z_depth_m=from_proto(r.z_depth_m, field=f"{f}.z_depth_m") if r.HasField("z_depth_m") else None,
             raw_range_m=from_proto(r.raw_range_m, field=f"{f}.raw_range_m"),
+            raw_z_depth_m=(
+                from_proto(r.raw_z_depth_m, field=f"{f}.raw_z_depth_m") if r.HasField("raw_z_depth_m") else None
+            ),
             mask=from_proto(r.mask, field=f"{f}.mask"),
             scatter_amplitude=from_proto(r.scatter_amplitude, field=f"{f}.scatter_amplitude"),
             scatter_phase=from_proto(r.scatter_phase, field=f"{f}.scatter_phase"),
@@ -215,8 +220,11 @@ class PhotometricStereoResult:
     depth_mm: FloatImage
     #: Normals after each iteration, when requested (``return_iteration_normals``).
     iteration_normals: list[FloatImage]
-    #: Per-iteration diagnostics (``PsIteration`` messages).
+    #: Per-iteration diagnostics (``PsIteration`` messages; ``distance_fit`` says how each
+    #: iteration's scale was fitted to the lights' fall-off).
     iterations: list[ps_pb2.PsIteration]
+    #: The object's mean z-depth the result ends at, mm (fitted unless ``fix_distance``).
+    mean_depth_mm: float
     total_seconds: float
     job_id: str
     proto: ps_pb2.PhotometricStereoResult
@@ -233,6 +241,7 @@ class PhotometricStereoResult:
                 for i, n in enumerate(r.iteration_normals)
             ],
             iterations=list(r.iterations),
+            mean_depth_mm=r.iterations[-1].mean_depth_mm if r.iterations else float("nan"),
             total_seconds=r.total_seconds,
             job_id=job_id,
             proto=r,

@@ -270,6 +270,7 @@ class TofDepthResult(_message.Message):
     WEIGHT_PHASE_FIELD_NUMBER: _builtins.int
     CORRECTED_AMPLITUDE_FIELD_NUMBER: _builtins.int
     CORRECTED_PHASE_FIELD_NUMBER: _builtins.int
+    RAW_Z_DEPTH_M_FIELD_NUMBER: _builtins.int
     @_builtins.property
     def range_m(self) -> _common_pb2.Image:
         """Corrected range along the viewing ray, metres."""
@@ -304,6 +305,12 @@ class TofDepthResult(_message.Message):
 
     @_builtins.property
     def corrected_phase(self) -> _common_pb2.Image: ...
+    @_builtins.property
+    def raw_z_depth_m(self) -> _common_pb2.Image:
+        """z-depth from the raw (foggy) phase, metres (only when intrinsics were given), to compare
+        with z_depth_m.
+        """
+
     def __init__(
         self,
         *,
@@ -317,10 +324,11 @@ class TofDepthResult(_message.Message):
         weight_phase: _common_pb2.Image | None = ...,
         corrected_amplitude: _common_pb2.Image | None = ...,
         corrected_phase: _common_pb2.Image | None = ...,
+        raw_z_depth_m: _common_pb2.Image | None = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _typing.Literal["corrected_amplitude", b"corrected_amplitude", "corrected_phase", b"corrected_phase", "mask", b"mask", "range_m", b"range_m", "raw_range_m", b"raw_range_m", "scatter_amplitude", b"scatter_amplitude", "scatter_phase", b"scatter_phase", "weight_amplitude", b"weight_amplitude", "weight_phase", b"weight_phase", "z_depth_m", b"z_depth_m"]  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["corrected_amplitude", b"corrected_amplitude", "corrected_phase", b"corrected_phase", "mask", b"mask", "range_m", b"range_m", "raw_range_m", b"raw_range_m", "raw_z_depth_m", b"raw_z_depth_m", "scatter_amplitude", b"scatter_amplitude", "scatter_phase", b"scatter_phase", "weight_amplitude", b"weight_amplitude", "weight_phase", b"weight_phase", "z_depth_m", b"z_depth_m"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["corrected_amplitude", b"corrected_amplitude", "corrected_phase", b"corrected_phase", "mask", b"mask", "range_m", b"range_m", "raw_range_m", b"raw_range_m", "scatter_amplitude", b"scatter_amplitude", "scatter_phase", b"scatter_phase", "weight_amplitude", b"weight_amplitude", "weight_phase", b"weight_phase", "z_depth_m", b"z_depth_m"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["corrected_amplitude", b"corrected_amplitude", "corrected_phase", b"corrected_phase", "mask", b"mask", "range_m", b"range_m", "raw_range_m", b"raw_range_m", "raw_z_depth_m", b"raw_z_depth_m", "scatter_amplitude", b"scatter_amplitude", "scatter_phase", b"scatter_phase", "weight_amplitude", b"weight_amplitude", "weight_phase", b"weight_phase", "z_depth_m", b"z_depth_m"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
