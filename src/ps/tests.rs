@@ -227,6 +227,18 @@ fn reference_table_full_size() {
             tolerance: 0.0,
             ..PsParams::default()
         };
+        // MURK_PS_PUBLISHED_PHYSICS=1: session 9's model (isotropic facet, no backscatter tail,
+        // the distance fixed at the start).
+        let base = if std::env::var("MURK_PS_PUBLISHED_PHYSICS").is_ok() {
+            PsParams {
+                facet_emission: FacetEmission::Isotropic,
+                backscatter_tail: false,
+                distance: DistanceMode::Fixed,
+                ..base
+            }
+        } else {
+            base
+        };
         let variants = [
             ("full, exact G (murk default)", PsParams { ..base.clone() }),
             (

@@ -1461,6 +1461,23 @@ pub(super) mod tests {
             let t = std::time::Instant::now();
             ForwardKernel::build_with(ft, &m, &g, &layout, FarField::PerPixel).unwrap();
             eprintln!("{emission:?}: production layout build {:?}", t.elapsed());
+            // The pipeline's first iteration: the sphere's mask on a fronto-parallel plane.
+            let mut p = plane(300, 300, 550.0, 212.0);
+            p.mask = g.mask.clone();
+            p.emission = emission;
+            let t = std::time::Instant::now();
+            ForwardKernel::build_with(ft, &m, &p, &layout, FarField::PerPixel).unwrap();
+            eprintln!(
+                "{emission:?}: production layout build on the plane {:?}",
+                t.elapsed()
+            );
+            let sim_medium = Medium {
+                beta_per_mm: 5e-3,
+                sigma_per_mm: 5e-3,
+            };
+            let t = std::time::Instant::now();
+            ForwardKernel::build_with(ft, &sim_medium, &p, &layout, FarField::PerPixel).unwrap();
+            eprintln!("{emission:?}: plane, β = σ = 5e-3 /mm {:?}", t.elapsed());
         }
         let t0 = std::time::Instant::now();
         let kern = ForwardKernel::build(ft, &m, &g, 81).unwrap();
