@@ -60,7 +60,9 @@ def _intrinsics(value: Any, where: str) -> Intrinsics:
     arr = np.asarray(value, dtype=np.float64)
     if arr.shape == (3, 3):
         if not np.allclose(arr[1:, 0], 0) or arr[2, 1] != 0 or arr[2, 2] != 1:
-            raise ClientInputError(where, "expected K = [[fx, skew, cx], [0, fy, cy], [0, 0, 1]] (transposed?)")
+            raise ClientInputError(
+                where, "expected K = [[fx, skew, cx], [0, fy, cy], [0, 0, 1]] (transposed?)"
+            )
         return Intrinsics(arr[0, 0], arr[1, 1], arr[0, 2], arr[1, 2], arr[0, 1])
     raise ClientInputError(where, "expected {fx, fy, cx, cy[, skew]} or a 3x3 K")
 

@@ -250,8 +250,9 @@ def photometric_stereo_request(
     ``initial_distance_mm``: the object's mean z-depth as far as the rig knows it. The server
     fits the distance to the lights' 1/d² fall-off, so this is a starting guess (20 % off is
     fine); ``None`` lets the server search for it. ``fix_distance=True`` keeps the depth's mean
-    at ``initial_distance_mm`` instead (the published method). ``mode``: ``"full"`` or ``"backscatter_only"`` (the baseline). ``options``
-    sets any other ``PhotometricStereoRequest`` field (``support_r``, ``max_iterations``, ...).
+    at ``initial_distance_mm`` instead (the published method). ``mode``: ``"full"`` or
+    ``"backscatter_only"`` (the baseline). ``options`` sets any other
+    ``PhotometricStereoRequest`` field (``support_r``, ``max_iterations``, ...).
     """
     if mode not in _PS_MODES:
         raise ClientInputError("request.photometric_stereo.mode", f"one of {sorted(_PS_MODES)}, got {mode!r}")

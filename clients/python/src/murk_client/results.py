@@ -48,7 +48,9 @@ class TofDepthResult:
             z_depth_m=from_proto(r.z_depth_m, field=f"{f}.z_depth_m") if r.HasField("z_depth_m") else None,
             raw_range_m=from_proto(r.raw_range_m, field=f"{f}.raw_range_m"),
             raw_z_depth_m=(
-                from_proto(r.raw_z_depth_m, field=f"{f}.raw_z_depth_m") if r.HasField("raw_z_depth_m") else None
+                from_proto(r.raw_z_depth_m, field=f"{f}.raw_z_depth_m")
+                if r.HasField("raw_z_depth_m")
+                else None
             ),
             mask=from_proto(r.mask, field=f"{f}.mask"),
             scatter_amplitude=from_proto(r.scatter_amplitude, field=f"{f}.scatter_amplitude"),
