@@ -22,12 +22,14 @@
 //! where p's ray crosses q's tangent plane, which is where Eq. 4.43's d_vp′ already ends the
 //! integral: the weight is ≥ 0 over the whole lit segment.
 
-use std::f64::consts::{FRAC_PI_2, FRAC_PI_4, PI};
+use std::f64::consts::FRAC_PI_2;
+#[cfg(test)]
+use std::f64::consts::PI;
 
 use serde::{Deserialize, Serialize};
 
 use super::f_table::FTable;
-use super::h::{fast_atan, MIN_TABLE_BRACKET, SIN_GAMMA_MIN, SMALL_BRACKET};
+use super::h::{segment, segment_fast, Bracket, Segment, MIN_TABLE_BRACKET, SMALL_BRACKET};
 use super::quad;
 #[cfg(test)]
 use super::Medium;
@@ -111,19 +113,17 @@ pub(crate) fn lambertian_scatter_cs(
     n_dot_rp: f64,
     n_dot_rq: f64,
 ) -> f64 {
-    if len.is_nan() || len <= 0.0 || beta == 0.0 || intensity == 0.0 {
-        return 0.0;
-    }
-    if d.is_nan() || d <= 0.0 {
-        return f64::INFINITY;
-    }
-    let sin_g = sin_g.abs().max(SIN_GAMMA_MIN);
-    let h = d * sin_g;
+    let Bracket {
+        pre,
+        u,
+        v1,
+        v2,
+        sin_g,
+    } = match segment(beta, sigma, intensity, d, cos_g, sin_g, len) {
+        Segment::Value(v) => return v,
+        Segment::Bracket(b) => b,
+    };
     let (a, b) = weights(n_dot_rp, n_dot_rq, cos_g, sin_g);
-    let pre = beta * intensity * (-sigma * d * cos_g).exp() / (2.0 * PI * h);
-    let v1 = 0.5 * sin_g.atan2(cos_g);
-    let v2 = FRAC_PI_4 + 0.5 * ((len - d * cos_g) / h).atan();
-    let u = sigma * h;
     let br = bracket_table(table, u, v1, v2, a, b);
     // The weight is at most |a| + |b| in size: judge the table's error against that, as
     // `h::bracket` does with weight 1 (see [`LAMBERTIAN_TABLE_SHARE`]).
@@ -145,7 +145,7 @@ pub(crate) fn lambertian_scatter_cs(
 
 /// [`lambertian_scatter_cs`] for the kernel build's hot loop, with the same shortcuts as
 /// [`super::h::scatter_cs_fast`]: `att` = e^{−σ d} times a Taylor polynomial for
-/// e^{σ d (1 − cos γ)}, [`fast_atan`], and a 3-point Gauss–Legendre rule on brackets shorter
+/// e^{σ d (1 − cos γ)}, [`super::h::fast_atan`], and a 3-point Gauss–Legendre rule on brackets shorter
 /// than [`SMALL_BRACKET`] (the table's ~2·10⁻⁵ absolute error is accepted on the others).
 #[allow(clippy::too_many_arguments)]
 #[inline(always)]
@@ -162,30 +162,17 @@ pub(crate) fn lambertian_scatter_cs_fast(
     n_dot_rp: f64,
     n_dot_rq: f64,
 ) -> f64 {
-    if len.is_nan() || len <= 0.0 || beta == 0.0 || intensity == 0.0 {
-        return 0.0;
-    }
-    if d.is_nan() || d <= 0.0 {
-        return f64::INFINITY;
-    }
-    let sin_g = sin_g.abs().max(SIN_GAMMA_MIN);
-    let h = d * sin_g;
+    let Bracket {
+        pre,
+        u,
+        v1,
+        v2,
+        sin_g,
+    } = match segment_fast(beta, sigma, intensity, d, att, cos_g, sin_g, len) {
+        Segment::Value(v) => return v,
+        Segment::Bracket(b) => b,
+    };
     let (a, b) = weights(n_dot_rp, n_dot_rq, cos_g, sin_g);
-    let one_minus_cos = sin_g * sin_g / (1.0 + cos_g.max(-1.0 + 1e-12));
-    let x = sigma * d * one_minus_cos;
-    let growth = if x < 0.02 {
-        1.0 + x * (1.0 + x * (0.5 + x * (1.0 / 6.0)))
-    } else {
-        x.exp()
-    };
-    let pre = beta * intensity * att * growth / (2.0 * PI * h);
-    let v1 = if cos_g > 0.0 {
-        0.5 * fast_atan(sin_g / cos_g)
-    } else {
-        0.5 * sin_g.atan2(cos_g)
-    };
-    let v2 = FRAC_PI_4 + 0.5 * fast_atan((len - d * cos_g) / h);
-    let u = sigma * h;
     let span = v2 - v1;
     let br = if span >= SMALL_BRACKET {
         bracket_table(table, u, v1, v2, a, b)

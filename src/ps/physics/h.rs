@@ -121,11 +121,84 @@ pub(crate) fn scatter_cs_fast(
     sin_g: f64,
     len: f64,
 ) -> f64 {
+    match segment_fast(beta, sigma, intensity, d, att, cos_g, sin_g, len) {
+        Segment::Value(v) => v,
+        Segment::Bracket(s) => s.pre * bracket_fast(table, s.u, s.v1, s.v2),
+    }
+}
+
+/// Eq. 4.33 split at its bracket: either the integral's value outright (0 for an empty ray, a
+/// zero β or source; +∞ for a source at the camera), or the prefactor and the bracket's ends,
+/// so that the isotropic source (F) and the Lambertian facet ([`super::facet_emission`]: F_c,
+/// F_s) share everything but the bracket.
+pub(crate) enum Segment {
+    Value(f64),
+    Bracket(Bracket),
+}
+
+/// The prefactor β·I·e^{−σ d cos γ}/(2π h) and the bracket ∫_{v1}^{v2} … dξ with u = σh, for
+/// the clamped sin γ (≥ [`SIN_GAMMA_MIN`]) the bracket's weights may need.
+pub(crate) struct Bracket {
+    pub(crate) pre: f64,
+    pub(crate) u: f64,
+    pub(crate) v1: f64,
+    pub(crate) v2: f64,
+    pub(crate) sin_g: f64,
+}
+
+/// The integral's outright value, if the inputs make it 0 or +∞.
+#[inline(always)]
+fn outright(beta: f64, intensity: f64, d: f64, len: f64) -> Option<f64> {
     if len.is_nan() || len <= 0.0 || beta == 0.0 || intensity == 0.0 {
-        return 0.0;
+        return Some(0.0);
     }
     if d.is_nan() || d <= 0.0 {
-        return f64::INFINITY;
+        return Some(f64::INFINITY);
+    }
+    None
+}
+
+/// [`Segment`] with libm's `exp` and `atan` (the accurate path).
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+pub(crate) fn segment(
+    beta: f64,
+    sigma: f64,
+    intensity: f64,
+    d: f64,
+    cos_g: f64,
+    sin_g: f64,
+    len: f64,
+) -> Segment {
+    if let Some(v) = outright(beta, intensity, d, len) {
+        return Segment::Value(v);
+    }
+    let sin_g = sin_g.abs().max(SIN_GAMMA_MIN);
+    let h = d * sin_g;
+    Segment::Bracket(Bracket {
+        pre: beta * intensity * (-sigma * d * cos_g).exp() / (2.0 * PI * h),
+        u: sigma * h,
+        v1: 0.5 * sin_g.atan2(cos_g),
+        v2: FRAC_PI_4 + 0.5 * ((len - d * cos_g) / h).atan(),
+        sin_g,
+    })
+}
+
+/// [`Segment`] for the kernel build's hot loop (see [`scatter_cs_fast`]).
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+pub(crate) fn segment_fast(
+    beta: f64,
+    sigma: f64,
+    intensity: f64,
+    d: f64,
+    att: f64,
+    cos_g: f64,
+    sin_g: f64,
+    len: f64,
+) -> Segment {
+    if let Some(v) = outright(beta, intensity, d, len) {
+        return Segment::Value(v);
     }
     let sin_g = sin_g.abs().max(SIN_GAMMA_MIN);
     let h = d * sin_g;
@@ -137,14 +210,18 @@ pub(crate) fn scatter_cs_fast(
     } else {
         x.exp()
     };
-    let pre = beta * intensity * att * growth / (2.0 * PI * h);
     let v1 = if cos_g > 0.0 {
         0.5 * fast_atan(sin_g / cos_g)
     } else {
         0.5 * sin_g.atan2(cos_g)
     };
-    let v2 = FRAC_PI_4 + 0.5 * fast_atan((len - d * cos_g) / h);
-    pre * bracket_fast(table, sigma * h, v1, v2)
+    Segment::Bracket(Bracket {
+        pre: beta * intensity * att * growth / (2.0 * PI * h),
+        u: sigma * h,
+        v1,
+        v2: FRAC_PI_4 + 0.5 * fast_atan((len - d * cos_g) / h),
+        sin_g,
+    })
 }
 
 /// atan(z) to ≤ 3·10⁻⁹ rad: reduction to |t| ≤ tan(π/12) (atan z = π/2 − atan(1/z) and
@@ -186,18 +263,10 @@ fn scatter_cs_with(
     sin_g: f64,
     len: f64,
 ) -> f64 {
-    if len.is_nan() || len <= 0.0 || beta == 0.0 || intensity == 0.0 {
-        return 0.0;
+    match segment(beta, sigma, intensity, d, cos_g, sin_g, len) {
+        Segment::Value(v) => v,
+        Segment::Bracket(s) => s.pre * bracket(table, s.u, s.v1, s.v2),
     }
-    if d.is_nan() || d <= 0.0 {
-        return f64::INFINITY;
-    }
-    let sin_g = sin_g.abs().max(SIN_GAMMA_MIN);
-    let h = d * sin_g;
-    let pre = beta * intensity * (-sigma * d * cos_g).exp() / (2.0 * PI * h);
-    let v1 = 0.5 * sin_g.atan2(cos_g);
-    let v2 = FRAC_PI_4 + 0.5 * ((len - d * cos_g) / h).atan();
-    pre * bracket(table, sigma * h, v1, v2)
 }
 
 /// The bracket for the forward-scatter kernel's hot loop: the table, except that intervals
