@@ -18,7 +18,7 @@ use rayon::prelude::*;
 
 use crate::ps::capture::{rig_size_mm, PointLight};
 use crate::ps::near_light::{
-    exact_shading, normal_equations, refine_exact_g, shading_row, solve3, ShadingModel, MAX_LIT,
+    exact_shading, normal_equations, refine_exact_g, solve3, ShadingModel, MAX_LIT,
 };
 use crate::ps::physics::{GTable, Medium};
 
@@ -194,14 +194,15 @@ fn pixel_residual(
     };
     let ll: f64 = lit.iter().map(|&(_, o)| o * o).sum();
     let res: f64 = match model {
-        ShadingModel::DirectOnly => lit
-            .iter()
-            .map(|&(i, obs)| {
-                let row = shading_row(&lights[i], medium, g, model, x);
-                let pred = row[0] * sol[0] + row[1] * sol[1] + row[2] * sol[2];
-                (obs - pred) * (obs - pred)
-            })
-            .sum(),
+        // Σ (L − D·ñ)² = LᵀL − 2 ñᵀDᵀL + ñᵀDᵀD ñ: the normal equations already hold it.
+        ShadingModel::DirectOnly => {
+            let mut quad = 0.0;
+            for r in 0..3 {
+                quad += sol[r] * (ata[r][0] * sol[0] + ata[r][1] * sol[1] + ata[r][2] * sol[2]);
+            }
+            let cross = sol[0] * atb[0] + sol[1] * atb[1] + sol[2] * atb[2];
+            (ll - 2.0 * cross + quad).max(0.0)
+        }
         ShadingModel::ForwardScatter => {
             let len = (sol[0] * sol[0] + sol[1] * sol[1] + sol[2] * sol[2]).sqrt();
             if !(len.is_finite() && len > 0.0) {
@@ -423,18 +424,12 @@ mod experiments {
         eprintln!("integrated from true normals: {fit:?}");
 
         // The pipeline's reflected component at the true geometry: backscatter removal (with and
-        // without the median), the kernel (per-pixel far field, r = 25) and BiCGStab.
-        use crate::ps::bicgstab::{bicgstab_block, BicgstabParams, BlockOperator};
+        // without the median, with and without the tail), the kernel (per-pixel far field) and
+        // BiCGStab, as the pipeline's step 3 does them.
+        use crate::ps::backscatter::{backscatter_tail, remove_backscatter};
+        use crate::ps::bicgstab::BicgstabParams;
         use crate::ps::physics::{FTable, FarField, ForwardKernel, KernelLayout, SurfaceGeometry};
-        struct Aug<'a>(&'a ForwardKernel);
-        impl BlockOperator for Aug<'_> {
-            fn dim(&self) -> usize {
-                self.0.masked_count() + 1
-            }
-            fn apply_block(&self, xs: &[f64], ys: &mut [f64], k: usize) {
-                self.0.apply_block(xs, ys, k);
-            }
-        }
+        use crate::ps::pipeline::solve_reflected;
         let geom = SurfaceGeometry {
             width: w,
             height: cap.dims().1,
@@ -444,6 +439,7 @@ mod experiments {
             mask: cap.mask.clone(),
             emission: cfg.facet_emission,
         };
+        let tail = backscatter_tail(FTable::global(), &cap.medium, &cap.lights, &pts, &cap.mask);
         for (r, cell) in [(25, 3), (95, 1)] {
             let kernel = ForwardKernel::build_with(
                 FTable::global(),
@@ -453,60 +449,36 @@ mod experiments {
                 FarField::PerPixel,
             )
             .unwrap();
-            for (median, tail) in [(true, false), (false, false), (true, true), (false, true)] {
-                let masked: Vec<usize> = (0..cap.mask.len()).filter(|&p| cap.mask[p]).collect();
-                let m = cap.lights.len();
-                let dim = masked.len() + 1;
-                let mut b = vec![0.0; dim * m];
-                let mut x = vec![0.0; dim * m];
-                for i in 0..m {
-                    let obs = crate::ps::backscatter::remove_backscatter(
-                        cap.images[i].data(),
-                        cap.backgrounds[i].data(),
-                        &cap.mask,
-                        w,
-                        median,
-                    );
-                    for (k, &p) in masked.iter().enumerate() {
-                        let mut o = f64::from(obs[p]);
-                        if tail {
-                            let pt = pts[p].map(f64::from);
-                            let d = (pt[0] * pt[0] + pt[1] * pt[1] + pt[2] * pt[2]).sqrt();
-                            let ray = pt.map(|v| v / d);
-                            let bs = |len| {
-                                crate::ps::physics::backscatter(
-                                    FTable::global(),
-                                    &cap.medium,
-                                    cap.lights[i].intensity,
-                                    cap.lights[i].position_mm,
-                                    ray,
-                                    len,
-                                )
-                            };
-                            o += bs(f64::INFINITY) - bs(d);
+            for (median, with_tail) in [(true, false), (false, false), (true, true), (false, true)]
+            {
+                let observed: Vec<Vec<f32>> = (0..cap.lights.len())
+                    .map(|i| {
+                        let mut obs = remove_backscatter(
+                            cap.images[i].data(),
+                            cap.backgrounds[i].data(),
+                            &cap.mask,
+                            w,
+                            median,
+                        );
+                        if with_tail {
+                            for (o, t) in obs.iter_mut().zip(&tail[i]) {
+                                *o += t;
+                            }
                         }
-                        b[i * dim + k] = o;
-                        x[i * dim + k] = o;
-                    }
-                }
-                bicgstab_block(
-                    &Aug(&kernel),
-                    &b,
-                    &mut x,
-                    m,
+                        obs
+                    })
+                    .collect();
+                let refl = solve_reflected(
+                    &kernel,
+                    &observed,
+                    &pts,
+                    &cap.medium,
                     &BicgstabParams::default(),
                     &Monitor::noop(),
                 )
-                .unwrap();
-                let refl: Vec<Vec<f32>> = (0..m)
-                    .map(|i| {
-                        let mut v = vec![0.0f32; cap.mask.len()];
-                        for (k, &p) in masked.iter().enumerate() {
-                            v[p] = x[i * dim + k] as f32;
-                        }
-                        v
-                    })
-                    .collect();
+                .unwrap()
+                .reflected;
+                let masked: Vec<usize> = (0..cap.mask.len()).filter(|&p| cap.mask[p]).collect();
                 let (mut err, mut tot) = (0.0f64, 0.0f64);
                 for (est, truth) in refl.iter().zip(&sim.gt_reflected) {
                     for &p in &masked {
@@ -526,7 +498,7 @@ mod experiments {
                     (truth / 2.0, truth * 2.0),
                 )
                 .unwrap();
-                eprintln!("pipeline L_s r={r} cell={cell} median={median} tail={tail}: rel err {:.2e}, {fit:?}", err / tot);
+                eprintln!("pipeline L_s r={r} cell={cell} median={median} tail={with_tail}: rel err {:.2e}, {fit:?}", err / tot);
             }
         }
     }

@@ -16,7 +16,7 @@ use crate::ps::integrate::{
 };
 use crate::ps::near_light::{solve_normals, ShadingModel};
 use crate::ps::physics::{
-    FTable, FacetEmission, FarField, ForwardKernel, GTable, KernelLayout, SurfaceGeometry,
+    FTable, FacetEmission, FarField, ForwardKernel, GTable, KernelLayout, Medium, SurfaceGeometry,
 };
 
 /// Largest kernel support `r` accepted (an r×r window per pixel is stored; 201² f32 = 160 kB
@@ -354,7 +354,6 @@ pub fn photometric_stereo(
     validate_request(capture, params)?;
     let mask = capture.mask.clone();
     let n = width * height;
-    let m = capture.lights.len();
     let intr = capture.intrinsics;
     let medium = capture.medium;
     let masked: Vec<usize> = (0..n).filter(|&p| mask[p]).collect();
@@ -383,7 +382,6 @@ pub fn photometric_stereo(
     // for with the plane and the observations as they are (the forward scatter still in them):
     // a rough start that the fits after each integration refine.
     let estimate = params.distance == DistanceMode::Estimate;
-    let model_for_fit = model;
     let mut initial_distance_fit = None;
     let plane_distance = if params.initial_distance_mm > 0.0 || params.initial_depth_mm.is_some() {
         params.initial_distance_mm
@@ -400,7 +398,7 @@ pub fn photometric_stereo(
             &capture.lights,
             &medium,
             gt,
-            model_for_fit,
+            model,
             params.shadow_ratio,
             default_range_mm(&capture.lights),
         )
@@ -513,37 +511,24 @@ pub fn photometric_stereo(
                 monitor.checkpoint()?;
                 stage("forward-scatter removal", 0.3);
                 let t = Instant::now();
-                let dim = masked.len() + 1;
-                let mut b = vec![0.0f64; dim * m];
-                let mut x = vec![0.0f64; dim * m];
-                for (i, obs) in observed.iter().enumerate() {
-                    for (k, &p) in masked.iter().enumerate() {
-                        b[i * dim + k] = f64::from(obs[p]);
-                        let diag = (-medium.sigma_per_mm * norm(points[p])).exp();
-                        x[i * dim + k] = f64::from(obs[p]) / diag;
-                    }
-                }
-                let report = bicgstab_block(
-                    &Augmented(&kernel),
-                    &b,
-                    &mut x,
-                    m,
+                let solved = solve_reflected(
+                    &kernel,
+                    observed,
+                    &points,
+                    &medium,
                     &params.solver,
                     &monitor.sub((it as f32 + 0.3) / total, (it as f32 + 0.6) / total),
                 )?;
                 stats.solve_s = t.elapsed().as_secs_f64();
-                stats.solver_iterations = report.iterations.clone();
-                stats.solver_residual = report.rel_residuals.iter().copied().fold(0.0, f64::max);
-                stats.constant_term = (0..m).map(|i| x[i * dim + dim - 1]).collect();
-                (0..m)
-                    .map(|i| {
-                        let mut ls = vec![0.0f32; n];
-                        for (k, &p) in masked.iter().enumerate() {
-                            ls[p] = x[i * dim + k] as f32;
-                        }
-                        ls
-                    })
-                    .collect()
+                stats.solver_residual = solved
+                    .report
+                    .rel_residuals
+                    .iter()
+                    .copied()
+                    .fold(0.0, f64::max);
+                stats.solver_iterations = solved.report.iterations;
+                stats.constant_term = solved.constant_term;
+                solved.reflected
             }
         };
         monitor.checkpoint()?;
@@ -593,7 +578,7 @@ pub fn photometric_stereo(
                 &capture.lights,
                 &medium,
                 gt,
-                model_for_fit,
+                model,
                 params.shadow_ratio,
                 (prev_mean / DISTANCE_STEP, prev_mean * DISTANCE_STEP),
             );
@@ -643,6 +628,59 @@ pub fn photometric_stereo(
         support_r: params.support_r,
         far_cell: params.kernel_layout()?.cell(),
         initial_distance_fit,
+    })
+}
+
+/// What [`solve_reflected`] returns.
+pub(crate) struct ReflectedSolve {
+    /// L_s per light over the full image (0 off the mask).
+    pub(crate) reflected: Vec<Vec<f32>>,
+    /// The extra unknown of Eq. 4.52 per light.
+    pub(crate) constant_term: Vec<f64>,
+    /// BiCGStab's iterations and residuals.
+    pub(crate) report: crate::ps::bicgstab::BicgstabReport,
+}
+
+/// Step 3: the reflected component L_s of every light from its backscatter-removed image
+/// `observed[i]` by block BiCGStab on Eq. 4.52 with `kernel` (built over `kernel`'s masked
+/// pixels at `points_mm`), started from the observations with the camera-path attenuation
+/// e^{−σ d} undone.
+pub(crate) fn solve_reflected(
+    kernel: &ForwardKernel,
+    observed: &[Vec<f32>],
+    points_mm: &[[f32; 3]],
+    medium: &Medium,
+    solver: &BicgstabParams,
+    monitor: &Monitor,
+) -> Result<ReflectedSolve> {
+    let m = observed.len();
+    let n = observed.first().map_or(0, Vec::len);
+    let count = kernel.masked_count();
+    let dim = count + 1;
+    let mut b = vec![0.0f64; dim * m];
+    let mut x = vec![0.0f64; dim * m];
+    for (i, obs) in observed.iter().enumerate() {
+        for k in 0..count {
+            let p = kernel.pixel_index(k);
+            b[i * dim + k] = f64::from(obs[p]);
+            let diag = (-medium.sigma_per_mm * norm(points_mm[p])).exp();
+            x[i * dim + k] = f64::from(obs[p]) / diag;
+        }
+    }
+    let report = bicgstab_block(&Augmented(kernel), &b, &mut x, m, solver, monitor)?;
+    let reflected = (0..m)
+        .map(|i| {
+            let mut ls = vec![0.0f32; n];
+            for k in 0..count {
+                ls[kernel.pixel_index(k)] = x[i * dim + k] as f32;
+            }
+            ls
+        })
+        .collect();
+    Ok(ReflectedSolve {
+        reflected,
+        constant_term: (0..m).map(|i| x[i * dim + dim - 1]).collect(),
+        report,
     })
 }
 
