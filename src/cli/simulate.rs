@@ -136,6 +136,10 @@ pub struct SimTofArgs {
     /// Overrides the preset's extinction coefficient, per millimetre.
     #[arg(long)]
     pub beta_per_mm: Option<f64>,
+    /// Object placement: separated (objects apart, background around them) or cluttered (a
+    /// large near sphere occluding a panel, plus 1–2 objects).
+    #[arg(long, default_value = "separated")]
+    pub layout: String,
 }
 
 /// Runs a simulate subcommand.
@@ -147,17 +151,19 @@ pub fn run(cmd: SimulateCommand) -> anyhow::Result<()> {
                 preset,
                 seed: a.seed,
                 beta_per_mm: a.beta_per_mm,
+                layout: a.layout.parse()?,
                 ..TofSimConfig::with_size(a.width, a.height)
             };
             let frame = simulate_tof(&cfg, &Monitor::noop())?;
             write_tof_frame(&a.out, &frame)
                 .with_context(|| format!("writing {}", a.out.display()))?;
             println!(
-                "wrote {} ({}x{}, preset {preset}, beta {:.2e}/mm, seed {})",
+                "wrote {} ({}x{}, preset {preset}, beta {:.2e}/mm, {} layout, seed {})",
                 a.out.display(),
                 a.width,
                 a.height,
                 cfg.effective_beta_per_mm(),
+                cfg.layout,
                 a.seed
             );
             Ok(())

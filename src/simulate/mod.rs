@@ -36,7 +36,7 @@ use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 
-pub use scene::{Scene, SceneObject, Shape};
+pub use scene::{Scene, SceneLayout, SceneObject, Shape};
 pub use tof::{
     scatter_along_ray, simulate_tof, wrap_phase, FogPreset, Phasor, TofSimConfig, TofSimFrame,
     MAX_SIM_PIXELS, MAX_SIM_SIDE,

@@ -54,6 +54,43 @@ pub struct SceneObject {
     pub albedo: f64,
 }
 
+/// How [`Scene::generate_layout`] places objects.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum SceneLayout {
+    /// 2–4 objects apart from each other, background visible around them, ≤ 35 % coverage
+    /// ([`Scene::generate`]): the scene class the reference's method is meant for.
+    #[default]
+    Separated,
+    /// A large bright sphere near the camera (front at 0.75–1.05 m) partly occluding a wide
+    /// panel behind it, plus 1–2 further objects ([`Scene::generate_cluttered`]): the scenes on
+    /// which the reference's saturated-scatter model breaks (issue 22).
+    Cluttered,
+}
+
+impl std::fmt::Display for SceneLayout {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            SceneLayout::Separated => "separated",
+            SceneLayout::Cluttered => "cluttered",
+        })
+    }
+}
+
+impl std::str::FromStr for SceneLayout {
+    type Err = crate::error::MurkError;
+    fn from_str(s: &str) -> crate::error::Result<Self> {
+        match s.trim().to_ascii_lowercase().as_str() {
+            "separated" => Ok(SceneLayout::Separated),
+            "cluttered" => Ok(SceneLayout::Cluttered),
+            other => Err(crate::error::MurkError::invalid(
+                "layout",
+                format!("unknown scene layout {other:?}; expected separated or cluttered"),
+            )),
+        }
+    }
+}
+
 /// A scene: a fronto-parallel wall at `wall_z_m` with albedo `wall_albedo` behind `objects`.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Scene {
@@ -260,6 +297,123 @@ impl Scene {
         })
     }
 
+    /// A seeded scene of the given layout.
+    pub fn generate_layout(
+        layout: SceneLayout,
+        rng: &mut ChaCha8Rng,
+        k: &Intrinsics,
+        width: usize,
+        height: usize,
+    ) -> Scene {
+        match layout {
+            SceneLayout::Separated => Scene::generate(rng, k, width, height),
+            SceneLayout::Cluttered => Scene::generate_cluttered(rng, k, width, height),
+        }
+    }
+
+    /// A seeded cluttered scene: wall at 5–6.5 m; a bright sphere (albedo 0.6–0.9, radius
+    /// 0.2–0.3 m, nearest point 0.75–1.05 m from the camera); a wide, thin panel 0.5–1.0 m behind
+    /// it, shifted sideways so the sphere hides 20–60 % of it; and 1–2 objects of
+    /// [`Scene::generate`]'s kinds elsewhere. Objects may occlude each other and shadow each
+    /// other from the light; no object spans the image from top to bottom, and objects cover at
+    /// most 55 % of the image.
+    pub fn generate_cluttered(
+        rng: &mut ChaCha8Rng,
+        k: &Intrinsics,
+        width: usize,
+        height: usize,
+    ) -> Scene {
+        let wall_z_m = rng.random_range(5.0..6.5);
+        let mut last = None;
+        for _attempt in 0..200 {
+            let u = rng.random_range(0.3..0.7) * (width as f64 - 1.0);
+            let v = rng.random_range(0.35..0.65) * (height as f64 - 1.0);
+            let dir = k.ray(u, v);
+            let radius = rng.random_range(0.2..0.3);
+            let front = rng.random_range(0.75..1.05);
+            let centre = scale(dir, front + radius);
+            let sphere = SceneObject {
+                shape: Shape::Sphere { centre, radius },
+                albedo: rng.random_range(0.6..0.9),
+            };
+            // The panel's centre sits behind the sphere, shifted sideways by 0.6–1.2 sphere
+            // radii scaled to the panel's depth, so the sphere covers part of it.
+            let panel_z = centre[2] + rng.random_range(0.5..1.0);
+            let side = if rng.random_bool(0.5) { 1.0 } else { -1.0 };
+            let shift = rng.random_range(0.6..1.2) * radius * panel_z / centre[2];
+            let half = [
+                rng.random_range(0.25..0.4),
+                rng.random_range(0.15..0.25),
+                0.02,
+            ];
+            let c = [
+                centre[0] * panel_z / centre[2] + side * (shift + half[0] * 0.5),
+                centre[1] * panel_z / centre[2] + rng.random_range(-0.5..0.5) * radius,
+                panel_z,
+            ];
+            let panel = SceneObject {
+                shape: Shape::Box {
+                    min: sub(c, half),
+                    max: [c[0] + half[0], c[1] + half[1], c[2] + half[2]],
+                },
+                albedo: rng.random_range(0.3..0.8),
+            };
+            let mut objects = vec![sphere, panel];
+            let extra = rng.random_range(1..=2usize);
+            let mut tries = 0;
+            while objects.len() < 2 + extra && tries < 100 {
+                tries += 1;
+                let obj = random_object(rng, k, width, height);
+                let (c, r) = obj.shape.bounding_sphere();
+                if objects.iter().all(|o| {
+                    let (c2, r2) = o.shape.bounding_sphere();
+                    let dc = sub(c, c2);
+                    dot(dc, dc).sqrt() > r + r2 + 0.05
+                }) {
+                    objects.push(obj);
+                }
+            }
+            let scene = Scene {
+                wall_z_m,
+                wall_albedo: 0.05,
+                objects,
+            };
+            let (coverage, spans) = scene.coarse_coverage(k, width, height);
+            let hidden = scene.hidden_share(1, k, width, height);
+            if coverage <= 0.55 && !spans && (0.2..=0.6).contains(&hidden) {
+                return scene;
+            }
+            last = Some(scene);
+        }
+        // Every attempt failing is practically impossible with the ranges above; the last draw
+        // is still a valid scene.
+        last.expect("at least one attempt")
+    }
+
+    /// Share of object `index`'s pixels (from a coarse render) that another object hides.
+    fn hidden_share(&self, index: usize, k: &Intrinsics, width: usize, height: usize) -> f64 {
+        let step = (width.max(height) / 96).max(1);
+        let (mut seen, mut hidden) = (0usize, 0usize);
+        let obj = &self.objects[index];
+        for y in (0..height).step_by(step) {
+            for x in (0..width).step_by(step) {
+                let d = k.ray(x as f64, y as f64);
+                let Some((t, _)) = obj.shape.intersect([0.0; 3], d, 1e-9, f64::INFINITY) else {
+                    continue;
+                };
+                let in_front = self.objects.iter().enumerate().any(|(j, o)| {
+                    j != index && o.shape.intersect([0.0; 3], d, 1e-9, t).is_some()
+                });
+                if in_front {
+                    hidden += 1;
+                } else {
+                    seen += 1;
+                }
+            }
+        }
+        hidden as f64 / (seen + hidden).max(1) as f64
+    }
+
     /// Object coverage fraction and whether any object's rows span the full image height, from
     /// a render at most 96 pixels wide.
     fn coarse_coverage(&self, k: &Intrinsics, width: usize, height: usize) -> (f64, bool) {
@@ -385,6 +539,25 @@ mod tests {
             for o in &s.objects {
                 assert!((0.3..=0.9).contains(&o.albedo));
             }
+        }
+    }
+
+    #[test]
+    fn cluttered_scenes_have_a_near_sphere_occluding_a_panel() {
+        let k = Intrinsics::new(365.0, 365.0, 255.5, 211.5);
+        for seed in 0..20 {
+            let mut rng = ChaCha8Rng::seed_from_u64(seed);
+            let s = Scene::generate_cluttered(&mut rng, &k, 512, 424);
+            assert!((3..=4).contains(&s.objects.len()), "seed {seed}");
+            let Shape::Sphere { centre, radius } = s.objects[0].shape else {
+                panic!("seed {seed}: the first object is the near sphere");
+            };
+            let front = dot(centre, centre).sqrt() - radius;
+            assert!((0.75..=1.05).contains(&front), "seed {seed}: {front}");
+            let hidden = s.hidden_share(1, &k, 512, 424);
+            assert!((0.2..=0.6).contains(&hidden), "seed {seed}: panel hidden {hidden}");
+            let (cov, spans) = s.coarse_coverage(&k, 512, 424);
+            assert!(cov <= 0.55 && !spans, "seed {seed}: {cov}");
         }
     }
 

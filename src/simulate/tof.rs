@@ -45,7 +45,7 @@ use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::scene::{dot, scale, sub, Scene, V3};
+use super::scene::{dot, scale, sub, Scene, SceneLayout, V3};
 use crate::camera::Intrinsics;
 use crate::error::{MurkError, Result};
 use crate::image::ImageF32;
@@ -157,6 +157,8 @@ pub struct TofSimConfig {
     pub noise_read: f64,
     /// Seeds the scene layout and the noise.
     pub seed: u64,
+    /// How objects are placed.
+    pub layout: SceneLayout,
 }
 
 impl Default for TofSimConfig {
@@ -182,6 +184,7 @@ impl Default for TofSimConfig {
             noise_shot: 0.15,
             noise_read: 0.5,
             seed: 0,
+            layout: SceneLayout::Separated,
         }
     }
 }
@@ -580,7 +583,7 @@ pub fn simulate_tof(cfg: &TofSimConfig, monitor: &Monitor) -> Result<TofSimFrame
     let k = cfg.intrinsics();
     // Stream 0 of the seed lays out the scene; rows' noise uses streams 1 + y.
     let mut scene_rng = ChaCha8Rng::seed_from_u64(cfg.seed);
-    let scene = Scene::generate(&mut scene_rng, &k, w, h);
+    let scene = Scene::generate_layout(cfg.layout, &mut scene_rng, &k, w, h);
     let beta_mm = cfg.effective_beta_per_mm();
     let model = Model::new(cfg, &scene, beta_mm);
 

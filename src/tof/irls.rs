@@ -296,7 +296,12 @@ fn x_and_a_step(
 ) -> Result<usize> {
     sys.rhs(weights, observed, prior_img, rhs);
     let stats = state.solve_inexact(sys, weights, rhs, x, tol_scale, monitor)?;
-    prior.fit_weighted(x, weights);
+    if sys.is_joint() {
+        // x already minimises over a: its uniform fits are the a-step's answer.
+        prior.fit(x);
+    } else {
+        prior.fit_weighted(x, weights);
+    }
     prior.evaluate(prior_img);
     Ok(stats.iterations)
 }

@@ -141,6 +141,23 @@ pub struct TofParams {
     /// no weight moves by more than this for two iterations and the mask is unchanged, so the
     /// iteration counts are caps. 0 disables early stopping (always run the caps).
     pub convergence_tolerance: f64,
+    /// How the patch quadratics of Eq. 5.12 are solved for together with x.
+    pub prior_coupling: PriorCoupling,
+}
+
+/// How the x- and a-steps of Eq. 5.12 are solved.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum PriorCoupling {
+    /// Minimise over x and the quadratics together (the a-step eliminated; see
+    /// `wls::XStepSystem::with_joint_prior`). Under a large object the scatter estimate is the
+    /// background's quadratics and smoothness carried across it, whatever the starting point.
+    #[default]
+    Joint,
+    /// The reference's alternation of x-step and a-step, with the a-step fitting the patch
+    /// quadratics with the IRLS weights (murk ≤ 0.x; kept to compare). Under an object covering
+    /// whole patches x only diffuses slowly away from Algorithm 2's start, the observation itself,
+    /// so the scatter there stays close to the object's brightness.
+    Alternating,
 }
 
 impl Default for TofParams {
@@ -158,6 +175,7 @@ impl Default for TofParams {
             mask_threshold: 0.5,
             light_position_m: None,
             convergence_tolerance: super::irls::DEFAULT_WEIGHT_TOLERANCE,
+            prior_coupling: PriorCoupling::Joint,
         }
     }
 }

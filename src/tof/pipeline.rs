@@ -12,7 +12,7 @@ use rayon::prelude::*;
 
 use super::bilateral::bilateral_filter;
 use super::irls::{run_irls, IrlsConfig, IrlsOutcome};
-use super::params::{TofInput, TofOutput, TofParams, SPEED_OF_LIGHT_M_PER_S};
+use super::params::{PriorCoupling, TofInput, TofOutput, TofParams, SPEED_OF_LIGHT_M_PER_S};
 use super::quadratic_prior::{PatchGrid, QuadraticPrior};
 use super::symmetry::RowMirror;
 use super::wls::{XStepSolver, XStepSystem};
@@ -89,6 +89,10 @@ pub fn estimate_tof_depth_with_solver(
             mask_threshold: params.mask_threshold as f64,
         };
         let sys = XStepSystem::new(w, h, cfg.channel.effective_gamma(w, h), mirror.clone());
+        let sys = match params.prior_coupling {
+            PriorCoupling::Joint => sys.with_joint_prior(grid.clone())?,
+            PriorCoupling::Alternating => sys,
+        };
         let mut prior = QuadraticPrior::new(grid.clone())?;
         run_irls(&observed, &sys, &mut prior, &cfg, prefix, monitor, &tick)
     };

@@ -227,12 +227,33 @@ impl QuadraticPrior {
 
     /// Fits every patch's quadratic to `x` (row-major, `width·height`).
     pub fn fit(&mut self, x: &[f64]) {
+        let mut row_sums = std::mem::take(&mut self.row_sums);
+        let mut coeffs = std::mem::take(&mut self.coeffs);
+        self.fit_into(x, &mut row_sums, &mut coeffs);
+        self.row_sums = row_sums;
+        self.coeffs = coeffs;
+    }
+
+    /// Scratch for [`QuadraticPrior::fit_into`] sized for this grid: per image row and patch
+    /// column the partial sums, and one coefficient vector per patch.
+    pub fn scratch(&self) -> (Vec<[f64; 3]>, Vec<[f64; 6]>) {
+        (
+            vec![[0.0; 3]; self.grid.height * self.grid.patches_x()],
+            vec![[0.0; 6]; self.grid.count()],
+        )
+    }
+
+    /// The uniform fits of [`QuadraticPrior::fit`] written to `coeffs` (one per patch) without
+    /// touching the prior's own state; `row_sums` is scratch from [`QuadraticPrior::scratch`].
+    /// With [`QuadraticPrior::add_scaled_row`] this applies the orthogonal projection P onto
+    /// per-patch quadratics, which the joint x-step needs inside every CG iteration.
+    pub fn fit_into(&self, x: &[f64], row_sums: &mut [[f64; 3]], coeffs: &mut [[f64; 6]]) {
         let w = self.grid.width;
         let pxn = self.grid.patches_x();
         let cols = &self.grid.cols;
         let col_norm = &self.col_norm;
         // Row partial sums in parallel, then a fixed-order reduction: deterministic results.
-        self.row_sums
+        row_sums
             .par_chunks_mut(pxn)
             .zip(x.par_chunks(w))
             .for_each(|(sums, row)| {
@@ -252,7 +273,7 @@ impl QuadraticPrior {
                 let mut rhs = [0.0; 6];
                 for y in y0..y1 {
                     let v = self.row_norm[py].at(y);
-                    let [s2, s1, s0] = self.row_sums[y * pxn + px];
+                    let [s2, s1, s0] = row_sums[y * pxn + px];
                     // Σ u·x over the row expands each basis term with v fixed along the row.
                     rhs[0] += s2;
                     rhs[1] += v * s1;
@@ -262,7 +283,25 @@ impl QuadraticPrior {
                     rhs[5] += s0;
                 }
                 let k = py * pxn + px;
-                self.coeffs[k] = cholesky6_solve(&self.gram_chol[k], &rhs);
+                coeffs[k] = cholesky6_solve(&self.gram_chol[k], &rhs);
+            }
+        }
+    }
+
+    /// `out[i] += scale·(U a_k)` along image row `y`, with `coeffs` one vector per patch (as from
+    /// [`QuadraticPrior::fit_into`]).
+    #[inline]
+    pub fn add_scaled_row(&self, coeffs: &[[f64; 6]], y: usize, scale: f64, out: &mut [f64]) {
+        let pxn = self.grid.patches_x();
+        let py = self.grid.patch_row_of(y);
+        let v = self.row_norm[py].at(y);
+        for (px, &(x0, x1)) in self.grid.cols.iter().enumerate() {
+            let a = &coeffs[py * pxn + px];
+            let lin = a[1] * v + a[3];
+            let cst = (a[2] * v + a[4]) * v + a[5];
+            for (i, o) in out[x0..x1].iter_mut().enumerate() {
+                let u = self.col_norm[px].at(x0 + i);
+                *o += scale * ((a[0] * u + lin) * u + cst);
             }
         }
     }

@@ -4,7 +4,18 @@
 //! (W + γ′₁I + γ′₂(F − I)ᵀ(F − I) + γ′₃∇ᵀ∇) x = W x̃ + γ′₁ U a,
 //!
 //! whose sparsity pattern (5-point Laplacian plus one mirror coupling per pixel) never changes;
-//! only the diagonal W does between IRLS iterations. Two solvers are provided: a matrix-free
+//! only the diagonal W does between IRLS iterations.
+//!
+//! The joint form ([`XStepSystem::with_joint_prior`], the pipeline's default) eliminates the
+//! a-step instead of alternating with it: the uniform a-step of Eq. 5.12 is the orthogonal
+//! projection P onto per-patch quadratics, so minimising Eq. 5.12 over x and a together is
+//!
+//! (W + γ′₁(I − P) + γ′₂(F − I)ᵀ(F − I) + γ′₃∇ᵀ∇) x = W x̃,
+//!
+//! solved by CG with P applied matrix-free (one pass of patch moments per iteration). Where a
+//! large object leaves whole patches without data the alternation is a slow diffusion that keeps
+//! its starting point (the bright observation) for hundreds of iterations; the joint minimiser
+//! instead extends the background's quadratics and smoothness under the object. Two solvers are provided: a matrix-free
 //! conjugate gradient warm-started from the previous iterate and preconditioned by a geometric
 //! multigrid V-cycle (the default; Jacobi is kept as the simple reference, see `XStepSolver`),
 //! and a faer sparse Cholesky whose symbolic factorisation is computed once.
@@ -16,6 +27,7 @@ use faer::{MatMut, Side};
 use rayon::prelude::*;
 
 use super::multigrid::Multigrid;
+use super::quadratic_prior::{PatchGrid, QuadraticPrior};
 use super::symmetry::RowMirror;
 use crate::error::{MurkError, Result};
 use crate::monitor::Monitor;
@@ -73,14 +85,23 @@ pub struct SolveStats {
     pub rel_residual: f64,
 }
 
-/// The constant part of the x-step operator: image size, γ′ and the row pairing of F.
+/// The constant part of the x-step operator: image size, γ′, the row pairing of F and, in the
+/// joint form, the patch grid of P.
 #[derive(Clone, Debug)]
 pub struct XStepSystem {
     width: usize,
     height: usize,
     gamma: [f64; 3],
     mirror: RowMirror,
+    /// The projection P of the joint form (its fitted coefficients are unused).
+    joint: Option<Box<QuadraticPrior>>,
 }
+
+/// Share of γ′₁ kept in the multigrid preconditioner's mass term in the joint form. The joint
+/// operator's γ′₁(I − P) vanishes on patch quadratics, so preconditioning with the full γ′₁ (as
+/// for the alternating form) makes the smooth modes under objects look 10–100× stiffer than
+/// they are; dropping it leaves only W (≈ 0 there) and the Laplacian.
+const JOINT_MASS_SHARE: f64 = 0.0;
 
 impl XStepSystem {
     /// `gamma` = [γ′₁, γ′₂, γ′₃] of Eq. 5.12, applied directly.
@@ -90,6 +111,35 @@ impl XStepSystem {
             height,
             gamma,
             mirror,
+            joint: None,
+        }
+    }
+
+    /// The joint form: the quadratics of `grid` are eliminated (see the module docs). The
+    /// right-hand side then drops γ′₁ U a, and the sparse Cholesky is unavailable (P couples
+    /// every pair of pixels in a patch).
+    pub fn with_joint_prior(mut self, grid: PatchGrid) -> Result<Self> {
+        if grid.width() != self.width || grid.height() != self.height {
+            return Err(MurkError::Numerical(
+                "joint prior grid does not match the image size".into(),
+            ));
+        }
+        self.joint = Some(Box::new(QuadraticPrior::new(grid)?));
+        Ok(self)
+    }
+
+    /// True in the joint form.
+    pub fn is_joint(&self) -> bool {
+        self.joint.is_some()
+    }
+
+    /// P x's patch coefficients into `coeffs` (joint form only; a no-op otherwise).
+    fn project(&self, x: &[f64], sums: &mut Vec<[f64; 3]>, coeffs: &mut Vec<[f64; 6]>) {
+        if let Some(q) = &self.joint {
+            if coeffs.len() != q.grid().count() {
+                (*sums, *coeffs) = q.scratch();
+            }
+            q.fit_into(x, sums, coeffs);
         }
     }
 
@@ -129,9 +179,9 @@ impl XStepSystem {
         }
     }
 
-    /// Right-hand side W x̃ + γ′₁ U a.
+    /// Right-hand side W x̃ + γ′₁ U a (W x̃ in the joint form, which ignores `prior`).
     pub fn rhs(&self, weights: &[f64], observed: &[f64], prior: &[f64], out: &mut [f64]) {
-        let g1 = self.gamma[0];
+        let g1 = if self.is_joint() { 0.0 } else { self.gamma[0] };
         out.par_chunks_mut(self.width)
             .zip(weights.par_chunks(self.width))
             .zip(observed.par_chunks(self.width))
@@ -143,7 +193,8 @@ impl XStepSystem {
             });
     }
 
-    /// Diagonal of the operator.
+    /// Diagonal of the operator (in the joint form, of its alternating part: the Jacobi
+    /// preconditioner ignores P's diagonal, which only needs to be SPD there).
     pub fn diagonal(&self, weights: &[f64], out: &mut [f64]) {
         let (w, h) = (self.width, self.height);
         let g3 = self.gamma[2];
@@ -157,9 +208,17 @@ impl XStepSystem {
         });
     }
 
-    /// `out = A x` for one image row `y`.
+    /// `out = A x` for one image row `y`; `proj` holds P x's patch coefficients in the joint
+    /// form.
     #[inline]
-    fn apply_row(&self, weights: &[f64], x: &[f64], y: usize, out: &mut [f64]) {
+    fn apply_row(
+        &self,
+        weights: &[f64],
+        x: &[f64],
+        y: usize,
+        proj: &[[f64; 6]],
+        out: &mut [f64],
+    ) {
         let w = self.width;
         let [g1, _, g3] = self.gamma;
         let c = self.pair_coef(y);
@@ -194,24 +253,52 @@ impl XStepSystem {
                 out[i] -= c * xm[i];
             }
         }
+        if let Some(q) = &self.joint {
+            q.add_scaled_row(proj, y, -g1, out);
+        }
     }
 
     /// `out = A x` (matrix-free).
     pub fn apply(&self, weights: &[f64], x: &[f64], out: &mut [f64]) {
+        let (mut sums, mut coeffs) = (Vec::new(), Vec::new());
+        self.apply_with(weights, x, out, &mut sums, &mut coeffs);
+    }
+
+    /// [`XStepSystem::apply`] with the projection's scratch supplied.
+    fn apply_with(
+        &self,
+        weights: &[f64],
+        x: &[f64],
+        out: &mut [f64],
+        sums: &mut Vec<[f64; 3]>,
+        coeffs: &mut Vec<[f64; 6]>,
+    ) {
+        self.project(x, sums, coeffs);
+        let proj = &coeffs[..];
         out.par_chunks_mut(self.width)
             .enumerate()
-            .for_each(|(y, o)| self.apply_row(weights, x, y, o));
+            .for_each(|(y, o)| self.apply_row(weights, x, y, proj, o));
     }
 
     /// `out = A p` and per-row partial sums of `p·out` in `row_dots` (summed by the caller in a
     /// fixed order so results do not depend on thread scheduling).
-    fn apply_dot(&self, weights: &[f64], p: &[f64], out: &mut [f64], row_dots: &mut [f64]) {
+    fn apply_dot(
+        &self,
+        weights: &[f64],
+        p: &[f64],
+        out: &mut [f64],
+        row_dots: &mut [f64],
+        sums: &mut Vec<[f64; 3]>,
+        coeffs: &mut Vec<[f64; 6]>,
+    ) {
         let w = self.width;
+        self.project(p, sums, coeffs);
+        let proj = &coeffs[..];
         out.par_chunks_mut(w)
             .zip(row_dots.par_iter_mut())
             .enumerate()
             .for_each(|(y, (o, d))| {
-                self.apply_row(weights, p, y, o);
+                self.apply_row(weights, p, y, proj, o);
                 let pr = &p[y * w..(y + 1) * w];
                 *d = pr.iter().zip(o.iter()).map(|(a, b)| a * b).sum();
             });
@@ -260,6 +347,9 @@ pub struct PcgWorkspace {
     row_a: Vec<f64>,
     row_b: Vec<f64>,
     mg: Option<Box<Multigrid>>,
+    /// Scratch of the joint form's projection.
+    proj_sums: Vec<[f64; 3]>,
+    proj_coeffs: Vec<[f64; 6]>,
 }
 
 impl PcgWorkspace {
@@ -334,11 +424,15 @@ pub fn solve_pcg(
             let mg = ws.mg.get_or_insert_with(|| {
                 Box::new(Multigrid::new(sys.width, sys.height, sys.gamma[2]))
             });
-            let base = sys.gamma[0] + RIDGE;
+            let share = if sys.is_joint() {
+                JOINT_MASS_SHARE
+            } else {
+                1.0
+            };
+            let base = share * sys.gamma[0] + RIDGE;
             mg.set_mass(|i| weights[i] + base + sys.pair_coef(i / w));
         }
     }
-    sys.apply(weights, x, &mut ws.q);
     let PcgWorkspace {
         r,
         z,
@@ -348,7 +442,10 @@ pub fn solve_pcg(
         row_a,
         row_b,
         mg,
+        proj_sums,
+        proj_coeffs,
     } = ws;
+    sys.apply_with(weights, x, q, proj_sums, proj_coeffs);
     let mut precondition = |r: &[f64], z: &mut [f64]| match preconditioner {
         Preconditioner::Jacobi => z
             .par_iter_mut()
@@ -381,7 +478,7 @@ pub fn solve_pcg(
         if it % CG_CHECK_EVERY == 0 {
             monitor.checkpoint()?;
         }
-        sys.apply_dot(weights, p, q, row_a);
+        sys.apply_dot(weights, p, q, row_a, proj_sums, proj_coeffs);
         let pq: f64 = row_a.iter().sum();
         if pq.is_nan() || pq <= 0.0 || pq.is_infinite() {
             return Err(MurkError::Numerical(format!(
@@ -448,6 +545,13 @@ impl std::fmt::Debug for CholeskyXSolver {
 impl CholeskyXSolver {
     /// Assembles the lower triangle and runs the symbolic analysis (fill-reducing ordering).
     pub fn new(sys: &XStepSystem) -> Result<Self> {
+        if sys.is_joint() {
+            return Err(MurkError::invalid(
+                "solver",
+                "the sparse Cholesky solves only the alternating x-step; the joint prior \
+                 needs the conjugate gradient",
+            ));
+        }
         let n = sys.len();
         let mat = SparseColMat::<usize, f64>::try_new_from_triplets(n, n, &sys.lower_triplets())
             .map_err(|e| MurkError::Numerical(format!("x-step matrix assembly failed: {e:?}")))?;
