@@ -62,6 +62,8 @@ fn bench(c: &mut Criterion) {
         solver: XStepSolver::default(),
         weight_tolerance: 0.0,
         mask_threshold: 0.5,
+        coarse_subdivision: 1,
+        coarse_quantile: 0.5,
     };
     let st = run_irls(
         &observed,
@@ -80,7 +82,7 @@ fn bench(c: &mut Criterion) {
 
     let mut g = c.benchmark_group("tof_xstep_424x512");
     g.sample_size(10);
-    let mut x = st.scatter.clone();
+    let mut x = st.scatter[0].clone();
     for (name, pre) in [
         ("mg", Preconditioner::Multigrid),
         ("jacobi", Preconditioner::Jacobi),
@@ -91,7 +93,7 @@ fn bench(c: &mut Criterion) {
             preconditioner: pre,
         };
         let mut pcg = XStepState::new(kind, &sys).expect("pcg");
-        for (start, label) in [(&st.scatter, "warm"), (&observed, "cold")] {
+        for (start, label) in [(&st.scatter[0], "warm"), (&observed, "cold")] {
             x.copy_from_slice(start);
             let s = pcg
                 .solve(&sys, &st.weights, &rhs, &mut x, &monitor)

@@ -7,8 +7,8 @@
 
 use std::time::Instant;
 
-use murk::simulate::SceneLayout;
 use murk::simulate::tof::{simulate_tof, FogPreset, TofSimConfig, TofSimFrame};
+use murk::simulate::SceneLayout;
 use murk::tof::{estimate_tof_depth, TofInput, TofOutput, TofParams};
 use murk::Monitor;
 
@@ -74,6 +74,15 @@ fn run(frame: &TofSimFrame) -> (TofOutput, f64) {
     }
     if std::env::var("TOF_ALTERNATING").is_ok() {
         params.prior_coupling = murk::tof::PriorCoupling::Alternating;
+    }
+    if let Some(c) = std::env::var("TOF_COARSE")
+        .ok()
+        .and_then(|s| s.parse().ok())
+    {
+        params.coarse_iterations = c;
+    }
+    if std::env::var("TOF_AMPLITUDE_PHASE").is_ok() {
+        params.channels = murk::tof::ScatterChannels::AmplitudePhase;
     }
     if std::env::var("TOF_NO_BILATERAL").is_ok() {
         params.bilateral = None;
@@ -293,6 +302,8 @@ fn diagnose() {
             solver: XStepSolver::default(),
             weight_tolerance: murk::tof::irls::DEFAULT_WEIGHT_TOLERANCE,
             mask_threshold: 0.5,
+            coarse_subdivision: 1,
+            coarse_quantile: 0.5,
         };
         let t = Instant::now();
         let o = run_irls(
@@ -324,7 +335,7 @@ fn diagnose() {
                         (true, false) => 'o',
                         _ => '.',
                     });
-                    let d = o.scatter[i] - truth.data()[i] as f64;
+                    let d = o.scatter[0][i] - truth.data()[i] as f64;
                     let e = (d.abs() / spread * 50.0).min(9.0);
                     if std::env::var("TOF_SIGNED").is_ok() && d < 0.0 && e >= 1.0 {
                         // Underestimate: letters a (1) … i (9).
@@ -340,7 +351,7 @@ fn diagnose() {
             (0.0, 0.0, 0.0, 0, 0, 0.0);
         let (mut fp, mut fneg) = (0, 0);
         for i in 0..w * h {
-            let e = (o.scatter[i] - truth.data()[i] as f64).abs();
+            let e = (o.scatter[0][i] - truth.data()[i] as f64).abs();
             if gt[i] > 0.5 {
                 ein += e;
                 tin += truth.data()[i] as f64;
@@ -407,6 +418,62 @@ fn diagnose() {
         esa += (out.scatter_amplitude.data()[i] as f64 - sa).abs();
         esp += (out.scatter_phase.data()[i] as f64 - sp).abs();
         n += 1;
+    }
+    if std::env::var("TOF_MAPS").is_ok() {
+        // Pipeline mask: '#' right, 'o' missed, 'x' false on the background, 's' an object pixel
+        // the light does not reach (not in the ground-truth mask).
+        let (sx, sy) = (w / 64, h / 26);
+        let obj = frame.gt_object_mask.data();
+        let phasor = |a: f32, p: f32| {
+            let (s, c) = (p as f64).sin_cos();
+            (a as f64 * c, a as f64 * s)
+        };
+        for y in (0..h).step_by(sy.max(1)) {
+            let mut line = String::new();
+            let mut errs = String::new();
+            for x in (0..w).step_by(sx.max(1)) {
+                let i = y * w + x;
+                // Scatter phasor error in units of 2 (≈ the noise σ of a bright pixel).
+                let (er, ei) = phasor(out.scatter_amplitude.data()[i], out.scatter_phase.data()[i]);
+                let (tr, ti) = phasor(
+                    frame.scatter_amplitude.data()[i],
+                    frame.scatter_phase.data()[i],
+                );
+                errs.push(char::from(
+                    b'0' + ((er - tr).hypot(ei - ti) / 2.0).min(9.0) as u8,
+                ));
+                let m = out.mask.data()[i] > 0.5;
+                line.push(match (gt[i] > 0.5, m, obj[i] > 0.5) {
+                    (true, true, _) => '#',
+                    (true, false, _) => 'o',
+                    (false, true, true) => 's',
+                    (false, true, false) => 'x',
+                    (false, false, true) => ',',
+                    _ => '.',
+                });
+            }
+            println!("{line}   {errs}");
+        }
+    }
+    if let Some(row) = std::env::var("TOF_PROBE_ROW")
+        .ok()
+        .and_then(|s| s.parse::<usize>().ok())
+    {
+        for x in (w * 3 / 4..w).step_by(2) {
+            let i = row * w + x;
+            let (a, p) = (
+                frame.scatter_amplitude.data()[i],
+                frame.scatter_phase.data()[i],
+            );
+            let (ea, ep) = (out.scatter_amplitude.data()[i], out.scatter_phase.data()[i]);
+            println!(
+                "x {x}: true a {a:.2} p {p:.4} re {:.2} im {:.2}; est a {ea:.2} p {ep:.4}; obs a {:.2} p {:.4}",
+                a * p.cos(),
+                a * p.sin(),
+                frame.amplitude.data()[i],
+                frame.phase.data()[i]
+            );
+        }
     }
     // Saturation oracle: the fog-only phasor to the wall along each object pixel's ray (what
     // a perfect interpolation of the background scatter gives), subtracted instead of the truth.

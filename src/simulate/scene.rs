@@ -401,9 +401,10 @@ impl Scene {
                 let Some((t, _)) = obj.shape.intersect([0.0; 3], d, 1e-9, f64::INFINITY) else {
                     continue;
                 };
-                let in_front = self.objects.iter().enumerate().any(|(j, o)| {
-                    j != index && o.shape.intersect([0.0; 3], d, 1e-9, t).is_some()
-                });
+                let in_front =
+                    self.objects.iter().enumerate().any(|(j, o)| {
+                        j != index && o.shape.intersect([0.0; 3], d, 1e-9, t).is_some()
+                    });
                 if in_front {
                     hidden += 1;
                 } else {
@@ -555,7 +556,10 @@ mod tests {
             let front = dot(centre, centre).sqrt() - radius;
             assert!((0.75..=1.05).contains(&front), "seed {seed}: {front}");
             let hidden = s.hidden_share(1, &k, 512, 424);
-            assert!((0.2..=0.6).contains(&hidden), "seed {seed}: panel hidden {hidden}");
+            assert!(
+                (0.2..=0.6).contains(&hidden),
+                "seed {seed}: panel hidden {hidden}"
+            );
             let (cov, spans) = s.coarse_coverage(&k, 512, 424);
             assert!(cov <= 0.55 && !spans, "seed {seed}: {cov}");
         }

@@ -10,8 +10,9 @@
 
 use rayon::prelude::*;
 
+use super::noise_model::NoiseModel;
 use super::params::IrlsChannelParams;
-use super::quadratic_prior::QuadraticPrior;
+use super::quadratic_prior::{PatchGrid, QuadraticPrior};
 use super::tukey::{self, mad_sigma_in_place, median_in_place, scale_floor};
 use super::wls::{XStepSolver, XStepState, XStepSystem};
 use crate::error::{MurkError, Result};
@@ -34,6 +35,10 @@ pub struct IrlsConfig {
     pub weight_tolerance: f64,
     /// Weight below which a pixel counts as object (see `TofParams::mask_threshold`).
     pub mask_threshold: f64,
+    /// Coarse-level blocks per quadratic patch along each axis (1 = the patches themselves).
+    pub coarse_subdivision: usize,
+    /// Quantile of the blocks' RMS residuals taken as the coarse scale σ₂ (0.5 = the median).
+    pub coarse_quantile: f64,
 }
 
 /// Consecutive converged iterations after which a level stops.
@@ -90,14 +95,16 @@ fn weight_change(old: &[f64], new: &[f64], threshold: f64) -> (f64, bool) {
 /// Result of one IRLS run.
 #[derive(Clone, Debug, PartialEq)]
 pub struct IrlsOutcome {
-    /// Estimated scattering component x (same units as the input image).
-    pub scatter: Vec<f64>,
-    /// Final IRLS weights in [0, 1]; small = outlier (object).
+    /// Estimated scattering component x, one image per component of the input (one for an
+    /// amplitude or phase image, two for a phasor's real and imaginary parts), in the input's
+    /// units.
+    pub scatter: Vec<Vec<f64>>,
+    /// Final IRLS weights in [0, 1], shared by the components; small = outlier (object).
     pub weights: Vec<f64>,
     /// Coarse-level scale σ₂ (RMS residual units), if the coarse level ran.
     pub sigma_coarse: Option<f64>,
-    /// Fine-level scale σ₁ as finally fixed (from the second fine iteration when it ran), if the
-    /// fine level ran.
+    /// Fine-level scale σ₁ per component as finally fixed (from the second fine iteration when
+    /// it ran), if the fine level ran.
     pub sigma_fine: Option<f64>,
     /// Total conjugate-gradient iterations over all x-steps (0 for Cholesky).
     pub cg_iterations: usize,
@@ -123,35 +130,98 @@ pub fn run_irls(
     monitor: &Monitor,
     tick: &(dyn Fn(&str) + Sync),
 ) -> Result<IrlsOutcome> {
+    run_irls_vector(
+        &[observed],
+        None,
+        sys,
+        std::slice::from_mut(prior),
+        cfg,
+        stage_prefix,
+        monitor,
+        tick,
+    )
+}
+
+/// Algorithm 2 on a vector-valued image whose components share the priors' weights, the noise
+/// scale and the outlier weights: each component has its own scatter field and quadratics, and
+/// a pixel's residual is the Euclidean norm over the components. With the real and imaginary
+/// parts of the observed phasor, an object is a pixel whose phasor departs from the scatter
+/// phasor in any direction, in amplitude or in phase; one component is [`run_irls`].
+///
+/// `observed` and `priors` have one entry per component, each the system's size.
+/// `noise`, when given, is the frame's noise model (per component, against the norm over the
+/// components): each pixel's residual is divided by the model's σ at the *scatter estimate's*
+/// brightness, relative to σ at the observation's median brightness, before the patch RMS, the
+/// MAD and the Tukey weights. The inlier hypothesis is "observation = scatter + noise", whose
+/// noise follows the scatter's brightness; an object's own brightness must not excuse its
+/// residual.
+#[allow(clippy::too_many_arguments)]
+pub fn run_irls_vector(
+    observed: &[&[f64]],
+    noise: Option<NoiseModel>,
+    sys: &XStepSystem,
+    priors: &mut [QuadraticPrior],
+    cfg: &IrlsConfig,
+    stage_prefix: &str,
+    monitor: &Monitor,
+    tick: &(dyn Fn(&str) + Sync),
+) -> Result<IrlsOutcome> {
     let n = sys.len();
     let w = sys.width();
-    if observed.len() != n || prior.grid().width() != w || prior.grid().height() != sys.height() {
+    let m = observed.len();
+    if m == 0
+        || priors.len() != m
+        || observed.iter().any(|o| o.len() != n)
+        || priors
+            .iter()
+            .any(|p| p.grid().width() != w || p.grid().height() != sys.height())
+    {
         return Err(MurkError::Numerical(
             "IRLS buffers do not match the image size".into(),
         ));
     }
     let magnitude = observed
-        .par_iter()
-        .map(|v| v.abs())
-        .reduce(|| 0.0, f64::max);
+        .iter()
+        .map(|o| o.par_iter().map(|v| v.abs()).reduce(|| 0.0, f64::max))
+        .fold(0.0, f64::max);
     let floor = scale_floor(magnitude);
     let stage_coarse = format!("{stage_prefix}.coarse");
     let stage_fine = format!("{stage_prefix}.fine");
 
+    let mut noise_scale = noise.map(|model| {
+        let norms: Vec<f64> = (0..n)
+            .into_par_iter()
+            .map(|i| observed.iter().map(|o| o[i] * o[i]).sum::<f64>().sqrt())
+            .collect();
+        let mut sorted = norms;
+        let med = median_in_place(&mut sorted).unwrap_or(0.0);
+        NoiseScale {
+            model,
+            inv_ref: 1.0 / model.sigma(med).max(floor),
+            g: vec![1.0; n],
+        }
+    });
     let mut weights = vec![1.0; n];
-    let mut prior_img = vec![0.0; n];
+    let mut prior_img = vec![vec![0.0; n]; m];
     let mut rhs = vec![0.0; n];
-    let mut scratch = vec![0.0; n];
+    let mut scratch = vec![0.0; n * m];
+    let mut res2 = vec![0.0; n];
     // Algorithm 2's initialisation: a_k fitted to the observation; x warm-starts at x̃, which is
     // the W = I solution up to the (small) smoothing and prior terms.
-    prior.fit(observed);
-    prior.evaluate(&mut prior_img);
-    let mut x = observed.to_vec();
-    let mut state = XStepState::new(cfg.solver, sys)?;
+    for (c, prior) in priors.iter_mut().enumerate() {
+        prior.fit(observed[c]);
+        prior.evaluate(&mut prior_img[c]);
+    }
+    let mut x: Vec<Vec<f64>> = observed.iter().map(|o| o.to_vec()).collect();
+    let mut states = (0..m)
+        .map(|_| XStepState::new(cfg.solver, sys))
+        .collect::<Result<Vec<_>>>()?;
     let mut cg_iterations = 0;
 
-    let pxn = prior.grid().patches_x();
-    let k = prior.grid().count();
+    // Blocks of the coarse level's weights (Eq. 5.16); see `coarse_blocks`.
+    let blocks = coarse_blocks(priors[0].grid(), cfg.coarse_subdivision);
+    let pxn = blocks.patches_x();
+    let k = blocks.count();
     let mut row_sums = vec![0.0; sys.height() * pxn];
     let mut patch_rms = vec![0.0; k];
     let mut patch_weight = vec![1.0; k];
@@ -160,22 +230,39 @@ pub fn run_irls(
     let mut conv = Convergence::new();
     let mut coarse_run = 0;
     let mut fine_run = 0;
+    let mut x_and_a_steps = |weights: &[f64],
+                             x: &mut [Vec<f64>],
+                             prior_img: &mut [Vec<f64>],
+                             priors: &mut [QuadraticPrior],
+                             tol_scale: f64|
+     -> Result<usize> {
+        let mut its = 0;
+        for c in 0..m {
+            its += x_and_a_step(
+                sys,
+                &mut states[c],
+                &mut priors[c],
+                weights,
+                observed[c],
+                &mut prior_img[c],
+                &mut rhs,
+                &mut x[c],
+                tol_scale,
+                monitor,
+            )?;
+        }
+        Ok(its)
+    };
     for it in 0..cfg.coarse_iterations {
         monitor.checkpoint()?;
-        cg_iterations += x_and_a_step(
-            sys,
-            &mut state,
-            prior,
-            &weights,
-            observed,
-            &mut prior_img,
-            &mut rhs,
-            &mut x,
-            conv.tol_scale(),
-            monitor,
-        )?;
+        cg_iterations += x_and_a_steps(&weights, &mut x, &mut prior_img, priors, conv.tol_scale())?;
         coarse_run += 1;
-        patch_rms_residuals(prior, &x, observed, &mut row_sums, &mut patch_rms);
+        if let Some(ns) = noise_scale.as_mut() {
+            ns.update(&x);
+        }
+        let g = noise_scale.as_ref().map(|ns| &ns.g[..]);
+        squared_residuals(&x, observed, g, &mut res2);
+        patch_rms_residuals(&blocks, &res2, &mut row_sums, &mut patch_rms);
         if it == 0 {
             // The patch residual is an RMS, i.e. already a per-pixel deviation about the ideal
             // zero residual, so its median over patches is the robust scale (a "median absolute
@@ -184,16 +271,18 @@ pub fn run_irls(
             // MAD instead was tried: it ignores the quadratic misfit of background patches and
             // flagged whole background patches as outliers on several simulated frames.)
             scratch[..k].copy_from_slice(&patch_rms);
-            let med = median_in_place(&mut scratch[..k]).ok_or_else(|| {
-                MurkError::Numerical("non-finite residual at the coarse level".into())
-            })?;
+            let med =
+                quantile_in_place(&mut scratch[..k], cfg.coarse_quantile).ok_or_else(|| {
+                    MurkError::Numerical("non-finite residual at the coarse level".into())
+                })?;
             sigma_coarse = Some(med.max(floor));
         }
         let s2 = sigma_coarse.unwrap_or(floor);
+
         for (pw, &rms) in patch_weight.iter_mut().zip(&patch_rms) {
             *pw = tukey::weight(rms / s2, cfg.channel.c_coarse);
         }
-        spread_patch_weights(prior, &patch_weight, &mut weights);
+        spread_patch_weights(&blocks, &patch_weight, &mut weights);
         tick(&stage_coarse);
         let (dw, flipped) = weight_change(&prev_patch_weight, &patch_weight, cfg.mask_threshold);
         prev_patch_weight.copy_from_slice(&patch_weight);
@@ -208,18 +297,7 @@ pub fn run_irls(
     let mut conv = Convergence::new();
     for it in 0..cfg.fine_iterations {
         monitor.checkpoint()?;
-        cg_iterations += x_and_a_step(
-            sys,
-            &mut state,
-            prior,
-            &weights,
-            observed,
-            &mut prior_img,
-            &mut rhs,
-            &mut x,
-            conv.tol_scale(),
-            monitor,
-        )?;
+        cg_iterations += x_and_a_steps(&weights, &mut x, &mut prior_img, priors, conv.tol_scale())?;
         fine_run += 1;
         prev_weights.copy_from_slice(&weights);
         // σ₁ is measured twice and then fixed (§5.3.4 fixes it from the level's first
@@ -228,25 +306,32 @@ pub fn run_irls(
         // inflate σ₁ (3.5× the noise on a simulated medium-fog frame), which then keeps dim
         // object pixels as inliers. That first estimate only seeds the first pixel weights;
         // the residuals of the first x-step solved under pixel weights give the noise scale.
+        // With several components the residuals of all of them are pooled: one σ per component.
+        if let Some(ns) = noise_scale.as_mut() {
+            ns.update(&x);
+        }
+        let g = noise_scale.as_ref().map(|ns| &ns.g[..]);
         if it <= 1 {
-            scratch
-                .par_iter_mut()
-                .zip(x.par_iter().zip(observed.par_iter()))
-                .for_each(|(s, (xi, oi))| *s = xi - oi);
+            for c in 0..m {
+                scratch[c * n..(c + 1) * n]
+                    .par_iter_mut()
+                    .zip(x[c].par_iter().zip(observed[c].par_iter()))
+                    .enumerate()
+                    .for_each(|(i, (s, (xi, oi)))| *s = (xi - oi) / g.map_or(1.0, |g| g[i]));
+            }
             let s = mad_sigma_in_place(&mut scratch).ok_or_else(|| {
                 MurkError::Numerical("non-finite residual at the fine level".into())
             })?;
             sigma_fine = Some(s.max(floor));
         }
         let inv_s1 = 1.0 / sigma_fine.unwrap_or(floor);
+        squared_residuals(&x, observed, g, &mut res2);
         weights
             .par_iter_mut()
-            .zip(x.par_iter().zip(observed.par_iter()))
-            .for_each(|(wi, (xi, oi))| {
-                let r = (oi - xi) * inv_s1;
-                *wi = tukey::weight(r, c_fine)
-            });
+            .zip(res2.par_iter())
+            .for_each(|(wi, r2)| *wi = tukey::weight(r2.sqrt() * inv_s1, c_fine));
         tick(&stage_fine);
+
         // The first fine iteration replaces patch weights by pixel weights: not a convergence
         // step.
         let (dw, flipped) = weight_change(&prev_weights, &weights, cfg.mask_threshold);
@@ -256,7 +341,9 @@ pub fn run_irls(
     }
 
     if cfg.coarse_iterations + cfg.fine_iterations == 0 {
-        x.copy_from_slice(&prior_img);
+        for (xc, pc) in x.iter_mut().zip(&prior_img) {
+            xc.copy_from_slice(pc);
+        }
     }
     Ok(IrlsOutcome {
         scatter: x,
@@ -267,6 +354,46 @@ pub fn run_irls(
         coarse_iterations_run: coarse_run,
         fine_iterations_run: fine_run,
     })
+}
+
+/// Relative noise level of every pixel under the inlier hypothesis (see [`run_irls_vector`]).
+struct NoiseScale {
+    model: NoiseModel,
+    /// 1 / σ at the observation's median brightness.
+    inv_ref: f64,
+    /// σ(|x|)/σ_ref per pixel, never below 1e-3.
+    g: Vec<f64>,
+}
+
+impl NoiseScale {
+    fn update(&mut self, x: &[Vec<f64>]) {
+        let (model, inv_ref) = (self.model, self.inv_ref);
+        self.g.par_iter_mut().enumerate().for_each(|(i, g)| {
+            let norm = x.iter().map(|c| c[i] * c[i]).sum::<f64>().sqrt();
+            *g = (model.sigma(norm) * inv_ref).max(1e-3);
+        });
+    }
+}
+
+/// `out[i] = Σ_c (x_c − x̃_c)ᵢ² / gᵢ²`: each pixel's squared residual norm over the components,
+/// relative to its noise level `g` (1 without one).
+fn squared_residuals(
+    x: &[Vec<f64>],
+    observed: &[&[f64]],
+    noise_scale: Option<&[f64]>,
+    out: &mut [f64],
+) {
+    out.par_iter_mut().enumerate().for_each(|(i, o)| {
+        let ss: f64 = x
+            .iter()
+            .zip(observed)
+            .map(|(xc, oc)| (xc[i] - oc[i]) * (xc[i] - oc[i]))
+            .sum();
+        *o = match noise_scale {
+            Some(g) => ss / (g[i] * g[i]),
+            None => ss,
+        };
+    });
 }
 
 /// One alternation of Eq. 5.12: x given a_k (and W), then a_k given x. Returns CG iterations.
@@ -306,28 +433,18 @@ fn x_and_a_step(
     Ok(stats.iterations)
 }
 
-/// RMS of x − x̃ over every patch (Eq. 5.16's ‖x_k − x̃_k‖ divided by √N_k).
-fn patch_rms_residuals(
-    prior: &QuadraticPrior,
-    x: &[f64],
-    observed: &[f64],
-    row_sums: &mut [f64],
-    out: &mut [f64],
-) {
-    let grid = prior.grid();
+/// RMS of x − x̃ over every patch (Eq. 5.16's ‖x_k − x̃_k‖ divided by √N_k), from each pixel's
+/// squared residual `res2`.
+fn patch_rms_residuals(grid: &PatchGrid, res2: &[f64], row_sums: &mut [f64], out: &mut [f64]) {
     let w = grid.width();
     let pxn = grid.patches_x();
     let cols = grid.col_ranges();
     row_sums
         .par_chunks_mut(pxn)
-        .zip(x.par_chunks(w).zip(observed.par_chunks(w)))
-        .for_each(|(sums, (xr, or))| {
+        .zip(res2.par_chunks(w))
+        .for_each(|(sums, rr)| {
             for (s, &(x0, x1)) in sums.iter_mut().zip(cols) {
-                *s = xr[x0..x1]
-                    .iter()
-                    .zip(&or[x0..x1])
-                    .map(|(a, b)| (a - b) * (a - b))
-                    .sum();
+                *s = rr[x0..x1].iter().sum();
             }
         });
     for (py, &(y0, y1)) in grid.row_ranges().iter().enumerate() {
@@ -338,9 +455,31 @@ fn patch_rms_residuals(
     }
 }
 
+/// The `q`-quantile (0–1) of `values` by selection, reordering them; `None` when empty or NaN.
+fn quantile_in_place(values: &mut [f64], q: f64) -> Option<f64> {
+    if values.is_empty() || values.iter().any(|v| v.is_nan()) {
+        return None;
+    }
+    let k = ((values.len() - 1) as f64 * q.clamp(0.0, 1.0)).round() as usize;
+    let (_, v, _) = values.select_nth_unstable_by(k, f64::total_cmp);
+    Some(*v)
+}
+
+/// The coarse level's blocks: each quadratic patch split `subdivision` times along each axis
+/// (never below 3 pixels a side). With 1 they are the patches, as in Eq. 5.16. The robust scale
+/// σ₂ is the median block RMS, which measures the background only while most blocks hold no
+/// object: a large near object covering parts of over half the 4 × 4 patches drives it up to the
+/// object's residuals, and a rejected patch then also discards the background beside the object.
+fn coarse_blocks(grid: &PatchGrid, subdivision: usize) -> PatchGrid {
+    let (w, h) = (grid.width(), grid.height());
+    let s = subdivision.max(1);
+    let bx = (grid.patches_x() * s).min(w / 3).max(1);
+    let by = (grid.patches_y() * s).min(h / 3).max(1);
+    PatchGrid::new(w, h, bx, by)
+}
+
 /// Every pixel of a patch shares the patch's coarse weight (Eq. 5.16).
-fn spread_patch_weights(prior: &QuadraticPrior, patch_weight: &[f64], weights: &mut [f64]) {
-    let grid = prior.grid();
+fn spread_patch_weights(grid: &PatchGrid, patch_weight: &[f64], weights: &mut [f64]) {
     let pxn = grid.patches_x();
     let cols = grid.col_ranges();
     weights

@@ -10,6 +10,7 @@
 pub mod bilateral;
 pub mod irls;
 pub mod multigrid;
+pub mod noise_model;
 mod params;
 pub mod pipeline;
 pub mod quadratic_prior;

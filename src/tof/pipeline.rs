@@ -11,8 +11,11 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use rayon::prelude::*;
 
 use super::bilateral::bilateral_filter;
-use super::irls::{run_irls, IrlsConfig, IrlsOutcome};
-use super::params::{PriorCoupling, TofInput, TofOutput, TofParams, SPEED_OF_LIGHT_M_PER_S};
+use super::irls::{run_irls_vector, IrlsConfig, IrlsOutcome};
+use super::noise_model::NoiseModel;
+use super::params::{
+    PriorCoupling, ScatterChannels, TofInput, TofOutput, TofParams, SPEED_OF_LIGHT_M_PER_S,
+};
 use super::quadratic_prior::{PatchGrid, QuadraticPrior};
 use super::symmetry::RowMirror;
 use super::wls::{XStepSolver, XStepSystem};
@@ -50,18 +53,39 @@ pub fn estimate_tof_depth_with_solver(
     params.validate_for(input)?;
     monitor.checkpoint()?;
 
-    let (amp, phase) = match &params.bilateral {
+    let filter = |img: &[f32], out: &mut Vec<f32>| match &params.bilateral {
         Some(b) => {
-            let mut a = vec![0.0f32; w * h];
-            let mut p = vec![0.0f32; w * h];
-            rayon::join(
-                || bilateral_filter(input.amplitude.data(), w, h, b, &mut a),
-                || bilateral_filter(input.phase.data(), w, h, b, &mut p),
-            );
-            (a, p)
+            out.resize(w * h, 0.0);
+            bilateral_filter(img, w, h, b, out);
         }
-        None => (input.amplitude.data().to_vec(), input.phase.data().to_vec()),
+        None => out.extend_from_slice(img),
     };
+    // The observation as the pipeline sees it: amplitude and phase, or the phasor's real and
+    // imaginary parts, each pre-filtered. The phasor's noise model is fitted to the raw frame.
+    let (first, second, noise) = match params.channels {
+        ScatterChannels::AmplitudePhase => (
+            input.amplitude.data().to_vec(),
+            input.phase.data().to_vec(),
+            None,
+        ),
+        ScatterChannels::Phasor => {
+            let (re, im): (Vec<f32>, Vec<f32>) = input
+                .amplitude
+                .data()
+                .par_iter()
+                .zip(input.phase.data().par_iter())
+                .map(|(&a, &p)| {
+                    let (s, c) = (p as f64).sin_cos();
+                    ((a as f64 * c) as f32, (a as f64 * s) as f32)
+                })
+                .unzip();
+            let noise = NoiseModel::fit(&re, &im, input.amplitude.data(), w);
+            (re, im, noise)
+        }
+    };
+    let (mut f1, mut f2) = (Vec::new(), Vec::new());
+    rayon::join(|| filter(&first, &mut f1), || filter(&second, &mut f2));
+    drop((first, second));
     monitor.progress("tof.prefilter", PREFILTER_END);
     monitor.checkpoint()?;
 
@@ -71,15 +95,23 @@ pub fn estimate_tof_depth_with_solver(
         .unwrap_or((h as f64 - 1.0) * 0.5);
     let mirror = RowMirror::new(h, row0);
     let grid = PatchGrid::new(w, h, params.patches_x, params.patches_y);
-    let total = 2 * (params.coarse_iterations + params.fine_iterations);
+    let runs = match params.channels {
+        ScatterChannels::AmplitudePhase => 2,
+        ScatterChannels::Phasor => 1,
+    };
+    let total = runs * (params.coarse_iterations + params.fine_iterations);
     let done = AtomicUsize::new(0);
     let tick = |stage: &str| {
         let d = done.fetch_add(1, Ordering::Relaxed) + 1;
         let f = PREFILTER_END + (IRLS_END - PREFILTER_END) * d as f32 / total.max(1) as f32;
         monitor.progress(stage, f);
     };
-    let run = |img: &[f32], channel, prefix: &str| -> Result<IrlsOutcome> {
-        let observed: Vec<f64> = img.iter().map(|&v| v as f64).collect();
+    let to_f64 = |img: &[f32]| -> Vec<f64> { img.iter().map(|&v| v as f64).collect() };
+    let run = |imgs: &[&[f64]],
+               noise: Option<NoiseModel>,
+               channel,
+               prefix: &str|
+     -> Result<IrlsOutcome> {
         let cfg = IrlsConfig {
             channel,
             coarse_iterations: params.coarse_iterations,
@@ -87,25 +119,94 @@ pub fn estimate_tof_depth_with_solver(
             solver,
             weight_tolerance: params.convergence_tolerance,
             mask_threshold: params.mask_threshold as f64,
+            coarse_subdivision: params.coarse_subdivision,
+            coarse_quantile: params.coarse_quantile,
         };
         let sys = XStepSystem::new(w, h, cfg.channel.effective_gamma(w, h), mirror.clone());
         let sys = match params.prior_coupling {
             PriorCoupling::Joint => sys.with_joint_prior(grid.clone())?,
             PriorCoupling::Alternating => sys,
         };
-        let mut prior = QuadraticPrior::new(grid.clone())?;
-        run_irls(&observed, &sys, &mut prior, &cfg, prefix, monitor, &tick)
+        let mut priors = vec![QuadraticPrior::new(grid.clone())?; imgs.len()];
+        run_irls_vector(imgs, noise, &sys, &mut priors, &cfg, prefix, monitor, &tick)
     };
-    let (ra, rp) = rayon::join(
-        || run(&amp, params.amplitude, "tof.amplitude"),
-        || run(&phase, params.phase, "tof.phase"),
-    );
-    let (ra, rp) = (ra?, rp?);
+    let (o1, o2) = (to_f64(&f1), to_f64(&f2));
+    drop((f1, f2));
+    let t = params.mask_threshold as f64;
+    let est = match params.channels {
+        ScatterChannels::AmplitudePhase => {
+            let (ra, rp) = rayon::join(
+                || run(&[&o1], None, params.amplitude, "tof.amplitude"),
+                || run(&[&o2], None, params.phase, "tof.phase"),
+            );
+            let (ra, rp) = (ra?, rp?);
+            let mut ra_scatter = ra.scatter;
+            let mut rp_scatter = rp.scatter;
+            let (sa, sp) = (ra_scatter.swap_remove(0), rp_scatter.swap_remove(0));
+            // Object = outlier in both images (§5.3.4).
+            let object = ra
+                .weights
+                .iter()
+                .zip(&rp.weights)
+                .map(|(&a, &p)| a < t && p < t)
+                .collect();
+            // A scattering amplitude is a magnitude; a slightly negative estimate (possible in
+            // the unconstrained least squares) would flip the subtracted phasor.
+            let polar = |a: &[f64], p: &[f64], clamp: bool| -> (Vec<f64>, Vec<f64>) {
+                a.par_iter()
+                    .zip(p.par_iter())
+                    .map(|(&a, &p)| {
+                        let a = if clamp { a.max(0.0) } else { a };
+                        let (s, c) = p.sin_cos();
+                        (a * c, a * s)
+                    })
+                    .unzip()
+            };
+            let (scatter_re, scatter_im) = polar(&sa, &sp, true);
+            let (observed_re, observed_im) = polar(&o1, &o2, false);
+            ScatterEstimate {
+                object,
+                observed_re,
+                observed_im,
+                scatter_re,
+                scatter_im,
+                weight_amplitude: ra.weights,
+                weight_phase: rp.weights,
+            }
+        }
+        ScatterChannels::Phasor => {
+            let r = run(&[&o1, &o2], noise, params.phasor, "tof.phasor")?;
+            let mut sc = r.scatter;
+            let scatter_im = sc.pop().unwrap_or_default();
+            let scatter_re = sc.pop().unwrap_or_default();
+            ScatterEstimate {
+                object: r.weights.iter().map(|&v| v < t).collect(),
+                observed_re: o1,
+                observed_im: o2,
+                scatter_re,
+                scatter_im,
+                weight_amplitude: r.weights.clone(),
+                weight_phase: r.weights,
+            }
+        }
+    };
     monitor.checkpoint()?;
 
-    let out = compose(input, params, &amp, &phase, &ra, &rp)?;
+    let out = compose(input, params, &est)?;
     monitor.progress("tof.compose", 1.0);
     Ok(out)
+}
+
+/// What the IRLS produced, as phasors: the pre-filtered observation and the scattering
+/// component per pixel, the object mask and the channels' weights.
+struct ScatterEstimate {
+    object: Vec<bool>,
+    observed_re: Vec<f64>,
+    observed_im: Vec<f64>,
+    scatter_re: Vec<f64>,
+    scatter_im: Vec<f64>,
+    weight_amplitude: Vec<f64>,
+    weight_phase: Vec<f64>,
 }
 
 /// Range along the ray (metres) of a phase (radians): Eq. 5.2, c·φ/(4πf).
@@ -143,19 +244,11 @@ fn image(w: usize, h: usize, data: Vec<f32>) -> Result<ImageF32> {
     ImageF32::from_vec(w, h, 1, data).map_err(|e| MurkError::Numerical(e.to_string()))
 }
 
-/// Mask intersection and direct component (Eq. 5.8–5.9), ranges (Eq. 5.2), z-depth.
-fn compose(
-    input: &TofInput,
-    params: &TofParams,
-    amp: &[f32],
-    phase: &[f32],
-    ra: &IrlsOutcome,
-    rp: &IrlsOutcome,
-) -> Result<TofOutput> {
+/// Direct component (Eq. 5.8–5.9), ranges (Eq. 5.2), z-depth.
+fn compose(input: &TofInput, params: &TofParams, est: &ScatterEstimate) -> Result<TofOutput> {
     let (w, h) = input.amplitude.dims();
     let n = w * h;
     let f = params.modulation_frequency_hz;
-    let t = params.mask_threshold as f64;
     let mut mask = vec![0.0f32; n];
     let mut alpha_d = vec![0.0f32; n];
     let mut phi_d = vec![0.0f32; n];
@@ -178,22 +271,16 @@ fn compose(
         .into_par_iter()
         .enumerate()
         .for_each(|(i, (m, ad, pd, rg, sa, sp))| {
-            // Object = outlier in both images (§5.3.4).
-            let object = ra.weights[i] < t && rp.weights[i] < t;
-            *m = if object { 1.0 } else { 0.0 };
-            // A scattering amplitude is a magnitude; a slightly negative estimate (possible in
-            // the unconstrained least squares) would flip the subtracted phasor.
-            let a_s = ra.scatter[i].max(0.0);
-            let p_s = rp.scatter[i];
-            let (a_o, p_o) = (amp[i] as f64, phase[i] as f64);
-            let re = a_o * p_o.cos() - a_s * p_s.cos();
-            let im = a_o * p_o.sin() - a_s * p_s.sin();
+            *m = if est.object[i] { 1.0 } else { 0.0 };
+            let (s_re, s_im) = (est.scatter_re[i], est.scatter_im[i]);
+            let re = est.observed_re[i] - s_re;
+            let im = est.observed_im[i] - s_im;
             let p = wrap_phase(im.atan2(re));
             *ad = re.hypot(im) as f32;
             *pd = p as f32;
             *rg = range_m(p, f) as f32;
-            *sa = a_s as f32;
-            *sp = wrap_phase(p_s) as f32;
+            *sa = s_re.hypot(s_im) as f32;
+            *sp = wrap_phase(s_im.atan2(s_re)) as f32;
         });
     let mut raw_range = raw_range;
     if let (Some(k), Some(light)) = (input.intrinsics, params.light_position_m) {
@@ -230,8 +317,8 @@ fn compose(
         mask: image(w, h, mask)?,
         scatter_amplitude: image(w, h, scatter_a)?,
         scatter_phase: image(w, h, scatter_p)?,
-        weight_amplitude: image(w, h, to_f32(&ra.weights))?,
-        weight_phase: image(w, h, to_f32(&rp.weights))?,
+        weight_amplitude: image(w, h, to_f32(&est.weight_amplitude))?,
+        weight_phase: image(w, h, to_f32(&est.weight_phase))?,
         corrected_amplitude: image(w, h, alpha_d)?,
         corrected_phase: image(w, h, phi_d)?,
     })
@@ -323,13 +410,16 @@ mod tests {
         let s = (REFERENCE_SIZE_PX / W as f64).powi(2);
         let mut amplitude = IrlsChannelParams::AMPLITUDE;
         let mut phase = IrlsChannelParams::PHASE;
+        let mut phasor = IrlsChannelParams::PHASOR;
         amplitude.gamma[2] *= s;
         phase.gamma[2] *= s;
+        phasor.gamma[2] *= s;
         TofParams {
             coarse_iterations: 5,
             fine_iterations: 20,
             amplitude,
             phase,
+            phasor,
             ..TofParams::default()
         }
     }

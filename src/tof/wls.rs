@@ -211,14 +211,7 @@ impl XStepSystem {
     /// `out = A x` for one image row `y`; `proj` holds P x's patch coefficients in the joint
     /// form.
     #[inline]
-    fn apply_row(
-        &self,
-        weights: &[f64],
-        x: &[f64],
-        y: usize,
-        proj: &[[f64; 6]],
-        out: &mut [f64],
-    ) {
+    fn apply_row(&self, weights: &[f64], x: &[f64], y: usize, proj: &[[f64; 6]], out: &mut [f64]) {
         let w = self.width;
         let [g1, _, g3] = self.gamma;
         let c = self.pair_coef(y);

@@ -1,0 +1,196 @@
+//! Per-pixel noise level of a CW-ToF frame. Photon shot noise makes a phasor's noise grow with
+//! its brightness, σ² = σ_read² + k·|phasor| (the simulator's and real sensors' model, §2.2), so
+//! one global scale in the IRLS makes bright background (the scatter near the emitter reaches
+//! 3× the median brightness) look like outliers and dark corners like inliers. The model is fitted
+//! to the frame itself, from second differences along rows binned by brightness.
+
+use rayon::prelude::*;
+
+use super::tukey::mad_sigma_in_place;
+
+/// Brightness bins of the fit (equal pixel counts).
+const BINS: usize = 16;
+/// Variance of `v_i − (v_{i−1} + v_{i+1})/2` for white noise of variance σ²: 1.5σ².
+const SECOND_DIFFERENCE_VARIANCE: f64 = 1.5;
+
+/// σ² = `read_variance` + `shot_gain`·amplitude, per component of the phasor.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct NoiseModel {
+    /// σ² at zero amplitude (read noise), squared input units.
+    pub read_variance: f64,
+    /// Growth of σ² per unit amplitude (shot noise).
+    pub shot_gain: f64,
+}
+
+impl NoiseModel {
+    /// Fits the model to one frame given as a phasor (`re`, `im`) and its `amplitude`, all
+    /// row-major `width` wide: in each of [`BINS`] brightness bins the robust (MAD) σ of the
+    /// row-wise second differences of `re` and `im`, then least squares of σ² on the bins' mean
+    /// amplitude, with both coefficients kept ≥ 0. Object edges fall in few pixels and do not
+    /// move the MAD. `None` when the image is too small (under 3 columns or 2·BINS pixels).
+    pub fn fit(re: &[f32], im: &[f32], amplitude: &[f32], width: usize) -> Option<NoiseModel> {
+        if width < 3 || amplitude.len() < 2 * BINS * width.min(3) {
+            return None;
+        }
+        // (amplitude, normalised second difference of re, of im) per interior pixel.
+        let norm = (1.0 / SECOND_DIFFERENCE_VARIANCE).sqrt();
+        let mut samples: Vec<(f64, f64, f64)> = re
+            .par_chunks(width)
+            .zip(im.par_chunks(width))
+            .zip(amplitude.par_chunks(width))
+            .flat_map_iter(|((r, i), a)| {
+                (1..width - 1).map(move |x| {
+                    let d = |v: &[f32]| {
+                        (v[x] as f64 - 0.5 * (v[x - 1] as f64 + v[x + 1] as f64)) * norm
+                    };
+                    (a[x] as f64, d(r), d(i))
+                })
+            })
+            .collect();
+        if samples.len() < 2 * BINS {
+            return None;
+        }
+        samples.par_sort_unstable_by(|p, q| p.0.total_cmp(&q.0));
+        let per = samples.len() / BINS;
+        let mut scratch = Vec::with_capacity(2 * (per + BINS));
+        let mut points = Vec::with_capacity(BINS);
+        for b in 0..BINS {
+            let end = if b + 1 == BINS {
+                samples.len()
+            } else {
+                (b + 1) * per
+            };
+            let bin = &samples[b * per..end];
+            scratch.clear();
+            scratch.extend(bin.iter().flat_map(|s| [s.1, s.2]));
+            let sigma = mad_sigma_in_place(&mut scratch)?;
+            let mean_a = bin.iter().map(|s| s.0).sum::<f64>() / bin.len() as f64;
+            points.push((mean_a, sigma * sigma));
+        }
+        Some(fit_line_nonnegative(&points))
+    }
+
+    /// σ per phasor component at `amplitude` (clamped at 0).
+    #[inline]
+    pub fn sigma(&self, amplitude: f64) -> f64 {
+        (self.read_variance + self.shot_gain * amplitude.max(0.0)).sqrt()
+    }
+}
+
+/// Least squares `y = c0 + c1·x` over `points`, both coefficients ≥ 0 (the better of the
+/// unconstrained fit when feasible and the two one-coefficient fits).
+fn fit_line_nonnegative(points: &[(f64, f64)]) -> NoiseModel {
+    let n = points.len() as f64;
+    let (sx, sy) = points
+        .iter()
+        .fold((0.0, 0.0), |(a, b), p| (a + p.0, b + p.1));
+    let (mx, my) = (sx / n, sy / n);
+    let (sxx, sxy) = points.iter().fold((0.0, 0.0), |(a, b), p| {
+        (a + (p.0 - mx) * (p.0 - mx), b + (p.0 - mx) * (p.1 - my))
+    });
+    let sse = |c0: f64, c1: f64| {
+        points
+            .iter()
+            .map(|p| (p.1 - c0 - c1 * p.0).powi(2))
+            .sum::<f64>()
+    };
+    let mut best = NoiseModel {
+        read_variance: my.max(0.0),
+        shot_gain: 0.0,
+    };
+    let mut best_sse = sse(best.read_variance, 0.0);
+    let through_origin = {
+        let sxx0: f64 = points.iter().map(|p| p.0 * p.0).sum();
+        let sxy0: f64 = points.iter().map(|p| p.0 * p.1).sum();
+        if sxx0 > 0.0 {
+            (sxy0 / sxx0).max(0.0)
+        } else {
+            0.0
+        }
+    };
+    let mut candidates = vec![(0.0, through_origin)];
+    if sxx > 0.0 {
+        let c1 = sxy / sxx;
+        let c0 = my - c1 * mx;
+        if c0 >= 0.0 && c1 >= 0.0 {
+            candidates.push((c0, c1));
+        }
+    }
+    for (c0, c1) in candidates {
+        let e = sse(c0, c1);
+        if e < best_sse {
+            best_sse = e;
+            best = NoiseModel {
+                read_variance: c0,
+                shot_gain: c1,
+            };
+        }
+    }
+    best
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    fn gauss(rng: &mut ChaCha8Rng) -> f64 {
+        let u1: f64 = 1.0 - rng.random::<f64>();
+        let u2: f64 = rng.random();
+        (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+    }
+
+    /// A smooth phasor field from amplitude 20 to 400 with shot + read noise: the fit recovers
+    /// both coefficients, and a step edge through the image does not move them much.
+    #[test]
+    fn recovers_shot_and_read_noise() {
+        let (w, h) = (160, 120);
+        let (read_sd, shot) = (0.5f64, 0.15f64);
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let (mut re, mut im, mut amp) = (vec![], vec![], vec![]);
+        for y in 0..h {
+            for x in 0..w {
+                let mut a = 20.0 + 380.0 * (x as f64 / w as f64).powi(2) + y as f64 * 0.2;
+                if x > w / 2 && y > h / 2 {
+                    a += 300.0; // an object
+                }
+                let p = 0.2 + 0.001 * x as f64;
+                let sd = shot * a.sqrt() + read_sd;
+                let (r, i) = (
+                    a * p.cos() + sd * gauss(&mut rng),
+                    a * p.sin() + sd * gauss(&mut rng),
+                );
+                re.push(r as f32);
+                im.push(i as f32);
+                amp.push(r.hypot(i) as f32);
+            }
+        }
+        let m = NoiseModel::fit(&re, &im, &amp, w).unwrap();
+        for a in [30.0, 100.0, 300.0, 600.0] {
+            let truth = shot * f64::sqrt(a) + read_sd;
+            let got = m.sigma(a);
+            assert!(
+                (got / truth - 1.0).abs() < 0.12,
+                "a {a}: {got} vs {truth} ({m:?})"
+            );
+        }
+    }
+
+    #[test]
+    fn constant_noise_gives_no_shot_term_and_tiny_images_none() {
+        let (w, h) = (64, 64);
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let re: Vec<f32> = (0..w * h)
+            .map(|i| (50.0 + (i % w) as f64 + gauss(&mut rng)) as f32)
+            .collect();
+        let im: Vec<f32> = (0..w * h).map(|_| gauss(&mut rng) as f32).collect();
+        let amp: Vec<f32> = re.iter().zip(&im).map(|(a, b)| a.hypot(*b)).collect();
+        let m = NoiseModel::fit(&re, &im, &amp, w).unwrap();
+        assert!(
+            (m.sigma(50.0) - 1.0).abs() < 0.1 && (m.sigma(110.0) - 1.0).abs() < 0.1,
+            "{m:?}"
+        );
+        assert!(NoiseModel::fit(&[1.0; 4], &[1.0; 4], &[1.0; 4], 2).is_none());
+    }
+}
