@@ -424,6 +424,45 @@ mod tests {
         }
     }
 
+    /// An object whose direct return leaves the amplitude unchanged (observed = scatter·e^{jθ}):
+    /// invisible to the amplitude channel, so the reference's "outlier in both" mask misses it,
+    /// while the phasor's complex residual flags it and the corrected phase is the object's.
+    #[test]
+    fn object_invisible_in_amplitude_is_masked_by_the_phasor_residual() {
+        let (mut input, _, _) = scene(false, 13);
+        let theta = 0.6f64;
+        let mut phase = input.phase.data().to_vec();
+        for (i, p) in phase.iter_mut().enumerate() {
+            if blob_at(i) {
+                *p = wrap_phase(*p as f64 + theta) as f32;
+            }
+        }
+        input.phase = ImageF32::from_vec(W, H, 1, phase).unwrap();
+        let iou = |out: &TofOutput| {
+            let (mut inter, mut uni) = (0, 0);
+            for i in 0..W * H {
+                let m = out.mask.data()[i] > 0.5;
+                let b = blob_at(i);
+                inter += (m && b) as usize;
+                uni += (m || b) as usize;
+            }
+            inter as f64 / uni.max(1) as f64
+        };
+        let phasor = estimate_tof_depth(&input, &fast_params(), &Monitor::noop()).unwrap();
+        assert!(iou(&phasor) > 0.8, "phasor IoU {}", iou(&phasor));
+        let reference = TofParams {
+            channels: ScatterChannels::AmplitudePhase,
+            ..fast_params()
+        };
+        let ap = estimate_tof_depth(&input, &reference, &Monitor::noop()).unwrap();
+        assert!(iou(&ap) < 0.2, "amplitude/phase IoU {}", iou(&ap));
+    }
+
+    fn blob_at(i: usize) -> bool {
+        let (x, y) = ((i % W) as f64, (i / W) as f64);
+        (x - 22.0).powi(2) + (y - 18.0).powi(2) <= 64.0
+    }
+
     #[test]
     fn background_only_has_unit_weights_and_no_mask() {
         let (input, _, _) = scene(false, 7);

@@ -600,7 +600,7 @@ pub enum XStepState {
     /// CG buffers and settings.
     Pcg {
         /// Buffers.
-        ws: PcgWorkspace,
+        ws: Box<PcgWorkspace>,
         /// Relative tolerance.
         rel_tol: f64,
         /// Iteration cap.
@@ -621,7 +621,7 @@ impl XStepState {
                 max_iterations,
                 preconditioner,
             } => XStepState::Pcg {
-                ws: PcgWorkspace::default(),
+                ws: Box::default(),
                 rel_tol,
                 max_iterations,
                 preconditioner,
@@ -815,6 +815,60 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// The joint operator is A − γ′₁P, with P the uniform per-patch quadratic fit (built here
+    /// column by column from `QuadraticPrior::fit`), and CG solves it to the dense solution.
+    #[test]
+    fn joint_operator_and_solve_match_dense_definition() {
+        let (w, h) = (12, 10);
+        let g = [0.1, 0.1, 2.0];
+        let row0 = 4.5;
+        let grid = PatchGrid::new(w, h, 2, 2);
+        let sys = XStepSystem::new(w, h, g, RowMirror::new(h, row0))
+            .with_joint_prior(grid.clone())
+            .unwrap();
+        let (weights, b) = problem(w, h);
+        let n = w * h;
+        let mut a = dense_reference(w, h, g, row0, &weights);
+        let mut q = QuadraticPrior::new(grid).unwrap();
+        let (mut e, mut pe) = (vec![0.0; n], vec![0.0; n]);
+        for j in 0..n {
+            e.fill(0.0);
+            e[j] = 1.0;
+            q.fit(&e);
+            q.evaluate(&mut pe);
+            for i in 0..n {
+                a[i * n + j] -= g[0] * pe[i];
+            }
+        }
+        let mut out = vec![0.0; n];
+        sys.apply(&weights, &b, &mut out);
+        for i in 0..n {
+            let d: f64 = (0..n).map(|j| a[i * n + j] * b[j]).sum();
+            assert!((d - out[i]).abs() < 1e-9, "i {i}: {d} vs {}", out[i]);
+        }
+        let reference = dense_solve(a, b.clone());
+        let scale = reference.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        for preconditioner in [Preconditioner::Jacobi, Preconditioner::Multigrid] {
+            let kind = XStepSolver::Pcg {
+                rel_tol: 1e-12,
+                max_iterations: 10_000,
+                preconditioner,
+            };
+            let mut state = XStepState::new(kind, &sys).unwrap();
+            let mut x = vec![1.0; n];
+            state
+                .solve(&sys, &weights, &b, &mut x, &Monitor::noop())
+                .unwrap();
+            for (v, r) in x.iter().zip(&reference) {
+                assert!(
+                    (v - r).abs() <= 1e-7 * scale,
+                    "{preconditioner:?}: {v} vs {r}"
+                );
+            }
+        }
+        assert!(XStepState::new(XStepSolver::SparseCholesky, &sys).is_err());
     }
 
     #[test]
