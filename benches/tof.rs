@@ -1,18 +1,22 @@
-//! ToF-in-fog benchmarks: the full pipeline (5 coarse + 50 fine IRLS iterations on amplitude and
-//! phase) and one x-step solve (Eq. 5.12) with each solver, at the Kinect v2 size 424×512.
+//! ToF-in-fog benchmarks: the full pipeline (defaults: the phasor's two parts with shared weights,
+//! the joint prior; caps of 5 coarse + 50 fine IRLS iterations) on a separated and a cluttered
+//! frame, the reference's configuration (amplitude and phase separately, alternating x- and
+//! a-steps) for comparison, and one x-step solve (Eq. 5.12) with each solver, at the Kinect v2
+//! size 424×512.
 //!
 //! Run: `cargo bench --bench tof`.
 
 use criterion::{criterion_group, criterion_main, Criterion};
 
 use murk::simulate::tof::{simulate_tof, FogPreset, TofSimConfig};
+use murk::simulate::SceneLayout;
 use murk::tof::irls::{run_irls, IrlsConfig};
 use murk::tof::quadratic_prior::{PatchGrid, QuadraticPrior};
 use murk::tof::symmetry::RowMirror;
 use murk::tof::wls::{XStepState, XStepSystem};
 use murk::tof::{
-    estimate_tof_depth_with_solver, IrlsChannelParams, Preconditioner, TofInput, TofParams,
-    XStepSolver,
+    estimate_tof_depth_with_solver, IrlsChannelParams, Preconditioner, PriorCoupling,
+    ScatterChannels, TofInput, TofParams, XStepSolver,
 };
 use murk::Monitor;
 
@@ -20,9 +24,14 @@ const W: usize = 512;
 const H: usize = 424;
 
 fn frame() -> TofInput {
+    frame_of(SceneLayout::Separated)
+}
+
+fn frame_of(layout: SceneLayout) -> TofInput {
     let cfg = TofSimConfig {
         preset: FogPreset::Medium,
         seed: 1,
+        layout,
         ..TofSimConfig::with_size(W, H)
     };
     let f = simulate_tof(&cfg, &Monitor::noop()).expect("simulate");
@@ -43,6 +52,26 @@ fn bench(c: &mut Criterion) {
     g.bench_function("pcg_default", |b| {
         b.iter(|| {
             estimate_tof_depth_with_solver(&input, &params, XStepSolver::default(), &monitor)
+                .expect("pipeline")
+        })
+    });
+    let cluttered = frame_of(SceneLayout::Cluttered);
+    g.bench_function("pcg_default_cluttered", |b| {
+        b.iter(|| {
+            estimate_tof_depth_with_solver(&cluttered, &params, XStepSolver::default(), &monitor)
+                .expect("pipeline")
+        })
+    });
+    let reference = TofParams {
+        channels: ScatterChannels::AmplitudePhase,
+        prior_coupling: PriorCoupling::Alternating,
+        coarse_subdivision: 1,
+        coarse_quantile: 0.5,
+        ..TofParams::default()
+    };
+    g.bench_function("reference_amplitude_phase_alternating", |b| {
+        b.iter(|| {
+            estimate_tof_depth_with_solver(&input, &reference, XStepSolver::default(), &monitor)
                 .expect("pipeline")
         })
     });

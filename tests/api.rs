@@ -96,6 +96,8 @@ async fn submit_watch_result_then_identical_resubmit_is_a_cache_hit() {
     assert_eq!((range.width, range.height), (64, 53));
     assert!(r.z_depth_m.is_some(), "intrinsics given → z-depth");
     assert!(r.raw_z_depth_m.is_some(), "intrinsics given → raw z-depth");
+    let std = r.range_std_m.as_ref().expect("range uncertainty");
+    assert_eq!((std.width, std.height), (64, 53));
 
     let executed = server.manager().executed();
     let again = c.submit_job(req).await.unwrap().into_inner();

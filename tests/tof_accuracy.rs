@@ -22,6 +22,9 @@ struct Scores {
     gt_pixels: usize,
     est_pixels: usize,
     seconds: f64,
+    /// Share of ground-truth object pixels whose range error is within `range_std_m` (68 % if
+    /// the reported σ were exact and the errors Gaussian).
+    within_1_std: f64,
 }
 
 fn simulate(preset: FogPreset, seed: u64, width: usize, height: usize) -> TofSimFrame {
@@ -115,6 +118,7 @@ fn score(frame: &TofSimFrame, out: &TofOutput, seconds: f64) -> Scores {
     let f = frame.config.modulation_frequency_hz;
     let (mut e, mut e_raw, mut e_clear, mut n) = (0.0, 0.0, 0.0, 0usize);
     let (mut inter, mut uni, mut est) = (0usize, 0usize, 0usize);
+    let mut covered = 0usize;
     for i in 0..gt.len() {
         let g = gt[i] > 0.5;
         let m = out.mask.data()[i] > 0.5;
@@ -123,7 +127,9 @@ fn score(frame: &TofSimFrame, out: &TofOutput, seconds: f64) -> Scores {
         est += m as usize;
         if g {
             let r = gt_range[i] as f64;
-            e += (out.range_m.data()[i] as f64 - r).abs();
+            let err = (out.range_m.data()[i] as f64 - r).abs();
+            e += err;
+            covered += (err <= out.range_std_m.data()[i] as f64) as usize;
             e_raw += (out.raw_range_m.data()[i] as f64 - r).abs();
             let clear = c * frame.phase_clear.data()[i] as f64 / (4.0 * std::f64::consts::PI * f);
             e_clear += (clear - r).abs();
@@ -143,6 +149,7 @@ fn score(frame: &TofSimFrame, out: &TofOutput, seconds: f64) -> Scores {
         gt_pixels: n,
         est_pixels: est,
         seconds,
+        within_1_std: covered as f64 / nn,
     }
 }
 
@@ -214,7 +221,9 @@ fn survey() {
         .ok()
         .and_then(|s| s.parse().ok())
         .unwrap_or(6);
-    println!("size      preset  seed  err_m   raw_m   clear_m  ratio  IoU    gt_px  est_px  secs");
+    println!(
+        "size      preset  seed  err_m   raw_m   clear_m  ratio  IoU    gt_px  est_px  secs   in1σ"
+    );
     for &(w, h) in &sizes {
         for preset in FogPreset::ALL {
             for seed in 0..seeds {
@@ -222,7 +231,7 @@ fn survey() {
                 let (out, secs) = run(&frame);
                 let s = score(&frame, &out, secs);
                 println!(
-                    "{w}x{h:<4} {preset:<7} {seed:<4} {:.4}  {:.4}  {:.4}   {:5.1}  {:.3}  {:6} {:6}  {:.3}",
+                    "{w}x{h:<4} {preset:<7} {seed:<4} {:.4}  {:.4}  {:.4}   {:5.1}  {:.3}  {:6} {:6}  {:.3}  {:.3}",
                     s.mean_err_m,
                     s.raw_mean_err_m,
                     s.clear_mean_err_m,
@@ -230,7 +239,8 @@ fn survey() {
                     s.iou,
                     s.gt_pixels,
                     s.est_pixels,
-                    s.seconds
+                    s.seconds,
+                    s.within_1_std
                 );
             }
         }

@@ -181,6 +181,7 @@ pub fn write_tof_result(dir: &Path, r: &pb::TofDepthResult) -> anyhow::Result<To
     let mut main = None::<(ImageF32, ImageF32, ImageF32)>;
     let fields = [
         ("range_m", &r.range_m),
+        ("range_std_m", &r.range_std_m),
         ("z_depth_m", &r.z_depth_m),
         ("raw_range_m", &r.raw_range_m),
         ("raw_z_depth_m", &r.raw_z_depth_m),

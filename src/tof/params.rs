@@ -446,13 +446,22 @@ pub struct TofOutput {
     pub raw_range_m: ImageF32,
     /// z-depth from the raw phase, metres (only with intrinsics), for comparison.
     pub raw_z_depth_m: Option<ImageF32>,
-    /// Object mask: 1 where both amplitude and phase IRLS weights mark an outlier, else 0.
+    /// Standard deviation of `range_m`, metres: the frame's sensor noise (its shot + read noise
+    /// model at the observed brightness) plus one noise σ of uncertainty in the scatter
+    /// estimate (at the scatter's brightness), carried through the direct phasor's phase,
+    /// σ_φ ≈ σ/|direct| (Eq. 5.8–5.9), and capped at a quarter of the ambiguity interval. Large
+    /// where the direct return is weak against the noise, i.e. where the corrected range is no
+    /// better than the raw one; threshold it together with `mask`.
+    pub range_std_m: ImageF32,
+    /// Object mask: 1 where the IRLS marks an outlier (the phasor's residual by default; with
+    /// `ScatterChannels::AmplitudePhase`, both the amplitude's and the phase's), else 0.
     pub mask: ImageF32,
     /// Estimated scattering amplitude α_s.
     pub scatter_amplitude: ImageF32,
     /// Estimated scattering phase φ_s, radians.
     pub scatter_phase: ImageF32,
-    /// Final IRLS weights of the amplitude image, in [0, 1].
+    /// Final IRLS weights of the amplitude image, in [0, 1] (the phasor's shared weights by
+    /// default, then equal to `weight_phase`).
     pub weight_amplitude: ImageF32,
     /// Final IRLS weights of the phase image, in [0, 1].
     pub weight_phase: ImageF32,

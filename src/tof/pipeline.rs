@@ -5,7 +5,7 @@
 //! Limitation: phase is assumed not to wrap inside the image (every pixel within one ambiguity
 //! interval c/(2f)); the quadratic/symmetry/smoothness priors treat phase as a smooth real field.
 
-use std::f64::consts::TAU;
+use std::f64::consts::{PI, TAU};
 use std::sync::atomic::{AtomicUsize, Ordering};
 
 use rayon::prelude::*;
@@ -60,28 +60,27 @@ pub fn estimate_tof_depth_with_solver(
         }
         None => out.extend_from_slice(img),
     };
+    // The raw phasor and its noise model (shot + read), which scales the IRLS residuals of the
+    // phasor channels and gives every pixel's range uncertainty.
+    let (raw_re, raw_im): (Vec<f32>, Vec<f32>) = input
+        .amplitude
+        .data()
+        .par_iter()
+        .zip(input.phase.data().par_iter())
+        .map(|(&a, &p)| {
+            let (s, c) = (p as f64).sin_cos();
+            ((a as f64 * c) as f32, (a as f64 * s) as f32)
+        })
+        .unzip();
+    let noise = NoiseModel::fit(&raw_re, &raw_im, input.amplitude.data(), w);
     // The observation as the pipeline sees it: amplitude and phase, or the phasor's real and
-    // imaginary parts, each pre-filtered. The phasor's noise model is fitted to the raw frame.
-    let (first, second, noise) = match params.channels {
-        ScatterChannels::AmplitudePhase => (
-            input.amplitude.data().to_vec(),
-            input.phase.data().to_vec(),
-            None,
-        ),
-        ScatterChannels::Phasor => {
-            let (re, im): (Vec<f32>, Vec<f32>) = input
-                .amplitude
-                .data()
-                .par_iter()
-                .zip(input.phase.data().par_iter())
-                .map(|(&a, &p)| {
-                    let (s, c) = (p as f64).sin_cos();
-                    ((a as f64 * c) as f32, (a as f64 * s) as f32)
-                })
-                .unzip();
-            let noise = NoiseModel::fit(&re, &im, input.amplitude.data(), w);
-            (re, im, noise)
+    // imaginary parts, each pre-filtered.
+    let (first, second) = match params.channels {
+        ScatterChannels::AmplitudePhase => {
+            drop((raw_re, raw_im));
+            (input.amplitude.data().to_vec(), input.phase.data().to_vec())
         }
+        ScatterChannels::Phasor => (raw_re, raw_im),
     };
     let (mut f1, mut f2) = (Vec::new(), Vec::new());
     rayon::join(|| filter(&first, &mut f1), || filter(&second, &mut f2));
@@ -172,6 +171,7 @@ pub fn estimate_tof_depth_with_solver(
                 scatter_im,
                 weight_amplitude: ra.weights,
                 weight_phase: rp.weights,
+                noise,
             }
         }
         ScatterChannels::Phasor => {
@@ -187,6 +187,7 @@ pub fn estimate_tof_depth_with_solver(
                 scatter_im,
                 weight_amplitude: r.weights.clone(),
                 weight_phase: r.weights,
+                noise,
             }
         }
     };
@@ -207,6 +208,8 @@ struct ScatterEstimate {
     scatter_im: Vec<f64>,
     weight_amplitude: Vec<f64>,
     weight_phase: Vec<f64>,
+    /// The frame's noise model (`None` for frames too small to fit one).
+    noise: Option<NoiseModel>,
 }
 
 /// Range along the ray (metres) of a phase (radians): Eq. 5.2, c·φ/(4πf).
@@ -255,6 +258,7 @@ fn compose(input: &TofInput, params: &TofParams, est: &ScatterEstimate) -> Resul
     let mut range = vec![0.0f32; n];
     let mut scatter_a = vec![0.0f32; n];
     let mut scatter_p = vec![0.0f32; n];
+    let mut range_std = vec![0.0f32; n];
     let raw_phase = input.phase.data();
     let raw_range: Vec<f32> = raw_phase
         .par_iter()
@@ -267,10 +271,11 @@ fn compose(input: &TofInput, params: &TofParams, est: &ScatterEstimate) -> Resul
         range.par_iter_mut(),
         scatter_a.par_iter_mut(),
         scatter_p.par_iter_mut(),
+        range_std.par_iter_mut(),
     )
         .into_par_iter()
         .enumerate()
-        .for_each(|(i, (m, ad, pd, rg, sa, sp))| {
+        .for_each(|(i, (m, ad, pd, rg, sa, sp, sd))| {
             *m = if est.object[i] { 1.0 } else { 0.0 };
             let (s_re, s_im) = (est.scatter_re[i], est.scatter_im[i]);
             let re = est.observed_re[i] - s_re;
@@ -279,8 +284,18 @@ fn compose(input: &TofInput, params: &TofParams, est: &ScatterEstimate) -> Resul
             *ad = re.hypot(im) as f32;
             *pd = p as f32;
             *rg = range_m(p, f) as f32;
-            *sa = s_re.hypot(s_im) as f32;
+            let a_s = s_re.hypot(s_im);
+            *sa = a_s as f32;
             *sp = wrap_phase(s_im.atan2(s_re)) as f32;
+            // Without a noise model (tiny frames) the spread of the scatter's own brightness
+            // stands in: no uncertainty is never reported.
+            let a_o = est.observed_re[i].hypot(est.observed_im[i]);
+            let (var_o, var_s) = match est.noise {
+                Some(nm) => (nm.sigma(a_o).powi(2), nm.sigma(a_s).powi(2)),
+                None => (0.0, (1e-3 * a_s).powi(2)),
+            };
+            let sigma_phi = ((var_o + var_s).sqrt() / re.hypot(im).max(1e-300)).min(0.5 * PI);
+            *sd = range_m(sigma_phi, f) as f32;
         });
     let mut raw_range = raw_range;
     if let (Some(k), Some(light)) = (input.intrinsics, params.light_position_m) {
@@ -311,6 +326,7 @@ fn compose(input: &TofInput, params: &TofParams, est: &ScatterEstimate) -> Resul
     let to_f32 = |v: &[f64]| v.iter().map(|&x| x as f32).collect::<Vec<f32>>();
     Ok(TofOutput {
         range_m: image(w, h, range)?,
+        range_std_m: image(w, h, range_std)?,
         z_depth_m: z_depth.map(|z| image(w, h, z)).transpose()?,
         raw_range_m: image(w, h, raw_range)?,
         raw_z_depth_m: raw_z_depth.map(|z| image(w, h, z)).transpose()?,

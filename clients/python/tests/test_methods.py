@@ -39,6 +39,10 @@ def test_tof_depth_beats_the_raw_range(client: Client, tof_scene: Path) -> None:
     raw_err = float(np.median(np.abs(r.raw_range_m[sel] - gt[sel])))
     err = float(np.median(np.abs(r.range_m[sel] - gt[sel])))
     assert err < 0.5 * raw_err, (err, raw_err)
+    # The reported range uncertainty covers most object pixels' errors (about 1 sigma).
+    assert r.range_std_m is not None and r.range_std_m.shape == (h, w)
+    assert np.all(np.isfinite(r.range_std_m)) and np.all(r.range_std_m > 0)
+    assert float(np.mean(np.abs(r.range_m[sel] - gt[sel]) <= 3 * r.range_std_m[sel])) > 0.8
     # z-depth is range projected on the optical axis: never longer than the range.
     assert np.all(r.z_depth_m[sel] <= r.range_m[sel] + 1e-4)
     assert seen and seen[-1].state == mc.JobState.SUCCEEDED and seen[-1].method == "tof_depth"

@@ -25,6 +25,8 @@ class TofDepthResult:
     raw_range_m: FloatImage
     #: z-depth from the raw phase, metres (None without intrinsics).
     raw_z_depth_m: FloatImage | None
+    #: Standard deviation of range_m, metres (None from servers older than murk-algorithms-4).
+    range_std_m: FloatImage | None
     #: Object mask: 1 = object, 0 = background.
     mask: FloatImage
     #: Estimated scattering component: amplitude (sensor units) and phase (radians).
@@ -51,6 +53,9 @@ class TofDepthResult:
                 from_proto(r.raw_z_depth_m, field=f"{f}.raw_z_depth_m")
                 if r.HasField("raw_z_depth_m")
                 else None
+            ),
+            range_std_m=(
+                from_proto(r.range_std_m, field=f"{f}.range_std_m") if r.HasField("range_std_m") else None
             ),
             mask=from_proto(r.mask, field=f"{f}.mask"),
             scatter_amplitude=from_proto(r.scatter_amplitude, field=f"{f}.scatter_amplitude"),

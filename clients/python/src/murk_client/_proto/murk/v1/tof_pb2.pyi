@@ -271,6 +271,7 @@ class TofDepthResult(_message.Message):
     CORRECTED_AMPLITUDE_FIELD_NUMBER: _builtins.int
     CORRECTED_PHASE_FIELD_NUMBER: _builtins.int
     RAW_Z_DEPTH_M_FIELD_NUMBER: _builtins.int
+    RANGE_STD_M_FIELD_NUMBER: _builtins.int
     @_builtins.property
     def range_m(self) -> _common_pb2.Image:
         """Corrected range along the viewing ray, metres."""
@@ -311,6 +312,14 @@ class TofDepthResult(_message.Message):
         with z_depth_m.
         """
 
+    @_builtins.property
+    def range_std_m(self) -> _common_pb2.Image:
+        """Standard deviation of range_m, metres: sensor noise (the frame's shot + read noise model)
+        plus one noise sigma of scatter-estimate uncertainty, through the direct phasor's phase.
+        Large where the direct return is weak against the noise, i.e. where the corrected range is
+        no better than the raw one.
+        """
+
     def __init__(
         self,
         *,
@@ -325,10 +334,11 @@ class TofDepthResult(_message.Message):
         corrected_amplitude: _common_pb2.Image | None = ...,
         corrected_phase: _common_pb2.Image | None = ...,
         raw_z_depth_m: _common_pb2.Image | None = ...,
+        range_std_m: _common_pb2.Image | None = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _typing.Literal["corrected_amplitude", b"corrected_amplitude", "corrected_phase", b"corrected_phase", "mask", b"mask", "range_m", b"range_m", "raw_range_m", b"raw_range_m", "raw_z_depth_m", b"raw_z_depth_m", "scatter_amplitude", b"scatter_amplitude", "scatter_phase", b"scatter_phase", "weight_amplitude", b"weight_amplitude", "weight_phase", b"weight_phase", "z_depth_m", b"z_depth_m"]  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["corrected_amplitude", b"corrected_amplitude", "corrected_phase", b"corrected_phase", "mask", b"mask", "range_m", b"range_m", "range_std_m", b"range_std_m", "raw_range_m", b"raw_range_m", "raw_z_depth_m", b"raw_z_depth_m", "scatter_amplitude", b"scatter_amplitude", "scatter_phase", b"scatter_phase", "weight_amplitude", b"weight_amplitude", "weight_phase", b"weight_phase", "z_depth_m", b"z_depth_m"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["corrected_amplitude", b"corrected_amplitude", "corrected_phase", b"corrected_phase", "mask", b"mask", "range_m", b"range_m", "raw_range_m", b"raw_range_m", "raw_z_depth_m", b"raw_z_depth_m", "scatter_amplitude", b"scatter_amplitude", "scatter_phase", b"scatter_phase", "weight_amplitude", b"weight_amplitude", "weight_phase", b"weight_phase", "z_depth_m", b"z_depth_m"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["corrected_amplitude", b"corrected_amplitude", "corrected_phase", b"corrected_phase", "mask", b"mask", "range_m", b"range_m", "range_std_m", b"range_std_m", "raw_range_m", b"raw_range_m", "raw_z_depth_m", b"raw_z_depth_m", "scatter_amplitude", b"scatter_amplitude", "scatter_phase", b"scatter_phase", "weight_amplitude", b"weight_amplitude", "weight_phase", b"weight_phase", "z_depth_m", b"z_depth_m"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
