@@ -261,20 +261,7 @@ impl Scene {
         for _attempt in 0..200 {
             let n = rng.random_range(2..=4usize);
             let mut objects: Vec<SceneObject> = Vec::with_capacity(n);
-            let mut tries = 0;
-            while objects.len() < n && tries < 100 {
-                tries += 1;
-                let obj = random_object(rng, k, width, height);
-                let (c, r) = obj.shape.bounding_sphere();
-                let clear_of_others = objects.iter().all(|o| {
-                    let (c2, r2) = o.shape.bounding_sphere();
-                    let dc = sub(c, c2);
-                    dot(dc, dc).sqrt() > r + r2 + 0.05
-                });
-                if clear_of_others {
-                    objects.push(obj);
-                }
-            }
+            add_clear_objects(&mut objects, n, rng, k, width, height);
             let scene = Scene {
                 wall_z_m,
                 wall_albedo: 0.05,
@@ -360,19 +347,7 @@ impl Scene {
             };
             let mut objects = vec![sphere, panel];
             let extra = rng.random_range(1..=2usize);
-            let mut tries = 0;
-            while objects.len() < 2 + extra && tries < 100 {
-                tries += 1;
-                let obj = random_object(rng, k, width, height);
-                let (c, r) = obj.shape.bounding_sphere();
-                if objects.iter().all(|o| {
-                    let (c2, r2) = o.shape.bounding_sphere();
-                    let dc = sub(c, c2);
-                    dot(dc, dc).sqrt() > r + r2 + 0.05
-                }) {
-                    objects.push(obj);
-                }
-            }
+            add_clear_objects(&mut objects, 2 + extra, rng, k, width, height);
             let scene = Scene {
                 wall_z_m,
                 wall_albedo: 0.05,
@@ -451,6 +426,32 @@ impl Scene {
             .zip(&last_row_hit)
             .any(|(a, b)| *a && *b);
         (covered as f64 / total.max(1) as f64, spans)
+    }
+}
+
+/// Adds [`random_object`]s whose bounding spheres keep 5 cm from every object already placed,
+/// until `objects` holds `target` (at most 100 draws).
+fn add_clear_objects(
+    objects: &mut Vec<SceneObject>,
+    target: usize,
+    rng: &mut ChaCha8Rng,
+    k: &Intrinsics,
+    width: usize,
+    height: usize,
+) {
+    let mut tries = 0;
+    while objects.len() < target && tries < 100 {
+        tries += 1;
+        let obj = random_object(rng, k, width, height);
+        let (c, r) = obj.shape.bounding_sphere();
+        let clear_of_others = objects.iter().all(|o| {
+            let (c2, r2) = o.shape.bounding_sphere();
+            let dc = sub(c, c2);
+            dot(dc, dc).sqrt() > r + r2 + 0.05
+        });
+        if clear_of_others {
+            objects.push(obj);
+        }
     }
 }
 
