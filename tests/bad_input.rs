@@ -135,6 +135,44 @@ async fn bad_tof_requests_name_the_field_and_the_server_keeps_serving() {
         "request.tof_depth.options.amplitude.gamma_smoothness"
     );
 
+    for (options, field) in [
+        (
+            pb::TofOptions {
+                channels: 99,
+                ..Default::default()
+            },
+            "request.tof_depth.options.channels",
+        ),
+        (
+            pb::TofOptions {
+                coarse_quantile: Some(1.5),
+                ..Default::default()
+            },
+            "request.tof_depth.options.coarse_quantile",
+        ),
+        (
+            pb::TofOptions {
+                coarse_subdivision: Some(0),
+                ..Default::default()
+            },
+            "request.tof_depth.options.coarse_subdivision",
+        ),
+        (
+            pb::TofOptions {
+                phasor: Some(pb::IrlsOptions {
+                    c_fine: Some(0.0),
+                    ..Default::default()
+                }),
+                ..Default::default()
+            },
+            "request.tof_depth.options.phasor.c_fine",
+        ),
+    ] {
+        let mut r = good.clone();
+        r.options = Some(options);
+        assert_eq!(submit_err(&server, r).await, field);
+    }
+
     let e = jobs(&server)
         .submit_job(pb::SubmitJobRequest {
             request: None,

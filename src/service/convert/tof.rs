@@ -5,7 +5,10 @@ use crate::camera::Intrinsics;
 use crate::error::{MurkError, Result};
 use crate::image::ImageF32;
 use crate::service::proto::v1 as pb;
-use crate::tof::{BilateralParams, IrlsChannelParams, TofInput, TofOutput, TofParams};
+use crate::tof::{
+    BilateralParams, IrlsChannelParams, PriorCoupling, ScatterChannels, TofInput, TofOutput,
+    TofParams,
+};
 
 /// Decodes and fully validates a ToF request. Field names are relative to `TofDepthRequest`.
 pub fn tof_from_proto(
@@ -90,6 +93,27 @@ fn params_from_proto(req: &pb::TofDepthRequest) -> Result<TofParams> {
     }
     if let Some(t) = o.convergence_tolerance {
         p.convergence_tolerance = t;
+    }
+    p.channels = match pb::TofChannels::try_from(o.channels) {
+        Ok(pb::TofChannels::Unspecified) => p.channels,
+        Ok(pb::TofChannels::Phasor) => ScatterChannels::Phasor,
+        Ok(pb::TofChannels::AmplitudePhase) => ScatterChannels::AmplitudePhase,
+        Err(_) => {
+            return Err(MurkError::invalid(
+                "options.channels",
+                format!("unknown ToF channels {}", o.channels),
+            ))
+        }
+    };
+    if o.alternating_prior {
+        p.prior_coupling = PriorCoupling::Alternating;
+    }
+    irls_from_proto(o.phasor.as_ref(), &mut p.phasor);
+    if let Some(v) = o.coarse_subdivision {
+        p.coarse_subdivision = v as usize;
+    }
+    if let Some(q) = o.coarse_quantile {
+        p.coarse_quantile = q;
     }
     Ok(p)
 }

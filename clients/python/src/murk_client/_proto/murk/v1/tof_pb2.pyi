@@ -5,6 +5,7 @@ isort:skip_file
 
 from google.protobuf import descriptor as _descriptor
 from google.protobuf import message as _message
+from google.protobuf.internal import enum_type_wrapper as _enum_type_wrapper
 from murk_client._proto.murk.v1 import common_pb2 as _common_pb2
 import builtins as _builtins
 import sys
@@ -16,6 +17,31 @@ else:
     from typing_extensions import TypeAlias as _TypeAlias, Never as _Never
 
 DESCRIPTOR: _descriptor.FileDescriptor
+
+class _TofChannels:
+    ValueType = _typing.NewType("ValueType", _builtins.int)
+    V: _TypeAlias = ValueType  # noqa: Y015
+
+class _TofChannelsEnumTypeWrapper(_enum_type_wrapper._EnumTypeWrapper[_TofChannels.ValueType], _builtins.type):
+    DESCRIPTOR: _descriptor.EnumDescriptor
+    TOF_CHANNELS_UNSPECIFIED: _TofChannels.ValueType  # 0
+    TOF_CHANNELS_PHASOR: _TofChannels.ValueType  # 1
+    """murk's default: the observed phasor's real and imaginary parts, one set of IRLS weights
+    from the complex residual; object = outlier.
+    """
+    TOF_CHANNELS_AMPLITUDE_PHASE: _TofChannels.ValueType  # 2
+    """The reference (section 5.3.4): amplitude and phase separately; object = outlier in both."""
+
+class TofChannels(_TofChannels, metaclass=_TofChannelsEnumTypeWrapper): ...
+
+TOF_CHANNELS_UNSPECIFIED: TofChannels.ValueType  # 0
+TOF_CHANNELS_PHASOR: TofChannels.ValueType  # 1
+"""murk's default: the observed phasor's real and imaginary parts, one set of IRLS weights
+from the complex residual; object = outlier.
+"""
+TOF_CHANNELS_AMPLITUDE_PHASE: TofChannels.ValueType  # 2
+"""The reference (section 5.3.4): amplitude and phase separately; object = outlier in both."""
+Global___TofChannels: _TypeAlias = TofChannels  # noqa: Y015
 
 @_typing.final
 class TofDepthRequest(_message.Message):
@@ -89,6 +115,11 @@ class TofOptions(_message.Message):
     BILATERAL_FIELD_NUMBER: _builtins.int
     MASK_THRESHOLD_FIELD_NUMBER: _builtins.int
     CONVERGENCE_TOLERANCE_FIELD_NUMBER: _builtins.int
+    CHANNELS_FIELD_NUMBER: _builtins.int
+    ALTERNATING_PRIOR_FIELD_NUMBER: _builtins.int
+    PHASOR_FIELD_NUMBER: _builtins.int
+    COARSE_SUBDIVISION_FIELD_NUMBER: _builtins.int
+    COARSE_QUANTILE_FIELD_NUMBER: _builtins.int
     patches_x: _builtins.int
     """Patch grid of the local quadratic prior (Eq. 5.10); default 4 x 4."""
     patches_y: _builtins.int
@@ -103,6 +134,20 @@ class TofOptions(_message.Message):
     """A level stops once no IRLS weight moves by more than this for two iterations (the
     iteration counts are caps); 0 runs every iteration. Default 1e-3.
     """
+    channels: Global___TofChannels.ValueType
+    """Which images Algorithm 2 runs on; unspecified = the phasor."""
+    alternating_prior: _builtins.bool
+    """Alternate Eq. 5.12's x- and a-steps as published (IRLS-weighted a-steps) instead of
+    solving for x and the patch quadratics jointly (the default).
+    """
+    coarse_subdivision: _builtins.int
+    """Coarse-level weight blocks per quadratic patch along each axis, 1..16; default 4
+    (1 = the patches themselves, Eq. 5.16).
+    """
+    coarse_quantile: _builtins.float
+    """Quantile of the coarse blocks' RMS residuals taken as the scale sigma_2, in (0, 1);
+    default 0.25 (the reference's median is 0.5).
+    """
     @_builtins.property
     def amplitude(self) -> Global___IrlsOptions: ...
     @_builtins.property
@@ -110,6 +155,10 @@ class TofOptions(_message.Message):
     @_builtins.property
     def bilateral(self) -> Global___BilateralOptions:
         """Bilateral pre-filter; unset = default filter."""
+
+    @_builtins.property
+    def phasor(self) -> Global___IrlsOptions:
+        """IRLS settings of the phasor's two parts; default gamma' 0.1 / 0.1 / 10, c 4 / 8."""
 
     def __init__(
         self,
@@ -124,13 +173,22 @@ class TofOptions(_message.Message):
         bilateral: Global___BilateralOptions | None = ...,
         mask_threshold: _builtins.float | None = ...,
         convergence_tolerance: _builtins.float | None = ...,
+        channels: Global___TofChannels.ValueType = ...,
+        alternating_prior: _builtins.bool = ...,
+        phasor: Global___IrlsOptions | None = ...,
+        coarse_subdivision: _builtins.int | None = ...,
+        coarse_quantile: _builtins.float | None = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _typing.Literal["_coarse_iterations", b"_coarse_iterations", "_convergence_tolerance", b"_convergence_tolerance", "_fine_iterations", b"_fine_iterations", "_mask_threshold", b"_mask_threshold", "_patches_x", b"_patches_x", "_patches_y", b"_patches_y", "_symmetry_row", b"_symmetry_row", "amplitude", b"amplitude", "bilateral", b"bilateral", "coarse_iterations", b"coarse_iterations", "convergence_tolerance", b"convergence_tolerance", "fine_iterations", b"fine_iterations", "mask_threshold", b"mask_threshold", "patches_x", b"patches_x", "patches_y", b"patches_y", "phase", b"phase", "symmetry_row", b"symmetry_row"]  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["_coarse_iterations", b"_coarse_iterations", "_coarse_quantile", b"_coarse_quantile", "_coarse_subdivision", b"_coarse_subdivision", "_convergence_tolerance", b"_convergence_tolerance", "_fine_iterations", b"_fine_iterations", "_mask_threshold", b"_mask_threshold", "_patches_x", b"_patches_x", "_patches_y", b"_patches_y", "_symmetry_row", b"_symmetry_row", "amplitude", b"amplitude", "bilateral", b"bilateral", "coarse_iterations", b"coarse_iterations", "coarse_quantile", b"coarse_quantile", "coarse_subdivision", b"coarse_subdivision", "convergence_tolerance", b"convergence_tolerance", "fine_iterations", b"fine_iterations", "mask_threshold", b"mask_threshold", "patches_x", b"patches_x", "patches_y", b"patches_y", "phase", b"phase", "phasor", b"phasor", "symmetry_row", b"symmetry_row"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["_coarse_iterations", b"_coarse_iterations", "_convergence_tolerance", b"_convergence_tolerance", "_fine_iterations", b"_fine_iterations", "_mask_threshold", b"_mask_threshold", "_patches_x", b"_patches_x", "_patches_y", b"_patches_y", "_symmetry_row", b"_symmetry_row", "amplitude", b"amplitude", "bilateral", b"bilateral", "coarse_iterations", b"coarse_iterations", "convergence_tolerance", b"convergence_tolerance", "fine_iterations", b"fine_iterations", "mask_threshold", b"mask_threshold", "patches_x", b"patches_x", "patches_y", b"patches_y", "phase", b"phase", "symmetry_row", b"symmetry_row"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["_coarse_iterations", b"_coarse_iterations", "_coarse_quantile", b"_coarse_quantile", "_coarse_subdivision", b"_coarse_subdivision", "_convergence_tolerance", b"_convergence_tolerance", "_fine_iterations", b"_fine_iterations", "_mask_threshold", b"_mask_threshold", "_patches_x", b"_patches_x", "_patches_y", b"_patches_y", "_symmetry_row", b"_symmetry_row", "alternating_prior", b"alternating_prior", "amplitude", b"amplitude", "bilateral", b"bilateral", "channels", b"channels", "coarse_iterations", b"coarse_iterations", "coarse_quantile", b"coarse_quantile", "coarse_subdivision", b"coarse_subdivision", "convergence_tolerance", b"convergence_tolerance", "fine_iterations", b"fine_iterations", "mask_threshold", b"mask_threshold", "patches_x", b"patches_x", "patches_y", b"patches_y", "phase", b"phase", "phasor", b"phasor", "symmetry_row", b"symmetry_row"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     _WhichOneofReturnType__coarse_iterations: _TypeAlias = _typing.Literal["coarse_iterations"]  # noqa: Y015
     _WhichOneofArgType__coarse_iterations: _TypeAlias = _typing.Literal["_coarse_iterations", b"_coarse_iterations"]  # noqa: Y015
+    _WhichOneofReturnType__coarse_quantile: _TypeAlias = _typing.Literal["coarse_quantile"]  # noqa: Y015
+    _WhichOneofArgType__coarse_quantile: _TypeAlias = _typing.Literal["_coarse_quantile", b"_coarse_quantile"]  # noqa: Y015
+    _WhichOneofReturnType__coarse_subdivision: _TypeAlias = _typing.Literal["coarse_subdivision"]  # noqa: Y015
+    _WhichOneofArgType__coarse_subdivision: _TypeAlias = _typing.Literal["_coarse_subdivision", b"_coarse_subdivision"]  # noqa: Y015
     _WhichOneofReturnType__convergence_tolerance: _TypeAlias = _typing.Literal["convergence_tolerance"]  # noqa: Y015
     _WhichOneofArgType__convergence_tolerance: _TypeAlias = _typing.Literal["_convergence_tolerance", b"_convergence_tolerance"]  # noqa: Y015
     _WhichOneofReturnType__fine_iterations: _TypeAlias = _typing.Literal["fine_iterations"]  # noqa: Y015
@@ -145,6 +203,10 @@ class TofOptions(_message.Message):
     _WhichOneofArgType__symmetry_row: _TypeAlias = _typing.Literal["_symmetry_row", b"_symmetry_row"]  # noqa: Y015
     @_typing.overload
     def WhichOneof(self, oneof_group: _WhichOneofArgType__coarse_iterations) -> _WhichOneofReturnType__coarse_iterations | None: ...
+    @_typing.overload
+    def WhichOneof(self, oneof_group: _WhichOneofArgType__coarse_quantile) -> _WhichOneofReturnType__coarse_quantile | None: ...
+    @_typing.overload
+    def WhichOneof(self, oneof_group: _WhichOneofArgType__coarse_subdivision) -> _WhichOneofReturnType__coarse_subdivision | None: ...
     @_typing.overload
     def WhichOneof(self, oneof_group: _WhichOneofArgType__convergence_tolerance) -> _WhichOneofReturnType__convergence_tolerance | None: ...
     @_typing.overload
