@@ -27,9 +27,10 @@ impl NoiseModel {
     /// row-major `width` wide: in each of [`BINS`] brightness bins the robust (MAD) σ of the
     /// row-wise second differences of `re` and `im`, then least squares of σ² on the bins' mean
     /// amplitude, with both coefficients kept ≥ 0. Object edges fall in few pixels and do not
-    /// move the MAD. `None` when the image is too small (under 3 columns or 2·BINS pixels).
+    /// move the MAD. `None` when the image is too small (under 3 columns, or fewer than 2·BINS
+    /// interior pixels) or the inputs' lengths differ.
     pub fn fit(re: &[f32], im: &[f32], amplitude: &[f32], width: usize) -> Option<NoiseModel> {
-        if width < 3 || amplitude.len() < 2 * BINS * width.min(3) {
+        if width < 3 || re.len() != amplitude.len() || im.len() != amplitude.len() {
             return None;
         }
         // (amplitude, normalised second difference of re, of im) per interior pixel.
