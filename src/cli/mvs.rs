@@ -91,6 +91,17 @@ pub struct MvsArgs {
     /// Largest contrast-normalisation weight of the costs, 1..=64 (1 = off; server default 4).
     #[arg(long)]
     pub contrast_max_weight: Option<f32>,
+    /// Skip the source–reference consistency check (on by default: pixels whose match a source
+    /// contradicts get confidence 0 and a depth filled from their neighbours).
+    #[arg(long)]
+    pub no_consistency_check: bool,
+    /// Reject depth speckles smaller than this many pixels (0 = off; server default W·H/3000).
+    #[arg(long)]
+    pub speckle_max_size: Option<u32>,
+    /// Memory bound of the cost volume, MiB: larger volumes are processed in horizontal strips
+    /// (server default 64; the peak is about twice this plus the images).
+    #[arg(long)]
+    pub volume_budget_mib: Option<u32>,
     /// Points below this confidence are left out of points.ply (0 keeps all).
     #[arg(long, default_value_t = 0.0)]
     pub min_confidence: f32,
@@ -151,10 +162,18 @@ pub fn run(a: MvsArgs) -> anyhow::Result<()> {
     request.near = near;
     request.far = far;
     request.num_planes = a.planes.unwrap_or(0);
-    if a.presmooth_sigma.is_some() || a.contrast_max_weight.is_some() {
+    if a.presmooth_sigma.is_some()
+        || a.contrast_max_weight.is_some()
+        || a.no_consistency_check
+        || a.speckle_max_size.is_some()
+        || a.volume_budget_mib.is_some()
+    {
         request.sgm = Some(pb::SgmOptions {
             presmooth_sigma_px: a.presmooth_sigma,
             contrast_max_weight: a.contrast_max_weight,
+            consistency_check: a.no_consistency_check.then_some(false),
+            speckle_max_size_px: a.speckle_max_size,
+            volume_budget_mib: a.volume_budget_mib,
             ..Default::default()
         });
     }

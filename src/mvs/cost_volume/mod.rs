@@ -366,7 +366,40 @@ pub fn build_cost_volume(
     kind: CostKind,
     monitor: &Monitor,
 ) -> Result<CostVolume> {
+    build_cost_volume_rows(
+        reference,
+        sources,
+        planes,
+        kind,
+        0..reference.image.height(),
+        monitor,
+    )
+}
+
+/// [`build_cost_volume`] for the reference rows `rows` only: a volume `rows.len()` pixels high
+/// whose row `k` is reference row `rows.start + k`, equal to those rows of the whole volume.
+/// Depth estimation in horizontal strips uses it to bound memory. Fails naming `rows` for an
+/// empty range or one beyond the reference image.
+pub fn build_cost_volume_rows(
+    reference: &View<'_>,
+    sources: &[View<'_>],
+    planes: &PlaneSet,
+    kind: CostKind,
+    rows: std::ops::Range<usize>,
+    monitor: &Monitor,
+) -> Result<CostVolume> {
     check_view(reference, None).map_err(|e| e.within("reference"))?;
+    if rows.is_empty() || rows.end > reference.image.height() {
+        return Err(MurkError::invalid(
+            "rows",
+            format!(
+                "rows {}..{} are empty or outside the reference's {} rows",
+                rows.start,
+                rows.end,
+                reference.image.height()
+            ),
+        ));
+    }
     if sources.is_empty() {
         return Err(MurkError::invalid(
             "sources",
@@ -403,7 +436,7 @@ pub fn build_cost_volume(
             RangePenalty::Soft { k } => (f32::INFINITY, f32::INFINITY, Some(k * sigma(&o))),
         },
     };
-    let n_pix = w * h;
+    let n_pix = w * rows.len();
     let n_planes = planes.num_planes;
     let voxels = n_pix
         .checked_mul(n_planes)
@@ -412,7 +445,8 @@ pub fn build_cost_volume(
             MurkError::invalid(
                 "planes.num_planes",
                 format!(
-                    "{w}x{h} pixels x {n_planes} planes exceeds the limit of {MAX_VOXELS} voxels"
+                    "{w}x{} pixels x {n_planes} planes exceeds the limit of {MAX_VOXELS} voxels",
+                    rows.len()
                 ),
             )
         })?;
@@ -505,7 +539,8 @@ pub fn build_cost_volume(
                 }
             };
             let srcs = &plane_sources[..];
-            for (y, row) in out.chunks_exact_mut(w).enumerate() {
+            for (k, row) in out.chunks_exact_mut(w).enumerate() {
+                let y = rows.start + k;
                 match (c, dehaze) {
                     (1, true) if observation => fill_row_observation::<1, true>(
                         row, y, refd, &ref4, w, h, srcs, haze, penalty, scratch,
@@ -535,7 +570,7 @@ pub fn build_cost_volume(
     )?;
     Ok(CostVolume {
         width: w,
-        height: h,
+        height: rows.len(),
         planes: *planes,
         penalty,
         data,

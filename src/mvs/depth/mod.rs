@@ -18,6 +18,7 @@
 //! aggregated volume of the same size holds the sum over all paths: at 256×192×256 that is
 //! 2 × 50 MB (plus the cost volume itself while it is transposed).
 
+pub mod consistency;
 pub mod contrast;
 pub mod filter;
 pub mod presmooth;
@@ -28,8 +29,11 @@ pub mod window;
 use crate::error::{MurkError, Result};
 use crate::image::ImageF32;
 use crate::monitor::Monitor;
-use crate::mvs::cost_volume::{build_cost_volume, CostKind, CostVolume, View};
+use crate::mvs::cost_volume::{build_cost_volume_rows, CostKind, CostVolume, View};
 use crate::mvs::plane_sweep::PlaneSet;
+
+use crate::mvs::pose::Pose;
+use consistency::{SourceClaims, SourceGeometry, Verdict};
 
 pub use select::{select_curve, Selection};
 pub use sgm::Penalties;
@@ -47,6 +51,12 @@ pub enum PostFilter {
         sigma: f32,
     },
 }
+
+/// Largest accepted [`SgmParams::volume_budget_mib`].
+pub const MAX_VOLUME_BUDGET_MIB: usize = 1 << 16;
+
+/// Largest accepted [`SgmParams::speckle_max_size_px`].
+pub const MAX_SPECKLE_SIZE_PX: usize = 1 << 20;
 
 /// Parameters of the training-free depth estimator.
 ///
@@ -86,6 +96,27 @@ pub struct SgmParams {
     pub contrast_percentile: f32,
     /// Largest contrast weight `w_max` (`1 ..= 64`; `1` = no contrast normalisation).
     pub contrast_max_weight: f32,
+    /// Source–reference consistency check ([`consistency`]): pixels whose winning plane
+    /// disagrees with every source's own winner get confidence 0 and a filled depth. Needs the
+    /// views, so [`estimate_depth`] runs it and [`depth_from_cost_volume`] does not.
+    pub consistency_check: bool,
+    /// Largest disagreement, in planes, that still counts as consistent (finite, `>= 0`; about
+    /// pixels of displacement with the automatic plane count; SGBM's `disp12MaxDiff`).
+    pub consistency_tolerance_planes: f32,
+    /// Speckles smaller than this many pixels are rejected ([`consistency::speckle_mask`]);
+    /// `None` = automatic, `W·H / 3000` (100 pixels at 640×480, SGBM's usual window); `Some(0)`
+    /// = off.
+    pub speckle_max_size_px: Option<usize>,
+    /// Largest plane-index step inside one speckle region (finite, `>= 0`).
+    pub speckle_range_planes: f32,
+    /// Memory bound, MiB (`1 ..= 65536`): when the `f32` cost volume of the whole reference
+    /// is larger, depth is estimated in horizontal strips whose volume (own rows plus
+    /// [`STRIP_OVERLAP_ROWS`] above and below) fits it. The cost volume, its pixel-major copy
+    /// and the aggregated costs are three strip volumes of which at most two are alive at once,
+    /// so the peak is about twice this plus the images. Strips change SGM's vertical and
+    /// diagonal paths only beyond the overlap (0.06 % of the pixels of a 640×480 pair moved, by
+    /// at most 0.1 % of the inverse-depth range, at 48 MiB). Default 64.
+    pub volume_budget_mib: usize,
 }
 
 impl Default for SgmParams {
@@ -100,6 +131,11 @@ impl Default for SgmParams {
             presmooth_sigma_px: 0.8,
             contrast_percentile: 95.0,
             contrast_max_weight: 4.0,
+            consistency_check: true,
+            consistency_tolerance_planes: 1.0,
+            speckle_max_size_px: None,
+            speckle_range_planes: 2.0,
+            volume_budget_mib: 64,
         }
     }
 }
@@ -168,6 +204,42 @@ impl SgmParams {
             return Err(MurkError::invalid(
                 "contrast_max_weight",
                 format!("must be in 1..=64, got {}", self.contrast_max_weight),
+            ));
+        }
+        if !self.consistency_tolerance_planes.is_finite() || self.consistency_tolerance_planes < 0.0
+        {
+            return Err(MurkError::invalid(
+                "consistency_tolerance_planes",
+                format!(
+                    "must be finite and >= 0 planes, got {}",
+                    self.consistency_tolerance_planes
+                ),
+            ));
+        }
+        if !self.speckle_range_planes.is_finite() || self.speckle_range_planes < 0.0 {
+            return Err(MurkError::invalid(
+                "speckle_range_planes",
+                format!(
+                    "must be finite and >= 0 planes, got {}",
+                    self.speckle_range_planes
+                ),
+            ));
+        }
+        if let Some(s) = self.speckle_max_size_px {
+            if s > MAX_SPECKLE_SIZE_PX {
+                return Err(MurkError::invalid(
+                    "speckle_max_size_px",
+                    format!("must be at most {MAX_SPECKLE_SIZE_PX} pixels, got {s}"),
+                ));
+            }
+        }
+        if !(1..=MAX_VOLUME_BUDGET_MIB).contains(&self.volume_budget_mib) {
+            return Err(MurkError::invalid(
+                "volume_budget_mib",
+                format!(
+                    "must be in 1..={MAX_VOLUME_BUDGET_MIB} MiB, got {}",
+                    self.volume_budget_mib
+                ),
             ));
         }
         if let PostFilter::WeightedMedian { radius, sigma } = self.post_filter {
@@ -245,13 +317,272 @@ pub fn estimate_depth(
         ),
         None => (*reference, sources.to_vec()),
     };
-    let volume = build_cost_volume(&reference, &sources, planes, kind, &monitor.sub(0.0, 0.5))?;
-    depth_from_cost_volume(volume, reference.image, params, &monitor.sub(0.5, 1.0))
+    // Validate the views once, cheaply, before any strip's volume is built.
+    build_cost_volume_rows(
+        &reference,
+        &sources,
+        &PlaneSet::new(1.0, 2.0, 1)?,
+        kind,
+        0..1,
+        monitor,
+    )?;
+    let geometry: Vec<SourceGeometry> = if params.consistency_check {
+        sources
+            .iter()
+            .map(|s| SourceGeometry {
+                k_ref: reference.intrinsics,
+                k_src: s.intrinsics,
+                relative: Pose::relative(&reference.pose, &s.pose),
+                width: s.image.width(),
+                height: s.image.height(),
+            })
+            .collect()
+    } else {
+        Vec::new()
+    };
+    let guide = reference.image;
+    let (w, h) = guide.dims();
+    let n = planes.num_planes;
+    let weights = contrast_weights_of(guide, params);
+    let claims: Vec<SourceClaims> = geometry
+        .iter()
+        .map(|g| SourceClaims::new(g, planes))
+        .collect();
+    let strips = strips_of(w, h, n, params.volume_budget_mib);
+    let mut selections = Vec::with_capacity(w * h);
+    let k = strips.len() as f32;
+    for (j, strip) in strips.iter().enumerate() {
+        let m = monitor.sub(j as f32 / k, (j as f32 + 0.5) / k);
+        let volume =
+            build_cost_volume_rows(&reference, &sources, planes, kind, strip.rows.clone(), &m)?;
+        let m = monitor.sub((j as f32 + 0.5) / k, (j as f32 + 1.0) / k);
+        selections.extend(strip_selections(
+            volume.into_vec(),
+            strip,
+            w,
+            planes,
+            guide,
+            &weights,
+            params,
+            &claims,
+            &m,
+        )?);
+    }
+    finish_depth(selections, w, h, planes, guide, params, claims, monitor)
+}
+
+/// Rows added above and below a strip's own rows so that the box window, the contrast measure
+/// and SGM's vertical and diagonal paths reach the strip's rows with context: the strip's paths
+/// start this many rows early.
+pub const STRIP_OVERLAP_ROWS: usize = 24;
+
+/// One horizontal strip of the reference: the rows its volume covers and the rows it decides.
+#[derive(Clone, Debug, PartialEq)]
+struct Strip {
+    /// Rows of the strip's volume (own rows plus the overlap).
+    rows: std::ops::Range<usize>,
+    /// Rows whose depth this strip decides (a partition of the image over all strips).
+    core: std::ops::Range<usize>,
+}
+
+/// The strips for a `w×h` reference and `n` planes: one strip (the whole image, no overlap) when
+/// the `f32` volume fits `budget_mib` MiB, else strips of equal own height whose volume with the
+/// overlap fits it (at least 16 own rows).
+fn strips_of(w: usize, h: usize, n: usize, budget_mib: usize) -> Vec<Strip> {
+    let row_bytes = (w * n * std::mem::size_of::<f32>()).max(1);
+    let strip_budget = budget_mib << 20;
+    if h * row_bytes <= strip_budget {
+        return vec![Strip {
+            rows: 0..h,
+            core: 0..h,
+        }];
+    }
+    let own = (strip_budget / row_bytes)
+        .saturating_sub(2 * STRIP_OVERLAP_ROWS)
+        .max(16);
+    let count = h.div_ceil(own);
+    let own = h.div_ceil(count);
+    (0..count)
+        .map(|k| {
+            let core = k * own..((k + 1) * own).min(h);
+            Strip {
+                rows: core.start.saturating_sub(STRIP_OVERLAP_ROWS)
+                    ..(core.end + STRIP_OVERLAP_ROWS).min(h),
+                core,
+            }
+        })
+        .collect()
+}
+
+/// Per-pixel contrast weights of the whole reference (row-major), empty when off. The
+/// percentile `c₀` is a property of the whole image, so strips share one set of weights.
+fn contrast_weights_of(guide: &ImageF32, params: &SgmParams) -> Vec<f32> {
+    if params.contrast_max_weight <= 1.0 {
+        return Vec::new();
+    }
+    let c = contrast::local_contrast(
+        guide.data(),
+        guide.width(),
+        guide.height(),
+        guide.channels(),
+        params.cost_window_radius.max(1),
+    );
+    contrast::contrast_weights(&c, params.contrast_percentile, params.contrast_max_weight)
+}
+
+/// Steps 2–4 of the module docs on one strip's `[plane][row][x]` volume `data`: contrast
+/// weights, box window, SGM, selection; the strip's own rows' aggregated costs also go to the
+/// sources' `claims`. Returns the selections of the strip's own rows.
+#[allow(clippy::too_many_arguments)]
+fn strip_selections(
+    mut data: Vec<f32>,
+    strip: &Strip,
+    w: usize,
+    planes: &PlaneSet,
+    guide: &ImageF32,
+    weights: &[f32],
+    params: &SgmParams,
+    claims: &[SourceClaims],
+    monitor: &Monitor,
+) -> Result<Vec<Selection>> {
+    let n = planes.num_planes;
+    let rows = strip.rows.len();
+    let npix = w * rows;
+    if !weights.is_empty() {
+        contrast::apply_weights(
+            &mut data,
+            &weights[strip.rows.start * w..strip.rows.end * w],
+        );
+    }
+    window::box_filter_planes(&mut data, w, rows, params.cost_window_radius, monitor)?;
+    monitor.checkpoint()?;
+    let costs = sgm::to_pixel_major(&data, npix, n);
+    drop(data);
+    let strip_guide = if strip.rows.len() == guide.height() {
+        None
+    } else {
+        let c = guide.channels();
+        Some(ImageF32::from_vec(
+            w,
+            rows,
+            c,
+            guide.data()[strip.rows.start * w * c..strip.rows.end * w * c].to_vec(),
+        )?)
+    };
+    let sum = sgm::aggregate(
+        &costs,
+        w,
+        rows,
+        n,
+        params.num_paths,
+        &params.penalties(),
+        Some(strip_guide.as_ref().unwrap_or(guide)),
+        &monitor.sub(0.1, 0.9),
+    )?;
+    drop(costs);
+    monitor.checkpoint()?;
+    let own =
+        (strip.core.start - strip.rows.start) * w * n..(strip.core.end - strip.rows.start) * w * n;
+    let own_sum = &sum[own];
+    for c in claims {
+        c.add(own_sum, n, w, strip.core.clone());
+    }
+    Ok(select::select_each(
+        own_sum,
+        n,
+        select::CONFIDENCE_EPS_PER_PATH * params.num_paths as f32,
+    ))
+}
+
+/// Step 5 and the rejections: the consistency verdicts from the sources' `claims` (none when
+/// empty), speckles, confidence 0 and the fill for rejected pixels, the optional post-filter.
+#[allow(clippy::too_many_arguments)]
+fn finish_depth(
+    selections: Vec<Selection>,
+    w: usize,
+    h: usize,
+    planes: &PlaneSet,
+    guide: &ImageF32,
+    params: &SgmParams,
+    claims: Vec<SourceClaims>,
+    monitor: &Monitor,
+) -> Result<DepthResult> {
+    let n = planes.num_planes;
+    let mut verdict = vec![Verdict::Consistent; w * h];
+    if !claims.is_empty() {
+        monitor.checkpoint()?;
+        let winner: Vec<u32> = selections
+            .iter()
+            .map(|s| (s.index.round().max(0.0) as u32).min(n as u32 - 1))
+            .collect();
+        let sources: Vec<(SourceGeometry, Vec<u32>)> =
+            claims.into_iter().map(SourceClaims::winners).collect();
+        verdict = consistency::check(
+            &winner,
+            w,
+            h,
+            planes,
+            &sources,
+            params.consistency_tolerance_planes,
+        );
+    }
+    let index: Vec<f32> = selections.iter().map(|s| s.index).collect();
+    let max_speckle = params.speckle_max_size_px.unwrap_or(w * h / 3000);
+    let speckles = consistency::speckle_mask(
+        &index,
+        &verdict,
+        w,
+        h,
+        max_speckle,
+        params.speckle_range_planes,
+    );
+    for (v, &s) in verdict.iter_mut().zip(&speckles) {
+        if s {
+            *v = Verdict::Mismatch;
+        }
+    }
+    let mut inv: Vec<f32> = index
+        .iter()
+        .map(|&i| planes.inverse_depth(f64::from(i)) as f32)
+        .collect();
+    let conf: Vec<f32> = selections
+        .iter()
+        .zip(&verdict)
+        .map(|(s, v)| {
+            if *v == Verdict::Consistent {
+                s.confidence
+            } else {
+                0.0
+            }
+        })
+        .collect();
+    consistency::fill_rejected(&mut inv, &verdict, w, h);
+    if let PostFilter::WeightedMedian { radius, sigma } = params.post_filter {
+        monitor.checkpoint()?;
+        inv = filter::weighted_median(
+            &inv,
+            &conf,
+            guide.data(),
+            guide.channels(),
+            w,
+            h,
+            radius,
+            sigma,
+        );
+    }
+    let z: Vec<f32> = inv.iter().map(|&v| 1.0 / v).collect();
+    monitor.progress("mvs.depth", 1.0);
+    Ok(DepthResult {
+        z_depth: ImageF32::from_vec(w, h, 1, z)?,
+        inverse_depth: ImageF32::from_vec(w, h, 1, inv)?,
+        confidence: ImageF32::from_vec(w, h, 1, conf)?,
+    })
 }
 
 /// Depth, inverse depth and confidence from a cost volume (steps 2–5 of the module docs).
 /// `guide` is the reference image (same size as the volume), used by the adaptive `P2` and the
 /// post-filter. The volume is consumed so its memory can be released after the transpose.
+/// Without the views there is no consistency check (speckles are still rejected).
 pub fn depth_from_cost_volume(
     volume: CostVolume,
     guide: &ImageF32,
@@ -267,7 +598,7 @@ pub fn depth_from_cost_volume(
 /// `planes.num_planes` planes of `w×h` pixels (cost units as in [`SgmParams`]). Fails naming
 /// `costs` for a wrong length or non-finite cost, `guide` for a guide of another size.
 pub fn depth_from_costs(
-    mut data: Vec<f32>,
+    data: Vec<f32>,
     w: usize,
     h: usize,
     planes: &PlaneSet,
@@ -302,61 +633,23 @@ pub fn depth_from_costs(
         ));
     }
     guide.ensure_finite().map_err(|e| e.within("guide"))?;
-    if params.contrast_max_weight > 1.0 {
-        let c = contrast::local_contrast(
-            guide.data(),
-            w,
-            h,
-            guide.channels(),
-            params.cost_window_radius.max(1),
-        );
-        let weights =
-            contrast::contrast_weights(&c, params.contrast_percentile, params.contrast_max_weight);
-        contrast::apply_weights(&mut data, &weights);
-    }
-    window::box_filter_planes(&mut data, w, h, params.cost_window_radius, monitor)?;
-    monitor.checkpoint()?;
-    let costs = sgm::to_pixel_major(&data, w * h, n);
-    drop(data);
-    let sum = sgm::aggregate(
-        &costs,
+    let weights = contrast_weights_of(guide, params);
+    let whole = Strip {
+        rows: 0..h,
+        core: 0..h,
+    };
+    let selections = strip_selections(
+        data,
+        &whole,
         w,
-        h,
-        n,
-        params.num_paths,
-        &params.penalties(),
-        Some(guide),
-        &monitor.sub(0.1, 0.9),
-    )?;
-    drop(costs);
-    monitor.checkpoint()?;
-    let (mut inv, conf) = select::select_all(
-        &sum,
-        n,
         planes,
-        select::CONFIDENCE_EPS_PER_PATH * params.num_paths as f32,
-    );
-    drop(sum);
-    if let PostFilter::WeightedMedian { radius, sigma } = params.post_filter {
-        monitor.checkpoint()?;
-        inv = filter::weighted_median(
-            &inv,
-            &conf,
-            guide.data(),
-            guide.channels(),
-            w,
-            h,
-            radius,
-            sigma,
-        );
-    }
-    let z: Vec<f32> = inv.iter().map(|&v| 1.0 / v).collect();
-    monitor.progress("mvs.depth", 1.0);
-    Ok(DepthResult {
-        z_depth: ImageF32::from_vec(w, h, 1, z)?,
-        inverse_depth: ImageF32::from_vec(w, h, 1, inv)?,
-        confidence: ImageF32::from_vec(w, h, 1, conf)?,
-    })
+        guide,
+        &weights,
+        params,
+        &[],
+        monitor,
+    )?;
+    finish_depth(selections, w, h, planes, guide, params, Vec::new(), monitor)
 }
 
 #[cfg(test)]

@@ -5,7 +5,7 @@
 //!   `i* + δ`, `δ = (S(i*−1) − S(i*+1)) / (2 (S(i*−1) − 2 S(i*) + S(i*+1)))`, clamped to
 //!   `[−½, ½]`; no refinement at the first/last plane or for a non-convex triple. Planes are
 //!   uniform in inverse depth, so the fractional index maps linearly to inverse depth
-//!   ([`PlaneSet::inverse_depth`]) — the fit is done where the sampling is uniform.
+//!   ([`crate::mvs::PlaneSet::inverse_depth`]) — the fit is done where the sampling is uniform.
 //! - **Confidence**: `(S₂ − S₁) / (S₂ + ε) ∈ [0, 1]` with `S₁` the best aggregated cost and `S₂` the
 //!   best cost **outside** `i* ± 1` (the neighbours of the minimum belong to the same basin and
 //!   say nothing about ambiguity). A sharp, unique minimum gives a value near 1; a flat curve
@@ -15,8 +15,6 @@
 //!   perfectly flat, textureless match — from reading as certain.
 
 use rayon::prelude::*;
-
-use crate::mvs::plane_sweep::PlaneSet;
 
 /// `ε` of the confidence per aggregation path, cost units: a second-best aggregated cost below
 /// about `0.01` per path is indistinguishable from a perfect (flat) match.
@@ -67,19 +65,7 @@ pub fn select_curve(s: &[f32], eps: f32) -> Selection {
     }
 }
 
-/// Applies [`select_curve`] to every pixel of a pixel-major `[pixel][plane]` volume and returns
-/// `(inverse_depth, confidence)`, row-major, inverse depth per scene unit; `eps` as in
-/// [`select_curve`].
-pub fn select_all(sum: &[f32], n: usize, planes: &PlaneSet, eps: f32) -> (Vec<f32>, Vec<f32>) {
-    let (inv, conf): (Vec<f32>, Vec<f32>) = sum
-        .par_chunks(n)
-        .map(|curve| {
-            let sel = select_curve(curve, eps);
-            (
-                planes.inverse_depth(f64::from(sel.index)) as f32,
-                sel.confidence,
-            )
-        })
-        .unzip();
-    (inv, conf)
+/// [`select_curve`] for every pixel of a pixel-major `[pixel][plane]` volume of `n` planes.
+pub fn select_each(sum: &[f32], n: usize, eps: f32) -> Vec<Selection> {
+    sum.par_chunks(n).map(|c| select_curve(c, eps)).collect()
 }

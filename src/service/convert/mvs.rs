@@ -161,6 +161,17 @@ pub(super) fn sgm_of(o: Option<&pb::SgmOptions>) -> SgmParams {
         p.presmooth_sigma_px = o.presmooth_sigma_px.unwrap_or(p.presmooth_sigma_px);
         p.contrast_percentile = o.contrast_percentile.unwrap_or(p.contrast_percentile);
         p.contrast_max_weight = o.contrast_max_weight.unwrap_or(p.contrast_max_weight);
+        p.consistency_check = o.consistency_check.unwrap_or(p.consistency_check);
+        p.consistency_tolerance_planes = o
+            .consistency_tolerance_planes
+            .unwrap_or(p.consistency_tolerance_planes);
+        if let Some(s) = o.speckle_max_size_px {
+            p.speckle_max_size_px = Some(s as usize);
+        }
+        p.speckle_range_planes = o.speckle_range_planes.unwrap_or(p.speckle_range_planes);
+        p.volume_budget_mib = o
+            .volume_budget_mib
+            .map_or(p.volume_budget_mib, |v| v as usize);
     }
     p
 }
@@ -198,6 +209,12 @@ pub fn canonicalize_mvs_request(req: &mut pb::MvsDepthRequest) {
             presmooth_sigma_px: Some(p.presmooth_sigma_px),
             contrast_percentile: Some(p.contrast_percentile),
             contrast_max_weight: Some(p.contrast_max_weight),
+            consistency_check: Some(p.consistency_check),
+            consistency_tolerance_planes: Some(p.consistency_tolerance_planes),
+            // Unset means "from the image size", itself deterministic in the request.
+            speckle_max_size_px: p.speckle_max_size_px.and_then(|s| u32::try_from(s).ok()),
+            speckle_range_planes: Some(p.speckle_range_planes),
+            volume_budget_mib: u32::try_from(p.volume_budget_mib).ok(),
         });
     }
 }

@@ -210,6 +210,11 @@ class SgmOptions(_message.Message):
     PRESMOOTH_SIGMA_PX_FIELD_NUMBER: _builtins.int
     CONTRAST_PERCENTILE_FIELD_NUMBER: _builtins.int
     CONTRAST_MAX_WEIGHT_FIELD_NUMBER: _builtins.int
+    CONSISTENCY_CHECK_FIELD_NUMBER: _builtins.int
+    CONSISTENCY_TOLERANCE_PLANES_FIELD_NUMBER: _builtins.int
+    SPECKLE_MAX_SIZE_PX_FIELD_NUMBER: _builtins.int
+    SPECKLE_RANGE_PLANES_FIELD_NUMBER: _builtins.int
+    VOLUME_BUDGET_MIB_FIELD_NUMBER: _builtins.int
     p1: _builtins.float
     """P1: penalty for a +-1 plane step between neighbours, cost units, finite and >= 0. Default
     0.01.
@@ -239,6 +244,27 @@ class SgmOptions(_message.Message):
     the fixed penalties. Percentile in [0, 100], default 95; weight in [1, 64], default 4 (1 = off).
     """
     contrast_max_weight: _builtins.float
+    consistency_check: _builtins.bool
+    """Source-reference consistency check (SGM's left-right check, generalised to the plane sweep):
+    a reference pixel whose winning plane disagrees by more than consistency_tolerance_planes
+    with every source's own winner at the pixel it lands on gets confidence 0, and its depth is
+    filled from the accepted pixels around it (the background's for an occlusion, the median for
+    a mismatch). Default true; tolerance finite and >= 0 planes, default 1.
+    """
+    consistency_tolerance_planes: _builtins.float
+    speckle_max_size_px: _builtins.int
+    """Speckle rejection: regions of fewer than speckle_max_size_px pixels whose neighbouring plane
+    indices differ by at most speckle_range_planes are rejected and filled like mismatches.
+    Size unset = W*H/3000 (100 pixels at 640 x 480), 0 = off, at most 1048576; range finite and
+    >= 0, default 2.
+    """
+    speckle_range_planes: _builtins.float
+    volume_budget_mib: _builtins.int
+    """Memory bound, MiB, 1 to 65536, default 64: when the f32 cost volume of the whole reference is
+    larger, depth is estimated in horizontal strips (with 24 rows of overlap) whose volume fits
+    it; the peak is about twice this plus the images. A 640 x 480 pair with ~170 planes peaks
+    near 150 MiB with the default.
+    """
     def __init__(
         self,
         *,
@@ -250,11 +276,20 @@ class SgmOptions(_message.Message):
         presmooth_sigma_px: _builtins.float | None = ...,
         contrast_percentile: _builtins.float | None = ...,
         contrast_max_weight: _builtins.float | None = ...,
+        consistency_check: _builtins.bool | None = ...,
+        consistency_tolerance_planes: _builtins.float | None = ...,
+        speckle_max_size_px: _builtins.int | None = ...,
+        speckle_range_planes: _builtins.float | None = ...,
+        volume_budget_mib: _builtins.int | None = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _typing.Literal["_contrast_max_weight", b"_contrast_max_weight", "_contrast_percentile", b"_contrast_percentile", "_cost_window_radius", b"_cost_window_radius", "_num_paths", b"_num_paths", "_p1", b"_p1", "_p2", b"_p2", "_p2_gradient_scale", b"_p2_gradient_scale", "_presmooth_sigma_px", b"_presmooth_sigma_px", "contrast_max_weight", b"contrast_max_weight", "contrast_percentile", b"contrast_percentile", "cost_window_radius", b"cost_window_radius", "num_paths", b"num_paths", "p1", b"p1", "p2", b"p2", "p2_gradient_scale", b"p2_gradient_scale", "presmooth_sigma_px", b"presmooth_sigma_px"]  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["_consistency_check", b"_consistency_check", "_consistency_tolerance_planes", b"_consistency_tolerance_planes", "_contrast_max_weight", b"_contrast_max_weight", "_contrast_percentile", b"_contrast_percentile", "_cost_window_radius", b"_cost_window_radius", "_num_paths", b"_num_paths", "_p1", b"_p1", "_p2", b"_p2", "_p2_gradient_scale", b"_p2_gradient_scale", "_presmooth_sigma_px", b"_presmooth_sigma_px", "_speckle_max_size_px", b"_speckle_max_size_px", "_speckle_range_planes", b"_speckle_range_planes", "_volume_budget_mib", b"_volume_budget_mib", "consistency_check", b"consistency_check", "consistency_tolerance_planes", b"consistency_tolerance_planes", "contrast_max_weight", b"contrast_max_weight", "contrast_percentile", b"contrast_percentile", "cost_window_radius", b"cost_window_radius", "num_paths", b"num_paths", "p1", b"p1", "p2", b"p2", "p2_gradient_scale", b"p2_gradient_scale", "presmooth_sigma_px", b"presmooth_sigma_px", "speckle_max_size_px", b"speckle_max_size_px", "speckle_range_planes", b"speckle_range_planes", "volume_budget_mib", b"volume_budget_mib"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["_contrast_max_weight", b"_contrast_max_weight", "_contrast_percentile", b"_contrast_percentile", "_cost_window_radius", b"_cost_window_radius", "_num_paths", b"_num_paths", "_p1", b"_p1", "_p2", b"_p2", "_p2_gradient_scale", b"_p2_gradient_scale", "_presmooth_sigma_px", b"_presmooth_sigma_px", "contrast_max_weight", b"contrast_max_weight", "contrast_percentile", b"contrast_percentile", "cost_window_radius", b"cost_window_radius", "num_paths", b"num_paths", "p1", b"p1", "p2", b"p2", "p2_gradient_scale", b"p2_gradient_scale", "presmooth_sigma_px", b"presmooth_sigma_px"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["_consistency_check", b"_consistency_check", "_consistency_tolerance_planes", b"_consistency_tolerance_planes", "_contrast_max_weight", b"_contrast_max_weight", "_contrast_percentile", b"_contrast_percentile", "_cost_window_radius", b"_cost_window_radius", "_num_paths", b"_num_paths", "_p1", b"_p1", "_p2", b"_p2", "_p2_gradient_scale", b"_p2_gradient_scale", "_presmooth_sigma_px", b"_presmooth_sigma_px", "_speckle_max_size_px", b"_speckle_max_size_px", "_speckle_range_planes", b"_speckle_range_planes", "_volume_budget_mib", b"_volume_budget_mib", "consistency_check", b"consistency_check", "consistency_tolerance_planes", b"consistency_tolerance_planes", "contrast_max_weight", b"contrast_max_weight", "contrast_percentile", b"contrast_percentile", "cost_window_radius", b"cost_window_radius", "num_paths", b"num_paths", "p1", b"p1", "p2", b"p2", "p2_gradient_scale", b"p2_gradient_scale", "presmooth_sigma_px", b"presmooth_sigma_px", "speckle_max_size_px", b"speckle_max_size_px", "speckle_range_planes", b"speckle_range_planes", "volume_budget_mib", b"volume_budget_mib"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    _WhichOneofReturnType__consistency_check: _TypeAlias = _typing.Literal["consistency_check"]  # noqa: Y015
+    _WhichOneofArgType__consistency_check: _TypeAlias = _typing.Literal["_consistency_check", b"_consistency_check"]  # noqa: Y015
+    _WhichOneofReturnType__consistency_tolerance_planes: _TypeAlias = _typing.Literal["consistency_tolerance_planes"]  # noqa: Y015
+    _WhichOneofArgType__consistency_tolerance_planes: _TypeAlias = _typing.Literal["_consistency_tolerance_planes", b"_consistency_tolerance_planes"]  # noqa: Y015
     _WhichOneofReturnType__contrast_max_weight: _TypeAlias = _typing.Literal["contrast_max_weight"]  # noqa: Y015
     _WhichOneofArgType__contrast_max_weight: _TypeAlias = _typing.Literal["_contrast_max_weight", b"_contrast_max_weight"]  # noqa: Y015
     _WhichOneofReturnType__contrast_percentile: _TypeAlias = _typing.Literal["contrast_percentile"]  # noqa: Y015
@@ -271,6 +306,16 @@ class SgmOptions(_message.Message):
     _WhichOneofArgType__p2_gradient_scale: _TypeAlias = _typing.Literal["_p2_gradient_scale", b"_p2_gradient_scale"]  # noqa: Y015
     _WhichOneofReturnType__presmooth_sigma_px: _TypeAlias = _typing.Literal["presmooth_sigma_px"]  # noqa: Y015
     _WhichOneofArgType__presmooth_sigma_px: _TypeAlias = _typing.Literal["_presmooth_sigma_px", b"_presmooth_sigma_px"]  # noqa: Y015
+    _WhichOneofReturnType__speckle_max_size_px: _TypeAlias = _typing.Literal["speckle_max_size_px"]  # noqa: Y015
+    _WhichOneofArgType__speckle_max_size_px: _TypeAlias = _typing.Literal["_speckle_max_size_px", b"_speckle_max_size_px"]  # noqa: Y015
+    _WhichOneofReturnType__speckle_range_planes: _TypeAlias = _typing.Literal["speckle_range_planes"]  # noqa: Y015
+    _WhichOneofArgType__speckle_range_planes: _TypeAlias = _typing.Literal["_speckle_range_planes", b"_speckle_range_planes"]  # noqa: Y015
+    _WhichOneofReturnType__volume_budget_mib: _TypeAlias = _typing.Literal["volume_budget_mib"]  # noqa: Y015
+    _WhichOneofArgType__volume_budget_mib: _TypeAlias = _typing.Literal["_volume_budget_mib", b"_volume_budget_mib"]  # noqa: Y015
+    @_typing.overload
+    def WhichOneof(self, oneof_group: _WhichOneofArgType__consistency_check) -> _WhichOneofReturnType__consistency_check | None: ...
+    @_typing.overload
+    def WhichOneof(self, oneof_group: _WhichOneofArgType__consistency_tolerance_planes) -> _WhichOneofReturnType__consistency_tolerance_planes | None: ...
     @_typing.overload
     def WhichOneof(self, oneof_group: _WhichOneofArgType__contrast_max_weight) -> _WhichOneofReturnType__contrast_max_weight | None: ...
     @_typing.overload
@@ -287,6 +332,12 @@ class SgmOptions(_message.Message):
     def WhichOneof(self, oneof_group: _WhichOneofArgType__p2_gradient_scale) -> _WhichOneofReturnType__p2_gradient_scale | None: ...
     @_typing.overload
     def WhichOneof(self, oneof_group: _WhichOneofArgType__presmooth_sigma_px) -> _WhichOneofReturnType__presmooth_sigma_px | None: ...
+    @_typing.overload
+    def WhichOneof(self, oneof_group: _WhichOneofArgType__speckle_max_size_px) -> _WhichOneofReturnType__speckle_max_size_px | None: ...
+    @_typing.overload
+    def WhichOneof(self, oneof_group: _WhichOneofArgType__speckle_range_planes) -> _WhichOneofReturnType__speckle_range_planes | None: ...
+    @_typing.overload
+    def WhichOneof(self, oneof_group: _WhichOneofArgType__volume_budget_mib) -> _WhichOneofReturnType__volume_budget_mib | None: ...
 
 Global___SgmOptions: _TypeAlias = SgmOptions  # noqa: Y015
 
@@ -327,7 +378,8 @@ class MvsDepthResult(_message.Message):
     @_builtins.property
     def confidence(self) -> _common_pb2.Image:
         """Confidence in [0, 1] from the aggregated cost curve (0 = no preference among planes, e.g.
-        untextured or unseen by every source).
+        untextured or unseen by every source, and 0 where the consistency check or the speckle
+        filter rejected the pixel: its depth there is filled from its neighbours).
         """
 
     def __init__(

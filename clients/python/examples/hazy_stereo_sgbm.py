@@ -1,0 +1,305 @@
+#!/usr/bin/env python3
+"""Hazy real stereo pair: murk against OpenCV's SGBM on the same pair, accuracy, time and memory.
+
+A real rectified pair with ground-truth disparity (Middlebury Aloe, shipped by Debian's
+`opencv-doc` package) gets haze synthesised from its ground-truth depth, `I = J·t + A(1 − t)`,
+`t = exp(−β z)` (Eq. 3.3), plus sensor noise, and is saved as 8-bit PNGs with a COLMAP text
+model (two PINHOLE cameras, metres). Then:
+
+- OpenCV's StereoSGBM runs on the hazy pair (timed in this process);
+- `murk mvs` runs on the same files with the true A and β (timed, and its peak memory measured
+  by GNU time: the CLI starts its server in-process, so the process's peak RSS is murk's);
+- both are scored against the ground truth: C.P. (relative depth error < 10 %, §3.4.3) dense,
+  where a missing pixel counts as wrong, and on SGBM's valid pixels; L1-rel; and the Middlebury
+  bad-pixel rates (|disparity error| > 1 and > 2 px), which are far stricter than C.P. here
+  (the Aloe depth range is 1.2–1.9 m, so 10 % of depth is 15–25 px of disparity at half size).
+
+    apt-get install opencv-doc python3-opencv time    # the pair, cv2 (Debian's python3), GNU time
+    cargo build --release
+    /usr/bin/python3 hazy_stereo_sgbm.py --murk ../../../target/release/murk --out /tmp/aloe
+
+Calibration of the full-size pair (Middlebury 2006): f = 3740 px, baseline 160 mm, doffs = 270 px
+(the right principal point lies doffs to the right of the left one), z = f·B/(d + doffs).
+"""
+
+import argparse
+import json
+import os
+import re
+import resource
+import subprocess
+import time
+from pathlib import Path
+
+os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")
+import cv2  # noqa: E402  (the EXR switch must be set before the import)
+import numpy as np  # noqa: E402
+
+DATA = Path("/usr/share/doc/opencv-doc/examples/data")
+FOCAL_FULL_PX = 3740.0
+BASELINE_M = 0.160
+DOFFS_FULL_PX = 270.0
+
+
+def fill_occlusions(disp: np.ndarray) -> np.ndarray:
+    """Unknown (0) disparities take the smaller of their row neighbours': occlusions are background."""
+    out = disp.copy()
+    for row in out:
+        known = np.flatnonzero(row > 0)
+        if known.size == 0:
+            continue
+        idx = np.arange(row.size)
+        left = np.interp(idx, known, row[known], left=row[known[0]], right=row[known[-1]])
+        prev_k = np.maximum.accumulate(np.where(row > 0, idx, -1))
+        next_k = np.minimum.accumulate(np.where(row > 0, idx, row.size)[::-1])[::-1]
+        lo = np.where(prev_k >= 0, row[np.clip(prev_k, 0, row.size - 1)], np.inf)
+        hi = np.where(next_k < row.size, row[np.clip(next_k, 0, row.size - 1)], np.inf)
+        fill = np.minimum(lo, hi)
+        fill = np.where(np.isfinite(fill), fill, left)
+        row[row <= 0] = fill[row <= 0]
+    return out
+
+
+def right_view_disparity(disp_left: np.ndarray) -> np.ndarray:
+    """Forward-warps the left disparity to the right view (x_R = x_L − d), the nearest surface wins."""
+    h, w = disp_left.shape
+    out = np.zeros_like(disp_left)
+    ys, xs = np.nonzero(disp_left > 0)
+    d = disp_left[ys, xs]
+    xr = np.round(xs - d).astype(int)
+    ok = (xr >= 0) & (xr < w)
+    order = np.argsort(d[ok])  # larger disparity (nearer) written last
+    out[ys[ok][order], xr[ok][order]] = d[ok][order]
+    return fill_occlusions(out)
+
+
+def write_colmap(
+    out: Path,
+    w: int,
+    h: int,
+    f: float,
+    cx_l: float,
+    cx_r: float,
+    cy: float,
+    disp: np.ndarray,
+    depth: np.ndarray,
+    left_img: np.ndarray,
+    rng: np.random.Generator,
+) -> None:
+    """A two-camera COLMAP text model in metres with a sparse set of ground-truth points."""
+    sparse = out / "sparse"
+    sparse.mkdir(parents=True, exist_ok=True)
+    (sparse / "cameras.txt").write_text(
+        f"1 PINHOLE {w} {h} {f} {f} {cx_l} {cy}\n2 PINHOLE {w} {h} {f} {f} {cx_r} {cy}\n"
+    )
+    ys, xs = np.nonzero(disp > 0)
+    pick = rng.choice(ys.size, size=min(2000, ys.size), replace=False)
+    pts, obs_l, obs_r = [], [], []
+    for k, i in enumerate(pick, start=1):
+        x, y = float(xs[i]), float(ys[i])
+        z = float(depth[ys[i], xs[i]])
+        xw, yw = (x - cx_l) * z / f, (y - cy) * z / f
+        xr = f * (xw - BASELINE_M) / z + cx_r
+        if not 0 <= xr < w:
+            continue
+        c = left_img[ys[i], xs[i]]
+        pts.append(f"{k} {xw} {yw} {z} {c[2]} {c[1]} {c[0]} 0.5 1 {len(obs_l)} 2 {len(obs_r)}")
+        obs_l.append(f"{x} {y} {k}")
+        obs_r.append(f"{xr} {y} {k}")
+    (sparse / "images.txt").write_text(
+        "1 1 0 0 0 0 0 0 1 left.png\n" + " ".join(obs_l) + "\n"
+        f"2 1 0 0 0 {-BASELINE_M} 0 0 2 right.png\n" + " ".join(obs_r) + "\n"
+    )
+    (sparse / "points3D.txt").write_text("\n".join(pts) + "\n")
+
+
+def scores(
+    depth: np.ndarray,
+    valid: np.ndarray,
+    gt: np.ndarray,
+    gt_ok: np.ndarray,
+    fb: float,
+    doffs: float,
+    on: np.ndarray,
+) -> dict[str, float]:
+    """C.P. dense (missing = wrong) and on `on`, L1-rel and disparity bad-pixel rates on valid GT."""
+    ev = gt_ok
+    rel = np.where(valid, np.abs(depth - gt) / gt, np.inf)
+    d_est = np.where(valid, fb / np.where(valid, depth, 1.0) - doffs, np.inf)
+    d_gt = fb / gt - doffs
+    derr = np.abs(d_est - d_gt)
+    return {
+        "cp_dense": float(np.mean(rel[ev] < 0.1) * 100),
+        "cp_on_sgbm_valid": float(np.mean(rel[ev & on] < 0.1) * 100),
+        "l1_rel_valid": float(np.mean(rel[ev & valid])),
+        "bad1_dense": float(np.mean(derr[ev] > 1.0) * 100),
+        "bad2_dense": float(np.mean(derr[ev] > 2.0) * 100),
+        "bad2_on_sgbm_valid": float(np.mean(derr[ev & on] > 2.0) * 100),
+        "valid_fraction": float(np.mean(valid[ev]) * 100),
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", type=Path, default=DATA, help="folder with aloeL.jpg, aloeR.jpg, aloeGT.png")
+    ap.add_argument("--murk", default="murk", help="the murk binary")
+    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--scale", type=float, default=0.5, help="downscale of the full-size pair")
+    ap.add_argument("--crop", default="640x480", help="centre crop WxH after scaling ('' = none)")
+    ap.add_argument("--airlight", type=float, default=0.85)
+    ap.add_argument("--median-transmission", type=float, default=0.3)
+    ap.add_argument("--noise", type=float, default=0.01, help="Gaussian sensor noise std, [0, 1] units")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--repeats", type=int, default=3, help="timed runs of each method (best is reported)")
+    ap.add_argument("--murk-args", default="", help="extra `murk mvs` flags")
+    ap.add_argument(
+        "--same-window",
+        action="store_true",
+        help="give murk SGBM's disparity window and one plane per disparity",
+    )
+    a = ap.parse_args()
+    rng = np.random.default_rng(a.seed)
+
+    left = cv2.imread(str(a.data / "aloeL.jpg"))
+    right = cv2.imread(str(a.data / "aloeR.jpg"))
+    gt_full = cv2.imread(str(a.data / "aloeGT.png"), cv2.IMREAD_UNCHANGED).astype(np.float64)
+    h0, w0 = gt_full.shape
+    w, h = int(round(w0 * a.scale)), int(round(h0 * a.scale))
+    left = cv2.resize(left, (w, h), interpolation=cv2.INTER_AREA)
+    right = cv2.resize(right, (w, h), interpolation=cv2.INTER_AREA)
+    # Nearest sampling keeps unknown (0) disparities unknown instead of blending them in.
+    yi = np.minimum((np.arange(h) / a.scale).astype(int), h0 - 1)
+    xi = np.minimum((np.arange(w) / a.scale).astype(int), w0 - 1)
+    disp = gt_full[np.ix_(yi, xi)] * a.scale
+    f, doffs = FOCAL_FULL_PX * a.scale, DOFFS_FULL_PX * a.scale
+    cx_l, cy = (w0 / 2.0) * a.scale, (h0 / 2.0) * a.scale
+    if a.crop:
+        cw, ch = (int(v) for v in a.crop.split("x"))
+        x0, y0 = (w - cw) // 2, (h - ch) // 2
+        left, right, disp = (m[y0 : y0 + ch, x0 : x0 + cw] for m in (left, right, disp))
+        cx_l, cy, w, h = cx_l - x0, cy - y0, cw, ch
+    cx_r = cx_l + doffs
+    fb = f * BASELINE_M
+    gt_ok = disp > 0
+    filled_l = fill_occlusions(disp)
+    depth_l = fb / (filled_l + doffs)
+    depth_r = fb / (right_view_disparity(filled_l) + doffs)
+    beta = -np.log(a.median_transmission) / float(np.median(depth_l))
+
+    def haze(img: np.ndarray, depth: np.ndarray) -> np.ndarray:
+        t = np.exp(-beta * depth)[..., None]
+        i = img.astype(np.float64) / 255.0 * t + a.airlight * (1.0 - t)
+        i += rng.normal(0.0, a.noise, i.shape)
+        return np.clip(np.round(i * 255.0), 0, 255).astype(np.uint8)
+
+    out = a.out
+    (out / "images").mkdir(parents=True, exist_ok=True)
+    hl, hr = haze(left, depth_l), haze(right, depth_r)
+    cv2.imwrite(str(out / "images" / "left.png"), hl)
+    cv2.imwrite(str(out / "images" / "right.png"), hr)
+    write_colmap(out, w, h, f, cx_l, cx_r, cy, disp, fb / np.where(gt_ok, disp + doffs, 1.0), left, rng)
+    gt_depth = np.where(gt_ok, fb / (disp + doffs), 0.0)
+    # Disparity search window of the images as given (d = x_L − x_R): the ground truth's range
+    # with a margin, as a user of SGBM would set it from the rig.
+    d_lo, d_hi = float(disp[gt_ok].min()), float(disp[gt_ok].max())
+    min_disp = int(np.floor(d_lo * 0.8))
+    num_disp = int(np.ceil((d_hi * 1.2 - min_disp) / 16.0) * 16)
+
+    bs = 5
+    sgbm = cv2.StereoSGBM_create(
+        minDisparity=min_disp,
+        numDisparities=num_disp,
+        blockSize=bs,
+        P1=8 * 3 * bs * bs,
+        P2=32 * 3 * bs * bs,
+        disp12MaxDiff=1,
+        uniquenessRatio=10,
+        speckleWindowSize=100,
+        speckleRange=2,
+        mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
+    )
+    cv2.setNumThreads(0)
+    best_sgbm = np.inf
+    for _ in range(a.repeats):
+        t0 = time.perf_counter()
+        raw = sgbm.compute(hl, hr)
+        best_sgbm = min(best_sgbm, time.perf_counter() - t0)
+    d_sgbm = raw.astype(np.float64) / 16.0
+    sgbm_valid = d_sgbm >= min_disp
+    depth_sgbm = np.where(sgbm_valid, fb / np.maximum(d_sgbm + doffs, 1e-6), 0.0)
+
+    # murk: by default the COLMAP model's points give the plane range and the displacement the
+    # plane count, as for any capture; --same-window gives it SGBM's disparity window instead.
+    z_near, z_far = fb / (min_disp + num_disp + doffs), fb / (max(min_disp, 0) + doffs)
+    cmd = [
+        "/usr/bin/time",
+        "-f",
+        "maxrss_kib=%M",
+        a.murk,
+        "mvs",
+        "--model",
+        str(out / "sparse"),
+        "--images",
+        str(out / "images"),
+        "--reference",
+        "left.png",
+        "--sources",
+        "right.png",
+        "--airlight",
+        str(a.airlight),
+        "--beta",
+        str(beta),
+        "--out",
+        str(out / "murk"),
+        *(["--near", str(z_near), "--far", str(z_far), "--planes", str(num_disp)] if a.same_window else []),
+        *a.murk_args.split(),
+    ]
+    best_murk, best_compute, peak_murk_mib = np.inf, np.inf, 0.0
+    planes_line = None
+    for _ in range(a.repeats):
+        t0 = time.perf_counter()
+        run = subprocess.run(cmd, check=True, capture_output=True, text=True)
+        best_murk = min(best_murk, time.perf_counter() - t0)
+        # The CLI's summary line: "job ID: ..., N planes over z ..., S s; ..." (server-side time).
+        compute = re.search(r"planes over z [^,]*, ([0-9.]+) s;", run.stdout)
+        if compute:
+            best_compute = min(best_compute, float(compute.group(1)))
+        rss = re.search(r"maxrss_kib=(\d+)", run.stderr)
+        if rss:
+            peak_murk_mib = max(peak_murk_mib, int(rss.group(1)) / 1024.0)
+        planes_line = re.search(r"(\d+) planes over z", run.stdout)
+    peak_self_mib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    depth_murk = cv2.imread(str(out / "murk" / "depth.exr"), cv2.IMREAD_UNCHANGED).astype(np.float64)
+    conf_murk = cv2.imread(str(out / "murk" / "confidence.exr"), cv2.IMREAD_UNCHANGED).astype(np.float64)
+    murk_valid = np.isfinite(depth_murk) & (depth_murk > 0)
+    murk_confident = murk_valid & (conf_murk > 0)
+
+    report = {
+        "pair": f"{w}x{h}",
+        "airlight": a.airlight,
+        "beta_per_m": beta,
+        "median_transmission": a.median_transmission,
+        "disparity_range_px": [d_lo, d_hi],
+        "sgbm_window_px": [min_disp, min_disp + num_disp],
+        "sgbm": {
+            **scores(depth_sgbm, sgbm_valid, gt_depth, gt_ok, fb, doffs, sgbm_valid),
+            "seconds": best_sgbm,
+            "peak_rss_mib_python_process": peak_self_mib,
+        },
+        "murk": {
+            **scores(depth_murk, murk_valid, gt_depth, gt_ok, fb, doffs, sgbm_valid),
+            "seconds_process": best_murk,
+            "seconds_compute": best_compute,
+            "peak_rss_mib": peak_murk_mib,
+            "planes": int(planes_line.group(1)) if planes_line else None,
+        },
+        "murk_confident": scores(depth_murk, murk_confident, gt_depth, gt_ok, fb, doffs, sgbm_valid),
+        "murk_cmd": " ".join(cmd),
+    }
+    (out / "report.json").write_text(json.dumps(report, indent=2))
+    print(json.dumps(report, indent=2))
+    cv2.imwrite(str(out / "sgbm_disparity.png"), np.clip(d_sgbm * 2, 0, 255).astype(np.uint8))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,465 @@
+//! Source–reference consistency: the left–right check of semi-global matching (Hirschmüller
+//! 2008, §3.4 and §4.3), generalised from a rectified pair to the plane sweep's homographies.
+//!
+//! For a rectified pair SGBM computes the right image's disparity from the same aggregated
+//! volume (`D_m(q) = argmin_d S(q + d, d)`) and rejects a left pixel whose match disagrees. Here
+//! the reference pixel `p` on plane `i` lands on source pixel `q = round(π_{r→s}(p; z_i))`
+//! (Eq. 3.2). The source's winner at `q` is the plane of the lowest aggregated cost over every
+//! `(p, i)` that lands there: one pass over the aggregated volume, with a 64-bit atomic minimum
+//! per source pixel that packs the cost's bits (non-negative `f32`s order like their bit
+//! patterns) above the plane index. Reference pixel `p` with winner `i*` is **consistent** with
+//! a source when the source's winner at `q* = round(π(p; z_{i*}))` is within `tolerance` planes
+//! of `i*`. When the source pixel is claimed by a nearer plane (a larger index) by more than the
+//! tolerance, a nearer surface hides `p` from that source: **occluded**; any other disagreement
+//! is a **mismatch**. With several sources a pixel is kept when it is consistent with at least
+//! one (each source sees different occlusions), and it is occluded when every source that sees
+//! it says so.
+//!
+//! Rejected pixels are filled as in Hirschmüller's §4.4 so the depth map stays dense (the
+//! confidence output carries the rejection): the nearest accepted pixel along each of 8
+//! directions is found, and an occluded pixel takes the second-smallest of those inverse depths
+//! (it belongs to the background), a mismatched one their median.
+//!
+//! Speckles ([`speckle_mask`]): 4-connected regions in which neighbouring plane indices differ
+//! by at most `range` planes and that are smaller than `max_size` pixels are isolated mistakes
+//! of the winner-take-all (OpenCV's `filterSpeckles`); they are rejected and filled like
+//! mismatches.
+
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use rayon::prelude::*;
+
+use crate::camera::Intrinsics;
+use crate::mvs::plane_sweep::{PlaneSet, PlaneWarp, RowWarp};
+use crate::mvs::pose::Pose;
+
+/// Geometry of one source view relative to the reference, for the consistency check.
+#[derive(Clone, Copy, Debug)]
+pub struct SourceGeometry {
+    /// Reference intrinsics (pixels).
+    pub k_ref: Intrinsics,
+    /// Source intrinsics (pixels).
+    pub k_src: Intrinsics,
+    /// `(R_{r→s}, t_{r→s})`, see [`Pose::relative`].
+    pub relative: Pose,
+    /// Source image size, pixels.
+    pub width: usize,
+    /// Source image size, pixels.
+    pub height: usize,
+}
+
+/// Outcome of the check for one reference pixel.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Verdict {
+    /// Consistent with at least one source (or no source sees the pixel: nothing to check).
+    Consistent,
+    /// Every source that sees the pixel has it hidden by a nearer surface.
+    Occluded,
+    /// Inconsistent for another reason (or a speckle).
+    Mismatch,
+}
+
+/// Marker of a source pixel that no reference voxel lands on.
+const UNCLAIMED: u64 = u64::MAX;
+
+/// The source's winner-take-all plane at every source pixel, accumulated over the reference
+/// rows as their aggregated costs become available (depth is estimated in strips): the
+/// `argmin` over the reference voxels `(p, i)` that project to the source pixel of their
+/// aggregated cost (costs `≥ 0`). Ties go to the higher plane index, the nearer surface: of two
+/// surfaces that explain a source pixel equally well, the nearer one hides the other.
+pub struct SourceClaims {
+    geometry: SourceGeometry,
+    warps: Vec<PlaneWarp>,
+    best: Vec<AtomicU64>,
+}
+
+impl SourceClaims {
+    /// No claims yet, for the planes `planes` of a reference seen by `geometry`'s source.
+    pub fn new(geometry: &SourceGeometry, planes: &PlaneSet) -> Self {
+        let warps = (0..planes.num_planes)
+            .map(|i| {
+                PlaneWarp::new(
+                    &geometry.k_ref,
+                    &geometry.k_src,
+                    &geometry.relative,
+                    planes.depth(i as f64),
+                )
+            })
+            .collect();
+        let best = (0..geometry.width * geometry.height)
+            .map(|_| AtomicU64::new(UNCLAIMED))
+            .collect();
+        Self {
+            geometry: *geometry,
+            warps,
+            best,
+        }
+    }
+
+    /// Adds the claims of reference rows `rows`, whose aggregated costs are `sum`
+    /// (pixel-major `[row][x][plane]`, `w` pixels wide, one curve of `n` planes per pixel,
+    /// `sum`'s first row being reference row `rows.start`).
+    pub fn add(&self, sum: &[f32], n: usize, w: usize, rows: std::ops::Range<usize>) {
+        let g = &self.geometry;
+        let (sw, sh) = (g.width as f64, g.height as f64);
+        let y0 = rows.start;
+        rows.into_par_iter()
+            .for_each_init(Vec::new, |row_warps: &mut Vec<RowWarp>, y| {
+                row_warps.clear();
+                row_warps.extend(self.warps.iter().map(|wp| wp.row(y as f64)));
+                for x in 0..w {
+                    let p = (y - y0) * w + x;
+                    let curve = &sum[p * n..(p + 1) * n];
+                    for (i, (row, &c)) in row_warps.iter().zip(curve).enumerate() {
+                        let (u, v, zeta) = row.map(x as f64);
+                        let (qu, qv) = (u.round(), v.round());
+                        if !(zeta > 0.0 && qu >= 0.0 && qu < sw && qv >= 0.0 && qv < sh) {
+                            continue;
+                        }
+                        let q = qv as usize * g.width + qu as usize;
+                        let key = (u64::from(c.max(0.0).to_bits()) << 32) | u64::from(!(i as u32));
+                        // Most claims lose: a plain load first skips the locked
+                        // read-modify-write for them.
+                        let slot = &self.best[q];
+                        if key < slot.load(Ordering::Relaxed) {
+                            slot.fetch_min(key, Ordering::Relaxed);
+                        }
+                    }
+                }
+            });
+    }
+
+    /// The winning plane at every source pixel (row-major), `u32::MAX` where nothing landed.
+    pub fn winners(self) -> (SourceGeometry, Vec<u32>) {
+        let wins = self
+            .best
+            .into_iter()
+            .map(|a| {
+                let k = a.into_inner();
+                if k == UNCLAIMED {
+                    u32::MAX
+                } else {
+                    !((k & 0xffff_ffff) as u32)
+                }
+            })
+            .collect();
+        (self.geometry, wins)
+    }
+}
+
+/// The verdict for every reference pixel (row-major `w×h`) from its winning plane
+/// `winner[p]` (an integer plane index) and each source's [`SourceClaims::winners`].
+pub fn check(
+    winner: &[u32],
+    w: usize,
+    h: usize,
+    planes: &PlaneSet,
+    sources: &[(SourceGeometry, Vec<u32>)],
+    tolerance: f32,
+) -> Vec<Verdict> {
+    let warps: Vec<Vec<PlaneWarp>> = sources
+        .iter()
+        .map(|(g, _)| {
+            (0..planes.num_planes)
+                .map(|i| PlaneWarp::new(&g.k_ref, &g.k_src, &g.relative, planes.depth(i as f64)))
+                .collect()
+        })
+        .collect();
+    (0..w * h)
+        .into_par_iter()
+        .map(|p| {
+            let (x, y) = ((p % w) as f64, (p / w) as f64);
+            let i = winner[p];
+            let (mut seen, mut occluded) = (0usize, 0usize);
+            for ((g, wins), ws) in sources.iter().zip(&warps) {
+                let (u, v, zeta) = ws[i as usize].map(x, y);
+                let (qu, qv) = (u.round(), v.round());
+                let inside = qu >= 0.0 && qu < g.width as f64 && qv >= 0.0 && qv < g.height as f64;
+                if !(zeta > 0.0 && inside) {
+                    continue;
+                }
+                let j = wins[qv as usize * g.width + qu as usize];
+                if j == u32::MAX {
+                    continue;
+                }
+                seen += 1;
+                let d = j as f32 - i as f32;
+                if d.abs() <= tolerance {
+                    return Verdict::Consistent;
+                }
+                if d > tolerance {
+                    occluded += 1;
+                }
+            }
+            match (seen, occluded) {
+                (0, _) => Verdict::Consistent,
+                (s, o) if s == o => Verdict::Occluded,
+                _ => Verdict::Mismatch,
+            }
+        })
+        .collect()
+}
+
+/// Marks speckles (see the module docs): `true` for pixels of 4-connected regions of fewer than
+/// `max_size` pixels in which neighbours' fractional plane indices `index` differ by at most
+/// `range`. Pixels already rejected (`verdict != Consistent`) neither join nor bridge regions.
+pub fn speckle_mask(
+    index: &[f32],
+    verdict: &[Verdict],
+    w: usize,
+    h: usize,
+    max_size: usize,
+    range: f32,
+) -> Vec<bool> {
+    let npix = w * h;
+    let mut speckle = vec![false; npix];
+    if max_size == 0 {
+        return speckle;
+    }
+    let mut label = vec![u32::MAX; npix];
+    let mut stack: Vec<usize> = Vec::new();
+    let mut region: Vec<usize> = Vec::new();
+    let mut next = 0u32;
+    for start in 0..npix {
+        if label[start] != u32::MAX || verdict[start] != Verdict::Consistent {
+            continue;
+        }
+        region.clear();
+        stack.push(start);
+        label[start] = next;
+        while let Some(p) = stack.pop() {
+            region.push(p);
+            let (x, y) = (p % w, p / w);
+            let mut visit = |q: usize| {
+                if label[q] == u32::MAX
+                    && verdict[q] == Verdict::Consistent
+                    && (index[q] - index[p]).abs() <= range
+                {
+                    label[q] = next;
+                    stack.push(q);
+                }
+            };
+            if x > 0 {
+                visit(p - 1);
+            }
+            if x + 1 < w {
+                visit(p + 1);
+            }
+            if y > 0 {
+                visit(p - w);
+            }
+            if y + 1 < h {
+                visit(p + w);
+            }
+        }
+        if region.len() < max_size {
+            for &p in &region {
+                speckle[p] = true;
+            }
+        }
+        next += 1;
+    }
+    speckle
+}
+
+/// The 8 fill directions `(dx, dy)`.
+const FILL_DIRECTIONS: [(i64, i64); 8] = [
+    (1, 0),
+    (-1, 0),
+    (0, 1),
+    (0, -1),
+    (1, 1),
+    (-1, 1),
+    (1, -1),
+    (-1, -1),
+];
+
+/// Fills rejected pixels of the inverse-depth map `inv` (row-major `w×h`) from the accepted
+/// ones (see the module docs); pixels with no accepted pixel in any direction keep their value.
+pub fn fill_rejected(inv: &mut [f32], verdict: &[Verdict], w: usize, h: usize) {
+    let src: Vec<f32> = inv.to_vec();
+    inv.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+        let mut found = [0.0f32; 8];
+        for (x, out) in row.iter_mut().enumerate() {
+            let v = verdict[y * w + x];
+            if v == Verdict::Consistent {
+                continue;
+            }
+            let mut k = 0;
+            for &(dx, dy) in &FILL_DIRECTIONS {
+                let (mut xx, mut yy) = (x as i64 + dx, y as i64 + dy);
+                while xx >= 0 && yy >= 0 && (xx as usize) < w && (yy as usize) < h {
+                    let q = yy as usize * w + xx as usize;
+                    if verdict[q] == Verdict::Consistent {
+                        found[k] = src[q];
+                        k += 1;
+                        break;
+                    }
+                    xx += dx;
+                    yy += dy;
+                }
+            }
+            if k == 0 {
+                continue;
+            }
+            let vals = &mut found[..k];
+            vals.sort_unstable_by(f32::total_cmp);
+            *out = match v {
+                // The background: the second-smallest inverse depth (the smallest may be an
+                // outlier), as Hirschmüller's occlusion fill.
+                Verdict::Occluded => vals[1.min(k - 1)],
+                _ => vals[k / 2],
+            };
+        }
+    });
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const W: usize = 48;
+    const H: usize = 8;
+    const N: usize = 16;
+
+    /// A rectified pair: the source sits `baseline` to the right (`t_{r→s} = (−b, 0, 0)`), so
+    /// reference pixel `x` on plane `i` lands on source column `x − f·b/z_i`.
+    fn rectified(planes: &PlaneSet) -> SourceGeometry {
+        let k = Intrinsics {
+            fx: 20.0,
+            fy: 20.0,
+            cx: W as f64 / 2.0,
+            cy: H as f64 / 2.0,
+            skew: 0.0,
+        };
+        // Disparity f·b/z is 1 px per plane: b = step / (f · Δ(1/z)).
+        let b = 1.0 / (20.0 * planes.inverse_depth_step());
+        SourceGeometry {
+            k_ref: k,
+            k_src: k,
+            relative: Pose::new(
+                [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+                [-b, 0.0, 0.0],
+            )
+            .unwrap(),
+            width: W,
+            height: H,
+        }
+    }
+
+    /// The disparity (px) of plane `i` in [`rectified`]'s geometry.
+    fn disparity(planes: &PlaneSet, g: &SourceGeometry, i: usize) -> f64 {
+        let w = PlaneWarp::new(&g.k_ref, &g.k_src, &g.relative, planes.depth(i as f64));
+        10.0 - w.map(10.0, 3.0).0
+    }
+
+    /// Aggregated costs `|i − truth(p)|`: every pixel's curve has its minimum at its true plane.
+    fn curves(truth: &[usize]) -> Vec<f32> {
+        truth
+            .iter()
+            .flat_map(|&t| (0..N).map(move |i| (i as f32 - t as f32).abs()))
+            .collect()
+    }
+
+    #[test]
+    fn plane_step_is_one_pixel_of_disparity() {
+        let planes = PlaneSet::new(1.0, 10.0, N).unwrap();
+        let g = rectified(&planes);
+        for i in 0..N - 1 {
+            let d = disparity(&planes, &g, i + 1) - disparity(&planes, &g, i);
+            assert!((d - 1.0).abs() < 1e-9, "plane {i}: {d}");
+        }
+    }
+
+    /// A foreground strip (plane 12) in front of a background (plane 2): the background just
+    /// left of the strip is hidden from the source (which sits to the right, so it sees the strip
+    /// shifted further left than the background), a planted wrong winner is a mismatch, and
+    /// everything else is consistent.
+    #[test]
+    fn occlusion_mismatch_and_consistent_pixels() {
+        let planes = PlaneSet::new(1.0, 10.0, N).unwrap();
+        let g = rectified(&planes);
+        let (d_bg, d_fg) = (disparity(&planes, &g, 2), disparity(&planes, &g, 12));
+        let gap = (d_fg - d_bg).round() as usize;
+        assert_eq!(gap, 10);
+        let (x0, x1) = (30, 40);
+        let mut truth = vec![2usize; W * H];
+        for y in 0..H {
+            for x in x0..x1 {
+                truth[y * W + x] = 12;
+            }
+        }
+        let sum = curves(&truth);
+        let claims = SourceClaims::new(&g, &planes);
+        claims.add(&sum[..N * W * 3], N, W, 0..3);
+        claims.add(&sum[N * W * 3..], N, W, 3..H);
+        let (_, wins) = claims.winners();
+        let mut winner: Vec<u32> = truth.iter().map(|&t| t as u32).collect();
+        let bad = 3 * W + 12;
+        winner[bad] = 9;
+        let v = check(&winner, W, H, &planes, &[(g, wins)], 1.0);
+        for y in 0..H {
+            for x in 0..W {
+                let p = y * W + x;
+                let expect = if p == bad {
+                    Verdict::Mismatch
+                } else if (x0 - gap..x0).contains(&x) {
+                    Verdict::Occluded
+                } else {
+                    Verdict::Consistent
+                };
+                // Pixels that land outside the source have nothing to check against.
+                assert_eq!(v[p], expect, "pixel ({x}, {y})");
+            }
+        }
+    }
+
+    #[test]
+    fn small_islands_are_speckles_large_regions_are_not() {
+        let (w, h) = (20, 10);
+        let mut index = vec![3.0f32; w * h];
+        // A 2x2 island 5 planes away, and a smooth ramp (steps of 0.5) that stays one region.
+        for (y, x) in [(2, 2), (2, 3), (3, 2), (3, 3)] {
+            index[y * w + x] = 8.0;
+        }
+        for y in 0..h {
+            for x in 10..w {
+                index[y * w + x] = 3.0 + 0.5 * (x - 9) as f32;
+            }
+        }
+        let verdict = vec![Verdict::Consistent; w * h];
+        let s = speckle_mask(&index, &verdict, w, h, 10, 1.0);
+        let marked: Vec<usize> = (0..w * h).filter(|&p| s[p]).collect();
+        assert_eq!(marked, vec![2 * w + 2, 2 * w + 3, 3 * w + 2, 3 * w + 3]);
+        // Size 0 turns the filter off.
+        assert!(speckle_mask(&index, &verdict, w, h, 0, 1.0)
+            .iter()
+            .all(|&b| !b));
+    }
+
+    #[test]
+    fn occluded_pixels_take_the_background_mismatches_the_median() {
+        let (w, h) = (7, 5);
+        // Left half background (0.1), right half foreground (0.5); the column between rejected.
+        let mut inv: Vec<f32> = (0..w * h)
+            .map(|p| if p % w < 3 { 0.1 } else { 0.5 })
+            .collect();
+        let mut verdict = vec![Verdict::Consistent; w * h];
+        for y in 0..h {
+            inv[y * w + 3] = 9.0;
+            verdict[y * w + 3] = if y == 2 {
+                Verdict::Mismatch
+            } else {
+                Verdict::Occluded
+            };
+        }
+        fill_rejected(&mut inv, &verdict, w, h);
+        // The middle row sees 0.1 (left, two left diagonals) and 0.5 (right, two right
+        // diagonals) and the rejected column above/below: median of 6 values is 0.5.
+        assert_eq!(inv[2 * w + 3], 0.5);
+        for y in [0, 1, 3, 4] {
+            assert_eq!(inv[y * w + 3], 0.1, "row {y}");
+        }
+        assert_eq!(inv[0], 0.1);
+    }
+}
