@@ -3,6 +3,8 @@
 //! the full depth (pre-smoothing + cost volume + contrast normalisation + 8-path SGM +
 //! selection), and the pre-smoothing of one view and the contrast normalisation alone.
 //!
+//! A rectified 640×480 pair with the whole depth pipeline (consistency check, strips).
+//!
 //! Run: `cargo bench --bench mvs`.
 
 use criterion::{criterion_group, criterion_main, Criterion};
@@ -98,5 +100,59 @@ fn bench(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, bench);
+/// A rectified 640×480 pair (the size of issue 21's real-pair target) over 128 planes: the
+/// whole depth with the defaults (consistency check, speckle rejection, strips under the
+/// 64 MiB budget), without the check, and as one volume (no strips; 2 × 150 MiB).
+fn bench_stereo_pair(c: &mut Criterion) {
+    let cfg = MvsSimConfig {
+        num_views: 2,
+        rectified_pair: true,
+        ..MvsSimConfig::with_size(640, 480)
+    };
+    let scene = simulate_mvs(&cfg, &Monitor::noop()).expect("simulate");
+    let views = scene.hazy_views();
+    let reference = views[scene.reference];
+    let source = views[1 - scene.reference];
+    let gt = scene.views[scene.reference].depth.data();
+    let (lo, hi) = gt
+        .iter()
+        .fold((f32::INFINITY, 0.0f32), |(a, b), &z| (a.min(z), b.max(z)));
+    let planes = PlaneSet::new(0.9 * f64::from(lo), 1.2 * f64::from(hi), 128).expect("planes");
+    let kind = CostKind::DehazingWith(
+        AtmosphereParams {
+            airlight: scene.airlight,
+            beta: scene.beta,
+        },
+        DehazingOptions::default(),
+    );
+    let mut g = c.benchmark_group("mvs_stereo_pair_640x480x128");
+    g.sample_size(10);
+    for (name, sgm) in [
+        ("default", SgmParams::default()),
+        (
+            "no_consistency_check",
+            SgmParams {
+                consistency_check: false,
+                ..SgmParams::default()
+            },
+        ),
+        (
+            "one_volume",
+            SgmParams {
+                volume_budget_mib: 1024,
+                ..SgmParams::default()
+            },
+        ),
+    ] {
+        g.bench_function(name, |b| {
+            b.iter(|| {
+                estimate_depth(&reference, &[source], &planes, kind, &sgm, &Monitor::noop())
+                    .expect("depth")
+            })
+        });
+    }
+    g.finish();
+}
+
+criterion_group!(benches, bench, bench_stereo_pair);
 criterion_main!(benches);

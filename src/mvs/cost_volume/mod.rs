@@ -376,30 +376,14 @@ pub fn build_cost_volume(
     )
 }
 
-/// [`build_cost_volume`] for the reference rows `rows` only: a volume `rows.len()` pixels high
-/// whose row `k` is reference row `rows.start + k`, equal to those rows of the whole volume.
-/// Depth estimation in horizontal strips uses it to bound memory. Fails naming `rows` for an
-/// empty range or one beyond the reference image.
-pub fn build_cost_volume_rows(
+/// The checks of [`build_cost_volume`] without building anything (errors as there).
+pub fn validate_inputs(
     reference: &View<'_>,
     sources: &[View<'_>],
     planes: &PlaneSet,
     kind: CostKind,
-    rows: std::ops::Range<usize>,
-    monitor: &Monitor,
-) -> Result<CostVolume> {
+) -> Result<()> {
     check_view(reference, None).map_err(|e| e.within("reference"))?;
-    if rows.is_empty() || rows.end > reference.image.height() {
-        return Err(MurkError::invalid(
-            "rows",
-            format!(
-                "rows {}..{} are empty or outside the reference's {} rows",
-                rows.start,
-                rows.end,
-                reference.image.height()
-            ),
-        ));
-    }
     if sources.is_empty() {
         return Err(MurkError::invalid(
             "sources",
@@ -419,6 +403,38 @@ pub fn build_cost_volume_rows(
         p.validate().map_err(|e| e.within("atmosphere"))?;
         o.validate().map_err(|e| e.within("options"))?;
     }
+    Ok(())
+}
+
+/// [`build_cost_volume`] for the reference rows `rows` only: a volume `rows.len()` pixels high
+/// whose row `k` is reference row `rows.start + k`, equal to those rows of the whole volume.
+/// Depth estimation in horizontal strips uses it to bound memory. Fails naming `rows` for an
+/// empty range or one beyond the reference image.
+pub fn build_cost_volume_rows(
+    reference: &View<'_>,
+    sources: &[View<'_>],
+    planes: &PlaneSet,
+    kind: CostKind,
+    rows: std::ops::Range<usize>,
+    monitor: &Monitor,
+) -> Result<CostVolume> {
+    validate_inputs(reference, sources, planes, kind)?;
+    if rows.is_empty() || rows.end > reference.image.height() {
+        return Err(MurkError::invalid(
+            "rows",
+            format!(
+                "rows {}..{} are empty or outside the reference's {} rows",
+                rows.start,
+                rows.end,
+                reference.image.height()
+            ),
+        ));
+    }
+    let (w, h, c) = (
+        reference.image.width(),
+        reference.image.height(),
+        reference.image.channels(),
+    );
     // Noise margin (observation units) of the hard range check: 0 for Eq. 3.7, ∞ for none;
     // and of the soft one.
     let sigma = |o: &DehazingOptions| {

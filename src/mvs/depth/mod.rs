@@ -29,7 +29,9 @@ pub mod window;
 use crate::error::{MurkError, Result};
 use crate::image::ImageF32;
 use crate::monitor::Monitor;
-use crate::mvs::cost_volume::{build_cost_volume_rows, CostKind, CostVolume, View};
+use crate::mvs::cost_volume::{
+    build_cost_volume_rows, validate_inputs, CostKind, CostVolume, View,
+};
 use crate::mvs::plane_sweep::PlaneSet;
 
 use crate::mvs::pose::Pose;
@@ -317,15 +319,8 @@ pub fn estimate_depth(
         ),
         None => (*reference, sources.to_vec()),
     };
-    // Validate the views once, cheaply, before any strip's volume is built.
-    build_cost_volume_rows(
-        &reference,
-        &sources,
-        &PlaneSet::new(1.0, 2.0, 1)?,
-        kind,
-        0..1,
-        monitor,
-    )?;
+    // Bad views fail before any strip's volume is built.
+    validate_inputs(&reference, &sources, planes, kind)?;
     let geometry: Vec<SourceGeometry> = if params.consistency_check {
         sources
             .iter()
@@ -386,8 +381,9 @@ struct Strip {
 }
 
 /// The strips for a `w×h` reference and `n` planes: one strip (the whole image, no overlap) when
-/// the `f32` volume fits `budget_mib` MiB, else strips of equal own height whose volume with the
-/// overlap fits it (at least 16 own rows).
+/// the `f32` volume fits `budget_mib` MiB, else strips of equal own height (the last may be
+/// shorter) whose volume with the overlap fits it; when the budget holds fewer than 16 own rows
+/// plus the overlap, strips of about 16 own rows exceed it.
 fn strips_of(w: usize, h: usize, n: usize, budget_mib: usize) -> Vec<Strip> {
     let row_bytes = (w * n * std::mem::size_of::<f32>()).max(1);
     let strip_budget = budget_mib << 20;

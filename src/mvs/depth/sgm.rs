@@ -111,9 +111,60 @@ fn path_value(c: f32, below: f32, at: f32, above: f32, p1: f32, jump: f32, prev_
     c + fmin(fmin(at, fmin(below, above) + p1), jump) - prev_min
 }
 
+/// [`path_step`] through a copy compiled with AVX2 when `avx2` (the CPU has it): the same
+/// operations on 8-lane registers instead of SSE2's 4, so the same results bit for bit (no
+/// fused multiply-adds are introduced: the recursion has only additions and minima).
+#[inline]
+#[allow(clippy::too_many_arguments)]
+fn path_step_fast(
+    avx2: bool,
+    c: &[f32],
+    prev: &[f32],
+    prev_min: f32,
+    p1: f32,
+    p2: f32,
+    out: &mut [f32],
+    sum: &mut [f32],
+) -> f32 {
+    #[cfg(target_arch = "x86_64")]
+    {
+        #[target_feature(enable = "avx2")]
+        #[allow(clippy::too_many_arguments)]
+        unsafe fn with_avx2(
+            c: &[f32],
+            prev: &[f32],
+            prev_min: f32,
+            p1: f32,
+            p2: f32,
+            out: &mut [f32],
+            sum: &mut [f32],
+        ) -> f32 {
+            path_step(c, prev, prev_min, p1, p2, out, sum)
+        }
+        if avx2 {
+            // SAFETY: the caller detected AVX2 on this CPU ([`avx2_available`]).
+            return unsafe { with_avx2(c, prev, prev_min, p1, p2, out, sum) };
+        }
+    }
+    let _ = avx2;
+    path_step(c, prev, prev_min, p1, p2, out, sum)
+}
+
+/// Whether this CPU runs AVX2 (std caches the detection).
+fn avx2_available() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::arch::is_x86_feature_detected!("avx2")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
+
 /// One path step (the recursion in the module docs) for one pixel: writes `L_r(p, ·)` into
 /// `out`, adds it to `sum` and returns `min_i L_r(p, i)`.
-#[inline]
+#[inline(always)]
 fn path_step(
     c: &[f32],
     prev: &[f32],
@@ -198,14 +249,15 @@ pub fn aggregate(
 ) -> Result<Vec<f32>> {
     debug_assert_eq!(costs.len(), w * h * n);
     let guide = guide.map(Guide::new);
+    let avx2 = avx2_available();
     let mut sum = crate::large_buffer::zeroed_f32(w * h * n);
     let dirs = &DIRECTIONS[..num_paths.min(DIRECTIONS.len())];
     for (k, &(dx, dy)) in dirs.iter().enumerate() {
         monitor.checkpoint()?;
         if dy == 0 {
-            horizontal(costs, &mut sum, w, n, dx, pen, guide);
+            horizontal(costs, &mut sum, w, n, dx, pen, guide, avx2);
         } else {
-            row_sweep(costs, &mut sum, w, h, n, dx, dy, pen, guide, monitor)?;
+            row_sweep(costs, &mut sum, w, h, n, dx, dy, pen, guide, avx2, monitor)?;
         }
         monitor.progress("mvs.sgm", (k + 1) as f32 / dirs.len() as f32);
     }
@@ -213,6 +265,7 @@ pub fn aggregate(
 }
 
 /// A horizontal direction: rows are independent paths.
+#[allow(clippy::too_many_arguments)]
 fn horizontal(
     costs: &[f32],
     sum: &mut [f32],
@@ -221,6 +274,7 @@ fn horizontal(
     dx: i32,
     pen: &Penalties,
     guide: Option<Guide<'_>>,
+    avx2: bool,
 ) {
     sum.par_chunks_mut(w * n)
         .zip(costs.par_chunks(w * n))
@@ -238,7 +292,7 @@ fn horizontal(
                     } else {
                         let xp = if dx > 0 { x - 1 } else { x + 1 };
                         let p2 = pen.p2_at(guide, xp, y, x, y);
-                        path_step(c, prev, prev_min, pen.p1, p2, cur, s)
+                        path_step_fast(avx2, c, prev, prev_min, pen.p1, p2, cur, s)
                     };
                     prev_min = m;
                     std::mem::swap(prev, cur);
@@ -259,6 +313,7 @@ fn row_sweep(
     dy: i32,
     pen: &Penalties,
     guide: Option<Guide<'_>>,
+    avx2: bool,
     monitor: &Monitor,
 ) -> Result<()> {
     let row_len = w * n;
@@ -292,7 +347,8 @@ fn row_sweep(
                         let xp = xp as usize;
                         let yp = if dy > 0 { y - 1 } else { y + 1 };
                         let p2 = pen.p2_at(guide, xp, yp, x, y);
-                        path_step(
+                        path_step_fast(
+                            avx2,
                             c,
                             &prev_r[xp * n..(xp + 1) * n],
                             prev_min_r[xp],

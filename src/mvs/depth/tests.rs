@@ -377,3 +377,37 @@ fn confidence_high_on_texture_low_on_flat() {
     let (tex, flat) = (median(4, W / 2 - 10), median(W / 2 + 10, W - 4));
     assert!(tex > 0.3 && flat < 0.5 * tex, "textured {tex}, flat {flat}");
 }
+
+/// Strips partition the rows, each strip's volume covers its own rows plus the overlap, and a
+/// volume within the budget is one strip without overlap.
+#[test]
+fn strips_partition_the_rows_within_the_budget() {
+    assert_eq!(
+        strips_of(100, 50, 10, 1),
+        vec![Strip {
+            rows: 0..50,
+            core: 0..50
+        }]
+    );
+    for (w, h, n, mib) in [(640, 480, 173, 64), (160, 120, 64, 1), (640, 480, 256, 1)] {
+        let strips = strips_of(w, h, n, mib);
+        assert!(strips.len() > 1);
+        let mut next = 0;
+        for s in &strips {
+            assert_eq!(s.core.start, next);
+            next = s.core.end;
+            assert_eq!(
+                s.rows.start,
+                s.core.start.saturating_sub(STRIP_OVERLAP_ROWS)
+            );
+            assert_eq!(s.rows.end, (s.core.end + STRIP_OVERLAP_ROWS).min(h));
+            assert!(!s.core.is_empty());
+            // Within the budget unless it holds fewer than 16 own rows plus the overlap (the
+            // floor on a strip's own rows).
+            if (mib << 20) / (w * n * 4) >= 16 + 2 * STRIP_OVERLAP_ROWS {
+                assert!(s.rows.len() * w * n * 4 <= mib << 20, "{s:?}");
+            }
+        }
+        assert_eq!(next, h);
+    }
+}

@@ -635,6 +635,40 @@ mod tests {
             ..Default::default()
         });
         assert_eq!(err(&r), "sgm.contrast_percentile");
+        for (o, field) in [
+            (
+                pb::SgmOptions {
+                    consistency_tolerance_planes: Some(f32::NAN),
+                    ..Default::default()
+                },
+                "sgm.consistency_tolerance_planes",
+            ),
+            (
+                pb::SgmOptions {
+                    speckle_range_planes: Some(-1.0),
+                    ..Default::default()
+                },
+                "sgm.speckle_range_planes",
+            ),
+            (
+                pb::SgmOptions {
+                    speckle_max_size_px: Some(u32::MAX),
+                    ..Default::default()
+                },
+                "sgm.speckle_max_size_px",
+            ),
+            (
+                pb::SgmOptions {
+                    volume_budget_mib: Some(0),
+                    ..Default::default()
+                },
+                "sgm.volume_budget_mib",
+            ),
+        ] {
+            let mut r = good.clone();
+            r.sgm = Some(o);
+            assert_eq!(err(&r), field);
+        }
         // ORDINARY ignores A and β, but not NaN.
         let mut r = request(pb::CostVolumeKind::Ordinary);
         r.airlight = 0.0;
