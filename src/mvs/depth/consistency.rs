@@ -59,6 +59,18 @@ pub enum Verdict {
     Mismatch,
 }
 
+/// The row-major index of the source pixel nearest to `(u, v)` in a `w×h` image, `None` outside
+/// it or when the point is behind the camera (`zeta ≤ 0`). Rounds by truncating `u + ½` after
+/// the bounds check (`f64::round` is a libm call without SSE4.1, and this runs per voxel).
+#[inline(always)]
+fn nearest_pixel(u: f64, v: f64, zeta: f64, w: f64, h: f64) -> Option<usize> {
+    if zeta > 0.0 && u >= -0.5 && u < w - 0.5 && v >= -0.5 && v < h - 0.5 {
+        Some((v + 0.5) as usize * w as usize + (u + 0.5) as usize)
+    } else {
+        None
+    }
+}
+
 /// Marker of a source pixel that no reference voxel lands on.
 const UNCLAIMED: u64 = u64::MAX;
 
@@ -112,11 +124,9 @@ impl SourceClaims {
                     let curve = &sum[p * n..(p + 1) * n];
                     for (i, (row, &c)) in row_warps.iter().zip(curve).enumerate() {
                         let (u, v, zeta) = row.map(x as f64);
-                        let (qu, qv) = (u.round(), v.round());
-                        if !(zeta > 0.0 && qu >= 0.0 && qu < sw && qv >= 0.0 && qv < sh) {
+                        let Some(q) = nearest_pixel(u, v, zeta, sw, sh) else {
                             continue;
-                        }
-                        let q = qv as usize * g.width + qu as usize;
+                        };
                         let key = (u64::from(c.max(0.0).to_bits()) << 32) | u64::from(!(i as u32));
                         // Most claims lose: a plain load first skips the locked
                         // read-modify-write for them.
@@ -173,12 +183,10 @@ pub fn check(
             let (mut seen, mut occluded) = (0usize, 0usize);
             for ((g, wins), ws) in sources.iter().zip(&warps) {
                 let (u, v, zeta) = ws[i as usize].map(x, y);
-                let (qu, qv) = (u.round(), v.round());
-                let inside = qu >= 0.0 && qu < g.width as f64 && qv >= 0.0 && qv < g.height as f64;
-                if !(zeta > 0.0 && inside) {
+                let Some(q) = nearest_pixel(u, v, zeta, g.width as f64, g.height as f64) else {
                     continue;
-                }
-                let j = wins[qv as usize * g.width + qu as usize];
+                };
+                let j = wins[q];
                 if j == u32::MAX {
                     continue;
                 }
