@@ -29,6 +29,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 
 use rayon::prelude::*;
 
+use super::sgm::DIRECTIONS;
 use crate::camera::Intrinsics;
 use crate::mvs::plane_sweep::{PlaneSet, PlaneWarp, RowWarp};
 use crate::mvs::pose::Pose;
@@ -270,18 +271,6 @@ pub fn speckle_mask(
     speckle
 }
 
-/// The 8 fill directions `(dx, dy)`.
-const FILL_DIRECTIONS: [(i64, i64); 8] = [
-    (1, 0),
-    (-1, 0),
-    (0, 1),
-    (0, -1),
-    (1, 1),
-    (-1, 1),
-    (1, -1),
-    (-1, -1),
-];
-
 /// Fills rejected pixels of the inverse-depth map `inv` (row-major `w×h`) from the accepted
 /// ones (see the module docs); pixels with no accepted pixel in any direction keep their value.
 pub fn fill_rejected(inv: &mut [f32], verdict: &[Verdict], w: usize, h: usize) {
@@ -294,7 +283,9 @@ pub fn fill_rejected(inv: &mut [f32], verdict: &[Verdict], w: usize, h: usize) {
                 continue;
             }
             let mut k = 0;
-            for &(dx, dy) in &FILL_DIRECTIONS {
+            // The fill looks along SGM's 8 path directions.
+            for &(dx, dy) in &DIRECTIONS {
+                let (dx, dy) = (i64::from(dx), i64::from(dy));
                 let (mut xx, mut yy) = (x as i64 + dx, y as i64 + dy);
                 while xx >= 0 && yy >= 0 && (xx as usize) < w && (yy as usize) < h {
                     let q = yy as usize * w + xx as usize;
