@@ -25,11 +25,18 @@ pub fn box_filter_planes(
         return Ok(());
     }
     monitor.checkpoint()?;
+    // 1 / (pixels of the clipped window) along each axis: a multiply per voxel, not a divide.
+    let inv_counts = |n: usize| -> Vec<f64> {
+        (0..n)
+            .map(|i| 1.0 / ((i + r + 1).min(n) - i.saturating_sub(r)) as f64)
+            .collect()
+    };
+    let (inv_x, inv_y) = (inv_counts(w), inv_counts(h));
     data.par_chunks_mut(w * h).for_each_init(
-        || (vec![0.0f32; w * h], vec![0.0f64; w.max(h) + 1]),
-        |(tmp, prefix), plane| {
-            // Horizontal pass into `tmp`, then vertical pass back into `plane`. Prefix sums in
-            // f64 so long rows do not lose the small differences that make the cost curve.
+        || (vec![0.0f32; w * h], vec![0.0f64; w + 1], vec![0.0f64; w]),
+        |(tmp, prefix, colsum), plane| {
+            // Horizontal pass into `tmp`, then vertical pass back into `plane`. Sums in f64 so
+            // long rows and columns do not lose the small differences that make the cost curve.
             for (src, dst) in plane.chunks_exact(w).zip(tmp.chunks_exact_mut(w)) {
                 prefix[0] = 0.0;
                 for (i, &v) in src.iter().enumerate() {
@@ -38,18 +45,33 @@ pub fn box_filter_planes(
                 for (x, d) in dst.iter_mut().enumerate() {
                     let lo = x.saturating_sub(r);
                     let hi = (x + r + 1).min(w);
-                    *d = ((prefix[hi] - prefix[lo]) / (hi - lo) as f64) as f32;
+                    *d = ((prefix[hi] - prefix[lo]) * inv_x[x]) as f32;
                 }
             }
-            for x in 0..w {
-                prefix[0] = 0.0;
-                for y in 0..h {
-                    prefix[y + 1] = prefix[y] + f64::from(tmp[y * w + x]);
+            // Vertical: running column sums over whole rows (contiguous, vectorised over x)
+            // instead of a prefix down each column (a stride of `w` per step).
+            colsum.iter_mut().for_each(|c| *c = 0.0);
+            for row in tmp.chunks_exact(w).take(r.min(h - 1) + 1) {
+                for (c, &v) in colsum.iter_mut().zip(row) {
+                    *c += f64::from(v);
                 }
-                for y in 0..h {
-                    let lo = y.saturating_sub(r);
-                    let hi = (y + r + 1).min(h);
-                    plane[y * w + x] = ((prefix[hi] - prefix[lo]) / (hi - lo) as f64) as f32;
+            }
+            for y in 0..h {
+                let k = inv_y[y];
+                for (o, &c) in plane[y * w..(y + 1) * w].iter_mut().zip(colsum.iter()) {
+                    *o = (c * k) as f32;
+                }
+                if y + r + 1 < h {
+                    let add = &tmp[(y + r + 1) * w..(y + r + 2) * w];
+                    for (c, &v) in colsum.iter_mut().zip(add) {
+                        *c += f64::from(v);
+                    }
+                }
+                if y >= r {
+                    let sub = &tmp[(y - r) * w..(y - r + 1) * w];
+                    for (c, &v) in colsum.iter_mut().zip(sub) {
+                        *c -= f64::from(v);
+                    }
                 }
             }
         },
@@ -63,7 +85,12 @@ mod tests {
 
     #[test]
     fn box_mean_matches_direct_sum() {
-        let (w, h, r) = (7, 5, 2);
+        for (w, h, r) in [(7, 5, 2), (9, 2, 3), (3, 11, 1), (1, 1, 4), (16, 13, 5)] {
+            check_box_mean(w, h, r);
+        }
+    }
+
+    fn check_box_mean(w: usize, h: usize, r: usize) {
         let orig: Vec<f32> = (0..2 * w * h)
             .map(|i| ((i * 37) % 11) as f32 * 0.1)
             .collect();
