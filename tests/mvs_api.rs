@@ -173,6 +173,63 @@ async fn ordinary_ignores_the_atmosphere_and_shares_one_job() {
     server.stop().await.unwrap();
 }
 
+/// The consistency check and the memory budget through the API: the default result marks
+/// rejected pixels with confidence 0 (and still has a depth everywhere), turning the check and
+/// the speckle rejection off is a different job with no such pixels beyond what the curve
+/// calls flat, and a tiny budget (strips) gives a depth of the same accuracy.
+#[tokio::test]
+async fn consistency_check_and_volume_budget_through_the_api() {
+    let scene = mvs_scene(W, H, SEED);
+    let server = start(config(4)).await;
+    let mut c = jobs(&server);
+    let run = |sgm: Option<pb::SgmOptions>| {
+        let mut r = mvs_request(&scene, pb::CostVolumeKind::Dehazing, &planes());
+        r.sgm = sgm;
+        mvs_job(r)
+    };
+    let mut results = Vec::new();
+    for sgm in [
+        None,
+        Some(pb::SgmOptions {
+            consistency_check: Some(false),
+            speckle_max_size_px: Some(0),
+            ..Default::default()
+        }),
+        Some(pb::SgmOptions {
+            volume_budget_mib: Some(1),
+            ..Default::default()
+        }),
+    ] {
+        let j = c.submit_job(run(sgm)).await.unwrap().into_inner();
+        assert!(!j.cached, "each option set is its own job");
+        let seen = watch_to_end(&mut c, &j.id).await;
+        assert_eq!(state(seen.last().unwrap()), pb::JobState::Succeeded);
+        results.push(job_result(&mut c, &j.id).await);
+    }
+    let zeros = |r: &pb::MvsDepthResult| {
+        decode(r.confidence.clone())
+            .data()
+            .iter()
+            .filter(|&&v| v == 0.0)
+            .count()
+    };
+    let (checked, unchecked, strips) = (&results[0], &results[1], &results[2]);
+    assert!(
+        zeros(checked) > zeros(unchecked),
+        "{} vs {}",
+        zeros(checked),
+        zeros(unchecked)
+    );
+    for r in &results {
+        let m = metrics(&scene, r);
+        assert_eq!(m.missing_predictions, 0);
+        assert!(m.c_p >= MIN_C_P, "{m:?}");
+    }
+    let (a, b) = (metrics(&scene, checked), metrics(&scene, strips));
+    assert!((a.c_p - b.c_p).abs() < 0.02, "{a:?} vs {b:?}");
+    server.stop().await.unwrap();
+}
+
 /// Measurement behind [`MIN_C_P`]: C.P. per seed and cost volume at several sizes. Run with
 /// `cargo test --release --test mvs_api -- --ignored --nocapture`.
 #[tokio::test]
