@@ -116,8 +116,10 @@ pub struct SgmParams {
     /// [`STRIP_OVERLAP_ROWS`] above and below) fits it. The cost volume, its pixel-major copy
     /// and the aggregated costs are three strip volumes of which at most two are alive at once,
     /// so the peak is about twice this plus the images. Strips change SGM's vertical and
-    /// diagonal paths only beyond the overlap (0.06 % of the pixels of a 640×480 pair moved, by
-    /// at most 0.1 % of the inverse-depth range, at 48 MiB). Default 64.
+    /// diagonal paths only beyond the overlap: on the hazy Aloe pair (640×480, 173 planes)
+    /// 0.06 % of the pixels moved, by at most 0.2 % of the inverse-depth range, at 48 MiB; on a
+    /// simulated 160×120 scene cut into 15-row strips 98 % stayed within one plane step, with
+    /// the same C.P. Default 64.
     pub volume_budget_mib: usize,
 }
 

@@ -263,7 +263,7 @@ class SgmOptions(_message.Message):
     """Memory bound, MiB, 1 to 65536, default 64: when the f32 cost volume of the whole reference is
     larger, depth is estimated in horizontal strips (with 24 rows of overlap) whose volume fits
     it; the peak is about twice this plus the images. A 640 x 480 pair with ~170 planes peaks
-    near 150 MiB with the default.
+    near 200 MiB with the default (the whole murk mvs process, server included).
     """
     def __init__(
         self,
