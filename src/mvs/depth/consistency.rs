@@ -20,7 +20,7 @@
 //! directions is found, and an occluded pixel takes the second-smallest of those inverse depths
 //! (it belongs to the background), a mismatched one their median.
 //!
-//! Speckles ([`speckle_mask`]): 4-connected regions in which neighbouring plane indices differ
+//! Speckles ([`reject_speckles`]): 4-connected regions in which neighbouring plane indices differ
 //! by at most `range` planes and that are smaller than `max_size` pixels are isolated mistakes
 //! of the winner-take-all (OpenCV's `filterSpeckles`); they are rejected and filled like
 //! mismatches.
@@ -140,8 +140,8 @@ impl SourceClaims {
             });
     }
 
-    /// The winning plane at every source pixel (row-major), `u32::MAX` where nothing landed.
-    pub fn winners(self) -> (SourceGeometry, Vec<u32>) {
+    /// The winning plane at every source pixel, with the warps the check needs again.
+    pub fn winners(self) -> SourceWinners {
         let wins = self
             .best
             .into_iter()
@@ -154,40 +154,39 @@ impl SourceClaims {
                 }
             })
             .collect();
-        (self.geometry, wins)
+        SourceWinners {
+            geometry: self.geometry,
+            warps: self.warps,
+            wins,
+        }
     }
 }
 
+/// One source's winner-take-all planes ([`SourceClaims::winners`]).
+pub struct SourceWinners {
+    geometry: SourceGeometry,
+    /// The reference→source warp of every plane (shared with the claims pass).
+    warps: Vec<PlaneWarp>,
+    /// Row-major over the source's pixels, `u32::MAX` where nothing landed.
+    wins: Vec<u32>,
+}
+
 /// The verdict for every reference pixel (row-major `w×h`) from its winning plane
-/// `winner[p]` (an integer plane index) and each source's [`SourceClaims::winners`].
-pub fn check(
-    winner: &[u32],
-    w: usize,
-    h: usize,
-    planes: &PlaneSet,
-    sources: &[(SourceGeometry, Vec<u32>)],
-    tolerance: f32,
-) -> Vec<Verdict> {
-    let warps: Vec<Vec<PlaneWarp>> = sources
-        .iter()
-        .map(|(g, _)| {
-            (0..planes.num_planes)
-                .map(|i| PlaneWarp::new(&g.k_ref, &g.k_src, &g.relative, planes.depth(i as f64)))
-                .collect()
-        })
-        .collect();
-    (0..w * h)
-        .into_par_iter()
-        .map(|p| {
+/// `winner[p]` (an integer plane index) and each source's winners.
+pub fn check(winner: &[u32], w: usize, sources: &[SourceWinners], tolerance: f32) -> Vec<Verdict> {
+    winner
+        .par_iter()
+        .enumerate()
+        .map(|(p, &i)| {
             let (x, y) = ((p % w) as f64, (p / w) as f64);
-            let i = winner[p];
             let (mut seen, mut occluded) = (0usize, 0usize);
-            for ((g, wins), ws) in sources.iter().zip(&warps) {
-                let (u, v, zeta) = ws[i as usize].map(x, y);
+            for s in sources {
+                let g = &s.geometry;
+                let (u, v, zeta) = s.warps[i as usize].map(x, y);
                 let Some(q) = nearest_pixel(u, v, zeta, g.width as f64, g.height as f64) else {
                     continue;
                 };
-                let j = wins[q];
+                let j = s.wins[q];
                 if j == u32::MAX {
                     continue;
                 }
@@ -209,21 +208,21 @@ pub fn check(
         .collect()
 }
 
-/// Marks speckles (see the module docs): `true` for pixels of 4-connected regions of fewer than
-/// `max_size` pixels in which neighbours' fractional plane indices `index` differ by at most
-/// `range`. Pixels already rejected (`verdict != Consistent`) neither join nor bridge regions.
-pub fn speckle_mask(
+/// Rejects speckles (see the module docs) as mismatches: the pixels of 4-connected regions of
+/// fewer than `max_size` pixels in which neighbours' fractional plane indices `index` differ by
+/// at most `range`. Pixels already rejected neither join nor bridge regions; `max_size` 0 turns
+/// the filter off.
+pub fn reject_speckles(
     index: &[f32],
-    verdict: &[Verdict],
+    verdict: &mut [Verdict],
     w: usize,
     h: usize,
     max_size: usize,
     range: f32,
-) -> Vec<bool> {
+) {
     let npix = w * h;
-    let mut speckle = vec![false; npix];
     if max_size == 0 {
-        return speckle;
+        return;
     }
     let mut label = vec![u32::MAX; npix];
     let mut stack: Vec<usize> = Vec::new();
@@ -261,14 +260,14 @@ pub fn speckle_mask(
                 visit(p + w);
             }
         }
+        // Marking in place is safe: these pixels are labelled and never visited again.
         if region.len() < max_size {
             for &p in &region {
-                speckle[p] = true;
+                verdict[p] = Verdict::Mismatch;
             }
         }
         next += 1;
     }
-    speckle
 }
 
 /// Fills rejected pixels of the inverse-depth map `inv` (row-major `w×h`) from the accepted
@@ -392,11 +391,11 @@ mod tests {
         let claims = SourceClaims::new(&g, &planes);
         claims.add(&sum[..N * W * 3], N, W, 0..3);
         claims.add(&sum[N * W * 3..], N, W, 3..H);
-        let (_, wins) = claims.winners();
+        let wins = claims.winners();
         let mut winner: Vec<u32> = truth.iter().map(|&t| t as u32).collect();
         let bad = 3 * W + 12;
         winner[bad] = 9;
-        let v = check(&winner, W, H, &planes, &[(g, wins)], 1.0);
+        let v = check(&winner, W, &[wins], 1.0);
         for y in 0..H {
             for x in 0..W {
                 let p = y * W + x;
@@ -426,14 +425,19 @@ mod tests {
                 index[y * w + x] = 3.0 + 0.5 * (x - 9) as f32;
             }
         }
-        let verdict = vec![Verdict::Consistent; w * h];
-        let s = speckle_mask(&index, &verdict, w, h, 10, 1.0);
-        let marked: Vec<usize> = (0..w * h).filter(|&p| s[p]).collect();
-        assert_eq!(marked, vec![2 * w + 2, 2 * w + 3, 3 * w + 2, 3 * w + 3]);
+        let speckles = |max_size| {
+            let mut verdict = vec![Verdict::Consistent; w * h];
+            reject_speckles(&index, &mut verdict, w, h, max_size, 1.0);
+            (0..w * h)
+                .filter(|&p| verdict[p] != Verdict::Consistent)
+                .collect::<Vec<usize>>()
+        };
+        assert_eq!(
+            speckles(10),
+            vec![2 * w + 2, 2 * w + 3, 3 * w + 2, 3 * w + 3]
+        );
         // Size 0 turns the filter off.
-        assert!(speckle_mask(&index, &verdict, w, h, 0, 1.0)
-            .iter()
-            .all(|&b| !b));
+        assert!(speckles(0).is_empty());
     }
 
     #[test]

@@ -35,7 +35,7 @@ use crate::mvs::cost_volume::{
 use crate::mvs::plane_sweep::PlaneSet;
 
 use crate::mvs::pose::Pose;
-use consistency::{SourceClaims, SourceGeometry, Verdict};
+use consistency::{SourceClaims, SourceGeometry, SourceWinners, Verdict};
 
 pub use select::{select_curve, Selection};
 pub use sgm::Penalties;
@@ -105,7 +105,7 @@ pub struct SgmParams {
     /// Largest disagreement, in planes, that still counts as consistent (finite, `>= 0`; about
     /// pixels of displacement with the automatic plane count; SGBM's `disp12MaxDiff`).
     pub consistency_tolerance_planes: f32,
-    /// Speckles smaller than this many pixels are rejected ([`consistency::speckle_mask`]);
+    /// Speckles smaller than this many pixels are rejected ([`consistency::reject_speckles`]);
     /// `None` = automatic, `W·H / 3000` (100 pixels at 640×480, SGBM's usual window); `Some(0)`
     /// = off.
     pub speckle_max_size_px: Option<usize>,
@@ -456,17 +456,6 @@ fn strip_selections(
     monitor.checkpoint()?;
     let costs = sgm::to_pixel_major(&data, npix, n);
     drop(data);
-    let strip_guide = if strip.rows.len() == guide.height() {
-        None
-    } else {
-        let c = guide.channels();
-        Some(ImageF32::from_vec(
-            w,
-            rows,
-            c,
-            guide.data()[strip.rows.start * w * c..strip.rows.end * w * c].to_vec(),
-        )?)
-    };
     let sum = sgm::aggregate(
         &costs,
         w,
@@ -474,7 +463,7 @@ fn strip_selections(
         n,
         params.num_paths,
         &params.penalties(),
-        Some(strip_guide.as_ref().unwrap_or(guide)),
+        Some(sgm::Guide::rows(guide, strip.rows.clone())),
         &monitor.sub(0.1, 0.9),
     )?;
     drop(costs);
@@ -513,32 +502,18 @@ fn finish_depth(
             .iter()
             .map(|s| (s.index.round().max(0.0) as u32).min(n as u32 - 1))
             .collect();
-        let sources: Vec<(SourceGeometry, Vec<u32>)> =
-            claims.into_iter().map(SourceClaims::winners).collect();
-        verdict = consistency::check(
-            &winner,
-            w,
-            h,
-            planes,
-            &sources,
-            params.consistency_tolerance_planes,
-        );
+        let sources: Vec<SourceWinners> = claims.into_iter().map(SourceClaims::winners).collect();
+        verdict = consistency::check(&winner, w, &sources, params.consistency_tolerance_planes);
     }
     let index: Vec<f32> = selections.iter().map(|s| s.index).collect();
-    let max_speckle = params.speckle_max_size_px.unwrap_or(w * h / 3000);
-    let speckles = consistency::speckle_mask(
+    consistency::reject_speckles(
         &index,
-        &verdict,
+        &mut verdict,
         w,
         h,
-        max_speckle,
+        params.speckle_max_size_px.unwrap_or(w * h / 3000),
         params.speckle_range_planes,
     );
-    for (v, &s) in verdict.iter_mut().zip(&speckles) {
-        if s {
-            *v = Verdict::Mismatch;
-        }
-    }
     let mut inv: Vec<f32> = index
         .iter()
         .map(|&i| planes.inverse_depth(f64::from(i)) as f32)

@@ -53,18 +53,26 @@ pub struct Penalties {
     pub p2_gradient_scale: f32,
 }
 
-/// Guide-image access for the adaptive `P2`.
+/// Guide-image access for the adaptive `P2`: the reference image, or the rows of it that a
+/// strip of the volume covers (without copying them).
 #[derive(Clone, Copy)]
-pub(crate) struct Guide<'a> {
+pub struct Guide<'a> {
     data: &'a [f32],
     channels: usize,
     width: usize,
 }
 
 impl<'a> Guide<'a> {
-    pub(crate) fn new(img: &'a ImageF32) -> Self {
+    /// The whole image.
+    pub fn new(img: &'a ImageF32) -> Self {
+        Self::rows(img, 0..img.height())
+    }
+
+    /// Rows `rows` of the image (row 0 of the guide is image row `rows.start`).
+    pub fn rows(img: &'a ImageF32, rows: std::ops::Range<usize>) -> Self {
+        let row_len = img.width() * img.channels();
         Self {
-            data: img.data(),
+            data: &img.data()[rows.start * row_len..rows.end * row_len],
             channels: img.channels(),
             width: img.width(),
         }
@@ -234,8 +242,9 @@ fn path_start(c: &[f32], out: &mut [f32], sum: &mut [f32]) -> f32 {
 
 /// Aggregates the pixel-major cost volume `costs` (`[y][x][plane]`, `w·h·n` values) along the
 /// first `num_paths` (4 or 8) of [`DIRECTIONS`] and returns `S` in the same layout.
-/// `guide` (the reference image, `w×h`) enables the adaptive `P2`. Costs must be finite (a NaN
-/// cost makes the minima along its paths unspecified, never a panic).
+/// `guide` (the reference image's `h` rows of this volume, [`Guide::rows`]) enables the adaptive
+/// `P2`. Costs must be finite (a NaN cost makes the minima along its paths unspecified, never a
+/// panic).
 #[allow(clippy::too_many_arguments)]
 pub fn aggregate(
     costs: &[f32],
@@ -244,11 +253,10 @@ pub fn aggregate(
     n: usize,
     num_paths: usize,
     pen: &Penalties,
-    guide: Option<&ImageF32>,
+    guide: Option<Guide<'_>>,
     monitor: &Monitor,
 ) -> Result<Vec<f32>> {
     debug_assert_eq!(costs.len(), w * h * n);
-    let guide = guide.map(Guide::new);
     let avx2 = avx2_available();
     let mut sum = crate::large_buffer::zeroed_f32(w * h * n);
     let dirs = &DIRECTIONS[..num_paths.min(DIRECTIONS.len())];

@@ -1,4 +1,4 @@
-use super::sgm::{aggregate, Penalties, DIRECTIONS};
+use super::sgm::{aggregate, Guide, Penalties, DIRECTIONS};
 use super::*;
 use crate::camera::Intrinsics;
 use crate::mvs::pose::Pose;
@@ -103,7 +103,17 @@ fn fast_sgm_equals_reference() {
             p2: 0.9,
             p2_gradient_scale: tau,
         };
-        let fast = aggregate(&c, w, h, n, paths, &pen, Some(&guide), &Monitor::noop()).unwrap();
+        let fast = aggregate(
+            &c,
+            w,
+            h,
+            n,
+            paths,
+            &pen,
+            Some(Guide::new(&guide)),
+            &Monitor::noop(),
+        )
+        .unwrap();
         let slow = reference_sgm(&c, (w, h, n), paths, &pen, &guide);
         for (i, (a, b)) in fast.iter().zip(&slow).enumerate() {
             assert!(
