@@ -165,6 +165,30 @@ async fn default_request_fits_a_and_beta_to_the_points_and_reports_the_fit() {
     assert_eq!(joint.source_gains.len(), s.views.len() - 1);
     assert!(out.beta_range_from_points && out.beta_bound == pb::BetaBound::None as i32);
 
+    // The points' tracks: masks naming every source change nothing (the same job), and masks
+    // saying no source saw any point leave the fit without equations.
+    let every = (1u32 << req.sources.len()) - 1;
+    let mut tracked = req.clone();
+    tracked.sparse_point_sources = vec![every; req.sparse_points.len()];
+    let same = recon(&server)
+        .scattering_params(tracked.clone())
+        .await
+        .expect("unary")
+        .into_inner();
+    assert_eq!((same.airlight, same.beta), (out.airlight, out.beta));
+    tracked.sparse_point_sources = vec![0; req.sparse_points.len()];
+    let unseen = recon(&server)
+        .scattering_params(tracked)
+        .await
+        .expect("unary")
+        .into_inner();
+    assert_eq!(
+        unseen.identifiability,
+        pb::Identifiability::TooFewPoints as i32,
+        "{unseen:?}"
+    );
+    assert_eq!(unseen.joint_fit.expect("reported").equations, 0);
+
     // Without the joint fit: β₀ from the points' ratios at the given A₀ (here the true A).
     req.airlight = s.airlight;
     req.joint_fit = Some(false);
@@ -259,6 +283,19 @@ async fn bad_params_requests_name_the_field() {
             Box::new(|r| r.airlight_source = pb::AirlightSource::DarkChannel as i32),
         ),
         ("airlight_source", Box::new(|r| r.airlight_source = 42)),
+        (
+            "sparse_point_sources",
+            Box::new(|r| r.sparse_point_sources = vec![1; 3]),
+        ),
+        (
+            "sparse_point_sources[1]",
+            Box::new(|r| {
+                let n = r.sparse_points.len();
+                r.sparse_point_sources = vec![1; n];
+                // A bit for a source that is not in the request.
+                r.sparse_point_sources[1] = 1 << r.sources.len();
+            }),
+        ),
         ("sources", Box::new(|r| r.sources.clear())),
         ("reference", Box::new(|r| r.reference = None)),
         (

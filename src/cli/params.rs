@@ -14,7 +14,7 @@ use murk::mvs_io::{
     backproject, find_gt_depth, find_scene_metadata, model_unit_in_scene_units, unit_note,
     write_ply, LoadedView, PlyFormat,
 };
-use murk::params::sparse::{selected_points, PointSelection};
+use murk::params::sparse::{selected_points_with_sources, PointSelection};
 use murk::service::convert::params_request_to_proto;
 use murk::service::proto::v1 as pb;
 
@@ -139,7 +139,9 @@ pub fn run(a: ParamsArgs) -> anyhow::Result<()> {
     } else {
         PointSelection::ObservedInReference
     };
-    let points = selected_points(&model, &reference.name, selection)?;
+    let source_names: Vec<&str> = sources.iter().map(|s| s.name.as_str()).collect();
+    let (points, seen_by) =
+        selected_points_with_sources(&model, &reference.name, selection, &source_names)?;
     if points.is_empty() {
         bail!("the model has no 3D points");
     }
@@ -157,6 +159,8 @@ pub fn run(a: ParamsArgs) -> anyhow::Result<()> {
         a.airlight_source.wire(),
         a.airlight.unwrap_or(0.0),
     );
+    // The points' tracks: the fit samples a point only in the sources that saw it.
+    request.sparse_point_sources = seen_by;
     use_encoded_images(
         request
             .reference

@@ -685,7 +685,7 @@ impl SparseDepth {
             .map(|s| SparseSample {
                 x: s.x / f as u32,
                 y: s.y / f as u32,
-                z: s.z,
+                ..*s
             })
             .filter(|s| (s.x as usize) < w && (s.y as usize) < h)
             .collect();
@@ -698,6 +698,7 @@ impl SparseDepth {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::params::sparse::SEEN_BY_EVERY_SOURCE;
     use crate::simulate::mvs::{simulate_mvs, MvsScene, MvsSimConfig};
     use std::sync::atomic::AtomicBool;
     use std::sync::{Arc, Mutex};
@@ -889,7 +890,12 @@ mod tests {
             8,
             8,
             (0..5)
-                .map(|i| SparseSample { x: i, y: 0, z: 2.0 })
+                .map(|i| SparseSample {
+                    x: i,
+                    y: 0,
+                    z: 2.0,
+                    seen_by: SEEN_BY_EVERY_SOURCE,
+                })
                 .collect(),
         );
         let far = SparseDepth::from_samples(
@@ -900,6 +906,7 @@ mod tests {
                     x: i,
                     y: 0,
                     z: 20.0,
+                    seen_by: SEEN_BY_EVERY_SOURCE,
                 })
                 .collect(),
         );

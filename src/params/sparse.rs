@@ -4,8 +4,12 @@
 use crate::camera::Intrinsics;
 use crate::error::{MurkError, Result};
 use crate::image::ImageF32;
-use crate::mvs::colmap::ColmapModel;
+use crate::mvs::colmap::{ColmapModel, Point3D};
 use crate::mvs::pose::Pose;
+
+/// [`SparseSample::seen_by`] of a point whose visibility in the sources is unknown: it may be
+/// used in every source.
+pub const SEEN_BY_EVERY_SOURCE: u32 = u32::MAX;
 
 /// One pixel with `m(u, v) = 1`: integer pixel (murk convention, pixel centres at integers)
 /// and the z-depth of the SfM point seen there, scene units.
@@ -17,6 +21,9 @@ pub struct SparseSample {
     pub y: u32,
     /// z-depth in the reference camera, scene units (> 0).
     pub z: f32,
+    /// Bit `i` set when source `i` sees the point: its SfM track includes that image, so it is
+    /// not occluded there. [`SEEN_BY_EVERY_SOURCE`] when unknown.
+    pub seen_by: u32,
 }
 
 /// `z_sfm` and `m` of Eq. 3.8 for one reference view, stored as the list of pixels with
@@ -45,6 +52,60 @@ pub fn selected_points(
     reference: &str,
     selection: PointSelection,
 ) -> Result<Vec<[f64; 3]>> {
+    Ok(selected(model, reference, selection)?
+        .into_iter()
+        .map(|p| p.xyz)
+        .collect())
+}
+
+/// [`selected_points`] with each point's [`SparseSample::seen_by`] mask over `sources` (image
+/// names; bit `i` for `sources[i]`, at most 32): the images in its SfM track. The masks are
+/// empty when the model stores no tracks (every point then counts as seen everywhere). Fails
+/// naming `reference` or `sources[i]` for an unknown image.
+pub fn selected_points_with_sources(
+    model: &ColmapModel,
+    reference: &str,
+    selection: PointSelection,
+    sources: &[&str],
+) -> Result<(Vec<[f64; 3]>, Vec<u32>)> {
+    let mut ids = Vec::with_capacity(sources.len());
+    for (i, name) in sources.iter().enumerate() {
+        let image = model.image_by_name(name).ok_or_else(|| {
+            MurkError::invalid(
+                format!("sources[{i}]"),
+                format!("no image named {name:?} in the model"),
+            )
+        })?;
+        ids.push(image.id);
+    }
+    if ids.len() > 32 {
+        return Err(MurkError::invalid(
+            "sources",
+            format!("at most 32 sources carry track masks, got {}", ids.len()),
+        ));
+    }
+    let points = selected(model, reference, selection)?;
+    let xyz = points.iter().map(|p| p.xyz).collect();
+    if model.points.values().all(|p| p.track.is_empty()) {
+        return Ok((xyz, Vec::new()));
+    }
+    let masks = points
+        .iter()
+        .map(|p| {
+            ids.iter()
+                .enumerate()
+                .filter(|(_, id)| p.track.iter().any(|t| t.image_id == **id))
+                .fold(0u32, |m, (i, _)| m | (1 << i))
+        })
+        .collect();
+    Ok((xyz, masks))
+}
+
+fn selected<'m>(
+    model: &'m ColmapModel,
+    reference: &str,
+    selection: PointSelection,
+) -> Result<Vec<&'m Point3D>> {
     let image = model.image_by_name(reference).ok_or_else(|| {
         MurkError::invalid(
             "reference",
@@ -59,10 +120,9 @@ pub fn selected_points(
             .iter()
             .filter_map(|p| p.point3d_id)
             .filter_map(|id| model.points.get(&id))
-            .map(|p| p.xyz)
             .collect()
     } else {
-        model.points.values().map(|p| p.xyz).collect()
+        model.points.values().collect()
     })
 }
 
@@ -70,7 +130,7 @@ impl SparseDepth {
     /// Projects world points (scene units) with the reference camera; points behind the camera
     /// or outside the `width × height` image are dropped, and where several points fall on one
     /// pixel the nearest is kept (it occludes the others). Non-finite points fail naming
-    /// `points[i]`.
+    /// `points[i]`. Every point counts as seen by every source.
     pub fn from_points(
         points: &[[f64; 3]],
         intrinsics: &Intrinsics,
@@ -78,6 +138,30 @@ impl SparseDepth {
         width: usize,
         height: usize,
     ) -> Result<Self> {
+        Self::from_tracked_points(points, &[], intrinsics, pose, width, height)
+    }
+
+    /// [`Self::from_points`] with each point's sources: `seen_by[i]` is point `i`'s
+    /// [`SparseSample::seen_by`] mask, or `seen_by` is empty when no track is known. A length
+    /// other than 0 or `points.len()` fails naming `seen_by`.
+    pub fn from_tracked_points(
+        points: &[[f64; 3]],
+        seen_by: &[u32],
+        intrinsics: &Intrinsics,
+        pose: &Pose,
+        width: usize,
+        height: usize,
+    ) -> Result<Self> {
+        if !seen_by.is_empty() && seen_by.len() != points.len() {
+            return Err(MurkError::invalid(
+                "seen_by",
+                format!(
+                    "one source mask per point or none: {} masks for {} points",
+                    seen_by.len(),
+                    points.len()
+                ),
+            ));
+        }
         let mut samples: Vec<SparseSample> = Vec::with_capacity(points.len());
         for (i, p) in points.iter().enumerate() {
             if !p.iter().all(|c| c.is_finite()) {
@@ -98,6 +182,7 @@ impl SparseDepth {
                 x: x as u32,
                 y: y as u32,
                 z: q[2] as f32,
+                seen_by: seen_by.get(i).copied().unwrap_or(SEEN_BY_EVERY_SOURCE),
             });
         }
         samples.sort_by(|a, b| (a.y, a.x, a.z).partial_cmp(&(b.y, b.x, b.z)).unwrap());
@@ -221,7 +306,8 @@ mod tests {
             SparseSample {
                 x: 16,
                 y: 12,
-                z: 2.0
+                z: 2.0,
+                seen_by: SEEN_BY_EVERY_SOURCE,
             }
         );
         assert_eq!((s.samples()[1].x, s.samples()[1].y), (21, 14));
@@ -282,5 +368,78 @@ mod tests {
         assert_eq!(all.len(), 2);
         let err = SparseDepth::from_colmap(&model, "x.png", 32, 24, PointSelection::All);
         assert_eq!(err.unwrap_err().field(), Some("reference"));
+    }
+
+    #[test]
+    fn track_masks_name_the_sources_that_saw_each_point() {
+        let k = camera();
+        let cam = ColmapCamera::from_intrinsics(1, &k, 32, 24).unwrap();
+        let obs = |image_id| TrackElement {
+            image_id,
+            point2d_idx: 0,
+        };
+        let point = |id, x, track| Point3D {
+            id,
+            xyz: [x, 0.0, 2.0],
+            rgb: [0; 3],
+            error: 0.0,
+            track,
+        };
+        let image = |id, name: &str| {
+            ColmapImage::new(
+                id,
+                1,
+                name,
+                &Pose::identity(),
+                vec![Point2D {
+                    xy: [16.0, 12.0],
+                    point3d_id: None,
+                }],
+            )
+            .unwrap()
+        };
+        let model = ColmapModel {
+            cameras: BTreeMap::from([(1, cam)]),
+            images: BTreeMap::from([
+                (1, image(1, "ref.png")),
+                (2, image(2, "a.png")),
+                (3, image(3, "b.png")),
+            ]),
+            points: BTreeMap::from([
+                (1, point(1, 0.0, vec![obs(1), obs(2), obs(3)])),
+                (2, point(2, 0.1, vec![obs(1), obs(3)])), // hidden from a.png
+                (3, point(3, 0.2, vec![obs(1)])),
+            ]),
+        };
+        // Bit i for sources[i], whatever the image ids.
+        let (xyz, masks) = selected_points_with_sources(
+            &model,
+            "ref.png",
+            PointSelection::All,
+            &["b.png", "a.png"],
+        )
+        .unwrap();
+        assert_eq!(xyz.len(), 3);
+        assert_eq!(masks, vec![0b11, 0b01, 0b00]);
+        let sparse =
+            SparseDepth::from_tracked_points(&xyz, &masks, &k, &Pose::identity(), 32, 24).unwrap();
+        let seen: Vec<u32> = sparse.samples().iter().map(|s| s.seen_by).collect();
+        assert_eq!(seen, vec![0b11, 0b01, 0b00]);
+        // The masks survive the search's downsampling with their points.
+        let coarse = sparse.downsampled(2);
+        assert!(coarse.samples().iter().all(|s| masks.contains(&s.seen_by)));
+        // A model without tracks gives no masks: every point counts as seen everywhere.
+        let mut untracked = model.clone();
+        for p in untracked.points.values_mut() {
+            p.track.clear();
+        }
+        let (_, none) =
+            selected_points_with_sources(&untracked, "ref.png", PointSelection::All, &["a.png"])
+                .unwrap();
+        assert!(none.is_empty());
+        let e = selected_points_with_sources(&model, "ref.png", PointSelection::All, &["c.png"]);
+        assert_eq!(e.unwrap_err().field(), Some("sources[0]"));
+        let e = SparseDepth::from_tracked_points(&xyz, &[1], &k, &Pose::identity(), 32, 24);
+        assert_eq!(e.unwrap_err().field(), Some("seen_by"));
     }
 }

@@ -73,6 +73,15 @@ impl AirlightService {
     }
 }
 
+/// The `sparse_point_sources` mask with a bit for each of `n` sources (n ≤ 32).
+fn every_source_mask(n: usize) -> u32 {
+    if n >= 32 {
+        u32::MAX
+    } else {
+        (1u32 << n) - 1
+    }
+}
+
 /// A decoded, validated request.
 #[derive(Clone, Debug)]
 pub struct ParamsInput {
@@ -121,6 +130,12 @@ pub fn canonicalize_params_request(
     }
     if req.search_downsample == 0 {
         req.search_downsample = d.search_downsample as u32;
+    }
+    // Every point seen by every source says no more than no masks at all.
+    let every = every_source_mask(req.sources.len());
+    if !req.sparse_point_sources.is_empty() && req.sparse_point_sources.iter().all(|&m| m == every)
+    {
+        req.sparse_point_sources.clear();
     }
 }
 
@@ -225,14 +240,43 @@ pub fn params_from_proto(
     let (w, h) = reference.image.dims();
     let sources = sources_from_proto(&req.sources, &reference, limits)?;
     let points: Vec<[f64; 3]> = req.sparse_points.iter().map(|p| [p.x, p.y, p.z]).collect();
-    let sparse = SparseDepth::from_points(&points, &reference.intrinsics, &reference.pose, w, h)
-        // The library names `points[i]`; the wire field is `sparse_points[i]`.
-        .map_err(|e| match e {
-            MurkError::InvalidArgument { field, reason } => {
-                MurkError::invalid(format!("sparse_{field}"), reason)
-            }
-            other => other,
-        })?;
+    let masks = &req.sparse_point_sources;
+    if !masks.is_empty() && masks.len() != points.len() {
+        return Err(MurkError::invalid(
+            "sparse_point_sources",
+            format!(
+                "one mask per sparse point or none: {} masks for {} points",
+                masks.len(),
+                points.len()
+            ),
+        ));
+    }
+    let every = every_source_mask(sources.len());
+    if let Some(i) = masks.iter().position(|&m| m & !every != 0) {
+        return Err(MurkError::invalid(
+            format!("sparse_point_sources[{i}]"),
+            format!(
+                "mask {:#x} names a source at or above the {} sources given",
+                masks[i],
+                sources.len()
+            ),
+        ));
+    }
+    let sparse = SparseDepth::from_tracked_points(
+        &points,
+        masks,
+        &reference.intrinsics,
+        &reference.pose,
+        w,
+        h,
+    )
+    // The library names `points[i]`; the wire field is `sparse_points[i]`.
+    .map_err(|e| match e {
+        MurkError::InvalidArgument { field, reason } => {
+            MurkError::invalid(format!("sparse_{field}"), reason)
+        }
+        other => other,
+    })?;
     let visible = sparse.downsampled(search.search_downsample).len();
     if visible < MIN_SPARSE_POINTS {
         return Err(MurkError::invalid(
