@@ -149,6 +149,14 @@ def mvs_scene(workdir: Path) -> Path:
 
 
 @pytest.fixture(scope="session")
+def mvs_scene_rectified(workdir: Path) -> Path:
+    """A rectified pair: every point at the same depth in both views, so β cannot be known."""
+    return simulate(
+        "mvs", workdir / "mvs_rectified", "--width", "96", "--height", "72", "--seed", "2", "--rectified-pair"
+    )
+
+
+@pytest.fixture(scope="session")
 def mvs_scene_forward(workdir: Path) -> Path:
     """Views spread along the optical axis too: the points' depths differ between views, which
     is what determines β."""

@@ -92,10 +92,12 @@ def params_of(client: Client, scene: Path) -> mc.ScatteringParamsResult:
     )
 
 
-def test_scattering_params_says_when_beta_is_not_determined(client: Client, mvs_scene: Path) -> None:
-    # A small sideways trajectory: the points' depths barely differ between views.
-    r = params_of(client, mvs_scene)
-    assert not r.identifiable and r.identifiability in ("flat_residual", "no_depth_difference")
+def test_scattering_params_says_when_beta_is_not_determined(
+    client: Client, mvs_scene_rectified: Path
+) -> None:
+    # A rectified pair: the points' depths do not differ between the views.
+    r = params_of(client, mvs_scene_rectified)
+    assert not r.identifiable and r.identifiability == "no_depth_difference"
     # The best estimate is still returned (the joint fit when it converged), marked as a guess.
     assert r.beta_source in ("joint_fit", "sweep") and r.beta_per_scene_unit > 0
 

@@ -150,3 +150,17 @@ def test_colmap_binary_and_text_models(tmp_path: Path) -> None:
     (tmp_path / "points3D.bin").write_bytes(struct.pack("<Q", 5))
     with pytest.raises(mc.ClientInputError):
         mc.load_colmap_model(tmp_path)
+
+
+def test_seen_by_sources_become_track_masks() -> None:
+    view = mc.View(np.zeros((4, 4)), mc.Intrinsics(4.0, 4.0, 2.0, 2.0), mc.Pose(np.eye(3), np.zeros(3)))
+    pts = np.array([[0.0, 0.0, 1.0], [0.1, 0.0, 1.0]])
+    req = mc.scattering_params_request(view, [view, view, view], pts, seen_by_sources=[[0, 2], []])
+    assert list(req.scattering_params.sparse_point_sources) == [0b101, 0]
+    assert list(mc.scattering_params_request(view, [view], pts).scattering_params.sparse_point_sources) == []
+    with pytest.raises(mc.ClientInputError) as e:
+        mc.scattering_params_request(view, [view], pts, seen_by_sources=[[0]])
+    assert e.value.field == "request.scattering_params.sparse_point_sources"
+    with pytest.raises(mc.ClientInputError) as e:
+        mc.scattering_params_request(view, [view], pts, seen_by_sources=[[0], [1]])
+    assert e.value.field == "request.scattering_params.sparse_point_sources[1]"

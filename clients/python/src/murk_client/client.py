@@ -285,6 +285,7 @@ class Client:
         beta_max_per_scene_unit: float | None = None,
         near_scene_units: float | None = None,
         far_scene_units: float | None = None,
+        seen_by_sources: Sequence[Sequence[int]] | None = None,
         options: Tuning | None = None,
         progress: ProgressCallback | None = None,
         timeout_s: float | None = None,
@@ -300,6 +301,7 @@ class Client:
             beta_max_per_scene_unit=beta_max_per_scene_unit,
             near_scene_units=near_scene_units,
             far_scene_units=far_scene_units,
+            seen_by_sources=seen_by_sources,
             options=options,
         )
         return _expect(self.run(req, progress=progress, timeout_s=timeout_s), ScatteringParamsResult)

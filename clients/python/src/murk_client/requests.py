@@ -181,11 +181,15 @@ def scattering_params_request(
     beta_max_per_scene_unit: float | None = None,
     near_scene_units: float | None = None,
     far_scene_units: float | None = None,
+    seen_by_sources: Sequence[Sequence[int]] | None = None,
     options: Tuning | None = None,
 ) -> jobs_pb2.JobRequest:
     """Airlight A and scattering coefficient β by Algorithm 1 (Ch. 3.3), then the depth with them.
 
     ``sparse_points_scene_units``: an ``(n, 3)`` array of SfM points, world coordinates.
+    ``seen_by_sources``: for each point, the indices into ``sources`` of the images whose SfM
+    track includes it (COLMAP's observations); the fit then samples a point only where it was
+    seen, not where a nearer surface hides it. Unset: every point is used in every source.
     ``airlight_source``: ``"server"`` (its configured estimator), ``"cnn"``, ``"dark_channel"``
     or ``"given"`` (then ``airlight`` in (0, 1]); by default A is then fitted with β to the
     points, A0 as a prior. β bounds are per scene unit; unset ends come from the points' depths
@@ -215,6 +219,20 @@ def scattering_params_request(
     req.sparse_points.extend(
         vector3_proto(p, "request.scattering_params.sparse_points") for p in pts.tolist()
     )
+    del req.sparse_point_sources[:]
+    if seen_by_sources is not None:
+        field = "request.scattering_params.sparse_point_sources"
+        if len(seen_by_sources) != len(pts):
+            raise ClientInputError(
+                field, f"one entry per point: {len(seen_by_sources)} for {len(pts)} points"
+            )
+        for i, seen in enumerate(seen_by_sources):
+            mask = 0
+            for s in seen:
+                if not 0 <= int(s) < len(sources):
+                    raise ClientInputError(f"{field}[{i}]", f"source index {s} outside 0..{len(sources) - 1}")
+                mask |= 1 << int(s)
+            req.sparse_point_sources.append(mask)
     req.airlight_source = _AIRLIGHT_SOURCES[airlight_source]
     if airlight is not None:
         req.airlight = _finite(airlight, "request.scattering_params.airlight", positive=True)

@@ -195,6 +195,7 @@ class ScatteringParamsRequest(_message.Message):
     BETA_FROM_POINTS_FIELD_NUMBER: _builtins.int
     JOINT_FIT_FIELD_NUMBER: _builtins.int
     AIRLIGHT_PRIOR_SIGMA_FIELD_NUMBER: _builtins.int
+    SPARSE_POINT_SOURCES_FIELD_NUMBER: _builtins.int
     airlight_source: Global___AirlightSource.ValueType
     """Where A0 comes from. UNSPECIFIED = the server's configured estimator (the CNN by default)."""
     airlight: _builtins.float
@@ -276,6 +277,16 @@ class ScatteringParamsRequest(_message.Message):
     def sgm(self) -> _mvs_pb2.SgmOptions:
         """Aggregation overrides for every depth evaluation (see SgmOptions)."""
 
+    @_builtins.property
+    def sparse_point_sources(self) -> _containers.RepeatedScalarFieldContainer[_builtins.int]:
+        """Which sources saw each SfM point, for the fits to the points' intensities: empty = unknown
+        (every point is sampled in every source); otherwise one mask per sparse_points entry, bit i
+        (least significant first) set when the point's SfM track includes sources[i] (COLMAP's
+        observations). A point is then sampled only in the sources that saw it: one hidden from a
+        source by a nearer surface would pair the reference's intensity with the occluder's. Bits
+        at or above the number of sources must be 0.
+        """
+
     def __init__(
         self,
         *,
@@ -301,10 +312,11 @@ class ScatteringParamsRequest(_message.Message):
         beta_from_points: _builtins.bool | None = ...,
         joint_fit: _builtins.bool | None = ...,
         airlight_prior_sigma: _builtins.float | None = ...,
+        sparse_point_sources: _abc.Iterable[_builtins.int] | None = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["_airlight_prior_sigma", b"_airlight_prior_sigma", "_beta_from_points", b"_beta_from_points", "_beta_max", b"_beta_max", "_beta_min", b"_beta_min", "_beta_steps", b"_beta_steps", "_delta_airlight", b"_delta_airlight", "_delta_beta", b"_delta_beta", "_delta_px", b"_delta_px", "_grid_steps", b"_grid_steps", "_joint_fit", b"_joint_fit", "_min_improvement_t", b"_min_improvement_t", "airlight_prior_sigma", b"airlight_prior_sigma", "beta_from_points", b"beta_from_points", "beta_max", b"beta_max", "beta_min", b"beta_min", "beta_steps", b"beta_steps", "delta_airlight", b"delta_airlight", "delta_beta", b"delta_beta", "delta_px", b"delta_px", "grid_steps", b"grid_steps", "joint_fit", b"joint_fit", "min_improvement_t", b"min_improvement_t", "reference", b"reference", "sgm", b"sgm"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["_airlight_prior_sigma", b"_airlight_prior_sigma", "_beta_from_points", b"_beta_from_points", "_beta_max", b"_beta_max", "_beta_min", b"_beta_min", "_beta_steps", b"_beta_steps", "_delta_airlight", b"_delta_airlight", "_delta_beta", b"_delta_beta", "_delta_px", b"_delta_px", "_grid_steps", b"_grid_steps", "_joint_fit", b"_joint_fit", "_min_improvement_t", b"_min_improvement_t", "airlight", b"airlight", "airlight_prior_sigma", b"airlight_prior_sigma", "airlight_source", b"airlight_source", "beta_from_points", b"beta_from_points", "beta_max", b"beta_max", "beta_min", b"beta_min", "beta_steps", b"beta_steps", "delta_airlight", b"delta_airlight", "delta_beta", b"delta_beta", "delta_px", b"delta_px", "far", b"far", "grid_steps", b"grid_steps", "joint_fit", b"joint_fit", "min_improvement_t", b"min_improvement_t", "near", b"near", "num_planes", b"num_planes", "reference", b"reference", "search_downsample", b"search_downsample", "search_planes", b"search_planes", "sgm", b"sgm", "sources", b"sources", "sparse_points", b"sparse_points"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["_airlight_prior_sigma", b"_airlight_prior_sigma", "_beta_from_points", b"_beta_from_points", "_beta_max", b"_beta_max", "_beta_min", b"_beta_min", "_beta_steps", b"_beta_steps", "_delta_airlight", b"_delta_airlight", "_delta_beta", b"_delta_beta", "_delta_px", b"_delta_px", "_grid_steps", b"_grid_steps", "_joint_fit", b"_joint_fit", "_min_improvement_t", b"_min_improvement_t", "airlight", b"airlight", "airlight_prior_sigma", b"airlight_prior_sigma", "airlight_source", b"airlight_source", "beta_from_points", b"beta_from_points", "beta_max", b"beta_max", "beta_min", b"beta_min", "beta_steps", b"beta_steps", "delta_airlight", b"delta_airlight", "delta_beta", b"delta_beta", "delta_px", b"delta_px", "far", b"far", "grid_steps", b"grid_steps", "joint_fit", b"joint_fit", "min_improvement_t", b"min_improvement_t", "near", b"near", "num_planes", b"num_planes", "reference", b"reference", "search_downsample", b"search_downsample", "search_planes", b"search_planes", "sgm", b"sgm", "sources", b"sources", "sparse_point_sources", b"sparse_point_sources", "sparse_points", b"sparse_points"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     _WhichOneofReturnType__airlight_prior_sigma: _TypeAlias = _typing.Literal["airlight_prior_sigma"]  # noqa: Y015
     _WhichOneofArgType__airlight_prior_sigma: _TypeAlias = _typing.Literal["_airlight_prior_sigma", b"_airlight_prior_sigma"]  # noqa: Y015
