@@ -16,8 +16,10 @@
 //! and points at many `Δz` separate the gain (a slope common to the source) from `k`.
 //!
 //! The airlight estimators (CNN, dark channel) enter as a Gaussian prior on `A`, the gains as a
-//! prior around 1; the fit says how well the data pin each parameter down (standard errors from
-//! the Gauss–Newton covariance) and, through [`Identifiability`], when they do not: no depth
+//! prior around 1; the fit says how well the data pin each parameter down (standard errors: the
+//! larger of the Gauss–Newton covariance's and a delete-one-source jackknife's, which sees the
+//! sources' disagreement that the covariance counts as independent noise) and, through
+//! [`Identifiability`], when they do not: no depth
 //! differences between the views (a rectified pair or a purely sideways move leaves `k = 1`
 //! and every `A` and β fit), too few usable points, or a residual too flat in β.
 
@@ -91,11 +93,13 @@ impl Identifiability {
 pub struct JointFit {
     /// `A`.
     pub airlight: f64,
-    /// Standard error of `A` (the prior's width when the data say nothing).
+    /// Standard error of `A` (the prior's width when the data say nothing); with 3 or more
+    /// sources at least the delete-one-source jackknife's.
     pub airlight_std_error: f64,
     /// β, per scene unit.
     pub beta: f64,
-    /// Standard error of β, per scene unit (infinite when β is not determined at all).
+    /// Standard error of β, per scene unit (infinite when β is not determined at all); with 3
+    /// or more sources at least the delete-one-source jackknife's.
     pub beta_std_error: f64,
     /// Per source, the exposure gain `g_s` relative to the reference (1 = same exposure).
     pub source_gains: Vec<f64>,
@@ -191,7 +195,16 @@ pub fn fit_equations(
         return not_determined(Identifiability::FlatResidual, solver.theta[0]);
     };
     let se = |i: usize| cov[i].max(0.0).sqrt();
-    let (beta, beta_se) = (solver.theta[1], se(1));
+    // The Gauss–Newton covariance counts every equation as independent noise. What is left
+    // after the blur is mostly a bias that differs from source to source (footprints,
+    // occlusions, exposure), so the spread of the fits without each source bounds the error
+    // from below as well.
+    let jack = source_jackknife(&eqs, n_src, priors, &solver.theta);
+    let (a_se, beta_se) = match jack {
+        Some([ja, jb]) => (se(0).max(ja), se(1).max(jb)),
+        None => (se(0), se(1)),
+    };
+    let beta = solver.theta[1];
     let identifiability = if beta > 0.0 && beta_se < MAX_RELATIVE_BETA_ERROR * beta {
         Identifiability::Identifiable
     } else {
@@ -199,7 +212,7 @@ pub fn fit_equations(
     };
     JointFit {
         airlight: solver.theta[0],
-        airlight_std_error: se(0),
+        airlight_std_error: a_se,
         beta,
         beta_std_error: beta_se,
         source_gains: solver.theta[2..].iter().map(|u| 1.0 / u).collect(),
@@ -208,6 +221,47 @@ pub fn fit_equations(
         residual_scale: solver.scale,
         identifiability,
     }
+}
+
+/// Fewest sources for the delete-one-source jackknife of the standard errors.
+const MIN_JACKKNIFE_SOURCES: usize = 3;
+
+/// Delete-one-source jackknife standard errors of `A` and β, `√((S−1)/S · Σ (θ₋ₛ − θ̄)²)`, each
+/// refit started from the full fit `theta`. `None` with fewer than
+/// [`MIN_JACKKNIFE_SOURCES`] sources or refits that converge.
+fn source_jackknife(
+    eqs: &[Equation],
+    n_src: usize,
+    priors: &JointPriors,
+    theta: &[f64],
+) -> Option<[f64; 2]> {
+    if n_src < MIN_JACKKNIFE_SOURCES {
+        return None;
+    }
+    let mut fits: Vec<[f64; 2]> = Vec::with_capacity(n_src);
+    let mut subset: Vec<Equation> = Vec::with_capacity(eqs.len());
+    for left_out in 0..n_src {
+        subset.clear();
+        subset.extend(eqs.iter().filter(|e| e.source != left_out).copied());
+        if subset.len() < MIN_EQUATIONS {
+            continue;
+        }
+        let mut solver = Solver::new(&subset, n_src, priors);
+        solver.theta.copy_from_slice(theta);
+        if solver.run().is_some() {
+            fits.push([solver.theta[0], solver.theta[1]]);
+        }
+    }
+    let s = fits.len();
+    if s < MIN_JACKKNIFE_SOURCES {
+        return None;
+    }
+    let factor = (s - 1) as f64 / s as f64;
+    let se = |k: usize| {
+        let mean = fits.iter().map(|f| f[k]).sum::<f64>() / s as f64;
+        (factor * fits.iter().map(|f| (f[k] - mean).powi(2)).sum::<f64>()).sqrt()
+    };
+    Some([se(0), se(1)])
 }
 
 /// Gauss–Newton with Levenberg damping on `θ = (A, β, u_1 … u_S)`, Tukey weights re-estimated
@@ -507,7 +561,10 @@ mod tests {
         assert_eq!(fit.identifiability, Identifiability::TooFewPoints);
     }
 
-    /// On the simulator's walking scene the joint fit finds A and β from a prior 0.06 off.
+    /// On the simulator's walking scene the joint fit finds A and β from a prior 0.06 off, and
+    /// the truth lies within the standard errors. At 128×96 the sources disagree enough that
+    /// the jackknife's error exceeds 15 % of β, so the verdict is `FlatResidual`: honest on so
+    /// small a scene, and why this test does not ask for `Identifiable`.
     #[test]
     fn finds_a_and_beta_on_a_simulated_scene() {
         let scene = crate::simulate::mvs::walking_test_scene(3);
@@ -516,12 +573,57 @@ mod tests {
         let a0 = (f64::from(scene.airlight) - 0.06).max(0.3);
         let fit = fit_joint(&reference, &sources, &sparse, &priors(a0)).unwrap();
         eprintln!("A {} β {} fit {fit:?}", scene.airlight, scene.beta);
-        assert!(fit.is_identifiable(), "{fit:?}");
+        let (da, db) = (
+            (fit.airlight - f64::from(scene.airlight)).abs(),
+            (fit.beta - f64::from(scene.beta)).abs(),
+        );
+        assert!(da < 0.03 && db < 0.05, "{fit:?}");
         assert!(
-            (fit.airlight - f64::from(scene.airlight)).abs() < 0.03,
+            da < 3.0 * fit.airlight_std_error && db < 3.0 * fit.beta_std_error,
             "{fit:?}"
         );
-        assert!((fit.beta - f64::from(scene.beta)).abs() < 0.05, "{fit:?}");
+    }
+
+    /// The delete-one-source jackknife widens the standard errors when the sources disagree
+    /// (each biased its own way, as footprints and exposure do) and leaves them alone when
+    /// they agree.
+    #[test]
+    fn disagreeing_sources_widen_the_standard_errors() {
+        let agree = synthetic(0.7, 0.4, &[1.0; 4], 1.0, 0.01, 11);
+        let fit = fit_equations(&agree, 5.0, &priors(0.7));
+        let eqs: Vec<Equation> = agree
+            .iter()
+            .enumerate()
+            .flat_map(|(source, ss)| {
+                ss.iter().map(move |s| Equation {
+                    source,
+                    dz: s.depth_difference,
+                    ir: s.reference,
+                    is: s.source,
+                })
+            })
+            .collect();
+        let p = priors(0.7);
+        let mut plain = Solver::new(&eqs, 4, &p);
+        let cov = plain.run().unwrap();
+        assert!(fit.beta_std_error < 3.0 * cov[1].sqrt(), "{fit:?}");
+        // Each source's depth differences scaled by its own factor: a source-dependent bias
+        // of the slope, as a footprint change gives.
+        let mut disagree = agree.clone();
+        for (s, factor) in disagree.iter_mut().zip([0.85, 1.15, 0.9, 1.1]) {
+            for x in s.iter_mut() {
+                x.depth_difference *= factor;
+            }
+        }
+        let wide = fit_equations(&disagree, 5.0, &priors(0.7));
+        assert!(
+            wide.beta_std_error > 3.0 * fit.beta_std_error,
+            "{wide:?} vs {fit:?}"
+        );
+        assert!(
+            (wide.beta - 0.4).abs() < 2.0 * wide.beta_std_error,
+            "{wide:?}"
+        );
     }
 
     /// Sources all behind the reference of a forward move see its texture minified, sources all

@@ -38,8 +38,10 @@ def reconstruct(
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = "PINHOLE"
     reader.camera_params = intrinsics
+    # One thread and fixed seeds everywhere: the same images give the same model on every run.
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.sift.peak_threshold = peak_threshold
+    extraction.num_threads = 1
     pycolmap.extract_features(
         db,
         scene / "images",
@@ -47,11 +49,15 @@ def reconstruct(
         reader_options=reader,
         extraction_options=extraction,
     )
-    pycolmap.match_exhaustive(db)
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = 1
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.ransac.random_seed = 0
+    verification.ransac.num_threads = 1
+    pycolmap.match_exhaustive(db, matching_options=matching, verification_options=verification)
     options = pycolmap.IncrementalPipelineOptions()
     options.ba_refine_focal_length = False
     options.ba_refine_principal_point = False
-    # One thread and a fixed seed: the same images give the same model on every run.
     options.num_threads = 1
     options.random_seed = 0
     models = pycolmap.incremental_mapping(db, scene / "images", out, options=options)

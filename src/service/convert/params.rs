@@ -241,16 +241,6 @@ pub fn params_from_proto(
     let sources = sources_from_proto(&req.sources, &reference, limits)?;
     let points: Vec<[f64; 3]> = req.sparse_points.iter().map(|p| [p.x, p.y, p.z]).collect();
     let masks = &req.sparse_point_sources;
-    if !masks.is_empty() && masks.len() != points.len() {
-        return Err(MurkError::invalid(
-            "sparse_point_sources",
-            format!(
-                "one mask per sparse point or none: {} masks for {} points",
-                masks.len(),
-                points.len()
-            ),
-        ));
-    }
     let every = every_source_mask(sources.len());
     if let Some(i) = masks.iter().position(|&m| m & !every != 0) {
         return Err(MurkError::invalid(
@@ -270,8 +260,12 @@ pub fn params_from_proto(
         w,
         h,
     )
-    // The library names `points[i]`; the wire field is `sparse_points[i]`.
+    // The library names `points[i]` and `seen_by`; the wire fields are `sparse_points[i]` and
+    // `sparse_point_sources`.
     .map_err(|e| match e {
+        MurkError::InvalidArgument { field, reason } if field == "seen_by" => {
+            MurkError::invalid("sparse_point_sources", reason)
+        }
         MurkError::InvalidArgument { field, reason } => {
             MurkError::invalid(format!("sparse_{field}"), reason)
         }

@@ -442,7 +442,9 @@ class ScatteringParamsResult(_message.Message):
     depth_seconds: _builtins.float
     airlight_std_error: _builtins.float
     """Standard errors of A* and beta* (per scene unit), from the fit they came from; unset when
-    there is none (A* is the estimator's A0, or beta* came from the sweep).
+    there is none (A* is the estimator's A0, or beta* came from the sweep). The joint fit's are
+    the larger of its Gauss-Newton covariance's and, with 3 or more sources, a delete-one-source
+    jackknife's (the sources' disagreement, which the covariance counts as independent noise).
     """
     beta_std_error: _builtins.float
     identifiable: _builtins.bool
