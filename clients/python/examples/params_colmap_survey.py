@@ -196,7 +196,8 @@ def main() -> None:
                 "airlight": p["airlight"],
                 "beta_per_model_unit": p["beta"],
                 "beta": p["beta"] / unit_c,
-                "beta_std_error": p["beta_std_error"] / unit_c,
+                # None when β* is the sweep's guess (not identifiable).
+                "beta_std_error": None if p["beta_std_error"] is None else p["beta_std_error"] / unit_c,
                 "identifiable": p["identifiable"],
                 "identifiability": p["identifiability"],
                 "points": model[1],
@@ -226,6 +227,14 @@ def main() -> None:
             label = "COLMAP model" if key == "sfm" else "simulator's model"
             print(
                 f"{label:18s}: MAE_A {mae_a:.4f}, MAE_beta {mae_b:.4f} per scene unit over {len(done)} seeds"
+            )
+        trusted = [r for r in done if r["sfm"]["identifiable"]]
+        if trusted:
+            mae_a = np.mean([abs(r["sfm"]["airlight"] - r["airlight"]) for r in trusted])
+            mae_b = np.mean([abs(r["sfm"]["beta"] - r["beta"]) for r in trusted])
+            print(
+                f"COLMAP models murk calls identifiable ({len(trusted)}): "
+                f"MAE_A {mae_a:.4f}, MAE_beta {mae_b:.4f}"
             )
         flagged = sum(not r["sfm"]["identifiable"] for r in done)
         print(f"registered {len(done)}/{len(rows)}; flagged not identifiable on the COLMAP model: {flagged}")
