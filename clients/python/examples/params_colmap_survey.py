@@ -126,6 +126,15 @@ def murk_params(
     return json.loads((out / "params.json").read_text())
 
 
+def report(label: str, rows: list[dict], key: str) -> None:
+    """MAE of A and of β (per scene unit) of the `key` estimates ("sfm" or "sim") over `rows`."""
+    if not rows:
+        return
+    mae_a = np.mean([abs(r[key]["airlight"] - r["airlight"]) for r in rows])
+    mae_b = np.mean([abs(r[key]["beta"] - r["beta"]) for r in rows])
+    print(f"{label} ({len(rows)}): MAE_A {mae_a:.4f}, MAE_beta {mae_b:.4f}")
+
+
 def seeds_of(spec: str) -> list[int]:
     if "-" in spec:
         lo, hi = spec.split("-")
@@ -217,40 +226,20 @@ def main() -> None:
             print(f"{seed:4d}  the reference view did not register in COLMAP's largest model")
         rows.append(row)
     done = [r for r in rows if "sfm" in r]
-    sim_mae_a = np.mean([abs(r["sim"]["airlight"] - r["airlight"]) for r in rows])
-    sim_mae_b = np.mean([abs(r["sim"]["beta"] - r["beta"]) for r in rows])
-    print(f"simulator's model, all {len(rows)} seeds: MAE_A {sim_mae_a:.4f}, MAE_beta {sim_mae_b:.4f}")
+    report("simulator's models, every seed", rows, "sim")
     if done:
-        for key in ("sfm", "sim"):
-            mae_a = np.mean([abs(r[key]["airlight"] - r["airlight"]) for r in done])
-            mae_b = np.mean([abs(r[key]["beta"] - r["beta"]) for r in done])
-            label = "COLMAP model" if key == "sfm" else "simulator's model"
-            print(
-                f"{label:18s}: MAE_A {mae_a:.4f}, MAE_beta {mae_b:.4f} per scene unit over {len(done)} seeds"
-            )
-        trusted = [r for r in done if r["sfm"]["identifiable"]]
-        if trusted:
-            mae_a = np.mean([abs(r["sfm"]["airlight"] - r["airlight"]) for r in trusted])
-            mae_b = np.mean([abs(r["sfm"]["beta"] - r["beta"]) for r in trusted])
-            print(
-                f"COLMAP models murk calls identifiable ({len(trusted)}): "
-                f"MAE_A {mae_a:.4f}, MAE_beta {mae_b:.4f}"
-            )
-        flagged = sum(not r["sfm"]["identifiable"] for r in done)
-        print(f"registered {len(done)}/{len(rows)}; flagged not identifiable on the COLMAP model: {flagged}")
+        report("COLMAP models, every registered seed", done, "sfm")
+        report("simulator's models of the same seeds", done, "sim")
+        report("COLMAP models murk calls identifiable", [r for r in done if r["sfm"]["identifiable"]], "sfm")
         # A similarity reconstruction has one unit: the centres' and the depths' scales agree. When
         # they do not, the model is distorted (small baselines leave SfM a bas-relief ambiguity),
         # and no β per model unit is a β per scene unit.
         sound = [
             r for r in done if abs(r["sfm"]["unit_from_depths"] / r["sfm"]["unit_from_centres"] - 1) < 0.05
         ]
-        if sound:
-            mae_a = np.mean([abs(r["sfm"]["airlight"] - r["airlight"]) for r in sound])
-            mae_b = np.mean([abs(r["sfm"]["beta"] - r["beta"]) for r in sound])
-            print(
-                f"COLMAP models whose two unit estimates agree within 5 % ({len(sound)}): "
-                f"MAE_A {mae_a:.4f}, MAE_beta {mae_b:.4f}"
-            )
+        report("COLMAP models whose two unit estimates agree within 5 %", sound, "sfm")
+        flagged = sum(not r["sfm"]["identifiable"] for r in done)
+        print(f"registered {len(done)}/{len(rows)}; flagged not identifiable on the COLMAP model: {flagged}")
     (a.out / "survey.json").write_text(json.dumps(rows, indent=1))
 
 
