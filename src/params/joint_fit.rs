@@ -25,6 +25,7 @@
 
 use faer::linalg::solvers::{DenseSolveCore, Solve};
 use faer::{Mat, Side};
+use rayon::prelude::*;
 
 use crate::mvs::View;
 use crate::params::point_ratio::{blurred_ratio_samples, RatioSample};
@@ -140,9 +141,25 @@ pub fn fit_joint(
     if sources.is_empty() {
         return None;
     }
-    let samples = blurred_ratio_samples(reference, sources, sparse);
+    fit_joint_samples(
+        &blurred_ratio_samples(reference, sources, sparse),
+        sparse,
+        priors,
+    )
+}
+
+/// [`fit_joint`] on samples already taken by [`blurred_ratio_samples`] (one `Vec` per source),
+/// with `sparse` giving the median depth. `None` without sources or points.
+pub fn fit_joint_samples(
+    samples: &[Vec<RatioSample>],
+    sparse: &SparseDepth,
+    priors: &JointPriors,
+) -> Option<JointFit> {
+    if samples.is_empty() {
+        return None;
+    }
     let median_depth = f64::from(sparse.depth_quantile(0.5)?);
-    Some(fit_equations(&samples, median_depth, priors))
+    Some(fit_equations(samples, median_depth, priors))
 }
 
 /// The fit of the module docs over per-source samples; `median_depth` (scene units) scales the
@@ -238,20 +255,24 @@ fn source_jackknife(
     if n_src < MIN_JACKKNIFE_SOURCES {
         return None;
     }
-    let mut fits: Vec<[f64; 2]> = Vec::with_capacity(n_src);
-    let mut subset: Vec<Equation> = Vec::with_capacity(eqs.len());
-    for left_out in 0..n_src {
-        subset.clear();
-        subset.extend(eqs.iter().filter(|e| e.source != left_out).copied());
-        if subset.len() < MIN_EQUATIONS {
-            continue;
-        }
-        let mut solver = Solver::new(&subset, n_src, priors);
-        solver.theta.copy_from_slice(theta);
-        if solver.run().is_some() {
-            fits.push([solver.theta[0], solver.theta[1]]);
-        }
-    }
+    // The refits are independent; `collect` keeps source order, so the sums below are
+    // deterministic whatever the thread count.
+    let fits: Vec<[f64; 2]> = (0..n_src)
+        .into_par_iter()
+        .filter_map(|left_out| {
+            let subset: Vec<Equation> = eqs
+                .iter()
+                .filter(|e| e.source != left_out)
+                .copied()
+                .collect();
+            if subset.len() < MIN_EQUATIONS {
+                return None;
+            }
+            let mut solver = Solver::new(&subset, n_src, priors);
+            solver.theta.copy_from_slice(theta);
+            solver.run().map(|_| [solver.theta[0], solver.theta[1]])
+        })
+        .collect();
     let s = fits.len();
     if s < MIN_JACKKNIFE_SOURCES {
         return None;

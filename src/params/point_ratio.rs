@@ -290,8 +290,16 @@ pub fn beta_from_point_ratios(
     sparse: &SparseDepth,
     airlight: f32,
 ) -> Option<PointRatioFit> {
-    // Sampled once; only the equations depend on A.
-    let samples = blurred_ratio_samples(reference, sources, sparse);
+    beta_from_ratio_samples(&blurred_ratio_samples(reference, sources, sparse), airlight)
+}
+
+/// [`beta_from_point_ratios`] on samples already taken by [`blurred_ratio_samples`] (one
+/// `Vec` per source), so that a caller that also runs the joint fit blurs and samples once.
+pub fn beta_from_ratio_samples(
+    samples: &[Vec<RatioSample>],
+    airlight: f32,
+) -> Option<PointRatioFit> {
+    // Only the equations depend on A.
     let per_source: Vec<Vec<(f64, f64)>> = samples
         .iter()
         .map(|s| ratio_equations(s, airlight))
@@ -300,8 +308,8 @@ pub fn beta_from_point_ratios(
     // Each source's β with its standard error widened by what an airlight error of
     // ±AIRLIGHT_SIGMA moves it: sources at different depth differences respond differently to
     // a wrong A₀, and that disagreement is not evidence of an exposure change.
-    let mut terms = Vec::with_capacity(sources.len());
-    for (eqs, samples) in per_source.iter().zip(&samples) {
+    let mut terms = Vec::with_capacity(samples.len());
+    for (eqs, samples) in per_source.iter().zip(samples) {
         let Some(f) = fit_through_origin(eqs) else {
             continue;
         };

@@ -39,8 +39,8 @@ use crate::error::{MurkError, Result};
 use crate::image::ImageF32;
 use crate::monitor::Monitor;
 use crate::mvs::{estimate_depth, CostKind, DehazingOptions, PlaneSet, SgmParams, View};
-use crate::params::joint_fit::{fit_joint, Identifiability, JointFit, JointPriors};
-use crate::params::point_ratio::{beta_from_point_ratios, PointRatioFit};
+use crate::params::joint_fit::{fit_joint_samples, Identifiability, JointFit, JointPriors};
+use crate::params::point_ratio::{beta_from_ratio_samples, blurred_ratio_samples, PointRatioFit};
 use crate::params::residual::{paired_improvement_t, sparse_residuals};
 use crate::params::sparse::{SparseDepth, SparseSample};
 
@@ -486,9 +486,10 @@ pub fn search_scattering(
     let delta = (params.delta_px as f64 / f as f64).round() as usize;
     // Step 1 from the points, at full resolution (the equations need the images' own pixels).
     // The joint fit always runs: its verdict says whether the data determine β at all.
-    let joint = fit_joint(
-        reference,
-        sources,
+    // The blurred samples are taken once, for the joint fit and the point-ratio fallback.
+    let samples = blurred_ratio_samples(reference, sources, sparse);
+    let joint = fit_joint_samples(
+        &samples,
         sparse,
         &JointPriors {
             airlight: f64::from(airlight_initial),
@@ -515,7 +516,7 @@ pub fn search_scattering(
         })
         .map(|j| ((j.airlight as f32).clamp(1e-3, 1.0), j.beta as f32));
     let point_ratio = (from_joint.is_none() && params.beta_from_points)
-        .then(|| beta_from_point_ratios(reference, sources, sparse, airlight_initial))
+        .then(|| beta_from_ratio_samples(&samples, airlight_initial))
         .flatten();
     let from_ratio = point_ratio
         .filter(PointRatioFit::is_reliable)

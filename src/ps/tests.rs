@@ -607,8 +607,9 @@ fn experiment_g_shape() {
 }
 
 #[test]
-#[ignore = "experiment: kernel build time on the simulator's sphere vs the initial plane"]
+#[ignore = "experiment: kernel build time on the simulator's sphere, the initial plane and the pipeline's shapes"]
 fn experiment_kernel_build_time() {
+    use crate::ps::integrate::normals_from_depth;
     use crate::ps::physics::{FTable, ForwardKernel, SurfaceGeometry};
     use crate::ps::pipeline::back_project;
     let side: usize = std::env::var("MURK_PS_SIDE")
@@ -626,26 +627,69 @@ fn experiment_kernel_build_time() {
     let sim = simulate_ps(&cfg, &Monitor::noop()).unwrap();
     let cap = &sim.capture;
     let (w, h) = cap.dims();
+    let params = PsParams {
+        initial_distance_mm: sim.initial_distance_mm,
+        support_r: r,
+        tolerance: 0.0,
+        ..PsParams::default()
+    };
+    let layout = params.kernel_layout().unwrap();
     let plane: Vec<f32> = vec![sim.initial_distance_mm as f32; w * h];
-    for (name, depth, normals) in [
-        ("sphere", sim.gt_depth_mm.clone(), sim.gt_normals.clone()),
-        ("plane", plane, vec![[0.0f32, 0.0, -1.0]; w * h]),
-    ] {
+    let mut shapes = vec![
+        (
+            "sphere".to_string(),
+            sim.gt_depth_mm.clone(),
+            sim.gt_normals.clone(),
+        ),
+        ("plane".to_string(), plane, vec![[0.0f32, 0.0, -1.0]; w * h]),
+    ];
+    for its in [1, 2] {
+        let out = photometric_stereo(
+            cap,
+            &PsParams {
+                max_iterations: its,
+                ..params.clone()
+            },
+            &Monitor::noop(),
+        )
+        .unwrap();
+        let n = normals_from_depth(&cap.intrinsics, w, h, &out.depth_mm, &cap.mask);
+        shapes.push((format!("after {its} iteration(s)"), out.depth_mm, n));
+    }
+    for (name, depth, normals) in shapes {
+        let points = back_project(&cap.intrinsics, w, &depth, &cap.mask);
+        // Pixels the far cells must sum one by one (oblique view, `CELL_MIN_COS_VIEW`).
+        let oblique = (0..w * h)
+            .filter(|&p| {
+                let (q, n) = (points[p], normals[p]);
+                let d = (q[0] * q[0] + q[1] * q[1] + q[2] * q[2]).sqrt();
+                cap.mask[p] && -(q[0] * n[0] + q[1] * n[1] + q[2] * n[2]) / d < 0.3
+            })
+            .count();
         let geom = SurfaceGeometry {
             width: w,
             height: h,
             intrinsics: cap.intrinsics,
-            points_mm: back_project(&cap.intrinsics, w, &depth, &cap.mask),
+            points_mm: points,
             normals,
             mask: cap.mask.clone(),
             emission: FacetEmission::default(),
         };
-        let t = std::time::Instant::now();
-        let k = ForwardKernel::build(FTable::global(), &cap.medium, &geom, r).unwrap();
-        eprintln!(
-            "{name}: build {:.2} s, ε {:.3e}",
-            t.elapsed().as_secs_f64(),
-            k.epsilon()
-        );
+        for _ in 0..2 {
+            let t = std::time::Instant::now();
+            let k = ForwardKernel::build_with(
+                FTable::global(),
+                &cap.medium,
+                &geom,
+                &layout,
+                params.far_field,
+            )
+            .unwrap();
+            eprintln!(
+                "{name}: build {:.2} s, ε {:.3e}, oblique pixels {oblique}",
+                t.elapsed().as_secs_f64(),
+                k.epsilon()
+            );
+        }
     }
 }

@@ -188,6 +188,13 @@ fn check_size(req: &pb::JobRequest, max: usize) -> Result<(), MurkError> {
                 "sparse_points".into(),
                 p.sparse_points.iter().map(|q| q.encoded_len()).sum(),
             ));
+            v.push((
+                "sparse_point_sources".into(),
+                p.sparse_point_sources
+                    .iter()
+                    .map(|&m| prost::encoding::encoded_len_varint(u64::from(m)))
+                    .sum(),
+            ));
             v
         }
         Some(pb::job_request::Method::PhotometricStereo(p)) => {
