@@ -123,14 +123,15 @@ fn bench(c: &mut Criterion) {
         for s in &out.iterations {
             eprintln!(
                 "  iteration {}: kernel {:.2} s ({:.0} MiB), BiCGStab {:.2} s ({:?} iterations), \
-                 normals {:.3} s, integration {:.3} s",
+                 normals {:.3} s, integration {:.3} s, backscatter tail {:.3} s",
                 s.iteration,
                 s.kernel_s,
                 s.kernel_bytes as f64 / (1 << 20) as f64,
                 s.solve_s,
                 s.solver_iterations,
                 s.normals_s,
-                s.integrate_s
+                s.integrate_s,
+                s.tail_s
             );
         }
     }

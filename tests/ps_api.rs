@@ -194,6 +194,14 @@ async fn bad_requests_name_the_field_and_nothing_is_queued() {
         ("smoothness_s", Box::new(|r| r.smoothness_s = Some(-1.0))),
         ("shadow_ratio", Box::new(|r| r.shadow_ratio = Some(1.5))),
         (
+            "kernel_rebuild_tolerance",
+            Box::new(|r| r.kernel_rebuild_tolerance = Some(-0.1)),
+        ),
+        (
+            "kernel_rebuild_tolerance",
+            Box::new(|r| r.kernel_rebuild_tolerance = Some(f64::NAN)),
+        ),
+        (
             "solver_tolerance",
             Box::new(|r| r.solver_tolerance = Some(0.0)),
         ),

@@ -93,6 +93,10 @@ pub struct PsArgs {
     /// Stop when the mean depth change falls below this fraction (0 = run every iteration).
     #[arg(long, default_value_t = 1e-3)]
     pub tolerance: f64,
+    /// Reuse an earlier iteration's kernel while the shape has moved less than this fraction of
+    /// its mean depth since it was built (0 = rebuild it every iteration).
+    #[arg(long, default_value_t = 1e-3)]
+    pub kernel_rebuild_tolerance: f64,
     /// Full model or the backscatter-only baseline.
     #[arg(long, value_enum, default_value_t = ModeArg::Full)]
     pub mode: ModeArg,
@@ -136,6 +140,7 @@ pub fn run(a: PsArgs) -> anyhow::Result<()> {
         near_radius_px: a.near_radius_px,
         max_iterations: a.iterations,
         tolerance: a.tolerance,
+        kernel_rebuild_tolerance: a.kernel_rebuild_tolerance,
         mode: match a.mode {
             ModeArg::Full => PsMode::Full,
             ModeArg::BackscatterOnly => PsMode::BackscatterOnly,
@@ -303,16 +308,21 @@ pub fn print_iteration_table(out: &PsResult, gt: Option<&[[f32; 3]]>) {
             _ => "-".into(),
         };
         let iters = s.solver_iterations.iter().max().copied().unwrap_or(0);
+        let kernel = if s.kernel_reused {
+            "reused".to_string()
+        } else {
+            format!("{:.2}", s.kernel_s)
+        };
         println!(
-            "{:>4} {:>10} {:>10.4} {:>12.1} {:>9} {:>8.2} {:>8.2} {:>8.2}",
+            "{:>4} {:>10} {:>10.4} {:>12.1} {:>9} {:>8} {:>8.2} {:>8.2}",
             s.iteration,
             err,
             s.relative_depth_change,
             s.mean_depth_mm,
             iters,
-            s.kernel_s,
+            kernel,
             s.solve_s,
-            s.normals_s + s.integrate_s
+            s.normals_s + s.integrate_s + s.tail_s
         );
     }
 }

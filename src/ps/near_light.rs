@@ -206,7 +206,6 @@ pub(crate) fn refine_exact_g(
     mut rho: f64,
 ) -> Option<([f64; 3], f64)> {
     const STEPS: usize = 6;
-    const DC: f64 = 1e-3;
     let beta = medium.beta_per_mm;
     let sigma = medium.sigma_per_mm;
     for _ in 0..STEPS {
@@ -235,9 +234,7 @@ pub(crate) fn refine_exact_g(
             let t = sigma * d;
             let direct = light.intensity * (-t).exp() / (d * d);
             let fwd = beta * light.intensity / (2.0 * std::f64::consts::PI * d);
-            let gc = g.eval(t, c);
-            let dg = (g.eval(t, (c + DC).min(1.0)) - g.eval(t, (c - DC).max(-1.0)))
-                / ((c + DC).min(1.0) - (c - DC).max(-1.0));
+            let (gc, dg) = g.eval_with_slope(t, c);
             let shade = direct * c.max(0.0) + fwd * gc;
             let dshade = direct * if c > 0.0 { 1.0 } else { 0.0 } + fwd * dg;
             let r = obs - rho * shade;

@@ -82,6 +82,13 @@ pub struct PsParams {
     pub max_iterations: usize,
     /// Stop when the mean |Δz| between iterations falls below this fraction of the mean depth.
     pub tolerance: f64,
+    /// Reuse the kernel K̂ of an earlier iteration while the mean |Δz| between the shape it was
+    /// built from and the current shape stays below this fraction of the mean depth; 0 rebuilds
+    /// it every iteration. K̂ depends smoothly on the shape (points and normals), so a shape that
+    /// moved by 10⁻³ of its distance changes the forward scatter it removes (about a tenth of
+    /// the signal) by about 10⁻⁴ of the signal, far below the noise, while a build is most of an
+    /// iteration's time (docs/BENCHMARKS.md).
+    pub kernel_rebuild_tolerance: f64,
     /// Far-field cell size s of K̂ in pixels ([`KernelLayout`]): beyond `near_radius_px` the
     /// support is stored per s×s cell. 1 keeps the reference's exact r×r window.
     pub far_cell: usize,
@@ -128,6 +135,7 @@ impl Default for PsParams {
             facet_emission: FacetEmission::default(),
             max_iterations: 5,
             tolerance: 1e-3,
+            kernel_rebuild_tolerance: 1e-3,
             mode: PsMode::Full,
             median_filter: true,
             backscatter_tail: true,
@@ -233,6 +241,13 @@ impl PsParams {
                 format!("must be finite and ≥ 0, got {}", self.tolerance),
             ));
         }
+        let k = self.kernel_rebuild_tolerance;
+        if !k.is_finite() || !(0.0..1.0).contains(&k) {
+            return Err(MurkError::invalid(
+                "kernel_rebuild_tolerance",
+                format!("must be in [0, 1) (a fraction of the mean depth), got {k}"),
+            ));
+        }
         if !self.shadow_ratio.is_finite() || !(0.0..1.0).contains(&self.shadow_ratio) {
             return Err(MurkError::invalid(
                 "shadow_ratio",
@@ -283,14 +298,19 @@ pub struct PsIterationStats {
     pub kernel_bytes: usize,
     /// Pixels whose normal was filled from neighbours.
     pub filled_pixels: usize,
-    /// Seconds spent building K̂.
+    /// Seconds spent building K̂ (0 when it was reused).
     pub kernel_s: f64,
+    /// K̂ was an earlier iteration's: the shape had moved less than
+    /// [`PsParams::kernel_rebuild_tolerance`] since it was built.
+    pub kernel_reused: bool,
     /// Seconds in BiCGStab.
     pub solve_s: f64,
     /// Seconds in photometric stereo.
     pub normals_s: f64,
     /// Seconds in integration, scale choice and the normal update.
     pub integrate_s: f64,
+    /// Seconds computing the backscatter tail from the current shape (0 without it).
+    pub tail_s: f64,
     /// The distance fit that set this iteration's scale (`None` with a fixed distance, or
     /// when the fit had too few usable pixels and the previous mean depth was kept).
     pub distance_fit: Option<DistanceFit>,
@@ -428,6 +448,11 @@ pub fn photometric_stereo(
     let mut normals_history = Vec::new();
     let mut last = None;
     let total = params.max_iterations as f32;
+    // The kernel with the depth it was built from, and the last solve's unknowns (BiCGStab's
+    // start in the next iteration: the shape, and so the solution, moves little between
+    // iterations).
+    let mut kernel_cache: Option<(ForwardKernel, Vec<f32>)> = None;
+    let mut last_solution: Option<Vec<f64>> = None;
 
     for it in 0..params.max_iterations {
         let stage = |name: &str, frac: f32| {
@@ -438,6 +463,7 @@ pub fn photometric_stereo(
         };
         let points = back_project(&intr, width, &depth, &mask);
         let tail_corrected;
+        let t = Instant::now();
         let observed: &[Vec<f32>] = if params.backscatter_tail && medium.beta_per_mm > 0.0 {
             let tail = backscatter_tail(ft, &medium, &capture.lights, &points, &mask);
             tail_corrected = observed
@@ -449,6 +475,7 @@ pub fn photometric_stereo(
         } else {
             &observed
         };
+        let tail_s = t.elapsed().as_secs_f64();
         let mut stats = PsIterationStats {
             iteration: it + 1,
             relative_depth_change: 0.0,
@@ -460,9 +487,11 @@ pub fn photometric_stereo(
             kernel_bytes: 0,
             filled_pixels: 0,
             kernel_s: 0.0,
+            kernel_reused: false,
             solve_s: 0.0,
             normals_s: 0.0,
             integrate_s: 0.0,
+            tail_s,
             distance_fit: None,
         };
 
@@ -488,35 +517,46 @@ pub fn photometric_stereo(
             true => {
                 stage("forward-scatter kernel", 0.0);
                 let t = Instant::now();
-                let geom = SurfaceGeometry {
-                    width,
-                    height,
-                    intrinsics: intr,
-                    points_mm: points.clone(),
-                    normals: shape_normals.clone(),
-                    mask: mask.clone(),
-                    emission: params.facet_emission,
-                };
-                let kernel = ForwardKernel::build_monitored(
-                    ft,
-                    &medium,
-                    &geom,
-                    &params.kernel_layout()?,
-                    params.far_field,
-                    monitor,
-                )?;
-                stats.kernel_s = t.elapsed().as_secs_f64();
+                let reuse = kernel_cache.as_ref().is_some_and(|(_, built_from)| {
+                    relative_change(built_from, &depth, &masked) < params.kernel_rebuild_tolerance
+                });
+                if !reuse {
+                    // The old kernel goes first: two at once would double the peak memory.
+                    drop(kernel_cache.take());
+                    let geom = SurfaceGeometry {
+                        width,
+                        height,
+                        intrinsics: intr,
+                        points_mm: points.clone(),
+                        normals: shape_normals.clone(),
+                        mask: mask.clone(),
+                        emission: params.facet_emission,
+                    };
+                    let kernel = ForwardKernel::build_monitored(
+                        ft,
+                        &medium,
+                        &geom,
+                        &params.kernel_layout()?,
+                        params.far_field,
+                        monitor,
+                    )?;
+                    kernel_cache = Some((kernel, depth.clone()));
+                    stats.kernel_s = t.elapsed().as_secs_f64();
+                }
+                let (kernel, _) = kernel_cache.as_ref().expect("built above or kept");
+                stats.kernel_reused = reuse;
                 stats.kernel_bytes = kernel.bytes();
                 stats.epsilon = kernel.epsilon();
                 monitor.checkpoint()?;
                 stage("forward-scatter removal", 0.3);
                 let t = Instant::now();
                 let solved = solve_reflected(
-                    &kernel,
+                    kernel,
                     observed,
                     &points,
                     &medium,
                     &params.solver,
+                    last_solution.as_deref(),
                     &monitor.sub((it as f32 + 0.3) / total, (it as f32 + 0.6) / total),
                 )?;
                 stats.solve_s = t.elapsed().as_secs_f64();
@@ -528,6 +568,7 @@ pub fn photometric_stereo(
                     .fold(0.0, f64::max);
                 stats.solver_iterations = solved.report.iterations;
                 stats.constant_term = solved.constant_term;
+                last_solution = Some(solved.solution);
                 solved.reflected
             }
         };
@@ -593,15 +634,10 @@ pub fn photometric_stereo(
             }
             stats.distance_fit = fit;
         }
-        let change = masked
-            .iter()
-            .map(|&p| f64::from((new_depth[p] - depth[p]).abs()))
-            .sum::<f64>()
-            / masked.len() as f64;
+        stats.relative_depth_change = relative_change(&depth, &new_depth, &masked);
         depth = new_depth;
         shape_normals = normals_from_depth(&intr, width, height, &depth, &mask);
         stats.mean_depth_mm = mean_masked(&depth, &masked);
-        stats.relative_depth_change = change / stats.mean_depth_mm.max(1e-9);
         stats.integrate_s = t.elapsed().as_secs_f64();
         tracing::debug!(?stats, "photometric stereo iteration");
         let converged = stats.relative_depth_change < params.tolerance;
@@ -639,18 +675,23 @@ pub(crate) struct ReflectedSolve {
     pub(crate) constant_term: Vec<f64>,
     /// BiCGStab's iterations and residuals.
     pub(crate) report: crate::ps::bicgstab::BicgstabReport,
+    /// The unknowns as solved (per light: the masked pixels' L_s, then the constant term), to
+    /// start the next solve from.
+    pub(crate) solution: Vec<f64>,
 }
 
 /// Step 3: the reflected component L_s of every light from its backscatter-removed image
 /// `observed[i]` by block BiCGStab on Eq. 4.52 with `kernel` (built over `kernel`'s masked
-/// pixels at `points_mm`), started from the observations with the camera-path attenuation
-/// e^{−σ d} undone.
+/// pixels at `points_mm`), started from `start` (an earlier [`ReflectedSolve::solution`] over
+/// the same mask) or else from the observations with the camera-path attenuation e^{−σ d}
+/// undone.
 pub(crate) fn solve_reflected(
     kernel: &ForwardKernel,
     observed: &[Vec<f32>],
     points_mm: &[[f32; 3]],
     medium: &Medium,
     solver: &BicgstabParams,
+    start: Option<&[f64]>,
     monitor: &Monitor,
 ) -> Result<ReflectedSolve> {
     let m = observed.len();
@@ -667,6 +708,9 @@ pub(crate) fn solve_reflected(
             x[i * dim + k] = f64::from(obs[p]) / diag;
         }
     }
+    if let Some(s) = start.filter(|s| s.len() == x.len() && s.iter().all(|v| v.is_finite())) {
+        x.copy_from_slice(s);
+    }
     let report = bicgstab_block(&Augmented(kernel), &b, &mut x, m, solver, monitor)?;
     let reflected = (0..m)
         .map(|i| {
@@ -681,12 +725,23 @@ pub(crate) fn solve_reflected(
         reflected,
         constant_term: (0..m).map(|i| x[i * dim + dim - 1]).collect(),
         report,
+        solution: x,
     })
 }
 
 fn norm(v: [f32; 3]) -> f64 {
     let [x, y, z] = v.map(f64::from);
     (x * x + y * y + z * z).sqrt()
+}
+
+/// Mean |b − a| over `masked` divided by b's mean there.
+fn relative_change(a: &[f32], b: &[f32], masked: &[usize]) -> f64 {
+    let change = masked
+        .iter()
+        .map(|&p| f64::from((b[p] - a[p]).abs()))
+        .sum::<f64>()
+        / masked.len().max(1) as f64;
+    change / mean_masked(b, masked).max(1e-9)
 }
 
 fn mean_masked(v: &[f32], masked: &[usize]) -> f64 {

@@ -246,6 +246,9 @@ fn params_from_proto(
             req.max_iterations as usize
         },
         tolerance: req.tolerance.unwrap_or(d.tolerance),
+        kernel_rebuild_tolerance: req
+            .kernel_rebuild_tolerance
+            .unwrap_or(d.kernel_rebuild_tolerance),
         mode,
         median_filter: !req.no_median_filter,
         backscatter_tail: !req.no_backscatter_tail,
@@ -291,6 +294,8 @@ pub fn canonicalize_ps_request(req: &mut pb::PhotometricStereoRequest) {
         req.facet_emission = facet_emission_to_proto(d.facet_emission) as i32;
     }
     req.tolerance.get_or_insert(d.tolerance);
+    req.kernel_rebuild_tolerance
+        .get_or_insert(d.kernel_rebuild_tolerance);
     req.smoothness_s.get_or_insert(d.smoothness_s);
     req.shadow_ratio.get_or_insert(d.shadow_ratio);
     req.solver_tolerance.get_or_insert(d.solver.rel_tolerance);
@@ -354,6 +359,7 @@ pub fn ps_request_to_proto(capture: &PsCapture, params: &PsParams) -> pb::Photom
         auto_support: false,
         max_iterations: params.max_iterations as u32,
         tolerance: Some(params.tolerance),
+        kernel_rebuild_tolerance: Some(params.kernel_rebuild_tolerance),
         mode: match params.mode {
             PsMode::Full => pb::PsMode::Full,
             PsMode::BackscatterOnly => pb::PsMode::BackscatterOnly,
@@ -409,9 +415,11 @@ pub fn ps_to_proto(out: &PsResult, with_history: bool) -> pb::PhotometricStereoR
                 kernel_bytes: s.kernel_bytes as u64,
                 filled_pixels: s.filled_pixels as u32,
                 kernel_seconds: s.kernel_s,
+                kernel_reused: s.kernel_reused,
                 solve_seconds: s.solve_s,
                 normals_seconds: s.normals_s,
                 integrate_seconds: s.integrate_s,
+                backscatter_tail_seconds: s.tail_s,
                 distance_fit: s.distance_fit.as_ref().map(distance_fit_to_proto),
             })
             .collect(),
@@ -476,9 +484,11 @@ pub fn ps_from_result(r: &pb::PhotometricStereoResult, mask: &[bool]) -> Result<
                 kernel_bytes: s.kernel_bytes as usize,
                 filled_pixels: s.filled_pixels as usize,
                 kernel_s: s.kernel_seconds,
+                kernel_reused: s.kernel_reused,
                 solve_s: s.solve_seconds,
                 normals_s: s.normals_seconds,
                 integrate_s: s.integrate_seconds,
+                tail_s: s.backscatter_tail_seconds,
                 distance_fit: s.distance_fit.as_ref().map(distance_fit_from_proto),
             })
             .collect(),

@@ -132,6 +132,7 @@ class PhotometricStereoRequest(_message.Message):
     FACET_EMISSION_FIELD_NUMBER: _builtins.int
     FIX_DISTANCE_FIELD_NUMBER: _builtins.int
     NO_BACKSCATTER_TAIL_FIELD_NUMBER: _builtins.int
+    KERNEL_REBUILD_TOLERANCE_FIELD_NUMBER: _builtins.int
     beta_per_mm: _builtins.float
     """Scattering coefficient beta, per mm, finite and >= 0."""
     sigma_per_mm: _builtins.float
@@ -206,6 +207,12 @@ class PhotometricStereoRequest(_message.Message):
     the surface, so the subtraction removes too much; murk adds the excess back from each
     iteration's shape (Eq. 4.33 over [d, infinity)).
     """
+    kernel_rebuild_tolerance: _builtins.float
+    """Reuse an earlier iteration's kernel while the mean |dz| between the shape it was built from
+    and the current shape stays below this fraction of the mean depth, [0, 1). The kernel
+    depends smoothly on the shape and its build is most of an iteration's time. Unset = 1e-3;
+    0 rebuilds it every iteration (the reference).
+    """
     @_builtins.property
     def lights(self) -> _containers.RepeatedCompositeFieldContainer[Global___PsLight]:
         """One entry per light, 3 to 64. Every image must be single-channel and have the same size as
@@ -254,11 +261,14 @@ class PhotometricStereoRequest(_message.Message):
         facet_emission: Global___PsFacetEmission.ValueType = ...,
         fix_distance: _builtins.bool = ...,
         no_backscatter_tail: _builtins.bool = ...,
+        kernel_rebuild_tolerance: _builtins.float | None = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _typing.Literal["_shadow_ratio", b"_shadow_ratio", "_smoothness_s", b"_smoothness_s", "_solver_max_iterations", b"_solver_max_iterations", "_solver_tolerance", b"_solver_tolerance", "_tolerance", b"_tolerance", "initial_depth_mm", b"initial_depth_mm", "intrinsics", b"intrinsics", "mask", b"mask", "shadow_ratio", b"shadow_ratio", "smoothness_s", b"smoothness_s", "solver_max_iterations", b"solver_max_iterations", "solver_tolerance", b"solver_tolerance", "tolerance", b"tolerance"]  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["_kernel_rebuild_tolerance", b"_kernel_rebuild_tolerance", "_shadow_ratio", b"_shadow_ratio", "_smoothness_s", b"_smoothness_s", "_solver_max_iterations", b"_solver_max_iterations", "_solver_tolerance", b"_solver_tolerance", "_tolerance", b"_tolerance", "initial_depth_mm", b"initial_depth_mm", "intrinsics", b"intrinsics", "kernel_rebuild_tolerance", b"kernel_rebuild_tolerance", "mask", b"mask", "shadow_ratio", b"shadow_ratio", "smoothness_s", b"smoothness_s", "solver_max_iterations", b"solver_max_iterations", "solver_tolerance", b"solver_tolerance", "tolerance", b"tolerance"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["_shadow_ratio", b"_shadow_ratio", "_smoothness_s", b"_smoothness_s", "_solver_max_iterations", b"_solver_max_iterations", "_solver_tolerance", b"_solver_tolerance", "_tolerance", b"_tolerance", "auto_support", b"auto_support", "beta_per_mm", b"beta_per_mm", "facet_emission", b"facet_emission", "far_cell", b"far_cell", "far_field", b"far_field", "fix_distance", b"fix_distance", "initial_depth_mm", b"initial_depth_mm", "initial_distance_mm", b"initial_distance_mm", "intrinsics", b"intrinsics", "lights", b"lights", "linear_g", b"linear_g", "mask", b"mask", "max_iterations", b"max_iterations", "mode", b"mode", "near_radius_px", b"near_radius_px", "no_backscatter_tail", b"no_backscatter_tail", "no_median_filter", b"no_median_filter", "return_iteration_normals", b"return_iteration_normals", "shadow_ratio", b"shadow_ratio", "sigma_per_mm", b"sigma_per_mm", "smoothness_s", b"smoothness_s", "solver_max_iterations", b"solver_max_iterations", "solver_tolerance", b"solver_tolerance", "support_r", b"support_r", "tolerance", b"tolerance"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["_kernel_rebuild_tolerance", b"_kernel_rebuild_tolerance", "_shadow_ratio", b"_shadow_ratio", "_smoothness_s", b"_smoothness_s", "_solver_max_iterations", b"_solver_max_iterations", "_solver_tolerance", b"_solver_tolerance", "_tolerance", b"_tolerance", "auto_support", b"auto_support", "beta_per_mm", b"beta_per_mm", "facet_emission", b"facet_emission", "far_cell", b"far_cell", "far_field", b"far_field", "fix_distance", b"fix_distance", "initial_depth_mm", b"initial_depth_mm", "initial_distance_mm", b"initial_distance_mm", "intrinsics", b"intrinsics", "kernel_rebuild_tolerance", b"kernel_rebuild_tolerance", "lights", b"lights", "linear_g", b"linear_g", "mask", b"mask", "max_iterations", b"max_iterations", "mode", b"mode", "near_radius_px", b"near_radius_px", "no_backscatter_tail", b"no_backscatter_tail", "no_median_filter", b"no_median_filter", "return_iteration_normals", b"return_iteration_normals", "shadow_ratio", b"shadow_ratio", "sigma_per_mm", b"sigma_per_mm", "smoothness_s", b"smoothness_s", "solver_max_iterations", b"solver_max_iterations", "solver_tolerance", b"solver_tolerance", "support_r", b"support_r", "tolerance", b"tolerance"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    _WhichOneofReturnType__kernel_rebuild_tolerance: _TypeAlias = _typing.Literal["kernel_rebuild_tolerance"]  # noqa: Y015
+    _WhichOneofArgType__kernel_rebuild_tolerance: _TypeAlias = _typing.Literal["_kernel_rebuild_tolerance", b"_kernel_rebuild_tolerance"]  # noqa: Y015
     _WhichOneofReturnType__shadow_ratio: _TypeAlias = _typing.Literal["shadow_ratio"]  # noqa: Y015
     _WhichOneofArgType__shadow_ratio: _TypeAlias = _typing.Literal["_shadow_ratio", b"_shadow_ratio"]  # noqa: Y015
     _WhichOneofReturnType__smoothness_s: _TypeAlias = _typing.Literal["smoothness_s"]  # noqa: Y015
@@ -269,6 +279,8 @@ class PhotometricStereoRequest(_message.Message):
     _WhichOneofArgType__solver_tolerance: _TypeAlias = _typing.Literal["_solver_tolerance", b"_solver_tolerance"]  # noqa: Y015
     _WhichOneofReturnType__tolerance: _TypeAlias = _typing.Literal["tolerance"]  # noqa: Y015
     _WhichOneofArgType__tolerance: _TypeAlias = _typing.Literal["_tolerance", b"_tolerance"]  # noqa: Y015
+    @_typing.overload
+    def WhichOneof(self, oneof_group: _WhichOneofArgType__kernel_rebuild_tolerance) -> _WhichOneofReturnType__kernel_rebuild_tolerance | None: ...
     @_typing.overload
     def WhichOneof(self, oneof_group: _WhichOneofArgType__shadow_ratio) -> _WhichOneofReturnType__shadow_ratio | None: ...
     @_typing.overload
@@ -446,6 +458,8 @@ class PsIteration(_message.Message):
     NORMALS_SECONDS_FIELD_NUMBER: _builtins.int
     INTEGRATE_SECONDS_FIELD_NUMBER: _builtins.int
     DISTANCE_FIT_FIELD_NUMBER: _builtins.int
+    BACKSCATTER_TAIL_SECONDS_FIELD_NUMBER: _builtins.int
+    KERNEL_REUSED_FIELD_NUMBER: _builtins.int
     iteration: _builtins.int
     relative_depth_change: _builtins.float
     """Mean |dz| against the previous shape over the mean depth."""
@@ -460,6 +474,12 @@ class PsIteration(_message.Message):
     solve_seconds: _builtins.float
     normals_seconds: _builtins.float
     integrate_seconds: _builtins.float
+    backscatter_tail_seconds: _builtins.float
+    """Seconds computing the backscatter beyond the surface from the current shape (0 with
+    no_backscatter_tail).
+    """
+    kernel_reused: _builtins.bool
+    """The kernel was an earlier iteration's (see kernel_rebuild_tolerance); kernel_seconds is 0."""
     @_builtins.property
     def solver_iterations(self) -> _containers.RepeatedScalarFieldContainer[_builtins.int]:
         """BiCGStab iterations per light; empty when no kernel was solved."""
@@ -489,10 +509,12 @@ class PsIteration(_message.Message):
         normals_seconds: _builtins.float = ...,
         integrate_seconds: _builtins.float = ...,
         distance_fit: Global___PsDistanceFit | None = ...,
+        backscatter_tail_seconds: _builtins.float = ...,
+        kernel_reused: _builtins.bool = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["distance_fit", b"distance_fit"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["constant_term", b"constant_term", "distance_fit", b"distance_fit", "epsilon", b"epsilon", "filled_pixels", b"filled_pixels", "integrate_seconds", b"integrate_seconds", "iteration", b"iteration", "kernel_bytes", b"kernel_bytes", "kernel_seconds", b"kernel_seconds", "mean_depth_mm", b"mean_depth_mm", "normals_seconds", b"normals_seconds", "relative_depth_change", b"relative_depth_change", "solve_seconds", b"solve_seconds", "solver_iterations", b"solver_iterations", "solver_residual", b"solver_residual"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["backscatter_tail_seconds", b"backscatter_tail_seconds", "constant_term", b"constant_term", "distance_fit", b"distance_fit", "epsilon", b"epsilon", "filled_pixels", b"filled_pixels", "integrate_seconds", b"integrate_seconds", "iteration", b"iteration", "kernel_bytes", b"kernel_bytes", "kernel_reused", b"kernel_reused", "kernel_seconds", b"kernel_seconds", "mean_depth_mm", b"mean_depth_mm", "normals_seconds", b"normals_seconds", "relative_depth_change", b"relative_depth_change", "solve_seconds", b"solve_seconds", "solver_iterations", b"solver_iterations", "solver_residual", b"solver_residual"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
