@@ -162,15 +162,11 @@ pub fn fit_joint_samples(
     Some(fit_equations(samples, median_depth, priors))
 }
 
-/// The fit of the module docs over per-source samples; `median_depth` (scene units) scales the
-/// depth-difference test.
-pub fn fit_equations(
-    samples: &[Vec<RatioSample>],
-    median_depth: f64,
-    priors: &JointPriors,
-) -> JointFit {
+/// One [`Equation`] per sample whose intensities are clear of the clipping margins, tagged with
+/// its source's index.
+fn equations(samples: &[Vec<RatioSample>]) -> Vec<Equation> {
     let usable = |v: f64| v > CLIP_MARGIN && v < 1.0 - CLIP_MARGIN;
-    let eqs: Vec<Equation> = samples
+    samples
         .iter()
         .enumerate()
         .flat_map(|(source, ss)| {
@@ -183,7 +179,17 @@ pub fn fit_equations(
                     is: s.source,
                 })
         })
-        .collect();
+        .collect()
+}
+
+/// The fit of the module docs over per-source samples; `median_depth` (scene units) scales the
+/// depth-difference test.
+pub fn fit_equations(
+    samples: &[Vec<RatioSample>],
+    median_depth: f64,
+    priors: &JointPriors,
+) -> JointFit {
+    let eqs = equations(samples);
     let n_src = samples.len();
     let rms_dz = if eqs.is_empty() {
         0.0
@@ -612,18 +618,7 @@ mod tests {
     fn disagreeing_sources_widen_the_standard_errors() {
         let agree = synthetic(0.7, 0.4, &[1.0; 4], 1.0, 0.01, 11);
         let fit = fit_equations(&agree, 5.0, &priors(0.7));
-        let eqs: Vec<Equation> = agree
-            .iter()
-            .enumerate()
-            .flat_map(|(source, ss)| {
-                ss.iter().map(move |s| Equation {
-                    source,
-                    dz: s.depth_difference,
-                    ir: s.reference,
-                    is: s.source,
-                })
-            })
-            .collect();
+        let eqs = equations(&agree);
         let p = priors(0.7);
         let mut plain = Solver::new(&eqs, 4, &p);
         let cov = plain.run().unwrap();

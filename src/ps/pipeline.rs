@@ -699,18 +699,25 @@ pub(crate) fn solve_reflected(
     let count = kernel.masked_count();
     let dim = count + 1;
     let mut b = vec![0.0f64; dim * m];
-    let mut x = vec![0.0f64; dim * m];
     for (i, obs) in observed.iter().enumerate() {
         for k in 0..count {
-            let p = kernel.pixel_index(k);
-            b[i * dim + k] = f64::from(obs[p]);
-            let diag = (-medium.sigma_per_mm * norm(points_mm[p])).exp();
-            x[i * dim + k] = f64::from(obs[p]) / diag;
+            b[i * dim + k] = f64::from(obs[kernel.pixel_index(k)]);
         }
     }
-    if let Some(s) = start.filter(|s| s.len() == x.len() && s.iter().all(|v| v.is_finite())) {
-        x.copy_from_slice(s);
-    }
+    let mut x = match start.filter(|s| s.len() == b.len() && s.iter().all(|v| v.is_finite())) {
+        Some(s) => s.to_vec(),
+        None => {
+            let mut x = vec![0.0f64; dim * m];
+            for i in 0..m {
+                for k in 0..count {
+                    let p = kernel.pixel_index(k);
+                    let diag = (-medium.sigma_per_mm * norm(points_mm[p])).exp();
+                    x[i * dim + k] = b[i * dim + k] / diag;
+                }
+            }
+            x
+        }
+    };
     let report = bicgstab_block(&Augmented(kernel), &b, &mut x, m, solver, monitor)?;
     let reflected = (0..m)
         .map(|i| {

@@ -154,38 +154,20 @@ impl GTable {
     /// G(T, c): T < 0 reads as 0, c is clamped to [−1, 1], T > [`T_MAX`] is extrapolated (see
     /// the module documentation).
     pub fn eval(&self, t: f64, c: f64) -> f64 {
-        let t = t.max(0.0);
-        let sc = ((c.clamp(-1.0, 1.0) + 1.0) * 0.5) * (self.nc - 1) as f64;
-        let j = (sc as usize).min(self.nc - 2);
-        let fc = sc - j as f64;
-        let row = |i: usize| {
-            let r = i * self.nc + j;
-            self.ln_g[r] + fc * (self.ln_g[r + 1] - self.ln_g[r])
-        };
-        let last = self.nt - 1;
-        if t >= T_MAX {
-            let (t0, t1) = (t_at(last - 1, self.nt), T_MAX);
-            let (g0, g1) = (row(last - 1), row(last));
-            return (g1 + (g1 - g0) / (t1 - t0) * (t - t1)).exp();
-        }
-        let st = (t / T_MAX).sqrt() * last as f64;
-        let i = (st as usize).min(last - 1);
-        let ft = st - i as f64;
-        let (g0, g1) = (row(i), row(i + 1));
-        (g0 + ft * (g1 - g0)).exp()
+        self.eval_with_slope(t, c).0
     }
 
-    /// G(T, c) and ∂G/∂c from one lookup, for Gauss–Newton on the normal: the value is
-    /// [`GTable::eval`]'s exactly, the slope that of the interpolant in the cell (ln G is
-    /// bilinear in (√T, c), so ∂G/∂c = G·∂ln G/∂c), which a central difference of ±10⁻³ inside one
-    /// 2/256-wide cell reproduces at three times the cost. 0 beyond the clamp is not returned: at
-    /// c = ±1 the slope is the end cell's.
+    /// G(T, c) as [`GTable::eval`] and ∂G/∂c from the same lookup, for Gauss–Newton on the
+    /// normal: ln G is bilinear in (√T, c), so ∂G/∂c = G·∂ln G/∂c with the cell's slope in c, which
+    /// a central difference of ±10⁻³ inside one 2/256-wide cell reproduces at three times the
+    /// cost. At c = ±1 the slope is the end cell's (one-sided), not 0.
     pub fn eval_with_slope(&self, t: f64, c: f64) -> (f64, f64) {
         let t = t.max(0.0);
         let per_c = 0.5 * (self.nc - 1) as f64;
         let sc = ((c.clamp(-1.0, 1.0) + 1.0) * 0.5) * (self.nc - 1) as f64;
         let j = (sc as usize).min(self.nc - 2);
         let fc = sc - j as f64;
+        // ln G along c in row i at c, and its step across the cell.
         let row = |i: usize| {
             let r = i * self.nc + j;
             let step = self.ln_g[r + 1] - self.ln_g[r];
@@ -335,12 +317,12 @@ mod tests {
     }
 
     #[test]
-    fn value_with_slope_matches_eval_and_its_central_difference() {
+    fn slope_matches_the_difference_quotient_inside_a_cell() {
         let g = GTable::global();
         for &t in &[0.0, 0.3, 1.7, 6.0, 19.9, 24.0] {
             for &c in &[-1.0, -0.61, -0.2, 0.013, 0.4, 0.77, 0.999, 1.0] {
                 let (v, slope) = g.eval_with_slope(t, c);
-                assert_eq!(v, g.eval(t, c), "T {t}, c {c}");
+                assert!(v > 0.0 && v.is_finite(), "T {t}, c {c}: {v}");
                 // A difference inside c's cell (the grid step is 2/256).
                 let sc = (c + 1.0) * 0.5 * 256.0;
                 let j = (sc.floor() as i64).clamp(0, 255) as f64;
