@@ -137,16 +137,40 @@ impl FTable {
     /// Fractional u index, clamped to the table.
     #[inline(always)]
     fn u_index(&self, u: f64) -> (usize, f64) {
-        let su = (u.max(0.0).sqrt() * self.su_scale).min((self.nu - 1) as f64);
-        let i = (su as usize).min(self.nu - 2);
-        (i, su - i as f64)
+        self.u_split(self.u_coord(u))
     }
 
     /// Fractional v index, clamped to the table.
     #[inline(always)]
     fn v_index(&self, v: f64) -> (usize, f64) {
+        self.v_split(self.v_coord(v))
+    }
+
+    /// u's fractional grid coordinate, clamped to the table: the arithmetic half of the lookup,
+    /// which the kernel build computes for several entries at once
+    /// ([`super::kernel_batch`]); [`FTable::eval_diff_coords`] takes it.
+    #[inline(always)]
+    pub(crate) fn u_coord(&self, u: f64) -> f64 {
+        (u.max(0.0).sqrt() * self.su_scale).min((self.nu - 1) as f64)
+    }
+
+    /// v's fractional grid coordinate (see [`FTable::u_coord`]).
+    #[inline(always)]
+    pub(crate) fn v_coord(&self, v: f64) -> f64 {
         let w = (1.0 - v * (1.0 / FRAC_PI_2)).clamp(0.0, 1.0);
-        let sv = (1.0 - w.sqrt()) * self.sv_scale;
+        (1.0 - w.sqrt()) * self.sv_scale
+    }
+
+    /// Grid row and fraction of a u coordinate.
+    #[inline(always)]
+    fn u_split(&self, su: f64) -> (usize, f64) {
+        let i = (su as usize).min(self.nu - 2);
+        (i, su - i as f64)
+    }
+
+    /// Grid column and fraction of a v coordinate.
+    #[inline(always)]
+    fn v_split(&self, sv: f64) -> (usize, f64) {
         let j = (sv as usize).min(self.nv - 2);
         (j, sv - j as f64)
     }
@@ -178,6 +202,25 @@ impl FTable {
         }
         let iu = self.u_index(u);
         self.bilinear(iu, self.v_index(v2)) - self.bilinear(iu, self.v_index(v1))
+    }
+
+    /// [`FTable::eval_diff`] from grid coordinates ([`FTable::u_coord`], [`FTable::v_coord`]) of
+    /// u ≤ [`U_MAX`], v1 and v2: the same value bit for bit.
+    #[inline(always)]
+    pub(crate) fn eval_diff_coords(&self, su: f64, sv1: f64, sv2: f64) -> f64 {
+        let iu = self.u_split(su);
+        self.bilinear(iu, self.v_split(sv2)) - self.bilinear(iu, self.v_split(sv1))
+    }
+
+    /// [`FTable::eval_facet_diff`] from grid coordinates of u ≤ [`U_MAX`], v1 and v2 (see
+    /// [`FTable::eval_diff_coords`]).
+    #[inline(always)]
+    pub(crate) fn eval_facet_diff_coords(&self, su: f64, sv1: f64, sv2: f64) -> [f64; 2] {
+        let t = self.facet_values();
+        let (i, fu) = self.u_split(su);
+        let hi = bilinear_pair(t, self.nv, i, fu, self.v_split(sv2));
+        let lo = bilinear_pair(t, self.nv, i, fu, self.v_split(sv1));
+        [hi[0] - lo[0], hi[1] - lo[1]]
     }
 
     /// [F_c(u, v2) − F_c(u, v1), F_s(u, v2) − F_s(u, v1)] (module documentation), sharing the

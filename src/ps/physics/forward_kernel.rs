@@ -30,6 +30,7 @@ use super::f_table::FTable;
 use super::facet_emission::{lambertian_scatter_cs, lambertian_scatter_cs_fast, FacetEmission};
 use super::far_field::{outside_support_kappa, FarField};
 use super::h::{scatter_cs, scatter_cs_fast};
+use super::kernel_batch::{k_entries_fast, PreLanes};
 use super::kernel_layout::KernelLayout;
 use super::Medium;
 use crate::camera::Intrinsics;
@@ -138,15 +139,15 @@ pub(super) struct Pre {
     /// Unit normal.
     pub(super) n: [f64; 3],
     /// n·point: the tangent plane is {x : n·x = nq}.
-    nq: f64,
+    pub(super) nq: f64,
     /// Facet area dA (Eq. 4.44), mm².
     pub(super) da: f64,
     /// e^{−σ d}, filled in by the kernel build (0 elsewhere).
-    att: f64,
+    pub(super) att: f64,
 }
 
 impl Pre {
-    fn new(point: [f64; 3], n: [f64; 3], omega: f64) -> Pre {
+    pub(super) fn new(point: [f64; 3], n: [f64; 3], omega: f64) -> Pre {
         let d = dot(point, point).sqrt();
         let ray = [point[0] / d, point[1] / d, point[2] / d];
         let vn = (-dot(ray, n)).max(MIN_COS_VIEW);
@@ -517,6 +518,29 @@ impl ForwardKernel {
         let (mc, kc) = (layout.near_cells() as isize, layout.far_cells() as isize);
         let si = s as isize;
         let per = layout.entries_per_pixel();
+        let lanes = PreLanes::new(&pre);
+        let cell_lanes = PreLanes::new(&cells.iter().map(|c| c.0).collect::<Vec<_>>());
+        // The masked pixels of each cell summed pixel by pixel, consecutive (row-major within
+        // the cell), so that a cell's entries are one batch: cell c's pixels are
+        // cell_pixel_start[c]..cell_pixel_start[c + 1].
+        let mut cell_pixel_start = Vec::with_capacity(cells.len() + 1);
+        let mut cell_pixels = Vec::new();
+        for (c, (_, per_pixel)) in cells.iter().enumerate() {
+            cell_pixel_start.push(cell_pixels.len() as u32);
+            if *per_pixel {
+                let (cx, cy) = ((c % cells_w) * s, (c / cells_w) * s);
+                for qy in cy..(cy + s).min(h) {
+                    let run = qy * w + cx..qy * w + (cx + s).min(w);
+                    for (q, &m) in pre[run.clone()].iter().zip(&geom.mask[run]) {
+                        if m {
+                            cell_pixels.push(*q);
+                        }
+                    }
+                }
+            }
+        }
+        cell_pixel_start.push(cell_pixels.len() as u32);
+        let cell_pixel_lanes = PreLanes::new(&cell_pixels);
         let mut entries = vec![0f32; masked.len() * per];
         // What the per-pixel far field takes out of entry pq, per unit dA_q: κ_p (far_field.rs).
         let kappa_of = |k: usize| far_coeff[k] * kappa_mean;
@@ -524,88 +548,113 @@ impl ForwardKernel {
             .par_chunks_mut(per)
             .zip(masked.par_iter())
             .enumerate()
-            .map(|(k, (win, &pi))| {
-                if monitor.is_cancelled() {
-                    return f64::INFINITY;
-                }
-                let pi = pi as usize;
-                let (px, py) = ((pi % w) as isize, (pi / w) as isize);
-                let (pcx, pcy) = (px / si, py / si);
-                let (ox, oy) = ((pcx - mc) * si, (pcy - mc) * si);
-                let pp = &pre[pi];
-                let kappa = kappa_of(k);
-                let mut min = f64::INFINITY;
-                let (near, far) = win.split_at_mut(nb * nb);
-                for (wy, wrow) in near.chunks_exact_mut(nb).enumerate() {
-                    let qy = oy + wy as isize;
-                    if qy < 0 || qy >= h as isize {
-                        continue;
+            // One row of entries at a time comes back from the batch evaluation.
+            .map_init(
+                || (vec![0.0f64; nb.max(fw)], vec![0.0f64; s * s]),
+                |(row_buf, pixel_buf), (k, (win, &pi))| {
+                    if monitor.is_cancelled() {
+                        return f64::INFINITY;
                     }
-                    let x0 = ox.max(0);
-                    let x1 = (ox + nb as isize - 1).min(w as isize - 1);
-                    let row = qy as usize * w;
-                    for qx in x0..=x1 {
-                        let qi = row + qx as usize;
-                        if !geom.mask[qi] {
+                    let pi = pi as usize;
+                    let (px, py) = ((pi % w) as isize, (pi / w) as isize);
+                    let (pcx, pcy) = (px / si, py / si);
+                    let (ox, oy) = ((pcx - mc) * si, (pcy - mc) * si);
+                    let pp = &pre[pi];
+                    let kappa = kappa_of(k);
+                    let mut min = f64::INFINITY;
+                    let (near, far) = win.split_at_mut(nb * nb);
+                    for (wy, wrow) in near.chunks_exact_mut(nb).enumerate() {
+                        let qy = oy + wy as isize;
+                        if qy < 0 || qy >= h as isize {
                             continue;
                         }
-                        let slot = &mut wrow[(qx - ox) as usize];
-                        let q = &pre[qi];
-                        if qi == pi {
-                            *slot = ((-sigma * pp.d).exp() - kappa * q.da) as f32;
+                        let x0 = ox.max(0);
+                        let x1 = (ox + nb as isize - 1).min(w as isize - 1);
+                        if x1 < x0 {
                             continue;
                         }
-                        let k = k_entry_fast(&ph, pp, q);
-                        min = min.min(f64::from(k as f32));
-                        *slot = (k - kappa * q.da) as f32;
+                        let row = qy as usize * w;
+                        let ks = &mut row_buf[..(x1 - x0 + 1) as usize];
+                        k_entries_fast(&ph, pp, &lanes, row + x0 as usize, ks);
+                        for (qx, &k) in (x0..=x1).zip(ks.iter()) {
+                            let qi = row + qx as usize;
+                            if !geom.mask[qi] {
+                                continue;
+                            }
+                            let slot = &mut wrow[(qx - ox) as usize];
+                            let q = &pre[qi];
+                            if qi == pi {
+                                *slot = ((-sigma * pp.d).exp() - kappa * q.da) as f32;
+                                continue;
+                            }
+                            min = min.min(f64::from(k as f32));
+                            *slot = (k - kappa * q.da) as f32;
+                        }
                     }
-                }
-                if fw > 0 {
-                    for (fy, frow) in far.chunks_exact_mut(fw).enumerate() {
-                        let cy = pcy - kc + fy as isize;
-                        if cy < 0 || cy >= cells_h as isize {
-                            continue;
-                        }
-                        for (fx, slot) in frow.iter_mut().enumerate() {
-                            let cx = pcx - kc + fx as isize;
-                            if cx < 0 || cx >= cells_w as isize {
+                    if fw > 0 {
+                        for (fy, frow) in far.chunks_exact_mut(fw).enumerate() {
+                            let cy = pcy - kc + fy as isize;
+                            if cy < 0 || cy >= cells_h as isize {
                                 continue;
                             }
-                            if (cx - pcx).abs() <= mc && (cy - pcy).abs() <= mc {
-                                continue;
-                            }
-                            let (cell, per_pixel) = &cells[cy as usize * cells_w + cx as usize];
-                            if cell.d == 0.0 {
-                                continue;
-                            }
-                            let k = if *per_pixel {
-                                // Σ_q K_pq x_q = k·Σ_q w_q x_q holds exactly for uniform x with
-                                // k = Σ_q K_pq / Σ_q w_q, and Σ_q w_q is the masked count.
-                                let (cx, cy) = (cx as usize * s, cy as usize * s);
-                                let (mut sum, mut count) = (0.0, 0usize);
-                                for qy in cy..(cy + s).min(h) {
-                                    for qx in cx..(cx + s).min(w) {
-                                        let qi = qy * w + qx;
-                                        if geom.mask[qi] {
-                                            let k = k_entry_fast(&ph, pp, &pre[qi]);
-                                            // Eq. 4.53's minimum over the pixels themselves.
-                                            min = min.min(f64::from(k as f32));
-                                            sum += k;
-                                            count += 1;
-                                        }
-                                    }
-                                }
-                                (sum / count as f64) as f32
+                            // The row's cells at their mean geometry, in one batch; the near
+                            // block's cells, if the row crosses it, are left out.
+                            let lo = (pcx - kc).max(0);
+                            let hi = (pcx + kc).min(cells_w as isize - 1);
+                            let crosses = (cy - pcy).abs() <= mc;
+                            let row = cy as usize * cells_w;
+                            let ks = &mut row_buf[..(hi - lo + 1).max(0) as usize];
+                            let runs = if crosses {
+                                [(lo, (pcx - mc - 1).min(hi)), ((pcx + mc + 1).max(lo), hi)]
                             } else {
-                                k_entry_fast(&ph, pp, cell) as f32
+                                [(lo, hi), (1, 0)]
                             };
-                            min = min.min(f64::from(k));
-                            *slot = (f64::from(k) - kappa * cell.da) as f32;
+                            for (a, b) in runs {
+                                if b >= a {
+                                    let run = &mut ks[(a - lo) as usize..=(b - lo) as usize];
+                                    k_entries_fast(&ph, pp, &cell_lanes, row + a as usize, run);
+                                }
+                            }
+                            for (fx, slot) in frow.iter_mut().enumerate() {
+                                let cx = pcx - kc + fx as isize;
+                                if cx < 0 || cx >= cells_w as isize {
+                                    continue;
+                                }
+                                if (cx - pcx).abs() <= mc && crosses {
+                                    continue;
+                                }
+                                let (cell, per_pixel) = &cells[cy as usize * cells_w + cx as usize];
+                                if cell.d == 0.0 {
+                                    continue;
+                                }
+                                let k = if *per_pixel {
+                                    // Σ_q K_pq x_q = k·Σ_q w_q x_q holds exactly for uniform x with
+                                    // k = Σ_q K_pq / Σ_q w_q, and Σ_q w_q is the masked count.
+                                    let c = cy as usize * cells_w + cx as usize;
+                                    let (a, b) = (
+                                        cell_pixel_start[c] as usize,
+                                        cell_pixel_start[c + 1] as usize,
+                                    );
+                                    let pks = &mut pixel_buf[..b - a];
+                                    k_entries_fast(&ph, pp, &cell_pixel_lanes, a, pks);
+                                    let mut sum = 0.0;
+                                    for &k in pks.iter() {
+                                        // Eq. 4.53's minimum over the pixels themselves.
+                                        min = min.min(f64::from(k as f32));
+                                        sum += k;
+                                    }
+                                    (sum / (b - a) as f64) as f32
+                                } else {
+                                    ks[(cx - lo) as usize] as f32
+                                };
+                                min = min.min(f64::from(k));
+                                *slot = (f64::from(k) - kappa * cell.da) as f32;
+                            }
                         }
                     }
-                }
-                min
-            })
+                    min
+                },
+            )
             .reduce(|| f64::INFINITY, f64::min);
         monitor.checkpoint()?;
         let epsilon = if epsilon.is_finite() { epsilon } else { 0.0 };
@@ -1264,6 +1313,98 @@ pub(super) mod tests {
     /// The far-cell layout against the exact kernel, both with supports covering the whole
     /// image so only the cell quadrature differs: the off-diagonal sum Σ_{q≠p} K_pq x_q of a
     /// smooth or textured x agrees to a stated tolerance, the diagonal is the exact one and ε is within 5 %.
+    /// The build's batched rows (`kernel_batch`) store, slot for slot and bit for bit, what a
+    /// plain loop over the layout stores entry by entry with [`k_entry_fast`]: near block, far
+    /// cells at their mean geometry, and far cells summed pixel by pixel, with the image edge
+    /// and partial cells in the window.
+    #[test]
+    fn batched_build_matches_an_entry_by_entry_loop() {
+        let ft = FTable::global();
+        let m = medium();
+        let (w, h) = (47, 41);
+        let mut g = sphere(w, h, 60.0, 300.0, 110.0);
+        // A few holes, so that cells are partly masked away from the silhouette too.
+        for i in (0..w * h).step_by(53) {
+            g.mask[i] = false;
+        }
+        let layout = KernelLayout::coarse_far(35, 3, 4).unwrap();
+        let kern =
+            ForwardKernel::build_with(ft, &m, &g, &layout, FarField::ConstantEpsilon).unwrap();
+        let ph = Physics::new(ft, &m, g.emission);
+        let sigma = m.sigma_per_mm;
+        let mut pre = precompute(&g);
+        for p in &mut pre {
+            p.att = (-sigma * p.d).exp();
+        }
+        let s = layout.cell();
+        let (cells_w, cells_h, cells) = cell_geometry(&pre, &g.mask, w, h, s, sigma);
+        let (nb, fw) = (layout.near_width(), layout.far_width());
+        let (mc, kc) = (layout.near_cells() as isize, layout.far_cells() as isize);
+        let si = s as isize;
+        let (mut per_pixel_cells, mut mean_cells) = (0, 0);
+        for k in 0..kern.masked_count() {
+            let pi = kern.pixel_index(k);
+            let pp = &pre[pi];
+            let (px, py) = ((pi % w) as isize, (pi / w) as isize);
+            let (pcx, pcy) = (px / si, py / si);
+            let (ox, oy) = ((pcx - mc) * si, (pcy - mc) * si);
+            let mut want = vec![0f32; layout.entries_per_pixel()];
+            for wy in 0..nb {
+                for wx in 0..nb {
+                    let (qx, qy) = (ox + wx as isize, oy + wy as isize);
+                    if qx < 0 || qy < 0 || qx >= w as isize || qy >= h as isize {
+                        continue;
+                    }
+                    let qi = qy as usize * w + qx as usize;
+                    if !g.mask[qi] {
+                        continue;
+                    }
+                    want[wy * nb + wx] = if qi == pi {
+                        (-sigma * pp.d).exp() as f32
+                    } else {
+                        k_entry_fast(&ph, pp, &pre[qi]) as f32
+                    };
+                }
+            }
+            for fy in 0..fw {
+                for fx in 0..fw {
+                    let (cx, cy) = (pcx - kc + fx as isize, pcy - kc + fy as isize);
+                    if cx < 0 || cy < 0 || cx >= cells_w as isize || cy >= cells_h as isize {
+                        continue;
+                    }
+                    if (cx - pcx).abs() <= mc && (cy - pcy).abs() <= mc {
+                        continue;
+                    }
+                    let (cell, per_pixel) = &cells[cy as usize * cells_w + cx as usize];
+                    if cell.d == 0.0 {
+                        continue;
+                    }
+                    want[nb * nb + fy * fw + fx] = if *per_pixel {
+                        per_pixel_cells += 1;
+                        let (mut sum, mut count) = (0.0, 0usize);
+                        for qy in cy as usize * s..((cy as usize + 1) * s).min(h) {
+                            for qx in cx as usize * s..((cx as usize + 1) * s).min(w) {
+                                if g.mask[qy * w + qx] {
+                                    sum += k_entry_fast(&ph, pp, &pre[qy * w + qx]);
+                                    count += 1;
+                                }
+                            }
+                        }
+                        (sum / count as f64) as f32
+                    } else {
+                        mean_cells += 1;
+                        k_entry_fast(&ph, pp, cell) as f32
+                    };
+                }
+            }
+            let got = kern.window(k);
+            for (slot, (a, b)) in got.iter().zip(&want).enumerate() {
+                assert_eq!(a.to_bits(), b.to_bits(), "pixel {pi} slot {slot}: {a} vs {b}");
+            }
+        }
+        assert!(per_pixel_cells > 1000 && mean_cells > 1000, "{per_pixel_cells} {mean_cells}");
+    }
+
     #[test]
     fn far_cells_approximate_the_exact_kernel() {
         let ft = FTable::global();

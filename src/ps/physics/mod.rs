@@ -20,6 +20,7 @@ pub mod far_field;
 pub mod forward_kernel;
 pub mod g_table;
 pub mod h;
+mod kernel_batch;
 pub mod kernel_layout;
 pub(crate) mod quad;
 
