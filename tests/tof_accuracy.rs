@@ -553,3 +553,128 @@ fn diagnose() {
         esp / n
     );
 }
+
+/// The production pipeline's mask and scatter estimate on one frame (same environment
+/// variables as `diagnose`, plus `TOF_LAYOUT`), as three coarse maps: '#' object flagged, 'x'
+/// background flagged, 'o' object missed, '.' background kept; the scatter phasor's error, 0–9
+/// in fiftieths of the largest true scatter amplitude, as in `diagnose`; the true scatter
+/// amplitude in tenths of its largest value. Then the frame's fitted noise model against the
+/// simulator's, and the residuals in units of that model's σ where background is flagged, in
+/// the dark left columns and in the middle.
+#[test]
+#[ignore]
+fn production_maps() {
+    let preset = match std::env::var("TOF_PRESET").as_deref() {
+        Ok("thin") => FogPreset::Thin,
+        Ok("thick") => FogPreset::Thick,
+        _ => FogPreset::Medium,
+    };
+    let seed: u64 = std::env::var("TOF_SEED")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(1);
+    let (w, h) = match std::env::var("TOF_SIZE").as_deref() {
+        Ok("full") => (512, 424),
+        _ => (128, 106),
+    };
+    let frame = simulate(preset, seed, w, h);
+    let (out, secs) = run(&frame);
+    let s = score(&frame, &out, secs);
+    println!("{s:?}");
+    let gt = frame.gt_mask.data();
+    let (ta, tp) = (frame.scatter_amplitude.data(), frame.scatter_phase.data());
+    let (ea, ep) = (out.scatter_amplitude.data(), out.scatter_phase.data());
+    let spread = ta.iter().fold(0.0f32, |m, v| m.max(v.abs())) as f64;
+    let (sx, sy) = (w / 64, h / 26);
+    for y in (0..h).step_by(sy.max(1)) {
+        let (mut l1, mut l2, mut l3) = (String::new(), String::new(), String::new());
+        for x in (0..w).step_by(sx.max(1)) {
+            let i = y * w + x;
+            let (obj, out_px) = (gt[i] > 0.5, out.mask.data()[i] > 0.5);
+            l1.push(match (obj, out_px) {
+                (true, true) => '#',
+                (false, true) => 'x',
+                (true, false) => 'o',
+                _ => '.',
+            });
+            let t = (
+                ta[i] as f64 * (tp[i] as f64).cos(),
+                ta[i] as f64 * (tp[i] as f64).sin(),
+            );
+            let e = (
+                ea[i] as f64 * (ep[i] as f64).cos(),
+                ea[i] as f64 * (ep[i] as f64).sin(),
+            );
+            let d = ((t.0 - e.0).powi(2) + (t.1 - e.1).powi(2)).sqrt();
+            let v = (d / spread * 50.0).min(9.0) as u8;
+            l2.push(char::from(b'0' + v));
+            let v = (ta[i] as f64 / spread * 10.0).min(9.0) as u8;
+            l3.push(char::from(b'0' + v));
+        }
+        println!("{l1}   {l2}   {l3}");
+    }
+    let flagged_bg: Vec<usize> = (0..w * h)
+        .filter(|&i| gt[i] <= 0.5 && out.mask.data()[i] > 0.5)
+        .collect();
+    let obs = frame.amplitude.data();
+    let mean = |f: &dyn Fn(usize) -> f64| {
+        flagged_bg.iter().map(|&i| f(i)).sum::<f64>() / flagged_bg.len().max(1) as f64
+    };
+    println!(
+        "background flagged: {} px; mean observed amplitude {:.2}, true scatter {:.2}, estimated {:.2}, weight {:.3}",
+        flagged_bg.len(),
+        mean(&|i| obs[i] as f64),
+        mean(&|i| ta[i] as f64),
+        mean(&|i| ea[i] as f64),
+        mean(&|i| out.weight_phase.data()[i] as f64),
+    );
+    let ph = frame.phase.data();
+    let (re, im): (Vec<f32>, Vec<f32>) = obs
+        .iter()
+        .zip(ph)
+        .map(|(&a, &p)| (a * p.cos(), a * p.sin()))
+        .unzip();
+    let noise = murk::tof::noise_model::NoiseModel::fit(&re, &im, obs, w).unwrap();
+    let true_sigma = |a: f64| frame.config.noise_shot * a.sqrt() + frame.config.noise_read;
+    println!(
+        "noise model {noise:?}; σ at 2: fitted {:.3} true {:.3}; at 20: {:.3} / {:.3}",
+        noise.sigma(2.0),
+        true_sigma(2.0),
+        noise.sigma(20.0),
+        true_sigma(20.0)
+    );
+    let resid = |i: usize, est: bool| {
+        let (a, p) = if est { (ea[i], ep[i]) } else { (ta[i], tp[i]) };
+        let (sr, si) = (a * p.cos(), a * p.sin());
+        (((re[i] - sr) as f64).powi(2) + ((im[i] - si) as f64).powi(2)).sqrt()
+            / noise.sigma(a as f64)
+    };
+    for (name, set) in [
+        ("flagged bg", flagged_bg.clone()),
+        (
+            "bg, 8 left columns",
+            (0..w * h)
+                .filter(|&i| i % w < 8 && gt[i] <= 0.5)
+                .collect::<Vec<_>>(),
+        ),
+        (
+            "bg, middle",
+            (0..w * h)
+                .filter(|&i| (i % w).abs_diff(w / 2) < 8 && gt[i] <= 0.5)
+                .collect::<Vec<_>>(),
+        ),
+    ] {
+        let m = |f: &dyn Fn(usize) -> f64| {
+            set.iter().map(|&i| f(i)).sum::<f64>() / set.len().max(1) as f64
+        };
+        println!(
+            "{name}: {} px, |obs − est s|/σ {:.2}, |obs − true s|/σ {:.2}, est − true amplitude {:.3}, flagged share {:.3}, mean true s {:.2}",
+            set.len(),
+            m(&|i| resid(i, true)),
+            m(&|i| resid(i, false)),
+            m(&|i| (ea[i] - ta[i]) as f64),
+            m(&|i| (out.mask.data()[i] > 0.5) as u8 as f64),
+            m(&|i| ta[i] as f64),
+        );
+    }
+}

@@ -78,21 +78,39 @@ impl NoiseModel {
     }
 }
 
-/// Least squares `y = c0 + c1·x` over `points`, both coefficients ≥ 0 (the better of the
-/// unconstrained fit when feasible and the two one-coefficient fits).
+/// Weighted least squares `y = c0 + c1·x` over `points` (bin amplitude, bin σ²), both
+/// coefficients ≥ 0 (the better of the unconstrained fit when feasible and the two
+/// one-coefficient fits).
+///
+/// Each bin's σ² comes from the same number of samples, so its standard error is a fixed
+/// fraction of σ² itself: the weights are 1/σ⁴, i.e. the fit is in relative terms. Unweighted,
+/// the bright bins, whose σ² is largest, set the line and its intercept; on a sensor whose σ
+/// grows more slowly than linearly in σ² at the bright end, that drove the read noise to 0 and
+/// halved σ in the dark corners, whose background then came out as objects (separated thin
+/// seed 5: 281 background pixels flagged).
 fn fit_line_nonnegative(points: &[(f64, f64)]) -> NoiseModel {
-    let n = points.len() as f64;
-    let (sx, sy) = points
-        .iter()
-        .fold((0.0, 0.0), |(a, b), p| (a + p.0, b + p.1));
-    let (mx, my) = (sx / n, sy / n);
-    let (sxx, sxy) = points.iter().fold((0.0, 0.0), |(a, b), p| {
-        (a + (p.0 - mx) * (p.0 - mx), b + (p.0 - mx) * (p.1 - my))
-    });
+    let floor = points.iter().fold(0.0f64, |m, p| m.max(p.1)) * 1e-6;
+    let weight = |y: f64| 1.0 / y.max(floor).max(f64::MIN_POSITIVE).powi(2);
+    let (mut sw, mut sx, mut sy) = (0.0, 0.0, 0.0);
+    for &(x, y) in points {
+        let w = weight(y);
+        sw += w;
+        sx += w * x;
+        sy += w * y;
+    }
+    let (mx, my) = (sx / sw, sy / sw);
+    let (mut sxx, mut sxy, mut sxx0, mut sxy0) = (0.0, 0.0, 0.0, 0.0);
+    for &(x, y) in points {
+        let w = weight(y);
+        sxx += w * (x - mx) * (x - mx);
+        sxy += w * (x - mx) * (y - my);
+        sxx0 += w * x * x;
+        sxy0 += w * x * y;
+    }
     let sse = |c0: f64, c1: f64| {
         points
             .iter()
-            .map(|p| (p.1 - c0 - c1 * p.0).powi(2))
+            .map(|&(x, y)| weight(y) * (y - c0 - c1 * x).powi(2))
             .sum::<f64>()
     };
     let mut best = NoiseModel {
@@ -100,14 +118,10 @@ fn fit_line_nonnegative(points: &[(f64, f64)]) -> NoiseModel {
         shot_gain: 0.0,
     };
     let mut best_sse = sse(best.read_variance, 0.0);
-    let through_origin = {
-        let sxx0: f64 = points.iter().map(|p| p.0 * p.0).sum();
-        let sxy0: f64 = points.iter().map(|p| p.0 * p.1).sum();
-        if sxx0 > 0.0 {
-            (sxy0 / sxx0).max(0.0)
-        } else {
-            0.0
-        }
+    let through_origin = if sxx0 > 0.0 {
+        (sxy0 / sxx0).max(0.0)
+    } else {
+        0.0
     };
     let mut candidates = vec![(0.0, through_origin)];
     if sxx > 0.0 {
@@ -173,6 +187,47 @@ mod tests {
             let got = m.sigma(a);
             assert!(
                 (got / truth - 1.0).abs() < 0.12,
+                "a {a}: {got} vs {truth} ({m:?})"
+            );
+        }
+    }
+
+    /// A frame like a thin-fog one: a dim scatter field (amplitude 0.5–35, a tenth of the
+    /// pixels under 3) and bright objects (150–360) on a fifth of it, with σ growing like
+    /// a√s + b, so σ² is concave in s. The fit must keep the
+    /// read noise that dominates the dark corner: an unweighted line through the bins put it at
+    /// 0 and σ at amplitude 2 at half its true value, which flagged the corner as objects.
+    #[test]
+    fn dark_pixels_keep_their_read_noise() {
+        let (w, h) = (160, 120);
+        let (read_sd, shot) = (0.5f64, 0.15f64);
+        let mut rng = ChaCha8Rng::seed_from_u64(11);
+        let (mut re, mut im, mut amp) = (vec![], vec![], vec![]);
+        for y in 0..h {
+            for x in 0..w {
+                let t = x as f64 / (w - 1) as f64;
+                let mut a = 0.5 + 35.0 * t * t * (1.0 - 0.3 * (y as f64 / h as f64));
+                if (40..80).contains(&y) && x > w / 3 {
+                    // Bright objects, as bright as near ones in fog.
+                    a += 150.0 + 2.0 * (x - w / 3) as f64;
+                }
+                let p = 0.4 + 0.002 * x as f64;
+                let sd = shot * a.sqrt() + read_sd;
+                let (r, i) = (
+                    a * p.cos() + sd * gauss(&mut rng),
+                    a * p.sin() + sd * gauss(&mut rng),
+                );
+                re.push(r as f32);
+                im.push(i as f32);
+                amp.push(r.hypot(i) as f32);
+            }
+        }
+        let m = NoiseModel::fit(&re, &im, &amp, w).unwrap();
+        for a in [1.0, 2.0, 5.0, 20.0, 200.0] {
+            let truth = shot * f64::sqrt(a) + read_sd;
+            let got = m.sigma(a);
+            assert!(
+                (got / truth - 1.0).abs() < 0.15,
                 "a {a}: {got} vs {truth} ({m:?})"
             );
         }

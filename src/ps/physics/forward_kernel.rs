@@ -1399,10 +1399,17 @@ pub(super) mod tests {
             }
             let got = kern.window(k);
             for (slot, (a, b)) in got.iter().zip(&want).enumerate() {
-                assert_eq!(a.to_bits(), b.to_bits(), "pixel {pi} slot {slot}: {a} vs {b}");
+                assert_eq!(
+                    a.to_bits(),
+                    b.to_bits(),
+                    "pixel {pi} slot {slot}: {a} vs {b}"
+                );
             }
         }
-        assert!(per_pixel_cells > 1000 && mean_cells > 1000, "{per_pixel_cells} {mean_cells}");
+        assert!(
+            per_pixel_cells > 1000 && mean_cells > 1000,
+            "{per_pixel_cells} {mean_cells}"
+        );
     }
 
     #[test]
