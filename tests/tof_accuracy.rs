@@ -90,6 +90,24 @@ fn run(frame: &TofSimFrame) -> (TofOutput, f64) {
     if std::env::var("TOF_NO_BILATERAL").is_ok() {
         params.bilateral = None;
     }
+    // Experiment knobs: scale the phasor's prior weights γ₁ (quadratic), γ₂ (symmetry), γ₃
+    // (smoothness); the coarse quantile and subdivision; the quadratic patch grid.
+    let env_f = |k: &str| std::env::var(k).ok().and_then(|s| s.parse::<f64>().ok());
+    for (g, key) in ["TOF_G1", "TOF_G2", "TOF_G3"].iter().enumerate() {
+        if let Some(v) = env_f(key) {
+            params.phasor.gamma[g] *= v;
+        }
+    }
+    if let Some(v) = env_f("TOF_CQ") {
+        params.coarse_quantile = v;
+    }
+    if let Some(v) = env_f("TOF_CSUB") {
+        params.coarse_subdivision = v as usize;
+    }
+    if let Some(v) = env_f("TOF_PATCHES") {
+        params.patches_x = v as usize;
+        params.patches_y = v as usize;
+    }
     let t = Instant::now();
     let out = match std::env::var("TOF_CG_MAX")
         .ok()
@@ -651,6 +669,18 @@ fn production_maps() {
     };
     for (name, set) in [
         ("flagged bg", flagged_bg.clone()),
+        (
+            "missed object",
+            (0..w * h)
+                .filter(|&i| gt[i] > 0.5 && out.mask.data()[i] <= 0.5)
+                .collect::<Vec<_>>(),
+        ),
+        (
+            "object kept",
+            (0..w * h)
+                .filter(|&i| gt[i] > 0.5 && out.mask.data()[i] > 0.5)
+                .collect::<Vec<_>>(),
+        ),
         (
             "bg, 8 left columns",
             (0..w * h)
