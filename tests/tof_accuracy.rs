@@ -98,6 +98,9 @@ fn run(frame: &TofSimFrame) -> (TofOutput, f64) {
             params.phasor.gamma[g] *= v;
         }
     }
+    if let Some(v) = env_f("TOF_FINE") {
+        params.fine_iterations = v as usize;
+    }
     if let Some(v) = env_f("TOF_CQ") {
         params.coarse_quantile = v;
     }
