@@ -6,6 +6,7 @@
 
 pub mod atmosphere;
 pub mod camera;
+mod cpu;
 pub mod error;
 pub mod image;
 pub mod io;

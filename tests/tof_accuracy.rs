@@ -268,15 +268,9 @@ fn survey() {
     }
 }
 
-/// Diagnostics of one frame: scatter-estimate errors in and out of the object, σ, CG work.
-#[test]
-#[ignore]
-fn diagnose() {
-    use murk::tof::irls::{run_irls, IrlsConfig};
-    use murk::tof::quadratic_prior::{PatchGrid, QuadraticPrior};
-    use murk::tof::symmetry::RowMirror;
-    use murk::tof::wls::XStepSystem;
-    use murk::tof::{IrlsChannelParams, XStepSolver};
+/// The frame the diagnostics look at: `TOF_PRESET` (thin, medium by default, thick),
+/// `TOF_SEED` (1), `TOF_SIZE` (`full` for 512×424, else 128×106) and `TOF_LAYOUT`.
+fn env_frame() -> TofSimFrame {
     let preset = match std::env::var("TOF_PRESET").as_deref() {
         Ok("thin") => FogPreset::Thin,
         Ok("thick") => FogPreset::Thick,
@@ -290,7 +284,20 @@ fn diagnose() {
         Ok("full") => (512, 424),
         _ => (128, 106),
     };
-    let frame = simulate(preset, seed, w, h);
+    simulate(preset, seed, w, h)
+}
+
+/// Diagnostics of one frame: scatter-estimate errors in and out of the object, σ, CG work.
+#[test]
+#[ignore]
+fn diagnose() {
+    use murk::tof::irls::{run_irls, IrlsConfig};
+    use murk::tof::quadratic_prior::{PatchGrid, QuadraticPrior};
+    use murk::tof::symmetry::RowMirror;
+    use murk::tof::wls::XStepSystem;
+    use murk::tof::{IrlsChannelParams, XStepSolver};
+    let frame = env_frame();
+    let (w, h) = frame.amplitude.dims();
     let gt = frame.gt_mask.data();
     for (name, img, truth, ch) in [
         (
@@ -585,20 +592,8 @@ fn diagnose() {
 #[test]
 #[ignore]
 fn production_maps() {
-    let preset = match std::env::var("TOF_PRESET").as_deref() {
-        Ok("thin") => FogPreset::Thin,
-        Ok("thick") => FogPreset::Thick,
-        _ => FogPreset::Medium,
-    };
-    let seed: u64 = std::env::var("TOF_SEED")
-        .ok()
-        .and_then(|s| s.parse().ok())
-        .unwrap_or(1);
-    let (w, h) = match std::env::var("TOF_SIZE").as_deref() {
-        Ok("full") => (512, 424),
-        _ => (128, 106),
-    };
-    let frame = simulate(preset, seed, w, h);
+    let frame = env_frame();
+    let (w, h) = frame.amplitude.dims();
     let (out, secs) = run(&frame);
     let s = score(&frame, &out, secs);
     println!("{s:?}");

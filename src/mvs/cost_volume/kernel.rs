@@ -531,13 +531,13 @@ mod tests {
                 let mut s = RowScratch::default();
                 fill_row::<3, false>(&mut g, y, &refd, w, h, &sources, haze, 3.0, &mut s);
                 for scalar in [false, true] {
-                    simd::FORCE_SCALAR.with(|f| f.set(scalar));
+                    crate::cpu::force_scalar(scalar);
                     fill_row_observation::<3, false>(
                         &mut f, y, &refd, &ref4, w, h, &sources, haze, 3.0, &mut s,
                     );
                     assert_eq!(g, f, "z {z}, row {y}, scalar {scalar}");
                 }
-                simd::FORCE_SCALAR.with(|f| f.set(false));
+                crate::cpu::force_scalar(false);
             }
             // One channel: the gather loop.
             let (gray_ref, gray_src) = (&refd[..w * h], &src[..w * h]);
@@ -598,7 +598,7 @@ mod tests {
                 let mut s = RowScratch::default();
                 fill_row::<3, true>(&mut g, y, &refd, w, h, &sources, haze, 3.0, &mut s);
                 for scalar in [false, true] {
-                    simd::FORCE_SCALAR.with(|f| f.set(scalar));
+                    crate::cpu::force_scalar(scalar);
                     fill_row_observation::<3, true>(
                         &mut f, y, &refd, &ref4, w, h, &sources, haze, 3.0, &mut s,
                     );
@@ -609,7 +609,7 @@ mod tests {
                         );
                     }
                 }
-                simd::FORCE_SCALAR.with(|f| f.set(false));
+                crate::cpu::force_scalar(false);
             }
         }
     }
@@ -646,9 +646,9 @@ mod tests {
                 let mut s = RowScratch::default();
                 fill_row::<3, true>(&mut g, y, &refd, w, h, &plain, haze, 3.0, &mut s);
                 fill_row::<3, true>(&mut v, y, &refd, w, h, &sources, haze, 3.0, &mut s);
-                simd::FORCE_SCALAR.with(|f| f.set(true));
+                crate::cpu::force_scalar(true);
                 fill_row::<3, true>(&mut f, y, &refd, w, h, &sources, haze, 3.0, &mut s);
-                simd::FORCE_SCALAR.with(|f| f.set(false));
+                crate::cpu::force_scalar(false);
                 assert_eq!(v, g, "vector: z {z}, margin {margin}, row {y}");
                 assert_eq!(f, g, "4-lane scalar: z {z}, margin {margin}, row {y}");
                 penalised += g.iter().filter(|&&c| c == 3.0).count();

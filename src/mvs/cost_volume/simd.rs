@@ -18,24 +18,8 @@
 //! `width mod 8` pixels of a row, the scalar loop runs.
 
 use super::kernel::Haze;
+use crate::cpu::avx2_enabled;
 use crate::mvs::plane_sweep::RowWarp;
-
-#[cfg(test)]
-thread_local! {
-    /// Tests set this to run the scalar loops on a CPU that has AVX2 (this thread only).
-    pub(super) static FORCE_SCALAR: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
-}
-
-/// Whether the AVX2 loops run: the CPU has AVX2 (detected once, then a cached flag).
-#[cfg(target_arch = "x86_64")]
-#[inline]
-fn avx2_enabled() -> bool {
-    #[cfg(test)]
-    if FORCE_SCALAR.with(|f| f.get()) {
-        return false;
-    }
-    std::arch::is_x86_feature_detected!("avx2")
-}
 
 /// Defines `pub(super) fn $name(..)` that calls the scalar function `$body` (which must be
 /// `#[inline(always)]`) through a copy compiled with AVX2 enabled where the CPU has it: the same

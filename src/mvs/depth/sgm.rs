@@ -150,24 +150,12 @@ fn path_step_fast(
             path_step(c, prev, prev_min, p1, p2, out, sum)
         }
         if avx2 {
-            // SAFETY: the caller detected AVX2 on this CPU ([`avx2_available`]).
+            // SAFETY: the caller detected AVX2 on this CPU ([`crate::cpu::avx2_enabled`]).
             return unsafe { with_avx2(c, prev, prev_min, p1, p2, out, sum) };
         }
     }
     let _ = avx2;
     path_step(c, prev, prev_min, p1, p2, out, sum)
-}
-
-/// Whether this CPU runs AVX2 (std caches the detection).
-fn avx2_available() -> bool {
-    #[cfg(target_arch = "x86_64")]
-    {
-        std::arch::is_x86_feature_detected!("avx2")
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    {
-        false
-    }
 }
 
 /// One path step (the recursion in the module docs) for one pixel: writes `L_r(p, ·)` into
@@ -257,7 +245,7 @@ pub fn aggregate(
     monitor: &Monitor,
 ) -> Result<Vec<f32>> {
     debug_assert_eq!(costs.len(), w * h * n);
-    let avx2 = avx2_available();
+    let avx2 = crate::cpu::avx2_enabled();
     let mut sum = crate::large_buffer::zeroed_f32(w * h * n);
     let dirs = &DIRECTIONS[..num_paths.min(DIRECTIONS.len())];
     for (k, &(dx, dy)) in dirs.iter().enumerate() {

@@ -110,7 +110,7 @@ pub(super) fn k_entries_fast(ph: &Physics, p: &Pre, qs: &PreLanes, start: usize,
             }
             continue;
         }
-        bracket_ends(ph, p, qs, s, n, &mut ends);
+        bracket_ends(Run { ph, p, qs, s, n }, &mut ends);
         let table = ph.ft;
         for (i, slot) in chunk.iter_mut().enumerate() {
             *slot = if ends.scalar[i] {
@@ -132,55 +132,40 @@ pub(super) fn k_entries_fast(ph: &Physics, p: &Pre, qs: &PreLanes, start: usize,
     }
 }
 
-/// The branch-free pass over lanes `s..s + n` (n ≤ [`CHUNK`]), through a copy compiled for
-/// AVX2 where the CPU has it (the same operations on wider registers, so the same results).
-fn bracket_ends(ph: &Physics, p: &Pre, qs: &PreLanes, s: usize, n: usize, ends: &mut Ends) {
-    let lambertian = ph.emission == FacetEmission::Lambertian;
+/// One run of the branch-free pass: p, and q = lanes `s..s + n` of `qs` (n ≤ [`CHUNK`]).
+#[derive(Clone, Copy)]
+struct Run<'a> {
+    ph: &'a Physics<'a>,
+    p: &'a Pre,
+    qs: &'a PreLanes,
+    s: usize,
+    n: usize,
+}
+
+/// The branch-free pass over `run`, through a copy compiled for AVX2 where the CPU has it (the
+/// same operations on wider registers, so the same results).
+fn bracket_ends(run: Run, ends: &mut Ends) {
     #[cfg(target_arch = "x86_64")]
     {
         #[target_feature(enable = "avx2")]
-        unsafe fn with_avx2(
-            ph: &Physics,
-            p: &Pre,
-            qs: &PreLanes,
-            s: usize,
-            n: usize,
-            ends: &mut Ends,
-            lambertian: bool,
-        ) {
-            if lambertian {
-                bracket_ends_generic::<true>(ph, p, qs, s, n, ends)
-            } else {
-                bracket_ends_generic::<false>(ph, p, qs, s, n, ends)
-            }
+        unsafe fn with_avx2(run: Run, ends: &mut Ends) {
+            bracket_ends_for_emission(run, ends)
         }
-        if avx2_enabled() {
+        if crate::cpu::avx2_enabled() {
             // SAFETY: the CPU has AVX2.
-            return unsafe { with_avx2(ph, p, qs, s, n, ends, lambertian) };
+            return unsafe { with_avx2(run, ends) };
         }
     }
-    if lambertian {
-        bracket_ends_generic::<true>(ph, p, qs, s, n, ends)
-    } else {
-        bracket_ends_generic::<false>(ph, p, qs, s, n, ends)
-    }
+    bracket_ends_for_emission(run, ends)
 }
 
-#[cfg(test)]
-thread_local! {
-    /// Tests set this to run the plain copy on a CPU that has AVX2 (this thread only).
-    static FORCE_SCALAR: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
-}
-
-/// Whether the AVX2 copy runs (detection is cached by the standard library).
-#[cfg(target_arch = "x86_64")]
-#[inline]
-fn avx2_enabled() -> bool {
-    #[cfg(test)]
-    if FORCE_SCALAR.with(|f| f.get()) {
-        return false;
+/// [`bracket_ends_generic`] for the facet model of `run.ph`.
+#[inline(always)]
+fn bracket_ends_for_emission(run: Run, ends: &mut Ends) {
+    match run.ph.emission {
+        FacetEmission::Lambertian => bracket_ends_generic::<true>(run, ends),
+        FacetEmission::Isotropic => bracket_ends_generic::<false>(run, ends),
     }
-    std::arch::is_x86_feature_detected!("avx2")
 }
 
 /// The body of [`bracket_ends`]: `k_geometry`, `segment_fast` and the facet weights of
@@ -188,14 +173,8 @@ fn avx2_enabled() -> bool {
 // `!(x > 0.0)` rather than `x <= 0.0` on purpose: a NaN must flag its lane for the scalar path.
 #[allow(clippy::neg_cmp_op_on_partial_ord)]
 #[inline(always)]
-fn bracket_ends_generic<const LAMBERTIAN: bool>(
-    ph: &Physics,
-    p: &Pre,
-    qs: &PreLanes,
-    s: usize,
-    n: usize,
-    ends: &mut Ends,
-) {
+fn bracket_ends_generic<const LAMBERTIAN: bool>(run: Run, ends: &mut Ends) {
+    let Run { ph, p, qs, s, n } = run;
     assert!(n <= CHUNK && s + n <= qs.d.len());
     let (beta, sigma, table) = (ph.beta, ph.sigma, ph.ft);
     let (pr, pd) = (p.ray, p.d);
@@ -310,7 +289,7 @@ mod tests {
             for emission in [FacetEmission::Lambertian, FacetEmission::Isotropic] {
                 let ph = Physics::new(ft, &medium, emission);
                 for force_scalar in [false, true] {
-                    FORCE_SCALAR.with(|f| f.set(force_scalar));
+                    crate::cpu::force_scalar(force_scalar);
                     let mut scalar_lanes = 0;
                     for p in qs_pre.iter().filter(|p| p.d > 0.0).take(24) {
                         for (start, len) in [(0, 257), (3, 1), (10, 31), (40, 33)] {
@@ -328,7 +307,14 @@ mod tests {
                         }
                         let mut ends = Ends::new();
                         if beta > 0.0 {
-                            bracket_ends(&ph, p, &qs, 0, CHUNK, &mut ends);
+                            let run = Run {
+                                ph: &ph,
+                                p,
+                                qs: &qs,
+                                s: 0,
+                                n: CHUNK,
+                            };
+                            bracket_ends(run, &mut ends);
                             scalar_lanes += ends.scalar.iter().filter(|&&f| f).count();
                         }
                     }
@@ -340,7 +326,7 @@ mod tests {
                         );
                     }
                 }
-                FORCE_SCALAR.with(|f| f.set(false));
+                crate::cpu::force_scalar(false);
             }
         }
     }

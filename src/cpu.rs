@@ -1,0 +1,36 @@
+//! Which vector instructions the hot loops may use, decided once per process at run time.
+//!
+//! The AVX2 loops (the MVS cost volume's rows, SGM's path step, the photometric-stereo kernel
+//! entries) compute the same results as their plain copies, bit for bit; tests check that by
+//! forcing the plain copies on a CPU that has AVX2 ([`force_scalar`]).
+
+#[cfg(test)]
+thread_local! {
+    /// Set by tests to run the plain loops on this thread.
+    static FORCE_SCALAR: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
+}
+
+/// Whether the AVX2 loops run: the CPU has AVX2 (the standard library caches the detection),
+/// and no test on this thread asked for the plain loops. Always false off x86-64.
+#[inline]
+pub(crate) fn avx2_enabled() -> bool {
+    #[cfg(test)]
+    if FORCE_SCALAR.with(|f| f.get()) {
+        return false;
+    }
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::arch::is_x86_feature_detected!("avx2")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
+
+/// Makes [`avx2_enabled`] report false on this thread (`true`) or the CPU's answer again
+/// (`false`).
+#[cfg(test)]
+pub(crate) fn force_scalar(on: bool) {
+    FORCE_SCALAR.with(|f| f.set(on));
+}
