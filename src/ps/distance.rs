@@ -442,7 +442,29 @@ mod experiments {
     #[test]
     #[ignore = "experiment: run with --ignored --nocapture"]
     fn distance_fit_on_true_reflected_component() {
-        let cfg = PsSimConfig::with_size(96, 96);
+        // MURK_PS_SHAPE (sphere, bumps, vase), MURK_PS_SIDE (96) and MURK_PS_LAYOUTS (kernel
+        // layouts as r:cell, default "25:3,95:1"; "81:3" is the production one at 300×300).
+        let side: usize = std::env::var("MURK_PS_SIDE")
+            .ok()
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(96);
+        let shape = match std::env::var("MURK_PS_SHAPE").as_deref() {
+            Ok("vase") => crate::simulate::ps::PsShape::Vase,
+            Ok("bumps") => crate::simulate::ps::PsShape::Bumps,
+            _ => crate::simulate::ps::PsShape::Sphere,
+        };
+        let layouts: Vec<(usize, usize)> = std::env::var("MURK_PS_LAYOUTS")
+            .unwrap_or_else(|_| "25:3,95:1".into())
+            .split(',')
+            .filter_map(|l| {
+                let (r, c) = l.split_once(':')?;
+                Some((r.parse().ok()?, c.parse().ok()?))
+            })
+            .collect();
+        let cfg = PsSimConfig {
+            shape,
+            ..PsSimConfig::with_size(side, side)
+        };
         let sim = simulate_ps(&cfg, &Monitor::noop()).unwrap();
         let cap = &sim.capture;
         let (w, _) = cap.dims();
@@ -533,7 +555,7 @@ mod experiments {
             emission: cfg.facet_emission,
         };
         let tail = backscatter_tail(FTable::global(), &cap.medium, &cap.lights, &pts, &cap.mask);
-        for (r, cell) in [(25, 3), (95, 1)] {
+        for (r, cell) in layouts {
             let kernel = ForwardKernel::build_with(
                 FTable::global(),
                 &cap.medium,
