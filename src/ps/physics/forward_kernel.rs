@@ -604,6 +604,8 @@ impl ForwardKernel {
                             let crosses = (cy - pcy).abs() <= mc;
                             let row = cy as usize * cells_w;
                             let ks = &mut row_buf[..(hi - lo + 1).max(0) as usize];
+                            // Runs of cells left and right of the near block, or the whole
+                            // row and an empty run ((1, 0): b < a).
                             let runs = if crosses {
                                 [(lo, (pcx - mc - 1).min(hi)), ((pcx + mc + 1).max(lo), hi)]
                             } else {

@@ -99,22 +99,26 @@ impl Ends {
 /// K_pq, as [`k_entry_fast`] computes it bit for bit, for p = `p` and q = pixels
 /// `start..start + out.len()` of `qs`, into `out`.
 pub(super) fn k_entries_fast(ph: &Physics, p: &Pre, qs: &PreLanes, start: usize, out: &mut [f64]) {
+    if ph.beta == 0.0 {
+        // No scattering: every entry is outright 0 (`h::outright`).
+        out.fill(0.0);
+        return;
+    }
     let mut ends = Ends::new();
     for (c, chunk) in out.chunks_mut(CHUNK).enumerate() {
         let s = start + c * CHUNK;
         let n = chunk.len();
-        if ph.beta == 0.0 {
-            // Every entry is outright 0; no need for a vector path.
-            for (i, slot) in chunk.iter_mut().enumerate() {
-                *slot = k_entry_fast(ph, p, &qs.get(s + i));
-            }
-            continue;
-        }
         bracket_ends(Run { ph, p, qs, s, n }, &mut ends);
         let table = ph.ft;
         for (i, slot) in chunk.iter_mut().enumerate() {
             *slot = if ends.scalar[i] {
-                k_entry_fast(ph, p, &qs.get(s + i))
+                if qs.da[s + i] == 0.0 {
+                    // An unmasked pixel or an empty cell (no facet): outright 0, as
+                    // `h::outright` says, without the scalar geometry.
+                    0.0
+                } else {
+                    k_entry_fast(ph, p, &qs.get(s + i))
+                }
             } else {
                 match ph.emission {
                     FacetEmission::Isotropic => {
