@@ -84,8 +84,8 @@ impl NoiseModel {
 ///
 /// Each bin's σ² comes from the same number of samples, so its standard error is a fixed
 /// fraction of σ² itself: the weights are 1/σ⁴, i.e. the fit is in relative terms. Unweighted,
-/// the bright bins, whose σ² is largest, set the line and its intercept; on a sensor whose σ
-/// grows more slowly than linearly in σ² at the bright end, that drove the read noise to 0 and
+/// the bright bins, whose σ² is largest, set the line and its intercept; where σ² grows more
+/// slowly than linearly in amplitude at the bright end, that drove the read noise to 0 and
 /// halved σ in the dark corners, whose background then came out as objects (separated thin
 /// seed 5: 281 background pixels flagged).
 fn fit_line_nonnegative(points: &[(f64, f64)]) -> NoiseModel {
