@@ -23,7 +23,7 @@ struct Augmented<'a>(&'a ForwardKernel);
 
 impl BlockOperator for Augmented<'_> {
     fn dim(&self) -> usize {
-        self.0.masked_count() + 1
+        self.0.dim()
     }
     fn apply_block(&self, xs: &[f64], ys: &mut [f64], k: usize) {
         self.0.apply_block(xs, ys, k);
@@ -73,21 +73,29 @@ fn bench(c: &mut Criterion) {
     g.bench_function("kernel_build_far_cells_3", |b| {
         b.iter(|| ForwardKernel::build_with(ft, &cap.medium, &geom, &coarse, eps).expect("kernel"))
     });
-    // The default: far cells plus the per-pixel far field (κ_p over the outside of the support).
+    // Far cells plus the per-pixel far field (κ_p over the outside of the support), and the
+    // default: far cells plus the outside summed on coarse blocks.
     let per_pixel = FarField::PerPixel;
     g.bench_function("kernel_build_far_cells_3_per_pixel_far_field", |b| {
         b.iter(|| {
             ForwardKernel::build_with(ft, &cap.medium, &geom, &coarse, per_pixel).expect("kernel")
         })
     });
-    let kernel =
-        ForwardKernel::build_with(ft, &cap.medium, &geom, &coarse, per_pixel).expect("kernel");
+    let blocks = FarField::Blocks;
+    g.bench_function("kernel_build_far_cells_3_far_blocks", |b| {
+        b.iter(|| {
+            ForwardKernel::build_with(ft, &cap.medium, &geom, &coarse, blocks).expect("kernel")
+        })
+    });
+    let kernel = ForwardKernel::build_with(ft, &cap.medium, &geom, &coarse, params.far_field)
+        .expect("kernel");
     eprintln!(
-        "kernel memory: far cells {:.0} MiB",
-        kernel.bytes() as f64 / (1 << 20) as f64
+        "kernel memory: far cells {:.0} MiB, of which {} far-field block entries",
+        kernel.bytes() as f64 / (1 << 20) as f64,
+        kernel.far_block_entries()
     );
     let masked: Vec<usize> = (0..w * h).filter(|&p| cap.mask[p]).collect();
-    let dim = masked.len() + 1;
+    let dim = kernel.dim();
     let m = cap.lights.len();
     let mut rhs = vec![0.0f64; dim * m];
     for (i, img) in cap.images.iter().enumerate() {

@@ -30,10 +30,14 @@ pub enum ModeArg {
 /// `--far-field`: how the scatter from outside the kernel support is modelled.
 #[derive(Clone, Copy, Debug, ValueEnum)]
 pub enum FarFieldArg {
-    /// κ_p·(Σ of dA_q·L_s(q) outside p's support), κ_p computed per kernel build (murk's default).
+    /// κ_p·(Σ of dA_q·L_s(q) outside p's support), κ_p computed per kernel build: exact for
+    /// uniform L_s only (murk's default before the blocks).
     PerPixel,
     /// The reference's constant C = ε·Σ_q L_s(q) with ε from Eq. 4.53.
     ConstantEpsilon,
+    /// The outside of the support summed on coarse blocks inside the operator (murk's default):
+    /// follows L_s whatever it is.
+    Blocks,
 }
 
 /// `--facet-emission`: how a surface facet radiates into the medium.
@@ -105,7 +109,7 @@ pub struct PsArgs {
     #[arg(long)]
     pub linear_g: bool,
     /// Model of the forward scatter from outside the support.
-    #[arg(long, value_enum, default_value_t = FarFieldArg::PerPixel)]
+    #[arg(long, value_enum, default_value_t = FarFieldArg::Blocks)]
     pub far_field: FarFieldArg,
     /// How a facet radiates into the medium in the surface-camera forward scatter.
     #[arg(long, value_enum, default_value_t = FacetEmissionArg::Lambertian)]
@@ -149,6 +153,7 @@ pub fn run(a: PsArgs) -> anyhow::Result<()> {
         far_field: match a.far_field {
             FarFieldArg::PerPixel => FarField::PerPixel,
             FarFieldArg::ConstantEpsilon => FarField::ConstantEpsilon,
+            FarFieldArg::Blocks => FarField::Blocks,
         },
         facet_emission: a.facet_emission.into(),
         backscatter_tail: !a.no_backscatter_tail,

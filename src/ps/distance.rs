@@ -543,7 +543,7 @@ mod experiments {
         // BiCGStab, as the pipeline's step 3 does them.
         use crate::ps::backscatter::{backscatter_tail, remove_backscatter};
         use crate::ps::bicgstab::BicgstabParams;
-        use crate::ps::physics::{FTable, FarField, ForwardKernel, KernelLayout, SurfaceGeometry};
+        use crate::ps::physics::{FTable, ForwardKernel, KernelLayout, SurfaceGeometry};
         use crate::ps::pipeline::solve_reflected;
         let geom = SurfaceGeometry {
             width: w,
@@ -561,7 +561,7 @@ mod experiments {
                 &cap.medium,
                 &geom,
                 &KernelLayout::coarse_far(r, cell, 9).unwrap(),
-                FarField::PerPixel,
+                crate::ps::tests::env_far_field(),
             )
             .unwrap();
             for (median, with_tail) in [(true, false), (false, false), (true, true), (false, true)]

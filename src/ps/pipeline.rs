@@ -292,7 +292,8 @@ pub struct PsIterationStats {
     pub solver_residual: f64,
     /// ε of Eq. 4.53 (0 in backscatter-only mode).
     pub epsilon: f64,
-    /// The constant term `C` of Eq. 4.52 per light.
+    /// The constant term `C` of Eq. 4.52 per light; empty with [`FarField::Blocks`], which has
+    /// none.
     pub constant_term: Vec<f64>,
     /// Bytes of the stored kernel K̂.
     pub kernel_bytes: usize,
@@ -355,7 +356,7 @@ struct Augmented<'a>(&'a ForwardKernel);
 
 impl BlockOperator for Augmented<'_> {
     fn dim(&self) -> usize {
-        self.0.masked_count() + 1
+        self.0.dim()
     }
     fn apply_block(&self, xs: &[f64], ys: &mut [f64], k: usize) {
         self.0.apply_block(xs, ys, k);
@@ -671,7 +672,7 @@ pub fn photometric_stereo(
 pub(crate) struct ReflectedSolve {
     /// L_s per light over the full image (0 off the mask).
     pub(crate) reflected: Vec<Vec<f32>>,
-    /// The extra unknown of Eq. 4.52 per light.
+    /// The extra unknown of Eq. 4.52 per light (empty without one).
     pub(crate) constant_term: Vec<f64>,
     /// BiCGStab's iterations and residuals.
     pub(crate) report: crate::ps::bicgstab::BicgstabReport,
@@ -697,7 +698,7 @@ pub(crate) fn solve_reflected(
     let m = observed.len();
     let n = observed.first().map_or(0, Vec::len);
     let count = kernel.masked_count();
-    let dim = count + 1;
+    let dim = kernel.dim();
     let mut b = vec![0.0f64; dim * m];
     for (i, obs) in observed.iter().enumerate() {
         for k in 0..count {
@@ -730,7 +731,12 @@ pub(crate) fn solve_reflected(
         .collect();
     Ok(ReflectedSolve {
         reflected,
-        constant_term: (0..m).map(|i| x[i * dim + dim - 1]).collect(),
+        // Eq. 4.52's C (the first extra unknown); none when the far field is summed in blocks.
+        constant_term: if kernel.extra_unknowns() > 0 {
+            (0..m).map(|i| x[i * dim + count]).collect()
+        } else {
+            Vec::new()
+        },
         report,
         solution: x,
     })

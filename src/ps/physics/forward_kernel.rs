@@ -28,7 +28,7 @@ use rayon::prelude::*;
 
 use super::f_table::FTable;
 use super::facet_emission::{lambertian_scatter_cs, lambertian_scatter_cs_fast, FacetEmission};
-use super::far_field::{outside_support_kappa, FarField};
+use super::far_field::{outside_support_kappa, FarField, OutsideBlocks};
 use super::h::{scatter_cs, scatter_cs_fast};
 use super::kernel_batch::{k_entries_fast, PreLanes};
 use super::kernel_layout::KernelLayout;
@@ -342,12 +342,17 @@ pub struct ForwardKernel {
     entries: Vec<f32>,
     epsilon: f64,
     far_field: FarField,
-    /// Per masked pixel p, the coefficient of the extra unknown x_C in row p: 1 for
-    /// Eq. 4.52, κ_p/κ̄ for [`FarField::PerPixel`].
+    /// Number D of extra unknowns ([`FarField::unknowns`]: 1, or 0 for [`FarField::Blocks`]).
+    extra: usize,
+    /// Per masked pixel p, the coefficient of the extra unknown x_C in row p (empty without
+    /// one): 1 for Eq. 4.52, κ_p/κ̄ for [`FarField::PerPixel`].
     far_coeff: Vec<f64>,
-    /// Per masked pixel q, its weight in the last row (x_C = Σ_q weight_q L_s(q)): ε for
-    /// Eq. 4.52, κ̄·dA_q for [`FarField::PerPixel`].
+    /// Per masked pixel q, its weight in the last row (x_C = Σ_q weight_q L_s(q); empty
+    /// without one): ε for Eq. 4.52, κ̄·dA_q for [`FarField::PerPixel`].
     total_weight: Vec<f64>,
+    /// [`FarField::Blocks`]: the outside of the support summed on coarse blocks, and the facet
+    /// area dA_q (mm²) of every pixel, which weights L_s in the blocks' sums.
+    blocks: Option<(OutsideBlocks, Vec<f64>)>,
 }
 
 /// Marks unmasked pixels in [`ForwardKernel::masked_index`]'s table.
@@ -499,9 +504,18 @@ impl ForwardKernel {
         };
         // κ_p = far_coeff_p·κ̄, scaled so that x_C is of the order of Eq. 4.52's C. The
         // constant-ε model has κ̄ = 0 here (nothing subtracted in the support) and its last-row
-        // weights ε once ε is known.
+        // weights ε once ε is known; the blocks need neither.
+        let extra = far_field.unknowns();
+        let blocks = if far_field == FarField::Blocks {
+            let b = OutsideBlocks::build(&ph, &pre, &geom.mask, (w, h), layout, monitor);
+            monitor.checkpoint()?;
+            Some((b, pre.iter().map(|p| p.da).collect::<Vec<f64>>()))
+        } else {
+            None
+        };
         let (far_coeff, kappa_mean) = match far_field {
             FarField::ConstantEpsilon => (vec![1.0; masked.len()], 0.0),
+            FarField::Blocks => (Vec::new(), 0.0),
             FarField::PerPixel => {
                 let kappa = outside_support_kappa(&ph, &pre, &geom.mask, (w, h), layout, monitor);
                 monitor.checkpoint()?;
@@ -542,8 +556,9 @@ impl ForwardKernel {
         cell_pixel_start.push(cell_pixels.len() as u32);
         let cell_pixel_lanes = PreLanes::new(&cell_pixels);
         let mut entries = vec![0f32; masked.len() * per];
-        // What the per-pixel far field takes out of entry pq, per unit dA_q: κ_p (far_field.rs).
-        let kappa_of = |k: usize| far_coeff[k] * kappa_mean;
+        // What the per-pixel far field takes out of entry pq, per unit dA_q: κ_p (far_field.rs;
+        // 0 for the other models).
+        let kappa_of = |k: usize| far_coeff.get(k).map_or(0.0, |c| c * kappa_mean);
         let epsilon = entries
             .par_chunks_mut(per)
             .zip(masked.par_iter())
@@ -662,6 +677,7 @@ impl ForwardKernel {
         let epsilon = if epsilon.is_finite() { epsilon } else { 0.0 };
         let total_weight = match far_field {
             FarField::ConstantEpsilon => vec![epsilon; masked.len()],
+            FarField::Blocks => Vec::new(),
             FarField::PerPixel => masked
                 .iter()
                 .map(|&q| kappa_mean * pre[q as usize].da)
@@ -680,14 +696,33 @@ impl ForwardKernel {
             entries,
             epsilon,
             far_field,
+            extra,
             far_coeff,
             total_weight,
+            blocks,
         })
     }
 
-    /// Number n of masked pixels (the operator acts on vectors of length n + 1).
+    /// Number n of masked pixels (the operator acts on vectors of length
+    /// [`ForwardKernel::dim`]).
     pub fn masked_count(&self) -> usize {
         self.masked.len()
+    }
+
+    /// Number D of extra far-field unknowns after the n pixels ([`FarField::unknowns`]).
+    pub fn extra_unknowns(&self) -> usize {
+        self.extra
+    }
+
+    /// Number of stored [`FarField::Blocks`] entries (0 for the other models, or when the
+    /// support covers the object).
+    pub fn far_block_entries(&self) -> usize {
+        self.blocks.as_ref().map_or(0, |(b, _)| b.len())
+    }
+
+    /// Length n + D of the augmented operator's vectors.
+    pub fn dim(&self) -> usize {
+        self.masked.len() + self.extra
     }
 
     /// ε of Eq. 4.53.
@@ -700,21 +735,31 @@ impl ForwardKernel {
         self.far_field
     }
 
-    /// The value of the extra unknown x_C that is consistent with `ls` (L_s per masked pixel):
-    /// Eq. 4.52's last row, ε Σ_q L_s(q) (or κ̄ Σ_q dA_q L_s(q) for [`FarField::PerPixel`]).
-    /// A good start for the solver.
+    /// The values of the extra unknowns x_C,j that are consistent with `ls` (L_s per masked
+    /// pixel): Eq. 4.52's last row, ε Σ_q L_s(q) (or κ̄ Σ_q dA_q φ_j(q) L_s(q) for the
+    /// per-pixel model; none for [`FarField::Blocks`]). A good start for the solver.
     ///
     /// # Panics
     /// If `ls` does not have one value per masked pixel.
-    pub fn constant_for(&self, ls: &[f64]) -> f64 {
+    pub fn far_unknowns_for(&self, ls: &[f64]) -> Vec<f64> {
         assert_eq!(ls.len(), self.masked.len(), "one value per masked pixel");
-        ls.iter().zip(&self.total_weight).map(|(x, w)| w * x).sum()
+        let mut out = vec![0.0; self.extra];
+        if self.extra == 0 {
+            return out;
+        }
+        for (x, w) in ls.iter().zip(self.total_weight.chunks_exact(self.extra)) {
+            for (o, w) in out.iter_mut().zip(w) {
+                *o += w * x;
+            }
+        }
+        out
     }
 
-    /// The far field the constant x_C adds to masked pixel `k`: x_C·far_coeff_k, with
-    /// far_coeff ≡ 1 for Eq. 4.52 and κ_k/κ̄ for [`FarField::PerPixel`].
-    pub fn far_coefficient(&self, k: usize) -> f64 {
-        self.far_coeff[k]
+    /// The coefficients of the extra unknowns in masked pixel `k`'s row: the far field it adds
+    /// is Σ_j x_C,j·c_j, with c ≡ 1 for Eq. 4.52, κ_k/κ̄ for [`FarField::PerPixel`], and
+    /// none for [`FarField::Blocks`].
+    pub fn far_coefficients(&self, k: usize) -> &[f64] {
+        &self.far_coeff[k * self.extra..(k + 1) * self.extra]
     }
 
     /// The requested support r.
@@ -735,6 +780,10 @@ impl ForwardKernel {
             + self.masked.len() * 4
             + self.index_of.len() * 4
             + (self.far_coeff.len() + self.total_weight.len()) * 8
+            + self
+                .blocks
+                .as_ref()
+                .map_or(0, |(b, da)| b.bytes() + da.len() * 8)
     }
 
     /// Image width and height the kernel was built for.
@@ -768,25 +817,25 @@ impl ForwardKernel {
     }
 
     /// y = M·x for the augmented operator of Eq. 4.52: for masked p,
-    /// y_p = Σ_{q∈S(p)} K̂_pq x_q + x_C, and y_C = ε Σ_q x_q − x_C, with x and y of length n + 1
-    /// (masked pixels in row-major order, then C).
+    /// y_p = Σ_{q∈S(p)} K̂_pq x_q + Σ_j c_pj x_C,j, and y_C,j = Σ_q w_qj x_q − x_C,j (Eq. 4.52:
+    /// one C, c ≡ 1, w ≡ ε), with x and y of length [`ForwardKernel::dim`] (masked pixels in
+    /// row-major order, then the C_j).
     ///
     /// # Panics
-    /// If `x` or `y` does not have length n + 1.
+    /// If `x` or `y` does not have length n + D.
     pub fn apply(&self, x: &[f64], y: &mut [f64]) {
         self.apply_block(x, y, 1);
     }
 
-    /// [`ForwardKernel::apply`] on `k` vectors stored one after another in `xs` (each n + 1
+    /// [`ForwardKernel::apply`] on `k` vectors stored one after another in `xs` (each n + D
     /// long), results likewise in `ys`; up to eight vectors share one pass over the kernel.
     ///
     /// # Panics
-    /// If `xs` or `ys` does not have length k·(n + 1).
+    /// If `xs` or `ys` does not have length k·(n + D).
     pub fn apply_block(&self, xs: &[f64], ys: &mut [f64], k: usize) {
-        let n = self.masked.len();
-        let m = n + 1;
-        assert_eq!(xs.len(), k * m, "xs must hold k·(n+1) values");
-        assert_eq!(ys.len(), k * m, "ys must hold k·(n+1) values");
+        let m = self.dim();
+        assert_eq!(xs.len(), k * m, "xs must hold k·(n+D) values");
+        assert_eq!(ys.len(), k * m, "ys must hold k·(n+D) values");
         for j0 in (0..k).step_by(BLOCK) {
             let kb = BLOCK.min(k - j0);
             self.apply_group(
@@ -799,7 +848,7 @@ impl ForwardKernel {
 
     fn apply_group(&self, xs: &[f64], ys: &mut [f64], kb: usize) {
         let n = self.masked.len();
-        let m = n + 1;
+        let m = self.dim();
         let (w, h) = (self.width, self.height);
         let s = self.layout.cell();
         let (nb, fw) = (self.layout.near_width(), self.layout.far_width());
@@ -865,14 +914,31 @@ impl ForwardKernel {
             }
             o.copy_from_slice(&acc);
         });
+        if let Some((blocks, da)) = &self.blocks {
+            blocks.add_to(&self.masked, da, w, &img, BLOCK, &mut out);
+        }
         for j in 0..kb {
             let x = &xs[j * m..(j + 1) * m];
             let y = &mut ys[j * m..(j + 1) * m];
-            let xc = x[n];
-            for p in 0..n {
-                y[p] = out[p * BLOCK + j] + self.far_coeff[p] * xc;
+            let xc = &x[n..];
+            if self.extra == 0 {
+                for p in 0..n {
+                    y[p] = out[p * BLOCK + j];
+                }
+            } else if self.extra == 1 {
+                for p in 0..n {
+                    y[p] = out[p * BLOCK + j] + self.far_coeff[p] * xc[0];
+                }
+            } else {
+                for (p, c) in self.far_coeff.chunks_exact(self.extra).enumerate() {
+                    let far: f64 = c.iter().zip(xc).map(|(c, x)| c * x).sum();
+                    y[p] = out[p * BLOCK + j] + far;
+                }
             }
-            y[n] = self.constant_for(&x[..n]) - xc;
+            let totals = self.far_unknowns_for(&x[..n]);
+            for (e, t) in totals.iter().enumerate() {
+                y[n + e] = t - xc[e];
+            }
         }
     }
 }

@@ -199,6 +199,7 @@ fn params_from_proto(
         Ok(pb::PsFarField::Unspecified) => d.far_field,
         Ok(pb::PsFarField::PerPixel) => FarField::PerPixel,
         Ok(pb::PsFarField::ConstantEpsilon) => FarField::ConstantEpsilon,
+        Ok(pb::PsFarField::Blocks) => FarField::Blocks,
         Err(_) => {
             return Err(MurkError::invalid(
                 "far_field",
@@ -307,6 +308,7 @@ fn far_field_to_proto(f: FarField) -> pb::PsFarField {
     match f {
         FarField::PerPixel => pb::PsFarField::PerPixel,
         FarField::ConstantEpsilon => pb::PsFarField::ConstantEpsilon,
+        FarField::Blocks => pb::PsFarField::Blocks,
     }
 }
 

@@ -53,23 +53,39 @@ class _PsFarFieldEnumTypeWrapper(_enum_type_wrapper._EnumTypeWrapper[_PsFarField
     DESCRIPTOR: _descriptor.EnumDescriptor
     PS_FAR_FIELD_UNSPECIFIED: _PsFarField.ValueType  # 0
     PS_FAR_FIELD_PER_PIXEL: _PsFarField.ValueType  # 1
-    """murk's default: the outside of each pixel's support as kappa_p * (sum of dA_q L_s(q) outside
-    it), kappa_p the facet-area-weighted mean of K_pq there, computed once per kernel build; still
-    one extra unknown (docs/ACCURACY.md). At r = 81 it removes most of the truncation error.
+    """The outside of each pixel's support as kappa_p * (sum of dA_q L_s(q) outside it), kappa_p
+    the facet-area-weighted mean of K_pq there, computed once per kernel build; still one extra
+    unknown (docs/ACCURACY.md). Exact for a uniform L_s; murk's default before BLOCKS.
     """
     PS_FAR_FIELD_CONSTANT_EPSILON: _PsFarField.ValueType  # 2
     """The reference as published: one constant C = eps * sum_q L_s(q), eps from Eq. 4.53."""
+    PS_FAR_FIELD_BLOCKS: _PsFarField.ValueType  # 3
+    """murk's default: no model. The outside of each pixel's support is summed inside the operator
+    on coarse blocks (about 9 x 9 px, split along the support's edge), K at each block's mean
+    geometry times the block's sum of dA_q L_s(q); no extra unknown, no assumption on L_s. The
+    far window of far_cell carried over the whole object at a coarser step. PER_PIXEL assumes
+    a uniform L_s outside the support; near lights shade the object unevenly, and the distance
+    fit read that error as a 1-3 % longer distance (docs/ACCURACY.md).
+    """
 
 class PsFarField(_PsFarField, metaclass=_PsFarFieldEnumTypeWrapper): ...
 
 PS_FAR_FIELD_UNSPECIFIED: PsFarField.ValueType  # 0
 PS_FAR_FIELD_PER_PIXEL: PsFarField.ValueType  # 1
-"""murk's default: the outside of each pixel's support as kappa_p * (sum of dA_q L_s(q) outside
-it), kappa_p the facet-area-weighted mean of K_pq there, computed once per kernel build; still
-one extra unknown (docs/ACCURACY.md). At r = 81 it removes most of the truncation error.
+"""The outside of each pixel's support as kappa_p * (sum of dA_q L_s(q) outside it), kappa_p
+the facet-area-weighted mean of K_pq there, computed once per kernel build; still one extra
+unknown (docs/ACCURACY.md). Exact for a uniform L_s; murk's default before BLOCKS.
 """
 PS_FAR_FIELD_CONSTANT_EPSILON: PsFarField.ValueType  # 2
 """The reference as published: one constant C = eps * sum_q L_s(q), eps from Eq. 4.53."""
+PS_FAR_FIELD_BLOCKS: PsFarField.ValueType  # 3
+"""murk's default: no model. The outside of each pixel's support is summed inside the operator
+on coarse blocks (about 9 x 9 px, split along the support's edge), K at each block's mean
+geometry times the block's sum of dA_q L_s(q); no extra unknown, no assumption on L_s. The
+far window of far_cell carried over the whole object at a coarser step. PER_PIXEL assumes
+a uniform L_s outside the support; near lights shade the object unevenly, and the distance
+fit read that error as a 1-3 % longer distance (docs/ACCURACY.md).
+"""
 Global___PsFarField: _TypeAlias = PsFarField  # noqa: Y015
 
 class _PsMode:
@@ -192,7 +208,7 @@ class PhotometricStereoRequest(_message.Message):
     coarser if the kernel memory limit demands it). support_r must then be 0.
     """
     far_field: Global___PsFarField.ValueType
-    """How the forward scatter from outside the support enters Eq. 4.52. UNSPECIFIED = PER_PIXEL."""
+    """How the forward scatter from outside the support enters Eq. 4.52. UNSPECIFIED = BLOCKS."""
     facet_emission: Global___PsFacetEmission.ValueType
     """How a surface facet radiates into the medium in the surface-camera forward scatter.
     UNSPECIFIED = LAMBERTIAN.
@@ -466,7 +482,9 @@ class PsIteration(_message.Message):
     mean_depth_mm: _builtins.float
     solver_residual: _builtins.float
     epsilon: _builtins.float
-    """epsilon of Eq. 4.53 and the constant term C of Eq. 4.52 per light."""
+    """epsilon of Eq. 4.53 and the constant term C of Eq. 4.52 per light (constant_term is empty
+    with far_field BLOCKS, which has no C).
+    """
     kernel_bytes: _builtins.int
     filled_pixels: _builtins.int
     """Object pixels with fewer than three lit observations, filled from neighbours."""
