@@ -306,7 +306,7 @@ fn request_round_trip_keeps_the_mode_and_far_field() {
     assert_eq!(r.mode, pb::PsMode::BackscatterOnly as i32);
     assert_eq!(r.far_field, pb::PsFarField::ConstantEpsilon as i32);
     let d = ps_request_to_proto(&sim.capture, &PsParams::default());
-    assert_eq!(d.far_field, pb::PsFarField::PerPixel as i32);
+    assert_eq!(d.far_field, pb::PsFarField::Blocks as i32);
     assert_eq!(r.lights.len(), sim.capture.lights.len());
 }
 
