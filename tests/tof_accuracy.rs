@@ -651,7 +651,7 @@ fn production_maps() {
         .map(|(&a, &p)| (a * p.cos(), a * p.sin()))
         .unzip();
     let noise = murk::tof::noise_model::NoiseModel::fit(&re, &im, obs, w).unwrap();
-    let true_sigma = |a: f64| frame.config.noise_shot * a.sqrt() + frame.config.noise_read;
+    let true_sigma = |a: f64| frame.config.noise_sigma(a);
     println!(
         "noise model {noise:?}; σ at 2: fitted {:.3} true {:.3}; at 20: {:.3} / {:.3}",
         noise.sigma(2.0),
