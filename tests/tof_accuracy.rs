@@ -210,20 +210,22 @@ fn medium_fog_reduced_size_meets_acceptance() {
 
 /// Issue 22's occluding scenes at 128 × 106, seeds 0–5 of the cluttered layout (a large bright
 /// sphere 0.75–1.05 m away hiding part of a panel, plus 1–2 objects): medium fog within 30 mm
-/// and at most a third of the uncorrected error, thick fog within 45 mm (the issue's 40 mm is
-/// met on all but seed 1, 41.8 mm), mask IoU ≥ 0.9 in both. Before the joint prior, the phasor
-/// channels and the coarse blocks, medium fog gave 14–450 mm and IoU 0.66–0.99.
+/// and at most a third of the uncorrected error, thick fog within the issue's 40 mm (worst:
+/// seed 1, 36.7 mm; 41.8 mm when the simulator still added the noise's standard deviations),
+/// mask IoU ≥ 0.95 in both (the issue asks 0.9; measured 0.988–1.000 since σ₁ is floored at the
+/// sensor noise). Before the joint prior, the phasor channels and the coarse blocks, medium fog
+/// gave 14–450 mm and IoU 0.66–0.99.
 #[test]
 fn cluttered_scenes_reduced_size_meet_issue_22() {
     for seed in 0..6 {
-        for (preset, limit) in [(FogPreset::Medium, 0.03), (FogPreset::Thick, 0.045)] {
+        for (preset, limit) in [(FogPreset::Medium, 0.03), (FogPreset::Thick, 0.04)] {
             let frame = simulate_layout(preset, seed, 128, 106, SceneLayout::Cluttered);
             let (out, secs) = run(&frame);
             let s = score(&frame, &out, secs);
             let what = format!("cluttered {preset} seed {seed}");
             assert!(s.mean_err_m <= limit, "{what}: {s:?}");
             assert!(s.raw_mean_err_m >= 3.0 * s.mean_err_m, "{what}: {s:?}");
-            assert!(s.iou >= 0.9, "{what}: {s:?}");
+            assert!(s.iou >= 0.95, "{what}: {s:?}");
         }
     }
 }
