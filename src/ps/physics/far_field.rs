@@ -385,7 +385,7 @@ impl OutsideBlocks {
 #[cfg(test)]
 mod tests {
     use super::super::forward_kernel::tests::{medium, sphere};
-    use super::super::{FTable, ForwardKernel, KernelLayout};
+    use super::super::{FTable, ForwardKernel, KernelLayout, SurfaceGeometry};
     use super::*;
 
     /// What a kernel predicts for L'(p) = Σ_q K_pq L_s(q): its rows applied to `ls` with the
@@ -416,6 +416,21 @@ mod tests {
         err / total
     }
 
+    /// A sphere of ~70 px in a 62×55 image, and its whole-image kernel (r = 125 covers it).
+    fn small_sphere() -> (SurfaceGeometry, ForwardKernel) {
+        let g = sphere(62, 55, 70.0, 300.0, 110.0);
+        let truth = ForwardKernel::build(FTable::global(), &medium(), &g, 125).unwrap();
+        (g, truth)
+    }
+
+    /// A 21-px support, as the exact window and with 3×3 far cells.
+    fn support_21_layouts() -> [KernelLayout; 2] {
+        [
+            KernelLayout::exact(21).unwrap(),
+            KernelLayout::coarse_far(21, 3, 5).unwrap(),
+        ]
+    }
+
     /// A support of 21 px on a sphere of ~70 px: against the whole-image kernel, the per-pixel
     /// far field predicts the forward scatter several times better than Eq. 4.52's constant ε,
     /// for uniform, shading-like and textured L_s, with the exact window and with far cells;
@@ -423,16 +438,10 @@ mod tests {
     /// where the blocks are a quadrature.
     #[test]
     fn per_pixel_far_field_predicts_the_truncated_scatter() {
-        let ft = FTable::global();
-        let m = medium();
-        let (w, h) = (62, 55);
-        let g = sphere(w, h, 70.0, 300.0, 110.0);
-        let truth_kernel = ForwardKernel::build(ft, &m, &g, 125).unwrap();
-        let n = truth_kernel.masked_count();
-        for layout in [
-            KernelLayout::exact(21).unwrap(),
-            KernelLayout::coarse_far(21, 3, 5).unwrap(),
-        ] {
+        let (ft, m) = (FTable::global(), medium());
+        let (g, truth_kernel) = small_sphere();
+        let (w, n) = (g.width, truth_kernel.masked_count());
+        for layout in support_21_layouts() {
             let eps =
                 ForwardKernel::build_with(ft, &m, &g, &layout, FarField::ConstantEpsilon).unwrap();
             let per = ForwardKernel::build_with(ft, &m, &g, &layout, FarField::PerPixel).unwrap();
@@ -474,12 +483,9 @@ mod tests {
     /// sum the actual L_s and stay at their quadrature error.
     #[test]
     fn blocks_follow_an_unevenly_lit_object() {
-        let ft = FTable::global();
-        let m = medium();
-        let (w, h) = (62, 55);
-        let g = sphere(w, h, 70.0, 300.0, 110.0);
-        let truth_kernel = ForwardKernel::build(ft, &m, &g, 125).unwrap();
-        let n = truth_kernel.masked_count();
+        let (ft, m) = (FTable::global(), medium());
+        let (g, truth_kernel) = small_sphere();
+        let (w, h, n) = (g.width, g.height, truth_kernel.masked_count());
         let ls: Vec<f64> = (0..n)
             .map(|k| {
                 let p = truth_kernel.pixel_index(k);
@@ -493,10 +499,7 @@ mod tests {
             })
             .collect();
         let truth = predict(&truth_kernel, &ls, false);
-        for layout in [
-            KernelLayout::exact(21).unwrap(),
-            KernelLayout::coarse_far(21, 3, 5).unwrap(),
-        ] {
+        for layout in support_21_layouts() {
             let per = ForwardKernel::build_with(ft, &m, &g, &layout, FarField::PerPixel).unwrap();
             let blocks = ForwardKernel::build_with(ft, &m, &g, &layout, FarField::Blocks).unwrap();
             assert_eq!((per.dim(), blocks.dim()), (n + 1, n));
