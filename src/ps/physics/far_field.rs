@@ -272,7 +272,8 @@ pub(super) struct OutsideBlocks {
 }
 
 impl OutsideBlocks {
-    /// Builds the entries; empty (no cancellation check result) when `monitor` is cancelled.
+    /// Builds the entries. Once `monitor` is cancelled the remaining cells are left empty: the
+    /// caller checks the monitor and discards the result.
     pub(super) fn build(
         ph: &Physics,
         pre: &[Pre],
