@@ -132,6 +132,11 @@ pub struct IrlsOutcome {
 /// do not pull the held-out estimates.
 pub const HELD_OUT_ROUNDS: usize = 3;
 
+/// CG tolerance multiplier of the held-out check's x-steps: the loosest the levels use while
+/// their weights still move. The check compares block RMS residuals at the noise's scale, and
+/// the fine level's first x-step solves the kept estimate again anyway.
+const HELD_OUT_TOL_SCALE: f64 = 100.0;
+
 /// The accepted blocks (`patch_weight` ≥ 0.5) whose held-out residual is an outlier among the
 /// accepted blocks' ([`HELD_OUT_ROUNDS`]), and the CG iterations spent; none when fewer than 8
 /// blocks are accepted. `weights` are the coarse level's pixel weights, `x` the current estimate (warm
@@ -188,7 +193,7 @@ fn held_out_outliers(
                 &mut img,
                 &mut rhs,
                 xc,
-                1.0,
+                HELD_OUT_TOL_SCALE,
                 monitor,
             )?;
         }
@@ -431,7 +436,7 @@ pub fn run_irls_vector(
                     &mut prior_img[c],
                     &mut cv_rhs,
                     &mut x[c],
-                    1.0,
+                    HELD_OUT_TOL_SCALE,
                     monitor,
                 )?;
             }
