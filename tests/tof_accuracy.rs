@@ -444,7 +444,7 @@ fn diagnose() {
         }
         println!(
             "{name}: |x−s| in obj {:.4} (mean s {:.4}), bg {:.4}; |x̃−s| bg {:.4}; σ2 {:?} σ1 {:?}; \
-             cg its {} ({:.1}/solve, {}+{} its); {:.3}s; outlier-bg px {fp}/{nout}, inlier-obj px {fneg}/{nin}",
+             cg its {} ({:.1}/solve, {}+{} its, {} held-out rejections); {:.3}s; outlier-bg px {fp}/{nout}, inlier-obj px {fneg}/{nin}",
             ein / nin as f64,
             tin / nin as f64,
             eout / nout as f64,
@@ -455,6 +455,7 @@ fn diagnose() {
             o.cg_iterations as f64 / (o.coarse_iterations_run + o.fine_iterations_run).max(1) as f64,
             o.coarse_iterations_run,
             o.fine_iterations_run,
+            o.held_out_rejected,
             secs
         );
     }

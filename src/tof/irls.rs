@@ -5,9 +5,10 @@
 //! level (Eq. 5.11): one weight per pixel. Each level fixes its scale σ from the residuals of its
 //! first iteration (§5.3.4); the fine level re-measures σ₁ once, from its first x-step solved
 //! under pixel weights (see `run_irls`), and with a noise model measures it over the coarse
-//! level's background, floored at the sensor noise (`fine_scale_with_noise_model`). Every iteration alternates the x-step and the a-step of
-//! Eq. 5.12, the a-step fitting the quadratics with the IRLS weights (a deviation, see
-//! `x_and_a_step`).
+//! level's background, floored at the sensor noise (`fine_scale_with_noise_model`). Between
+//! the levels a held-out check re-judges the coarse level's accepted blocks
+//! ([`HELD_OUT_ROUNDS`]). Every iteration alternates the x-step and the a-step of Eq. 5.12, the
+//! a-step fitting the quadratics with the IRLS weights (a deviation, see `x_and_a_step`).
 
 use rayon::prelude::*;
 
@@ -139,8 +140,8 @@ const HELD_OUT_TOL_SCALE: f64 = 100.0;
 
 /// The accepted blocks (`patch_weight` ≥ 0.5) whose held-out residual is an outlier among the
 /// accepted blocks' ([`HELD_OUT_ROUNDS`]), and the CG iterations spent; none when fewer than 8
-/// blocks are accepted. `weights` are the coarse level's pixel weights, `x` the current estimate (warm
-/// start of the held-out solves, left unchanged).
+/// blocks are accepted. `weights` are the coarse level's pixel weights, `x` the current
+/// estimate (warm start of the held-out solves, left unchanged).
 #[allow(clippy::too_many_arguments)]
 fn held_out_outliers(
     sys: &XStepSystem,

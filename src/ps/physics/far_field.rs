@@ -259,13 +259,13 @@ pub(super) struct OutsideBlocks {
     /// Side of the s-cells and of the outer cells, pixels.
     s: usize,
     outer_px: usize,
-    /// Size of the s-cell and outer grids.
+    /// Width of the s-cell and outer grids, and the outer grid's cell count.
     fw: usize,
     ow: usize,
-    oh: usize,
+    n_outer: usize,
     /// Entries of s-cell c are `start[c]..start[c + 1]`.
     start: Vec<u32>,
-    /// Source of each entry: an outer cell o < ow·oh, or ow·oh + an s-cell index.
+    /// Source of each entry: an outer cell o < n_outer, or n_outer + an s-cell index.
     source: Vec<u32>,
     /// K per mm² of the source's facet area.
     value: Vec<f32>,
@@ -310,13 +310,12 @@ impl OutsideBlocks {
             }
         }
         start.push(source.len() as u32);
-        let oh = h.div_ceil(grid.s * grid.m);
         OutsideBlocks {
             s: grid.s,
             outer_px: grid.s * grid.m,
             fw: grid.fw,
             ow: grid.ow,
-            oh,
+            n_outer: grid.outer.len(),
             start,
             source,
             value,
@@ -345,7 +344,7 @@ impl OutsideBlocks {
         lanes: usize,
         out: &mut [f64],
     ) {
-        let n_outer = self.ow * self.oh;
+        let n_outer = self.n_outer;
         let mut sums = vec![0.0f64; (n_outer + self.start.len() - 1) * lanes];
         for &qi in masked {
             let qi = qi as usize;
@@ -395,10 +394,8 @@ mod tests {
     fn predict(kernel: &ForwardKernel, ls: &[f64], far: bool) -> Vec<f64> {
         let n = ls.len();
         let mut x = ls.to_vec();
-        if far {
-            x.extend(kernel.far_unknowns_for(ls));
-        } else {
-            x.extend(vec![0.0; kernel.extra_unknowns()]);
+        if let Some(c) = kernel.constant_for(ls) {
+            x.push(if far { c } else { 0.0 });
         }
         let mut y = vec![0.0; kernel.dim()];
         kernel.apply(&x, &mut y);
@@ -534,10 +531,10 @@ mod tests {
             let n = per.masked_count();
             for k in 0..n {
                 assert_eq!(per.window(k), eps.window(k));
-                assert!(per.far_coefficients(k).iter().all(|&c| c == 0.0));
+                assert_eq!(per.far_coefficient(k), 0.0);
             }
             let ls = vec![1.0; n];
-            assert!(per.far_unknowns_for(&ls).iter().all(|&c| c == 0.0));
+            assert_eq!(per.constant_for(&ls).unwrap_or(0.0), 0.0);
         }
     }
 }

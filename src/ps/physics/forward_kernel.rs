@@ -342,8 +342,6 @@ pub struct ForwardKernel {
     entries: Vec<f32>,
     epsilon: f64,
     far_field: FarField,
-    /// Number D of extra unknowns ([`FarField::unknowns`]: 1, or 0 for [`FarField::Blocks`]).
-    extra: usize,
     /// Per masked pixel p, the coefficient of the extra unknown x_C in row p (empty without
     /// one): 1 for Eq. 4.52, κ_p/κ̄ for [`FarField::PerPixel`].
     far_coeff: Vec<f64>,
@@ -505,7 +503,6 @@ impl ForwardKernel {
         // κ_p = far_coeff_p·κ̄, scaled so that x_C is of the order of Eq. 4.52's C. The
         // constant-ε model has κ̄ = 0 here (nothing subtracted in the support) and its last-row
         // weights ε once ε is known; the blocks need neither.
-        let extra = far_field.unknowns();
         let blocks = if far_field == FarField::Blocks {
             let b = OutsideBlocks::build(&ph, &pre, &geom.mask, (w, h), layout, monitor);
             monitor.checkpoint()?;
@@ -696,7 +693,6 @@ impl ForwardKernel {
             entries,
             epsilon,
             far_field,
-            extra,
             far_coeff,
             total_weight,
             blocks,
@@ -709,9 +705,10 @@ impl ForwardKernel {
         self.masked.len()
     }
 
-    /// Number D of extra far-field unknowns after the n pixels ([`FarField::unknowns`]).
+    /// Number of extra far-field unknowns after the n pixels ([`FarField::unknowns`]: Eq. 4.52's
+    /// C, or none).
     pub fn extra_unknowns(&self) -> usize {
-        self.extra
+        self.far_field.unknowns()
     }
 
     /// Number of stored [`FarField::Blocks`] entries (0 for the other models, or when the
@@ -720,9 +717,9 @@ impl ForwardKernel {
         self.blocks.as_ref().map_or(0, |(b, _)| b.len())
     }
 
-    /// Length n + D of the augmented operator's vectors.
+    /// Length of the augmented operator's vectors: n, plus 1 when there is a C.
     pub fn dim(&self) -> usize {
-        self.masked.len() + self.extra
+        self.masked.len() + self.extra_unknowns()
     }
 
     /// ε of Eq. 4.53.
@@ -735,31 +732,23 @@ impl ForwardKernel {
         self.far_field
     }
 
-    /// The values of the extra unknowns x_C,j that are consistent with `ls` (L_s per masked
-    /// pixel): Eq. 4.52's last row, ε Σ_q L_s(q) (or κ̄ Σ_q dA_q φ_j(q) L_s(q) for the
-    /// per-pixel model; none for [`FarField::Blocks`]). A good start for the solver.
+    /// The value of the extra unknown x_C that is consistent with `ls` (L_s per masked pixel):
+    /// Eq. 4.52's last row, ε Σ_q L_s(q) (or κ̄ Σ_q dA_q L_s(q) for [`FarField::PerPixel`]);
+    /// `None` for [`FarField::Blocks`], which has no such unknown. A good start for the solver.
     ///
     /// # Panics
     /// If `ls` does not have one value per masked pixel.
-    pub fn far_unknowns_for(&self, ls: &[f64]) -> Vec<f64> {
+    pub fn constant_for(&self, ls: &[f64]) -> Option<f64> {
         assert_eq!(ls.len(), self.masked.len(), "one value per masked pixel");
-        let mut out = vec![0.0; self.extra];
-        if self.extra == 0 {
-            return out;
-        }
-        for (x, w) in ls.iter().zip(self.total_weight.chunks_exact(self.extra)) {
-            for (o, w) in out.iter_mut().zip(w) {
-                *o += w * x;
-            }
-        }
-        out
+        (self.extra_unknowns() == 1)
+            .then(|| ls.iter().zip(&self.total_weight).map(|(x, w)| w * x).sum())
     }
 
-    /// The coefficients of the extra unknowns in masked pixel `k`'s row: the far field it adds
-    /// is Σ_j x_C,j·c_j, with c ≡ 1 for Eq. 4.52, κ_k/κ̄ for [`FarField::PerPixel`], and
-    /// none for [`FarField::Blocks`].
-    pub fn far_coefficients(&self, k: usize) -> &[f64] {
-        &self.far_coeff[k * self.extra..(k + 1) * self.extra]
+    /// The far field the constant x_C adds to masked pixel `k`: x_C·far_coeff_k, with
+    /// far_coeff ≡ 1 for Eq. 4.52 and κ_k/κ̄ for [`FarField::PerPixel`]; 0 for
+    /// [`FarField::Blocks`], which has no x_C.
+    pub fn far_coefficient(&self, k: usize) -> f64 {
+        self.far_coeff.get(k).copied().unwrap_or(0.0)
     }
 
     /// The requested support r.
@@ -817,25 +806,26 @@ impl ForwardKernel {
     }
 
     /// y = M·x for the augmented operator of Eq. 4.52: for masked p,
-    /// y_p = Σ_{q∈S(p)} K̂_pq x_q + Σ_j c_pj x_C,j, and y_C,j = Σ_q w_qj x_q − x_C,j (Eq. 4.52:
-    /// one C, c ≡ 1, w ≡ ε), with x and y of length [`ForwardKernel::dim`] (masked pixels in
-    /// row-major order, then the C_j).
+    /// y_p = Σ_{q∈S(p)} K̂_pq x_q + c_p x_C, and y_C = Σ_q w_q x_q − x_C (Eq. 4.52: c ≡ 1,
+    /// w ≡ ε), with x and y of length [`ForwardKernel::dim`] (masked pixels in row-major order,
+    /// then C). [`FarField::Blocks`] has no C: y_p = Σ_{q∈S(p)} K̂_pq x_q plus the blocks' sum.
     ///
     /// # Panics
-    /// If `x` or `y` does not have length n + D.
+    /// If `x` or `y` does not have length [`ForwardKernel::dim`].
     pub fn apply(&self, x: &[f64], y: &mut [f64]) {
         self.apply_block(x, y, 1);
     }
 
-    /// [`ForwardKernel::apply`] on `k` vectors stored one after another in `xs` (each n + D
-    /// long), results likewise in `ys`; up to eight vectors share one pass over the kernel.
+    /// [`ForwardKernel::apply`] on `k` vectors stored one after another in `xs` (each
+    /// [`ForwardKernel::dim`] long), results likewise in `ys`; up to eight vectors share one pass
+    /// over the kernel.
     ///
     /// # Panics
-    /// If `xs` or `ys` does not have length k·(n + D).
+    /// If `xs` or `ys` does not have length k·dim.
     pub fn apply_block(&self, xs: &[f64], ys: &mut [f64], k: usize) {
         let m = self.dim();
-        assert_eq!(xs.len(), k * m, "xs must hold k·(n+D) values");
-        assert_eq!(ys.len(), k * m, "ys must hold k·(n+D) values");
+        assert_eq!(xs.len(), k * m, "xs must hold k·dim values");
+        assert_eq!(ys.len(), k * m, "ys must hold k·dim values");
         for j0 in (0..k).step_by(BLOCK) {
             let kb = BLOCK.min(k - j0);
             self.apply_group(
@@ -920,24 +910,19 @@ impl ForwardKernel {
         for j in 0..kb {
             let x = &xs[j * m..(j + 1) * m];
             let y = &mut ys[j * m..(j + 1) * m];
-            let xc = &x[n..];
-            if self.extra == 0 {
-                for p in 0..n {
-                    y[p] = out[p * BLOCK + j];
+            match self.constant_for(&x[..n]) {
+                Some(total) => {
+                    let xc = x[n];
+                    for p in 0..n {
+                        y[p] = out[p * BLOCK + j] + self.far_coeff[p] * xc;
+                    }
+                    y[n] = total - xc;
                 }
-            } else if self.extra == 1 {
-                for p in 0..n {
-                    y[p] = out[p * BLOCK + j] + self.far_coeff[p] * xc[0];
+                None => {
+                    for p in 0..n {
+                        y[p] = out[p * BLOCK + j];
+                    }
                 }
-            } else {
-                for (p, c) in self.far_coeff.chunks_exact(self.extra).enumerate() {
-                    let far: f64 = c.iter().zip(xc).map(|(c, x)| c * x).sum();
-                    y[p] = out[p * BLOCK + j] + far;
-                }
-            }
-            let totals = self.far_unknowns_for(&x[..n]);
-            for (e, t) in totals.iter().enumerate() {
-                y[n + e] = t - xc[e];
             }
         }
     }
