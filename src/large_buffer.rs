@@ -22,6 +22,32 @@ pub fn zeroed_f32(len: usize) -> Vec<f32> {
     data
 }
 
+/// `buf` reused as a zeroed buffer of `len` values when its capacity holds them (one `memset`,
+/// no fresh pages to fault in), else a new [`zeroed_f32`]. Depth estimation in strips passes
+/// each strip's spent volumes on to the next this way.
+pub fn reuse_zeroed_f32(mut buf: Vec<f32>, len: usize) -> Vec<f32> {
+    if buf.capacity() < len {
+        // Released before the new one is allocated, so the two never coexist.
+        drop(buf);
+        return zeroed_f32(len);
+    }
+    buf.clear();
+    buf.resize(len, 0.0);
+    buf
+}
+
+/// `buf` reused as a buffer of `len` values for a caller that overwrites every one of them: the
+/// values kept from `buf` are left as they are (no `memset`), new ones are zero; a new
+/// [`zeroed_f32`] when its capacity is too small.
+pub fn reuse_f32(mut buf: Vec<f32>, len: usize) -> Vec<f32> {
+    if buf.capacity() < len {
+        drop(buf);
+        return zeroed_f32(len);
+    }
+    buf.resize(len, 0.0);
+    buf
+}
+
 #[cfg(target_os = "linux")]
 fn advise_huge_pages(data: &mut [f32]) {
     let start = data.as_mut_ptr() as usize;
@@ -62,6 +88,18 @@ mod tests {
                 *x = i as f32;
             }
             assert!(v.iter().enumerate().all(|(i, &x)| x == i as f32));
+        }
+    }
+
+    /// Reused buffers come back zeroed at the asked length, whether they shrink, keep their
+    /// size or must grow.
+    #[test]
+    fn reused_buffers_are_zeroed() {
+        for (had, len) in [(100usize, 40usize), (100, 100), (10, 1000), (0, 0)] {
+            let v = reuse_zeroed_f32(vec![7.0; had], len);
+            assert_eq!(v.len(), len);
+            assert!(v.iter().all(|&x| x == 0.0));
+            assert_eq!(reuse_f32(vec![7.0; had], len).len(), len);
         }
     }
 }

@@ -418,6 +418,21 @@ pub fn build_cost_volume_rows(
     rows: std::ops::Range<usize>,
     monitor: &Monitor,
 ) -> Result<CostVolume> {
+    build_cost_volume_rows_in(Vec::new(), reference, sources, planes, kind, rows, monitor)
+}
+
+/// [`build_cost_volume_rows`] into `buffer`'s memory when its capacity holds the volume (its
+/// contents do not matter), so that depth estimated strip by strip reuses the previous strip's
+/// volumes instead of faulting in fresh pages for each.
+pub fn build_cost_volume_rows_in(
+    buffer: Vec<f32>,
+    reference: &View<'_>,
+    sources: &[View<'_>],
+    planes: &PlaneSet,
+    kind: CostKind,
+    rows: std::ops::Range<usize>,
+    monitor: &Monitor,
+) -> Result<CostVolume> {
     validate_inputs(reference, sources, planes, kind)?;
     if rows.is_empty() || rows.end > reference.image.height() {
         return Err(MurkError::invalid(
@@ -472,7 +487,7 @@ pub fn build_cost_volume_rows(
         .map(|s| Pose::relative(&reference.pose, &s.pose))
         .collect();
     let penalty = c as f32;
-    let mut data = crate::large_buffer::zeroed_f32(voxels);
+    let mut data = crate::large_buffer::reuse_zeroed_f32(buffer, voxels);
     let refd = reference.image.data();
     let dehaze = kind.dehazing().is_some();
     // The default dehazing volume has a closed-form row kernel; β = 0 keeps the generic one so

@@ -30,7 +30,7 @@ use crate::error::{MurkError, Result};
 use crate::image::ImageF32;
 use crate::monitor::Monitor;
 use crate::mvs::cost_volume::{
-    build_cost_volume_rows, validate_inputs, CostKind, CostVolume, View,
+    build_cost_volume_rows_in, validate_inputs, CostKind, CostVolume, View,
 };
 use crate::mvs::plane_sweep::PlaneSet;
 
@@ -348,13 +348,27 @@ pub fn estimate_depth(
     let strips = strips_of(w, h, n, params.volume_budget_mib);
     let mut selections = Vec::with_capacity(w * h);
     let k = strips.len() as f32;
+    // Two volumes of the tallest strip, handed from strip to strip (see `strip_selections`).
+    let tallest = strips.iter().map(|s| s.rows.len()).max().unwrap_or(0) * w * n;
+    let mut spare = [
+        crate::large_buffer::zeroed_f32(tallest),
+        crate::large_buffer::zeroed_f32(tallest),
+    ];
     for (j, strip) in strips.iter().enumerate() {
         let m = monitor.sub(j as f32 / k, (j as f32 + 0.5) / k);
-        let volume =
-            build_cost_volume_rows(&reference, &sources, planes, kind, strip.rows.clone(), &m)?;
+        let volume = build_cost_volume_rows_in(
+            std::mem::take(&mut spare[0]),
+            &reference,
+            &sources,
+            planes,
+            kind,
+            strip.rows.clone(),
+            &m,
+        )?;
         let m = monitor.sub((j as f32 + 0.5) / k, (j as f32 + 1.0) / k);
-        selections.extend(strip_selections(
+        let (strip_selection, spent) = strip_selections(
             volume.into_vec(),
+            std::mem::take(&mut spare[1]),
             strip,
             w,
             planes,
@@ -363,7 +377,9 @@ pub fn estimate_depth(
             params,
             &claims,
             &m,
-        )?);
+        )?;
+        selections.extend(strip_selection);
+        spare = spent;
     }
     finish_depth(selections, w, h, planes, guide, params, claims, monitor)
 }
@@ -430,10 +446,13 @@ fn contrast_weights_of(guide: &ImageF32, params: &SgmParams) -> Vec<f32> {
 
 /// Steps 2–4 of the module docs on one strip's `[plane][row][x]` volume `data`: contrast
 /// weights, box window, SGM, selection; the strip's own rows' aggregated costs also go to the
-/// sources' `claims`. Returns the selections of the strip's own rows.
+/// sources' `claims`. Returns the selections of the strip's own rows and the two volume buffers,
+/// spent, for the next strip: the pixel-major costs go to `spare`'s memory when it is large
+/// enough, the aggregated costs overwrite `data`, so the strip holds two volumes at a time.
 #[allow(clippy::too_many_arguments)]
 fn strip_selections(
     mut data: Vec<f32>,
+    spare: Vec<f32>,
     strip: &Strip,
     w: usize,
     planes: &PlaneSet,
@@ -442,22 +461,30 @@ fn strip_selections(
     params: &SgmParams,
     claims: &[SourceClaims],
     monitor: &Monitor,
-) -> Result<Vec<Selection>> {
+) -> Result<(Vec<Selection>, [Vec<f32>; 2])> {
     let n = planes.num_planes;
     let rows = strip.rows.len();
-    let npix = w * rows;
-    if !weights.is_empty() {
-        contrast::apply_weights(
-            &mut data,
-            &weights[strip.rows.start * w..strip.rows.end * w],
-        );
-    }
-    window::box_filter_planes(&mut data, w, rows, params.cost_window_radius, monitor)?;
+    let strip_weights = if weights.is_empty() {
+        weights
+    } else {
+        &weights[strip.rows.start * w..strip.rows.end * w]
+    };
+    let mut costs = crate::large_buffer::reuse_f32(spare, data.len());
+    window::window_to_pixel_major(
+        &data,
+        strip_weights,
+        w,
+        rows,
+        n,
+        params.cost_window_radius,
+        &mut costs,
+        monitor,
+    )?;
     monitor.checkpoint()?;
-    let costs = sgm::to_pixel_major(&data, npix, n);
-    drop(data);
-    let sum = sgm::aggregate(
+    let sum = &mut data;
+    sgm::aggregate_into(
         &costs,
+        sum,
         w,
         rows,
         n,
@@ -466,7 +493,6 @@ fn strip_selections(
         Some(sgm::Guide::rows(guide, strip.rows.clone())),
         &monitor.sub(0.1, 0.9),
     )?;
-    drop(costs);
     monitor.checkpoint()?;
     let own =
         (strip.core.start - strip.rows.start) * w * n..(strip.core.end - strip.rows.start) * w * n;
@@ -474,11 +500,12 @@ fn strip_selections(
     for c in claims {
         c.add(own_sum, n, w, strip.core.clone());
     }
-    Ok(select::select_each(
+    let selections = select::select_each(
         own_sum,
         n,
         select::CONFIDENCE_EPS_PER_PATH * params.num_paths as f32,
-    ))
+    );
+    Ok((selections, [costs, data]))
 }
 
 /// Step 5 and the rejections: the consistency verdicts from the sources' `claims` (none when
@@ -611,8 +638,9 @@ pub fn depth_from_costs(
         rows: 0..h,
         core: 0..h,
     };
-    let selections = strip_selections(
+    let (selections, _) = strip_selections(
         data,
+        Vec::new(),
         &whole,
         w,
         planes,

@@ -11,11 +11,12 @@
 //!
 //! Layout and memory: costs and `S` are **pixel-major** `[y][x][plane]` `f32` (the caller
 //! transposes once), so each path update is a contiguous, vectorisable loop over planes, and
-//! every direction adds straight into the one `S` volume — no per-direction volumes. Horizontal
-//! directions run one image row per rayon task with a two-curve buffer; the other directions
-//! sweep rows in path order (each row depends on the previous) and split each row's pixels
-//! across rayon tasks, with two `W·N` row buffers. A cancellation checkpoint precedes each
-//! direction (and each row of the row-sweeping directions).
+//! every direction adds straight into the one `S` volume — no per-direction volumes. The
+//! directions run in three sweeps ([`aggregate_into`]): both horizontal ones on each row (one
+//! rayon task per row, two-curve buffers), then those with `dy = +1` and those with `dy = −1`,
+//! each a sweep of rows in path order (each row depends on the previous) whose pixels are split
+//! across rayon tasks, with two `W·N` row buffers per direction. A cancellation checkpoint
+//! precedes each sweep and each row of the row sweeps.
 
 use rayon::prelude::*;
 
@@ -244,30 +245,61 @@ pub fn aggregate(
     guide: Option<Guide<'_>>,
     monitor: &Monitor,
 ) -> Result<Vec<f32>> {
-    debug_assert_eq!(costs.len(), w * h * n);
-    let avx2 = crate::cpu::avx2_enabled();
     let mut sum = crate::large_buffer::zeroed_f32(w * h * n);
-    let dirs = &DIRECTIONS[..num_paths.min(DIRECTIONS.len())];
-    for (k, &(dx, dy)) in dirs.iter().enumerate() {
-        monitor.checkpoint()?;
-        if dy == 0 {
-            horizontal(costs, &mut sum, w, n, dx, pen, guide, avx2);
-        } else {
-            row_sweep(costs, &mut sum, w, h, n, dx, dy, pen, guide, avx2, monitor)?;
-        }
-        monitor.progress("mvs.sgm", (k + 1) as f32 / dirs.len() as f32);
-    }
+    aggregate_into(costs, &mut sum, w, h, n, num_paths, pen, guide, monitor)?;
     Ok(sum)
 }
 
-/// A horizontal direction: rows are independent paths.
+/// [`aggregate`] into `sum` (`w·h·n` values, whatever they hold: every value is overwritten), so
+/// that a caller estimating depth strip by strip reuses one buffer instead of faulting in a
+/// fresh one per strip.
+///
+/// The directions that share a sweep run together so each sweep streams the volumes through
+/// memory once: both horizontal directions on a row while it is in cache (one rayon task per
+/// row), then the directions with `dy = +1` in one top-to-bottom sweep and those with `dy = −1`
+/// in one bottom-to-top sweep, each pixel's curves of all of them updated back to back. The
+/// volumes are read and written 3 times instead of once per direction (8); only the order of
+/// the additions into `S` differs from one direction at a time.
+#[allow(clippy::too_many_arguments)]
+pub fn aggregate_into(
+    costs: &[f32],
+    sum: &mut [f32],
+    w: usize,
+    h: usize,
+    n: usize,
+    num_paths: usize,
+    pen: &Penalties,
+    guide: Option<Guide<'_>>,
+    monitor: &Monitor,
+) -> Result<()> {
+    debug_assert_eq!(costs.len(), w * h * n);
+    assert_eq!(sum.len(), costs.len(), "sum must hold one value per voxel");
+    let avx2 = crate::cpu::avx2_enabled();
+    let dirs = &DIRECTIONS[..num_paths.min(DIRECTIONS.len())];
+    let along = |dy: i32| -> Vec<i32> { dirs.iter().filter(|d| d.1 == dy).map(|d| d.0).collect() };
+    monitor.checkpoint()?;
+    // Every listing of directions starts with both horizontal ones, which initialise `S`.
+    horizontal(costs, sum, w, n, &along(0), pen, guide, avx2);
+    monitor.progress("mvs.sgm", 1.0 / 3.0);
+    for (k, dy) in [1, -1].into_iter().enumerate() {
+        let dxs = along(dy);
+        if !dxs.is_empty() {
+            row_sweep(costs, sum, w, h, n, &dxs, dy, pen, guide, avx2, monitor)?;
+        }
+        monitor.progress("mvs.sgm", (k + 2) as f32 / 3.0);
+    }
+    Ok(())
+}
+
+/// The horizontal directions `dxs` (`±1`): rows are independent paths. Each row's `S` is set to
+/// the sum of the directions' path costs.
 #[allow(clippy::too_many_arguments)]
 fn horizontal(
     costs: &[f32],
     sum: &mut [f32],
     w: usize,
     n: usize,
-    dx: i32,
+    dxs: &[i32],
     pen: &Penalties,
     guide: Option<Guide<'_>>,
     avx2: bool,
@@ -278,26 +310,31 @@ fn horizontal(
         .for_each_init(
             || (vec![0.0f32; n], vec![0.0f32; n]),
             |(prev, cur), (y, (srow, crow))| {
-                let mut prev_min = 0.0;
-                for step in 0..w {
-                    let x = if dx > 0 { step } else { w - 1 - step };
-                    let c = &crow[x * n..(x + 1) * n];
-                    let s = &mut srow[x * n..(x + 1) * n];
-                    let m = if step == 0 {
-                        path_start(c, cur, s)
-                    } else {
-                        let xp = if dx > 0 { x - 1 } else { x + 1 };
-                        let p2 = pen.p2_at(guide, xp, y, x, y);
-                        path_step_fast(avx2, c, prev, prev_min, pen.p1, p2, cur, s)
-                    };
-                    prev_min = m;
-                    std::mem::swap(prev, cur);
+                srow.fill(0.0);
+                for &dx in dxs {
+                    let mut prev_min = 0.0;
+                    for step in 0..w {
+                        let x = if dx > 0 { step } else { w - 1 - step };
+                        let c = &crow[x * n..(x + 1) * n];
+                        let s = &mut srow[x * n..(x + 1) * n];
+                        let m = if step == 0 {
+                            path_start(c, cur, s)
+                        } else {
+                            let xp = if dx > 0 { x - 1 } else { x + 1 };
+                            let p2 = pen.p2_at(guide, xp, y, x, y);
+                            path_step_fast(avx2, c, prev, prev_min, pen.p1, p2, cur, s)
+                        };
+                        prev_min = m;
+                        std::mem::swap(prev, cur);
+                    }
                 }
             },
         );
 }
 
-/// A direction with `dy = ±1`: rows in path order, pixels of a row in parallel.
+/// The directions `(dx, dy)` for `dx` in `dxs`, all with the same `dy = ±1`: rows in path
+/// order, pixels of a row in parallel, each pixel's curves of every direction updated back to
+/// back while its cost and `S` curves are in cache. Row buffers are `[x][direction][plane]`.
 #[allow(clippy::too_many_arguments)]
 fn row_sweep(
     costs: &[f32],
@@ -305,7 +342,7 @@ fn row_sweep(
     w: usize,
     h: usize,
     n: usize,
-    dx: i32,
+    dxs: &[i32],
     dy: i32,
     pen: &Penalties,
     guide: Option<Guide<'_>>,
@@ -313,72 +350,60 @@ fn row_sweep(
     monitor: &Monitor,
 ) -> Result<()> {
     let row_len = w * n;
-    let mut prev = vec![0.0f32; row_len];
-    let mut cur = vec![0.0f32; row_len];
-    let mut prev_min = vec![0.0f32; w];
-    let mut cur_min = vec![0.0f32; w];
+    let k = dxs.len();
+    let mut prev = vec![0.0f32; k * row_len];
+    let mut cur = vec![0.0f32; k * row_len];
+    let mut prev_min = vec![0.0f32; k * w];
+    let mut cur_min = vec![0.0f32; k * w];
     for step in 0..h {
         monitor.checkpoint()?;
         let y = if dy > 0 { step } else { h - 1 - step };
+        let yp = if dy > 0 { y.wrapping_sub(1) } else { y + 1 };
         let crow = &costs[y * row_len..(y + 1) * row_len];
         let srow = &mut sum[y * row_len..(y + 1) * row_len];
         let (prev_r, prev_min_r) = (&prev[..], &prev_min[..]);
         srow.par_chunks_mut(PIXEL_CHUNK * n)
-            .zip(cur.par_chunks_mut(PIXEL_CHUNK * n))
-            .zip(cur_min.par_chunks_mut(PIXEL_CHUNK))
+            .zip(cur.par_chunks_mut(PIXEL_CHUNK * k * n))
+            .zip(cur_min.par_chunks_mut(PIXEL_CHUNK * k))
             .enumerate()
             .for_each(|(chunk, ((s_chunk, cur_chunk), min_chunk))| {
                 let x0 = chunk * PIXEL_CHUNK;
                 let parts = s_chunk
                     .chunks_exact_mut(n)
-                    .zip(cur_chunk.chunks_exact_mut(n))
-                    .zip(min_chunk.iter_mut());
-                for (j, ((s, out), m)) in parts.enumerate() {
+                    .zip(cur_chunk.chunks_exact_mut(k * n))
+                    .zip(min_chunk.chunks_exact_mut(k));
+                for (j, ((s, outs), mins)) in parts.enumerate() {
                     let x = x0 + j;
                     let c = &crow[x * n..(x + 1) * n];
-                    let xp = x as i64 - dx as i64;
-                    *m = if step == 0 || xp < 0 || xp >= w as i64 {
-                        path_start(c, out, s)
-                    } else {
-                        let xp = xp as usize;
-                        let yp = if dy > 0 { y - 1 } else { y + 1 };
-                        let p2 = pen.p2_at(guide, xp, yp, x, y);
-                        path_step_fast(
-                            avx2,
-                            c,
-                            &prev_r[xp * n..(xp + 1) * n],
-                            prev_min_r[xp],
-                            pen.p1,
-                            p2,
-                            out,
-                            s,
-                        )
-                    };
+                    for (d, ((&dx, out), m)) in dxs
+                        .iter()
+                        .zip(outs.chunks_exact_mut(n))
+                        .zip(mins.iter_mut())
+                        .enumerate()
+                    {
+                        let xp = x as i64 - dx as i64;
+                        *m = if step == 0 || xp < 0 || xp >= w as i64 {
+                            path_start(c, out, s)
+                        } else {
+                            let xp = xp as usize;
+                            let p2 = pen.p2_at(guide, xp, yp, x, y);
+                            let at = (xp * k + d) * n;
+                            path_step_fast(
+                                avx2,
+                                c,
+                                &prev_r[at..at + n],
+                                prev_min_r[xp * k + d],
+                                pen.p1,
+                                p2,
+                                out,
+                                s,
+                            )
+                        };
+                    }
                 }
             });
         std::mem::swap(&mut prev, &mut cur);
         std::mem::swap(&mut prev_min, &mut cur_min);
     }
     Ok(())
-}
-
-/// Transposes a `[plane][y][x]` volume (`n` planes of `npix` pixels) to pixel-major
-/// `[pixel][plane]`, in parallel over blocks of pixels.
-pub fn to_pixel_major(data: &[f32], npix: usize, n: usize) -> Vec<f32> {
-    let mut out = crate::large_buffer::zeroed_f32(npix * n);
-    const BLOCK: usize = 64;
-    out.par_chunks_mut(BLOCK * n)
-        .enumerate()
-        .for_each(|(b, chunk)| {
-            let p0 = b * BLOCK;
-            let np = chunk.len() / n;
-            // Plane-outer so each plane's BLOCK pixels are read contiguously.
-            for i in 0..n {
-                let src = &data[i * npix + p0..i * npix + p0 + np];
-                for (j, &v) in src.iter().enumerate() {
-                    chunk[j * n + i] = v;
-                }
-            }
-        });
-    out
 }

@@ -125,18 +125,6 @@ fn fast_sgm_equals_reference() {
 }
 
 #[test]
-fn transpose_is_exact() {
-    let (npix, n) = (130, 5);
-    let data = lcg(3, npix * n);
-    let t = sgm::to_pixel_major(&data, npix, n);
-    for p in 0..npix {
-        for i in 0..n {
-            assert_eq!(t[p * n + i], data[i * npix + p]);
-        }
-    }
-}
-
-#[test]
 fn sub_plane_refinement_recovers_fractional_minimum() {
     let n = 32;
     let m = 10.3f32;

@@ -10,107 +10,206 @@ use rayon::prelude::*;
 use crate::error::Result;
 use crate::monitor::Monitor;
 
-/// Replaces each plane of a `[plane][y][x]` volume (`w·h` values per plane) by its box mean
-/// over a `(2r+1)²` window, clipped at the image border (the mean is over the pixels inside).
-/// `r = 0` leaves the volume untouched. Separable running sums: `O(1)` per voxel, one scratch
-/// row buffer per worker, no per-voxel allocation.
-pub fn box_filter_planes(
-    data: &mut [f32],
+/// Planes handled together by the horizontal pass: each pixel's values of a group are written as
+/// one contiguous run of the pixel-major row (32 bytes), not one scattered float per plane.
+const PLANE_GROUP: usize = 8;
+
+/// Rows per rayon task. Each task also filters the `r` rows above and below its band, so taller
+/// bands waste less; 32 rows leave several tasks per strip for 2+ cores.
+const BAND_ROWS: usize = 32;
+
+/// The contrast weights, box mean and transpose of steps 2 of [`super`] in one pass: from the
+/// `[plane][y][x]` volume `data` (`n` planes of `w·h`) into the pixel-major `[y][x][plane]`
+/// volume `out` (same length; every value is overwritten, so it may hold anything):
+///
+/// `out[y][x][i] = mean over the (2r+1)² window, clipped at the border, of weights[y'][x']·data[i][y'][x']`
+///
+/// with `weights` row-major `w·h` (empty = all 1) and `r = 0` meaning no window. Reading the
+/// plane-major volume once and writing the pixel-major one once replaces three passes over it
+/// (weights, window, transpose). Each task keeps `2r + 1` horizontally filtered pixel-major rows
+/// in a ring, so the vertical mean is a contiguous, vectorised sum over planes. Horizontal sums
+/// run in `f64` (prefix sums along a row); the vertical sum adds `2r + 1` `f32` values.
+#[allow(clippy::too_many_arguments)]
+pub fn window_to_pixel_major(
+    data: &[f32],
+    weights: &[f32],
     w: usize,
     h: usize,
+    n: usize,
     r: usize,
+    out: &mut [f32],
     monitor: &Monitor,
 ) -> Result<()> {
-    if r == 0 || w == 0 || h == 0 {
+    let npix = w * h;
+    assert_eq!(data.len(), npix * n, "volume size");
+    assert_eq!(out.len(), data.len(), "output size");
+    assert!(weights.is_empty() || weights.len() == npix, "weights size");
+    if npix == 0 || n == 0 {
         return Ok(());
     }
     monitor.checkpoint()?;
     // 1 / (pixels of the clipped window) along each axis: a multiply per voxel, not a divide.
-    let inv_counts = |n: usize| -> Vec<f64> {
-        (0..n)
-            .map(|i| 1.0 / ((i + r + 1).min(n) - i.saturating_sub(r)) as f64)
+    let inv_counts = |len: usize| -> Vec<f64> {
+        (0..len)
+            .map(|i| 1.0 / ((i + r + 1).min(len) - i.saturating_sub(r)) as f64)
             .collect()
     };
     let (inv_x, inv_y) = (inv_counts(w), inv_counts(h));
-    data.par_chunks_mut(w * h).for_each_init(
-        || (vec![0.0f32; w * h], vec![0.0f64; w + 1], vec![0.0f64; w]),
-        |(tmp, prefix, colsum), plane| {
-            // Horizontal pass into `tmp`, then vertical pass back into `plane`. Sums in f64 so
-            // long rows and columns do not lose the small differences that make the cost curve.
-            for (src, dst) in plane.chunks_exact(w).zip(tmp.chunks_exact_mut(w)) {
-                prefix[0] = 0.0;
-                for (i, &v) in src.iter().enumerate() {
-                    prefix[i + 1] = prefix[i] + f64::from(v);
-                }
-                for (x, d) in dst.iter_mut().enumerate() {
-                    let lo = x.saturating_sub(r);
-                    let hi = (x + r + 1).min(w);
-                    *d = ((prefix[hi] - prefix[lo]) * inv_x[x]) as f32;
-                }
-            }
-            // Vertical: running column sums over whole rows (contiguous, vectorised over x)
-            // instead of a prefix down each column (a stride of `w` per step).
-            colsum.iter_mut().for_each(|c| *c = 0.0);
-            for row in tmp.chunks_exact(w).take(r.min(h - 1) + 1) {
-                for (c, &v) in colsum.iter_mut().zip(row) {
-                    *c += f64::from(v);
-                }
-            }
-            for y in 0..h {
-                let k = inv_y[y];
-                for (o, &c) in plane[y * w..(y + 1) * w].iter_mut().zip(colsum.iter()) {
-                    *o = (c * k) as f32;
-                }
-                if y + r + 1 < h {
-                    let add = &tmp[(y + r + 1) * w..(y + r + 2) * w];
-                    for (c, &v) in colsum.iter_mut().zip(add) {
-                        *c += f64::from(v);
+    let row_len = w * n;
+    let ring_len = 2 * r + 1;
+    out.par_chunks_mut(BAND_ROWS * row_len)
+        .enumerate()
+        .for_each_init(
+            || {
+                (
+                    vec![0.0f32; ring_len * row_len],
+                    vec![0.0f64; PLANE_GROUP * (w + 1)],
+                )
+            },
+            |(ring, prefix), (band, out_band)| {
+                let y0 = band * BAND_ROWS;
+                let y1 = (y0 + BAND_ROWS).min(h);
+                // The next row to filter into the ring.
+                let mut next = y0.saturating_sub(r);
+                for y in y0..y1 {
+                    let last = (y + r).min(h - 1);
+                    while next <= last {
+                        let slot = &mut ring[(next % ring_len) * row_len..][..row_len];
+                        horizontal_row(data, weights, w, npix, n, r, next, &inv_x, prefix, slot);
+                        next += 1;
+                    }
+                    let dst = &mut out_band[(y - y0) * row_len..][..row_len];
+                    let lo = y.saturating_sub(r);
+                    let k = inv_y[y] as f32;
+                    let first = &ring[(lo % ring_len) * row_len..][..row_len];
+                    dst.copy_from_slice(first);
+                    for yy in lo + 1..=last {
+                        let src = &ring[(yy % ring_len) * row_len..][..row_len];
+                        for (o, &v) in dst.iter_mut().zip(src) {
+                            *o += v;
+                        }
+                    }
+                    for o in dst.iter_mut() {
+                        *o *= k;
                     }
                 }
-                if y >= r {
-                    let sub = &tmp[(y - r) * w..(y - r + 1) * w];
-                    for (c, &v) in colsum.iter_mut().zip(sub) {
-                        *c -= f64::from(v);
-                    }
-                }
-            }
-        },
-    );
+            },
+        );
     Ok(())
+}
+
+/// Row `y` of every plane, weighted and box-summed along the row (mean over the clipped
+/// window), into the pixel-major row `slot` (`[x][plane]`).
+#[allow(clippy::too_many_arguments)]
+#[inline]
+fn horizontal_row(
+    data: &[f32],
+    weights: &[f32],
+    w: usize,
+    npix: usize,
+    n: usize,
+    r: usize,
+    y: usize,
+    inv_x: &[f64],
+    prefix: &mut [f64],
+    slot: &mut [f32],
+) {
+    let wt = (!weights.is_empty()).then(|| &weights[y * w..(y + 1) * w]);
+    for g0 in (0..n).step_by(PLANE_GROUP) {
+        let g = PLANE_GROUP.min(n - g0);
+        for j in 0..g {
+            let src = &data[(g0 + j) * npix + y * w..][..w];
+            let pre = &mut prefix[j * (w + 1)..][..w + 1];
+            pre[0] = 0.0;
+            let mut acc = 0.0f64;
+            match wt {
+                Some(wt) => {
+                    for ((p, &v), &k) in pre[1..].iter_mut().zip(src).zip(wt) {
+                        acc += f64::from(v * k);
+                        *p = acc;
+                    }
+                }
+                None => {
+                    for (p, &v) in pre[1..].iter_mut().zip(src) {
+                        acc += f64::from(v);
+                        *p = acc;
+                    }
+                }
+            }
+        }
+        for (x, px) in slot.chunks_exact_mut(n).enumerate() {
+            let (lo, hi) = (x.saturating_sub(r), (x + r + 1).min(w));
+            let k = inv_x[x];
+            for (j, o) in px[g0..g0 + g].iter_mut().enumerate() {
+                let pre = &prefix[j * (w + 1)..];
+                *o = ((pre[hi] - pre[lo]) * k) as f32;
+            }
+        }
+    }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
 
-    #[test]
-    fn box_mean_matches_direct_sum() {
-        for (w, h, r) in [(7, 5, 2), (9, 2, 3), (3, 11, 1), (1, 1, 4), (16, 13, 5)] {
-            check_box_mean(w, h, r);
-        }
-    }
-
-    fn check_box_mean(w: usize, h: usize, r: usize) {
-        let orig: Vec<f32> = (0..2 * w * h)
-            .map(|i| ((i * 37) % 11) as f32 * 0.1)
-            .collect();
-        let mut data = orig.clone();
-        box_filter_planes(&mut data, w, h, r, &Monitor::noop()).unwrap();
-        for p in 0..2 {
+    /// Weights, box mean and transpose read directly off their definitions.
+    fn reference(
+        data: &[f32],
+        weights: &[f32],
+        w: usize,
+        h: usize,
+        n: usize,
+        r: usize,
+    ) -> Vec<f32> {
+        let mut out = vec![0.0f32; w * h * n];
+        for i in 0..n {
             for y in 0..h {
                 for x in 0..w {
-                    let (mut s, mut n) = (0.0, 0);
+                    let (mut s, mut cnt) = (0.0f64, 0);
                     for yy in y.saturating_sub(r)..(y + r + 1).min(h) {
                         for xx in x.saturating_sub(r)..(x + r + 1).min(w) {
-                            s += orig[(p * h + yy) * w + xx];
-                            n += 1;
+                            let k = if weights.is_empty() {
+                                1.0
+                            } else {
+                                weights[yy * w + xx]
+                            };
+                            s += f64::from(data[(i * h + yy) * w + xx] * k);
+                            cnt += 1;
                         }
                     }
-                    let got = data[(p * h + y) * w + x];
+                    out[(y * w + x) * n + i] = (s / f64::from(cnt)) as f32;
+                }
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn window_to_pixel_major_matches_direct_sum() {
+        // Heights beyond one band, plane counts around the plane group, windows wider than the
+        // image, with and without weights.
+        for (w, h, n, r) in [
+            (7, 5, 3, 2),
+            (9, 2, 8, 3),
+            (3, 70, 11, 1),
+            (1, 1, 1, 4),
+            (16, 40, 17, 5),
+            (5, 33, 9, 0),
+        ] {
+            let data: Vec<f32> = (0..w * h * n)
+                .map(|i| ((i * 37) % 11) as f32 * 0.1)
+                .collect();
+            let weights: Vec<f32> = (0..w * h)
+                .map(|i| 1.0 + ((i * 7) % 5) as f32 * 0.5)
+                .collect();
+            for wts in [&weights[..], &[]] {
+                let mut out = vec![f32::NAN; data.len()];
+                window_to_pixel_major(&data, wts, w, h, n, r, &mut out, &Monitor::noop()).unwrap();
+                let want = reference(&data, wts, w, h, n, r);
+                for (k, (a, b)) in out.iter().zip(&want).enumerate() {
                     assert!(
-                        (got - s / n as f32).abs() < 1e-5,
-                        "{got} vs {}",
-                        s / n as f32
+                        (a - b).abs() < 1e-5,
+                        "{w}x{h}x{n} r={r} voxel {k}: {a} vs {b}"
                     );
                 }
             }
