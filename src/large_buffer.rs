@@ -22,23 +22,10 @@ pub fn zeroed_f32(len: usize) -> Vec<f32> {
     data
 }
 
-/// `buf` reused as a zeroed buffer of `len` values when its capacity holds them (one `memset`,
-/// no fresh pages to fault in), else a new [`zeroed_f32`]. Depth estimation in strips passes
-/// each strip's spent volumes on to the next this way.
-pub fn reuse_zeroed_f32(mut buf: Vec<f32>, len: usize) -> Vec<f32> {
-    if buf.capacity() < len {
-        // Released before the new one is allocated, so the two never coexist.
-        drop(buf);
-        return zeroed_f32(len);
-    }
-    buf.clear();
-    buf.resize(len, 0.0);
-    buf
-}
-
 /// `buf` reused as a buffer of `len` values for a caller that overwrites every one of them: the
-/// values kept from `buf` are left as they are (no `memset`), new ones are zero; a new
-/// [`zeroed_f32`] when its capacity is too small.
+/// values kept from `buf` are left as they are (no `memset`, no fresh pages to fault in), new
+/// ones are zero; a new [`zeroed_f32`] when its capacity is too small. Depth estimation in
+/// strips hands each strip's spent volumes on to the next this way.
 pub fn reuse_f32(mut buf: Vec<f32>, len: usize) -> Vec<f32> {
     if buf.capacity() < len {
         drop(buf);
@@ -91,15 +78,17 @@ mod tests {
         }
     }
 
-    /// Reused buffers come back zeroed at the asked length, whether they shrink, keep their
-    /// size or must grow.
+    /// Reused buffers come back at the asked length, whether they shrink, keep their size or
+    /// must grow, keeping their memory when it is large enough.
     #[test]
-    fn reused_buffers_are_zeroed() {
+    fn reused_buffers_have_the_asked_length() {
         for (had, len) in [(100usize, 40usize), (100, 100), (10, 1000), (0, 0)] {
-            let v = reuse_zeroed_f32(vec![7.0; had], len);
+            let buf = vec![7.0; had];
+            let ptr = buf.as_ptr();
+            let v = reuse_f32(buf, len);
             assert_eq!(v.len(), len);
-            assert!(v.iter().all(|&x| x == 0.0));
-            assert_eq!(reuse_f32(vec![7.0; had], len).len(), len);
+            assert_eq!(v.as_ptr() == ptr, len <= had);
+            assert!(v[had.min(len)..].iter().all(|&x| x == 0.0));
         }
     }
 }

@@ -487,7 +487,8 @@ pub fn build_cost_volume_rows_in(
         .map(|s| Pose::relative(&reference.pose, &s.pose))
         .collect();
     let penalty = c as f32;
-    let mut data = crate::large_buffer::reuse_zeroed_f32(buffer, voxels);
+    // Every voxel is assigned (`mean_or_penalty` ends each row), so reused memory is not zeroed.
+    let mut data = crate::large_buffer::reuse_f32(buffer, voxels);
     let refd = reference.image.data();
     let dehaze = kind.dehazing().is_some();
     // The default dehazing volume has a closed-form row kernel; β = 0 keeps the generic one so

@@ -125,7 +125,7 @@ fn path_value(c: f32, below: f32, at: f32, above: f32, p1: f32, jump: f32, prev_
 /// fused multiply-adds are introduced: the recursion has only additions and minima).
 #[inline]
 #[allow(clippy::too_many_arguments)]
-fn path_step_fast(
+fn path_step_fast<const SET: bool>(
     avx2: bool,
     c: &[f32],
     prev: &[f32],
@@ -139,7 +139,7 @@ fn path_step_fast(
     {
         #[target_feature(enable = "avx2")]
         #[allow(clippy::too_many_arguments)]
-        unsafe fn with_avx2(
+        unsafe fn with_avx2<const SET: bool>(
             c: &[f32],
             prev: &[f32],
             prev_min: f32,
@@ -148,21 +148,32 @@ fn path_step_fast(
             out: &mut [f32],
             sum: &mut [f32],
         ) -> f32 {
-            path_step(c, prev, prev_min, p1, p2, out, sum)
+            path_step::<SET>(c, prev, prev_min, p1, p2, out, sum)
         }
         if avx2 {
             // SAFETY: the caller detected AVX2 on this CPU ([`crate::cpu::avx2_enabled`]).
-            return unsafe { with_avx2(c, prev, prev_min, p1, p2, out, sum) };
+            return unsafe { with_avx2::<SET>(c, prev, prev_min, p1, p2, out, sum) };
         }
     }
     let _ = avx2;
-    path_step(c, prev, prev_min, p1, p2, out, sum)
+    path_step::<SET>(c, prev, prev_min, p1, p2, out, sum)
+}
+
+/// `sum += l`, or `sum = l` for the first direction of a sweep that initialises `S` (`SET`), which
+/// saves clearing the volume first.
+#[inline(always)]
+fn accumulate<const SET: bool>(sum: &mut f32, l: f32) {
+    if SET {
+        *sum = l;
+    } else {
+        *sum += l;
+    }
 }
 
 /// One path step (the recursion in the module docs) for one pixel: writes `L_r(p, ·)` into
-/// `out`, adds it to `sum` and returns `min_i L_r(p, i)`.
+/// `out`, adds it to `sum` (or sets `sum` to it: `SET`) and returns `min_i L_r(p, i)`.
 #[inline(always)]
-fn path_step(
+fn path_step<const SET: bool>(
     c: &[f32],
     prev: &[f32],
     prev_min: f32,
@@ -176,15 +187,15 @@ fn path_step(
     if n == 1 {
         let l = c[0] + fmin(prev[0], jump) - prev_min;
         out[0] = l;
-        sum[0] += l;
+        accumulate::<SET>(&mut sum[0], l);
         return l;
     }
     let first = c[0] + fmin(fmin(prev[0], prev[1] + p1), jump) - prev_min;
     out[0] = first;
-    sum[0] += first;
+    accumulate::<SET>(&mut sum[0], first);
     let last = c[n - 1] + fmin(fmin(prev[n - 1], prev[n - 2] + p1), jump) - prev_min;
     out[n - 1] = last;
-    sum[n - 1] += last;
+    accumulate::<SET>(&mut sum[n - 1], last);
     let mut m = fmin(first, last);
     // Interior planes 1..n−1 as three shifted views of `prev`, in fixed-size chunks: the
     // chunk bodies have no bounds checks and vectorise, with one running minimum per lane.
@@ -204,26 +215,26 @@ fn path_step(
         for j in 0..LANES {
             let l = path_value(cc[j], lo[j], mid[j], hi[j], p1, jump, prev_min);
             oo[j] = l;
-            ss[j] += l;
+            accumulate::<SET>(&mut ss[j], l);
             acc[j] = fmin(acc[j], l);
         }
     }
     for j in full..inner {
         let l = path_value(c_in[j], below[j], at[j], above[j], p1, jump, prev_min);
         out_in[j] = l;
-        sum_in[j] += l;
+        accumulate::<SET>(&mut sum_in[j], l);
         m = fmin(m, l);
     }
     acc.iter().fold(m, |a, &b| fmin(a, b))
 }
 
-/// Starts a path at the border: `L_r = C`.
+/// Starts a path at the border: `L_r = C` (added to `sum`, or set: `SET`).
 #[inline]
-fn path_start(c: &[f32], out: &mut [f32], sum: &mut [f32]) -> f32 {
+fn path_start<const SET: bool>(c: &[f32], out: &mut [f32], sum: &mut [f32]) -> f32 {
     let mut m = f32::INFINITY;
     for ((&ci, o), s) in c.iter().zip(out.iter_mut()).zip(sum.iter_mut()) {
         *o = ci;
-        *s += ci;
+        accumulate::<SET>(s, ci);
         m = m.min(ci);
     }
     m
@@ -292,7 +303,8 @@ pub fn aggregate_into(
 }
 
 /// The horizontal directions `dxs` (`±1`): rows are independent paths. Each row's `S` is set to
-/// the sum of the directions' path costs.
+/// the sum of the directions' path costs (the first direction writes it, so it need not be
+/// cleared first).
 #[allow(clippy::too_many_arguments)]
 fn horizontal(
     costs: &[f32],
@@ -310,23 +322,36 @@ fn horizontal(
         .for_each_init(
             || (vec![0.0f32; n], vec![0.0f32; n]),
             |(prev, cur), (y, (srow, crow))| {
-                srow.fill(0.0);
-                for &dx in dxs {
+                for (k, &dx) in dxs.iter().enumerate() {
                     let mut prev_min = 0.0;
                     for step in 0..w {
                         let x = if dx > 0 { step } else { w - 1 - step };
                         let c = &crow[x * n..(x + 1) * n];
                         let s = &mut srow[x * n..(x + 1) * n];
-                        let m = if step == 0 {
-                            path_start(c, cur, s)
-                        } else {
-                            let xp = if dx > 0 { x - 1 } else { x + 1 };
-                            let p2 = pen.p2_at(guide, xp, y, x, y);
-                            path_step_fast(avx2, c, prev, prev_min, pen.p1, p2, cur, s)
+                        // The row's first direction sets `S`, the others add to it.
+                        let m = match (step, k) {
+                            (0, 0) => path_start::<true>(c, cur, s),
+                            (0, _) => path_start::<false>(c, cur, s),
+                            _ => {
+                                let xp = if dx > 0 { x - 1 } else { x + 1 };
+                                let p2 = pen.p2_at(guide, xp, y, x, y);
+                                if k == 0 {
+                                    path_step_fast::<true>(
+                                        avx2, c, prev, prev_min, pen.p1, p2, cur, s,
+                                    )
+                                } else {
+                                    path_step_fast::<false>(
+                                        avx2, c, prev, prev_min, pen.p1, p2, cur, s,
+                                    )
+                                }
+                            }
                         };
                         prev_min = m;
                         std::mem::swap(prev, cur);
                     }
+                }
+                if dxs.is_empty() {
+                    srow.fill(0.0);
                 }
             },
         );
@@ -383,12 +408,12 @@ fn row_sweep(
                     {
                         let xp = x as i64 - dx as i64;
                         *m = if step == 0 || xp < 0 || xp >= w as i64 {
-                            path_start(c, out, s)
+                            path_start::<false>(c, out, s)
                         } else {
                             let xp = xp as usize;
                             let p2 = pen.p2_at(guide, xp, yp, x, y);
                             let at = (xp * k + d) * n;
-                            path_step_fast(
+                            path_step_fast::<false>(
                                 avx2,
                                 c,
                                 &prev_r[at..at + n],

@@ -28,7 +28,7 @@ const BAND_ROWS: usize = 32;
 /// plane-major volume once and writing the pixel-major one once replaces three passes over it
 /// (weights, window, transpose). Each task keeps `2r + 1` horizontally filtered pixel-major rows
 /// in a ring, so the vertical mean is a contiguous, vectorised sum over planes. Horizontal sums
-/// run in `f64` (prefix sums along a row); the vertical sum adds `2r + 1` `f32` values.
+/// run in `f64` (running sums along a row); the vertical sum adds `2r + 1` `f32` values.
 #[allow(clippy::too_many_arguments)]
 pub fn window_to_pixel_major(
     data: &[f32],
@@ -57,16 +57,12 @@ pub fn window_to_pixel_major(
     let (inv_x, inv_y) = (inv_counts(w), inv_counts(h));
     let row_len = w * n;
     let ring_len = 2 * r + 1;
+    let avx2 = crate::cpu::avx2_enabled();
     out.par_chunks_mut(BAND_ROWS * row_len)
         .enumerate()
         .for_each_init(
-            || {
-                (
-                    vec![0.0f32; ring_len * row_len],
-                    vec![0.0f64; PLANE_GROUP * (w + 1)],
-                )
-            },
-            |(ring, prefix), (band, out_band)| {
+            || vec![0.0f32; ring_len * row_len],
+            |ring, (band, out_band)| {
                 let y0 = band * BAND_ROWS;
                 let y1 = (y0 + BAND_ROWS).min(h);
                 // The next row to filter into the ring.
@@ -75,7 +71,7 @@ pub fn window_to_pixel_major(
                     let last = (y + r).min(h - 1);
                     while next <= last {
                         let slot = &mut ring[(next % ring_len) * row_len..][..row_len];
-                        horizontal_row(data, weights, w, npix, n, r, next, &inv_x, prefix, slot);
+                        horizontal_row_fast(avx2, data, weights, w, npix, n, r, next, &inv_x, slot);
                         next += 1;
                     }
                     let dst = &mut out_band[(y - y0) * row_len..][..row_len];
@@ -98,10 +94,54 @@ pub fn window_to_pixel_major(
     Ok(())
 }
 
-/// Row `y` of every plane, weighted and box-summed along the row (mean over the clipped
-/// window), into the pixel-major row `slot` (`[x][plane]`).
+/// [`horizontal_row`] compiled for AVX2 when `avx2` (the CPU has it): the same operations on
+/// wider registers, so the same results (no fused multiply-adds are introduced).
 #[allow(clippy::too_many_arguments)]
 #[inline]
+fn horizontal_row_fast(
+    avx2: bool,
+    data: &[f32],
+    weights: &[f32],
+    w: usize,
+    npix: usize,
+    n: usize,
+    r: usize,
+    y: usize,
+    inv_x: &[f64],
+    slot: &mut [f32],
+) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        #[target_feature(enable = "avx2")]
+        #[allow(clippy::too_many_arguments)]
+        unsafe fn with_avx2(
+            data: &[f32],
+            weights: &[f32],
+            w: usize,
+            npix: usize,
+            n: usize,
+            r: usize,
+            y: usize,
+            inv_x: &[f64],
+            slot: &mut [f32],
+        ) {
+            horizontal_row(data, weights, w, npix, n, r, y, inv_x, slot)
+        }
+        if avx2 {
+            // SAFETY: the caller detected AVX2 on this CPU ([`crate::cpu::avx2_enabled`]).
+            return unsafe { with_avx2(data, weights, w, npix, n, r, y, inv_x, slot) };
+        }
+    }
+    let _ = avx2;
+    horizontal_row(data, weights, w, npix, n, r, y, inv_x, slot)
+}
+
+/// Row `y` of every plane, weighted and box-summed along the row (mean over the clipped
+/// window), into the pixel-major row `slot` (`[x][plane]`). Planes go in groups of
+/// [`PLANE_GROUP`] with one running `f64` sum per plane: independent lanes, so the loop over `x`
+/// vectorises across the group's planes and writes each pixel's group contiguously.
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
 fn horizontal_row(
     data: &[f32],
     weights: &[f32],
@@ -111,40 +151,46 @@ fn horizontal_row(
     r: usize,
     y: usize,
     inv_x: &[f64],
-    prefix: &mut [f64],
     slot: &mut [f32],
 ) {
-    let wt = (!weights.is_empty()).then(|| &weights[y * w..(y + 1) * w]);
-    for g0 in (0..n).step_by(PLANE_GROUP) {
+    let ones;
+    let wt = if weights.is_empty() {
+        ones = vec![1.0f32; w];
+        &ones[..]
+    } else {
+        &weights[y * w..(y + 1) * w]
+    };
+    let mut g0 = 0;
+    while g0 < n {
         let g = PLANE_GROUP.min(n - g0);
-        for j in 0..g {
-            let src = &data[(g0 + j) * npix + y * w..][..w];
-            let pre = &mut prefix[j * (w + 1)..][..w + 1];
-            pre[0] = 0.0;
-            let mut acc = 0.0f64;
-            match wt {
-                Some(wt) => {
-                    for ((p, &v), &k) in pre[1..].iter_mut().zip(src).zip(wt) {
-                        acc += f64::from(v * k);
-                        *p = acc;
-                    }
-                }
-                None => {
-                    for (p, &v) in pre[1..].iter_mut().zip(src) {
-                        acc += f64::from(v);
-                        *p = acc;
-                    }
-                }
+        let rows: [&[f32]; PLANE_GROUP] =
+            std::array::from_fn(|j| &data[(g0 + j.min(g - 1)) * npix + y * w..][..w]);
+        let mut acc = [0.0f64; PLANE_GROUP];
+        // The first window, up to but excluding column r.
+        for x in 0..r.min(w) {
+            for j in 0..PLANE_GROUP {
+                acc[j] += f64::from(rows[j][x] * wt[x]);
             }
         }
         for (x, px) in slot.chunks_exact_mut(n).enumerate() {
-            let (lo, hi) = (x.saturating_sub(r), (x + r + 1).min(w));
+            if x + r < w {
+                let xi = x + r;
+                for j in 0..PLANE_GROUP {
+                    acc[j] += f64::from(rows[j][xi] * wt[xi]);
+                }
+            }
             let k = inv_x[x];
             for (j, o) in px[g0..g0 + g].iter_mut().enumerate() {
-                let pre = &prefix[j * (w + 1)..];
-                *o = ((pre[hi] - pre[lo]) * k) as f32;
+                *o = (acc[j] * k) as f32;
+            }
+            if x >= r {
+                let xo = x - r;
+                for j in 0..PLANE_GROUP {
+                    acc[j] -= f64::from(rows[j][xo] * wt[xo]);
+                }
             }
         }
+        g0 += g;
     }
 }
 
