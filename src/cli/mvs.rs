@@ -95,6 +95,11 @@ pub struct MvsArgs {
     /// contradicts get confidence 0 and a depth filled from their neighbours).
     #[arg(long)]
     pub no_consistency_check: bool,
+    /// Do not estimate and compensate the sources' exposure gains relative to the reference (on by
+    /// default: a source a few percent brighter or darker than the reference otherwise ruins the
+    /// dehazing cost).
+    #[arg(long)]
+    pub no_exposure_compensation: bool,
     /// Reject depth speckles smaller than this many pixels (0 = off; server default W·H/3000).
     #[arg(long)]
     pub speckle_max_size: Option<u32>,
@@ -165,6 +170,7 @@ pub fn run(a: MvsArgs) -> anyhow::Result<()> {
     if a.presmooth_sigma.is_some()
         || a.contrast_max_weight.is_some()
         || a.no_consistency_check
+        || a.no_exposure_compensation
         || a.speckle_max_size.is_some()
         || a.volume_budget_mib.is_some()
     {
@@ -172,6 +178,7 @@ pub fn run(a: MvsArgs) -> anyhow::Result<()> {
             presmooth_sigma_px: a.presmooth_sigma,
             contrast_max_weight: a.contrast_max_weight,
             consistency_check: a.no_consistency_check.then_some(false),
+            exposure_compensation: a.no_exposure_compensation.then_some(false),
             speckle_max_size_px: a.speckle_max_size,
             volume_budget_mib: a.volume_budget_mib,
             ..Default::default()
@@ -212,6 +219,13 @@ pub fn run(a: MvsArgs) -> anyhow::Result<()> {
         points.len(),
         a.out.display()
     );
+    if r.source_gains.iter().any(|&g| g != 1.0) {
+        let gains: Vec<String> = r.source_gains.iter().map(|g| format!("{g:.4}")).collect();
+        println!(
+            "sources' exposure relative to the reference (divided out): {}",
+            gains.join(", ")
+        );
+    }
     if let Some(gt_path) = find_gt_depth(&a.images, &reference.name) {
         let gt = read_image(&gt_path, &limits)
             .with_context(|| format!("reading ground truth {}", gt_path.display()))?;

@@ -654,6 +654,60 @@ fn consistency_check_on_a_rectified_pair() {
     assert_eq!(m_on.missing_predictions, 0);
 }
 
+/// A source camera 6 % brighter than the reference (exposure or gain, as between the two cameras
+/// of a real rig): the estimated gain compensates it and the depth is as accurate as with equal
+/// exposures; without the compensation the dehazing residual carries the offset everywhere and
+/// C.P. collapses.
+#[test]
+fn a_brighter_source_camera_is_compensated() {
+    let planes = PlaneSet::new(1.5, 15.0, 64).unwrap();
+    let cfg = MvsSimConfig {
+        seed: 3,
+        num_views: 2,
+        rectified_pair: true,
+        ..MvsSimConfig::with_size(160, 120)
+    };
+    let equal = simulate_mvs(&cfg, &Monitor::noop()).unwrap();
+    let mut brighter = equal.clone();
+    let source = 1 - brighter.reference;
+    for v in brighter.views[source].hazy.data_mut() {
+        *v *= 1.06;
+    }
+    let gt = &equal.views[equal.reference].depth;
+    let c_p = |d: &crate::mvs::DepthResult| depth_metrics(&d.z_depth, gt, None).unwrap().c_p;
+    let base = depth_of(&equal, &planes, &SgmParams::default());
+    let on = depth_of(&brighter, &planes, &SgmParams::default());
+    let off = depth_of(
+        &brighter,
+        &planes,
+        &SgmParams {
+            exposure_compensation: false,
+            ..SgmParams::default()
+        },
+    );
+    println!(
+        "gains: equal {:?}, brighter {:?}; C.P. equal {:.1} %, brighter compensated {:.1} %, not compensated {:.1} %",
+        base.source_gains,
+        on.source_gains,
+        100.0 * c_p(&base),
+        100.0 * c_p(&on),
+        100.0 * c_p(&off)
+    );
+    assert!(
+        (base.source_gains[0] - 1.0).abs() < 0.005,
+        "{:?}",
+        base.source_gains
+    );
+    assert!(
+        (on.source_gains[0] - 1.06).abs() < 0.005,
+        "{:?}",
+        on.source_gains
+    );
+    assert_eq!(off.source_gains, vec![1.0]);
+    assert!(c_p(&on) >= c_p(&base) - 0.01);
+    assert!(c_p(&off) < c_p(&base) - 0.1);
+}
+
 /// Depth in strips (a memory budget far below the volume: 8 strips of 15 rows) agrees with the
 /// whole-volume depth except where SGM's vertical and diagonal paths carry evidence further
 /// than a strip's overlap, and the accuracy is the same.

@@ -3,7 +3,9 @@
 //!
 //! Pipeline ([`estimate_depth`] / [`depth_from_cost_volume`]):
 //!
-//! 0. optional Gaussian pre-smoothing of every view ([`presmooth`], σ = 0.8 px by default);
+//! 0. optional Gaussian pre-smoothing of every view ([`presmooth`], σ = 0.8 px by default), and
+//!    each source divided by its exposure gain relative to the reference ([`exposure`], on by
+//!    default);
 //! 1. the ordinary (Eq. 3.1) or dehazing (Eq. 3.7) cost volume, `C(p, i)` in `[0, γ]`, `γ = 3`
 //!    for RGB ([`crate::mvs::cost_volume`]);
 //! 2. contrast normalisation: each pixel's curve weighted by `clamp(c₀/c_p, 1, w_max)` from the
@@ -20,6 +22,7 @@
 
 pub mod consistency;
 pub mod contrast;
+pub mod exposure;
 pub mod filter;
 pub mod presmooth;
 pub mod select;
@@ -111,6 +114,11 @@ pub struct SgmParams {
     pub speckle_max_size_px: Option<usize>,
     /// Largest plane-index step inside one speckle region (finite, `>= 0`).
     pub speckle_range_planes: f32,
+    /// Estimate each source's exposure gain relative to the reference and divide the source by
+    /// it before the cost volume ([`exposure`]); the gains are reported in
+    /// [`DepthResult::source_gains`]. Used by [`estimate_depth`] (which has the views). Default
+    /// on.
+    pub exposure_compensation: bool,
     /// Memory bound, MiB (`1 ..= 65536`): when the `f32` cost volume of the whole reference
     /// is larger, depth is estimated in horizontal strips whose volume (own rows plus
     /// [`STRIP_OVERLAP_ROWS`] above and below) fits it. The cost volume, its pixel-major copy
@@ -139,6 +147,7 @@ impl Default for SgmParams {
             consistency_tolerance_planes: 1.0,
             speckle_max_size_px: None,
             speckle_range_planes: 2.0,
+            exposure_compensation: true,
             volume_budget_mib: 64,
         }
     }
@@ -282,6 +291,11 @@ pub struct DepthResult {
     pub inverse_depth: ImageF32,
     /// Confidence in `[0, 1]` (one channel), see [`select`].
     pub confidence: ImageF32,
+    /// The exposure gain each source was divided by ([`exposure`]), in the order of the sources:
+    /// its estimated gain relative to the reference, exactly 1 within
+    /// [`exposure::DEAD_BAND`] of 1 or where compensation is off; empty from
+    /// [`depth_from_cost_volume`].
+    pub source_gains: Vec<f32>,
 }
 
 /// Cost volume (Eq. 3.1 or 3.7) plus [`depth_from_cost_volume`]. Errors are those of
@@ -323,6 +337,27 @@ pub fn estimate_depth(
     };
     // Bad views fail before any strip's volume is built.
     validate_inputs(&reference, &sources, planes, kind)?;
+    let source_gains: Vec<f32> = if params.exposure_compensation {
+        sources
+            .iter()
+            .map(|s| exposure::applied_gain(exposure::estimate_gain(&reference, s, planes, kind)))
+            .collect()
+    } else {
+        vec![1.0; sources.len()]
+    };
+    let compensated: Vec<Option<ImageF32>> = sources
+        .iter()
+        .zip(&source_gains)
+        .map(|(s, &g)| (g != 1.0).then(|| exposure::compensate(s.image, g)))
+        .collect();
+    let sources: Vec<View<'_>> = sources
+        .iter()
+        .zip(&compensated)
+        .map(|(v, img)| match img {
+            Some(image) => View { image, ..*v },
+            None => *v,
+        })
+        .collect();
     let geometry: Vec<SourceGeometry> = if params.consistency_check {
         sources
             .iter()
@@ -381,7 +416,9 @@ pub fn estimate_depth(
         selections.extend(strip_selection);
         spare = spent;
     }
-    finish_depth(selections, w, h, planes, guide, params, claims, monitor)
+    let mut depth = finish_depth(selections, w, h, planes, guide, params, claims, monitor)?;
+    depth.source_gains = source_gains;
+    Ok(depth)
 }
 
 /// Rows added above and below a strip's own rows so that the box window, the contrast measure
@@ -576,6 +613,7 @@ fn finish_depth(
         z_depth: ImageF32::from_vec(w, h, 1, z)?,
         inverse_depth: ImageF32::from_vec(w, h, 1, inv)?,
         confidence: ImageF32::from_vec(w, h, 1, conf)?,
+        source_gains: Vec::new(),
     })
 }
 

@@ -172,6 +172,7 @@ pub(super) fn sgm_of(o: Option<&pb::SgmOptions>) -> SgmParams {
         p.volume_budget_mib = o
             .volume_budget_mib
             .map_or(p.volume_budget_mib, |v| v as usize);
+        p.exposure_compensation = o.exposure_compensation.unwrap_or(p.exposure_compensation);
     }
     p
 }
@@ -215,6 +216,7 @@ pub fn canonicalize_mvs_request(req: &mut pb::MvsDepthRequest) {
             speckle_max_size_px: p.speckle_max_size_px.and_then(|s| u32::try_from(s).ok()),
             speckle_range_planes: Some(p.speckle_range_planes),
             volume_budget_mib: u32::try_from(p.volume_budget_mib).ok(),
+            exposure_compensation: Some(p.exposure_compensation),
         });
     }
 }
@@ -435,6 +437,7 @@ pub fn mvs_to_proto(
         num_planes: u32::try_from(input.planes.num_planes).unwrap_or(u32::MAX),
         cost_volume: input.wire_kind as i32,
         compute_seconds,
+        source_gains: out.source_gains.clone(),
     }
 }
 

@@ -391,6 +391,7 @@ impl ParamsInput {
                 num_planes: u32::try_from(self.planes.num_planes).unwrap_or(u32::MAX),
                 cost_volume: pb::CostVolumeKind::Dehazing as i32,
                 compute_seconds: depth_seconds,
+                source_gains: depth.source_gains.clone(),
             }),
             airlight_seconds,
             search_seconds: est.seconds,

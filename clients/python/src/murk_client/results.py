@@ -86,6 +86,9 @@ class MvsDepthResult:
     #: ``"dehazing"``, ``"eq37"`` or ``"ordinary"``.
     cost_volume: str
     compute_seconds: float
+    #: The exposure gain each source was divided by (its brightness relative to the reference),
+    #: in the order of the sources; exactly 1.0 within 0.5 % of 1 or with compensation off.
+    source_gains: tuple[float, ...]
     job_id: str
     proto: mvs_pb2.MvsDepthResult
 
@@ -105,6 +108,7 @@ class MvsDepthResult:
             num_planes=r.num_planes,
             cost_volume=kinds.get(r.cost_volume, "dehazing"),
             compute_seconds=r.compute_seconds,
+            source_gains=tuple(r.source_gains),
             job_id=job_id,
             proto=r,
         )

@@ -215,6 +215,7 @@ class SgmOptions(_message.Message):
     SPECKLE_MAX_SIZE_PX_FIELD_NUMBER: _builtins.int
     SPECKLE_RANGE_PLANES_FIELD_NUMBER: _builtins.int
     VOLUME_BUDGET_MIB_FIELD_NUMBER: _builtins.int
+    EXPOSURE_COMPENSATION_FIELD_NUMBER: _builtins.int
     p1: _builtins.float
     """P1: penalty for a +-1 plane step between neighbours, cost units, finite and >= 0. Default
     0.01.
@@ -265,6 +266,12 @@ class SgmOptions(_message.Message):
     it; the peak is about twice this plus the images. A 640 x 480 pair with ~170 planes peaks
     near 200 MiB with the default (the whole murk mvs process, server included).
     """
+    exposure_compensation: _builtins.bool
+    """Estimate each source camera's exposure gain relative to the reference (from the matching
+    cost itself) and divide the source by it before the cost volume, default true. Two cameras
+    rarely record the same brightness; without this a few percent of gain difference ruins the
+    dehazing cost. Gains within 0.5 % of 1 are not applied. See MvsDepthResult.source_gains.
+    """
     def __init__(
         self,
         *,
@@ -281,10 +288,11 @@ class SgmOptions(_message.Message):
         speckle_max_size_px: _builtins.int | None = ...,
         speckle_range_planes: _builtins.float | None = ...,
         volume_budget_mib: _builtins.int | None = ...,
+        exposure_compensation: _builtins.bool | None = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _typing.Literal["_consistency_check", b"_consistency_check", "_consistency_tolerance_planes", b"_consistency_tolerance_planes", "_contrast_max_weight", b"_contrast_max_weight", "_contrast_percentile", b"_contrast_percentile", "_cost_window_radius", b"_cost_window_radius", "_num_paths", b"_num_paths", "_p1", b"_p1", "_p2", b"_p2", "_p2_gradient_scale", b"_p2_gradient_scale", "_presmooth_sigma_px", b"_presmooth_sigma_px", "_speckle_max_size_px", b"_speckle_max_size_px", "_speckle_range_planes", b"_speckle_range_planes", "_volume_budget_mib", b"_volume_budget_mib", "consistency_check", b"consistency_check", "consistency_tolerance_planes", b"consistency_tolerance_planes", "contrast_max_weight", b"contrast_max_weight", "contrast_percentile", b"contrast_percentile", "cost_window_radius", b"cost_window_radius", "num_paths", b"num_paths", "p1", b"p1", "p2", b"p2", "p2_gradient_scale", b"p2_gradient_scale", "presmooth_sigma_px", b"presmooth_sigma_px", "speckle_max_size_px", b"speckle_max_size_px", "speckle_range_planes", b"speckle_range_planes", "volume_budget_mib", b"volume_budget_mib"]  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["_consistency_check", b"_consistency_check", "_consistency_tolerance_planes", b"_consistency_tolerance_planes", "_contrast_max_weight", b"_contrast_max_weight", "_contrast_percentile", b"_contrast_percentile", "_cost_window_radius", b"_cost_window_radius", "_exposure_compensation", b"_exposure_compensation", "_num_paths", b"_num_paths", "_p1", b"_p1", "_p2", b"_p2", "_p2_gradient_scale", b"_p2_gradient_scale", "_presmooth_sigma_px", b"_presmooth_sigma_px", "_speckle_max_size_px", b"_speckle_max_size_px", "_speckle_range_planes", b"_speckle_range_planes", "_volume_budget_mib", b"_volume_budget_mib", "consistency_check", b"consistency_check", "consistency_tolerance_planes", b"consistency_tolerance_planes", "contrast_max_weight", b"contrast_max_weight", "contrast_percentile", b"contrast_percentile", "cost_window_radius", b"cost_window_radius", "exposure_compensation", b"exposure_compensation", "num_paths", b"num_paths", "p1", b"p1", "p2", b"p2", "p2_gradient_scale", b"p2_gradient_scale", "presmooth_sigma_px", b"presmooth_sigma_px", "speckle_max_size_px", b"speckle_max_size_px", "speckle_range_planes", b"speckle_range_planes", "volume_budget_mib", b"volume_budget_mib"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["_consistency_check", b"_consistency_check", "_consistency_tolerance_planes", b"_consistency_tolerance_planes", "_contrast_max_weight", b"_contrast_max_weight", "_contrast_percentile", b"_contrast_percentile", "_cost_window_radius", b"_cost_window_radius", "_num_paths", b"_num_paths", "_p1", b"_p1", "_p2", b"_p2", "_p2_gradient_scale", b"_p2_gradient_scale", "_presmooth_sigma_px", b"_presmooth_sigma_px", "_speckle_max_size_px", b"_speckle_max_size_px", "_speckle_range_planes", b"_speckle_range_planes", "_volume_budget_mib", b"_volume_budget_mib", "consistency_check", b"consistency_check", "consistency_tolerance_planes", b"consistency_tolerance_planes", "contrast_max_weight", b"contrast_max_weight", "contrast_percentile", b"contrast_percentile", "cost_window_radius", b"cost_window_radius", "num_paths", b"num_paths", "p1", b"p1", "p2", b"p2", "p2_gradient_scale", b"p2_gradient_scale", "presmooth_sigma_px", b"presmooth_sigma_px", "speckle_max_size_px", b"speckle_max_size_px", "speckle_range_planes", b"speckle_range_planes", "volume_budget_mib", b"volume_budget_mib"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["_consistency_check", b"_consistency_check", "_consistency_tolerance_planes", b"_consistency_tolerance_planes", "_contrast_max_weight", b"_contrast_max_weight", "_contrast_percentile", b"_contrast_percentile", "_cost_window_radius", b"_cost_window_radius", "_exposure_compensation", b"_exposure_compensation", "_num_paths", b"_num_paths", "_p1", b"_p1", "_p2", b"_p2", "_p2_gradient_scale", b"_p2_gradient_scale", "_presmooth_sigma_px", b"_presmooth_sigma_px", "_speckle_max_size_px", b"_speckle_max_size_px", "_speckle_range_planes", b"_speckle_range_planes", "_volume_budget_mib", b"_volume_budget_mib", "consistency_check", b"consistency_check", "consistency_tolerance_planes", b"consistency_tolerance_planes", "contrast_max_weight", b"contrast_max_weight", "contrast_percentile", b"contrast_percentile", "cost_window_radius", b"cost_window_radius", "exposure_compensation", b"exposure_compensation", "num_paths", b"num_paths", "p1", b"p1", "p2", b"p2", "p2_gradient_scale", b"p2_gradient_scale", "presmooth_sigma_px", b"presmooth_sigma_px", "speckle_max_size_px", b"speckle_max_size_px", "speckle_range_planes", b"speckle_range_planes", "volume_budget_mib", b"volume_budget_mib"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     _WhichOneofReturnType__consistency_check: _TypeAlias = _typing.Literal["consistency_check"]  # noqa: Y015
     _WhichOneofArgType__consistency_check: _TypeAlias = _typing.Literal["_consistency_check", b"_consistency_check"]  # noqa: Y015
@@ -296,6 +304,8 @@ class SgmOptions(_message.Message):
     _WhichOneofArgType__contrast_percentile: _TypeAlias = _typing.Literal["_contrast_percentile", b"_contrast_percentile"]  # noqa: Y015
     _WhichOneofReturnType__cost_window_radius: _TypeAlias = _typing.Literal["cost_window_radius"]  # noqa: Y015
     _WhichOneofArgType__cost_window_radius: _TypeAlias = _typing.Literal["_cost_window_radius", b"_cost_window_radius"]  # noqa: Y015
+    _WhichOneofReturnType__exposure_compensation: _TypeAlias = _typing.Literal["exposure_compensation"]  # noqa: Y015
+    _WhichOneofArgType__exposure_compensation: _TypeAlias = _typing.Literal["_exposure_compensation", b"_exposure_compensation"]  # noqa: Y015
     _WhichOneofReturnType__num_paths: _TypeAlias = _typing.Literal["num_paths"]  # noqa: Y015
     _WhichOneofArgType__num_paths: _TypeAlias = _typing.Literal["_num_paths", b"_num_paths"]  # noqa: Y015
     _WhichOneofReturnType__p1: _TypeAlias = _typing.Literal["p1"]  # noqa: Y015
@@ -322,6 +332,8 @@ class SgmOptions(_message.Message):
     def WhichOneof(self, oneof_group: _WhichOneofArgType__contrast_percentile) -> _WhichOneofReturnType__contrast_percentile | None: ...
     @_typing.overload
     def WhichOneof(self, oneof_group: _WhichOneofArgType__cost_window_radius) -> _WhichOneofReturnType__cost_window_radius | None: ...
+    @_typing.overload
+    def WhichOneof(self, oneof_group: _WhichOneofArgType__exposure_compensation) -> _WhichOneofReturnType__exposure_compensation | None: ...
     @_typing.overload
     def WhichOneof(self, oneof_group: _WhichOneofArgType__num_paths) -> _WhichOneofReturnType__num_paths | None: ...
     @_typing.overload
@@ -355,6 +367,7 @@ class MvsDepthResult(_message.Message):
     NUM_PLANES_FIELD_NUMBER: _builtins.int
     COST_VOLUME_FIELD_NUMBER: _builtins.int
     COMPUTE_SECONDS_FIELD_NUMBER: _builtins.int
+    SOURCE_GAINS_FIELD_NUMBER: _builtins.int
     near: _builtins.float
     """The plane set used (defaults resolved): nearest and farthest plane z-depth, scene units, and
     the number of planes.
@@ -382,6 +395,13 @@ class MvsDepthResult(_message.Message):
         filter rejected the pixel: its depth there is filled from its neighbours).
         """
 
+    @_builtins.property
+    def source_gains(self) -> _containers.RepeatedScalarFieldContainer[_builtins.float]:
+        """The exposure gain each source was divided by, in the order of the request's sources: its
+        brightness relative to the reference (1.05 = 5 % brighter); exactly 1 within 0.5 % of 1 or
+        with exposure_compensation off.
+        """
+
     def __init__(
         self,
         *,
@@ -393,10 +413,11 @@ class MvsDepthResult(_message.Message):
         num_planes: _builtins.int = ...,
         cost_volume: Global___CostVolumeKind.ValueType = ...,
         compute_seconds: _builtins.float = ...,
+        source_gains: _abc.Iterable[_builtins.float] | None = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["confidence", b"confidence", "inverse_depth", b"inverse_depth", "z_depth", b"z_depth"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["compute_seconds", b"compute_seconds", "confidence", b"confidence", "cost_volume", b"cost_volume", "far", b"far", "inverse_depth", b"inverse_depth", "near", b"near", "num_planes", b"num_planes", "z_depth", b"z_depth"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["compute_seconds", b"compute_seconds", "confidence", b"confidence", "cost_volume", b"cost_volume", "far", b"far", "inverse_depth", b"inverse_depth", "near", b"near", "num_planes", b"num_planes", "source_gains", b"source_gains", "z_depth", b"z_depth"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
