@@ -150,6 +150,12 @@ def main() -> None:
     ap.add_argument("--median-transmission", type=float, default=0.3)
     ap.add_argument("--noise", type=float, default=0.01, help="Gaussian sensor noise std, [0, 1] units")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument(
+        "--right-gain",
+        type=float,
+        default=1.0,
+        help="exposure gain of the right camera relative to the left (1.05 = 5 %% brighter)",
+    )
     ap.add_argument("--repeats", type=int, default=3, help="timed runs of each method (best is reported)")
     ap.add_argument("--murk-args", default="", help="extra `murk mvs` flags")
     ap.add_argument(
@@ -186,15 +192,16 @@ def main() -> None:
     depth_r = fb / (right_view_disparity(filled_l) + doffs)
     beta = -np.log(a.median_transmission) / float(np.median(depth_l))
 
-    def haze(img: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    def haze(img: np.ndarray, depth: np.ndarray, gain: float = 1.0) -> np.ndarray:
+        # A camera's gain scales everything it records, airlight included.
         t = np.exp(-beta * depth)[..., None]
-        i = img.astype(np.float64) / 255.0 * t + a.airlight * (1.0 - t)
+        i = gain * (img.astype(np.float64) / 255.0 * t + a.airlight * (1.0 - t))
         i += rng.normal(0.0, a.noise, i.shape)
         return np.clip(np.round(i * 255.0), 0, 255).astype(np.uint8)
 
     out = a.out
     (out / "images").mkdir(parents=True, exist_ok=True)
-    hl, hr = haze(left, depth_l), haze(right, depth_r)
+    hl, hr = haze(left, depth_l), haze(right, depth_r, a.right_gain)
     cv2.imwrite(str(out / "images" / "left.png"), hl)
     cv2.imwrite(str(out / "images" / "right.png"), hr)
     write_colmap(out, w, h, f, cx_l, cx_r, cy, disp, fb / np.where(gt_ok, disp + doffs, 1.0), left, rng)
@@ -276,6 +283,7 @@ def main() -> None:
 
     report = {
         "pair": f"{w}x{h}",
+        "right_gain": a.right_gain,
         "airlight": a.airlight,
         "beta_per_m": beta,
         "median_transmission": a.median_transmission,

@@ -31,7 +31,7 @@ use crate::mvs::plane_sweep::{PlaneSet, PlaneWarp};
 use crate::mvs::pose::Pose;
 
 /// Most reference pixels the estimate samples (a regular grid).
-pub const MAX_SAMPLES: usize = 4096;
+pub const MAX_SAMPLES: usize = 2048;
 
 /// Most planes the estimate sweeps (evenly strided over the plane set).
 pub const MAX_PLANES: usize = 128;
@@ -88,37 +88,50 @@ impl Samples {
             penalty: c as f32,
         };
         let (rd, sd) = (reference.image.data(), source.image.data());
-        for y in (step / 2..h).step_by(step) {
-            for x in (step / 2..w).step_by(step) {
-                for (warp, t_r) in &warps {
-                    let (u, v, zeta) = warp.map(x as f64, y as f64);
-                    if zeta <= 0.0 || !(0.0..=(sw - 1) as f64).contains(&u) {
-                        continue;
+        // One sample row per rayon task: (reference values, planes per sample, k, source values).
+        let rows: Vec<usize> = (step / 2..h).step_by(step).collect();
+        let parts: Vec<(Vec<f32>, Vec<usize>, Vec<f32>, Vec<f32>)> = rows
+            .par_iter()
+            .map(|&y| {
+                let (mut refs, mut counts, mut ks, mut src) =
+                    (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+                for x in (step / 2..w).step_by(step) {
+                    let before = ks.len();
+                    for (warp, t_r) in &warps {
+                        let (u, v, zeta) = warp.map(x as f64, y as f64);
+                        if zeta <= 0.0
+                            || !(0.0..=(sw - 1) as f64).contains(&u)
+                            || !(0.0..=(sh - 1) as f64).contains(&v)
+                        {
+                            continue;
+                        }
+                        ks.push(if beta > 0.0 {
+                            t_r * inverse_transmission(transmission(beta, zeta as f32))
+                        } else {
+                            1.0
+                        });
+                        let (u, v) = (u as f32, v as f32);
+                        match c {
+                            1 => src.extend(bilinear_inside::<1>(sd, sw, u, v, sh)),
+                            _ => src.extend(bilinear_inside::<3>(sd, sw, u, v, sh)),
+                        }
                     }
-                    if !(0.0..=(sh - 1) as f64).contains(&v) {
-                        continue;
-                    }
-                    let k = if beta > 0.0 {
-                        t_r * inverse_transmission(transmission(beta, zeta as f32))
-                    } else {
-                        1.0
-                    };
-                    s.k.push(k);
-                    match c {
-                        1 => s
-                            .source
-                            .extend(bilinear_inside::<1>(sd, sw, u as f32, v as f32, sh)),
-                        _ => s
-                            .source
-                            .extend(bilinear_inside::<3>(sd, sw, u as f32, v as f32, sh)),
+                    if ks.len() > before {
+                        refs.extend(rd[(y * w + x) * c..][..c].iter().map(|v| v - airlight));
+                        counts.push(ks.len() - before);
                     }
                 }
-                if s.k.len() > *s.start.last().unwrap_or(&0) {
-                    s.reference
-                        .extend(rd[(y * w + x) * c..][..c].iter().map(|v| v - airlight));
-                    s.start.push(s.k.len());
-                }
+                (refs, counts, ks, src)
+            })
+            .collect();
+        for (refs, counts, ks, src) in parts {
+            s.reference.extend(refs);
+            for n in counts {
+                let last = s.start.last().copied().unwrap_or(0);
+                s.start.push(last + n);
             }
+            s.k.extend(ks);
+            s.source.extend(src);
         }
         s
     }
