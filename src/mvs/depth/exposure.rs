@@ -39,6 +39,10 @@ pub const MAX_PLANES: usize = 128;
 /// Smallest and largest gain searched (the source's brightness relative to the reference).
 pub const GAIN_RANGE: (f32, f32) = (0.5, 2.0);
 
+/// One sample row's reference values, planes per sample pixel, `k` and source values (the
+/// fields of [`Samples`], before they are joined).
+type RowSamples = (Vec<f32>, Vec<usize>, Vec<f32>, Vec<f32>);
+
 /// One sample pixel's reference values minus the airlight and, per plane that sees it, `k` and
 /// the source's values.
 struct Samples {
@@ -90,7 +94,7 @@ impl Samples {
         let (rd, sd) = (reference.image.data(), source.image.data());
         // One sample row per rayon task: (reference values, planes per sample, k, source values).
         let rows: Vec<usize> = (step / 2..h).step_by(step).collect();
-        let parts: Vec<(Vec<f32>, Vec<usize>, Vec<f32>, Vec<f32>)> = rows
+        let parts: Vec<RowSamples> = rows
             .par_iter()
             .map(|&y| {
                 let (mut refs, mut counts, mut ks, mut src) =
