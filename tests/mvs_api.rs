@@ -261,7 +261,8 @@ async fn brighter_sources_report_their_exposure_gain() {
     }
     let (on, off) = (&results[0], &results[1]);
     let sources = scene.views.len() - 1;
-    assert_eq!(on.source_gains.len(), sources);
+    // One gain per source and channel (RGB).
+    assert_eq!(on.source_gains.len(), 3 * sources);
     for g in &on.source_gains {
         assert!((g - 1.08).abs() < 0.01, "{:?}", on.source_gains);
     }

@@ -220,9 +220,18 @@ pub fn run(a: MvsArgs) -> anyhow::Result<()> {
         a.out.display()
     );
     if r.source_gains.iter().any(|&g| g != 1.0) {
-        let gains: Vec<String> = r.source_gains.iter().map(|g| format!("{g:.4}")).collect();
+        // One gain per channel of each source, source-major.
+        let per_source = (r.source_gains.len() / a.sources.len().max(1)).max(1);
+        let gains: Vec<String> = r
+            .source_gains
+            .chunks(per_source)
+            .map(|g| {
+                let g: Vec<String> = g.iter().map(|v| format!("{v:.4}")).collect();
+                format!("[{}]", g.join(" "))
+            })
+            .collect();
         println!(
-            "sources' exposure relative to the reference (divided out): {}",
+            "sources' exposure per channel relative to the reference (divided out): {}",
             gains.join(", ")
         );
     }

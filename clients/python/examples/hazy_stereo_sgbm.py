@@ -156,6 +156,11 @@ def main() -> None:
         default=1.0,
         help="exposure gain of the right camera relative to the left (1.05 = 5 %% brighter)",
     )
+    ap.add_argument(
+        "--right-tint",
+        default="1,1,1",
+        help="white balance of the right camera relative to the left: R,G,B gains on top of --right-gain",
+    )
     ap.add_argument("--repeats", type=int, default=3, help="timed runs of each method (best is reported)")
     ap.add_argument("--murk-args", default="", help="extra `murk mvs` flags")
     ap.add_argument(
@@ -192,7 +197,7 @@ def main() -> None:
     depth_r = fb / (right_view_disparity(filled_l) + doffs)
     beta = -np.log(a.median_transmission) / float(np.median(depth_l))
 
-    def haze(img: np.ndarray, depth: np.ndarray, gain: float = 1.0) -> np.ndarray:
+    def haze(img: np.ndarray, depth: np.ndarray, gain: float | np.ndarray = 1.0) -> np.ndarray:
         # A camera's gain scales everything it records, airlight included.
         t = np.exp(-beta * depth)[..., None]
         i = gain * (img.astype(np.float64) / 255.0 * t + a.airlight * (1.0 - t))
@@ -201,7 +206,9 @@ def main() -> None:
 
     out = a.out
     (out / "images").mkdir(parents=True, exist_ok=True)
-    hl, hr = haze(left, depth_l), haze(right, depth_r, a.right_gain)
+    # cv2 images are BGR.
+    tint_bgr = np.array([float(v) for v in a.right_tint.split(",")][::-1])
+    hl, hr = haze(left, depth_l), haze(right, depth_r, a.right_gain * tint_bgr)
     cv2.imwrite(str(out / "images" / "left.png"), hl)
     cv2.imwrite(str(out / "images" / "right.png"), hr)
     write_colmap(out, w, h, f, cx_l, cx_r, cy, disp, fb / np.where(gt_ok, disp + doffs, 1.0), left, rng)
@@ -284,6 +291,7 @@ def main() -> None:
     report = {
         "pair": f"{w}x{h}",
         "right_gain": a.right_gain,
+        "right_tint_rgb": a.right_tint,
         "airlight": a.airlight,
         "beta_per_m": beta,
         "median_transmission": a.median_transmission,

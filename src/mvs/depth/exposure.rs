@@ -1,5 +1,5 @@
-//! Exposure compensation: the gain of each source camera relative to the reference, estimated
-//! from the matching cost itself.
+//! Exposure compensation: the gain of each source camera relative to the reference, per colour
+//! channel, estimated from the matching cost itself.
 //!
 //! Two cameras rarely turn the same radiance into the same number: exposure time, analogue gain
 //! and aperture differ. With a gain `g_s` the source records `I_s = g_s·(J·t_s + A(1 − t_s))`
@@ -11,15 +11,17 @@
 //! gains, loses 3 points).
 //!
 //! The estimate: on a grid of at most [`MAX_SAMPLES`] reference pixels, each pixel's best cost
-//! over the planes, `min_i Σ_c min(|(I_r − A) − k_i(I_s(π_i(p))/g − A)|, γ)` (the cost volume's
-//! residual with the source divided by `g`), summed over the pixels, is minimised over `g`. A
-//! wrong gain leaves an offset in every pixel's best match, textured or flat, so the sum has its
-//! minimum at the true gain; where the plane sweep has no true plane (occlusions, outside the
-//! range) the pixel adds a constant-ish term. The search runs over `ln g ∈ [ln ½, ln 2]`, a grid
-//! of 0.1 steps then a golden section inside the neighbouring steps down to 5e-4 (0.05 %), then
-//! an exact L1 step with each sample's best plane held fixed (a weighted median), repeated.
-//! Gains within [`DEAD_BAND`] of 1 are not applied. The source is then divided by `g`
-//! before its cost volume is built ([`compensate`]), which keeps every cost variant unchanged.
+//! over the planes, `min_i min(|(I_r,c − A) − k_i(I_s,c(π_i(p))/g − A)|, 1)` (the cost volume's
+//! residual, one channel at a time, with the source's channel divided by `g`), summed over the
+//! pixels, is minimised over `g`. A wrong gain leaves an offset in every pixel's best match,
+//! textured or flat, so the sum has its minimum at the true gain; where the plane sweep has no
+//! true plane (occlusions, outside the range) the pixel adds a constant-ish term. The search runs
+//! over `ln g ∈ [ln ½, ln 2]`, a grid of 0.1 steps then a golden section inside the neighbouring
+//! steps down to 5e-4 (0.05 %). Then, with each sample's best plane over all channels held
+//! fixed, the objective separates by channel and an exact L1 step per channel (a weighted median)
+//! refines each gain; the match is chosen again and the step repeated. Gains within
+//! [`DEAD_BAND`] of 1 are not applied. The source is then divided by its gains before its cost
+//! volume is built ([`compensate`]), which keeps every cost variant unchanged.
 
 use rayon::prelude::*;
 
@@ -140,23 +142,42 @@ impl Samples {
         s
     }
 
-    /// Σ over the samples of the best (over the planes) capped residual with the source divided
-    /// by `gain`.
-    fn objective(&self, gain: f32) -> f64 {
+    /// Sample `j`'s best (over the planes) capped residual with channel `c` of the source divided
+    /// by `gains[c]`, and that plane's index into `k` (`usize::MAX` when no plane is under the
+    /// cap).
+    #[inline]
+    fn best(&self, j: usize, inv_gains: &[f32]) -> (f32, usize) {
+        let (c, a) = (self.channels, self.airlight);
+        let r = &self.reference[j * c..(j + 1) * c];
+        let mut best = (self.penalty, usize::MAX);
+        for i in self.start[j]..self.start[j + 1] {
+            let k = self.k[i];
+            let src = &self.source[i * c..(i + 1) * c];
+            let cost: f32 = r
+                .iter()
+                .zip(src)
+                .zip(inv_gains)
+                .map(|((&rv, &sv), &ig)| (rv - k * (sv * ig - a)).abs())
+                .sum();
+            if cost < best.0 {
+                best = (cost, i);
+            }
+        }
+        best
+    }
+
+    /// Σ over the samples of the best (over the planes) capped residual of channel `ch` alone
+    /// with the source's channel divided by `gain`: each channel's gain is searched on its own,
+    /// as a grey image would be.
+    fn objective(&self, ch: usize, gain: f32) -> f64 {
         let (c, a, inv_g) = (self.channels, self.airlight, 1.0 / gain);
         (0..self.start.len() - 1)
             .into_par_iter()
             .map(|j| {
-                let r = &self.reference[j * c..(j + 1) * c];
-                let mut best = self.penalty;
+                let r = self.reference[j * c + ch];
+                let mut best = 1.0f32;
                 for i in self.start[j]..self.start[j + 1] {
-                    let k = self.k[i];
-                    let src = &self.source[i * c..(i + 1) * c];
-                    let cost: f32 = r
-                        .iter()
-                        .zip(src)
-                        .map(|(&rv, &sv)| (rv - k * (sv * inv_g - a)).abs())
-                        .sum();
+                    let cost = (r - self.k[i] * (self.source[i * c + ch] * inv_g - a)).abs();
                     best = best.min(cost);
                 }
                 f64::from(best)
@@ -164,54 +185,42 @@ impl Samples {
             .sum()
     }
 
-    /// The L1 refinement at a fixed match: with each sample's best plane at `gain` held fixed,
-    /// `Σ_{p,c} |(I_r − A + kA) − k·I_s·h|` is minimised over `h = 1/g` exactly by the weighted
-    /// median of the ratios `(I_r − A + kA)/(k·I_s)` with weights `k·I_s`. Samples whose best
-    /// cost reaches the cap (no plane explains them) are left out. Returns the new gain, or
-    /// `gain` when nothing is left.
-    fn refine(&self, gain: f32) -> f32 {
-        let (c, a, inv_g) = (self.channels, self.airlight, 1.0 / gain);
-        let mut pairs: Vec<(f32, f32)> = Vec::with_capacity((self.start.len() - 1) * c);
+    /// The L1 refinement at a fixed match, channel by channel: with each sample's best plane at
+    /// `gains` held fixed, `Σ_p |(I_r − A + kA) − k·I_s·h_c|` is minimised over `h_c = 1/g_c`
+    /// exactly by the weighted median of the ratios `(I_r − A + kA)/(k·I_s)` with weights `k·I_s`
+    /// (the objective separates by channel once the match is fixed). Samples whose best cost
+    /// reaches the cap (no plane explains them) are left out. A channel with nothing left keeps
+    /// its gain.
+    fn refine(&self, gains: &[f32]) -> Vec<f32> {
+        let (c, a) = (self.channels, self.airlight);
+        let inv: Vec<f32> = gains.iter().map(|g| 1.0 / g).collect();
+        let mut pairs: Vec<Vec<(f32, f32)>> = vec![Vec::new(); c];
         for j in 0..self.start.len() - 1 {
-            let r = &self.reference[j * c..(j + 1) * c];
-            let mut best = (self.penalty, usize::MAX);
-            for i in self.start[j]..self.start[j + 1] {
-                let k = self.k[i];
-                let src = &self.source[i * c..(i + 1) * c];
-                let cost: f32 = r
-                    .iter()
-                    .zip(src)
-                    .map(|(&rv, &sv)| (rv - k * (sv * inv_g - a)).abs())
-                    .sum();
-                if cost < best.0 {
-                    best = (cost, i);
-                }
-            }
-            let i = best.1;
+            let i = self.best(j, &inv).1;
             if i == usize::MAX {
                 continue;
             }
             let k = self.k[i];
-            for (&rv, &sv) in r.iter().zip(&self.source[i * c..(i + 1) * c]) {
+            let r = &self.reference[j * c..(j + 1) * c];
+            for ((&rv, &sv), ch) in r
+                .iter()
+                .zip(&self.source[i * c..(i + 1) * c])
+                .zip(&mut pairs)
+            {
                 let m = k * sv;
                 if m > 0.0 {
-                    pairs.push(((rv + k * a) / m, m));
+                    ch.push(((rv + k * a) / m, m));
                 }
             }
         }
-        if pairs.is_empty() {
-            return gain;
-        }
-        pairs.sort_by(|x, y| x.0.total_cmp(&y.0));
-        let half = 0.5 * pairs.iter().map(|p| f64::from(p.1)).sum::<f64>();
-        let mut acc = 0.0f64;
-        for (h, m) in &pairs {
-            acc += f64::from(*m);
-            if acc >= half {
-                return if *h > 0.0 { 1.0 / h } else { gain };
-            }
-        }
-        gain
+        pairs
+            .iter_mut()
+            .zip(gains)
+            .map(|(ch, &g)| match weighted_median(ch) {
+                Some(h) if h > 0.0 => 1.0 / h,
+                _ => g,
+            })
+            .collect()
     }
 
     fn is_empty(&self) -> bool {
@@ -219,21 +228,11 @@ impl Samples {
     }
 }
 
-/// The gain of `source` relative to `reference` (see the module docs): `1` when no sample pixel
-/// is seen by the source.
-pub fn estimate_gain(
-    reference: &View<'_>,
-    source: &View<'_>,
-    planes: &PlaneSet,
-    kind: CostKind,
-) -> f32 {
-    let samples = Samples::collect(reference, source, planes, kind);
-    if samples.is_empty() {
-        return 1.0;
-    }
-    let f = |ln_g: f64| samples.objective(ln_g.exp() as f32);
-    let (lo, hi) = (f64::from(GAIN_RANGE.0).ln(), f64::from(GAIN_RANGE.1).ln());
+/// The minimiser of `f` over `ln g ∈ [ln ½, ln 2]`: a grid of 0.1 steps, then a golden section
+/// inside the best point's neighbouring steps down to 5e-4.
+fn search_log_gain(f: impl Fn(f64) -> f64) -> f64 {
     const GRID_STEP: f64 = 0.1;
+    let (lo, hi) = (f64::from(GAIN_RANGE.0).ln(), f64::from(GAIN_RANGE.1).ln());
     let steps = ((hi - lo) / GRID_STEP).round() as usize;
     let (mut best, mut best_f) = (0.0f64, f(0.0));
     for s in 0..=steps {
@@ -243,7 +242,6 @@ pub fn estimate_gain(
             (best, best_f) = (x, fx);
         }
     }
-    // Golden section inside the neighbouring grid steps.
     let (mut a, mut b) = ((best - GRID_STEP).max(lo), (best + GRID_STEP).min(hi));
     let phi = (5f64.sqrt() - 1.0) / 2.0;
     let (mut x1, mut x2) = (b - phi * (b - a), a + phi * (b - a));
@@ -260,23 +258,64 @@ pub fn estimate_gain(
         }
     }
     let x = 0.5 * (a + b);
-    let mut gain = if f(x) <= best_f {
-        x.exp() as f32
+    if f(x) <= best_f {
+        x
     } else {
-        best.exp() as f32
-    };
+        best
+    }
+}
+
+/// The weighted median of `(value, weight)` pairs (sorted in place), `None` when empty.
+fn weighted_median(pairs: &mut [(f32, f32)]) -> Option<f32> {
+    pairs.sort_by(|x, y| x.0.total_cmp(&y.0));
+    let half = 0.5 * pairs.iter().map(|p| f64::from(p.1)).sum::<f64>();
+    let mut acc = 0.0f64;
+    for &(v, w) in pairs.iter() {
+        acc += f64::from(w);
+        if acc >= half {
+            return Some(v);
+        }
+    }
+    pairs.last().map(|p| p.0)
+}
+
+/// The gain of each channel of `source` relative to the same channel of `reference` (see the
+/// module docs), one per image channel: exposure moves them together, white balance apart. All
+/// 1 when no sample pixel is seen by the source.
+pub fn estimate_gains(
+    reference: &View<'_>,
+    source: &View<'_>,
+    planes: &PlaneSet,
+    kind: CostKind,
+) -> Vec<f32> {
+    let channels = reference.image.channels();
+    let samples = Samples::collect(reference, source, planes, kind);
+    if samples.is_empty() {
+        return vec![1.0; channels];
+    }
+    let mut gains: Vec<f32> = (0..channels)
+        .map(|ch| search_log_gain(|ln_g| samples.objective(ch, ln_g.exp() as f32)).exp() as f32)
+        .collect();
     // The searches end at a resolution of ~0.05 %, and hazy far surfaces notice less: their
-    // texture contrast is scaled by t. The exact L1 step at a fixed match takes it to the data's
-    // own precision; the match is re-chosen after each step.
+    // texture contrast is scaled by t. The exact L1 step at a fixed match, now matched on all
+    // channels, takes each channel to the data's own precision; the match is re-chosen after
+    // each step.
     for _ in 0..REFINE_ROUNDS {
-        let next = samples.refine(gain).clamp(GAIN_RANGE.0, GAIN_RANGE.1);
-        let done = (next / gain - 1.0).abs() < 1e-6;
-        gain = next;
+        let next: Vec<f32> = samples
+            .refine(&gains)
+            .into_iter()
+            .map(|g| g.clamp(GAIN_RANGE.0, GAIN_RANGE.1))
+            .collect();
+        let done = next
+            .iter()
+            .zip(&gains)
+            .all(|(n, g)| (n / g - 1.0).abs() < 1e-5);
+        gains = next;
         if done {
             break;
         }
     }
-    gain
+    gains
 }
 
 /// Gains within this relative distance of 1 are not applied ([`applied_gain`]).
@@ -298,15 +337,17 @@ pub fn applied_gain(gain: f32) -> f32 {
 }
 
 /// Rounds of [`Samples::refine`] after the search.
-const REFINE_ROUNDS: usize = 4;
+const REFINE_ROUNDS: usize = 6;
 
-/// `image` divided by `gain` (a copy), so that a source recorded with that gain matches the
-/// reference's exposure.
-pub fn compensate(image: &ImageF32, gain: f32) -> ImageF32 {
-    let inv = 1.0 / gain;
+/// `image` with each channel divided by its gain in `gains` (a copy; one gain per channel), so
+/// that a source recorded with those gains matches the reference's exposure and white balance.
+pub fn compensate(image: &ImageF32, gains: &[f32]) -> ImageF32 {
+    let inv: Vec<f32> = gains.iter().map(|g| 1.0 / g).collect();
     let mut out = image.clone();
-    for v in out.data_mut() {
-        *v *= inv;
+    for px in out.data_mut().chunks_exact_mut(inv.len().max(1)) {
+        for (v, k) in px.iter_mut().zip(&inv) {
+            *v *= k;
+        }
     }
     out
 }
@@ -319,9 +360,10 @@ mod tests {
     use crate::mvs::cost_volume::DehazingOptions;
     use crate::simulate::mvs::{simulate_mvs, MvsSimConfig};
 
-    /// A hazy rectified pair of the simulator whose source is recorded with `gain`, and the
-    /// gain the estimate finds with the true A and β, and with the ordinary volume.
-    fn found(gain: f32, seed: u64) -> (f32, f32) {
+    /// A hazy rectified pair of the simulator whose source's channels are recorded with `gain`
+    /// times `tint`, and the gains the estimate finds with the true A and β, and with the
+    /// ordinary volume.
+    fn found(gain: f32, tint: [f32; 3], seed: u64) -> (Vec<f32>, Vec<f32>) {
         let cfg = MvsSimConfig {
             seed,
             num_views: 2,
@@ -333,8 +375,10 @@ mod tests {
         let reference = views[scene.reference];
         let source = views[1 - scene.reference];
         let mut brighter = source.image.clone();
-        for v in brighter.data_mut() {
-            *v *= gain;
+        for px in brighter.data_mut().chunks_exact_mut(3) {
+            for (v, t) in px.iter_mut().zip(tint) {
+                *v *= gain * t;
+            }
         }
         let source = View {
             image: &brighter,
@@ -349,27 +393,42 @@ mod tests {
             DehazingOptions::default(),
         );
         (
-            estimate_gain(&reference, &source, &planes, haze),
-            estimate_gain(&reference, &source, &planes, CostKind::Ordinary),
+            estimate_gains(&reference, &source, &planes, haze),
+            estimate_gains(&reference, &source, &planes, CostKind::Ordinary),
         )
     }
 
     #[test]
-    fn recovers_a_source_gain_within_half_a_percent() {
-        for (gain, seed) in [(1.0f32, 1u64), (1.08, 2), (0.9, 3), (1.25, 4)] {
-            let (dehazing, ordinary) = found(gain, seed);
-            for g in [dehazing, ordinary] {
-                assert!(
-                    (g / gain - 1.0).abs() < 0.005,
-                    "seed {seed}: gain {gain} estimated as {g} (dehazing {dehazing}, ordinary {ordinary})"
-                );
+    fn recovers_source_gains_within_half_a_percent() {
+        let neutral = [1.0f32; 3];
+        let warmer = [1.04, 1.0, 1.0 / 1.04];
+        for (gain, tint, seed) in [
+            (1.0f32, neutral, 1u64),
+            (1.08, neutral, 2),
+            (0.9, neutral, 3),
+            (1.25, neutral, 4),
+            (1.0, warmer, 5),
+            (0.95, warmer, 6),
+        ] {
+            let (dehazing, ordinary) = found(gain, tint, seed);
+            for g in [&dehazing, &ordinary] {
+                for (c, (&gc, t)) in g.iter().zip(tint).enumerate() {
+                    assert!(
+                        (gc / (gain * t) - 1.0).abs() < 0.005,
+                        "seed {seed}: channel {c} gain {} estimated as {gc} \
+                         (dehazing {dehazing:?}, ordinary {ordinary:?})",
+                        gain * t
+                    );
+                }
             }
         }
     }
 
     #[test]
-    fn compensation_divides_by_the_gain() {
+    fn compensation_divides_each_channel_by_its_gain() {
         let img = ImageF32::from_vec(2, 1, 1, vec![0.5, 1.0]).unwrap();
-        assert_eq!(compensate(&img, 2.0).data(), &[0.25, 0.5]);
+        assert_eq!(compensate(&img, &[2.0]).data(), &[0.25, 0.5]);
+        let rgb = ImageF32::from_vec(1, 1, 3, vec![0.5, 0.5, 0.5]).unwrap();
+        assert_eq!(compensate(&rgb, &[2.0, 1.0, 0.5]).data(), &[0.25, 0.5, 1.0]);
     }
 }

@@ -4,7 +4,7 @@
 //! Pipeline ([`estimate_depth`] / [`depth_from_cost_volume`]):
 //!
 //! 0. optional Gaussian pre-smoothing of every view ([`presmooth`], σ = 0.8 px by default), and
-//!    each source divided by its exposure gain relative to the reference ([`exposure`], on by
+//!    each source's channels divided by their gains relative to the reference ([`exposure`], on by
 //!    default);
 //! 1. the ordinary (Eq. 3.1) or dehazing (Eq. 3.7) cost volume, `C(p, i)` in `[0, γ]`, `γ = 3`
 //!    for RGB ([`crate::mvs::cost_volume`]);
@@ -114,8 +114,8 @@ pub struct SgmParams {
     pub speckle_max_size_px: Option<usize>,
     /// Largest plane-index step inside one speckle region (finite, `>= 0`).
     pub speckle_range_planes: f32,
-    /// Estimate each source's exposure gain relative to the reference and divide the source by
-    /// it before the cost volume ([`exposure`]); the gains are reported in
+    /// Estimate each source's exposure gain per channel relative to the reference and divide the
+    /// source by it before the cost volume ([`exposure`]); the gains are reported in
     /// [`DepthResult::source_gains`]. Used by [`estimate_depth`] (which has the views). Default
     /// on.
     pub exposure_compensation: bool,
@@ -291,10 +291,10 @@ pub struct DepthResult {
     pub inverse_depth: ImageF32,
     /// Confidence in `[0, 1]` (one channel), see [`select`].
     pub confidence: ImageF32,
-    /// The exposure gain each source was divided by ([`exposure`]), in the order of the sources:
-    /// its estimated gain relative to the reference, exactly 1 within
-    /// [`exposure::DEAD_BAND`] of 1 or where compensation is off; empty from
-    /// [`depth_from_cost_volume`].
+    /// The gain each source's channels were divided by ([`exposure`]), source-major, one per
+    /// image channel (`sources × channels` values): the estimated gain of that channel relative
+    /// to the reference's, exactly 1 within [`exposure::DEAD_BAND`] of 1 or where compensation
+    /// is off; empty from [`depth_from_cost_volume`].
     pub source_gains: Vec<f32>,
 }
 
@@ -337,18 +337,24 @@ pub fn estimate_depth(
     };
     // Bad views fail before any strip's volume is built.
     validate_inputs(&reference, &sources, planes, kind)?;
+    let channels = reference.image.channels();
     let source_gains: Vec<f32> = if params.exposure_compensation {
         sources
             .iter()
-            .map(|s| exposure::applied_gain(exposure::estimate_gain(&reference, s, planes, kind)))
+            .flat_map(|s| exposure::estimate_gains(&reference, s, planes, kind))
+            .map(exposure::applied_gain)
             .collect()
     } else {
-        vec![1.0; sources.len()]
+        vec![1.0; sources.len() * channels]
     };
     let compensated: Vec<Option<ImageF32>> = sources
         .iter()
-        .zip(&source_gains)
-        .map(|(s, &g)| (g != 1.0).then(|| exposure::compensate(s.image, g)))
+        .zip(source_gains.chunks_exact(channels))
+        .map(|(s, g)| {
+            g.iter()
+                .any(|&g| g != 1.0)
+                .then(|| exposure::compensate(s.image, g))
+        })
         .collect();
     let sources: Vec<View<'_>> = sources
         .iter()

@@ -86,8 +86,8 @@ class MvsDepthResult:
     #: ``"dehazing"``, ``"eq37"`` or ``"ordinary"``.
     cost_volume: str
     compute_seconds: float
-    #: The exposure gain each source was divided by (its brightness relative to the reference),
-    #: in the order of the sources; exactly 1.0 within 0.5 % of 1 or with compensation off.
+    #: The gain each source's channels were divided by (brightness relative to the reference),
+    #: source-major, one per image channel; exactly 1.0 within 0.5 % of 1 or with compensation off.
     source_gains: tuple[float, ...]
     job_id: str
     proto: mvs_pb2.MvsDepthResult

@@ -267,7 +267,7 @@ class SgmOptions(_message.Message):
     near 200 MiB with the default (the whole murk mvs process, server included).
     """
     exposure_compensation: _builtins.bool
-    """Estimate each source camera's exposure gain relative to the reference (from the matching
+    """Estimate each source camera's gain per channel relative to the reference (from the matching
     cost itself) and divide the source by it before the cost volume, default true. Two cameras
     rarely record the same brightness; without this a few percent of gain difference ruins the
     dehazing cost. Gains within 0.5 % of 1 are not applied. See MvsDepthResult.source_gains.
@@ -397,9 +397,10 @@ class MvsDepthResult(_message.Message):
 
     @_builtins.property
     def source_gains(self) -> _containers.RepeatedScalarFieldContainer[_builtins.float]:
-        """The exposure gain each source was divided by, in the order of the request's sources: its
-        brightness relative to the reference (1.05 = 5 % brighter); exactly 1 within 0.5 % of 1 or
-        with exposure_compensation off.
+        """The gain each source's channels were divided by, source-major in the order of the request's
+        sources, one per image channel (sources x channels values): the channel's brightness
+        relative to the reference's (1.05 = 5 % brighter; exposure moves the channels together,
+        white balance apart); exactly 1 within 0.5 % of 1 or with exposure_compensation off.
         """
 
     def __init__(
