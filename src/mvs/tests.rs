@@ -600,20 +600,27 @@ fn depth_of(scene: &MvsScene, planes: &PlaneSet, sgm: &SgmParams) -> crate::mvs:
     .unwrap()
 }
 
-/// On a rectified pair (the configuration of real stereo rigs) the source–reference check
-/// rejects the pixels the source cannot see or got wrong: their confidence becomes 0, and the
-/// filled depth there is better than the winner-take-all's; accuracy over the image does not
-/// drop. Without the check nothing has confidence 0 that the curve did not already call flat.
-#[test]
-fn consistency_check_on_a_rectified_pair() {
-    let planes = PlaneSet::new(1.5, 15.0, 64).unwrap();
+/// The simulator's 160×120 rectified pair (seed 3) and 64 planes over z 1.5…15.
+fn small_rectified_pair() -> (MvsScene, PlaneSet) {
     let cfg = MvsSimConfig {
         seed: 3,
         num_views: 2,
         rectified_pair: true,
         ..MvsSimConfig::with_size(160, 120)
     };
-    let scene = simulate_mvs(&cfg, &Monitor::noop()).unwrap();
+    (
+        simulate_mvs(&cfg, &Monitor::noop()).unwrap(),
+        PlaneSet::new(1.5, 15.0, 64).unwrap(),
+    )
+}
+
+/// On a rectified pair (the configuration of real stereo rigs) the source–reference check
+/// rejects the pixels the source cannot see or got wrong: their confidence becomes 0, and the
+/// filled depth there is better than the winner-take-all's; accuracy over the image does not
+/// drop. Without the check nothing has confidence 0 that the curve did not already call flat.
+#[test]
+fn consistency_check_on_a_rectified_pair() {
+    let (scene, planes) = small_rectified_pair();
     let off = depth_of(
         &scene,
         &planes,
@@ -660,14 +667,7 @@ fn consistency_check_on_a_rectified_pair() {
 /// C.P. collapses.
 #[test]
 fn a_brighter_source_camera_is_compensated() {
-    let planes = PlaneSet::new(1.5, 15.0, 64).unwrap();
-    let cfg = MvsSimConfig {
-        seed: 3,
-        num_views: 2,
-        rectified_pair: true,
-        ..MvsSimConfig::with_size(160, 120)
-    };
-    let equal = simulate_mvs(&cfg, &Monitor::noop()).unwrap();
+    let (equal, planes) = small_rectified_pair();
     let mut brighter = equal.clone();
     let source = 1 - brighter.reference;
     for v in brighter.views[source].hazy.data_mut() {
