@@ -221,7 +221,7 @@ pub fn run(a: MvsArgs) -> anyhow::Result<()> {
     );
     if r.source_gains.iter().any(|&g| g != 1.0) {
         // One gain per channel of each source, source-major.
-        let per_source = (r.source_gains.len() / a.sources.len().max(1)).max(1);
+        let per_source = reference.image.channels().max(1);
         let gains: Vec<String> = r
             .source_gains
             .chunks(per_source)
