@@ -13,6 +13,7 @@ pub mod io;
 pub mod jobs;
 pub mod large_buffer;
 pub mod metrics;
+pub mod minimise;
 pub mod monitor;
 pub mod mvs;
 pub mod mvs_io;

@@ -249,6 +249,14 @@ impl RowWarp {
         (self.slope, self.offset, self.depth)
     }
 
+    /// The coefficients in `f32`, for the per-voxel loops ([`RowWarpF32`]).
+    pub fn to_f32(&self) -> RowWarpF32 {
+        RowWarpF32 {
+            slope: self.slope.map(|v| v as f32),
+            offset: self.offset.map(|v| v as f32),
+        }
+    }
+
     /// Same as [`PlaneWarp::map`]`(u, v)` for this row's `v`.
     #[inline]
     pub fn map(&self, u: f64) -> (f64, f64, f64) {
@@ -257,6 +265,30 @@ impl RowWarp {
         let w = self.slope[2] * u + self.offset[2];
         let r = 1.0 / w;
         (x * r, y * r, w * self.depth)
+    }
+}
+
+/// [`RowWarp`] in `f32`: an `f32` reciprocal per voxel instead of an `f64` division, so the
+/// per-voxel loops (the cost volume's source coordinates, the consistency check's claims)
+/// vectorise. For images up to 4096 px the rounding moves a point by < 0.01 px.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RowWarpF32 {
+    slope: [f32; 3],
+    offset: [f32; 3],
+}
+
+impl RowWarpF32 {
+    /// Source coordinates `(u, v)` of column `x` and the homogeneous scale `w` of the point: it
+    /// lies in front of the source camera when `w > 0` (`ζ = w·depth` with a positive depth).
+    #[inline(always)]
+    pub fn project(&self, x: f32) -> (f32, f32, f32) {
+        let hw = self.slope[2] * x + self.offset[2];
+        let r = 1.0 / hw;
+        (
+            (self.slope[0] * x + self.offset[0]) * r,
+            (self.slope[1] * x + self.offset[1]) * r,
+            hw,
+        )
     }
 }
 

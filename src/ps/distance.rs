@@ -12,9 +12,12 @@
 //! mean (over pixels) of each pixel's residual relative to its observations,
 //! Σ_i (L_i − D_i·ñ)²/Σ_i L_i², which does not depend on the pixel's albedo or on any
 //! per-pixel factor common to all lights (such as the camera-path attenuation e^{−σ d_vp}). The
-//! search is a log-spaced grid followed by golden-section refinement of the best bracket.
+//! search is a log-spaced grid followed by Brent's method in the best bracket
+//! ([`crate::minimise::grid_then_brent`]).
 
 use rayon::prelude::*;
+
+use crate::minimise::grid_then_brent;
 
 use crate::ps::capture::{rig_size_mm, PointLight};
 use crate::ps::near_light::{
@@ -30,7 +33,7 @@ const MAX_PIXELS: usize = 4096;
 /// silhouette pixels whose forward-scatter removal is least accurate).
 const TRIM: f64 = 0.1;
 
-/// Spacing of the log-distance grid searched before golden-section refinement (6 %: the
+/// Spacing of the log-distance grid searched before Brent's refinement (6 %: the
 /// objective is smooth and unimodal on that scale in every run measured).
 const GRID_STEP: f64 = 0.06;
 
@@ -141,97 +144,22 @@ pub fn fit_mean_depth(
         r.select_nth_unstable_by(keep - 1, f64::total_cmp);
         r[..keep].iter().sum::<f64>() / keep as f64
     };
-    let (llo, lhi) = (lo.ln(), hi.ln());
-    let grid = (((lhi - llo) / GRID_STEP).ceil() as usize + 1).clamp(5, 200);
-    let at = |k: usize| llo + (lhi - llo) * k as f64 / (grid - 1) as f64;
-    let values: Vec<f64> = (0..grid).map(|k| objective(&coarse, at(k).exp())).collect();
-    let best = (0..grid)
-        .min_by(|&a, &b| values[a].total_cmp(&values[b]))
-        .expect("grid is not empty");
-    let at_bound = best == 0 || best == grid - 1;
-    // Brent's minimisation in log-distance over the best point's neighbours, on every pixel.
-    let (a, b) = (at(best.saturating_sub(1)), at((best + 1).min(grid - 1)));
-    let (x, fx) = brent_minimise(|x| objective(&all, x.exp()), a, b, at(best), LOG_TOLERANCE);
+    // Brent's minimisation in log-distance over the best grid point's neighbours, on every pixel.
+    let m = grid_then_brent(
+        |x| objective(&coarse, x.exp()),
+        |x| objective(&all, x.exp()),
+        lo.ln(),
+        hi.ln(),
+        GRID_STEP,
+        LOG_TOLERANCE,
+    );
+    let (x, fx, at_bound) = (m.x, m.value, m.at_bound);
     Some(DistanceFit {
         mean_depth_mm: x.exp(),
         objective: fx,
         pixels: pixels.len(),
         at_bound,
     })
-}
-
-/// Brent's method (parabolic steps with a golden-section fallback; Brent 1973, ch. 5) for the
-/// minimum of `f` on `[a, b]`, started at `x0` inside it, to an absolute tolerance `tol` in x.
-/// Returns the best point evaluated and its value. Deterministic: the same calls in the same
-/// order.
-fn brent_minimise(mut f: impl FnMut(f64) -> f64, a: f64, b: f64, x0: f64, tol: f64) -> (f64, f64) {
-    const CGOLD: f64 = 0.381_966_011_250_105_1;
-    const MAX_STEPS: usize = 60;
-    let (mut a, mut b) = (a.min(b), a.max(b));
-    let mut x = x0.clamp(a, b);
-    let mut fx = f(x);
-    let (mut w, mut v, mut fw, mut fv) = (x, x, fx, fx);
-    let (mut d, mut e) = (0.0f64, 0.0f64);
-    for _ in 0..MAX_STEPS {
-        let xm = 0.5 * (a + b);
-        let tol1 = tol * 0.5 + 1e-12 * x.abs();
-        let tol2 = 2.0 * tol1;
-        if (x - xm).abs() <= tol2 - 0.5 * (b - a) {
-            break;
-        }
-        let mut golden = true;
-        if e.abs() > tol1 {
-            // Parabola through x, w, v.
-            let r = (x - w) * (fx - fv);
-            let q = (x - v) * (fx - fw);
-            let mut p = (x - v) * q - (x - w) * r;
-            let mut q = 2.0 * (q - r);
-            if q > 0.0 {
-                p = -p;
-            }
-            q = q.abs();
-            let e_prev = e;
-            if p.abs() < (0.5 * q * e_prev).abs() && p > q * (a - x) && p < q * (b - x) {
-                e = d;
-                d = p / q;
-                let u = x + d;
-                if u - a < tol2 || b - u < tol2 {
-                    d = tol1.copysign(xm - x);
-                }
-                golden = false;
-            }
-        }
-        if golden {
-            e = if x >= xm { a - x } else { b - x };
-            d = CGOLD * e;
-        }
-        let u = if d.abs() >= tol1 {
-            x + d
-        } else {
-            x + tol1.copysign(d)
-        };
-        let fu = f(u);
-        if fu <= fx {
-            if u >= x {
-                a = x;
-            } else {
-                b = x;
-            }
-            (v, fv, w, fw, x, fx) = (w, fw, x, fx, u, fu);
-        } else {
-            if u < x {
-                a = u;
-            } else {
-                b = u;
-            }
-            if fu <= fw || w == x {
-                (v, fv, w, fw) = (w, fw, u, fu);
-            } else if fu <= fv || v == x || v == w {
-                (v, fv) = (u, fu);
-            }
-        }
-    }
-    (x, fx)
 }
 
 /// Σ_i (L_i − ρ·S_i(n))²/Σ_i L_i² for the pixel's point at mean depth `d`, with (n, ρ) the
@@ -298,37 +226,6 @@ mod tests {
     use crate::monitor::Monitor;
     use crate::ps::pipeline::back_project;
     use crate::simulate::ps::{simulate_ps, PsSimConfig};
-
-    /// Brent's method finds smooth and kinked minima to its tolerance in far fewer steps
-    /// than the 16 golden-section steps it replaced, and never leaves its bracket.
-    #[test]
-    fn brent_finds_minima_within_the_bracket() {
-        let cases: [(&dyn Fn(f64) -> f64, f64); 3] = [
-            (&|x: f64| (x - 0.0123).powi(2) + 3.0, 0.0123),
-            (&|x: f64| (x + 0.04).abs().sqrt() + 0.1 * x * x, -0.04),
-            (&|x: f64| (x - 0.05).cosh(), 0.05),
-        ];
-        for (f, truth) in cases {
-            let mut calls = 0;
-            let (x, fx) = brent_minimise(
-                |x| {
-                    calls += 1;
-                    f(x)
-                },
-                -0.06,
-                0.06,
-                0.0,
-                1e-4,
-            );
-            assert!((x - truth).abs() < 2e-4, "{x} against {truth}");
-            assert_eq!(fx, f(x));
-            assert!((-0.06..=0.06).contains(&x));
-            assert!(calls <= 40, "{calls} evaluations");
-        }
-        // A monotone function ends at the bracket's end.
-        let (x, _) = brent_minimise(|x| x, -1.0, 1.0, 0.0, 1e-4);
-        assert!(x < -0.999, "{x}");
-    }
 
     /// On a simulated sphere with the reflected component known (no scatter to remove: β = 0),
     /// the true shape scaled to a wrong distance is pulled back to the true one from ±30 %,

@@ -256,9 +256,8 @@ pub(super) fn mean_or_penalty(out: &mut [f32], sum: &[f32], observed: &[u32], pe
 /// Source sample coordinates of one reference row for one plane: `us[x], vs[x]` is
 /// `π_{r→s}(x, y; z_i)`, with `us[x] = NaN` marking an unobserved sample (the plane point behind
 /// the source camera, where `ζ = w·depth ≤ 0`, or outside the pixel-centre hull). The
-/// homogeneous coordinates are affine in `u` along the row and evaluated in `f32` (an f32
-/// reciprocal per voxel instead of an f64 division); for images up to 4096 px the rounding moves
-/// a sample by < 0.01 px. Branch-free, so it vectorises.
+/// homogeneous coordinates are affine in `u` along the row and evaluated in `f32`
+/// ([`crate::mvs::plane_sweep::RowWarpF32`]). Branch-free, so it vectorises.
 #[inline(always)]
 pub(super) fn source_coords(
     warp: &RowWarp,
@@ -267,15 +266,10 @@ pub(super) fn source_coords(
     us: &mut [f32],
     vs: &mut [f32],
 ) {
-    let (slope, offset, _) = warp.coefficients();
-    let [ax, ay, aw] = slope.map(|v| v as f32);
-    let [bx, by, bw] = offset.map(|v| v as f32);
+    let warp = warp.to_f32();
     let (wmax, hmax) = ((width - 1) as f32, (height - 1) as f32);
     for (x, (us, vs)) in us.iter_mut().zip(vs.iter_mut()).enumerate() {
-        let u = x as f32;
-        let hw = aw * u + bw;
-        let r = 1.0 / hw;
-        let (a, b) = ((ax * u + bx) * r, (ay * u + by) * r);
+        let (a, b, hw) = warp.project(x as f32);
         let inside = hw > 0.0 && a >= 0.0 && b >= 0.0 && a <= wmax && b <= hmax;
         *us = if inside { a } else { f32::NAN };
         *vs = b;

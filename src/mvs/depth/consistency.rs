@@ -31,7 +31,7 @@ use rayon::prelude::*;
 
 use super::sgm::DIRECTIONS;
 use crate::camera::Intrinsics;
-use crate::mvs::plane_sweep::{PlaneSet, PlaneWarp, RowWarp};
+use crate::mvs::plane_sweep::{PlaneSet, PlaneWarp, RowWarpF32};
 use crate::mvs::pose::Pose;
 
 /// Geometry of one source view relative to the reference, for the consistency check.
@@ -63,63 +63,40 @@ pub enum Verdict {
 /// Marker of a target outside the source image (or behind the source camera).
 const OUTSIDE: u32 = u32::MAX;
 
-/// One plane's warp on one reference row in `f32`: the homogeneous source coordinates at column
-/// `x` are `slope·x + offset` ([`RowWarp`]). `f32` is ample for a nearest-pixel decision (the
-/// error is ~1e-4 px at a few thousand pixels) and lets the claims pass run 8 planes per AVX2
-/// instruction.
-#[derive(Clone, Copy, Debug)]
-struct RowTarget {
-    slope: [f32; 3],
-    offset: [f32; 3],
-}
-
-impl RowTarget {
-    fn new(row: &RowWarp) -> Self {
-        let (s, o, _) = row.coefficients();
-        Self {
-            slope: s.map(|v| v as f32),
-            offset: o.map(|v| v as f32),
-        }
-    }
-
-    /// The row-major index of the source pixel nearest to where column `x` lands in a `w×h`
-    /// source, [`OUTSIDE`] outside it or behind the camera (the homogeneous scale `≤ 0`: the
-    /// plane's depth is positive, so ζ has its sign). Rounds by truncating `u + ½` after the
-    /// bounds check, and computes an index for every input so the caller's loop vectorises.
-    #[inline(always)]
-    fn target(&self, x: f32, w: f32, h: f32) -> u32 {
-        let hx = self.slope[0] * x + self.offset[0];
-        let hy = self.slope[1] * x + self.offset[1];
-        let hw = self.slope[2] * x + self.offset[2];
-        let r = 1.0 / hw;
-        let (u, v) = (hx * r, hy * r);
-        let inside = hw > 0.0 && u >= -0.5 && u < w - 0.5 && v >= -0.5 && v < h - 0.5;
-        let (u, v) = if inside {
-            (u + 0.5, v + 0.5)
-        } else {
-            (0.0, 0.0)
-        };
-        let q = v as u32 * w as u32 + u as u32;
-        if inside {
-            q
-        } else {
-            OUTSIDE
-        }
+/// The row-major index of the source pixel nearest to where column `x` lands in a `w×h` source
+/// under `warp`, [`OUTSIDE`] outside it or behind the camera. In `f32` ([`RowWarpF32`]): ample
+/// for a nearest-pixel decision, and the claims pass runs 8 planes per AVX2 instruction. Rounds
+/// by truncating `u + ½` after the bounds check, and computes an index for every input so the
+/// caller's loop vectorises.
+#[inline(always)]
+fn target(warp: &RowWarpF32, x: f32, w: f32, h: f32) -> u32 {
+    let (u, v, hw) = warp.project(x);
+    let inside = hw > 0.0 && u >= -0.5 && u < w - 0.5 && v >= -0.5 && v < h - 0.5;
+    let (u, v) = if inside {
+        (u + 0.5, v + 0.5)
+    } else {
+        (0.0, 0.0)
+    };
+    let q = v as u32 * w as u32 + u as u32;
+    if inside {
+        q
+    } else {
+        OUTSIDE
     }
 }
 
-/// [`RowTarget::target`] of every plane's `targets[i]` at column `x` into `out[i]`.
-fn targets_of(avx2: bool, targets: &[RowTarget], x: f32, w: f32, h: f32, out: &mut [u32]) {
+/// [`target`] of every plane's warp `targets[i]` at column `x` into `out[i]`.
+fn targets_of(avx2: bool, targets: &[RowWarpF32], x: f32, w: f32, h: f32, out: &mut [u32]) {
     #[inline(always)]
-    fn plain(targets: &[RowTarget], x: f32, w: f32, h: f32, out: &mut [u32]) {
+    fn plain(targets: &[RowWarpF32], x: f32, w: f32, h: f32, out: &mut [u32]) {
         for (o, t) in out.iter_mut().zip(targets) {
-            *o = t.target(x, w, h);
+            *o = target(t, x, w, h);
         }
     }
     #[cfg(target_arch = "x86_64")]
     {
         #[target_feature(enable = "avx2")]
-        unsafe fn with_avx2(targets: &[RowTarget], x: f32, w: f32, h: f32, out: &mut [u32]) {
+        unsafe fn with_avx2(targets: &[RowWarpF32], x: f32, w: f32, h: f32, out: &mut [u32]) {
             plain(targets, x, w, h, out)
         }
         if avx2 {
@@ -178,13 +155,9 @@ impl SourceClaims {
         let avx2 = crate::cpu::avx2_enabled();
         rows.into_par_iter().for_each_init(
             || (Vec::new(), vec![0u32; n]),
-            |(row_targets, q): &mut (Vec<RowTarget>, Vec<u32>), y| {
+            |(row_targets, q): &mut (Vec<RowWarpF32>, Vec<u32>), y| {
                 row_targets.clear();
-                row_targets.extend(
-                    self.warps
-                        .iter()
-                        .map(|wp| RowTarget::new(&wp.row(y as f64))),
-                );
+                row_targets.extend(self.warps.iter().map(|wp| wp.row(y as f64).to_f32()));
                 for x in 0..w {
                     let p = (y - y0) * w + x;
                     let curve = &sum[p * n..(p + 1) * n];
@@ -249,11 +222,8 @@ pub fn check(winner: &[u32], w: usize, sources: &[SourceWinners], tolerance: f32
             for s in sources {
                 let g = &s.geometry;
                 // The claims' arithmetic, so a voxel and its check agree on the pixel.
-                let q = RowTarget::new(&s.warps[i as usize].row(y as f64)).target(
-                    x as f32,
-                    g.width as f32,
-                    g.height as f32,
-                );
+                let warp = s.warps[i as usize].row(y as f64).to_f32();
+                let q = target(&warp, x as f32, g.width as f32, g.height as f32);
                 if q == OUTSIDE {
                     continue;
                 }

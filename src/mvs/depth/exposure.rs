@@ -16,8 +16,8 @@
 //! pixels, is minimised over `g`. A wrong gain leaves an offset in every pixel's best match,
 //! textured or flat, so the sum has its minimum at the true gain; where the plane sweep has no
 //! true plane (occlusions, outside the range) the pixel adds a constant-ish term. The search runs
-//! over `ln g ∈ [ln ½, ln 2]`, a grid of 0.1 steps then a golden section inside the neighbouring
-//! steps down to 5e-4 (0.05 %), on a quarter of the samples. Then, with each sample's best plane over all channels held
+//! over `ln g ∈ [ln ½, ln 2]` on a quarter of the samples, a grid of 0.1 steps then Brent's method
+//! between the best point's neighbours ([`crate::minimise::grid_then_brent`]). Then, with each sample's best plane over all channels held
 //! fixed, the objective separates by channel and an exact L1 step per channel (a weighted median)
 //! refines each gain; the match is chosen again and the step repeated. Gains within
 //! [`DEAD_BAND`] of 1 are not applied. The source is then divided by its gains before its cost
@@ -27,6 +27,7 @@ use rayon::prelude::*;
 
 use crate::atmosphere::{inverse_transmission, transmission, MIN_TRANSMISSION};
 use crate::image::ImageF32;
+use crate::minimise::grid_then_brent;
 use crate::mvs::cost_volume::sample::bilinear_inside;
 use crate::mvs::cost_volume::{CostKind, View};
 use crate::mvs::plane_sweep::{PlaneSet, PlaneWarp};
@@ -166,11 +167,10 @@ impl Samples {
         best
     }
 
-    /// Σ over the samples of the best (over the planes) capped residual of channel `ch` alone
-    /// with the source's channel divided by `gain`: each channel's gain is searched on its own,
-    /// as a grey image would be.
-    /// Every `stride`-th sample only: the search needs the bracket, the refinement after it
-    /// uses every sample.
+    /// Σ over every `stride`-th sample of the best (over the planes) capped residual of channel
+    /// `ch` alone with the source's channel divided by `gain`: each channel's gain is searched on
+    /// its own, as a grey image would be, and on few samples (the weighted-median steps after
+    /// the search use every sample).
     fn objective(&self, ch: usize, gain: f32, stride: usize) -> f64 {
         let (c, a, inv_g) = (self.channels, self.airlight, 1.0 / gain);
         (0..self.start.len() - 1)
@@ -231,43 +231,6 @@ impl Samples {
     }
 }
 
-/// The minimiser of `f` over `ln g ∈ [ln ½, ln 2]`: a grid of 0.1 steps, then a golden section
-/// inside the best point's neighbouring steps down to 5e-4.
-fn search_log_gain(f: impl Fn(f64) -> f64) -> f64 {
-    const GRID_STEP: f64 = 0.1;
-    let (lo, hi) = (f64::from(GAIN_RANGE.0).ln(), f64::from(GAIN_RANGE.1).ln());
-    let steps = ((hi - lo) / GRID_STEP).round() as usize;
-    let (mut best, mut best_f) = (0.0f64, f(0.0));
-    for s in 0..=steps {
-        let x = lo + (hi - lo) * s as f64 / steps as f64;
-        let fx = f(x);
-        if fx < best_f {
-            (best, best_f) = (x, fx);
-        }
-    }
-    let (mut a, mut b) = ((best - GRID_STEP).max(lo), (best + GRID_STEP).min(hi));
-    let phi = (5f64.sqrt() - 1.0) / 2.0;
-    let (mut x1, mut x2) = (b - phi * (b - a), a + phi * (b - a));
-    let (mut f1, mut f2) = (f(x1), f(x2));
-    while b - a > 5e-4 {
-        if f1 <= f2 {
-            (b, x2, f2) = (x2, x1, f1);
-            x1 = b - phi * (b - a);
-            f1 = f(x1);
-        } else {
-            (a, x1, f1) = (x1, x2, f2);
-            x2 = a + phi * (b - a);
-            f2 = f(x2);
-        }
-    }
-    let x = 0.5 * (a + b);
-    if f(x) <= best_f {
-        x
-    } else {
-        best
-    }
-}
-
 /// The weighted median of `(value, weight)` pairs (sorted in place), `None` when empty.
 fn weighted_median(pairs: &mut [(f32, f32)]) -> Option<f32> {
     pairs.sort_by(|x, y| x.0.total_cmp(&y.0));
@@ -299,10 +262,12 @@ pub fn estimate_gains(
     let mut gains: Vec<f32> = (0..channels)
         .map(|ch| {
             let f = |ln_g: f64| samples.objective(ch, ln_g.exp() as f32, SEARCH_STRIDE);
-            search_log_gain(f).exp() as f32
+            let (lo, hi) = (GAIN_RANGE.0.ln(), GAIN_RANGE.1.ln());
+            let m = grid_then_brent(f, f, f64::from(lo), f64::from(hi), GRID_STEP, LOG_TOLERANCE);
+            m.x.exp() as f32
         })
         .collect();
-    // The searches end at a resolution of ~0.05 %, and hazy far surfaces notice less: their
+    // The searches end at a resolution of ~0.03 %, and hazy far surfaces notice less: their
     // texture contrast is scaled by t. The exact L1 step at a fixed match, now matched on all
     // channels, takes each channel to the data's own precision; the match is re-chosen after
     // each step.
@@ -341,6 +306,12 @@ pub fn applied_gain(gain: f32) -> f32 {
         gain
     }
 }
+
+/// Spacing of the search's grid in `ln g` (about 10 %).
+const GRID_STEP: f64 = 0.1;
+
+/// The search's tolerance in `ln g` (0.025 %); the weighted-median steps refine further.
+const LOG_TOLERANCE: f64 = 2.5e-4;
 
 /// The searches use every this-many-th sample (a quarter): they only need to land near the
 /// optimum, which the refinement on every sample then finds.

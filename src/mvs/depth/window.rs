@@ -58,6 +58,12 @@ pub fn window_to_pixel_major(
     let row_len = w * n;
     let ring_len = 2 * r + 1;
     let avx2 = crate::cpu::avx2_enabled();
+    // Unit weights for every row when none are given.
+    let ones = if weights.is_empty() {
+        vec![1.0f32; w]
+    } else {
+        Vec::new()
+    };
     out.par_chunks_mut(BAND_ROWS * row_len)
         .enumerate()
         .for_each_init(
@@ -71,7 +77,23 @@ pub fn window_to_pixel_major(
                     let last = (y + r).min(h - 1);
                     while next <= last {
                         let slot = &mut ring[(next % ring_len) * row_len..][..row_len];
-                        horizontal_row_fast(avx2, data, weights, w, npix, n, r, next, &inv_x, slot);
+                        let row_weights = if weights.is_empty() {
+                            &ones[..]
+                        } else {
+                            &weights[next * w..(next + 1) * w]
+                        };
+                        horizontal_row_fast(
+                            avx2,
+                            data,
+                            row_weights,
+                            w,
+                            npix,
+                            n,
+                            r,
+                            next,
+                            &inv_x,
+                            slot,
+                        );
                         next += 1;
                     }
                     let dst = &mut out_band[(y - y0) * row_len..][..row_len];
@@ -136,8 +158,9 @@ fn horizontal_row_fast(
     horizontal_row(data, weights, w, npix, n, r, y, inv_x, slot)
 }
 
-/// Row `y` of every plane, weighted and box-summed along the row (mean over the clipped
-/// window), into the pixel-major row `slot` (`[x][plane]`). Planes go in groups of
+/// Row `y` of every plane, weighted by that row's `weights` (`w` values) and box-summed along
+/// the row (mean over the clipped window), into the pixel-major row `slot` (`[x][plane]`).
+/// Planes go in groups of
 /// [`PLANE_GROUP`] with one running `f64` sum per plane: independent lanes, so the loop over `x`
 /// vectorises across the group's planes and writes each pixel's group contiguously.
 #[allow(clippy::too_many_arguments)]
@@ -153,13 +176,6 @@ fn horizontal_row(
     inv_x: &[f64],
     slot: &mut [f32],
 ) {
-    let ones;
-    let wt = if weights.is_empty() {
-        ones = vec![1.0f32; w];
-        &ones[..]
-    } else {
-        &weights[y * w..(y + 1) * w]
-    };
     let mut g0 = 0;
     while g0 < n {
         let g = PLANE_GROUP.min(n - g0);
@@ -169,14 +185,14 @@ fn horizontal_row(
         // The first window, up to but excluding column r.
         for x in 0..r.min(w) {
             for j in 0..PLANE_GROUP {
-                acc[j] += f64::from(rows[j][x] * wt[x]);
+                acc[j] += f64::from(rows[j][x] * weights[x]);
             }
         }
         for (x, px) in slot.chunks_exact_mut(n).enumerate() {
             if x + r < w {
                 let xi = x + r;
                 for j in 0..PLANE_GROUP {
-                    acc[j] += f64::from(rows[j][xi] * wt[xi]);
+                    acc[j] += f64::from(rows[j][xi] * weights[xi]);
                 }
             }
             let k = inv_x[x];
@@ -186,7 +202,7 @@ fn horizontal_row(
             if x >= r {
                 let xo = x - r;
                 for j in 0..PLANE_GROUP {
-                    acc[j] -= f64::from(rows[j][xo] * wt[xo]);
+                    acc[j] -= f64::from(rows[j][xo] * weights[xo]);
                 }
             }
         }
