@@ -154,6 +154,24 @@ async fn bad_mvs_requests_name_the_field_and_the_server_keeps_serving() {
             }),
         ),
         (
+            "sgm.census_weight",
+            Box::new(|r| {
+                r.sgm = Some(pb::SgmOptions {
+                    census_weight: Some(-0.5),
+                    ..Default::default()
+                })
+            }),
+        ),
+        (
+            "sgm.census_weight",
+            Box::new(|r| {
+                r.sgm = Some(pb::SgmOptions {
+                    census_weight: Some(f32::INFINITY),
+                    ..Default::default()
+                })
+            }),
+        ),
+        (
             "reference.image",
             Box::new(|r| {
                 let mut img = ImageF32::filled(W, H, 3, 0.5);

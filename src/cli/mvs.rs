@@ -100,6 +100,9 @@ pub struct MvsArgs {
     /// dehazing cost).
     #[arg(long)]
     pub no_exposure_compensation: bool,
+    /// Weight of the census term of the matching cost, 0..=3 (0 = off; server default 0).
+    #[arg(long)]
+    pub census_weight: Option<f32>,
     /// Reject depth speckles smaller than this many pixels (0 = off; server default W·H/3000).
     #[arg(long)]
     pub speckle_max_size: Option<u32>,
@@ -171,6 +174,7 @@ pub fn run(a: MvsArgs) -> anyhow::Result<()> {
         || a.contrast_max_weight.is_some()
         || a.no_consistency_check
         || a.no_exposure_compensation
+        || a.census_weight.is_some()
         || a.speckle_max_size.is_some()
         || a.volume_budget_mib.is_some()
     {
@@ -179,6 +183,7 @@ pub fn run(a: MvsArgs) -> anyhow::Result<()> {
             contrast_max_weight: a.contrast_max_weight,
             consistency_check: a.no_consistency_check.then_some(false),
             exposure_compensation: a.no_exposure_compensation.then_some(false),
+            census_weight: a.census_weight,
             speckle_max_size_px: a.speckle_max_size,
             volume_budget_mib: a.volume_budget_mib,
             ..Default::default()

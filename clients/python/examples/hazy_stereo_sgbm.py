@@ -161,6 +161,24 @@ def main() -> None:
         default="1,1,1",
         help="white balance of the right camera relative to the left: R,G,B gains on top of --right-gain",
     )
+    ap.add_argument(
+        "--vignetting",
+        type=float,
+        default=0.0,
+        help="radial fall-off of both cameras (same lens model): gain 1 - V*(r/r_corner)^2",
+    )
+    ap.add_argument(
+        "--right-vignetting",
+        type=float,
+        default=0.0,
+        help="radial fall-off of the right camera instead of --vignetting (0.2 = 20 %% darker corners)",
+    )
+    ap.add_argument(
+        "--right-gamma",
+        type=float,
+        default=1.0,
+        help="tone curve of the right camera relative to the left: recorded value = value^G",
+    )
     ap.add_argument("--repeats", type=int, default=3, help="timed runs of each method (best is reported)")
     ap.add_argument("--murk-args", default="", help="extra `murk mvs` flags")
     ap.add_argument(
@@ -197,18 +215,28 @@ def main() -> None:
     depth_r = fb / (right_view_disparity(filled_l) + doffs)
     beta = -np.log(a.median_transmission) / float(np.median(depth_l))
 
-    def haze(img: np.ndarray, depth: np.ndarray, gain: float | np.ndarray = 1.0) -> np.ndarray:
-        # A camera's gain scales everything it records, airlight included.
+    def haze(
+        img: np.ndarray, depth: np.ndarray, gain: float | np.ndarray = 1.0, vignetting: float = 0.0, gamma: float = 1.0
+    ) -> np.ndarray:
+        # A camera's gain, vignetting and tone curve act on everything it records, airlight
+        # included; noise is added to the linear signal, before the tone curve.
         t = np.exp(-beta * depth)[..., None]
         i = gain * (img.astype(np.float64) / 255.0 * t + a.airlight * (1.0 - t))
+        if vignetting:
+            yy, xx = np.mgrid[0:h, 0:w]
+            r2 = ((xx - (w - 1) / 2.0) ** 2 + (yy - (h - 1) / 2.0) ** 2) / (((w - 1) / 2.0) ** 2 + ((h - 1) / 2.0) ** 2)
+            i *= (1.0 - vignetting * r2)[..., None]
         i += rng.normal(0.0, a.noise, i.shape)
+        if gamma != 1.0:
+            i = np.clip(i, 0.0, 1.0) ** gamma
         return np.clip(np.round(i * 255.0), 0, 255).astype(np.uint8)
 
     out = a.out
     (out / "images").mkdir(parents=True, exist_ok=True)
     # cv2 images are BGR.
     tint_bgr = np.array([float(v) for v in a.right_tint.split(",")][::-1])
-    hl, hr = haze(left, depth_l), haze(right, depth_r, a.right_gain * tint_bgr)
+    hl = haze(left, depth_l, 1.0, a.vignetting)
+    hr = haze(right, depth_r, a.right_gain * tint_bgr, a.right_vignetting or a.vignetting, a.right_gamma)
     cv2.imwrite(str(out / "images" / "left.png"), hl)
     cv2.imwrite(str(out / "images" / "right.png"), hr)
     write_colmap(out, w, h, f, cx_l, cx_r, cy, disp, fb / np.where(gt_ok, disp + doffs, 1.0), left, rng)
@@ -292,6 +320,9 @@ def main() -> None:
         "pair": f"{w}x{h}",
         "right_gain": a.right_gain,
         "right_tint_rgb": a.right_tint,
+        "vignetting": a.vignetting,
+        "right_vignetting": a.right_vignetting,
+        "right_gamma": a.right_gamma,
         "airlight": a.airlight,
         "beta_per_m": beta,
         "median_transmission": a.median_transmission,

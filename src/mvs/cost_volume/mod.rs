@@ -41,6 +41,7 @@
 //! tested equal to the scalar rows); the volume's memory comes from
 //! [`crate::large_buffer::zeroed_f32`] (transparent huge pages on Linux).
 
+pub mod census;
 mod kernel;
 pub mod sample;
 mod simd;

@@ -32,6 +32,7 @@ pub mod window;
 use crate::error::{MurkError, Result};
 use crate::image::ImageF32;
 use crate::monitor::Monitor;
+use crate::mvs::cost_volume::census::{self, CensusImage, CensusSource};
 use crate::mvs::cost_volume::{
     build_cost_volume_rows_in, validate_inputs, CostKind, CostVolume, View,
 };
@@ -119,6 +120,10 @@ pub struct SgmParams {
     /// [`DepthResult::source_gains`]. Used by [`estimate_depth`] (which has the views). Default
     /// on.
     pub exposure_compensation: bool,
+    /// Weight `λ` of the census term added to every voxel
+    /// ([`crate::mvs::cost_volume::census`]), cost units for a Hamming distance of all the
+    /// code's bits (finite, `0 ..= 3`; `0` = off). Used by [`estimate_depth`].
+    pub census_weight: f32,
     /// Memory bound, MiB (`1 ..= 65536`): when the `f32` cost volume of the whole reference
     /// is larger, depth is estimated in horizontal strips whose volume (own rows plus
     /// [`STRIP_OVERLAP_ROWS`] above and below) fits it. The cost volume, its pixel-major copy
@@ -148,6 +153,7 @@ impl Default for SgmParams {
             speckle_max_size_px: None,
             speckle_range_planes: 2.0,
             exposure_compensation: true,
+            census_weight: 0.0,
             volume_budget_mib: 64,
         }
     }
@@ -245,6 +251,12 @@ impl SgmParams {
                     format!("must be at most {MAX_SPECKLE_SIZE_PX} pixels, got {s}"),
                 ));
             }
+        }
+        if !self.census_weight.is_finite() || !(0.0..=3.0).contains(&self.census_weight) {
+            return Err(MurkError::invalid(
+                "census_weight",
+                format!("must be in 0..=3 (cost units), got {}", self.census_weight),
+            ));
         }
         if !(1..=MAX_VOLUME_BUDGET_MIB).contains(&self.volume_budget_mib) {
             return Err(MurkError::invalid(
@@ -382,6 +394,28 @@ pub fn estimate_depth(
     let (w, h) = guide.dims();
     let n = planes.num_planes;
     let weights = contrast_weights_of(guide, params);
+    // Codes of the views as the photometric term sees them (smoothed, gains divided out).
+    let census: Option<(CensusImage, Vec<CensusImage>)> = (params.census_weight > 0.0).then(|| {
+        (
+            census::census_transform(reference.image),
+            sources
+                .iter()
+                .map(|s| census::census_transform(s.image))
+                .collect(),
+        )
+    });
+    let census_sources: Vec<CensusSource<'_>> = match &census {
+        Some((_, codes)) => sources
+            .iter()
+            .zip(codes)
+            .map(|(s, codes)| CensusSource {
+                census: codes,
+                intrinsics: s.intrinsics,
+                relative: Pose::relative(&reference.pose, &s.pose),
+            })
+            .collect(),
+        None => Vec::new(),
+    };
     let claims: Vec<SourceClaims> = geometry
         .iter()
         .map(|g| SourceClaims::new(g, planes))
@@ -406,9 +440,27 @@ pub fn estimate_depth(
             strip.rows.clone(),
             &m,
         )?;
+        let mut data = volume.into_vec();
+        if let Some((reference_codes, _)) = &census {
+            census::add_census_costs(
+                &mut data,
+                reference_codes,
+                &reference.intrinsics,
+                &census_sources,
+                planes,
+                strip.rows.clone(),
+                params.census_weight,
+                if weights.is_empty() {
+                    &weights
+                } else {
+                    &weights[strip.rows.start * w..strip.rows.end * w]
+                },
+                &m,
+            )?;
+        }
         let m = monitor.sub((j as f32 + 0.5) / k, (j as f32 + 1.0) / k);
         let (strip_selection, spent) = strip_selections(
-            volume.into_vec(),
+            data,
             std::mem::take(&mut spare[1]),
             strip,
             w,

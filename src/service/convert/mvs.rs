@@ -173,6 +173,7 @@ pub(super) fn sgm_of(o: Option<&pb::SgmOptions>) -> SgmParams {
             .volume_budget_mib
             .map_or(p.volume_budget_mib, |v| v as usize);
         p.exposure_compensation = o.exposure_compensation.unwrap_or(p.exposure_compensation);
+        p.census_weight = o.census_weight.unwrap_or(p.census_weight);
     }
     p
 }
@@ -217,6 +218,7 @@ pub fn canonicalize_mvs_request(req: &mut pb::MvsDepthRequest) {
             speckle_range_planes: Some(p.speckle_range_planes),
             volume_budget_mib: u32::try_from(p.volume_budget_mib).ok(),
             exposure_compensation: Some(p.exposure_compensation),
+            census_weight: Some(p.census_weight),
         });
     }
 }
@@ -530,6 +532,7 @@ mod tests {
             r.num_planes = 0;
             r.sgm = Some(pb::SgmOptions {
                 p1: Some(SgmParams::default().p1),
+                census_weight: Some(0.0),
                 ..Default::default()
             });
             r
@@ -545,6 +548,18 @@ mod tests {
         canonicalize_mvs_request(&mut a);
         canonicalize_mvs_request(&mut b);
         assert_eq!(a, b);
+        // The census term is another computation.
+        let mut census = a.clone();
+        census.sgm.as_mut().unwrap().census_weight = Some(1.0);
+        canonicalize_mvs_request(&mut census);
+        assert_ne!(census, a);
+        assert_eq!(
+            mvs_from_proto(&census, &ImageLimits::default())
+                .unwrap()
+                .sgm
+                .census_weight,
+            1.0
+        );
         // ORDINARY ignores the atmosphere, so it does not split the id...
         let mut o1 = request(pb::CostVolumeKind::Ordinary);
         let mut o2 = o1.clone();

@@ -216,6 +216,7 @@ class SgmOptions(_message.Message):
     SPECKLE_RANGE_PLANES_FIELD_NUMBER: _builtins.int
     VOLUME_BUDGET_MIB_FIELD_NUMBER: _builtins.int
     EXPOSURE_COMPENSATION_FIELD_NUMBER: _builtins.int
+    CENSUS_WEIGHT_FIELD_NUMBER: _builtins.int
     p1: _builtins.float
     """P1: penalty for a +-1 plane step between neighbours, cost units, finite and >= 0. Default
     0.01.
@@ -272,6 +273,13 @@ class SgmOptions(_message.Message):
     rarely record the same brightness; without this a few percent of gain difference ruins the
     dehazing cost. Gains within 0.5 % of 1 are not applied. See MvsDepthResult.source_gains.
     """
+    census_weight: _builtins.float
+    """Weight of the census term added to every voxel, cost units for a Hamming distance of all of
+    a 7 x 7 census code's 48 bits, in [0, 3]; 0 = off. The census code of a window keeps only
+    the signs of its brightness differences, which haze (an increasing affine map of the
+    radiance at one depth), vignetting, gains and tone curves leave unchanged, so it matches
+    where the cameras' responses differ in ways the photometric residual has no term for.
+    """
     def __init__(
         self,
         *,
@@ -289,11 +297,14 @@ class SgmOptions(_message.Message):
         speckle_range_planes: _builtins.float | None = ...,
         volume_budget_mib: _builtins.int | None = ...,
         exposure_compensation: _builtins.bool | None = ...,
+        census_weight: _builtins.float | None = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _typing.Literal["_consistency_check", b"_consistency_check", "_consistency_tolerance_planes", b"_consistency_tolerance_planes", "_contrast_max_weight", b"_contrast_max_weight", "_contrast_percentile", b"_contrast_percentile", "_cost_window_radius", b"_cost_window_radius", "_exposure_compensation", b"_exposure_compensation", "_num_paths", b"_num_paths", "_p1", b"_p1", "_p2", b"_p2", "_p2_gradient_scale", b"_p2_gradient_scale", "_presmooth_sigma_px", b"_presmooth_sigma_px", "_speckle_max_size_px", b"_speckle_max_size_px", "_speckle_range_planes", b"_speckle_range_planes", "_volume_budget_mib", b"_volume_budget_mib", "consistency_check", b"consistency_check", "consistency_tolerance_planes", b"consistency_tolerance_planes", "contrast_max_weight", b"contrast_max_weight", "contrast_percentile", b"contrast_percentile", "cost_window_radius", b"cost_window_radius", "exposure_compensation", b"exposure_compensation", "num_paths", b"num_paths", "p1", b"p1", "p2", b"p2", "p2_gradient_scale", b"p2_gradient_scale", "presmooth_sigma_px", b"presmooth_sigma_px", "speckle_max_size_px", b"speckle_max_size_px", "speckle_range_planes", b"speckle_range_planes", "volume_budget_mib", b"volume_budget_mib"]  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["_census_weight", b"_census_weight", "_consistency_check", b"_consistency_check", "_consistency_tolerance_planes", b"_consistency_tolerance_planes", "_contrast_max_weight", b"_contrast_max_weight", "_contrast_percentile", b"_contrast_percentile", "_cost_window_radius", b"_cost_window_radius", "_exposure_compensation", b"_exposure_compensation", "_num_paths", b"_num_paths", "_p1", b"_p1", "_p2", b"_p2", "_p2_gradient_scale", b"_p2_gradient_scale", "_presmooth_sigma_px", b"_presmooth_sigma_px", "_speckle_max_size_px", b"_speckle_max_size_px", "_speckle_range_planes", b"_speckle_range_planes", "_volume_budget_mib", b"_volume_budget_mib", "census_weight", b"census_weight", "consistency_check", b"consistency_check", "consistency_tolerance_planes", b"consistency_tolerance_planes", "contrast_max_weight", b"contrast_max_weight", "contrast_percentile", b"contrast_percentile", "cost_window_radius", b"cost_window_radius", "exposure_compensation", b"exposure_compensation", "num_paths", b"num_paths", "p1", b"p1", "p2", b"p2", "p2_gradient_scale", b"p2_gradient_scale", "presmooth_sigma_px", b"presmooth_sigma_px", "speckle_max_size_px", b"speckle_max_size_px", "speckle_range_planes", b"speckle_range_planes", "volume_budget_mib", b"volume_budget_mib"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["_consistency_check", b"_consistency_check", "_consistency_tolerance_planes", b"_consistency_tolerance_planes", "_contrast_max_weight", b"_contrast_max_weight", "_contrast_percentile", b"_contrast_percentile", "_cost_window_radius", b"_cost_window_radius", "_exposure_compensation", b"_exposure_compensation", "_num_paths", b"_num_paths", "_p1", b"_p1", "_p2", b"_p2", "_p2_gradient_scale", b"_p2_gradient_scale", "_presmooth_sigma_px", b"_presmooth_sigma_px", "_speckle_max_size_px", b"_speckle_max_size_px", "_speckle_range_planes", b"_speckle_range_planes", "_volume_budget_mib", b"_volume_budget_mib", "consistency_check", b"consistency_check", "consistency_tolerance_planes", b"consistency_tolerance_planes", "contrast_max_weight", b"contrast_max_weight", "contrast_percentile", b"contrast_percentile", "cost_window_radius", b"cost_window_radius", "exposure_compensation", b"exposure_compensation", "num_paths", b"num_paths", "p1", b"p1", "p2", b"p2", "p2_gradient_scale", b"p2_gradient_scale", "presmooth_sigma_px", b"presmooth_sigma_px", "speckle_max_size_px", b"speckle_max_size_px", "speckle_range_planes", b"speckle_range_planes", "volume_budget_mib", b"volume_budget_mib"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["_census_weight", b"_census_weight", "_consistency_check", b"_consistency_check", "_consistency_tolerance_planes", b"_consistency_tolerance_planes", "_contrast_max_weight", b"_contrast_max_weight", "_contrast_percentile", b"_contrast_percentile", "_cost_window_radius", b"_cost_window_radius", "_exposure_compensation", b"_exposure_compensation", "_num_paths", b"_num_paths", "_p1", b"_p1", "_p2", b"_p2", "_p2_gradient_scale", b"_p2_gradient_scale", "_presmooth_sigma_px", b"_presmooth_sigma_px", "_speckle_max_size_px", b"_speckle_max_size_px", "_speckle_range_planes", b"_speckle_range_planes", "_volume_budget_mib", b"_volume_budget_mib", "census_weight", b"census_weight", "consistency_check", b"consistency_check", "consistency_tolerance_planes", b"consistency_tolerance_planes", "contrast_max_weight", b"contrast_max_weight", "contrast_percentile", b"contrast_percentile", "cost_window_radius", b"cost_window_radius", "exposure_compensation", b"exposure_compensation", "num_paths", b"num_paths", "p1", b"p1", "p2", b"p2", "p2_gradient_scale", b"p2_gradient_scale", "presmooth_sigma_px", b"presmooth_sigma_px", "speckle_max_size_px", b"speckle_max_size_px", "speckle_range_planes", b"speckle_range_planes", "volume_budget_mib", b"volume_budget_mib"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    _WhichOneofReturnType__census_weight: _TypeAlias = _typing.Literal["census_weight"]  # noqa: Y015
+    _WhichOneofArgType__census_weight: _TypeAlias = _typing.Literal["_census_weight", b"_census_weight"]  # noqa: Y015
     _WhichOneofReturnType__consistency_check: _TypeAlias = _typing.Literal["consistency_check"]  # noqa: Y015
     _WhichOneofArgType__consistency_check: _TypeAlias = _typing.Literal["_consistency_check", b"_consistency_check"]  # noqa: Y015
     _WhichOneofReturnType__consistency_tolerance_planes: _TypeAlias = _typing.Literal["consistency_tolerance_planes"]  # noqa: Y015
@@ -322,6 +333,8 @@ class SgmOptions(_message.Message):
     _WhichOneofArgType__speckle_range_planes: _TypeAlias = _typing.Literal["_speckle_range_planes", b"_speckle_range_planes"]  # noqa: Y015
     _WhichOneofReturnType__volume_budget_mib: _TypeAlias = _typing.Literal["volume_budget_mib"]  # noqa: Y015
     _WhichOneofArgType__volume_budget_mib: _TypeAlias = _typing.Literal["_volume_budget_mib", b"_volume_budget_mib"]  # noqa: Y015
+    @_typing.overload
+    def WhichOneof(self, oneof_group: _WhichOneofArgType__census_weight) -> _WhichOneofReturnType__census_weight | None: ...
     @_typing.overload
     def WhichOneof(self, oneof_group: _WhichOneofArgType__consistency_check) -> _WhichOneofReturnType__consistency_check | None: ...
     @_typing.overload
