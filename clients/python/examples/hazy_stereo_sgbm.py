@@ -216,7 +216,11 @@ def main() -> None:
     beta = -np.log(a.median_transmission) / float(np.median(depth_l))
 
     def haze(
-        img: np.ndarray, depth: np.ndarray, gain: float | np.ndarray = 1.0, vignetting: float = 0.0, gamma: float = 1.0
+        img: np.ndarray,
+        depth: np.ndarray,
+        gain: float | np.ndarray = 1.0,
+        vignetting: float = 0.0,
+        gamma: float = 1.0,
     ) -> np.ndarray:
         # A camera's gain, vignetting and tone curve act on everything it records, airlight
         # included; noise is added to the linear signal, before the tone curve.
@@ -224,7 +228,8 @@ def main() -> None:
         i = gain * (img.astype(np.float64) / 255.0 * t + a.airlight * (1.0 - t))
         if vignetting:
             yy, xx = np.mgrid[0:h, 0:w]
-            r2 = ((xx - (w - 1) / 2.0) ** 2 + (yy - (h - 1) / 2.0) ** 2) / (((w - 1) / 2.0) ** 2 + ((h - 1) / 2.0) ** 2)
+            cx, cy = (w - 1) / 2.0, (h - 1) / 2.0
+            r2 = ((xx - cx) ** 2 + (yy - cy) ** 2) / (cx**2 + cy**2)
             i *= (1.0 - vignetting * r2)[..., None]
         i += rng.normal(0.0, a.noise, i.shape)
         if gamma != 1.0:
