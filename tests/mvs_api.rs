@@ -271,6 +271,8 @@ async fn brighter_sources_report_their_exposure_gain() {
         "{:?}",
         off.source_gains
     );
+    // The simulator's lenses do not vignette: no fall-off is divided out.
+    assert_eq!(on.vignetting_falloff, 0.0);
     let (m_on, m_off) = (metrics(&scene, on), metrics(&scene, off));
     assert!(m_on.c_p >= MIN_C_P, "{m_on:?}");
     assert!(m_on.c_p > m_off.c_p, "{m_on:?} vs {m_off:?}");

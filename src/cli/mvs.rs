@@ -103,6 +103,10 @@ pub struct MvsArgs {
     /// Weight of the census term of the matching cost, 0..=3 (0 = off; server default 0).
     #[arg(long)]
     pub census_weight: Option<f32>,
+    /// Do not estimate and divide out the lens's radial fall-off (vignetting), shared by every
+    /// view (on by default).
+    #[arg(long)]
+    pub no_vignetting_compensation: bool,
     /// Reject depth speckles smaller than this many pixels (0 = off; server default W·H/3000).
     #[arg(long)]
     pub speckle_max_size: Option<u32>,
@@ -175,6 +179,7 @@ pub fn run(a: MvsArgs) -> anyhow::Result<()> {
         || a.no_consistency_check
         || a.no_exposure_compensation
         || a.census_weight.is_some()
+        || a.no_vignetting_compensation
         || a.speckle_max_size.is_some()
         || a.volume_budget_mib.is_some()
     {
@@ -184,6 +189,7 @@ pub fn run(a: MvsArgs) -> anyhow::Result<()> {
             consistency_check: a.no_consistency_check.then_some(false),
             exposure_compensation: a.no_exposure_compensation.then_some(false),
             census_weight: a.census_weight,
+            vignetting_compensation: a.no_vignetting_compensation.then_some(false),
             speckle_max_size_px: a.speckle_max_size,
             volume_budget_mib: a.volume_budget_mib,
             ..Default::default()
@@ -224,6 +230,12 @@ pub fn run(a: MvsArgs) -> anyhow::Result<()> {
         points.len(),
         a.out.display()
     );
+    if r.vignetting_falloff != 0.0 {
+        println!(
+            "lens fall-off divided out of every view: corners at {:.3} of the centre's brightness",
+            1.0 + r.vignetting_falloff
+        );
+    }
     if r.source_gains.iter().any(|&g| g != 1.0) {
         // One gain per channel of each source, source-major.
         let per_source = reference.image.channels().max(1);

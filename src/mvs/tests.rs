@@ -755,13 +755,9 @@ fn strips_match_the_whole_volume() {
     assert!((a.c_p - b.c_p).abs() < 0.005, "{a:?} vs {b:?}");
 }
 
-/// Both cameras of the small rectified pair vignetted alike (gain `1 − 0.3·r²`, `r` = 1 at
-/// the corners, airlight included, as a lens does): a reference pixel and its match sit at
-/// different radii, so the photometric residual carries an offset that grows toward the
-/// image's sides, while the census codes barely change. The census term recovers most of what
-/// the vignetting costs; without it C.P. falls.
-#[test]
-fn census_term_survives_vignetting() {
+/// The small rectified pair with both cameras vignetted alike: gain `1 + a·r²`, `r` = 1 at the
+/// corners, airlight included, as a lens does.
+fn vignetted_pair(a: f32) -> (MvsScene, MvsScene, PlaneSet) {
     let (clean, planes) = small_rectified_pair();
     let mut vignetted = clean.clone();
     for view in &mut vignetted.views {
@@ -770,18 +766,32 @@ fn census_term_survives_vignetting() {
         let corner2 = cx * cx + cy * cy;
         for (i, px) in view.hazy.data_mut().chunks_exact_mut(c).enumerate() {
             let (x, y) = ((i % w) as f32 - cx, (i / w) as f32 - cy);
-            let g = 1.0 - 0.3 * (x * x + y * y) / corner2;
+            let g = 1.0 + a * (x * x + y * y) / corner2;
             px.iter_mut().for_each(|v| *v *= g);
         }
     }
+    (clean, vignetted, planes)
+}
+
+/// Vignetting of 0.3 on both views of the small rectified pair, with the fall-off compensation
+/// off: a reference pixel and its match sit at different radii, so the photometric residual
+/// carries an offset that grows toward the image's sides, while the census codes barely
+/// change. The census term recovers most of what the vignetting costs; without it C.P. falls.
+#[test]
+fn census_term_survives_vignetting() {
+    let (clean, vignetted, planes) = vignetted_pair(-0.3);
     let gt = &clean.views[clean.reference].depth;
     let c_p = |d: &crate::mvs::DepthResult| depth_metrics(&d.z_depth, gt, None).unwrap().c_p;
-    let census = SgmParams {
-        census_weight: 3.0,
+    let plain_params = SgmParams {
+        vignetting_compensation: false,
         ..SgmParams::default()
     };
-    let base = c_p(&depth_of(&clean, &planes, &SgmParams::default()));
-    let plain = c_p(&depth_of(&vignetted, &planes, &SgmParams::default()));
+    let census = SgmParams {
+        census_weight: 3.0,
+        ..plain_params
+    };
+    let base = c_p(&depth_of(&clean, &planes, &plain_params));
+    let plain = c_p(&depth_of(&vignetted, &planes, &plain_params));
     let with_census = c_p(&depth_of(&vignetted, &planes, &census));
     let clean_census = c_p(&depth_of(&clean, &planes, &census));
     println!(
@@ -793,4 +803,42 @@ fn census_term_survives_vignetting() {
     );
     assert!(plain < base - 0.05, "vignetting should hurt the L1 cost");
     assert!(with_census > plain + 0.05);
+}
+
+/// The same lens fall-off on both views is estimated and divided out: the vignetted pair's
+/// depth is as good as the clean pair's, the fall-off found is the one applied, and the clean
+/// pair's estimate falls in the dead band (nothing applied, depth unchanged).
+#[test]
+fn a_shared_lens_falloff_is_compensated() {
+    let (clean, vignetted, planes) = vignetted_pair(-0.3);
+    let gt = &clean.views[clean.reference].depth;
+    let c_p = |d: &crate::mvs::DepthResult| depth_metrics(&d.z_depth, gt, None).unwrap().c_p;
+    let clean_depth = depth_of(&clean, &planes, &SgmParams::default());
+    let on = depth_of(&vignetted, &planes, &SgmParams::default());
+    let off = depth_of(
+        &vignetted,
+        &planes,
+        &SgmParams {
+            vignetting_compensation: false,
+            ..SgmParams::default()
+        },
+    );
+    println!(
+        "fall-off found {:.4} (clean {:.4}); C.P. clean {:.1} %, compensated {:.1} %, not {:.1} %; gains {:?}",
+        on.vignetting_falloff,
+        clean_depth.vignetting_falloff,
+        100.0 * c_p(&clean_depth),
+        100.0 * c_p(&on),
+        100.0 * c_p(&off),
+        on.source_gains
+    );
+    assert!(
+        (on.vignetting_falloff + 0.3).abs() < 0.03,
+        "{}",
+        on.vignetting_falloff
+    );
+    assert_eq!(clean_depth.vignetting_falloff, 0.0);
+    assert_eq!(off.vignetting_falloff, 0.0);
+    assert!(c_p(&on) >= c_p(&clean_depth) - 0.01);
+    assert!(c_p(&off) < c_p(&clean_depth) - 0.1);
 }

@@ -33,6 +33,8 @@ use crate::mvs::cost_volume::{CostKind, View};
 use crate::mvs::plane_sweep::{PlaneSet, PlaneWarp};
 use crate::mvs::pose::Pose;
 
+use super::vignetting::radius2;
+
 /// Most reference pixels the estimate samples (a regular grid).
 pub const MAX_SAMPLES: usize = 2048;
 
@@ -42,13 +44,13 @@ pub const MAX_PLANES: usize = 128;
 /// Smallest and largest gain searched (the source's brightness relative to the reference).
 pub const GAIN_RANGE: (f32, f32) = (0.5, 2.0);
 
-/// One sample row's reference values, planes per sample pixel, `k` and source values (the
-/// fields of [`Samples`], before they are joined).
-type RowSamples = (Vec<f32>, Vec<usize>, Vec<f32>, Vec<f32>);
+/// One sample row's reference values, planes per sample, `k`, source values and the radii of
+/// the reference and source positions (the fields of [`Samples`], before they are joined).
+type RowSamples = (Vec<f32>, Vec<usize>, Vec<f32>, Vec<f32>, Vec<f32>, Vec<f32>);
 
 /// One sample pixel's reference values minus the airlight and, per plane that sees it, `k` and
-/// the source's values.
-struct Samples {
+/// the source's values; the vignetting estimate ([`super::vignetting`]) shares them.
+pub(super) struct Samples {
     channels: usize,
     /// `I_r − A` per sample and channel.
     reference: Vec<f32>,
@@ -58,12 +60,22 @@ struct Samples {
     k: Vec<f32>,
     /// `I_s` per visible (sample, plane) and channel.
     source: Vec<f32>,
+    /// `r²` of each sample in the reference ([`super::vignetting::radius2`]).
+    ref_r2: Vec<f32>,
+    /// `r²` of each visible (sample, plane)'s position in the source.
+    src_r2: Vec<f32>,
     airlight: f32,
     penalty: f32,
 }
 
 impl Samples {
-    fn collect(reference: &View<'_>, source: &View<'_>, planes: &PlaneSet, kind: CostKind) -> Self {
+    /// The samples of `source` against `reference` (see the module docs).
+    pub(super) fn collect(
+        reference: &View<'_>,
+        source: &View<'_>,
+        planes: &PlaneSet,
+        kind: CostKind,
+    ) -> Self {
         let (w, h, c) = (
             reference.image.width(),
             reference.image.height(),
@@ -91,6 +103,8 @@ impl Samples {
             start: vec![0],
             k: Vec::new(),
             source: Vec::new(),
+            ref_r2: Vec::new(),
+            src_r2: Vec::new(),
             airlight,
             penalty: c as f32,
         };
@@ -100,8 +114,14 @@ impl Samples {
         let parts: Vec<RowSamples> = rows
             .par_iter()
             .map(|&y| {
-                let (mut refs, mut counts, mut ks, mut src) =
-                    (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+                let (mut refs, mut counts, mut ks, mut src, mut rr2, mut sr2) = (
+                    Vec::new(),
+                    Vec::new(),
+                    Vec::new(),
+                    Vec::new(),
+                    Vec::new(),
+                    Vec::new(),
+                );
                 for x in (step / 2..w).step_by(step) {
                     let before = ks.len();
                     for (warp, t_r) in &warps {
@@ -118,6 +138,7 @@ impl Samples {
                             1.0
                         });
                         let (u, v) = (u as f32, v as f32);
+                        sr2.push(radius2(u, v, sw, sh));
                         match c {
                             1 => src.extend(bilinear_inside::<1>(sd, sw, u, v, sh)),
                             _ => src.extend(bilinear_inside::<3>(sd, sw, u, v, sh)),
@@ -126,12 +147,15 @@ impl Samples {
                     if ks.len() > before {
                         refs.extend(rd[(y * w + x) * c..][..c].iter().map(|v| v - airlight));
                         counts.push(ks.len() - before);
+                        rr2.push(radius2(x as f32, y as f32, w, h));
                     }
                 }
-                (refs, counts, ks, src)
+                (refs, counts, ks, src, rr2, sr2)
             })
             .collect();
-        for (refs, counts, ks, src) in parts {
+        for (refs, counts, ks, src, rr2, sr2) in parts {
+            s.ref_r2.extend(rr2);
+            s.src_r2.extend(sr2);
             s.reference.extend(refs);
             for n in counts {
                 let last = s.start.last().copied().unwrap_or(0);
@@ -226,7 +250,42 @@ impl Samples {
             .collect()
     }
 
-    fn is_empty(&self) -> bool {
+    /// [`Samples::best`] with both views divided by the fall-off `1 + a·r²`
+    /// ([`super::vignetting`]), the residual measured in the reference's recorded units (times
+    /// its `1 + a·r²`): dividing both views by more than 1 would otherwise shrink every residual
+    /// and favour brighter corners whatever the data. Equal to [`Samples::best`] for `a = 0`.
+    #[inline]
+    pub(super) fn best_vignetted(&self, j: usize, inv_gains: &[f32], a: f32) -> (f32, usize) {
+        let (c, air) = (self.channels, self.airlight);
+        let vr = 1.0 + a * self.ref_r2[j];
+        let r = &self.reference[j * c..(j + 1) * c];
+        let mut best = (self.penalty, usize::MAX);
+        for i in self.start[j]..self.start[j + 1] {
+            let k = self.k[i];
+            let inv_vs = 1.0 / (1.0 + a * self.src_r2[i]);
+            let src = &self.source[i * c..(i + 1) * c];
+            let cost: f32 = r
+                .iter()
+                .zip(src)
+                .zip(inv_gains)
+                .map(|((&rv, &sv), &ig)| {
+                    (rv + air - vr * (air + k * (sv * ig * inv_vs - air))).abs()
+                })
+                .sum();
+            if cost < best.0 {
+                best = (cost, i);
+            }
+        }
+        best
+    }
+
+    /// Number of sample pixels that some plane projects into the source.
+    pub(super) fn len(&self) -> usize {
+        self.start.len() - 1
+    }
+
+    /// No sample pixel is seen by the source.
+    pub(super) fn is_empty(&self) -> bool {
         self.start.len() < 2
     }
 }

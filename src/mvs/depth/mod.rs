@@ -3,11 +3,13 @@
 //!
 //! Pipeline ([`estimate_depth`] / [`depth_from_cost_volume`]):
 //!
-//! 0. optional Gaussian pre-smoothing of every view ([`presmooth`], σ = 0.8 px by default), and
-//!    each source's channels divided by their gains relative to the reference ([`exposure`], on by
+//! 0. optional Gaussian pre-smoothing of every view ([`presmooth`], σ = 0.8 px by default), the
+//!    lens's radial fall-off divided out of every view ([`vignetting`], on by default), and each
+//!    source's channels divided by their gains relative to the reference ([`exposure`], on by
 //!    default);
 //! 1. the ordinary (Eq. 3.1) or dehazing (Eq. 3.7) cost volume, `C(p, i)` in `[0, γ]`, `γ = 3`
-//!    for RGB ([`crate::mvs::cost_volume`]);
+//!    for RGB ([`crate::mvs::cost_volume`]), plus the optional census term
+//!    ([`crate::mvs::cost_volume::census`]);
 //! 2. contrast normalisation: each pixel's curve weighted by `clamp(c₀/c_p, 1, w_max)` from the
 //!    reference's local contrast ([`contrast`]), then the box mean of each plane ([`window`]);
 //! 3. semi-global aggregation over 8 (or 4) paths with penalties `P1`, `P2` on plane-index
@@ -27,6 +29,7 @@ pub mod filter;
 pub mod presmooth;
 pub mod select;
 pub mod sgm;
+pub mod vignetting;
 pub mod window;
 
 use crate::error::{MurkError, Result};
@@ -124,6 +127,10 @@ pub struct SgmParams {
     /// ([`crate::mvs::cost_volume::census`]), cost units for a Hamming distance of all the
     /// code's bits (finite, `0 ..= 3`; `0` = off). Used by [`estimate_depth`].
     pub census_weight: f32,
+    /// Estimate the lens's radial fall-off, one for every view, and divide it out of every view
+    /// before the cost volume ([`vignetting`]); the fall-off is reported in
+    /// [`DepthResult::vignetting_falloff`]. Used by [`estimate_depth`]. Default on.
+    pub vignetting_compensation: bool,
     /// Memory bound, MiB (`1 ..= 65536`): when the `f32` cost volume of the whole reference
     /// is larger, depth is estimated in horizontal strips whose volume (own rows plus
     /// [`STRIP_OVERLAP_ROWS`] above and below) fits it. The cost volume, its pixel-major copy
@@ -154,6 +161,7 @@ impl Default for SgmParams {
             speckle_range_planes: 2.0,
             exposure_compensation: true,
             census_weight: 0.0,
+            vignetting_compensation: true,
             volume_budget_mib: 64,
         }
     }
@@ -308,6 +316,11 @@ pub struct DepthResult {
     /// to the reference's, exactly 1 within [`exposure::DEAD_BAND`] of 1 or where compensation
     /// is off; empty from [`depth_from_cost_volume`].
     pub source_gains: Vec<f32>,
+    /// The fall-off `a` of `V(r) = 1 + a·r²` divided out of every view ([`vignetting`]; the
+    /// corners' brightness relative to the centre is `1 + a`); exactly 0 within
+    /// [`vignetting::DEAD_BAND`] of 0, where compensation is off, or from
+    /// [`depth_from_cost_volume`].
+    pub vignetting_falloff: f32,
 }
 
 /// Cost volume (Eq. 3.1 or 3.7) plus [`depth_from_cost_volume`]. Errors are those of
@@ -350,15 +363,65 @@ pub fn estimate_depth(
     // Bad views fail before any strip's volume is built.
     validate_inputs(&reference, &sources, planes, kind)?;
     let channels = reference.image.channels();
-    let source_gains: Vec<f32> = if params.exposure_compensation {
-        sources
-            .iter()
-            .flat_map(|s| exposure::estimate_gains(&reference, s, planes, kind))
-            .map(exposure::applied_gain)
-            .collect()
-    } else {
-        vec![1.0; sources.len() * channels]
+    let gains_of = |reference: &View<'_>, sources: &[View<'_>]| -> Vec<f32> {
+        if params.exposure_compensation {
+            sources
+                .iter()
+                .flat_map(|s| exposure::estimate_gains(reference, s, planes, kind))
+                .collect()
+        } else {
+            vec![1.0; sources.len() * channels]
+        }
     };
+    let raw_gains = gains_of(&reference, &sources);
+    // The lens's fall-off, with each source's channels divided by the gains found without it.
+    let falloff = if params.vignetting_compensation {
+        let samples: Vec<(exposure::Samples, Vec<f32>)> = sources
+            .iter()
+            .zip(raw_gains.chunks_exact(channels))
+            .map(|(s, g)| {
+                (
+                    exposure::Samples::collect(&reference, s, planes, kind),
+                    g.to_vec(),
+                )
+            })
+            .collect();
+        vignetting::applied_falloff(vignetting::estimate_falloff(&samples))
+    } else {
+        0.0
+    };
+    let devignetted: Option<(ImageF32, Vec<ImageF32>)> = (falloff != 0.0).then(|| {
+        (
+            vignetting::compensate(reference.image, falloff),
+            sources
+                .iter()
+                .map(|s| vignetting::compensate(s.image, falloff))
+                .collect(),
+        )
+    });
+    let (reference, sources): (View<'_>, Vec<View<'_>>) = match &devignetted {
+        Some((r, s)) => (
+            View {
+                image: r,
+                ..reference
+            },
+            sources
+                .iter()
+                .zip(s)
+                .map(|(v, img)| View { image: img, ..*v })
+                .collect(),
+        ),
+        None => (reference, sources),
+    };
+    // The gains again once the fall-off is out of the views: it had biased them toward its mean.
+    let source_gains: Vec<f32> = if devignetted.is_some() {
+        gains_of(&reference, &sources)
+    } else {
+        raw_gains
+    }
+    .into_iter()
+    .map(exposure::applied_gain)
+    .collect();
     let compensated: Vec<Option<ImageF32>> = sources
         .iter()
         .zip(source_gains.chunks_exact(channels))
@@ -476,6 +539,7 @@ pub fn estimate_depth(
     }
     let mut depth = finish_depth(selections, w, h, planes, guide, params, claims, monitor)?;
     depth.source_gains = source_gains;
+    depth.vignetting_falloff = falloff;
     Ok(depth)
 }
 
@@ -672,6 +736,7 @@ fn finish_depth(
         inverse_depth: ImageF32::from_vec(w, h, 1, inv)?,
         confidence: ImageF32::from_vec(w, h, 1, conf)?,
         source_gains: Vec::new(),
+        vignetting_falloff: 0.0,
     })
 }
 

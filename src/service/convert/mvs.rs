@@ -174,6 +174,9 @@ pub(super) fn sgm_of(o: Option<&pb::SgmOptions>) -> SgmParams {
             .map_or(p.volume_budget_mib, |v| v as usize);
         p.exposure_compensation = o.exposure_compensation.unwrap_or(p.exposure_compensation);
         p.census_weight = o.census_weight.unwrap_or(p.census_weight);
+        p.vignetting_compensation = o
+            .vignetting_compensation
+            .unwrap_or(p.vignetting_compensation);
     }
     p
 }
@@ -219,6 +222,7 @@ pub fn canonicalize_mvs_request(req: &mut pb::MvsDepthRequest) {
             volume_budget_mib: u32::try_from(p.volume_budget_mib).ok(),
             exposure_compensation: Some(p.exposure_compensation),
             census_weight: Some(p.census_weight),
+            vignetting_compensation: Some(p.vignetting_compensation),
         });
     }
 }
@@ -440,6 +444,7 @@ pub fn mvs_to_proto(
         cost_volume: input.wire_kind as i32,
         compute_seconds,
         source_gains: out.source_gains.clone(),
+        vignetting_falloff: out.vignetting_falloff,
     }
 }
 

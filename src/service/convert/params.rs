@@ -392,6 +392,7 @@ impl ParamsInput {
                 cost_volume: pb::CostVolumeKind::Dehazing as i32,
                 compute_seconds: depth_seconds,
                 source_gains: depth.source_gains.clone(),
+                vignetting_falloff: depth.vignetting_falloff,
             }),
             airlight_seconds,
             search_seconds: est.seconds,

@@ -89,6 +89,9 @@ class MvsDepthResult:
     #: The gain each source's channels were divided by (brightness relative to the reference),
     #: source-major, one per image channel; exactly 1.0 within 0.5 % of 1 or with compensation off.
     source_gains: tuple[float, ...]
+    #: The lens fall-off ``a`` divided out of every view (corners at ``1 + a`` of the centre's
+    #: brightness); exactly 0.0 below 0.08 in magnitude or with compensation off.
+    vignetting_falloff: float
     job_id: str
     proto: mvs_pb2.MvsDepthResult
 
@@ -109,6 +112,7 @@ class MvsDepthResult:
             cost_volume=kinds.get(r.cost_volume, "dehazing"),
             compute_seconds=r.compute_seconds,
             source_gains=tuple(r.source_gains),
+            vignetting_falloff=r.vignetting_falloff,
             job_id=job_id,
             proto=r,
         )

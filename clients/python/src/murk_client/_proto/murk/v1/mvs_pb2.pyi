@@ -217,6 +217,7 @@ class SgmOptions(_message.Message):
     VOLUME_BUDGET_MIB_FIELD_NUMBER: _builtins.int
     EXPOSURE_COMPENSATION_FIELD_NUMBER: _builtins.int
     CENSUS_WEIGHT_FIELD_NUMBER: _builtins.int
+    VIGNETTING_COMPENSATION_FIELD_NUMBER: _builtins.int
     p1: _builtins.float
     """P1: penalty for a +-1 plane step between neighbours, cost units, finite and >= 0. Default
     0.01.
@@ -280,6 +281,13 @@ class SgmOptions(_message.Message):
     radiance at one depth), vignetting, gains and tone curves leave unchanged, so it matches
     where the cameras' responses differ in ways the photometric residual has no term for.
     """
+    vignetting_compensation: _builtins.bool
+    """Estimate the lens's radial fall-off V(r) = 1 + a r^2 (r from the image centre over the
+    half-diagonal), one for every view, from the matching cost, and divide it out of every view
+    before the cost volume, default true. A reference pixel and its match lie at different radii,
+    so vignetting is a brightness offset that varies across the image, which one gain per source
+    cannot absorb. |a| < 0.08 is not applied. See MvsDepthResult.vignetting_falloff.
+    """
     def __init__(
         self,
         *,
@@ -298,10 +306,11 @@ class SgmOptions(_message.Message):
         volume_budget_mib: _builtins.int | None = ...,
         exposure_compensation: _builtins.bool | None = ...,
         census_weight: _builtins.float | None = ...,
+        vignetting_compensation: _builtins.bool | None = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _typing.Literal["_census_weight", b"_census_weight", "_consistency_check", b"_consistency_check", "_consistency_tolerance_planes", b"_consistency_tolerance_planes", "_contrast_max_weight", b"_contrast_max_weight", "_contrast_percentile", b"_contrast_percentile", "_cost_window_radius", b"_cost_window_radius", "_exposure_compensation", b"_exposure_compensation", "_num_paths", b"_num_paths", "_p1", b"_p1", "_p2", b"_p2", "_p2_gradient_scale", b"_p2_gradient_scale", "_presmooth_sigma_px", b"_presmooth_sigma_px", "_speckle_max_size_px", b"_speckle_max_size_px", "_speckle_range_planes", b"_speckle_range_planes", "_volume_budget_mib", b"_volume_budget_mib", "census_weight", b"census_weight", "consistency_check", b"consistency_check", "consistency_tolerance_planes", b"consistency_tolerance_planes", "contrast_max_weight", b"contrast_max_weight", "contrast_percentile", b"contrast_percentile", "cost_window_radius", b"cost_window_radius", "exposure_compensation", b"exposure_compensation", "num_paths", b"num_paths", "p1", b"p1", "p2", b"p2", "p2_gradient_scale", b"p2_gradient_scale", "presmooth_sigma_px", b"presmooth_sigma_px", "speckle_max_size_px", b"speckle_max_size_px", "speckle_range_planes", b"speckle_range_planes", "volume_budget_mib", b"volume_budget_mib"]  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["_census_weight", b"_census_weight", "_consistency_check", b"_consistency_check", "_consistency_tolerance_planes", b"_consistency_tolerance_planes", "_contrast_max_weight", b"_contrast_max_weight", "_contrast_percentile", b"_contrast_percentile", "_cost_window_radius", b"_cost_window_radius", "_exposure_compensation", b"_exposure_compensation", "_num_paths", b"_num_paths", "_p1", b"_p1", "_p2", b"_p2", "_p2_gradient_scale", b"_p2_gradient_scale", "_presmooth_sigma_px", b"_presmooth_sigma_px", "_speckle_max_size_px", b"_speckle_max_size_px", "_speckle_range_planes", b"_speckle_range_planes", "_vignetting_compensation", b"_vignetting_compensation", "_volume_budget_mib", b"_volume_budget_mib", "census_weight", b"census_weight", "consistency_check", b"consistency_check", "consistency_tolerance_planes", b"consistency_tolerance_planes", "contrast_max_weight", b"contrast_max_weight", "contrast_percentile", b"contrast_percentile", "cost_window_radius", b"cost_window_radius", "exposure_compensation", b"exposure_compensation", "num_paths", b"num_paths", "p1", b"p1", "p2", b"p2", "p2_gradient_scale", b"p2_gradient_scale", "presmooth_sigma_px", b"presmooth_sigma_px", "speckle_max_size_px", b"speckle_max_size_px", "speckle_range_planes", b"speckle_range_planes", "vignetting_compensation", b"vignetting_compensation", "volume_budget_mib", b"volume_budget_mib"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["_census_weight", b"_census_weight", "_consistency_check", b"_consistency_check", "_consistency_tolerance_planes", b"_consistency_tolerance_planes", "_contrast_max_weight", b"_contrast_max_weight", "_contrast_percentile", b"_contrast_percentile", "_cost_window_radius", b"_cost_window_radius", "_exposure_compensation", b"_exposure_compensation", "_num_paths", b"_num_paths", "_p1", b"_p1", "_p2", b"_p2", "_p2_gradient_scale", b"_p2_gradient_scale", "_presmooth_sigma_px", b"_presmooth_sigma_px", "_speckle_max_size_px", b"_speckle_max_size_px", "_speckle_range_planes", b"_speckle_range_planes", "_volume_budget_mib", b"_volume_budget_mib", "census_weight", b"census_weight", "consistency_check", b"consistency_check", "consistency_tolerance_planes", b"consistency_tolerance_planes", "contrast_max_weight", b"contrast_max_weight", "contrast_percentile", b"contrast_percentile", "cost_window_radius", b"cost_window_radius", "exposure_compensation", b"exposure_compensation", "num_paths", b"num_paths", "p1", b"p1", "p2", b"p2", "p2_gradient_scale", b"p2_gradient_scale", "presmooth_sigma_px", b"presmooth_sigma_px", "speckle_max_size_px", b"speckle_max_size_px", "speckle_range_planes", b"speckle_range_planes", "volume_budget_mib", b"volume_budget_mib"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["_census_weight", b"_census_weight", "_consistency_check", b"_consistency_check", "_consistency_tolerance_planes", b"_consistency_tolerance_planes", "_contrast_max_weight", b"_contrast_max_weight", "_contrast_percentile", b"_contrast_percentile", "_cost_window_radius", b"_cost_window_radius", "_exposure_compensation", b"_exposure_compensation", "_num_paths", b"_num_paths", "_p1", b"_p1", "_p2", b"_p2", "_p2_gradient_scale", b"_p2_gradient_scale", "_presmooth_sigma_px", b"_presmooth_sigma_px", "_speckle_max_size_px", b"_speckle_max_size_px", "_speckle_range_planes", b"_speckle_range_planes", "_vignetting_compensation", b"_vignetting_compensation", "_volume_budget_mib", b"_volume_budget_mib", "census_weight", b"census_weight", "consistency_check", b"consistency_check", "consistency_tolerance_planes", b"consistency_tolerance_planes", "contrast_max_weight", b"contrast_max_weight", "contrast_percentile", b"contrast_percentile", "cost_window_radius", b"cost_window_radius", "exposure_compensation", b"exposure_compensation", "num_paths", b"num_paths", "p1", b"p1", "p2", b"p2", "p2_gradient_scale", b"p2_gradient_scale", "presmooth_sigma_px", b"presmooth_sigma_px", "speckle_max_size_px", b"speckle_max_size_px", "speckle_range_planes", b"speckle_range_planes", "vignetting_compensation", b"vignetting_compensation", "volume_budget_mib", b"volume_budget_mib"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     _WhichOneofReturnType__census_weight: _TypeAlias = _typing.Literal["census_weight"]  # noqa: Y015
     _WhichOneofArgType__census_weight: _TypeAlias = _typing.Literal["_census_weight", b"_census_weight"]  # noqa: Y015
@@ -331,6 +340,8 @@ class SgmOptions(_message.Message):
     _WhichOneofArgType__speckle_max_size_px: _TypeAlias = _typing.Literal["_speckle_max_size_px", b"_speckle_max_size_px"]  # noqa: Y015
     _WhichOneofReturnType__speckle_range_planes: _TypeAlias = _typing.Literal["speckle_range_planes"]  # noqa: Y015
     _WhichOneofArgType__speckle_range_planes: _TypeAlias = _typing.Literal["_speckle_range_planes", b"_speckle_range_planes"]  # noqa: Y015
+    _WhichOneofReturnType__vignetting_compensation: _TypeAlias = _typing.Literal["vignetting_compensation"]  # noqa: Y015
+    _WhichOneofArgType__vignetting_compensation: _TypeAlias = _typing.Literal["_vignetting_compensation", b"_vignetting_compensation"]  # noqa: Y015
     _WhichOneofReturnType__volume_budget_mib: _TypeAlias = _typing.Literal["volume_budget_mib"]  # noqa: Y015
     _WhichOneofArgType__volume_budget_mib: _TypeAlias = _typing.Literal["_volume_budget_mib", b"_volume_budget_mib"]  # noqa: Y015
     @_typing.overload
@@ -362,6 +373,8 @@ class SgmOptions(_message.Message):
     @_typing.overload
     def WhichOneof(self, oneof_group: _WhichOneofArgType__speckle_range_planes) -> _WhichOneofReturnType__speckle_range_planes | None: ...
     @_typing.overload
+    def WhichOneof(self, oneof_group: _WhichOneofArgType__vignetting_compensation) -> _WhichOneofReturnType__vignetting_compensation | None: ...
+    @_typing.overload
     def WhichOneof(self, oneof_group: _WhichOneofArgType__volume_budget_mib) -> _WhichOneofReturnType__volume_budget_mib | None: ...
 
 Global___SgmOptions: _TypeAlias = SgmOptions  # noqa: Y015
@@ -381,6 +394,7 @@ class MvsDepthResult(_message.Message):
     COST_VOLUME_FIELD_NUMBER: _builtins.int
     COMPUTE_SECONDS_FIELD_NUMBER: _builtins.int
     SOURCE_GAINS_FIELD_NUMBER: _builtins.int
+    VIGNETTING_FALLOFF_FIELD_NUMBER: _builtins.int
     near: _builtins.float
     """The plane set used (defaults resolved): nearest and farthest plane z-depth, scene units, and
     the number of planes.
@@ -392,6 +406,10 @@ class MvsDepthResult(_message.Message):
     compute_seconds: _builtins.float
     """Wall time of the computation that produced this result (cost volume + aggregation), seconds.
     A cached result keeps the time of the run that computed it.
+    """
+    vignetting_falloff: _builtins.float
+    """The fall-off a divided out of every view (the corners' brightness relative to the centre is
+    1 + a); exactly 0 below 0.08 in magnitude or with vignetting_compensation off.
     """
     @_builtins.property
     def z_depth(self) -> _common_pb2.Image:
@@ -428,10 +446,11 @@ class MvsDepthResult(_message.Message):
         cost_volume: Global___CostVolumeKind.ValueType = ...,
         compute_seconds: _builtins.float = ...,
         source_gains: _abc.Iterable[_builtins.float] | None = ...,
+        vignetting_falloff: _builtins.float = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["confidence", b"confidence", "inverse_depth", b"inverse_depth", "z_depth", b"z_depth"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["compute_seconds", b"compute_seconds", "confidence", b"confidence", "cost_volume", b"cost_volume", "far", b"far", "inverse_depth", b"inverse_depth", "near", b"near", "num_planes", b"num_planes", "source_gains", b"source_gains", "z_depth", b"z_depth"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["compute_seconds", b"compute_seconds", "confidence", b"confidence", "cost_volume", b"cost_volume", "far", b"far", "inverse_depth", b"inverse_depth", "near", b"near", "num_planes", b"num_planes", "source_gains", b"source_gains", "vignetting_falloff", b"vignetting_falloff", "z_depth", b"z_depth"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
