@@ -67,6 +67,7 @@ fn bench(c: &mut Criterion) {
             airlight_sigma: 0.015,
             gain_sigma: 0.2,
             beta_start: 0.5,
+            falloff_sigma: murk::params::joint_fit::FALLOFF_PRIOR_SIGMA,
         };
         b.iter(|| {
             murk::params::joint_fit::fit_joint(&reference, &sources, &sparse, &priors).expect("fit")

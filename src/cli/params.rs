@@ -260,8 +260,9 @@ pub fn run(a: ParamsArgs) -> anyhow::Result<()> {
     }
     if let Some(j) = &r.joint_fit {
         println!(
-            "joint fit of A, beta and the source gains: A {:.4} ± {:.4}, beta {:.5} ± {:.5}, \
-             gains [{}] over {} equations (RMS depth difference {:.4} model units); {}",
+            "joint fit of A, beta, the source gains and the lens fall-off: A {:.4} ± {:.4}, beta \
+             {:.5} ± {:.5}, gains [{}], corners at {:.3} of the centre's brightness, over {} \
+             equations (RMS depth difference {:.4} model units); {}",
             j.airlight,
             j.airlight_std_error,
             j.beta,
@@ -271,6 +272,7 @@ pub fn run(a: ParamsArgs) -> anyhow::Result<()> {
                 .map(|g| format!("{g:.3}"))
                 .collect::<Vec<_>>()
                 .join(", "),
+            1.0 + j.vignetting_falloff,
             j.equations,
             j.rms_depth_difference,
             identifiability_text(j.identifiability)
@@ -379,6 +381,7 @@ fn params_json(r: &pb::ScatteringParamsResult, job_id: &str) -> serde_json::Valu
             "beta": j.beta,
             "beta_std_error": finite_or_null(j.beta_std_error),
             "source_gains": j.source_gains,
+            "vignetting_falloff": j.vignetting_falloff,
             "equations": j.equations,
             "rms_depth_difference": j.rms_depth_difference,
             "residual_scale": j.residual_scale,

@@ -19,6 +19,7 @@
 
 use crate::image::ImageF32;
 use crate::mvs::depth::presmooth::gaussian_presmooth;
+use crate::mvs::depth::vignetting::radius2;
 use crate::mvs::View;
 use crate::params::sparse::SparseDepth;
 
@@ -125,6 +126,12 @@ pub struct RatioSample {
     pub reference: f64,
     /// `I_s` of the channel.
     pub source: f64,
+    /// `r²` of the point in the reference and in the source: the squared distance from the
+    /// image centre over the squared half-diagonal ([`crate::mvs::depth::vignetting::radius2`]),
+    /// where a lens's fall-off puts it.
+    pub reference_r2: f64,
+    /// See `reference_r2`.
+    pub source_r2: f64,
 }
 
 /// [`ratio_samples`] for every source, on the views blurred by [`sample_blur_sigma_px`].
@@ -191,7 +198,12 @@ pub fn ratio_samples(
                 bilinear(reference.image, u, v, c),
                 bilinear(source.image, us, vs, c),
             ) {
+                let radius2 = |img: &ImageF32, x: f64, y: f64| {
+                    f64::from(radius2(x as f32, y as f32, img.width(), img.height()))
+                };
                 out.push(RatioSample {
+                    reference_r2: radius2(reference.image, u, v),
+                    source_r2: radius2(source.image, us, vs),
                     depth_difference: p[2] - z_r,
                     reference: ir,
                     source: is,

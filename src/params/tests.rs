@@ -31,6 +31,19 @@ fn with_gain(sources: &[crate::mvs::View<'_>], gain: f32) -> Vec<crate::image::I
         .collect()
 }
 
+/// `image` darkened toward the corners by `v` (gain `1 − v·r²`, `r` = 1 at the corners), as a
+/// lens does; `v = 0` leaves it unchanged.
+fn with_vignetting(image: &crate::image::ImageF32, v: f32) -> crate::image::ImageF32 {
+    let (w, h, c) = (image.width(), image.height(), image.channels());
+    let mut out = image.clone();
+    for (i, px) in out.data_mut().chunks_exact_mut(c).enumerate() {
+        let g =
+            1.0 - v * crate::mvs::depth::vignetting::radius2((i % w) as f32, (i / w) as f32, w, h);
+        px.iter_mut().for_each(|x| *x *= g);
+    }
+    out
+}
+
 /// `sources` with their images replaced by `images`.
 fn views_with<'a>(
     sources: &[crate::mvs::View<'_>],
@@ -482,6 +495,8 @@ fn beta_from_tracks() {
                         depth_difference: z_s - z_r,
                         reference: ir,
                         source: is,
+                        reference_r2: 0.0,
+                        source_r2: 0.0,
                     });
                 }
             }
@@ -567,6 +582,10 @@ fn measure_joint_fit() {
     let forward: f64 = env_or("MURK_FORWARD", 0.0);
     let sigma: f64 = env_or("MURK_PRIOR_SIGMA", 0.1);
     let gain_sigma: f64 = env_or("MURK_GAIN_SIGMA", 0.2);
+    // `MURK_VIGNETTING` V darkens every view's corners by V (gain 1 − V·r²); `MURK_FALLOFF_SIGMA`
+    // is the fall-off prior's σ (0 = not fitted).
+    let vignetting: f32 = env_or("MURK_VIGNETTING", 0.0);
+    let falloff_sigma: f64 = env_or("MURK_FALLOFF_SIGMA", 0.3);
     let cnn = AirlightCnn::embedded().unwrap();
     // [prior][A err, β err, identifiable]; priors: CNN, dark channel; then the old ratio fit
     // at the CNN's A₀ for comparison.
@@ -581,7 +600,15 @@ fn measure_joint_fit() {
         };
         let scene = simulate_mvs(&cfg, &Monitor::noop()).unwrap();
         let (reference, sources) = scene.reference_and_sources();
-        let scaled = with_gain(&sources, gain);
+        let vignetted_reference = with_vignetting(reference.image, vignetting);
+        let reference = crate::mvs::View {
+            image: &vignetted_reference,
+            ..reference
+        };
+        let scaled: Vec<_> = with_gain(&sources, gain)
+            .iter()
+            .map(|img| with_vignetting(img, vignetting))
+            .collect();
         let sources = views_with(&sources, &scaled);
         let sparse = scene.sparse_depth().unwrap();
         let (a, b) = (f64::from(scene.airlight), f64::from(scene.beta));
@@ -598,18 +625,20 @@ fn measure_joint_fit() {
                 airlight_sigma: sigma,
                 gain_sigma,
                 beta_start: 0.5 / z_med,
+                falloff_sigma,
             };
             let fit = fit_joint(&reference, &sources, &sparse, &priors).unwrap();
             sums[k][0] += (fit.airlight - a).abs();
             sums[k][1] += (fit.beta - b).abs();
             sums[k][2] += f64::from(u8::from(fit.is_identifiable()));
             line += &format!(
-                " A0 {a0:.3} → A {:.3}±{:.3} β {:.3}±{:.3} g {:.3} {} |",
+                " A0 {a0:.3} → A {:.3}±{:.3} β {:.3}±{:.3} g {:.3} a {:.3} {} |",
                 fit.airlight,
                 fit.airlight_std_error,
                 fit.beta,
                 fit.beta_std_error,
                 fit.source_gains.iter().sum::<f64>() / fit.source_gains.len() as f64,
+                fit.vignetting_falloff,
                 fit.identifiability.name()
             );
         }

@@ -421,6 +421,7 @@ impl ParamsInput {
                 beta: j.beta,
                 beta_std_error: j.beta_std_error,
                 source_gains: j.source_gains.clone(),
+                vignetting_falloff: j.vignetting_falloff,
                 equations: u32::try_from(j.equations).unwrap_or(u32::MAX),
                 rms_depth_difference: j.rms_depth_difference,
                 residual_scale: j.residual_scale,

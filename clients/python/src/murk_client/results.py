@@ -158,6 +158,8 @@ class ScatteringParamsResult:
     beta_unclamped_per_scene_unit: float
     #: Per source, its exposure gain relative to the reference from the joint fit.
     source_gains: list[float]
+    #: The lens fall-off ``a`` from the joint fit (corners at ``1 + a`` of the centre's brightness).
+    vignetting_falloff: float
     airlight_initial: float
     #: ``"cnn"``, ``"dark_channel"`` or ``"given"``.
     airlight_source: str
@@ -203,6 +205,7 @@ class ScatteringParamsResult:
             beta_bound=bounds.get(r.beta_bound),
             beta_unclamped_per_scene_unit=r.beta_unclamped,
             source_gains=list(r.joint_fit.source_gains),
+            vignetting_falloff=r.joint_fit.vignetting_falloff,
             airlight_initial=r.airlight_initial,
             airlight_source=sources.get(r.airlight_source, "unspecified"),
             beta_initial_per_scene_unit=r.beta_initial,

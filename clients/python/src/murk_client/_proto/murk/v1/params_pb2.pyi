@@ -537,6 +537,7 @@ class JointFit(_message.Message):
     RMS_DEPTH_DIFFERENCE_FIELD_NUMBER: _builtins.int
     RESIDUAL_SCALE_FIELD_NUMBER: _builtins.int
     IDENTIFIABILITY_FIELD_NUMBER: _builtins.int
+    VIGNETTING_FALLOFF_FIELD_NUMBER: _builtins.int
     airlight: _builtins.float
     airlight_std_error: _builtins.float
     beta: _builtins.float
@@ -549,6 +550,11 @@ class JointFit(_message.Message):
     residual_scale: _builtins.float
     """Robust scale of the intensity residuals, pixel-value units."""
     identifiability: Global___Identifiability.ValueType
+    vignetting_falloff: _builtins.float
+    """The lens fall-off a of V(r) = 1 + a r^2 shared by the views (r from the image centre over
+    the half-diagonal; the corners record 1 + a of the centre's brightness), fitted with A and
+    beta: an unmodelled vignetting biases both.
+    """
     @_builtins.property
     def source_gains(self) -> _containers.RepeatedScalarFieldContainer[_builtins.float]:
         """Per source, its exposure gain relative to the reference (I_s observed = g_s x I_s at the
@@ -567,10 +573,11 @@ class JointFit(_message.Message):
         rms_depth_difference: _builtins.float = ...,
         residual_scale: _builtins.float = ...,
         identifiability: Global___Identifiability.ValueType = ...,
+        vignetting_falloff: _builtins.float = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["airlight", b"airlight", "airlight_std_error", b"airlight_std_error", "beta", b"beta", "beta_std_error", b"beta_std_error", "equations", b"equations", "identifiability", b"identifiability", "residual_scale", b"residual_scale", "rms_depth_difference", b"rms_depth_difference", "source_gains", b"source_gains"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["airlight", b"airlight", "airlight_std_error", b"airlight_std_error", "beta", b"beta", "beta_std_error", b"beta_std_error", "equations", b"equations", "identifiability", b"identifiability", "residual_scale", b"residual_scale", "rms_depth_difference", b"rms_depth_difference", "source_gains", b"source_gains", "vignetting_falloff", b"vignetting_falloff"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
