@@ -135,14 +135,25 @@ pub async fn run_job(
     label: &str,
     show_progress: bool,
 ) -> anyhow::Result<(pb::Job, pb::JobResult)> {
-    let job = client
-        .submit_job(pb::SubmitJobRequest {
-            request: Some(request),
-            omit_result: true,
-        })
-        .await
-        .map_err(|s| anyhow!("submit failed: {:?}: {}", s.code(), s.message()))?
-        .into_inner();
+    let submit = pb::SubmitJobRequest {
+        request: Some(request),
+        omit_result: true,
+    };
+    // Submitting is idempotent (a job's id is its request's content hash, and an identical
+    // submission attaches to the job), so a submit whose answer was lost — the server died after
+    // accepting it, or the balancer's upstream did — is sent again.
+    let mut attempts = 0;
+    let job = loop {
+        match client.submit_job(submit.clone()).await {
+            Ok(r) => break r.into_inner(),
+            Err(s) if transient(&s) && attempts < SUBMIT_RETRY_LIMIT => {
+                attempts += 1;
+                tracing::warn!(why = %s.message(), attempts, "submit interrupted; sending it again");
+                tokio::time::sleep(Duration::from_millis(250 << attempts.min(4))).await;
+            }
+            Err(s) => bail!("submit failed: {:?}: {}", s.code(), s.message()),
+        }
+    };
     let bar = if show_progress {
         let b = ProgressBar::new(1000);
         b.set_style(
@@ -205,6 +216,9 @@ pub async fn run_job(
 
 /// Times a broken watch is re-attached before giving up (≈ 30 s of back-off in all).
 const WATCH_REATTACH_LIMIT: u32 = 8;
+
+/// Times a submit that failed in transit is sent again (the same back-off as the watch's).
+const SUBMIT_RETRY_LIMIT: u32 = 8;
 
 /// Follows job `id` until its stream ends, keeping `last` at the newest update.
 async fn follow(

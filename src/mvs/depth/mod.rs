@@ -346,20 +346,7 @@ pub fn estimate_depth(
                 .collect(),
         )
     });
-    let (reference, sources): (View<'_>, Vec<View<'_>>) = match &smoothed {
-        Some((r, s)) => (
-            View {
-                image: r,
-                ..*reference
-            },
-            sources
-                .iter()
-                .zip(s)
-                .map(|(v, img)| View { image: img, ..*v })
-                .collect(),
-        ),
-        None => (*reference, sources.to_vec()),
-    };
+    let (reference, sources) = views_over(reference, sources, &smoothed);
     // Bad views fail before any strip's volume is built.
     validate_inputs(&reference, &sources, planes, kind)?;
     let channels = reference.image.channels();
@@ -399,20 +386,7 @@ pub fn estimate_depth(
                 .collect(),
         )
     });
-    let (reference, sources): (View<'_>, Vec<View<'_>>) = match &devignetted {
-        Some((r, s)) => (
-            View {
-                image: r,
-                ..reference
-            },
-            sources
-                .iter()
-                .zip(s)
-                .map(|(v, img)| View { image: img, ..*v })
-                .collect(),
-        ),
-        None => (reference, sources),
-    };
+    let (reference, sources) = views_over(&reference, &sources, &devignetted);
     // The gains again once the fall-off is out of the views: it had biased them toward its mean.
     let source_gains: Vec<f32> = if devignetted.is_some() {
         gains_of(&reference, &sources)
@@ -541,6 +515,29 @@ pub fn estimate_depth(
     depth.source_gains = source_gains;
     depth.vignetting_falloff = falloff;
     Ok(depth)
+}
+
+/// The views with their images replaced by `images` (the reference's, then the sources' in
+/// order), or as they are when `None`: intrinsics and poses stay.
+fn views_over<'a>(
+    reference: &View<'a>,
+    sources: &[View<'a>],
+    images: &'a Option<(ImageF32, Vec<ImageF32>)>,
+) -> (View<'a>, Vec<View<'a>>) {
+    match images {
+        Some((r, s)) => (
+            View {
+                image: r,
+                ..*reference
+            },
+            sources
+                .iter()
+                .zip(s)
+                .map(|(v, image)| View { image, ..*v })
+                .collect(),
+        ),
+        None => (*reference, sources.to_vec()),
+    }
 }
 
 /// Rows added above and below a strip's own rows so that the box window, the contrast measure
