@@ -230,6 +230,9 @@ pub fn run(a: MvsArgs) -> anyhow::Result<()> {
         points.len(),
         a.out.display()
     );
+    for w in &r.warnings {
+        println!("warning: {w}");
+    }
     if r.vignetting_falloff != 0.0 {
         println!(
             "lens fall-off divided out of every view: corners at {:.3} of the centre's brightness",

@@ -842,3 +842,29 @@ fn a_shared_lens_falloff_is_compensated() {
     assert!(c_p(&on) >= c_p(&clean_depth) - 0.01);
     assert!(c_p(&off) < c_p(&clean_depth) - 0.1);
 }
+
+/// A source 2.5 times brighter than the reference is beyond the gain search's range: the gain
+/// stops at the bound, is applied, and the result says so instead of passing it off as the
+/// camera's gain. Equal cameras get no warning.
+#[test]
+fn a_gain_at_the_search_bound_is_reported() {
+    let (equal, planes) = small_rectified_pair();
+    let mut brighter = equal.clone();
+    let source = 1 - brighter.reference;
+    for v in brighter.views[source].hazy.data_mut() {
+        *v *= 2.5;
+    }
+    let d = depth_of(&brighter, &planes, &SgmParams::default());
+    println!("gains {:?}, warnings {:?}", d.source_gains, d.warnings);
+    assert_eq!(d.warnings.len(), 3, "{:?}", d.warnings);
+    assert!(d
+        .warnings
+        .iter()
+        .all(|w| w.contains("end of the searched range")));
+    for g in &d.source_gains {
+        assert!((g - 2.0).abs() < 2e-3, "{:?}", d.source_gains);
+    }
+    assert!(depth_of(&equal, &planes, &SgmParams::default())
+        .warnings
+        .is_empty());
+}

@@ -44,6 +44,12 @@ pub const MAX_PLANES: usize = 128;
 /// Smallest and largest gain searched (the source's brightness relative to the reference).
 pub const GAIN_RANGE: (f32, f32) = (0.5, 2.0);
 
+/// Whether a gain stopped at an end of [`GAIN_RANGE`] (within 0.1 %): the camera may differ by
+/// more than it says.
+pub fn at_bound(gain: f32) -> bool {
+    (gain / GAIN_RANGE.0 - 1.0).abs() < 1e-3 || (gain / GAIN_RANGE.1 - 1.0).abs() < 1e-3
+}
+
 /// One sample row's reference values, planes per sample, `k`, source values and the radii of
 /// the reference and source positions (the fields of [`Samples`], before they are joined).
 type RowSamples = (Vec<f32>, Vec<usize>, Vec<f32>, Vec<f32>, Vec<f32>, Vec<f32>);

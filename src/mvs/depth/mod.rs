@@ -321,6 +321,10 @@ pub struct DepthResult {
     /// [`vignetting::DEAD_BAND`] of 0, where compensation is off, or from
     /// [`depth_from_cost_volume`].
     pub vignetting_falloff: f32,
+    /// What the caller should know about the estimate, one sentence each: a source gain or the
+    /// fall-off that reached the end of its searched range (the camera may differ by more than
+    /// the compensation removed). Empty when nothing needs saying.
+    pub warnings: Vec<String>,
 }
 
 /// Cost volume (Eq. 3.1 or 3.7) plus [`depth_from_cost_volume`]. Errors are those of
@@ -362,10 +366,13 @@ pub fn estimate_depth(
     };
     let raw_gains = gains_of(&reference, &sources);
     // The lens's fall-off, with each source's channels divided by the gains found without it.
+    // A source whose gain stopped at the search's bound is left out: the brightness its gain
+    // did not remove would be read as a fall-off (a source 2.5× brighter drove it to the bound).
     let falloff = if params.vignetting_compensation {
         let samples: Vec<(exposure::Samples, Vec<f32>)> = sources
             .iter()
             .zip(raw_gains.chunks_exact(channels))
+            .filter(|(_, g)| !g.iter().any(|&g| exposure::at_bound(g)))
             .map(|(s, g)| {
                 (
                     exposure::Samples::collect(&reference, s, planes, kind),
@@ -514,7 +521,41 @@ pub fn estimate_depth(
     let mut depth = finish_depth(selections, w, h, planes, guide, params, claims, monitor)?;
     depth.source_gains = source_gains;
     depth.vignetting_falloff = falloff;
+    depth.warnings = bound_warnings(&depth.source_gains, channels, falloff);
     Ok(depth)
+}
+
+/// A sentence for each source gain and for the fall-off that ended at a bound of its search
+/// ([`exposure::GAIN_RANGE`], [`vignetting::FALLOFF_RANGE`]): the value was applied, but the
+/// camera may differ by more. `gains` are source-major, `channels` per source.
+fn bound_warnings(gains: &[f32], channels: usize, falloff: f32) -> Vec<String> {
+    let (lo, hi) = exposure::GAIN_RANGE;
+    let mut out: Vec<String> = gains
+        .chunks_exact(channels.max(1))
+        .enumerate()
+        .flat_map(|(s, g)| {
+            g.iter()
+                .enumerate()
+                .filter(|&(_, &g)| exposure::at_bound(g))
+                .map(move |(c, &g)| {
+                    format!(
+                        "source {s} channel {c}: exposure gain {g:.3} is at the end of the searched \
+                         range {lo}..{hi}; the camera may differ by more, and the compensation is \
+                         then incomplete"
+                    )
+                })
+        })
+        .collect();
+    let (flo, fhi) = vignetting::FALLOFF_RANGE;
+    if falloff != 0.0
+        && ((f64::from(falloff) - flo).abs() < 1e-3 || (f64::from(falloff) - fhi).abs() < 1e-3)
+    {
+        out.push(format!(
+            "lens fall-off {falloff:.3} is at the end of the searched range {flo}..{fhi}; the \
+             lens may vignette more, and the compensation is then incomplete"
+        ));
+    }
+    out
 }
 
 /// The views with their images replaced by `images` (the reference's, then the sources' in
@@ -734,6 +775,7 @@ fn finish_depth(
         confidence: ImageF32::from_vec(w, h, 1, conf)?,
         source_gains: Vec::new(),
         vignetting_falloff: 0.0,
+        warnings: Vec::new(),
     })
 }
 

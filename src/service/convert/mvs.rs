@@ -445,6 +445,7 @@ pub fn mvs_to_proto(
         compute_seconds,
         source_gains: out.source_gains.clone(),
         vignetting_falloff: out.vignetting_falloff,
+        warnings: out.warnings.clone(),
     }
 }
 

@@ -393,6 +393,7 @@ impl ParamsInput {
                 compute_seconds: depth_seconds,
                 source_gains: depth.source_gains.clone(),
                 vignetting_falloff: depth.vignetting_falloff,
+                warnings: depth.warnings.clone(),
             }),
             airlight_seconds,
             search_seconds: est.seconds,

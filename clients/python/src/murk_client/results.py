@@ -92,6 +92,9 @@ class MvsDepthResult:
     #: The lens fall-off ``a`` divided out of every view (corners at ``1 + a`` of the centre's
     #: brightness); exactly 0.0 below 0.08 in magnitude or with compensation off.
     vignetting_falloff: float
+    #: What the caller should know about the estimate, one sentence each (e.g. a gain at the end
+    #: of its searched range).
+    warnings: tuple[str, ...]
     job_id: str
     proto: mvs_pb2.MvsDepthResult
 
@@ -113,6 +116,7 @@ class MvsDepthResult:
             compute_seconds=r.compute_seconds,
             source_gains=tuple(r.source_gains),
             vignetting_falloff=r.vignetting_falloff,
+            warnings=tuple(r.warnings),
             job_id=job_id,
             proto=r,
         )

@@ -395,6 +395,7 @@ class MvsDepthResult(_message.Message):
     COMPUTE_SECONDS_FIELD_NUMBER: _builtins.int
     SOURCE_GAINS_FIELD_NUMBER: _builtins.int
     VIGNETTING_FALLOFF_FIELD_NUMBER: _builtins.int
+    WARNINGS_FIELD_NUMBER: _builtins.int
     near: _builtins.float
     """The plane set used (defaults resolved): nearest and farthest plane z-depth, scene units, and
     the number of planes.
@@ -434,6 +435,13 @@ class MvsDepthResult(_message.Message):
         white balance apart); exactly 1 within 0.5 % of 1 or with exposure_compensation off.
         """
 
+    @_builtins.property
+    def warnings(self) -> _containers.RepeatedScalarFieldContainer[_builtins.str]:
+        """What the caller should know about the estimate, one sentence each: e.g. a source gain or the
+        fall-off that reached the end of its searched range (applied, but the camera may differ by
+        more). Empty when nothing needs saying.
+        """
+
     def __init__(
         self,
         *,
@@ -447,10 +455,11 @@ class MvsDepthResult(_message.Message):
         compute_seconds: _builtins.float = ...,
         source_gains: _abc.Iterable[_builtins.float] | None = ...,
         vignetting_falloff: _builtins.float = ...,
+        warnings: _abc.Iterable[_builtins.str] | None = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["confidence", b"confidence", "inverse_depth", b"inverse_depth", "z_depth", b"z_depth"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["compute_seconds", b"compute_seconds", "confidence", b"confidence", "cost_volume", b"cost_volume", "far", b"far", "inverse_depth", b"inverse_depth", "near", b"near", "num_planes", b"num_planes", "source_gains", b"source_gains", "vignetting_falloff", b"vignetting_falloff", "z_depth", b"z_depth"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["compute_seconds", b"compute_seconds", "confidence", b"confidence", "cost_volume", b"cost_volume", "far", b"far", "inverse_depth", b"inverse_depth", "near", b"near", "num_planes", b"num_planes", "source_gains", b"source_gains", "vignetting_falloff", b"vignetting_falloff", "warnings", b"warnings", "z_depth", b"z_depth"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
