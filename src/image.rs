@@ -227,3 +227,40 @@ mod tests {
         assert!(err.contains("(2, 1)"), "{err}");
     }
 }
+
+/// The sRGB electro-optical transfer function (IEC 61966-2-1): an sRGB-encoded value in `[0, 1]`
+/// to linear light. Values outside `[0, 1]` follow the formula's pieces (linear below the knee).
+#[inline]
+pub fn srgb_to_linear(v: f32) -> f32 {
+    if v <= 0.04045 {
+        v / 12.92
+    } else {
+        ((v + 0.055) / 1.055).powf(2.4)
+    }
+}
+
+/// Decodes every sample of an sRGB-encoded `image` to linear light ([`srgb_to_linear`]): the
+/// scattering models hold for light, and cameras store 8-bit images encoded.
+pub fn decode_srgb(image: &mut ImageF32) {
+    for v in image.data_mut() {
+        *v = srgb_to_linear(*v);
+    }
+}
+
+#[cfg(test)]
+mod srgb_tests {
+    use super::*;
+
+    #[test]
+    fn srgb_decoding_matches_the_standard() {
+        assert_eq!(srgb_to_linear(0.0), 0.0);
+        assert!((srgb_to_linear(1.0) - 1.0).abs() < 1e-6);
+        // Mid-grey 0.5 encoded is 21.4 % of the light; the knee is continuous.
+        assert!((srgb_to_linear(0.5) - 0.21404).abs() < 1e-4);
+        let knee = 0.04045f32;
+        assert!((srgb_to_linear(knee) - srgb_to_linear(knee + 1e-6)).abs() < 1e-6);
+        let mut img = ImageF32::from_vec(2, 1, 1, vec![0.0, 0.5]).unwrap();
+        decode_srgb(&mut img);
+        assert!((img.data()[1] - 0.21404).abs() < 1e-4);
+    }
+}

@@ -15,6 +15,7 @@ fn raw(width: u32, height: u32, values: &[f32]) -> pb::Image {
         )),
         value_scale: 0.0,
         value_offset: 0.0,
+        transfer: 0,
     }
 }
 

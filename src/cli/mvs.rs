@@ -117,6 +117,10 @@ pub struct MvsArgs {
     /// Points below this confidence are left out of points.ply (0 keeps all).
     #[arg(long, default_value_t = 0.0)]
     pub min_confidence: f32,
+    /// The images are sRGB-encoded (what most cameras write to 8-bit PNG and JPEG): decode them to
+    /// linear light first, as the haze model needs. Then --airlight is in linear units too.
+    #[arg(long)]
+    pub srgb: bool,
     /// Write points.ply as ASCII instead of binary little-endian.
     #[arg(long)]
     pub ascii_ply: bool,
@@ -152,7 +156,7 @@ pub fn run(a: MvsArgs) -> anyhow::Result<()> {
 
     let kind = a.cost_volume;
     let atmosphere = atmosphere_for(&a)?;
-    let mut request = build_request(&reference, &sources, kind, atmosphere);
+    let mut request = build_request(&reference, &sources, kind, atmosphere, a.srgb);
     // The plane range from the model's points seen by the reference unless given (the API's
     // own default, 0.5…50, knows nothing of the scene or the model's unit); an unset count stays
     // 0 on the wire: the server picks about one plane per pixel of displacement.
@@ -375,10 +379,12 @@ pub fn run_here_or_remote(
 }
 
 /// Replaces the raw images of a request's views with the files' original encodings where they
-/// were used unchanged (smaller on the wire, nothing lost).
+/// were used unchanged (smaller on the wire, nothing lost), and marks every image sRGB-encoded
+/// when `srgb` (the server then decodes it to linear light).
 pub fn use_encoded_images<'a>(
     wire: impl Iterator<Item = &'a mut pb::MvsView>,
     loaded: impl Iterator<Item = &'a LoadedView>,
+    srgb: bool,
 ) {
     for (wire, loaded) in wire.zip(loaded) {
         if let Some(bytes) = &loaded.encoded {
@@ -386,6 +392,11 @@ pub fn use_encoded_images<'a>(
                 data: Some(pb::image::Data::Encoded(bytes.clone())),
                 ..Default::default()
             });
+        }
+        if srgb {
+            if let Some(image) = wire.image.as_mut() {
+                image.transfer = pb::Transfer::Srgb as i32;
+            }
         }
     }
 }
@@ -432,6 +443,7 @@ fn build_request(
     sources: &[LoadedView],
     kind: CostVolumeArg,
     atmosphere: Option<AtmosphereParams>,
+    srgb: bool,
 ) -> pb::MvsDepthRequest {
     let source_views: Vec<_> = sources.iter().map(LoadedView::view).collect();
     let mut request = mvs_request_to_proto(
@@ -447,6 +459,7 @@ fn build_request(
             .iter_mut()
             .chain(request.sources.iter_mut()),
         std::iter::once(reference).chain(sources),
+        srgb,
     );
     request
 }

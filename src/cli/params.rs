@@ -50,6 +50,10 @@ impl AirlightArg {
 /// Options of `murk params`.
 #[derive(Args, Debug)]
 pub struct ParamsArgs {
+    /// The images are sRGB-encoded (what most cameras write to 8-bit PNG and JPEG): decode them to
+    /// linear light first, as the haze model needs; A is then reported in linear units.
+    #[arg(long)]
+    pub srgb: bool,
     /// COLMAP sparse model folder (cameras/images/points3D, .txt or .bin; detected).
     #[arg(long)]
     pub model: PathBuf,
@@ -167,6 +171,7 @@ pub fn run(a: ParamsArgs) -> anyhow::Result<()> {
             .iter_mut()
             .chain(request.sources.iter_mut()),
         std::iter::once(&reference).chain(&sources),
+        a.srgb,
     );
     request.beta_min = a.beta_min;
     request.beta_max = a.beta_max;

@@ -179,6 +179,12 @@ def main() -> None:
         default=1.0,
         help="tone curve of the right camera relative to the left: recorded value = value^G",
     )
+    ap.add_argument(
+        "--right-shift-y",
+        type=float,
+        default=0.0,
+        help="rectification error: the right image moved down by this many pixels (sub-pixel allowed)",
+    )
     ap.add_argument("--repeats", type=int, default=3, help="timed runs of each method (best is reported)")
     ap.add_argument("--murk-args", default="", help="extra `murk mvs` flags")
     ap.add_argument(
@@ -242,6 +248,10 @@ def main() -> None:
     tint_bgr = np.array([float(v) for v in a.right_tint.split(",")][::-1])
     hl = haze(left, depth_l, 1.0, a.vignetting)
     hr = haze(right, depth_r, a.right_gain * tint_bgr, a.right_vignetting or a.vignetting, a.right_gamma)
+    if a.right_shift_y:
+        # What an imperfect rectification leaves: the model says the rows agree, the images do not.
+        shift = np.float32([[1, 0, 0], [0, 1, a.right_shift_y]])
+        hr = cv2.warpAffine(hr, shift, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     cv2.imwrite(str(out / "images" / "left.png"), hl)
     cv2.imwrite(str(out / "images" / "right.png"), hr)
     write_colmap(out, w, h, f, cx_l, cx_r, cy, disp, fb / np.where(gt_ok, disp + doffs, 1.0), left, rng)
@@ -328,6 +338,7 @@ def main() -> None:
         "vignetting": a.vignetting,
         "right_vignetting": a.right_vignetting,
         "right_gamma": a.right_gamma,
+        "right_shift_y": a.right_shift_y,
         "airlight": a.airlight,
         "beta_per_m": beta,
         "median_transmission": a.median_transmission,

@@ -11,6 +11,7 @@ import pytest
 
 import murk_client as mc
 from murk_client import images
+from murk_client._proto.murk.v1 import common_pb2
 from murk_client.retry import RetryPolicy
 
 
@@ -36,6 +37,16 @@ def test_value_scale_zero_means_one() -> None:
     msg.value_scale = 2.0
     msg.value_offset = 1.0
     np.testing.assert_array_equal(images.from_proto(msg), np.full((2, 2), 7.0))
+
+
+def test_srgb_files_are_marked_and_arrays_decoded() -> None:
+    e = images.to_proto(mc.EncodedImage(b"png", srgb=True), field="reference")
+    assert e.transfer == common_pb2.TRANSFER_SRGB
+    plain = images.to_proto(mc.EncodedImage(b"png"), field="reference")
+    assert plain.transfer == common_pb2.TRANSFER_LINEAR
+    lin = mc.srgb_to_linear(np.array([0.0, 0.5, 1.0]))
+    assert lin.dtype == np.float32
+    assert np.allclose(lin, [0.0, 0.21404, 1.0], atol=1e-4)
 
 
 def test_bad_arrays_name_the_field() -> None:

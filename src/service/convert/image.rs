@@ -70,7 +70,21 @@ fn decode_proto(img: &pb::Image, limits: &ImageLimits, mono: bool) -> Result<Ima
             decoded
         }
     };
-    apply_value_mapping(decoded, img.value_scale, img.value_offset)
+    let mut out = apply_value_mapping(decoded, img.value_scale, img.value_offset)?;
+    match pb::Transfer::try_from(img.transfer) {
+        Ok(pb::Transfer::Linear) => {}
+        Ok(pb::Transfer::Srgb) => crate::image::decode_srgb(&mut out),
+        Err(_) => {
+            return Err(MurkError::invalid(
+                "transfer",
+                format!(
+                    "unknown transfer function {} (0 = LINEAR, 1 = SRGB)",
+                    img.transfer
+                ),
+            ))
+        }
+    }
+    Ok(out)
 }
 
 fn raw_from_proto(img: &pb::Image, bytes: &[u8], limits: &ImageLimits) -> Result<ImageF32> {
@@ -162,6 +176,7 @@ pub fn image_to_proto(img: &ImageF32) -> pb::Image {
         data: Some(pb::image::Data::RawF32Le(bytes)),
         value_scale: 0.0,
         value_offset: 0.0,
+        transfer: pb::Transfer::Linear as i32,
     }
 }
 
@@ -201,5 +216,21 @@ mod tests {
         p.value_offset = 1.0;
         let img = image_from_proto(&p, &ImageLimits::default()).unwrap();
         assert_eq!(img.data(), &[2.0; 4]);
+    }
+
+    /// An sRGB-encoded image arrives in linear light, after the affine mapping; an unknown
+    /// transfer function is refused naming the field.
+    #[test]
+    fn srgb_images_are_decoded_to_linear_light() {
+        let mut p = image_to_proto(&ImageF32::filled(2, 2, 1, 0.25));
+        p.value_scale = 2.0;
+        p.transfer = pb::Transfer::Srgb as i32;
+        let img = image_from_proto(&p, &ImageLimits::default()).unwrap();
+        for v in img.data() {
+            assert!((v - 0.21404).abs() < 1e-4, "{v}");
+        }
+        p.transfer = 7;
+        let e = image_from_proto(&p, &ImageLimits::default()).unwrap_err();
+        assert!(matches!(e, MurkError::InvalidArgument { ref field, .. } if field == "transfer"));
     }
 }

@@ -40,7 +40,7 @@ from .errors import (
     Unauthenticated,
     Unavailable,
 )
-from .images import EncodedImage, read_image, write_exr, write_png16
+from .images import EncodedImage, read_image, srgb_to_linear, write_exr, write_png16
 from .requests import (
     mvs_depth_request,
     photometric_stereo_request,
@@ -104,6 +104,7 @@ __all__ = [
     "photometric_stereo_request",
     "read_image",
     "scattering_params_request",
+    "srgb_to_linear",
     "tof_depth_request",
     "write_exr",
     "write_png16",

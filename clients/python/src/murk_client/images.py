@@ -30,19 +30,22 @@ class EncodedImage:
     """An image file sent byte for byte (PNG 8/16-bit, TIFF or OpenEXR); the server decodes it.
 
     ``value_scale``/``value_offset`` map the decoded samples (``offset + scale * v``), e.g.
-    ``value_scale=2*pi`` for a 16-bit PNG that stores phase 0..2π as 0..65535.
+    ``value_scale=2*pi`` for a 16-bit PNG that stores phase 0..2π as 0..65535. ``srgb=True``
+    says the file is sRGB-encoded, as most cameras write 8-bit PNG and JPEG: the server decodes
+    it to linear light, which the scattering models need (``Image.transfer``).
     """
 
     data: bytes
     value_scale: float = 1.0
     value_offset: float = 0.0
+    srgb: bool = False
 
     @classmethod
     def from_file(
-        cls, path: str | Path, *, value_scale: float = 1.0, value_offset: float = 0.0
+        cls, path: str | Path, *, value_scale: float = 1.0, value_offset: float = 0.0, srgb: bool = False
     ) -> EncodedImage:
         """Reads ``path`` without decoding it."""
-        return cls(Path(path).read_bytes(), value_scale, value_offset)
+        return cls(Path(path).read_bytes(), value_scale, value_offset, srgb)
 
 
 #: What every image argument accepts.
@@ -61,6 +64,7 @@ def to_proto(image: ImageLike, *, field: str, channels: int | None = None) -> co
             encoded=image.data,
             value_scale=0.0 if image.value_scale == 1.0 else image.value_scale,
             value_offset=image.value_offset,
+            transfer=common_pb2.TRANSFER_SRGB if image.srgb else common_pb2.TRANSFER_LINEAR,
         )
     arr = np.asarray(image)
     if arr.dtype.kind not in "fiub":
@@ -76,6 +80,14 @@ def to_proto(image: ImageLike, *, field: str, channels: int | None = None) -> co
         raise ClientInputError(field, f"expected {channels} channel(s), got {c}")
     planar = np.ascontiguousarray(np.moveaxis(arr, 2, 0), dtype="<f4")
     return common_pb2.Image(width=w, height=h, channels=c, raw_f32_le=planar.tobytes())
+
+
+def srgb_to_linear(image: npt.ArrayLike) -> FloatImage:
+    """Decodes sRGB-encoded values in [0, 1] to linear light (IEC 61966-2-1), for arrays sent
+    to murk: the scattering models are linear in radiance."""
+    v = np.asarray(image, dtype=np.float32)
+    out: FloatImage = np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4).astype(np.float32)
+    return out
 
 
 def from_proto(image: common_pb2.Image, *, field: str = "image") -> FloatImage:

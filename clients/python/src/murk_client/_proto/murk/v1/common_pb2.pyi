@@ -7,6 +7,7 @@ from collections import abc as _abc
 from google.protobuf import descriptor as _descriptor
 from google.protobuf import message as _message
 from google.protobuf.internal import containers as _containers
+from google.protobuf.internal import enum_type_wrapper as _enum_type_wrapper
 import builtins as _builtins
 import sys
 import typing as _typing
@@ -17,6 +18,22 @@ else:
     from typing_extensions import TypeAlias as _TypeAlias, Never as _Never
 
 DESCRIPTOR: _descriptor.FileDescriptor
+
+class _Transfer:
+    ValueType = _typing.NewType("ValueType", _builtins.int)
+    V: _TypeAlias = ValueType  # noqa: Y015
+
+class _TransferEnumTypeWrapper(_enum_type_wrapper._EnumTypeWrapper[_Transfer.ValueType], _builtins.type):
+    DESCRIPTOR: _descriptor.EnumDescriptor
+    TRANSFER_LINEAR: _Transfer.ValueType  # 0
+    TRANSFER_SRGB: _Transfer.ValueType  # 1
+
+class Transfer(_Transfer, metaclass=_TransferEnumTypeWrapper):
+    """The transfer function of an Image's values (see Image.transfer)."""
+
+TRANSFER_LINEAR: Transfer.ValueType  # 0
+TRANSFER_SRGB: Transfer.ValueType  # 1
+Global___Transfer: _TypeAlias = Transfer  # noqa: Y015
 
 @_typing.final
 class Image(_message.Message):
@@ -37,6 +54,7 @@ class Image(_message.Message):
     RAW_F32_LE_FIELD_NUMBER: _builtins.int
     VALUE_SCALE_FIELD_NUMBER: _builtins.int
     VALUE_OFFSET_FIELD_NUMBER: _builtins.int
+    TRANSFER_FIELD_NUMBER: _builtins.int
     width: _builtins.int
     """Width in pixels. Required for raw_f32_le; for encoded data, if non-zero it must
     match the decoded width.
@@ -54,6 +72,13 @@ class Image(_message.Message):
     value_scale: _builtins.float
     """Affine mapping applied after decoding; 0 means 1."""
     value_offset: _builtins.float
+    transfer: Global___Transfer.ValueType
+    """How the values (after the affine mapping, nominally in [0, 1]) relate to light. Every model
+    murk fits (haze, Eq. 3.3; scattering in water; ToF phasors) is linear in radiance, while
+    cameras usually store 8-bit images sRGB-encoded (PNG, JPEG): TRANSFER_SRGB decodes them
+    with the sRGB transfer function (IEC 61966-2-1) before any method sees them, and A, beta and
+    every other result are then in linear units. Default TRANSFER_LINEAR: used as they are.
+    """
     def __init__(
         self,
         *,
@@ -64,10 +89,11 @@ class Image(_message.Message):
         raw_f32_le: _builtins.bytes = ...,
         value_scale: _builtins.float = ...,
         value_offset: _builtins.float = ...,
+        transfer: Global___Transfer.ValueType = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["data", b"data", "encoded", b"encoded", "raw_f32_le", b"raw_f32_le"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["channels", b"channels", "data", b"data", "encoded", b"encoded", "height", b"height", "raw_f32_le", b"raw_f32_le", "value_offset", b"value_offset", "value_scale", b"value_scale", "width", b"width"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["channels", b"channels", "data", b"data", "encoded", b"encoded", "height", b"height", "raw_f32_le", b"raw_f32_le", "transfer", b"transfer", "value_offset", b"value_offset", "value_scale", b"value_scale", "width", b"width"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     _WhichOneofReturnType_data: _TypeAlias = _typing.Literal["encoded", "raw_f32_le"]  # noqa: Y015
     _WhichOneofArgType_data: _TypeAlias = _typing.Literal["data", b"data"]  # noqa: Y015
