@@ -188,6 +188,12 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3, help="timed runs of each method (best is reported)")
     ap.add_argument("--murk-args", default="", help="extra `murk mvs` flags")
     ap.add_argument(
+        "--srgb",
+        action="store_true",
+        help="cameras that write sRGB: haze the decoded (linear) radiance, encode the images, and run "
+        "`murk mvs --srgb` (--airlight stays in linear units)",
+    )
+    ap.add_argument(
         "--same-window",
         action="store_true",
         help="give murk SGBM's disparity window and one plane per disparity",
@@ -231,7 +237,11 @@ def main() -> None:
         # A camera's gain, vignetting and tone curve act on everything it records, airlight
         # included; noise is added to the linear signal, before the tone curve.
         t = np.exp(-beta * depth)[..., None]
-        i = gain * (img.astype(np.float64) / 255.0 * t + a.airlight * (1.0 - t))
+        j = img.astype(np.float64) / 255.0
+        if a.srgb:
+            # The Aloe photographs are sRGB-encoded: the radiance that haze attenuates is linear.
+            j = np.where(j <= 0.04045, j / 12.92, ((j + 0.055) / 1.055) ** 2.4)
+        i = gain * (j * t + a.airlight * (1.0 - t))
         if vignetting:
             yy, xx = np.mgrid[0:h, 0:w]
             cx, cy = (w - 1) / 2.0, (h - 1) / 2.0
@@ -240,6 +250,9 @@ def main() -> None:
         i += rng.normal(0.0, a.noise, i.shape)
         if gamma != 1.0:
             i = np.clip(i, 0.0, 1.0) ** gamma
+        if a.srgb:
+            i = np.clip(i, 0.0, 1.0)
+            i = np.where(i <= 0.0031308, 12.92 * i, 1.055 * i ** (1 / 2.4) - 0.055)
         return np.clip(np.round(i * 255.0), 0, 255).astype(np.uint8)
 
     out = a.out
@@ -309,6 +322,7 @@ def main() -> None:
         "--out",
         str(out / "murk"),
         *(["--near", str(z_near), "--far", str(z_far), "--planes", str(num_disp)] if a.same_window else []),
+        *(["--srgb"] if a.srgb else []),
         *a.murk_args.split(),
     ]
     best_murk, best_compute, peak_murk_mib = np.inf, np.inf, 0.0
@@ -339,6 +353,7 @@ def main() -> None:
         "right_vignetting": a.right_vignetting,
         "right_gamma": a.right_gamma,
         "right_shift_y": a.right_shift_y,
+        "srgb": a.srgb,
         "airlight": a.airlight,
         "beta_per_m": beta,
         "median_transmission": a.median_transmission,
