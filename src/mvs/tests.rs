@@ -761,14 +761,7 @@ fn vignetted_pair(a: f32) -> (MvsScene, MvsScene, PlaneSet) {
     let (clean, planes) = small_rectified_pair();
     let mut vignetted = clean.clone();
     for view in &mut vignetted.views {
-        let (w, h, c) = (view.hazy.width(), view.hazy.height(), view.hazy.channels());
-        let (cx, cy) = ((w - 1) as f32 / 2.0, (h - 1) as f32 / 2.0);
-        let corner2 = cx * cx + cy * cy;
-        for (i, px) in view.hazy.data_mut().chunks_exact_mut(c).enumerate() {
-            let (x, y) = ((i % w) as f32 - cx, (i / w) as f32 - cy);
-            let g = 1.0 + a * (x * x + y * y) / corner2;
-            px.iter_mut().for_each(|v| *v *= g);
-        }
+        view.hazy = crate::mvs::depth::vignetting::vignette(&view.hazy, a);
     }
     (clean, vignetted, planes)
 }

@@ -34,14 +34,7 @@ fn with_gain(sources: &[crate::mvs::View<'_>], gain: f32) -> Vec<crate::image::I
 /// `image` darkened toward the corners by `v` (gain `1 − v·r²`, `r` = 1 at the corners), as a
 /// lens does; `v = 0` leaves it unchanged.
 fn with_vignetting(image: &crate::image::ImageF32, v: f32) -> crate::image::ImageF32 {
-    let (w, h, c) = (image.width(), image.height(), image.channels());
-    let mut out = image.clone();
-    for (i, px) in out.data_mut().chunks_exact_mut(c).enumerate() {
-        let g =
-            1.0 - v * crate::mvs::depth::vignetting::radius2((i % w) as f32, (i / w) as f32, w, h);
-        px.iter_mut().for_each(|x| *x *= g);
-    }
-    out
+    crate::mvs::depth::vignetting::vignette(image, -v)
 }
 
 /// `sources` with their images replaced by `images`.

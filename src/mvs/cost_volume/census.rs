@@ -145,21 +145,32 @@ pub fn add_census_costs(
     debug_assert!(pixel_weights.is_empty() || pixel_weights.len() == n_pix);
     let scale = weight / CENSUS_BITS as f32;
     volume.par_chunks_mut(n_pix).enumerate().try_for_each_init(
-        || (vec![0u32; w], vec![0u32; w]),
-        |(hamming, seen), (i, plane)| -> Result<()> {
+        || {
+            (
+                vec![0u32; w],
+                vec![0u32; w],
+                Vec::with_capacity(sources.len()),
+            )
+        },
+        |(hamming, seen, warps), (i, plane)| -> Result<()> {
             monitor.checkpoint()?;
             let z = planes.depth(i as f64);
+            // Each source's homography once per plane; rows take their affine-in-x slice of it.
+            warps.clear();
+            warps.extend(
+                sources
+                    .iter()
+                    .map(|s| PlaneWarp::new(k_ref, &s.intrinsics, &s.relative, z)),
+            );
             for (k, out) in plane.chunks_exact_mut(w).enumerate() {
                 let y = rows.start + k;
                 let ref_codes = &reference.codes[y * w..(y + 1) * w];
                 hamming.fill(0);
                 seen.fill(0);
-                for s in sources {
+                for (s, plane_warp) in sources.iter().zip(warps.iter()) {
                     let (sw, sh) = (s.census.width, s.census.height);
                     let (max_u, max_v) = ((sw - 1) as f32, (sh - 1) as f32);
-                    let warp = PlaneWarp::new(k_ref, &s.intrinsics, &s.relative, z)
-                        .row(y as f64)
-                        .to_f32();
+                    let warp = plane_warp.row(y as f64).to_f32();
                     for (x, (&rc, (hm, sn))) in ref_codes
                         .iter()
                         .zip(hamming.iter_mut().zip(seen.iter_mut()))

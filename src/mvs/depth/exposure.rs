@@ -319,8 +319,13 @@ pub fn estimate_gains(
     planes: &PlaneSet,
     kind: CostKind,
 ) -> Vec<f32> {
-    let channels = reference.image.channels();
-    let samples = Samples::collect(reference, source, planes, kind);
+    gains_from_samples(&Samples::collect(reference, source, planes, kind))
+}
+
+/// [`estimate_gains`] on samples already collected ([`Samples::collect`]), so that the
+/// fall-off estimate ([`super::vignetting`]) can use the same ones.
+pub(super) fn gains_from_samples(samples: &Samples) -> Vec<f32> {
+    let channels = samples.channels;
     if samples.is_empty() {
         return vec![1.0; channels];
     }

@@ -354,33 +354,37 @@ pub fn estimate_depth(
     // Bad views fail before any strip's volume is built.
     validate_inputs(&reference, &sources, planes, kind)?;
     let channels = reference.image.channels();
-    let gains_of = |reference: &View<'_>, sources: &[View<'_>]| -> Vec<f32> {
-        if params.exposure_compensation {
+    // Each source's samples are collected once for its gains and the fall-off estimate.
+    let samples: Vec<exposure::Samples> =
+        if params.exposure_compensation || params.vignetting_compensation {
             sources
                 .iter()
-                .flat_map(|s| exposure::estimate_gains(reference, s, planes, kind))
+                .map(|s| exposure::Samples::collect(&reference, s, planes, kind))
+                .collect()
+        } else {
+            Vec::new()
+        };
+    let gains_of = |samples: &[exposure::Samples]| -> Vec<f32> {
+        if params.exposure_compensation {
+            samples
+                .iter()
+                .flat_map(exposure::gains_from_samples)
                 .collect()
         } else {
             vec![1.0; sources.len() * channels]
         }
     };
-    let raw_gains = gains_of(&reference, &sources);
+    let raw_gains = gains_of(&samples);
     // The lens's fall-off, with each source's channels divided by the gains found without it.
     // A source whose gain stopped at the search's bound is left out: the brightness its gain
     // did not remove would be read as a fall-off (a source 2.5× brighter drove it to the bound).
     let falloff = if params.vignetting_compensation {
-        let samples: Vec<(exposure::Samples, Vec<f32>)> = sources
+        let usable: Vec<(&exposure::Samples, &[f32])> = samples
             .iter()
             .zip(raw_gains.chunks_exact(channels))
             .filter(|(_, g)| !g.iter().any(|&g| exposure::at_bound(g)))
-            .map(|(s, g)| {
-                (
-                    exposure::Samples::collect(&reference, s, planes, kind),
-                    g.to_vec(),
-                )
-            })
             .collect();
-        vignetting::applied_falloff(vignetting::estimate_falloff(&samples))
+        vignetting::applied_falloff(vignetting::estimate_falloff(&usable))
     } else {
         0.0
     };
@@ -395,8 +399,12 @@ pub fn estimate_depth(
     });
     let (reference, sources) = views_over(&reference, &sources, &devignetted);
     // The gains again once the fall-off is out of the views: it had biased them toward its mean.
-    let source_gains: Vec<f32> = if devignetted.is_some() {
-        gains_of(&reference, &sources)
+    let source_gains: Vec<f32> = if devignetted.is_some() && params.exposure_compensation {
+        let samples: Vec<exposure::Samples> = sources
+            .iter()
+            .map(|s| exposure::Samples::collect(&reference, s, planes, kind))
+            .collect();
+        gains_of(&samples)
     } else {
         raw_gains
     }

@@ -71,7 +71,7 @@ pub fn applied_falloff(a: f32) -> f32 {
 
 /// Σ over every `stride`-th sample of each source of the best (over the planes) capped residual
 /// with both views divided by `1 + a·r²` and the source's channels by its `gains`.
-fn objective(samples: &[(Samples, Vec<f32>)], a: f32, stride: usize) -> f64 {
+fn objective(samples: &[(&Samples, &[f32])], a: f32, stride: usize) -> f64 {
     samples
         .iter()
         .map(|(s, gains)| {
@@ -88,7 +88,7 @@ fn objective(samples: &[(Samples, Vec<f32>)], a: f32, stride: usize) -> f64 {
 /// The fall-off `a` of `V(r) = 1 + a·r²` shared by the reference and sources whose
 /// samples are given, each with the gains its channels are divided by (see the module docs).
 /// 0 when there are no samples.
-pub(super) fn estimate_falloff(samples: &[(Samples, Vec<f32>)]) -> f32 {
+pub(super) fn estimate_falloff(samples: &[(&Samples, &[f32])]) -> f32 {
     if samples.iter().all(|(s, _)| s.is_empty()) {
         return 0.0;
     }
@@ -105,8 +105,19 @@ pub(super) fn estimate_falloff(samples: &[(Samples, Vec<f32>)]) -> f32 {
     m.x as f32
 }
 
-/// `image` divided by `1 + a·r²` (a copy).
+/// `image` divided by `1 + a·r²` (a copy): the fall-off taken out.
 pub fn compensate(image: &ImageF32, a: f32) -> ImageF32 {
+    scaled_by(image, |r2| 1.0 / (1.0 + a * r2))
+}
+
+/// `image` multiplied by `1 + a·r²` (a copy): as a lens with fall-off `a` records it, the
+/// inverse of [`compensate`] (for simulated captures and tests).
+pub fn vignette(image: &ImageF32, a: f32) -> ImageF32 {
+    scaled_by(image, |r2| 1.0 + a * r2)
+}
+
+/// `image` with every pixel's channels multiplied by `factor(r²)`.
+fn scaled_by(image: &ImageF32, factor: impl Fn(f32) -> f32 + Sync) -> ImageF32 {
     let (w, h, c) = (image.width(), image.height(), image.channels());
     let mut out = image.clone();
     out.data_mut()
@@ -114,8 +125,8 @@ pub fn compensate(image: &ImageF32, a: f32) -> ImageF32 {
         .enumerate()
         .for_each(|(y, row)| {
             for (x, px) in row.chunks_exact_mut(c).enumerate() {
-                let inv = 1.0 / (1.0 + a * radius2(x as f32, y as f32, w, h));
-                px.iter_mut().for_each(|v| *v *= inv);
+                let f = factor(radius2(x as f32, y as f32, w, h));
+                px.iter_mut().for_each(|v| *v *= f);
             }
         });
     out
@@ -143,6 +154,12 @@ mod tests {
             1.0,
             "a corner at half the centre's gain is doubled"
         );
+        let vignetted = vignette(&img, -0.5);
+        assert_eq!(vignetted.data()[0], 0.25);
+        let back = compensate(&vignetted, -0.5);
+        for (b, v) in back.data().iter().zip(img.data()) {
+            assert!((b - v).abs() < 1e-6);
+        }
     }
 
     #[test]
