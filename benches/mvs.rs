@@ -143,6 +143,23 @@ fn bench_stereo_pair(c: &mut Criterion) {
                 ..SgmParams::default()
             },
         ),
+        // The opt-in census term (docs/ACCURACY.md, "Vignetting and tone curves").
+        (
+            "census_weight_1",
+            SgmParams {
+                census_weight: 1.0,
+                ..SgmParams::default()
+            },
+        ),
+        // Without the exposure and fall-off estimates, to show what they cost.
+        (
+            "no_exposure_no_vignetting",
+            SgmParams {
+                exposure_compensation: false,
+                vignetting_compensation: false,
+                ..SgmParams::default()
+            },
+        ),
     ] {
         g.bench_function(name, |b| {
             b.iter(|| {
