@@ -836,6 +836,52 @@ fn a_shared_lens_falloff_is_compensated() {
     assert!(c_p(&off) < c_p(&clean_depth) - 0.1);
 }
 
+/// Only the source's lens vignettes (−0.3, on top of a 4 % gain): its fall-off relative to the
+/// reference's is estimated with its gains and divided out of it, so the depth is as good as the
+/// clean pair's. The shared fall-off cannot represent this (it would be found wrong or not at
+/// all), and with exposure compensation off nothing relative is estimated.
+#[test]
+fn a_source_lens_that_differs_is_compensated() {
+    let (clean, planes) = small_rectified_pair();
+    let mut vignetted = clean.clone();
+    let source = 1 - clean.reference;
+    let recorded = crate::mvs::depth::vignetting::vignette(&clean.views[source].hazy, -0.3);
+    vignetted.views[source].hazy =
+        crate::mvs::depth::exposure::compensate(&recorded, &[1.0 / 1.04; 3]);
+    let gt = &clean.views[clean.reference].depth;
+    let c_p = |d: &crate::mvs::DepthResult| depth_metrics(&d.z_depth, gt, None).unwrap().c_p;
+    let clean_depth = depth_of(&clean, &planes, &SgmParams::default());
+    let on = depth_of(&vignetted, &planes, &SgmParams::default());
+    let shared_only = depth_of(
+        &vignetted,
+        &planes,
+        &SgmParams {
+            exposure_compensation: false,
+            ..SgmParams::default()
+        },
+    );
+    println!(
+        "relative fall-off found {:?} (clean {:?}), gains {:?}, shared {:.4}; C.P. clean {:.1} %, \
+         compensated {:.1} %, without the relative fall-off and gains {:.1} %",
+        on.source_falloffs,
+        clean_depth.source_falloffs,
+        on.source_gains,
+        on.vignetting_falloff,
+        100.0 * c_p(&clean_depth),
+        100.0 * c_p(&on),
+        100.0 * c_p(&shared_only),
+    );
+    assert_eq!(on.source_falloffs.len(), 1);
+    assert!((on.source_falloffs[0] + 0.3).abs() < 0.03, "{on:?}");
+    for g in &on.source_gains {
+        assert!((g - 1.04).abs() < 0.01, "{:?}", on.source_gains);
+    }
+    assert_eq!(clean_depth.source_falloffs, vec![0.0]);
+    assert_eq!(shared_only.source_falloffs, vec![0.0]);
+    assert!(c_p(&on) >= c_p(&clean_depth) - 0.01);
+    assert!(c_p(&shared_only) < c_p(&clean_depth) - 0.1);
+}
+
 /// A source 2.5 times brighter than the reference is beyond the gain search's range: the gain
 /// stops at the bound, is applied, and the result says so instead of passing it off as the
 /// camera's gain. Equal cameras get no warning.
@@ -860,4 +906,64 @@ fn a_gain_at_the_search_bound_is_reported() {
     assert!(depth_of(&equal, &planes, &SgmParams::default())
         .warnings
         .is_empty());
+}
+
+/// The shared fall-off on lateral and forward motion (256×192, 256 planes, 4 sources, seeds
+/// 0–4), each scene without vignetting and with every view vignetted by −0.15: the fall-off
+/// found and C.P. with the compensation on and off. Run with
+/// `cargo test --release --lib mvs::tests::measure_falloff_by_motion -- --ignored --nocapture`.
+#[test]
+#[ignore = "measurement (about two minutes)"]
+fn measure_falloff_by_motion() {
+    let planes = PlaneSet::new(1.5, 15.0, 256).unwrap();
+    println!("| seed | motion | vignetting | fall-off found | C.P. on (%) | C.P. off (%) |");
+    println!("|---|---|---|---|---|---|");
+    for seed in 0..5u64 {
+        for (motion, forward) in [("lateral", 0.0), ("forward 0.5", 0.5)] {
+            for vignetting in [0.0f32, -0.15] {
+                let cfg = MvsSimConfig {
+                    seed,
+                    forward_motion: forward,
+                    ..MvsSimConfig::default()
+                };
+                let mut scene = simulate_mvs(&cfg, &Monitor::noop()).unwrap();
+                for view in &mut scene.views {
+                    view.hazy = crate::mvs::depth::vignetting::vignette(&view.hazy, vignetting);
+                }
+                let kind = CostKind::DehazingWith(
+                    AtmosphereParams {
+                        airlight: scene.airlight,
+                        beta: scene.beta,
+                    },
+                    DehazingOptions::default(),
+                );
+                let run = |on: bool| {
+                    let sgm = SgmParams {
+                        vignetting_compensation: on,
+                        ..SgmParams::default()
+                    };
+                    let views: Vec<View<'_>> = scene.hazy_views();
+                    let sources = nearest_sources(&views, scene.reference, 4);
+                    let depth = estimate_depth(
+                        &views[scene.reference],
+                        &sources,
+                        &planes,
+                        kind,
+                        &sgm,
+                        &Monitor::noop(),
+                    )
+                    .unwrap();
+                    let gt = &scene.views[scene.reference].depth;
+                    let c_p = depth_metrics(&depth.z_depth, gt, None).unwrap().c_p;
+                    (depth.vignetting_falloff, c_p)
+                };
+                let ((found, on), (_, off)) = (run(true), run(false));
+                println!(
+                    "| {seed} | {motion} | {vignetting} | {found:.3} | {:.1} | {:.1} |",
+                    100.0 * on,
+                    100.0 * off
+                );
+            }
+        }
+    }
 }

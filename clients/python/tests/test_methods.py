@@ -73,6 +73,7 @@ def test_mvs_depth_with_colmap_model(client: Client, mvs_scene: Path) -> None:
     assert r.cost_volume == "dehazing" and r.num_planes == 64
     # The simulator's lenses do not vignette.
     assert r.vignetting_falloff == 0.0
+    assert len(r.source_falloffs) == len(views) and all(d == 0.0 for d in r.source_falloffs)
     valid = gt > 0
     l1_rel = float(np.mean(np.abs(r.z_depth[valid] - gt[valid]) / gt[valid]))
     assert l1_rel < 0.15, l1_rel

@@ -177,7 +177,7 @@ impl Samples {
     /// by `gains[c]`, and that plane's index into `k` (`usize::MAX` when no plane is under the
     /// cap).
     #[inline]
-    fn best(&self, j: usize, inv_gains: &[f32]) -> (f32, usize) {
+    pub(super) fn best(&self, j: usize, inv_gains: &[f32]) -> (f32, usize) {
         let (c, a) = (self.channels, self.airlight);
         let r = &self.reference[j * c..(j + 1) * c];
         let mut best = (self.penalty, usize::MAX);
@@ -228,8 +228,11 @@ impl Samples {
         let (c, a) = (self.channels, self.airlight);
         let inv: Vec<f32> = gains.iter().map(|g| 1.0 / g).collect();
         let mut pairs: Vec<Vec<(f32, f32)>> = vec![Vec::new(); c];
-        for j in 0..self.start.len() - 1 {
-            let i = self.best(j, &inv).1;
+        let matches: Vec<usize> = (0..self.len())
+            .into_par_iter()
+            .map(|j| self.best(j, &inv).1)
+            .collect();
+        for (j, &i) in matches.iter().enumerate() {
             if i == usize::MAX {
                 continue;
             }
@@ -285,6 +288,67 @@ impl Samples {
         best
     }
 
+    /// [`Samples::best`] with each source value also multiplied by `factor(r²)` of its
+    /// position in the source: a source fall-off relative to the reference's
+    /// ([`super::vignetting::estimate_relative_falloff`]). Equal to [`Samples::best`] for a
+    /// factor of 1.
+    #[inline]
+    pub(super) fn best_source_scaled(
+        &self,
+        j: usize,
+        inv_gains: &[f32],
+        factor: impl Fn(f32) -> f32,
+    ) -> (f32, usize) {
+        let (c, a) = (self.channels, self.airlight);
+        let r = &self.reference[j * c..(j + 1) * c];
+        let mut best = (self.penalty, usize::MAX);
+        for i in self.start[j]..self.start[j + 1] {
+            let (k, f) = (self.k[i], factor(self.src_r2[i]));
+            let src = &self.source[i * c..(i + 1) * c];
+            let cost: f32 = r
+                .iter()
+                .zip(src)
+                .zip(inv_gains)
+                .map(|((&rv, &sv), &ig)| (rv - k * (sv * ig * f - a)).abs())
+                .sum();
+            if cost < best.0 {
+                best = (cost, i);
+            }
+        }
+        best
+    }
+
+    /// Mean `r²` of the source positions of every visible (sample, plane); 0 when empty.
+    pub(super) fn mean_source_r2(&self) -> f32 {
+        if self.src_r2.is_empty() {
+            return 0.0;
+        }
+        (self.src_r2.iter().map(|&v| f64::from(v)).sum::<f64>() / self.src_r2.len() as f64) as f32
+    }
+
+    /// A copy with every source value divided by `1 + a·r²` of its position in the source: the
+    /// source's own fall-off, relative to the reference's, taken out (as [`super::vignetting::
+    /// compensate`] of the source image would, up to the bilinear interpolation's order).
+    pub(super) fn with_source_falloff(&self, a: f32) -> Samples {
+        let c = self.channels;
+        let mut source = self.source.clone();
+        for (px, &r2) in source.chunks_exact_mut(c).zip(&self.src_r2) {
+            let f = 1.0 / (1.0 + a * r2);
+            px.iter_mut().for_each(|v| *v *= f);
+        }
+        Samples {
+            channels: c,
+            reference: self.reference.clone(),
+            start: self.start.clone(),
+            k: self.k.clone(),
+            source,
+            ref_r2: self.ref_r2.clone(),
+            src_r2: self.src_r2.clone(),
+            airlight: self.airlight,
+            penalty: self.penalty,
+        }
+    }
+
     /// Number of sample pixels that some plane projects into the source.
     pub(super) fn len(&self) -> usize {
         self.start.len() - 1
@@ -325,23 +389,50 @@ pub fn estimate_gains(
 /// [`estimate_gains`] on samples already collected ([`Samples::collect`]), so that the
 /// fall-off estimate ([`super::vignetting`]) can use the same ones.
 pub(super) fn gains_from_samples(samples: &Samples) -> Vec<f32> {
+    let range = (f64::from(GAIN_RANGE.0.ln()), f64::from(GAIN_RANGE.1.ln()));
+    gains_searched(
+        samples,
+        &vec![range; samples.channels],
+        GRID_STEP,
+        REFINE_ROUNDS,
+    )
+}
+
+/// [`gains_from_samples`] with the search of channel `c` over `ln g ∈ ln_ranges[c]` (inside
+/// [`GAIN_RANGE`]) on a grid of `grid_step`: a search near gains already known to within a
+/// few per cent ([`super::vignetting::estimate_relative_falloff`]).
+pub(super) fn gains_searched(
+    samples: &Samples,
+    ln_ranges: &[(f64, f64)],
+    grid_step: f64,
+    rounds: usize,
+) -> Vec<f32> {
     let channels = samples.channels;
     if samples.is_empty() {
         return vec![1.0; channels];
     }
-    let mut gains: Vec<f32> = (0..channels)
+    let (lo, hi) = (f64::from(GAIN_RANGE.0.ln()), f64::from(GAIN_RANGE.1.ln()));
+    let gains: Vec<f32> = (0..channels)
         .map(|ch| {
             let f = |ln_g: f64| samples.objective(ch, ln_g.exp() as f32, SEARCH_STRIDE);
-            let (lo, hi) = (GAIN_RANGE.0.ln(), GAIN_RANGE.1.ln());
-            let m = grid_then_brent(f, f, f64::from(lo), f64::from(hi), GRID_STEP, LOG_TOLERANCE);
+            let (a, b) = ln_ranges[ch];
+            let m = grid_then_brent(f, f, a.max(lo), b.min(hi), grid_step, LOG_TOLERANCE);
             m.x.exp() as f32
         })
         .collect();
     // The searches end at a resolution of ~0.03 %, and hazy far surfaces notice less: their
     // texture contrast is scaled by t. The exact L1 step at a fixed match, now matched on all
-    // channels, takes each channel to the data's own precision; the match is re-chosen after
-    // each step.
-    for _ in 0..REFINE_ROUNDS {
+    // channels, takes each channel to the data's own precision.
+    refine_gains(samples, gains, rounds)
+}
+
+/// `gains` refined by up to `rounds` exact L1 steps at a fixed match ([`Samples::refine`]),
+/// the match re-chosen after each step; each gain stays in [`GAIN_RANGE`].
+pub(super) fn refine_gains(samples: &Samples, mut gains: Vec<f32>, rounds: usize) -> Vec<f32> {
+    if samples.is_empty() {
+        return gains;
+    }
+    for _ in 0..rounds {
         let next: Vec<f32> = samples
             .refine(&gains)
             .into_iter()
@@ -388,7 +479,7 @@ const LOG_TOLERANCE: f64 = 2.5e-4;
 const SEARCH_STRIDE: usize = 4;
 
 /// Rounds of [`Samples::refine`] after the search.
-const REFINE_ROUNDS: usize = 6;
+pub(super) const REFINE_ROUNDS: usize = 6;
 
 /// `image` with each channel divided by its gain in `gains` (a copy; one gain per channel), so
 /// that a source recorded with those gains matches the reference's exposure and white balance.

@@ -26,7 +26,7 @@
 use rayon::prelude::*;
 
 use crate::image::ImageF32;
-use crate::minimise::grid_then_brent;
+use crate::minimise::{brent_minimise, grid_then_brent};
 
 use super::exposure::Samples;
 
@@ -50,6 +50,14 @@ const SEARCH_STRIDE: usize = 4;
 /// the corners costs little (the hazy Aloe pair with 10 % lost 1.3 points of C.P. on SGBM's
 /// pixels without compensation).
 pub const DEAD_BAND: f32 = 0.08;
+
+/// The least share of the matching cost (the objective at `a = 0`) that a shared fall-off must
+/// remove to be reported and applied. On forward motion without vignetting the estimate is
+/// biased: on the simulator's rooms with `forward_motion` 0.5 (seeds 0–4, 4 sources) it found
+/// −0.054 to −0.093, and applying −0.086 to −0.093 cost 2.8–3.7 points of C.P.; those fall-offs
+/// removed 0.2–0.9 % of the cost. A real fall-off removes several per cent: −0.15 on the same
+/// scenes 2.8–5.3 % (lateral motion 3.4–6.4 %), 10 % vignetting on the hazy Aloe pair 11 %.
+pub const MIN_EXPLAINED: f64 = 0.015;
 
 /// `r²` of pixel `(x, y)` of a `w×h` image: squared distance from the image centre over the
 /// squared half-diagonal (1 at the corner pixels' centres).
@@ -87,7 +95,8 @@ fn objective(samples: &[(&Samples, &[f32])], a: f32, stride: usize) -> f64 {
 
 /// The fall-off `a` of `V(r) = 1 + a·r²` shared by the reference and sources whose
 /// samples are given, each with the gains its channels are divided by (see the module docs).
-/// 0 when there are no samples.
+/// 0 when there are no samples, or when the fall-off found removes less than [`MIN_EXPLAINED`]
+/// of the matching cost.
 pub(super) fn estimate_falloff(samples: &[(&Samples, &[f32])]) -> f32 {
     if samples.iter().all(|(s, _)| s.is_empty()) {
         return 0.0;
@@ -102,7 +111,140 @@ pub(super) fn estimate_falloff(samples: &[(&Samples, &[f32])]) -> f32 {
         GRID_STEP,
         TOLERANCE,
     );
+    // Model selection: a fall-off that barely lowers the matching cost is not one (see
+    // [`MIN_EXPLAINED`]).
+    if m.value > (1.0 - MIN_EXPLAINED) * fine(0.0) {
+        return 0.0;
+    }
     m.x as f32
+}
+
+/// The range searched for a source's fall-off relative to the reference's
+/// ([`estimate_relative_falloff`]).
+pub const RELATIVE_FALLOFF_RANGE: (f64, f64) = (-0.6, 0.6);
+
+/// A relative fall-off with `|δ|` below this is not applied ([`applied_relative_falloff`]).
+/// Unlike the shared fall-off it needs no displacement to be seen, so its estimate on views
+/// from one lens stays close to 0 (see [`estimate_relative_falloff`]'s test); a 5 % difference
+/// at the corners is where a source starts to cost C.P. on hazy far surfaces.
+pub const RELATIVE_DEAD_BAND: f32 = 0.05;
+
+/// The bracket, as multiples of the normalised search's answer (plus 0.05 away from 0), in
+/// which [`estimate_relative_falloff`] refits the gains for every `δ`.
+const REFIT_BRACKET: (f64, f64) = (0.75, 1.5);
+
+/// Half-width in `ln g` of the gain search for each `δ` of the refit (about 10 %).
+const REFIT_GAIN_SPAN: f64 = 0.1;
+
+/// The refit's tolerance in `δ`: 0.3 % of brightness at the corners.
+const REFIT_TOLERANCE: f64 = 3e-3;
+
+/// Rounds of the gains' L1 refinement for each `δ` the refit tries (all of them for its answer).
+const REFIT_ROUNDS: usize = 2;
+
+/// `δ`, or exactly 0 within [`RELATIVE_DEAD_BAND`] of 0.
+pub fn applied_relative_falloff(delta: f32) -> f32 {
+    if delta.abs() < RELATIVE_DEAD_BAND {
+        0.0
+    } else {
+        delta
+    }
+}
+
+/// A source's own fall-off relative to the reference's, `δ` of `1 + δ·r²` at the source's
+/// positions, and the source's gains with it taken out: cameras of a rig rarely share the
+/// lens's fall-off exactly, and the shared model ([`estimate_falloff`]) cannot represent a
+/// difference (on the hazy Aloe pair with only the right lens 20 % darker at the corners,
+/// murk's C.P. on SGBM's pixels was 67.6 % against SGBM's 97.2 %).
+///
+/// Unlike the shared fall-off, a difference between the views is seen without any
+/// displacement: a reference pixel and its match differ in brightness by `1 + δ·r_s²` whatever
+/// their radii, as a gain that varies over the image. `δ` is found like a gain, from the matching
+/// cost on the samples, in two steps:
+/// 1. a search over [`RELATIVE_FALLOFF_RANGE`] (grid and Brent) with the gains held at `gains`
+///    and the fall-off normalised to keep the samples' mean brightness, `(1 + δ·m)/(1 + δ·r²)`
+///    with `m` the samples' mean `r²`, so that the gains found without it stay roughly valid;
+/// 2. where that finds more than half the dead band, Brent's method near its answer on the
+///    same objective with the gains searched again for every `δ` (on the samples with `1 + δ·r²`
+///    divided out), since the normalised gains hold only to first order.
+///
+/// Returns `δ` and the gains at it (`gains` unchanged when step 2 did not run).
+pub(super) fn estimate_relative_falloff(samples: &Samples, gains: &[f32]) -> (f32, Vec<f32>) {
+    if samples.is_empty() {
+        return (0.0, gains.to_vec());
+    }
+    let m = samples.mean_source_r2();
+    let inv_g: Vec<f32> = gains.iter().map(|g| 1.0 / g).collect();
+    let objective = |d: f64, stride: usize| -> f64 {
+        let d = d as f32;
+        let norm = 1.0 + d * m;
+        (0..samples.len())
+            .into_par_iter()
+            .step_by(stride)
+            .map(|j| {
+                let best = samples.best_source_scaled(j, &inv_g, |r2| norm / (1.0 + d * r2));
+                f64::from(best.0)
+            })
+            .sum()
+    };
+    let found = grid_then_brent(
+        |d| objective(d, SEARCH_STRIDE),
+        |d| objective(d, 1),
+        RELATIVE_FALLOFF_RANGE.0,
+        RELATIVE_FALLOFF_RANGE.1,
+        GRID_STEP,
+        TOLERANCE,
+    );
+    // Views from one lens: the bias below only weakens a fall-off, so one this far inside the
+    // dead band is not refitted (the simulator's views, the un-vignetted Aloe pair: |δ| < 0.005).
+    if found.x.abs() < f64::from(RELATIVE_DEAD_BAND) / 2.0 {
+        return (found.x as f32, gains.to_vec());
+    }
+    // The normalised fall-off keeps the gains only to first order, which biases the search
+    // toward a weaker fall-off (−0.16 for a true −0.2 on the hazy Aloe pair); near its answer
+    // the gains are refitted for every δ ([`super::exposure::refine_gains`]) and the same
+    // objective minimised again.
+    let refit = |d: f64, rounds: usize| -> (f64, Vec<f32>) {
+        let d = d as f32;
+        let relieved = samples.with_source_falloff(d);
+        // The normalised fall-off's gains, rescaled, are within a few per cent; searching
+        // near them (the refinement alone, started there, can stop at a self-consistent wrong
+        // match: 0.98 for a true 1.0 on the Aloe pair above).
+        let ranges: Vec<(f64, f64)> = gains
+            .iter()
+            .map(|&g| {
+                let ln = f64::from(g / (1.0 + d * m)).ln();
+                (ln - REFIT_GAIN_SPAN, ln + REFIT_GAIN_SPAN)
+            })
+            .collect();
+        let gains =
+            super::exposure::gains_searched(&relieved, &ranges, REFIT_GAIN_SPAN / 4.0, rounds);
+        let inv_g: Vec<f32> = gains.iter().map(|g| 1.0 / g).collect();
+        let total = (0..relieved.len())
+            .into_par_iter()
+            .map(|j| f64::from(relieved.best(j, &inv_g).0))
+            .sum();
+        (total, gains)
+    };
+    // The bias only weakens: the bracket reaches further from 0 than toward it.
+    let (near, far) = (
+        found.x * REFIT_BRACKET.0,
+        found.x * REFIT_BRACKET.1 + 0.05 * found.x.signum(),
+    );
+    let (lo, hi) = (
+        near.min(far).max(RELATIVE_FALLOFF_RANGE.0),
+        near.max(far).min(RELATIVE_FALLOFF_RANGE.1),
+    );
+    let (d, _) = brent_minimise(
+        |d| refit(d, REFIT_ROUNDS).0,
+        lo,
+        hi,
+        found.x,
+        REFIT_TOLERANCE,
+    );
+    let (_, gains) = refit(d, super::exposure::REFINE_ROUNDS);
+    let d = d as f32;
+    (d, gains)
 }
 
 /// `image` divided by `1 + a·r²` (a copy): the fall-off taken out.

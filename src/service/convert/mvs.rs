@@ -446,6 +446,7 @@ pub fn mvs_to_proto(
         source_gains: out.source_gains.clone(),
         vignetting_falloff: out.vignetting_falloff,
         warnings: out.warnings.clone(),
+        source_falloffs: out.source_falloffs.clone(),
     }
 }
 

@@ -394,6 +394,7 @@ impl ParamsInput {
                 source_gains: depth.source_gains.clone(),
                 vignetting_falloff: depth.vignetting_falloff,
                 warnings: depth.warnings.clone(),
+                source_falloffs: depth.source_falloffs.clone(),
             }),
             airlight_seconds,
             search_seconds: est.seconds,

@@ -95,6 +95,9 @@ class MvsDepthResult:
     #: What the caller should know about the estimate, one sentence each (e.g. a gain at the end
     #: of its searched range).
     warnings: tuple[str, ...]
+    #: Each source's own lens fall-off relative to the reference's, ``delta`` of ``1 + delta r^2``
+    #: divided out of that source; exactly 0.0 below 0.05 in magnitude or with compensation off.
+    source_falloffs: tuple[float, ...]
     job_id: str
     proto: mvs_pb2.MvsDepthResult
 
@@ -117,6 +120,7 @@ class MvsDepthResult:
             source_gains=tuple(r.source_gains),
             vignetting_falloff=r.vignetting_falloff,
             warnings=tuple(r.warnings),
+            source_falloffs=tuple(r.source_falloffs),
             job_id=job_id,
             proto=r,
         )

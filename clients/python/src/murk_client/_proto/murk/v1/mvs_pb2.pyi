@@ -287,6 +287,9 @@ class SgmOptions(_message.Message):
     before the cost volume, default true. A reference pixel and its match lie at different radii,
     so vignetting is a brightness offset that varies across the image, which one gain per source
     cannot absorb. |a| < 0.08 is not applied. See MvsDepthResult.vignetting_falloff.
+    With exposure_compensation also on, each source's own fall-off relative to the reference's
+    is estimated with its gains and divided out of it (cameras whose lenses differ); see
+    MvsDepthResult.source_falloffs.
     """
     def __init__(
         self,
@@ -396,6 +399,7 @@ class MvsDepthResult(_message.Message):
     SOURCE_GAINS_FIELD_NUMBER: _builtins.int
     VIGNETTING_FALLOFF_FIELD_NUMBER: _builtins.int
     WARNINGS_FIELD_NUMBER: _builtins.int
+    SOURCE_FALLOFFS_FIELD_NUMBER: _builtins.int
     near: _builtins.float
     """The plane set used (defaults resolved): nearest and farthest plane z-depth, scene units, and
     the number of planes.
@@ -442,6 +446,15 @@ class MvsDepthResult(_message.Message):
         more). Empty when nothing needs saying.
         """
 
+    @_builtins.property
+    def source_falloffs(self) -> _containers.RepeatedScalarFieldContainer[_builtins.float]:
+        """Each source's fall-off relative to the reference's, in the order of the request's sources:
+        delta of 1 + delta r^2 at the source's own pixels, divided out of that source after
+        vignetting_falloff (-0.2 = the source's corners 20 % darker than the reference's would be);
+        exactly 0 below 0.05 in magnitude, or with vignetting_compensation or exposure_compensation
+        off.
+        """
+
     def __init__(
         self,
         *,
@@ -456,10 +469,11 @@ class MvsDepthResult(_message.Message):
         source_gains: _abc.Iterable[_builtins.float] | None = ...,
         vignetting_falloff: _builtins.float = ...,
         warnings: _abc.Iterable[_builtins.str] | None = ...,
+        source_falloffs: _abc.Iterable[_builtins.float] | None = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["confidence", b"confidence", "inverse_depth", b"inverse_depth", "z_depth", b"z_depth"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["compute_seconds", b"compute_seconds", "confidence", b"confidence", "cost_volume", b"cost_volume", "far", b"far", "inverse_depth", b"inverse_depth", "near", b"near", "num_planes", b"num_planes", "source_gains", b"source_gains", "vignetting_falloff", b"vignetting_falloff", "warnings", b"warnings", "z_depth", b"z_depth"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["compute_seconds", b"compute_seconds", "confidence", b"confidence", "cost_volume", b"cost_volume", "far", b"far", "inverse_depth", b"inverse_depth", "near", b"near", "num_planes", b"num_planes", "source_falloffs", b"source_falloffs", "source_gains", b"source_gains", "vignetting_falloff", b"vignetting_falloff", "warnings", b"warnings", "z_depth", b"z_depth"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
