@@ -409,3 +409,118 @@ fn strips_partition_the_rows_within_the_budget() {
         assert_eq!(next, h);
     }
 }
+
+/// Where the shared fall-off's bias on forward motion comes from: the raw search
+/// ([`vignetting::search_falloff`], before its model selection; the share of the cost it
+/// removes in brackets) on the simulator's rooms, seeds 0–4, under variants that remove one
+/// suspect each: only the two sources behind or ahead, no sensor noise, the clear images with
+/// the ordinary cost, 512 planes, the production pre-smoothing. `MURK_FWD` sets
+/// `forward_motion` (default 0.5), `MURK_VIG` a fall-off applied to every view (default 0),
+/// `MURK_NOISE` the sensor noise σ (default 0.01).
+/// Run with
+/// `cargo test --release --lib mvs::depth::tests::experiment_forward_falloff -- --ignored --nocapture`.
+#[test]
+#[ignore = "experiment (about a minute)"]
+fn experiment_forward_falloff() {
+    use crate::atmosphere::AtmosphereParams;
+    use crate::monitor::Monitor;
+    use crate::mvs::cost_volume::DehazingOptions;
+    use crate::simulate::mvs::{simulate_mvs, MvsSimConfig};
+    let seeds: Vec<u64> = (0..5).collect();
+    for variant in [
+        "base",
+        "behind",
+        "ahead",
+        "nonoise",
+        "clear",
+        "planes512",
+        "presmooth",
+    ] {
+        let mut line = format!("{variant:>10}:");
+        for &seed in &seeds {
+            let noise: f32 = std::env::var("MURK_NOISE")
+                .ok()
+                .and_then(|v| v.parse().ok())
+                .unwrap_or(0.01);
+            let vig: f32 = std::env::var("MURK_VIG")
+                .ok()
+                .and_then(|v| v.parse().ok())
+                .unwrap_or(0.0);
+            let fwd: f64 = std::env::var("MURK_FWD")
+                .ok()
+                .and_then(|v| v.parse().ok())
+                .unwrap_or(0.5);
+            let cfg = MvsSimConfig {
+                seed,
+                forward_motion: fwd,
+                noise_sigma: if variant == "nonoise" { 0.0 } else { noise },
+                ..MvsSimConfig::default()
+            };
+            let mut scene = simulate_mvs(&cfg, &Monitor::noop()).unwrap();
+            for view in &mut scene.views {
+                view.hazy = vignetting::vignette(&view.hazy, vig);
+            }
+            let r = scene.reference;
+            let view = |i: usize| View {
+                image: if variant == "clear" {
+                    &scene.views[i].clear
+                } else {
+                    &scene.views[i].hazy
+                },
+                intrinsics: scene.views[i].intrinsics,
+                pose: scene.views[i].pose,
+            };
+            let mut others: Vec<usize> = (0..scene.views.len()).filter(|&i| i != r).collect();
+            others.sort_by_key(|&i| i.abs_diff(r));
+            let others: Vec<usize> = others
+                .into_iter()
+                .filter(|&i| match variant {
+                    "behind" => i < r,
+                    "ahead" => i > r,
+                    _ => true,
+                })
+                .take(if variant == "behind" || variant == "ahead" {
+                    2
+                } else {
+                    4
+                })
+                .collect();
+            let kind = if variant == "clear" {
+                CostKind::Ordinary
+            } else {
+                CostKind::DehazingWith(
+                    AtmosphereParams {
+                        airlight: scene.airlight,
+                        beta: scene.beta,
+                    },
+                    DehazingOptions::default(),
+                )
+            };
+            let planes =
+                PlaneSet::new(1.5, 15.0, if variant == "planes512" { 512 } else { 256 }).unwrap();
+            let smoothed: Vec<ImageF32> = (0..scene.views.len())
+                .map(|i| presmooth::gaussian_presmooth(view(i).image, 0.8))
+                .collect();
+            let v = |i: usize| {
+                if variant == "presmooth" {
+                    View {
+                        image: &smoothed[i],
+                        ..view(i)
+                    }
+                } else {
+                    view(i)
+                }
+            };
+            let samples: Vec<exposure::Samples> = others
+                .iter()
+                .map(|&i| exposure::Samples::collect(&v(r), &v(i), &planes, kind))
+                .collect();
+            let ones = [1.0f32; 3];
+            let pairs: Vec<(&exposure::Samples, &[f32])> =
+                samples.iter().map(|s| (s, &ones[..])).collect();
+            let (a, value, zero) = vignetting::search_falloff(&pairs);
+            line += &format!(" {a:+.3} ({:.2} %)", 100.0 * (1.0 - value / zero));
+        }
+        println!("{line}");
+    }
+}

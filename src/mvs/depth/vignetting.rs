@@ -101,6 +101,18 @@ pub(super) fn estimate_falloff(samples: &[(&Samples, &[f32])]) -> f32 {
     if samples.iter().all(|(s, _)| s.is_empty()) {
         return 0.0;
     }
+    let (a, value, at_zero) = search_falloff(samples);
+    // Model selection: a fall-off that barely lowers the matching cost is not one (see
+    // [`MIN_EXPLAINED`]).
+    if value > (1.0 - MIN_EXPLAINED) * at_zero {
+        return 0.0;
+    }
+    a as f32
+}
+
+/// The search of [`estimate_falloff`] without its model selection: the fall-off that minimises
+/// the objective, the objective there, and the objective at `a = 0`.
+pub(super) fn search_falloff(samples: &[(&Samples, &[f32])]) -> (f64, f64, f64) {
     let coarse = |a: f64| objective(samples, a as f32, SEARCH_STRIDE);
     let fine = |a: f64| objective(samples, a as f32, 1);
     let m = grid_then_brent(
@@ -111,12 +123,7 @@ pub(super) fn estimate_falloff(samples: &[(&Samples, &[f32])]) -> f32 {
         GRID_STEP,
         TOLERANCE,
     );
-    // Model selection: a fall-off that barely lowers the matching cost is not one (see
-    // [`MIN_EXPLAINED`]).
-    if m.value > (1.0 - MIN_EXPLAINED) * fine(0.0) {
-        return 0.0;
-    }
-    m.x as f32
+    (m.x, m.value, fine(0.0))
 }
 
 /// The range searched for a source's fall-off relative to the reference's
