@@ -90,7 +90,8 @@ class MvsDepthResult:
     #: source-major, one per image channel; exactly 1.0 within 0.5 % of 1 or with compensation off.
     source_gains: tuple[float, ...]
     #: The lens fall-off ``a`` divided out of every view (corners at ``1 + a`` of the centre's
-    #: brightness); exactly 0.0 below 0.08 in magnitude or with compensation off.
+    #: brightness); exactly 0.0 below 0.05 in magnitude, when it explains under 1.5 % of the
+    #: matching cost, or with compensation off.
     vignetting_falloff: float
     #: What the caller should know about the estimate, one sentence each (e.g. a gain at the end
     #: of its searched range).

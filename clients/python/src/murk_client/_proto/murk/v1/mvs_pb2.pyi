@@ -286,7 +286,8 @@ class SgmOptions(_message.Message):
     half-diagonal), one for every view, from the matching cost, and divide it out of every view
     before the cost volume, default true. A reference pixel and its match lie at different radii,
     so vignetting is a brightness offset that varies across the image, which one gain per source
-    cannot absorb. |a| < 0.08 is not applied. See MvsDepthResult.vignetting_falloff.
+    cannot absorb. |a| < 0.05 is not applied, nor a fall-off that removes less than 1.5 % of the
+    matching cost. See MvsDepthResult.vignetting_falloff.
     With exposure_compensation also on, each source's own fall-off relative to the reference's
     is estimated with its gains and divided out of it (cameras whose lenses differ); see
     MvsDepthResult.source_falloffs.
@@ -414,7 +415,8 @@ class MvsDepthResult(_message.Message):
     """
     vignetting_falloff: _builtins.float
     """The fall-off a divided out of every view (the corners' brightness relative to the centre is
-    1 + a); exactly 0 below 0.08 in magnitude or with vignetting_compensation off.
+    1 + a); exactly 0 below 0.05 in magnitude, when it removes less than 1.5 % of the matching
+    cost, or with vignetting_compensation off.
     """
     @_builtins.property
     def z_depth(self) -> _common_pb2.Image:
