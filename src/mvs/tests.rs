@@ -910,12 +910,14 @@ fn a_gain_at_the_search_bound_is_reported() {
 
 /// The shared fall-off on lateral and forward motion (256×192, 256 planes, 4 sources, seeds
 /// 0–4), each scene without vignetting and with every view vignetted by −0.15: the fall-off
-/// found and C.P. with the compensation on and off. Run with
+/// found and C.P. with the compensation on and off; the dehazing volume with the true A and β,
+/// or with `MURK_ORDINARY` set the ordinary volume. Run with
 /// `cargo test --release --lib mvs::tests::measure_falloff_by_motion -- --ignored --nocapture`.
 #[test]
 #[ignore = "measurement (about two minutes)"]
 fn measure_falloff_by_motion() {
     let planes = PlaneSet::new(1.5, 15.0, 256).unwrap();
+    let ordinary = std::env::var_os("MURK_ORDINARY").is_some();
     println!("| seed | motion | vignetting | fall-off found | C.P. on (%) | C.P. off (%) |");
     println!("|---|---|---|---|---|---|");
     for seed in 0..5u64 {
@@ -930,13 +932,17 @@ fn measure_falloff_by_motion() {
                 for view in &mut scene.views {
                     view.hazy = crate::mvs::depth::vignetting::vignette(&view.hazy, vignetting);
                 }
-                let kind = CostKind::DehazingWith(
-                    AtmosphereParams {
-                        airlight: scene.airlight,
-                        beta: scene.beta,
-                    },
-                    DehazingOptions::default(),
-                );
+                let kind = if ordinary {
+                    CostKind::Ordinary
+                } else {
+                    CostKind::DehazingWith(
+                        AtmosphereParams {
+                            airlight: scene.airlight,
+                            beta: scene.beta,
+                        },
+                        DehazingOptions::default(),
+                    )
+                };
                 let run = |on: bool| {
                     let sgm = SgmParams {
                         vignetting_compensation: on,
