@@ -578,6 +578,9 @@ fn measure_joint_fit() {
     // `MURK_VIGNETTING` V darkens every view's corners by V (gain 1 − V·r²); `MURK_FALLOFF_SIGMA`
     // is the fall-off prior's σ (0 = not fitted).
     let vignetting: f32 = env_or("MURK_VIGNETTING", 0.0);
+    // `MURK_SOURCE_VIGNETTING` V darkens the sources' corners instead (a source lens that
+    // differs from the reference's); default: `MURK_VIGNETTING`.
+    let source_vignetting: f32 = env_or("MURK_SOURCE_VIGNETTING", vignetting);
     let falloff_sigma: f64 = env_or("MURK_FALLOFF_SIGMA", 0.3);
     let cnn = AirlightCnn::embedded().unwrap();
     // [prior][A err, β err, identifiable]; priors: CNN, dark channel; then the old ratio fit
@@ -600,7 +603,7 @@ fn measure_joint_fit() {
         };
         let scaled: Vec<_> = with_gain(&sources, gain)
             .iter()
-            .map(|img| with_vignetting(img, vignetting))
+            .map(|img| with_vignetting(img, source_vignetting))
             .collect();
         let sources = views_with(&sources, &scaled);
         let sparse = scene.sparse_depth().unwrap();
