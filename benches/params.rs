@@ -68,6 +68,7 @@ fn bench(c: &mut Criterion) {
             gain_sigma: 0.2,
             beta_start: 0.5,
             falloff_sigma: murk::params::joint_fit::FALLOFF_PRIOR_SIGMA,
+            relative_falloff_sigma: murk::params::joint_fit::RELATIVE_FALLOFF_PRIOR_SIGMA,
         };
         b.iter(|| {
             murk::params::joint_fit::fit_joint(&reference, &sources, &sparse, &priors).expect("fit")

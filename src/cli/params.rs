@@ -282,6 +282,17 @@ pub fn run(a: ParamsArgs) -> anyhow::Result<()> {
             j.rms_depth_difference,
             identifiability_text(j.identifiability)
         );
+        if j.source_falloffs.iter().any(|&d| d != 0.0) {
+            let d: Vec<String> = j
+                .source_falloffs
+                .iter()
+                .map(|d| format!("{:.3}", 1.0 + d))
+                .collect();
+            println!(
+                "joint fit: the sources' own lens fall-off, corners at [{}] of the reference's",
+                d.join(", ")
+            );
+        }
     }
     println!(
         "times: airlight {:.3} s, search ({} depth evaluations) {:.2} s, final depth {:.2} s \
@@ -387,6 +398,7 @@ fn params_json(r: &pb::ScatteringParamsResult, job_id: &str) -> serde_json::Valu
             "beta_std_error": finite_or_null(j.beta_std_error),
             "source_gains": j.source_gains,
             "vignetting_falloff": j.vignetting_falloff,
+            "source_falloffs": j.source_falloffs,
             "equations": j.equations,
             "rms_depth_difference": j.rms_depth_difference,
             "residual_scale": j.residual_scale,

@@ -20,8 +20,13 @@
 //! for every view: one moving camera or a rig with one lens model; as in
 //! [`crate::mvs::depth::vignetting`]). A point's radius differs between the views, so an
 //! unmodelled fall-off looks like a brightness change with the depth difference and biases `A`
-//! and β. `a` is the last unknown of the fit: each intensity is divided by its `V` before the
-//! equation above.
+//! and β. `a` is an unknown of the fit: each intensity is divided by its `V` before the
+//! equation above. A source whose lens differs from the reference's records with its own
+//! fall-off, `V_s(r) = (1 + a·r²)(1 + δ_s·r²)`: a brightness ratio to the reference that varies
+//! over the image, seen without any depth difference, which the gain cannot absorb (sources 20 %
+//! darker at the corners took MAE_β on 10 lateral scenes from 0.015 to 0.74). The `δ_s` are the
+//! fit's last unknowns, each with a Gaussian prior around 0, kept only where the data determine
+//! one that matters (as `a` is).
 //!
 //! The airlight estimators (CNN, dark channel) enter as a Gaussian prior on `A`, the gains as a
 //! prior around 1, the fall-off as a Gaussian prior around 0; the fit says how well the data pin each parameter down (standard errors: the
@@ -63,6 +68,9 @@ pub const MIN_FALLOFF: f64 = 0.05;
 /// 128×96 walking scene the fall-off's freedom took β's error from under 15 % of β to 21 %
 /// for a fall-off of 0.007.
 pub const FALLOFF_SIGNIFICANCE: f64 = 3.0;
+/// Standard deviation of the prior on each source's relative fall-off `δ_s` that the pipeline
+/// uses: lenses of one rig rarely differ by more than half their fall-off.
+pub const RELATIVE_FALLOFF_PRIOR_SIGMA: f64 = 0.3;
 /// Tukey's biweight constant in robust standard deviations (95 % efficiency under Gaussian noise).
 const TUKEY_C: f64 = 4.685;
 const MAX_ITERATIONS: usize = 60;
@@ -83,6 +91,9 @@ pub struct JointPriors {
     /// Standard deviation of the Gaussian prior on the lens fall-off `a` around 0 (see the
     /// module docs); 0 = no fall-off fitted (`a` = 0).
     pub falloff_sigma: f64,
+    /// Standard deviation of the Gaussian prior on each source's fall-off relative to the
+    /// reference's, `δ_s`, around 0 (see the module docs); 0 = not fitted (every `δ_s` = 0).
+    pub relative_falloff_sigma: f64,
 }
 
 /// Why the points do or do not determine β (and with it `A`).
@@ -128,6 +139,9 @@ pub struct JointFit {
     pub source_gains: Vec<f64>,
     /// The lens fall-off `a` of `V(r) = 1 + a·r²` shared by the views (0 when not fitted).
     pub vignetting_falloff: f64,
+    /// Per source, its fall-off relative to the reference's, `δ_s` of `1 + δ_s·r²` at the
+    /// source's pixels (all 0 when not fitted or not determined).
+    pub source_falloffs: Vec<f64>,
     /// Equations with a non-zero robust weight at the end.
     pub equations: usize,
     /// RMS of `z_s − z_r` over the usable equations, scene units.
@@ -232,6 +246,7 @@ pub fn fit_equations(
         beta_std_error: f64::INFINITY,
         source_gains: vec![1.0; n_src],
         vignetting_falloff: 0.0,
+        source_falloffs: vec![0.0; n_src],
         equations: eqs.len(),
         rms_depth_difference: rms_dz,
         residual_scale: 0.0,
@@ -243,23 +258,45 @@ pub fn fit_equations(
     if rms_dz <= MIN_RELATIVE_DEPTH_DIFFERENCE * median_depth.abs().max(f64::MIN_POSITIVE) {
         return not_determined(Identifiability::NoDepthDifference, priors.airlight);
     }
-    // Without the fall-off first; the fit with it replaces that one only when the data
-    // determine a fall-off that matters (see `MIN_FALLOFF`).
+    // Without the fall-offs first; a fit with one replaces that one only when the data
+    // determine a fall-off that matters (see `MIN_FALLOFF`): the shared one, then each
+    // source's relative one on top of what was chosen.
     let held = JointPriors {
         falloff_sigma: 0.0,
+        relative_falloff_sigma: 0.0,
         ..*priors
     };
     let mut solver = Solver::new(&eqs, n_src, &held);
     let mut fit = solver.run();
-    let mut chosen = &held;
+    let mut chosen = held;
+    let significant = |v: f64, var: f64| {
+        v.abs() >= MIN_FALLOFF && v.abs() > FALLOFF_SIGNIFICANCE * var.max(0.0).sqrt()
+    };
     if priors.falloff_sigma > 0.0 {
-        let mut free = Solver::new(&eqs, n_src, priors);
+        let shared = JointPriors {
+            falloff_sigma: priors.falloff_sigma,
+            ..held
+        };
+        let mut free = Solver::new(&eqs, n_src, &shared);
         if let Some(c) = free.run() {
-            let (a, se) = (free.theta[2 + n_src], c[2 + n_src].max(0.0).sqrt());
-            if a.abs() >= MIN_FALLOFF && a.abs() > FALLOFF_SIGNIFICANCE * se {
+            if significant(free.theta[2 + n_src], c[2 + n_src]) {
                 solver = free;
                 fit = Some(c);
-                chosen = priors;
+                chosen = shared;
+            }
+        }
+    }
+    if priors.relative_falloff_sigma > 0.0 {
+        let relative = JointPriors {
+            relative_falloff_sigma: priors.relative_falloff_sigma,
+            ..chosen
+        };
+        let mut free = Solver::new(&eqs, n_src, &relative);
+        if let Some(c) = free.run() {
+            if (0..n_src).any(|s| significant(free.theta[3 + n_src + s], c[3 + n_src + s])) {
+                solver = free;
+                fit = Some(c);
+                chosen = relative;
             }
         }
     }
@@ -271,7 +308,7 @@ pub fn fit_equations(
     // after the blur is mostly a bias that differs from source to source (footprints,
     // occlusions, exposure), so the spread of the fits without each source bounds the error
     // from below as well.
-    let jack = source_jackknife(&eqs, n_src, chosen, &solver.theta);
+    let jack = source_jackknife(&eqs, n_src, &chosen, &solver.theta);
     let (a_se, beta_se) = match jack {
         Some([ja, jb]) => (se(0).max(ja), se(1).max(jb)),
         None => (se(0), se(1)),
@@ -289,6 +326,7 @@ pub fn fit_equations(
         beta_std_error: beta_se,
         source_gains: solver.theta[2..2 + n_src].iter().map(|u| 1.0 / u).collect(),
         vignetting_falloff: solver.theta[2 + n_src],
+        source_falloffs: solver.theta[3 + n_src..].to_vec(),
         equations: solver.kept,
         rms_depth_difference: rms_dz,
         residual_scale: solver.scale,
@@ -341,11 +379,13 @@ fn source_jackknife(
     Some([se(0), se(1)])
 }
 
-/// Gauss–Newton with Levenberg damping on `θ = (A, β, u_1 … u_S, a)`, Tukey weights
-/// re-estimated every iteration; `a` (the fall-off) stays 0 when its prior's σ is 0.
+/// Gauss–Newton with Levenberg damping on `θ = (A, β, u_1 … u_S, a, δ_1 … δ_S)`, Tukey weights
+/// re-estimated every iteration; `a` (the shared fall-off) and the `δ_s` (each source's relative
+/// one) stay 0 when their prior's σ is 0.
 struct Solver<'a> {
     eqs: &'a [Equation],
-    priors: &'a JointPriors,
+    n_src: usize,
+    priors: JointPriors,
     theta: Vec<f64>,
     /// Robust residual scale.
     scale: f64,
@@ -354,14 +394,15 @@ struct Solver<'a> {
 }
 
 impl<'a> Solver<'a> {
-    fn new(eqs: &'a [Equation], n_src: usize, priors: &'a JointPriors) -> Self {
-        let mut theta = vec![1.0; 3 + n_src];
+    fn new(eqs: &'a [Equation], n_src: usize, priors: &JointPriors) -> Self {
+        let mut theta = vec![0.0; 3 + 2 * n_src];
         theta[0] = priors.airlight;
         theta[1] = priors.beta_start;
-        theta[2 + n_src] = 0.0;
+        theta[2..2 + n_src].fill(1.0);
         Self {
             eqs,
-            priors,
+            n_src,
+            priors: *priors,
             theta,
             scale: 0.0,
             kept: 0,
@@ -377,11 +418,12 @@ impl<'a> Solver<'a> {
     /// divided by its `V_s` and the prediction of the reference's multiplied by its `V_r`:
     /// `I_r − V_r (A + (u I_s/V_s − A) k)`, in the reference's recorded units. (Dividing both
     /// intensities by their `V` instead shrinks every residual where `V > 1`, and the fit then
-    /// found brighter corners on images without vignetting.)
-    fn residual(theta: &[f64], e: &Equation) -> f64 {
+    /// found brighter corners on images without vignetting.) A source's relative fall-off
+    /// multiplies its `V_s` by `1 + δ_s·r²_s`.
+    fn residual(theta: &[f64], n_src: usize, e: &Equation) -> f64 {
         let (a, b, u) = (theta[0], theta[1], theta[2 + e.source]);
-        let f = theta[theta.len() - 1];
-        let (vr, vs) = (1.0 + f * e.r2r, 1.0 + f * e.r2s);
+        let (f, d) = (theta[2 + n_src], theta[3 + n_src + e.source]);
+        let (vr, vs) = (1.0 + f * e.r2r, (1.0 + f * e.r2s) * (1.0 + d * e.r2s));
         let k = (b * e.dz).exp();
         let m = vr * u * k / vs;
         (e.ir - vr * (a + (u * e.is / vs - a) * k)) / (1.0 + m * m).sqrt()
@@ -392,7 +434,7 @@ impl<'a> Solver<'a> {
         let mut r: Vec<f64> = self
             .eqs
             .iter()
-            .map(|e| Self::residual(theta, e).abs())
+            .map(|e| Self::residual(theta, self.n_src, e).abs())
             .collect();
         let mid = r.len() / 2;
         (1.4826 * *r.select_nth_unstable_by(mid, f64::total_cmp).1).max(1e-9)
@@ -409,27 +451,35 @@ impl<'a> Solver<'a> {
         let data: f64 = self
             .eqs
             .iter()
-            .map(|e| rho(Self::residual(theta, e).abs()))
+            .map(|e| rho(Self::residual(theta, self.n_src, e).abs()))
             .sum();
         data / (scale * scale) + 0.5 * self.prior_terms(theta)
     }
 
     /// Twice the priors' negative log density: Cauchy on `A` (log(1 + z²)), Gaussian on the gains
-    /// and on the fall-off.
+    /// and on the fall-offs.
     fn prior_terms(&self, theta: &[f64]) -> f64 {
         let p = self.priors;
-        let n = theta.len();
+        let n_src = self.n_src;
         let a = (((theta[0] - p.airlight) / p.airlight_sigma).powi(2)).ln_1p();
-        let g: f64 = theta[2..n - 1]
+        let g: f64 = theta[2..2 + n_src]
             .iter()
             .map(|u| ((u - 1.0) / p.gain_sigma).powi(2))
             .sum();
         let f = if p.falloff_sigma > 0.0 {
-            (theta[n - 1] / p.falloff_sigma).powi(2)
+            (theta[2 + n_src] / p.falloff_sigma).powi(2)
         } else {
             0.0
         };
-        a + g + f
+        let d: f64 = if p.relative_falloff_sigma > 0.0 {
+            theta[3 + n_src..]
+                .iter()
+                .map(|d| (d / p.relative_falloff_sigma).powi(2))
+                .sum()
+        } else {
+            0.0
+        };
+        a + g + f + d
     }
 
     /// Normal equations `H`, gradient `g` (of ½·Σ w r²/s² + ½·priors) at the current θ with the
@@ -441,12 +491,16 @@ impl<'a> Solver<'a> {
         let c = TUKEY_C * self.scale;
         let inv_s2 = 1.0 / (self.scale * self.scale);
         self.kept = 0;
+        let n_src = self.n_src;
         let (a, b) = (self.theta[0], self.theta[1]);
-        let f = self.theta[n - 1];
+        let fa = 2 + n_src;
+        let f = self.theta[fa];
         for e in self.eqs {
             let u = self.theta[2 + e.source];
+            let dv = self.theta[3 + n_src + e.source];
             let k = (b * e.dz).exp();
-            let (vr, vs) = (1.0 + f * e.r2r, 1.0 + f * e.r2s);
+            let (vsf, vsd) = (1.0 + f * e.r2s, 1.0 + dv * e.r2s);
+            let (vr, vs) = (1.0 + f * e.r2r, vsf * vsd);
             let is = e.is / vs;
             let prediction = a + (u * is - a) * k;
             let raw = e.ir - vr * prediction;
@@ -467,12 +521,15 @@ impl<'a> Solver<'a> {
                 vr * (k - 1.0) / sd,
                 -vr * (u * is - a) * e.dz * k / sd - norm * m * e.dz,
                 -vr * is * k / sd - norm * vr * k / vs,
-                // ∂raw/∂a = −r²_r·P + V_r u k I_s r²_s / V_s²;
-                // ∂m/∂a = u k (r²_r V_s − V_r r²_s) / V_s².
-                (-e.r2r * prediction + vr * u * k * is * e.r2s / vs) / sd
-                    - norm * u * k * (e.r2r * vs - vr * e.r2s) / (vs * vs),
+                // With V_s = (1 + a r²_s)(1 + δ r²_s) and I_s/V_s written `is`:
+                // ∂raw/∂a = −r²_r·P + V_r u k is r²_s / (1 + a r²_s);
+                // ∂m/∂a = u k (r²_r (1 + a r²_s) − V_r r²_s) / ((1 + a r²_s) V_s).
+                (-e.r2r * prediction + vr * u * k * is * e.r2s / vsf) / sd
+                    - norm * u * k * (e.r2r * vsf - vr * e.r2s) / (vsf * vs),
+                // ∂raw/∂δ = V_r u k is r²_s / (1 + δ r²_s); ∂m/∂δ = −m r²_s / (1 + δ r²_s).
+                vr * u * k * is * e.r2s / (vsd * sd) + norm * m * e.r2s / vsd,
             ];
-            let idx = [0, 1, 2 + e.source, n - 1];
+            let idx = [0, 1, 2 + e.source, fa, 3 + n_src + e.source];
             for (p, &jp) in idx.iter().zip(&j) {
                 g[*p] += w * jp * r;
                 for (q, &jq) in idx.iter().zip(&j) {
@@ -489,7 +546,7 @@ impl<'a> Solver<'a> {
         h[(0, 0)] += pa;
         g[0] += pa * (self.theta[0] - p.airlight);
         let pu = 1.0 / (p.gain_sigma * p.gain_sigma);
-        for i in 2..n - 1 {
+        for i in 2..2 + n_src {
             h[(i, i)] += pu;
             g[i] += pu * (self.theta[i] - 1.0);
         }
@@ -500,8 +557,17 @@ impl<'a> Solver<'a> {
         } else {
             1e12
         };
-        h[(n - 1, n - 1)] += pf;
-        g[n - 1] += pf * self.theta[n - 1];
+        h[(fa, fa)] += pf;
+        g[fa] += pf * self.theta[fa];
+        let pd = if p.relative_falloff_sigma > 0.0 {
+            1.0 / (p.relative_falloff_sigma * p.relative_falloff_sigma)
+        } else {
+            1e12
+        };
+        for i in 3 + n_src..n {
+            h[(i, i)] += pd;
+            g[i] += pd * self.theta[i];
+        }
         (h, g)
     }
 
@@ -529,17 +595,24 @@ impl<'a> Solver<'a> {
                 // Physical ranges: A in (0, 1], β ≥ 0, gains positive.
                 next[0] = next[0].clamp(1e-3, 1.0);
                 next[1] = next[1].max(0.0);
-                let n = next.len();
-                for u in &mut next[2..n - 1] {
+                let n_src = self.n_src;
+                for u in &mut next[2..2 + n_src] {
                     *u = u.max(1e-3);
                 }
                 // A fall-off keeps every V(r) positive on the image (r² ≤ 1); without a prior
                 // it is not fitted at all.
-                next[n - 1] = if self.priors.falloff_sigma > 0.0 {
-                    next[n - 1].clamp(-0.9, 1.0)
+                next[2 + n_src] = if self.priors.falloff_sigma > 0.0 {
+                    next[2 + n_src].clamp(-0.9, 1.0)
                 } else {
                     0.0
                 };
+                for d in &mut next[3 + n_src..] {
+                    *d = if self.priors.relative_falloff_sigma > 0.0 {
+                        d.clamp(-0.9, 1.0)
+                    } else {
+                        0.0
+                    };
+                }
                 if self.cost(&next, self.scale) <= current {
                     let moved = next
                         .iter()
@@ -631,6 +704,7 @@ mod tests {
             gain_sigma: 0.2,
             beta_start: 0.3,
             falloff_sigma: 0.3,
+            relative_falloff_sigma: 0.3,
         }
     }
 
@@ -763,6 +837,62 @@ mod tests {
         assert!((fitted.vignetting_falloff + 0.3).abs() < 0.03, "{fitted:?}");
         assert!(clean.vignetting_falloff.abs() < 0.03, "{clean:?}");
         assert_eq!(held.vignetting_falloff, 0.0);
+        let moved =
+            |f: &JointFit| (f.airlight - clean.airlight).abs() + (f.beta - clean.beta).abs();
+        assert!(moved(&fitted) < 0.02, "{fitted:?}");
+        assert!(moved(&held) > 3.0 * moved(&fitted), "{held:?}");
+    }
+
+    /// The sources' lens alone darkens their corners by 25 % (a rig whose cameras differ): each
+    /// source's relative fall-off is fitted, and A and β come out as without vignetting; with
+    /// the relative fall-offs held at 0 they move by several times as much.
+    #[test]
+    fn a_source_lens_that_differs_is_fitted_with_a_and_beta() {
+        use crate::mvs::depth::vignetting::vignette;
+        let scene = crate::simulate::mvs::walking_test_scene(3);
+        let (reference, sources) = scene.reference_and_sources();
+        let sparse = scene.sparse_depth().unwrap();
+        let src_imgs: Vec<_> = sources.iter().map(|s| vignette(s.image, -0.25)).collect();
+        let sources: Vec<View<'_>> = sources
+            .iter()
+            .zip(&src_imgs)
+            .map(|(s, image)| View { image, ..*s })
+            .collect();
+        let a0 = f64::from(scene.airlight);
+        let (clean_ref, clean_sources) = scene.reference_and_sources();
+        let clean = fit_joint(&clean_ref, &clean_sources, &sparse, &priors(a0)).unwrap();
+        let fitted = fit_joint(&reference, &sources, &sparse, &priors(a0)).unwrap();
+        let held = fit_joint(
+            &reference,
+            &sources,
+            &sparse,
+            &JointPriors {
+                relative_falloff_sigma: 0.0,
+                ..priors(a0)
+            },
+        )
+        .unwrap();
+        eprintln!(
+            "A {} β {}: clean A {:.4} β {:.4} δ {:?}; sources vignetted A {:.4} β {:.4} δ {:?} \
+             a {:.3}; relative fall-offs held A {:.4} β {:.4} a {:.3}",
+            scene.airlight,
+            scene.beta,
+            clean.airlight,
+            clean.beta,
+            clean.source_falloffs,
+            fitted.airlight,
+            fitted.beta,
+            fitted.source_falloffs,
+            fitted.vignetting_falloff,
+            held.airlight,
+            held.beta,
+            held.vignetting_falloff
+        );
+        assert!(clean.source_falloffs.iter().all(|&d| d == 0.0), "{clean:?}");
+        for d in &fitted.source_falloffs {
+            assert!((d + 0.25).abs() < 0.04, "{fitted:?}");
+        }
+        assert!(held.source_falloffs.iter().all(|&d| d == 0.0));
         let moved =
             |f: &JointFit| (f.airlight - clean.airlight).abs() + (f.beta - clean.beta).abs();
         assert!(moved(&fitted) < 0.02, "{fitted:?}");

@@ -497,6 +497,7 @@ pub fn search_scattering(
             gain_sigma: 0.2,
             beta_start: f64::from((beta_lo.max(1e-6) * beta_hi).sqrt()),
             falloff_sigma: crate::params::joint_fit::FALLOFF_PRIOR_SIGMA,
+            relative_falloff_sigma: crate::params::joint_fit::RELATIVE_FALLOFF_PRIOR_SIGMA,
         },
     );
     // The joint fit's estimate is used whenever it converged with a finite standard error,

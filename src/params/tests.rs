@@ -622,6 +622,7 @@ fn measure_joint_fit() {
                 gain_sigma,
                 beta_start: 0.5 / z_med,
                 falloff_sigma,
+                relative_falloff_sigma: env_or("MURK_RELATIVE_SIGMA", 0.3),
             };
             let fit = fit_joint(&reference, &sources, &sparse, &priors).unwrap();
             sums[k][0] += (fit.airlight - a).abs();

@@ -424,6 +424,7 @@ impl ParamsInput {
                 beta_std_error: j.beta_std_error,
                 source_gains: j.source_gains.clone(),
                 vignetting_falloff: j.vignetting_falloff,
+                source_falloffs: j.source_falloffs.clone(),
                 equations: u32::try_from(j.equations).unwrap_or(u32::MAX),
                 rms_depth_difference: j.rms_depth_difference,
                 residual_scale: j.residual_scale,

@@ -169,6 +169,9 @@ class ScatteringParamsResult:
     source_gains: list[float]
     #: The lens fall-off ``a`` from the joint fit (corners at ``1 + a`` of the centre's brightness).
     vignetting_falloff: float
+    #: Per source, its lens fall-off relative to the reference's from the joint fit (0.0 unless
+    #: the points determine one).
+    source_falloffs: list[float]
     airlight_initial: float
     #: ``"cnn"``, ``"dark_channel"`` or ``"given"``.
     airlight_source: str
@@ -215,6 +218,7 @@ class ScatteringParamsResult:
             beta_unclamped_per_scene_unit=r.beta_unclamped,
             source_gains=list(r.joint_fit.source_gains),
             vignetting_falloff=r.joint_fit.vignetting_falloff,
+            source_falloffs=list(r.joint_fit.source_falloffs),
             airlight_initial=r.airlight_initial,
             airlight_source=sources.get(r.airlight_source, "unspecified"),
             beta_initial_per_scene_unit=r.beta_initial,

@@ -538,6 +538,7 @@ class JointFit(_message.Message):
     RESIDUAL_SCALE_FIELD_NUMBER: _builtins.int
     IDENTIFIABILITY_FIELD_NUMBER: _builtins.int
     VIGNETTING_FALLOFF_FIELD_NUMBER: _builtins.int
+    SOURCE_FALLOFFS_FIELD_NUMBER: _builtins.int
     airlight: _builtins.float
     airlight_std_error: _builtins.float
     beta: _builtins.float
@@ -561,6 +562,13 @@ class JointFit(_message.Message):
         reference's exposure).
         """
 
+    @_builtins.property
+    def source_falloffs(self) -> _containers.RepeatedScalarFieldContainer[_builtins.float]:
+        """Per source, its lens fall-off relative to the reference's: delta of 1 + delta r^2 at the
+        source's pixels, fitted with the rest when the data determine one (a source camera whose
+        lens differs; unmodelled, it biases beta as the shared fall-off does); 0 otherwise.
+        """
+
     def __init__(
         self,
         *,
@@ -574,10 +582,11 @@ class JointFit(_message.Message):
         residual_scale: _builtins.float = ...,
         identifiability: Global___Identifiability.ValueType = ...,
         vignetting_falloff: _builtins.float = ...,
+        source_falloffs: _abc.Iterable[_builtins.float] | None = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["airlight", b"airlight", "airlight_std_error", b"airlight_std_error", "beta", b"beta", "beta_std_error", b"beta_std_error", "equations", b"equations", "identifiability", b"identifiability", "residual_scale", b"residual_scale", "rms_depth_difference", b"rms_depth_difference", "source_gains", b"source_gains", "vignetting_falloff", b"vignetting_falloff"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["airlight", b"airlight", "airlight_std_error", b"airlight_std_error", "beta", b"beta", "beta_std_error", b"beta_std_error", "equations", b"equations", "identifiability", b"identifiability", "residual_scale", b"residual_scale", "rms_depth_difference", b"rms_depth_difference", "source_falloffs", b"source_falloffs", "source_gains", b"source_gains", "vignetting_falloff", b"vignetting_falloff"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
