@@ -620,7 +620,9 @@ fn bound_warnings(
     for (s, &d) in source_falloffs.iter().enumerate() {
         if (f64::from(d) - rlo).abs() < 1e-3 || (f64::from(d) - rhi).abs() < 1e-3 {
             out.push(format!(
-                "source {s}: its lens fall-off relative to the reference's, {d:.3}, is at the end                  of the searched range {rlo}..{rhi}; the lenses may differ by more, and the                  compensation is then incomplete"
+                "source {s}: its lens fall-off relative to the reference's, {d:.3}, is at the end \
+                 of the searched range {rlo}..{rhi}; the lenses may differ by more, and the \
+                 compensation is then incomplete"
             ));
         }
     }

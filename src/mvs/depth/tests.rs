@@ -524,3 +524,14 @@ fn experiment_forward_falloff() {
         println!("{line}");
     }
 }
+
+/// A source's relative fall-off at an end of its searched range gets a warning that names the
+/// source; one inside the range gets none.
+#[test]
+fn a_relative_falloff_at_its_bound_is_reported() {
+    let warnings = bound_warnings(&[1.0; 6], 3, 0.0, &[-0.6, 0.1]);
+    assert_eq!(warnings.len(), 1, "{warnings:?}");
+    assert!(warnings[0].starts_with("source 0: "), "{}", warnings[0]);
+    assert!(warnings[0].contains("-0.600"), "{}", warnings[0]);
+    assert!(!warnings[0].contains("  "), "{}", warnings[0]);
+}
