@@ -321,8 +321,8 @@ pub struct DepthResult {
     /// [`vignetting::DEAD_BAND`] of 0, where compensation is off, or from
     /// [`depth_from_cost_volume`].
     pub vignetting_falloff: f32,
-    /// Each source's fall-off relative to the reference's ([`vignetting::
-    /// estimate_relative_falloff`]): `δ` of `1 + δ·r²` at the source's own pixels, divided out
+    /// Each source's fall-off relative to the reference's, estimated with its gains from the
+    /// matching cost ([`vignetting`]): `δ` of `1 + δ·r²` at the source's own pixels, divided out
     /// of that source (after the shared [`DepthResult::vignetting_falloff`]); exactly 0 within
     /// [`vignetting::RELATIVE_DEAD_BAND`] of 0, or where exposure or vignetting compensation is
     /// off; empty from [`depth_from_cost_volume`].
