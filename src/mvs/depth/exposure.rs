@@ -178,23 +178,8 @@ impl Samples {
     /// cap).
     #[inline]
     pub(super) fn best(&self, j: usize, inv_gains: &[f32]) -> (f32, usize) {
-        let (c, a) = (self.channels, self.airlight);
-        let r = &self.reference[j * c..(j + 1) * c];
-        let mut best = (self.penalty, usize::MAX);
-        for i in self.start[j]..self.start[j + 1] {
-            let k = self.k[i];
-            let src = &self.source[i * c..(i + 1) * c];
-            let cost: f32 = r
-                .iter()
-                .zip(src)
-                .zip(inv_gains)
-                .map(|((&rv, &sv), &ig)| (rv - k * (sv * ig - a)).abs())
-                .sum();
-            if cost < best.0 {
-                best = (cost, i);
-            }
-        }
-        best
+        // A factor of exactly 1 multiplies exactly: the same residuals, bit for bit.
+        self.best_source_scaled(j, inv_gains, |_| 1.0)
     }
 
     /// Σ over every `stride`-th sample of the best (over the planes) capped residual of channel

@@ -82,10 +82,15 @@ pub fn radius2(x: f32, y: f32, w: usize, h: usize) -> f32 {
 
 /// `a`, or exactly 0 within [`DEAD_BAND`] of 0.
 pub fn applied_falloff(a: f32) -> f32 {
-    if a.abs() < DEAD_BAND {
+    zero_within(a, DEAD_BAND)
+}
+
+/// `v`, or exactly 0 when `|v|` is below `band`.
+fn zero_within(v: f32, band: f32) -> f32 {
+    if v.abs() < band {
         0.0
     } else {
-        a
+        v
     }
 }
 
@@ -165,11 +170,7 @@ const REFIT_ROUNDS: usize = 2;
 
 /// `δ`, or exactly 0 within [`RELATIVE_DEAD_BAND`] of 0.
 pub fn applied_relative_falloff(delta: f32) -> f32 {
-    if delta.abs() < RELATIVE_DEAD_BAND {
-        0.0
-    } else {
-        delta
-    }
+    zero_within(delta, RELATIVE_DEAD_BAND)
 }
 
 /// A source's own fall-off relative to the reference's, `δ` of `1 + δ·r²` at the source's
