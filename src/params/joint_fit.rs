@@ -781,17 +781,25 @@ mod tests {
         );
     }
 
-    /// The same walking scene with every view vignetted by 0.3 (corners at 0.7 of the centre's
-    /// brightness, airlight included): the fit finds the fall-off, and A and β as well as without
-    /// vignetting; with the fall-off held at 0 they move by several times as much.
-    #[test]
-    fn a_lens_falloff_is_fitted_with_a_and_beta() {
+    /// The fits of the walking scene (seed 3) clean, with the reference recorded through a
+    /// fall-off `reference_falloff` and the sources through `source_falloff`, and the latter
+    /// again with the priors changed by `held`: (scene, clean, fitted, held).
+    fn walking_scene_fits(
+        reference_falloff: f32,
+        source_falloff: f32,
+        held: impl Fn(JointPriors) -> JointPriors,
+    ) -> (crate::simulate::mvs::MvsScene, JointFit, JointFit, JointFit) {
         use crate::mvs::depth::vignetting::vignette;
         let scene = crate::simulate::mvs::walking_test_scene(3);
-        let (reference, sources) = scene.reference_and_sources();
         let sparse = scene.sparse_depth().unwrap();
-        let ref_img = vignette(reference.image, -0.3);
-        let src_imgs: Vec<_> = sources.iter().map(|s| vignette(s.image, -0.3)).collect();
+        let a0 = f64::from(scene.airlight);
+        let (reference, sources) = scene.reference_and_sources();
+        let clean = fit_joint(&reference, &sources, &sparse, &priors(a0)).unwrap();
+        let ref_img = vignette(reference.image, reference_falloff);
+        let src_imgs: Vec<_> = sources
+            .iter()
+            .map(|s| vignette(s.image, source_falloff))
+            .collect();
         let reference = View {
             image: &ref_img,
             ..reference
@@ -801,25 +809,20 @@ mod tests {
             .zip(&src_imgs)
             .map(|(s, image)| View { image, ..*s })
             .collect();
-        let a0 = f64::from(scene.airlight);
-        let clean = fit_joint(
-            &scene.reference_and_sources().0,
-            &scene.reference_and_sources().1,
-            &sparse,
-            &priors(a0),
-        )
-        .unwrap();
         let fitted = fit_joint(&reference, &sources, &sparse, &priors(a0)).unwrap();
-        let held = fit_joint(
-            &reference,
-            &sources,
-            &sparse,
-            &JointPriors {
-                falloff_sigma: 0.0,
-                ..priors(a0)
-            },
-        )
-        .unwrap();
+        let held = fit_joint(&reference, &sources, &sparse, &held(priors(a0))).unwrap();
+        (scene, clean, fitted, held)
+    }
+
+    /// The same walking scene with every view vignetted by 0.3 (corners at 0.7 of the centre's
+    /// brightness, airlight included): the fit finds the fall-off, and A and β as well as without
+    /// vignetting; with the fall-off held at 0 they move by several times as much.
+    #[test]
+    fn a_lens_falloff_is_fitted_with_a_and_beta() {
+        let (scene, clean, fitted, held) = walking_scene_fits(-0.3, -0.3, |p| JointPriors {
+            falloff_sigma: 0.0,
+            ..p
+        });
         eprintln!(
             "A {} β {}: clean A {:.4} β {:.4} a {:.3}; vignetted A {:.4} β {:.4} a {:.3}; \
              fall-off held A {:.4} β {:.4}",
@@ -848,30 +851,10 @@ mod tests {
     /// the relative fall-offs held at 0 they move by several times as much.
     #[test]
     fn a_source_lens_that_differs_is_fitted_with_a_and_beta() {
-        use crate::mvs::depth::vignetting::vignette;
-        let scene = crate::simulate::mvs::walking_test_scene(3);
-        let (reference, sources) = scene.reference_and_sources();
-        let sparse = scene.sparse_depth().unwrap();
-        let src_imgs: Vec<_> = sources.iter().map(|s| vignette(s.image, -0.25)).collect();
-        let sources: Vec<View<'_>> = sources
-            .iter()
-            .zip(&src_imgs)
-            .map(|(s, image)| View { image, ..*s })
-            .collect();
-        let a0 = f64::from(scene.airlight);
-        let (clean_ref, clean_sources) = scene.reference_and_sources();
-        let clean = fit_joint(&clean_ref, &clean_sources, &sparse, &priors(a0)).unwrap();
-        let fitted = fit_joint(&reference, &sources, &sparse, &priors(a0)).unwrap();
-        let held = fit_joint(
-            &reference,
-            &sources,
-            &sparse,
-            &JointPriors {
-                relative_falloff_sigma: 0.0,
-                ..priors(a0)
-            },
-        )
-        .unwrap();
+        let (scene, clean, fitted, held) = walking_scene_fits(0.0, -0.25, |p| JointPriors {
+            relative_falloff_sigma: 0.0,
+            ..p
+        });
         eprintln!(
             "A {} β {}: clean A {:.4} β {:.4} δ {:?}; sources vignetted A {:.4} β {:.4} δ {:?} \
              a {:.3}; relative fall-offs held A {:.4} β {:.4} a {:.3}",
