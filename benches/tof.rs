@@ -1,8 +1,8 @@
 //! ToF-in-fog benchmarks: the full pipeline (defaults: the phasor's two parts with shared weights,
 //! the joint prior; caps of 5 coarse + 50 fine IRLS iterations) on a separated and a cluttered
-//! frame, the reference's configuration (amplitude and phase separately, alternating x- and
-//! a-steps) for comparison, and one x-step solve (Eq. 5.12) with each solver, at the Kinect v2
-//! size 424×512.
+//! frame, the same with the V-cycle alone as the x-step's preconditioner (no coarse space), the
+//! reference's configuration (amplitude and phase separately, alternating x- and a-steps) for
+//! comparison, and one x-step solve (Eq. 5.12) with each solver, at the Kinect v2 size 424×512.
 //!
 //! Run: `cargo bench --bench tof`.
 
@@ -62,6 +62,23 @@ fn bench(c: &mut Criterion) {
                 .expect("pipeline")
         })
     });
+    // Session 15–23's preconditioner (the V-cycle alone, no coarse space), for comparison.
+    let vcycle_only = XStepSolver::Pcg {
+        rel_tol: 1e-5,
+        max_iterations: 400,
+        preconditioner: Preconditioner::MultigridOnly,
+    };
+    for (name, frame) in [
+        ("pcg_vcycle_only", &input),
+        ("pcg_vcycle_only_cluttered", &cluttered),
+    ] {
+        g.bench_function(name, |b| {
+            b.iter(|| {
+                estimate_tof_depth_with_solver(frame, &params, vcycle_only, &monitor)
+                    .expect("pipeline")
+            })
+        });
+    }
     let reference = TofParams {
         channels: ScatterChannels::AmplitudePhase,
         prior_coupling: PriorCoupling::Alternating,

@@ -8,6 +8,7 @@ pub mod atmosphere;
 pub mod camera;
 mod cpu;
 pub mod error;
+mod faer_threads;
 pub mod image;
 pub mod io;
 pub mod jobs;

@@ -574,6 +574,7 @@ impl<'a> Solver<'a> {
     /// Iterates to convergence; returns the diagonal of the covariance of θ, or `None` when the
     /// normal equations are singular (β undetermined).
     fn run(&mut self) -> Option<Vec<f64>> {
+        crate::faer_threads::sequential_faer();
         let mut lambda = 1e-3;
         self.scale = self.robust_scale(&self.theta);
         for _ in 0..MAX_ITERATIONS {

@@ -183,6 +183,7 @@ pub fn integrate_normals(
     mask: &[bool],
     params: &IntegrationParams,
 ) -> Result<Vec<f64>> {
+    crate::faer_threads::sequential_faer();
     intr.validate()?;
     let npix = width
         .checked_mul(height)

@@ -8,6 +8,7 @@
 //! ([`irls`]), the bilateral pre-filter ([`bilateral`]) and the pipeline ([`pipeline`]).
 
 pub mod bilateral;
+pub mod coarse_space;
 pub mod irls;
 pub mod multigrid;
 pub mod noise_model;

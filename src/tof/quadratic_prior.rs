@@ -69,6 +69,11 @@ impl PatchGrid {
         let step = self.height / self.rows.len();
         (y / step.max(1)).min(self.rows.len() - 1)
     }
+    /// Patch column containing image column `x`.
+    pub fn patch_col_of(&self, x: usize) -> usize {
+        let step = self.width / self.cols.len();
+        (x / step.max(1)).min(self.cols.len() - 1)
+    }
     /// Image width.
     pub fn width(&self) -> usize {
         self.width
@@ -248,6 +253,16 @@ impl QuadraticPrior {
     /// With [`QuadraticPrior::add_scaled_row`] this applies the orthogonal projection P onto
     /// per-patch quadratics, which the joint x-step needs inside every CG iteration.
     pub fn fit_into(&self, x: &[f64], row_sums: &mut [[f64; 3]], coeffs: &mut [[f64; 6]]) {
+        self.moments_into(x, row_sums, coeffs);
+        for (c, l) in coeffs.iter_mut().zip(&self.gram_chol) {
+            *c = cholesky6_solve(l, c);
+        }
+    }
+
+    /// Every patch's moments `Uᵀ x` (the right-hand side of its least-squares fit) into
+    /// `moments`; `row_sums` is scratch from [`QuadraticPrior::scratch`]. With the patches'
+    /// basis functions as the columns of a matrix Z (one 6-column block per patch), this is Zᵀx.
+    pub fn moments_into(&self, x: &[f64], row_sums: &mut [[f64; 3]], moments: &mut [[f64; 6]]) {
         let w = self.grid.width;
         let pxn = self.grid.patches_x();
         let cols = &self.grid.cols;
@@ -282,10 +297,73 @@ impl QuadraticPrior {
                     rhs[4] += v * s0;
                     rhs[5] += s0;
                 }
-                let k = py * pxn + px;
-                coeffs[k] = cholesky6_solve(&self.gram_chol[k], &rhs);
+                moments[py * pxn + px] = rhs;
             }
         }
+    }
+
+    /// Basis vector U at pixel (`x`, `y`) in its patch's normalised coordinates, and that
+    /// patch's index (row-major).
+    #[inline]
+    pub fn basis_at(&self, x: usize, y: usize) -> (usize, [f64; 6]) {
+        let (px, py) = (self.grid.patch_col_of(x), self.grid.patch_row_of(y));
+        (
+            py * self.grid.patches_x() + px,
+            basis(self.col_norm[px].at(x), self.row_norm[py].at(y)),
+        )
+    }
+
+    /// Every patch's weighted Gram matrix Σᵢ (wᵢ + `ridge`) Uᵢ Uᵢᵀ over its pixels, i.e. the
+    /// diagonal blocks of Zᵀ diag(w + ridge) Z. Each entry is a moment Σ w·uᵖ·v^q (p + q ≤ 4),
+    /// so per image row only the five sums Σ w·uᵖ are accumulated.
+    pub fn weighted_grams(&self, weights: &[f64], ridge: f64) -> Vec<[[f64; 6]; 6]> {
+        // Exponents (of u, of v) of the basis [u², uv, v², u, v, 1].
+        const EXP: [(usize, usize); 6] = [(2, 0), (1, 1), (0, 2), (1, 0), (0, 1), (0, 0)];
+        let w = self.grid.width;
+        let pxn = self.grid.patches_x();
+        let (cols, col_norm) = (&self.grid.cols, &self.col_norm);
+        let mut row_sums = vec![[0.0; 5]; self.grid.height * pxn];
+        row_sums
+            .par_chunks_mut(pxn)
+            .zip(weights.par_chunks(w))
+            .for_each(|(sums, row)| {
+                for (px, &(x0, x1)) in cols.iter().enumerate() {
+                    let mut s = [0.0; 5];
+                    for (i, &wi) in row[x0..x1].iter().enumerate() {
+                        let u = col_norm[px].at(x0 + i);
+                        let wi = wi + ridge;
+                        let u2 = u * u;
+                        s[0] += wi;
+                        s[1] += wi * u;
+                        s[2] += wi * u2;
+                        s[3] += wi * u2 * u;
+                        s[4] += wi * u2 * u2;
+                    }
+                    sums[px] = s;
+                }
+            });
+        let mut grams = vec![[[0.0; 6]; 6]; self.grid.count()];
+        for (py, &(y0, y1)) in self.grid.rows.iter().enumerate() {
+            for px in 0..pxn {
+                let g = &mut grams[py * pxn + px];
+                for y in y0..y1 {
+                    let v = self.row_norm[py].at(y);
+                    let vp = [1.0, v, v * v, v * v * v, v * v * v * v];
+                    let s = &row_sums[y * pxn + px];
+                    for r in 0..6 {
+                        for c in 0..=r {
+                            g[r][c] += vp[EXP[r].1 + EXP[c].1] * s[EXP[r].0 + EXP[c].0];
+                        }
+                    }
+                }
+                for r in 0..6 {
+                    for c in 0..r {
+                        g[c][r] = g[r][c];
+                    }
+                }
+            }
+        }
+        grams
     }
 
     /// `out[i] += scale·(U a_k)` along image row `y`, with `coeffs` one vector per patch (as from

@@ -26,6 +26,7 @@ use faer::sparse::{SparseColMat, Triplet};
 use faer::{MatMut, Side};
 use rayon::prelude::*;
 
+use super::coarse_space::{fixed_coarse_operator, CoarseSpace, FixedCoarseCache};
 use super::multigrid::Multigrid;
 use super::quadratic_prior::{PatchGrid, QuadraticPrior};
 use super::symmetry::RowMirror;
@@ -42,9 +43,14 @@ pub enum Preconditioner {
     /// Inverse diagonal. Iterations grow with √κ, and κ ≈ 8γ′₃/γ′₁ where W ≈ 0 (objects).
     Jacobi,
     /// One geometric multigrid V-cycle (see [`super::multigrid`]) on the operator without the
-    /// mirror's off-diagonal coupling: iterations nearly independent of κ and image size.
+    /// mirror's off-diagonal coupling: iterations nearly independent of κ and image size. In
+    /// the joint form the V-cycle keeps γ′₁ and is combined additively with a coarse-space
+    /// correction on the patch quadratics ([`super::coarse_space`]).
     #[default]
     Multigrid,
+    /// The V-cycle alone, without γ′₁ in the joint form (session 15–23's preconditioner, kept to
+    /// measure the coarse space against).
+    MultigridOnly,
 }
 
 /// How the x-step system is solved.
@@ -95,6 +101,8 @@ pub struct XStepSystem {
     mirror: RowMirror,
     /// The projection P of the joint form (its fitted coefficients are unused).
     joint: Option<Box<QuadraticPrior>>,
+    /// The weight-independent part of the joint form's coarse operator.
+    coarse_fixed: FixedCoarseCache,
 }
 
 /// Share of γ′₁ kept in the multigrid preconditioner's mass term in the joint form. The joint
@@ -112,6 +120,7 @@ impl XStepSystem {
             gamma,
             mirror,
             joint: None,
+            coarse_fixed: FixedCoarseCache::default(),
         }
     }
 
@@ -125,12 +134,35 @@ impl XStepSystem {
             ));
         }
         self.joint = Some(Box::new(QuadraticPrior::new(grid)?));
+        self.coarse_fixed = FixedCoarseCache::default();
         Ok(self)
     }
 
     /// True in the joint form.
     pub fn is_joint(&self) -> bool {
         self.joint.is_some()
+    }
+
+    /// The joint form's coarse space for `weights` (rebuilding `slot` when it belongs to another
+    /// system); `None` in the alternating form.
+    fn coarse_space<'a>(
+        &self,
+        weights: &[f64],
+        slot: &'a mut Option<Box<CoarseSpace>>,
+    ) -> Result<Option<&'a mut CoarseSpace>> {
+        let Some(q) = &self.joint else {
+            return Ok(None);
+        };
+        let paired_coef = 2.0 * self.gamma[1];
+        let fixed = self
+            .coarse_fixed
+            .get_or_init(|| fixed_coarse_operator(q, self.gamma[2], paired_coef, &self.mirror));
+        if !slot.as_ref().is_some_and(|c| c.serves(&fixed)) {
+            *slot = Some(Box::new(CoarseSpace::new(q, fixed)));
+        }
+        let cs = slot.as_mut().map(|b| &mut **b).expect("just set");
+        cs.set_weights(q, weights, RIDGE)?;
+        Ok(Some(cs))
     }
 
     /// P x's patch coefficients into `coeffs` (joint form only; a no-op otherwise).
@@ -340,6 +372,7 @@ pub struct PcgWorkspace {
     row_a: Vec<f64>,
     row_b: Vec<f64>,
     mg: Option<Box<Multigrid>>,
+    coarse: Option<Box<CoarseSpace>>,
     /// Scratch of the joint form's projection.
     proj_sums: Vec<[f64; 3]>,
     proj_coeffs: Vec<[f64; 6]>,
@@ -401,12 +434,13 @@ pub fn solve_pcg(
         return Ok(SolveStats::default());
     }
     let target = rel_tol * bnorm;
+    let mut coarse = None;
     match preconditioner {
         Preconditioner::Jacobi => {
             sys.diagonal(weights, &mut ws.inv_diag);
             ws.inv_diag.par_iter_mut().for_each(|d| *d = 1.0 / *d);
         }
-        Preconditioner::Multigrid => {
+        Preconditioner::Multigrid | Preconditioner::MultigridOnly => {
             if ws
                 .mg
                 .as_ref()
@@ -417,13 +451,16 @@ pub fn solve_pcg(
             let mg = ws.mg.get_or_insert_with(|| {
                 Box::new(Multigrid::new(sys.width, sys.height, sys.gamma[2]))
             });
-            let share = if sys.is_joint() {
+            let share = if sys.is_joint() && preconditioner == Preconditioner::MultigridOnly {
                 JOINT_MASS_SHARE
             } else {
                 1.0
             };
             let base = share * sys.gamma[0] + RIDGE;
             mg.set_mass(|i| weights[i] + base + sys.pair_coef(i / w));
+            if preconditioner == Preconditioner::Multigrid {
+                coarse = sys.coarse_space(weights, &mut ws.coarse)?;
+            }
         }
     }
     let PcgWorkspace {
@@ -437,6 +474,7 @@ pub fn solve_pcg(
         mg,
         proj_sums,
         proj_coeffs,
+        ..
     } = ws;
     sys.apply_with(weights, x, q, proj_sums, proj_coeffs);
     let mut precondition = |r: &[f64], z: &mut [f64]| match preconditioner {
@@ -445,11 +483,14 @@ pub fn solve_pcg(
             .zip(r.par_iter().zip(inv_diag.par_iter()))
             .for_each(|(zi, (ri, di))| *zi = ri * di),
         // Set up above whenever the multigrid preconditioner is selected.
-        Preconditioner::Multigrid => {
+        Preconditioner::Multigrid | Preconditioner::MultigridOnly => {
             if let Some(mg) = mg.as_mut() {
                 mg.apply(r, z)
             } else {
                 z.copy_from_slice(r)
+            }
+            if let (Some(cs), Some(prior)) = (coarse.as_mut(), sys.joint.as_deref()) {
+                cs.add_correction(prior, r, z);
             }
         }
     };
@@ -538,6 +579,7 @@ impl std::fmt::Debug for CholeskyXSolver {
 impl CholeskyXSolver {
     /// Assembles the lower triangle and runs the symbolic analysis (fill-reducing ordering).
     pub fn new(sys: &XStepSystem) -> Result<Self> {
+        crate::faer_threads::sequential_faer();
         if sys.is_joint() {
             return Err(MurkError::invalid(
                 "solver",
@@ -850,7 +892,11 @@ mod tests {
         }
         let reference = dense_solve(a, b.clone());
         let scale = reference.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-        for preconditioner in [Preconditioner::Jacobi, Preconditioner::Multigrid] {
+        for preconditioner in [
+            Preconditioner::Jacobi,
+            Preconditioner::Multigrid,
+            Preconditioner::MultigridOnly,
+        ] {
             let kind = XStepSolver::Pcg {
                 rel_tol: 1e-12,
                 max_iterations: 10_000,
@@ -869,6 +915,60 @@ mod tests {
             }
         }
         assert!(XStepState::new(XStepSolver::SparseCholesky, &sys).is_err());
+    }
+
+    /// A near object that leaves whole patches without data (W = 0) is where the V-cycle alone
+    /// is a poor preconditioner of the joint form (see `coarse_space`): with the coarse space
+    /// CG needs at least a third fewer iterations for the same solution.
+    #[test]
+    fn coarse_space_speeds_up_the_joint_solve_under_a_large_object() {
+        let (w, h) = (128, 106);
+        let s = w as f64 / 512.0;
+        let g = [0.1, 0.1, 10.0 * s * s];
+        let sys = XStepSystem::new(w, h, g, RowMirror::new(h, 52.0))
+            .with_joint_prior(PatchGrid::new(w, h, 4, 4))
+            .unwrap();
+        let object = |x: usize, y: usize| (30..100).contains(&x) && (20..90).contains(&y);
+        let weights: Vec<f64> = (0..w * h)
+            .map(|i| if object(i % w, i / w) { 0.0 } else { 1.0 })
+            .collect();
+        // Observation: a smooth scatter field with a bright object on it; the warm start is the
+        // observation itself, as at the first IRLS iteration that rejects the object.
+        let observed: Vec<f64> = (0..w * h)
+            .map(|i| {
+                let (x, y) = ((i % w) as f64 / w as f64, (i / w) as f64 / h as f64);
+                let scatter = 50.0 + 30.0 * x - 20.0 * y * y + 5.0 * (3.0 * x).sin();
+                scatter + if object(i % w, i / w) { 300.0 } else { 0.0 }
+            })
+            .collect();
+        let mut b = vec![0.0; w * h];
+        sys.rhs(&weights, &observed, &vec![0.0; w * h], &mut b);
+        let solve = |preconditioner| {
+            let kind = XStepSolver::Pcg {
+                rel_tol: 1e-8,
+                max_iterations: 1000,
+                preconditioner,
+            };
+            let mut state = XStepState::new(kind, &sys).unwrap();
+            let mut x = observed.clone();
+            let stats = state
+                .solve(&sys, &weights, &b, &mut x, &Monitor::noop())
+                .unwrap();
+            (x, stats.iterations)
+        };
+        let (with, its_with) = solve(Preconditioner::Multigrid);
+        let (without, its_without) = solve(Preconditioner::MultigridOnly);
+        let diff = with
+            .iter()
+            .zip(&without)
+            .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+        assert!(diff < 1e-3, "solutions differ by {diff}");
+        // 28 against 50 when written.
+        assert!(
+            3 * its_with <= 2 * its_without,
+            "coarse space {its_with} CG iterations, V-cycle alone {its_without}"
+        );
+        eprintln!("coarse space {its_with} CG iterations, V-cycle alone {its_without}");
     }
 
     #[test]
