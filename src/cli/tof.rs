@@ -43,7 +43,7 @@ pub struct TofArgs {
     /// intrinsics, range is solved exactly for the emitter's offset from the lens.
     #[arg(long)]
     pub light_position_m: Option<String>,
-    /// Fine IRLS iterations (default: the reference's 50).
+    /// Cap on the fine IRLS iterations (default 150; the reference's is 50).
     #[arg(long)]
     pub fine_iterations: Option<u32>,
     /// Coarse IRLS iterations (default: the reference's 5).

@@ -126,7 +126,9 @@ class TofOptions(_message.Message):
     symmetry_row: _builtins.float
     """Row about which the vertical-symmetry prior mirrors the image (pixels)."""
     coarse_iterations: _builtins.int
-    """IRLS iterations at the coarse (patch-wise) and fine (pixel-wise) level; default 5 and 50."""
+    """IRLS iterations at the coarse (patch-wise) and fine (pixel-wise) level; default 5 and 150
+    (caps: a level stops once its weights settle).
+    """
     fine_iterations: _builtins.int
     mask_threshold: _builtins.float
     """IRLS weight below which a pixel counts as object, in (0, 1); default 0.5."""
