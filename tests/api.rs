@@ -98,6 +98,7 @@ async fn submit_watch_result_then_identical_resubmit_is_a_cache_hit() {
     assert!(r.raw_z_depth_m.is_some(), "intrinsics given → raw z-depth");
     let std = r.range_std_m.as_ref().expect("range uncertainty");
     assert_eq!((std.width, std.height), (64, 53));
+    assert!(r.warnings.is_empty(), "converged: {:?}", r.warnings);
 
     let executed = server.manager().executed();
     let again = c.submit_job(req).await.unwrap().into_inner();
@@ -118,6 +119,21 @@ async fn submit_watch_result_then_identical_resubmit_is_a_cache_hit() {
         .into_inner();
     assert_eq!(unary.range_m.unwrap().width, 64);
     assert_eq!(server.manager().executed(), executed);
+
+    // A fine level cut off by its cap reaches the client as a warning.
+    let mut capped = tof_request(64, 53, 3);
+    capped.options = Some(pb::TofOptions {
+        fine_iterations: Some(2),
+        ..Default::default()
+    });
+    let r = recon(&server).tof_depth(capped).await.unwrap().into_inner();
+    assert!(
+        r.warnings
+            .iter()
+            .any(|w| w.contains("fine level stopped at its cap of 2")),
+        "{:?}",
+        r.warnings
+    );
 
     let list = c
         .list_jobs(pb::ListJobsRequest {

@@ -136,6 +136,9 @@ pub fn run(a: TofArgs) -> anyhow::Result<()> {
         if job.cached { " (cached)" } else { "" },
         a.out.display()
     );
+    for w in &r.warnings {
+        println!("warning: {w}");
+    }
     Ok(())
 }
 

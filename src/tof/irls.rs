@@ -117,6 +117,9 @@ pub struct IrlsOutcome {
     /// Coarse blocks the held-out check rejected after the coarse level (see
     /// [`HELD_OUT_ROUNDS`]).
     pub held_out_rejected: usize,
+    /// False when the fine level ran its cap of iterations without its weights settling (with
+    /// the convergence test on and at least one fine iteration): the mask may still be moving.
+    pub fine_converged: bool,
 }
 
 /// Rounds of the held-out check that follows the coarse level. Algorithm 2 starts from "no
@@ -453,6 +456,7 @@ pub fn run_irls_vector(
     let coarse_inlier: Vec<bool> = weights.iter().map(|&w| w >= 0.5).collect();
     let mut prev_weights = vec![0.0; n];
     let mut conv = Convergence::new();
+    let mut fine_converged = cfg.fine_iterations == 0 || cfg.weight_tolerance <= 0.0;
     for it in 0..cfg.fine_iterations {
         monitor.checkpoint()?;
         cg_iterations += x_and_a_steps(&weights, &mut x, &mut prior_img, priors, conv.tol_scale())?;
@@ -496,6 +500,7 @@ pub fn run_irls_vector(
         // step.
         let (dw, flipped) = weight_change(&prev_weights, &weights, cfg.mask_threshold);
         if it > 0 && conv.update(dw, flipped, cfg.weight_tolerance) {
+            fine_converged = true;
             break;
         }
     }
@@ -514,6 +519,7 @@ pub fn run_irls_vector(
         coarse_iterations_run: coarse_run,
         fine_iterations_run: fine_run,
         held_out_rejected,
+        fine_converged,
     })
 }
 

@@ -478,6 +478,9 @@ pub struct TofOutput {
     pub corrected_amplitude: ImageF32,
     /// Direct phase φ_d (Eq. 5.9), radians in [0, 2π).
     pub corrected_phase: ImageF32,
+    /// Sentences for the caller: an IRLS whose fine level stopped at its iteration cap before
+    /// converging. Empty when the estimate converged.
+    pub warnings: Vec<String>,
 }
 
 #[cfg(test)]

@@ -139,6 +139,10 @@ pub fn estimate_tof_depth_with_solver(
                 || run(&[&o2], None, params.phase, "tof.phase"),
             );
             let (ra, rp) = (ra?, rp?);
+            let warnings = [("amplitude", &ra), ("phase", &rp)]
+                .into_iter()
+                .filter_map(|(name, r)| not_converged_warning(name, r))
+                .collect();
             let mut ra_scatter = ra.scatter;
             let mut rp_scatter = rp.scatter;
             let (sa, sp) = (ra_scatter.swap_remove(0), rp_scatter.swap_remove(0));
@@ -172,10 +176,12 @@ pub fn estimate_tof_depth_with_solver(
                 weight_amplitude: ra.weights,
                 weight_phase: rp.weights,
                 noise,
+                warnings,
             }
         }
         ScatterChannels::Phasor => {
             let r = run(&[&o1, &o2], noise, params.phasor, "tof.phasor")?;
+            let warnings = not_converged_warning("phasor", &r).into_iter().collect();
             let mut sc = r.scatter;
             let scatter_im = sc.pop().unwrap_or_default();
             let scatter_re = sc.pop().unwrap_or_default();
@@ -188,6 +194,7 @@ pub fn estimate_tof_depth_with_solver(
                 weight_amplitude: r.weights.clone(),
                 weight_phase: r.weights,
                 noise,
+                warnings,
             }
         }
     };
@@ -210,6 +217,23 @@ struct ScatterEstimate {
     weight_phase: Vec<f64>,
     /// The frame's noise model (`None` for frames too small to fit one).
     noise: Option<NoiseModel>,
+    /// What the caller should know about the estimate (see [`TofOutput::warnings`]).
+    warnings: Vec<String>,
+}
+
+/// A sentence when the IRLS of `channel` stopped at its cap of fine iterations with the weights
+/// still moving: the mask and the scatter under it may be incomplete, and more iterations may
+/// change them (on cluttered thick seed 1 at 512×424 the level converges only after about 105
+/// iterations, 40 mm → 25 mm; docs/ACCURACY.md).
+fn not_converged_warning(channel: &str, r: &IrlsOutcome) -> Option<String> {
+    (!r.fine_converged).then(|| {
+        format!(
+            "{channel} IRLS: the fine level stopped at its cap of {} iterations before its \
+             weights settled; the object mask and the scatter under it may be incomplete \
+             (raise fine_iterations)",
+            r.fine_iterations_run
+        )
+    })
 }
 
 /// Range along the ray (metres) of a phase (radians): Eq. 5.2, c·φ/(4πf).
@@ -337,6 +361,7 @@ fn compose(input: &TofInput, params: &TofParams, est: &ScatterEstimate) -> Resul
         weight_phase: image(w, h, to_f32(&est.weight_phase))?,
         corrected_amplitude: image(w, h, alpha_d)?,
         corrected_phase: image(w, h, phi_d)?,
+        warnings: est.warnings.clone(),
     })
 }
 
@@ -525,6 +550,48 @@ mod tests {
         let i = 18 * W + 22;
         assert!((out.range_m.data()[i] as f64 - expect_m).abs() < 0.05);
         assert!((out.raw_range_m.data()[i] as f64 - expect_m).abs() > 0.01);
+        assert!(out.warnings.is_empty(), "{:?}", out.warnings);
+    }
+
+    /// A fine level cut off by its cap says so; one that converges, or runs with the
+    /// convergence test off (the caller asked for exactly that many), does not.
+    #[test]
+    fn a_fine_level_stopped_at_its_cap_is_reported() {
+        let (input, _, _) = scene(true, 11);
+        let capped = TofParams {
+            fine_iterations: 2,
+            ..fast_params()
+        };
+        let out = estimate_tof_depth(&input, &capped, &Monitor::noop()).unwrap();
+        assert_eq!(out.warnings.len(), 1, "{:?}", out.warnings);
+        let w = &out.warnings[0];
+        assert!(
+            w.starts_with("phasor IRLS: the fine level stopped at its cap of 2"),
+            "{w}"
+        );
+        assert!(
+            w.contains("raise fine_iterations") && !w.contains("  "),
+            "{w}"
+        );
+
+        let both = TofParams {
+            channels: ScatterChannels::AmplitudePhase,
+            ..capped.clone()
+        };
+        let out = estimate_tof_depth(&input, &both, &Monitor::noop()).unwrap();
+        assert_eq!(out.warnings.len(), 2, "{:?}", out.warnings);
+        assert!(
+            out.warnings[1].starts_with("phase IRLS"),
+            "{:?}",
+            out.warnings
+        );
+
+        let untested = TofParams {
+            convergence_tolerance: 0.0,
+            ..capped
+        };
+        let out = estimate_tof_depth(&input, &untested, &Monitor::noop()).unwrap();
+        assert!(out.warnings.is_empty(), "{:?}", out.warnings);
     }
 
     #[test]

@@ -190,5 +190,6 @@ pub fn tof_to_proto(out: &TofOutput) -> pb::TofDepthResult {
         corrected_amplitude: Some(image_to_proto(&out.corrected_amplitude)),
         corrected_phase: Some(image_to_proto(&out.corrected_phase)),
         range_std_m: Some(image_to_proto(&out.range_std_m)),
+        warnings: out.warnings.clone(),
     }
 }

@@ -38,6 +38,10 @@ class TofDepthResult:
     #: Direct component: amplitude and phase (radians).
     corrected_amplitude: FloatImage
     corrected_phase: FloatImage
+    #: What the caller should know about the estimate, one sentence each (e.g. an IRLS that
+    #: stopped at its iteration cap before converging); empty from servers before
+    #: murk-algorithms-16.
+    warnings: tuple[str, ...]
     job_id: str
     proto: tof_pb2.TofDepthResult
 
@@ -64,6 +68,7 @@ class TofDepthResult:
             weight_phase=from_proto(r.weight_phase, field=f"{f}.weight_phase"),
             corrected_amplitude=from_proto(r.corrected_amplitude, field=f"{f}.corrected_amplitude"),
             corrected_phase=from_proto(r.corrected_phase, field=f"{f}.corrected_phase"),
+            warnings=tuple(r.warnings),
             job_id=job_id,
             proto=r,
         )

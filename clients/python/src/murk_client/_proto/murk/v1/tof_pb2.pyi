@@ -3,8 +3,10 @@
 isort:skip_file
 """
 
+from collections import abc as _abc
 from google.protobuf import descriptor as _descriptor
 from google.protobuf import message as _message
+from google.protobuf.internal import containers as _containers
 from google.protobuf.internal import enum_type_wrapper as _enum_type_wrapper
 from murk_client._proto.murk.v1 import common_pb2 as _common_pb2
 import builtins as _builtins
@@ -336,6 +338,7 @@ class TofDepthResult(_message.Message):
     CORRECTED_PHASE_FIELD_NUMBER: _builtins.int
     RAW_Z_DEPTH_M_FIELD_NUMBER: _builtins.int
     RANGE_STD_M_FIELD_NUMBER: _builtins.int
+    WARNINGS_FIELD_NUMBER: _builtins.int
     @_builtins.property
     def range_m(self) -> _common_pb2.Image:
         """Corrected range along the viewing ray, metres."""
@@ -384,6 +387,12 @@ class TofDepthResult(_message.Message):
         no better than the raw one.
         """
 
+    @_builtins.property
+    def warnings(self) -> _containers.RepeatedScalarFieldContainer[_builtins.str]:
+        """Sentences for the caller, e.g. an IRLS whose fine level stopped at its iteration cap before
+        its weights settled (the mask may be incomplete; raise fine_iterations). Empty when none.
+        """
+
     def __init__(
         self,
         *,
@@ -399,10 +408,11 @@ class TofDepthResult(_message.Message):
         corrected_phase: _common_pb2.Image | None = ...,
         raw_z_depth_m: _common_pb2.Image | None = ...,
         range_std_m: _common_pb2.Image | None = ...,
+        warnings: _abc.Iterable[_builtins.str] | None = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["corrected_amplitude", b"corrected_amplitude", "corrected_phase", b"corrected_phase", "mask", b"mask", "range_m", b"range_m", "range_std_m", b"range_std_m", "raw_range_m", b"raw_range_m", "raw_z_depth_m", b"raw_z_depth_m", "scatter_amplitude", b"scatter_amplitude", "scatter_phase", b"scatter_phase", "weight_amplitude", b"weight_amplitude", "weight_phase", b"weight_phase", "z_depth_m", b"z_depth_m"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["corrected_amplitude", b"corrected_amplitude", "corrected_phase", b"corrected_phase", "mask", b"mask", "range_m", b"range_m", "range_std_m", b"range_std_m", "raw_range_m", b"raw_range_m", "raw_z_depth_m", b"raw_z_depth_m", "scatter_amplitude", b"scatter_amplitude", "scatter_phase", b"scatter_phase", "weight_amplitude", b"weight_amplitude", "weight_phase", b"weight_phase", "z_depth_m", b"z_depth_m"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["corrected_amplitude", b"corrected_amplitude", "corrected_phase", b"corrected_phase", "mask", b"mask", "range_m", b"range_m", "range_std_m", b"range_std_m", "raw_range_m", b"raw_range_m", "raw_z_depth_m", b"raw_z_depth_m", "scatter_amplitude", b"scatter_amplitude", "scatter_phase", b"scatter_phase", "warnings", b"warnings", "weight_amplitude", b"weight_amplitude", "weight_phase", b"weight_phase", "z_depth_m", b"z_depth_m"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
