@@ -385,13 +385,7 @@ fn experiment_adaptive_scale() {
         let views = scene.hazy_views();
         let reference = views[scene.reference];
         let sources = nearest_sources(&views, scene.reference, 4);
-        let kind = CostKind::DehazingWith(
-            AtmosphereParams {
-                airlight: scene.airlight,
-                beta: scene.beta,
-            },
-            DehazingOptions::default(),
-        );
+        let kind = true_haze(&scene);
         let m = Monitor::noop();
         let zf = estimate_depth(&reference, &sources, &planes, kind, &fine_p, &m)
             .unwrap()
@@ -551,13 +545,7 @@ fn experiment_contrast_weight() {
         let kind = if clear {
             CostKind::Ordinary
         } else {
-            CostKind::DehazingWith(
-                AtmosphereParams {
-                    airlight: scene.airlight,
-                    beta: scene.beta,
-                },
-                DehazingOptions::default(),
-            )
+            true_haze(&scene)
         };
         let volume =
             build_cost_volume(&reference, &sources, &planes, kind, &Monitor::noop()).unwrap();
@@ -591,13 +579,7 @@ fn experiment_contrast_weight() {
 fn depth_of(scene: &MvsScene, planes: &PlaneSet, sgm: &SgmParams) -> crate::mvs::DepthResult {
     let views: Vec<View<'_>> = scene.hazy_views();
     let sources = nearest_sources(&views, scene.reference, 1);
-    let kind = CostKind::DehazingWith(
-        AtmosphereParams {
-            airlight: scene.airlight,
-            beta: scene.beta,
-        },
-        DehazingOptions::default(),
-    );
+    let kind = true_haze(scene);
     estimate_depth(
         &views[scene.reference],
         &sources,
@@ -607,6 +589,39 @@ fn depth_of(scene: &MvsScene, planes: &PlaneSet, sgm: &SgmParams) -> crate::mvs:
         &Monitor::noop(),
     )
     .unwrap()
+}
+
+/// The dehazing volume with `scene`'s true A and β and the default options.
+pub(crate) fn true_haze(scene: &MvsScene) -> CostKind {
+    CostKind::DehazingWith(
+        AtmosphereParams {
+            airlight: scene.airlight,
+            beta: scene.beta,
+        },
+        DehazingOptions::default(),
+    )
+}
+
+/// The three depths a compensation test compares: the clean scene's and the `changed` scene's
+/// with the defaults, and the `changed` scene's with `off` (the compensation under test
+/// disabled); with each one's C.P. against the clean ground truth.
+fn clean_compensated_off(
+    clean: &MvsScene,
+    changed: &MvsScene,
+    planes: &PlaneSet,
+    off: SgmParams,
+) -> [(crate::mvs::DepthResult, f64); 3] {
+    let gt = &clean.views[clean.reference].depth;
+    [
+        (clean, SgmParams::default()),
+        (changed, SgmParams::default()),
+        (changed, off),
+    ]
+    .map(|(scene, sgm)| {
+        let d = depth_of(scene, planes, &sgm);
+        let c_p = depth_metrics(&d.z_depth, gt, None).unwrap().c_p;
+        (d, c_p)
+    })
 }
 
 /// The simulator's 160×120 rectified pair (seed 3) and 64 planes over z 1.5…15.
@@ -682,14 +697,11 @@ fn a_brighter_source_camera_is_compensated() {
     for v in brighter.views[source].hazy.data_mut() {
         *v *= 1.06;
     }
-    let gt = &equal.views[equal.reference].depth;
-    let c_p = |d: &crate::mvs::DepthResult| depth_metrics(&d.z_depth, gt, None).unwrap().c_p;
-    let base = depth_of(&equal, &planes, &SgmParams::default());
-    let on = depth_of(&brighter, &planes, &SgmParams::default());
-    let off = depth_of(
+    let [(base, cp_base), (on, cp_on), (off, cp_off)] = clean_compensated_off(
+        &equal,
         &brighter,
         &planes,
-        &SgmParams {
+        SgmParams {
             exposure_compensation: false,
             ..SgmParams::default()
         },
@@ -698,9 +710,9 @@ fn a_brighter_source_camera_is_compensated() {
         "gains: equal {:?}, brighter {:?}; C.P. equal {:.1} %, brighter compensated {:.1} %, not compensated {:.1} %",
         base.source_gains,
         on.source_gains,
-        100.0 * c_p(&base),
-        100.0 * c_p(&on),
-        100.0 * c_p(&off)
+        100.0 * cp_base,
+        100.0 * cp_on,
+        100.0 * cp_off
     );
     // One gain per channel of the one source.
     assert_eq!(base.source_gains, vec![1.0; 3], "within the dead band");
@@ -708,8 +720,8 @@ fn a_brighter_source_camera_is_compensated() {
         assert!((g - 1.06).abs() < 0.005, "{:?}", on.source_gains);
     }
     assert_eq!(off.source_gains, vec![1.0; 3]);
-    assert!(c_p(&on) >= c_p(&base) - 0.01);
-    assert!(c_p(&off) < c_p(&base) - 0.1);
+    assert!(cp_on >= cp_base - 0.01);
+    assert!(cp_off < cp_base - 0.1);
 }
 
 /// Depth in strips (a memory budget far below the volume: 8 strips of 15 rows) agrees with the
@@ -804,14 +816,11 @@ fn census_term_survives_vignetting() {
 #[test]
 fn a_shared_lens_falloff_is_compensated() {
     let (clean, vignetted, planes) = vignetted_pair(-0.3);
-    let gt = &clean.views[clean.reference].depth;
-    let c_p = |d: &crate::mvs::DepthResult| depth_metrics(&d.z_depth, gt, None).unwrap().c_p;
-    let clean_depth = depth_of(&clean, &planes, &SgmParams::default());
-    let on = depth_of(&vignetted, &planes, &SgmParams::default());
-    let off = depth_of(
+    let [(clean_depth, cp_clean), (on, cp_on), (off, cp_off)] = clean_compensated_off(
+        &clean,
         &vignetted,
         &planes,
-        &SgmParams {
+        SgmParams {
             vignetting_compensation: false,
             ..SgmParams::default()
         },
@@ -820,9 +829,9 @@ fn a_shared_lens_falloff_is_compensated() {
         "fall-off found {:.4} (clean {:.4}); C.P. clean {:.1} %, compensated {:.1} %, not {:.1} %; gains {:?}",
         on.vignetting_falloff,
         clean_depth.vignetting_falloff,
-        100.0 * c_p(&clean_depth),
-        100.0 * c_p(&on),
-        100.0 * c_p(&off),
+        100.0 * cp_clean,
+        100.0 * cp_on,
+        100.0 * cp_off,
         on.source_gains
     );
     assert!(
@@ -832,8 +841,8 @@ fn a_shared_lens_falloff_is_compensated() {
     );
     assert_eq!(clean_depth.vignetting_falloff, 0.0);
     assert_eq!(off.vignetting_falloff, 0.0);
-    assert!(c_p(&on) >= c_p(&clean_depth) - 0.01);
-    assert!(c_p(&off) < c_p(&clean_depth) - 0.1);
+    assert!(cp_on >= cp_clean - 0.01);
+    assert!(cp_off < cp_clean - 0.1);
 }
 
 /// Only the source's lens vignettes (−0.3, on top of a 4 % gain): its fall-off relative to the
@@ -848,14 +857,11 @@ fn a_source_lens_that_differs_is_compensated() {
     let recorded = crate::mvs::depth::vignetting::vignette(&clean.views[source].hazy, -0.3);
     vignetted.views[source].hazy =
         crate::mvs::depth::exposure::compensate(&recorded, &[1.0 / 1.04; 3]);
-    let gt = &clean.views[clean.reference].depth;
-    let c_p = |d: &crate::mvs::DepthResult| depth_metrics(&d.z_depth, gt, None).unwrap().c_p;
-    let clean_depth = depth_of(&clean, &planes, &SgmParams::default());
-    let on = depth_of(&vignetted, &planes, &SgmParams::default());
-    let shared_only = depth_of(
+    let [(clean_depth, cp_clean), (on, cp_on), (shared_only, cp_shared)] = clean_compensated_off(
+        &clean,
         &vignetted,
         &planes,
-        &SgmParams {
+        SgmParams {
             exposure_compensation: false,
             ..SgmParams::default()
         },
@@ -867,9 +873,9 @@ fn a_source_lens_that_differs_is_compensated() {
         clean_depth.source_falloffs,
         on.source_gains,
         on.vignetting_falloff,
-        100.0 * c_p(&clean_depth),
-        100.0 * c_p(&on),
-        100.0 * c_p(&shared_only),
+        100.0 * cp_clean,
+        100.0 * cp_on,
+        100.0 * cp_shared,
     );
     assert_eq!(on.source_falloffs.len(), 1);
     assert!((on.source_falloffs[0] + 0.3).abs() < 0.03, "{on:?}");
@@ -878,8 +884,8 @@ fn a_source_lens_that_differs_is_compensated() {
     }
     assert_eq!(clean_depth.source_falloffs, vec![0.0]);
     assert_eq!(shared_only.source_falloffs, vec![0.0]);
-    assert!(c_p(&on) >= c_p(&clean_depth) - 0.01);
-    assert!(c_p(&shared_only) < c_p(&clean_depth) - 0.1);
+    assert!(cp_on >= cp_clean - 0.01);
+    assert!(cp_shared < cp_clean - 0.1);
 }
 
 /// A source 2.5 times brighter than the reference is beyond the gain search's range: the gain
@@ -935,13 +941,7 @@ fn measure_falloff_by_motion() {
                 let kind = if ordinary {
                     CostKind::Ordinary
                 } else {
-                    CostKind::DehazingWith(
-                        AtmosphereParams {
-                            airlight: scene.airlight,
-                            beta: scene.beta,
-                        },
-                        DehazingOptions::default(),
-                    )
+                    true_haze(&scene)
                 };
                 let run = |on: bool| {
                     let sgm = SgmParams {

@@ -422,9 +422,7 @@ fn strips_partition_the_rows_within_the_budget() {
 #[test]
 #[ignore = "experiment (about a minute)"]
 fn experiment_forward_falloff() {
-    use crate::atmosphere::AtmosphereParams;
     use crate::monitor::Monitor;
-    use crate::mvs::cost_volume::DehazingOptions;
     use crate::simulate::mvs::{simulate_mvs, MvsSimConfig};
     let seeds: Vec<u64> = (0..5).collect();
     for variant in [
@@ -488,13 +486,7 @@ fn experiment_forward_falloff() {
             let kind = if variant == "clear" {
                 CostKind::Ordinary
             } else {
-                CostKind::DehazingWith(
-                    AtmosphereParams {
-                        airlight: scene.airlight,
-                        beta: scene.beta,
-                    },
-                    DehazingOptions::default(),
-                )
+                crate::mvs::tests::true_haze(&scene)
             };
             let planes =
                 PlaneSet::new(1.5, 15.0, if variant == "planes512" { 512 } else { 256 }).unwrap();
