@@ -40,6 +40,18 @@ enum LogFormat {
 /// The log filter from `MURK_LOG` (or `default_level` when unset). A value that is not a
 /// filter is an error naming the problem rather than a silently empty log: `EnvFilter` would
 /// read a bare word such as `json` as "only the target `json`" and drop every murk line.
+/// Each source's corner brightness relative to the reference's (`1 + δ` for its relative
+/// fall-off δ), as "[0.750, 1.000]"; `None` when no source has one (all δ exactly 0).
+fn source_corners(falloffs: impl IntoIterator<Item = f64> + Clone) -> Option<String> {
+    falloffs.clone().into_iter().any(|d| d != 0.0).then(|| {
+        let d: Vec<String> = falloffs
+            .into_iter()
+            .map(|d| format!("{:.3}", 1.0 + d))
+            .collect();
+        format!("[{}]", d.join(", "))
+    })
+}
+
 fn log_filter(value: Option<&str>, default_level: &str) -> anyhow::Result<EnvFilter> {
     let Some(v) = value.filter(|v| !v.trim().is_empty()) else {
         return Ok(EnvFilter::new(default_level));
@@ -123,7 +135,16 @@ pub fn run() -> anyhow::Result<()> {
 
 #[cfg(test)]
 mod tests {
-    use super::log_filter;
+    use super::{log_filter, source_corners};
+
+    #[test]
+    fn source_corners_print_only_a_fall_off_that_was_applied() {
+        assert_eq!(source_corners([0.0, 0.0]), None);
+        assert_eq!(
+            source_corners([-0.25, 0.0]).as_deref(),
+            Some("[0.750, 1.000]")
+        );
+    }
 
     #[test]
     fn log_filters_are_checked() {

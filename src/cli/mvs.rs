@@ -243,16 +243,8 @@ pub fn run(a: MvsArgs) -> anyhow::Result<()> {
             1.0 + r.vignetting_falloff
         );
     }
-    if r.source_falloffs.iter().any(|&d| d != 0.0) {
-        let d: Vec<String> = r
-            .source_falloffs
-            .iter()
-            .map(|d| format!("{:.3}", 1.0 + d))
-            .collect();
-        println!(
-            "sources' own lens fall-off divided out: corners at [{}] of the reference's",
-            d.join(" ")
-        );
+    if let Some(c) = super::source_corners(r.source_falloffs.iter().map(|&d| f64::from(d))) {
+        println!("sources' own lens fall-off divided out: corners at {c} of the reference's");
     }
     if r.source_gains.iter().any(|&g| g != 1.0) {
         // One gain per channel of each source, source-major.

@@ -282,15 +282,9 @@ pub fn run(a: ParamsArgs) -> anyhow::Result<()> {
             j.rms_depth_difference,
             identifiability_text(j.identifiability)
         );
-        if j.source_falloffs.iter().any(|&d| d != 0.0) {
-            let d: Vec<String> = j
-                .source_falloffs
-                .iter()
-                .map(|d| format!("{:.3}", 1.0 + d))
-                .collect();
+        if let Some(c) = super::source_corners(j.source_falloffs.iter().copied()) {
             println!(
-                "joint fit: the sources' own lens fall-off, corners at [{}] of the reference's",
-                d.join(", ")
+                "joint fit: the sources' own lens fall-off, corners at {c} of the reference's"
             );
         }
     }

@@ -17,7 +17,9 @@
 //! its starting point (the bright observation) for hundreds of iterations; the joint minimiser
 //! instead extends the background's quadratics and smoothness under the object. Two solvers are provided: a matrix-free
 //! conjugate gradient warm-started from the previous iterate and preconditioned by a geometric
-//! multigrid V-cycle (the default; Jacobi is kept as the simple reference, see `XStepSolver`),
+//! multigrid V-cycle, in the joint form together with a coarse space of the patch quadratics
+//! (the default, [`super::coarse_space`]; Jacobi is kept as the simple reference, see
+//! `XStepSolver`),
 //! and a faer sparse Cholesky whose symbolic factorisation is computed once.
 
 use faer::linalg::solvers::Solve;
@@ -105,10 +107,12 @@ pub struct XStepSystem {
     coarse_fixed: FixedCoarseCache,
 }
 
-/// Share of γ′₁ kept in the multigrid preconditioner's mass term in the joint form. The joint
-/// operator's γ′₁(I − P) vanishes on patch quadratics, so preconditioning with the full γ′₁ (as
-/// for the alternating form) makes the smooth modes under objects look 10–100× stiffer than
-/// they are; dropping it leaves only W (≈ 0 there) and the Laplacian.
+/// Share of γ′₁ kept in the V-cycle's mass term in the joint form when the V-cycle preconditions
+/// alone ([`Preconditioner::MultigridOnly`]). The joint operator's γ′₁(I − P) vanishes on patch
+/// quadratics, so the full γ′₁ makes the quadratics under objects look 10–100× stiffer than they
+/// are; dropping it leaves only W (≈ 0 there) and the Laplacian, which makes every other smooth
+/// mode there too soft instead. The default preconditioner keeps the full γ′₁ and corrects the
+/// quadratics with the coarse space ([`super::coarse_space`]).
 const JOINT_MASS_SHARE: f64 = 0.0;
 
 impl XStepSystem {
@@ -153,10 +157,9 @@ impl XStepSystem {
         let Some(q) = &self.joint else {
             return Ok(None);
         };
-        let paired_coef = 2.0 * self.gamma[1];
-        let fixed = self
-            .coarse_fixed
-            .get_or_init(|| fixed_coarse_operator(q, self.gamma[2], paired_coef, &self.mirror));
+        let fixed = self.coarse_fixed.get_or_init(|| {
+            fixed_coarse_operator(q, self.gamma[2], self.pair_weight(), &self.mirror)
+        });
         if !slot.as_ref().is_some_and(|c| c.serves(&fixed)) {
             *slot = Some(Box::new(CoarseSpace::new(q, fixed)));
         }
@@ -205,10 +208,16 @@ impl XStepSystem {
     #[inline]
     fn pair_coef(&self, y: usize) -> f64 {
         if self.mirror.partner(y).is_some() {
-            2.0 * self.gamma[1]
+            self.pair_weight()
         } else {
             0.0
         }
+    }
+
+    /// Weight 2γ′₂ of the coupling between a pixel and its mirror partner (see `pair_coef`).
+    #[inline]
+    fn pair_weight(&self) -> f64 {
+        2.0 * self.gamma[1]
     }
 
     /// Right-hand side W x̃ + γ′₁ U a (W x̃ in the joint form, which ignores `prior`).
