@@ -12,6 +12,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use murk::params::airlight::train::{
     eval_seeds, evaluate, simulate_samples, train, training_seeds, EvalRow, TrainConfig, TrainEvent,
 };
+use murk::params::airlight::AirlightCnn;
 use murk::Monitor;
 
 /// What to train.
@@ -25,13 +26,17 @@ pub enum TrainCommand {
 #[derive(Args, Debug)]
 pub struct TrainAirlightArgs {
     /// Output weights file (burnpack, full precision), e.g. models/airlight_cnn.bpk.
-    #[arg(long)]
-    pub out: PathBuf,
+    #[arg(long, required_unless_present = "evaluate")]
+    pub out: Option<PathBuf>,
+    /// Train nothing: score these weights (a burnpack file, or `embedded` for the weights built
+    /// into murk) on the held-out scenes of the other settings.
+    #[arg(long, conflicts_with = "out")]
+    pub evaluate: Option<String>,
     /// Seed of the training scenes, initialisation and batch sampling (< 2^30).
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
     /// Optimiser steps.
-    #[arg(long, default_value_t = 2500)]
+    #[arg(long, default_value_t = 3000)]
     pub steps: usize,
     /// Images per batch.
     #[arg(long, default_value_t = 32)]
@@ -40,7 +45,7 @@ pub struct TrainAirlightArgs {
     #[arg(long, default_value_t = 1e-3)]
     pub lr: f64,
     /// Scenes in the training pool (two views each).
-    #[arg(long, default_value_t = 2500)]
+    #[arg(long, default_value_t = 4000)]
     pub pool_scenes: usize,
     /// Held-out scenes (one image each, seeds disjoint from training); 0 skips the evaluation.
     #[arg(long, default_value_t = 400)]
@@ -51,6 +56,17 @@ pub struct TrainAirlightArgs {
     /// Highest median transmission of the simulated haze.
     #[arg(long, default_value_t = 0.7)]
     pub t_max: f64,
+    /// Lowest airlight A of the simulated haze.
+    #[arg(long, default_value_t = 0.4)]
+    pub a_min: f32,
+    /// Highest airlight A of the simulated haze.
+    #[arg(long, default_value_t = 1.0)]
+    pub a_max: f32,
+    /// Every scene is the simulator's default room (before session 25: the committed weights of
+    /// sessions 6–24), instead of scenes that vary in brightness, furniture, field of view,
+    /// trajectory and noise.
+    #[arg(long)]
+    pub uniform_rooms: bool,
 }
 
 /// Runs a train subcommand.
@@ -81,10 +97,22 @@ fn train_airlight(a: &TrainAirlightArgs) -> anyhow::Result<()> {
         learning_rate: a.lr,
         pool_scenes: a.pool_scenes,
         transmission_range: [a.t_min, a.t_max],
+        airlight_range: [a.a_min, a.a_max],
+        varied_scenes: !a.uniform_rooms,
         ..TrainConfig::default()
     };
     cfg.validate().context("invalid training settings")?;
     let start = Instant::now();
+    if let Some(weights) = &a.evaluate {
+        let cnn = if weights == "embedded" {
+            AirlightCnn::embedded()?
+        } else {
+            let bytes = std::fs::read(weights).with_context(|| format!("reading {weights}"))?;
+            AirlightCnn::from_bytes(&bytes)?
+        };
+        return held_out(&cfg, &cnn, a.eval_scenes, start);
+    }
+    let out = a.out.as_ref().context("--out is required when training")?;
 
     let b = bar(cfg.pool_scenes as u64, "simulating");
     let pool = simulate_samples(&cfg, &training_seeds(&cfg), true, &|| b.inc(1))
@@ -121,25 +149,39 @@ fn train_airlight(a: &TrainAirlightArgs) -> anyhow::Result<()> {
         ema.unwrap_or(f32::NAN)
     );
 
-    if let Some(dir) = a.out.parent().filter(|d| !d.as_os_str().is_empty()) {
+    if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     }
     let bytes = cnn.save_bytes()?;
-    std::fs::write(&a.out, &bytes).with_context(|| format!("writing {}", a.out.display()))?;
+    std::fs::write(out, &bytes).with_context(|| format!("writing {}", out.display()))?;
     println!(
         "wrote {} ({} parameters, {:.1} MB)",
-        a.out.display(),
+        out.display(),
         cnn.num_params(),
         bytes.len() as f64 / 1e6
     );
+    held_out(&cfg, &cnn, a.eval_scenes, start)
+}
 
-    if a.eval_scenes > 0 {
-        let b = bar(a.eval_scenes as u64, "held-out");
-        let held_out = simulate_samples(&cfg, &eval_seeds(a.eval_scenes), false, &|| b.inc(1))
+/// Scores `cnn` on `scenes` held-out scenes of `cfg` (none: nothing) and prints the table.
+fn held_out(
+    cfg: &TrainConfig,
+    cnn: &AirlightCnn,
+    scenes: usize,
+    start: Instant,
+) -> anyhow::Result<()> {
+    if scenes > 0 {
+        let b = bar(scenes as u64, "held-out");
+        let held_out = simulate_samples(cfg, &eval_seeds(scenes), false, &|| b.inc(1))
             .context("simulating the held-out scenes")?;
         b.finish();
-        let rows = evaluate(&cnn, &held_out, &[[0.1, 0.3], [0.3, 0.5], [0.5, 0.7]])?;
-        print_eval(&rows);
+        let rows = evaluate(
+            cnn,
+            &held_out,
+            &[[0.1, 0.3], [0.3, 0.5], [0.5, 0.7]],
+            &[[0.4, 0.55], [0.55, 0.7], [0.7, 0.85], [0.85, 1.0]],
+        )?;
+        print_eval(cfg, &rows);
     }
     println!(
         "total wall time {:.1} min",
@@ -148,16 +190,26 @@ fn train_airlight(a: &TrainAirlightArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-fn print_eval(rows: &[EvalRow]) {
-    println!("held-out airlight error |Â − A| (A ~ U[0.7, 1.0]), CNN vs dark channel:");
+fn print_eval(cfg: &TrainConfig, rows: &[EvalRow]) {
     println!(
-        "{:>14} {:>6} {:>9} {:>9} {:>9} {:>9} {:>9} {:>9}",
-        "median t", "n", "MAE cnn", "MAE dc", "max cnn", "max dc", "bias cnn", "bias dc"
+        "held-out airlight error |Â − A| (A ~ U[{}, {}], {}), CNN vs dark channel:",
+        cfg.airlight_range[0],
+        cfg.airlight_range[1],
+        if cfg.varied_scenes {
+            "varied scenes"
+        } else {
+            "default rooms"
+        }
+    );
+    println!(
+        "{:>14} {:>14} {:>6} {:>9} {:>9} {:>9} {:>9} {:>9} {:>9}",
+        "median t", "A", "n", "MAE cnn", "MAE dc", "max cnn", "max dc", "bias cnn", "bias dc"
     );
     for r in rows {
         println!(
-            "{:>14} {:>6} {:>9.4} {:>9.4} {:>9.4} {:>9.4} {:>+9.4} {:>+9.4}",
+            "{:>14} {:>14} {:>6} {:>9.4} {:>9.4} {:>9.4} {:>9.4} {:>+9.4} {:>+9.4}",
             format!("[{:.2}, {:.2})", r.transmission[0], r.transmission[1]),
+            format!("[{:.2}, {:.2})", r.airlight[0], r.airlight[1]),
             r.count,
             r.mae_cnn,
             r.mae_dark_channel,

@@ -131,6 +131,10 @@ pub struct MvsSimConfig {
     pub point_stride_px: usize,
     /// Standard deviation of the noise on sparse 3D points, scene units.
     pub point_noise: f64,
+    /// Factor on every surface's albedo before the radiance is clipped to `[0.02, 0.98]`: how
+    /// bright the scene is against the airlight. 1 keeps the rooms as they were; above 1, lit
+    /// surfaces can be brighter than a dim airlight, as white walls are in real haze.
+    pub albedo_scale: f64,
 }
 
 impl Default for MvsSimConfig {
@@ -153,6 +157,7 @@ impl Default for MvsSimConfig {
             num_spheres: 2,
             point_stride_px: 8,
             point_noise: 0.005,
+            albedo_scale: 1.0,
         }
     }
 }
@@ -242,6 +247,12 @@ impl MvsSimConfig {
                     format!("need 0 < lo <= hi <= 100 per scene unit, got [{b0}, {b1}]"),
                 ));
             }
+        }
+        if !self.albedo_scale.is_finite() || !(0.05..=10.0).contains(&self.albedo_scale) {
+            return Err(bad(
+                "albedo_scale",
+                format!("must be in [0.05, 10], got {}", self.albedo_scale),
+            ));
         }
         if !self.noise_sigma.is_finite() || !(0.0..=0.5).contains(&self.noise_sigma) {
             return Err(bad(
@@ -577,8 +588,9 @@ impl World {
         best
     }
 
-    /// Lambertian radiance at the hit of a ray, RGB, clamped to `[0.02, 0.98]`.
-    fn radiance(&self, o: V3, d: V3, hit: &SurfaceHit) -> [f64; 3] {
+    /// Lambertian radiance at the hit of a ray, RGB, clamped to `[0.02, 0.98]`; the albedo is
+    /// scaled by `albedo_scale` ([`MvsSimConfig::albedo_scale`]).
+    fn radiance(&self, o: V3, d: V3, hit: &SurfaceHit, albedo_scale: f64) -> [f64; 3] {
         let p = [
             o[0] + hit.t * d[0],
             o[1] + hit.t * d[1],
@@ -588,7 +600,7 @@ impl World {
         let shade = 0.3 + 0.7 * dot(hit.normal, n).max(0.0);
         hit.material
             .albedo(p)
-            .map(|a| (a * shade).clamp(0.02, 0.98))
+            .map(|a| (a * albedo_scale * shade).clamp(0.02, 0.98))
     }
 }
 
@@ -683,7 +695,7 @@ fn render_view(world: &World, cfg: &MvsSimConfig, pose: &Pose) -> Result<(ImageF
                         let v = y as f64 + (sy as f64 + 0.5) / s as f64 - 0.5;
                         let (o, d, _) = world_ray(&k, &c2w, u, v);
                         let hit = world.cast(o, d);
-                        let r = world.radiance(o, d, &hit);
+                        let r = world.radiance(o, d, &hit, cfg.albedo_scale);
                         for c in 0..3 {
                             acc[c] += r[c];
                         }
@@ -1205,6 +1217,24 @@ mod tests {
     }
 
     #[test]
+    fn albedo_scale_brightens_the_scene_and_leaves_the_rest() {
+        let plain = simulate_mvs(&small(4), &Monitor::noop()).unwrap();
+        let bright = MvsSimConfig {
+            albedo_scale: 1.5,
+            ..small(4)
+        };
+        let bright = simulate_mvs(&bright, &Monitor::noop()).unwrap();
+        let mean = |s: &MvsScene| {
+            let d = s.views[s.reference].clear.data();
+            d.iter().map(|&v| f64::from(v)).sum::<f64>() / d.len() as f64
+        };
+        assert!(mean(&bright) > 1.2 * mean(&plain));
+        assert_eq!(bright.airlight, plain.airlight);
+        assert_eq!(bright.beta, plain.beta);
+        assert_eq!(bright.views[0].depth, plain.views[0].depth);
+    }
+
+    #[test]
     fn validation_names_fields() {
         let field = |c: MvsSimConfig| match c.validate() {
             Err(MurkError::InvalidArgument { field, .. }) => field,
@@ -1224,6 +1254,15 @@ mod tests {
             }),
             "num_views"
         );
+        for albedo_scale in [0.0, 11.0, f64::NAN] {
+            assert_eq!(
+                field(MvsSimConfig {
+                    albedo_scale,
+                    ..small(0)
+                }),
+                "albedo_scale"
+            );
+        }
         for forward_motion in [-0.1, 1.6, f64::NAN] {
             assert_eq!(
                 field(MvsSimConfig {

@@ -1,9 +1,13 @@
 //! Training and evaluation of the learned airlight estimator (reference Table 3.1, §3.3.1) on
 //! hazy images made on the fly by murk's MVS scene simulator.
 //!
-//! Like the reference's synthetic dataset, `A` is drawn uniformly from [0.7, 1.0]; the haze
-//! density varies through the simulator's target median transmission (a wider range than the
-//! simulator's default, so the network sees thin and thick haze). A pool of simulated images is
+//! The reference's synthetic dataset draws `A` uniformly from [0.7, 1.0]; murk's default is
+//! [0.4, 1.0], because real haze is often dimmer than that (issue 21: a network trained on
+//! [0.7, 1.0] read 0.764 for A = 0.6). The haze density varies through the simulator's target
+//! median transmission (a wider range than the simulator's default, so the network sees thin
+//! and thick haze). With `varied_scenes` each scene also draws its own brightness against the
+//! airlight, furniture, field of view, trajectory and noise level ([`TrainConfig::sim_config`]),
+//! so that the network cannot learn `A` from one room's typical brightness. A pool of simulated images is
 //! generated once (both views of each scene), and every step draws a batch from it with random
 //! horizontal flips and a random global gain `g ≤ 1`. The gain is exact augmentation of the
 //! haze model, not a heuristic: `g·I = g·J·t + g·A·(1 − t)`, so a darkened hazy image is a hazy
@@ -53,6 +57,9 @@ pub struct TrainConfig {
     pub transmission_range: [f64; 2],
     /// Lowest random gain of the gain augmentation (1 disables it).
     pub min_gain: f32,
+    /// Each scene draws its own albedo scale, furniture, focal length, trajectory and noise
+    /// level (seeded by the scene seed); `false`: every scene is the simulator's default room.
+    pub varied_scenes: bool,
 }
 
 impl Default for TrainConfig {
@@ -60,15 +67,16 @@ impl Default for TrainConfig {
         Self {
             seed: 1,
             // The run that made the committed weights (docs/AIRLIGHT.md).
-            steps: 2500,
+            steps: 3000,
             batch: 32,
             learning_rate: 1e-3,
-            pool_scenes: 2500,
+            pool_scenes: 4000,
             sim_width: 256,
             sim_height: 192,
-            airlight_range: [0.7, 1.0],
+            airlight_range: [0.4, 1.0],
             transmission_range: [0.1, 0.7],
             min_gain: 0.9,
+            varied_scenes: true,
         }
     }
 }
@@ -112,14 +120,40 @@ impl TrainConfig {
         self.sim_config(0).validate()
     }
 
-    fn sim_config(&self, seed: u64) -> MvsSimConfig {
-        MvsSimConfig {
+    /// The simulator settings of scene `seed`. With `varied_scenes` they are drawn from a
+    /// stream of their own (the simulator's stream of the same seed is untouched):
+    /// - albedo scale `U[0.5, 1.6]`: above about 1 the lit surfaces can outshine a dim airlight,
+    ///   below it the room is dark against the haze;
+    /// - 0–6 boxes and 0–4 spheres;
+    /// - focal length ×`U[0.7, 1.5]` (field of view about 50°–100° at the default 256 px);
+    /// - trajectory length `U[0.2, 0.6]`, and forward motion `U[0, 0.6]` in half the scenes;
+    /// - noise σ `U[0.003, 0.02]`.
+    pub fn sim_config(&self, seed: u64) -> MvsSimConfig {
+        let base = MvsSimConfig {
             seed,
             num_views: 2,
             supersample: 1,
             airlight_range: self.airlight_range,
             median_transmission_range: self.transmission_range,
             ..MvsSimConfig::with_size(self.sim_width, self.sim_height)
+        };
+        if !self.varied_scenes {
+            return base;
+        }
+        let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x5CE7_E5EE_D0F0_0D15);
+        MvsSimConfig {
+            albedo_scale: rng.random_range(0.5..=1.6),
+            num_boxes: rng.random_range(0..=6),
+            num_spheres: rng.random_range(0..=4),
+            focal_px: base.focal_px * rng.random_range(0.7..=1.5),
+            trajectory_length: rng.random_range(0.2..=0.6),
+            forward_motion: if rng.random_bool(0.5) {
+                rng.random_range(0.0..=0.6)
+            } else {
+                0.0
+            },
+            noise_sigma: rng.random_range(0.003..=0.02),
+            ..base
         }
     }
 }
@@ -315,6 +349,8 @@ fn train_from(
 pub struct EvalRow {
     /// Median-transmission interval `[lo, hi)` of the scenes in this row.
     pub transmission: [f64; 2],
+    /// Airlight interval `[lo, hi)` of the scenes in this row.
+    pub airlight: [f64; 2],
     /// Number of images.
     pub count: usize,
     /// Mean |Â − A| of the CNN.
@@ -332,75 +368,78 @@ pub struct EvalRow {
 }
 
 /// Scores `cnn` and the dark-channel rule on held-out samples (from [`simulate_samples`] with
-/// `all_views = false`): one row per transmission interval in `bins` that holds any image,
-/// then the row of all images.
+/// `all_views = false`): one row per transmission interval in `t_bins` that holds any image,
+/// one per airlight interval in `a_bins`, then the row of all images.
 pub fn evaluate(
     cnn: &AirlightCnn,
     samples: &[AirlightSample],
-    bins: &[[f64; 2]],
+    t_bins: &[[f64; 2]],
+    a_bins: &[[f64; 2]],
 ) -> Result<Vec<EvalRow>> {
     let mut cnn_est = Vec::with_capacity(samples.len());
     for chunk in samples.chunks(32) {
         let inputs: Vec<ImageF32> = chunk.iter().map(|s| s.input.clone()).collect();
         cnn_est.extend(cnn.estimate_batch(&inputs)?);
     }
-    let row =
-        |range: [f64; 2], pick: &dyn Fn(&AirlightSample) -> bool| -> Result<Option<EvalRow>> {
-            let mut r = EvalRow {
-                transmission: range,
-                count: 0,
-                mae_cnn: 0.0,
-                mae_dark_channel: 0.0,
-                max_cnn: 0.0,
-                max_dark_channel: 0.0,
-                bias_cnn: 0.0,
-                bias_dark_channel: 0.0,
-            };
-            for (s, &a_cnn) in samples.iter().zip(&cnn_est) {
-                if !pick(s) {
-                    continue;
-                }
-                let a_dc = s.dark_channel.ok_or_else(|| {
-                    MurkError::invalid("samples", "held-out samples need a dark-channel estimate")
-                })?;
-                let (e_cnn, e_dc) = ((a_cnn - s.airlight) as f64, (a_dc - s.airlight) as f64);
-                r.count += 1;
-                r.mae_cnn += e_cnn.abs();
-                r.mae_dark_channel += e_dc.abs();
-                r.max_cnn = r.max_cnn.max(e_cnn.abs());
-                r.max_dark_channel = r.max_dark_channel.max(e_dc.abs());
-                r.bias_cnn += e_cnn;
-                r.bias_dark_channel += e_dc;
-            }
-            if r.count == 0 {
-                return Ok(None);
-            }
-            let n = r.count as f64;
-            r.mae_cnn /= n;
-            r.mae_dark_channel /= n;
-            r.bias_cnn /= n;
-            r.bias_dark_channel /= n;
-            Ok(Some(r))
+    // Half-open like the bins, so the largest value is just inside.
+    let span = |f: &dyn Fn(&AirlightSample) -> f64| {
+        let [lo, hi] = samples
+            .iter()
+            .map(f)
+            .fold([f64::INFINITY, f64::NEG_INFINITY], |[lo, hi], v| {
+                [lo.min(v), hi.max(v)]
+            });
+        [lo, hi.next_up()]
+    };
+    let t_all = span(&|s| s.median_transmission);
+    let a_all = span(&|s| f64::from(s.airlight));
+    let row = |t_range: [f64; 2], a_range: [f64; 2]| -> Result<Option<EvalRow>> {
+        let inside = |v: f64, [lo, hi]: [f64; 2]| v >= lo && v < hi;
+        let mut r = EvalRow {
+            transmission: t_range,
+            airlight: a_range,
+            count: 0,
+            mae_cnn: 0.0,
+            mae_dark_channel: 0.0,
+            max_cnn: 0.0,
+            max_dark_channel: 0.0,
+            bias_cnn: 0.0,
+            bias_dark_channel: 0.0,
         };
-    let mut rows = Vec::new();
-    for &b in bins {
-        if let Some(r) = row(b, &|s| {
-            s.median_transmission >= b[0] && s.median_transmission < b[1]
-        })? {
-            rows.push(r);
+        for (s, &a_cnn) in samples.iter().zip(&cnn_est) {
+            if !inside(s.median_transmission, t_range) || !inside(f64::from(s.airlight), a_range) {
+                continue;
+            }
+            let a_dc = s.dark_channel.ok_or_else(|| {
+                MurkError::invalid("samples", "held-out samples need a dark-channel estimate")
+            })?;
+            let (e_cnn, e_dc) = ((a_cnn - s.airlight) as f64, (a_dc - s.airlight) as f64);
+            r.count += 1;
+            r.mae_cnn += e_cnn.abs();
+            r.mae_dark_channel += e_dc.abs();
+            r.max_cnn = r.max_cnn.max(e_cnn.abs());
+            r.max_dark_channel = r.max_dark_channel.max(e_dc.abs());
+            r.bias_cnn += e_cnn;
+            r.bias_dark_channel += e_dc;
         }
+        if r.count == 0 {
+            return Ok(None);
+        }
+        let n = r.count as f64;
+        r.mae_cnn /= n;
+        r.mae_dark_channel /= n;
+        r.bias_cnn /= n;
+        r.bias_dark_channel /= n;
+        Ok(Some(r))
+    };
+    let mut rows = Vec::new();
+    for &b in t_bins {
+        rows.extend(row(b, a_all)?);
     }
-    let lo = samples
-        .iter()
-        .map(|s| s.median_transmission)
-        .fold(f64::INFINITY, f64::min);
-    let hi = samples
-        .iter()
-        .map(|s| s.median_transmission)
-        .fold(f64::NEG_INFINITY, f64::max);
-    if let Some(r) = row([lo, hi], &|_| true)? {
-        rows.push(r);
+    for &b in a_bins {
+        rows.extend(row(t_all, b)?);
     }
+    rows.extend(row(t_all, a_all)?);
     Ok(rows)
 }
 
@@ -463,7 +502,7 @@ mod tests {
         );
 
         let held_out = simulate_samples(&cfg, &eval_seeds(2), false, &|| {}).unwrap();
-        let rows = evaluate(&a, &held_out, &[[0.0, 0.4], [0.4, 1.0]]).unwrap();
+        let rows = evaluate(&a, &held_out, &[[0.0, 0.4], [0.4, 1.0]], &[[0.0, 1.0]]).unwrap();
         let all = rows.last().unwrap();
         assert_eq!(all.count, 2);
         assert!(all.mae_cnn.is_finite() && all.mae_dark_channel.is_finite());
@@ -487,6 +526,37 @@ mod tests {
             ..TrainConfig::default()
         };
         assert_eq!(bad.validate().unwrap_err().field(), Some("batch"));
+    }
+
+    #[test]
+    fn varied_scenes_are_valid_seeded_and_span_their_ranges() {
+        let cfg = TrainConfig::default();
+        assert_eq!(cfg.sim_config(7), cfg.sim_config(7));
+        let configs: Vec<MvsSimConfig> = (0..64).map(|s| cfg.sim_config(s)).collect();
+        for c in &configs {
+            c.validate().unwrap();
+            assert_eq!(c.airlight_range, [0.4, 1.0]);
+        }
+        let any = |f: &dyn Fn(&MvsSimConfig) -> bool| configs.iter().any(f);
+        assert!(any(&|c| c.albedo_scale > 1.3) && any(&|c| c.albedo_scale < 0.8));
+        assert!(any(&|c| c.forward_motion > 0.0) && any(&|c| c.forward_motion == 0.0));
+        assert!(any(&|c| c.num_boxes == 0) && any(&|c| c.num_boxes >= 5));
+        let plain = TrainConfig {
+            varied_scenes: false,
+            ..cfg
+        }
+        .sim_config(7);
+        assert_eq!(
+            plain,
+            MvsSimConfig {
+                seed: 7,
+                num_views: 2,
+                supersample: 1,
+                airlight_range: [0.4, 1.0],
+                median_transmission_range: [0.1, 0.7],
+                ..MvsSimConfig::with_size(256, 192)
+            }
+        );
     }
 
     #[test]
