@@ -1,6 +1,8 @@
 //! Pinhole camera model shared by every method. Pixel coordinates: x to the right, y down, origin
 //! at the centre of the top-left pixel; camera frame: +z forward (optical axis), +x right, +y down.
 
+use nalgebra::{Matrix3, Point3};
+
 use crate::error::{MurkError, Result};
 
 /// Pinhole intrinsics in pixels: `u = fx·x/z + skew·y/z + cx`, `v = fy·y/z + cy`.
@@ -56,8 +58,34 @@ impl Intrinsics {
         [x / n, y / n, 1.0 / n]
     }
 
+    /// `K` (pixels): `(u, v, 1)ᵀ ∝ K·(x, y, z)ᵀ`.
+    pub fn matrix(&self) -> Matrix3<f64> {
+        Matrix3::new(
+            self.fx, self.skew, self.cx, //
+            0.0, self.fy, self.cy, //
+            0.0, 0.0, 1.0,
+        )
+    }
+
+    /// `K⁻¹` in closed form (upper triangular, last row `(0, 0, 1)`).
+    pub fn inverse_matrix(&self) -> Matrix3<f64> {
+        let (fx, fy, s) = (self.fx, self.fy, self.skew);
+        Matrix3::new(
+            1.0 / fx,
+            -s / (fx * fy),
+            (s * self.cy - self.cx * fy) / (fx * fy),
+            0.0,
+            1.0 / fy,
+            -self.cy / fy,
+            0.0,
+            0.0,
+            1.0,
+        )
+    }
+
     /// Projects a camera-frame point to pixel coordinates; `None` behind the camera.
-    pub fn project(&self, p: [f64; 3]) -> Option<(f64, f64)> {
+    pub fn project(&self, p: impl Into<Point3<f64>>) -> Option<(f64, f64)> {
+        let p = p.into();
         if p[2] <= 0.0 {
             return None;
         }
@@ -84,6 +112,18 @@ mod tests {
         let (u, v) = k.project([r[0] * 2.0, r[1] * 2.0, r[2] * 2.0]).unwrap();
         assert!((u - 100.0).abs() < 1e-9 && (v - 300.0).abs() < 1e-9);
         assert!(((r[0] * r[0] + r[1] * r[1] + r[2] * r[2]).sqrt() - 1.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn inverse_matrix_is_the_inverse() {
+        let k = Intrinsics {
+            fx: 310.0,
+            fy: 290.0,
+            cx: 127.3,
+            cy: 95.1,
+            skew: 1.7,
+        };
+        assert!((k.matrix() * k.inverse_matrix() - Matrix3::identity()).amax() < 1e-12);
     }
 
     #[test]

@@ -126,14 +126,6 @@ fn drop_alpha(img: &ImageF32) -> Result<ImageF32> {
     ImageF32::from_vec(img.width(), img.height(), 3, data)
 }
 
-fn distance(a: [f64; 3], b: [f64; 3]) -> f64 {
-    a.iter()
-        .zip(&b)
-        .map(|(x, y)| (x - y) * (x - y))
-        .sum::<f64>()
-        .sqrt()
-}
-
 /// Names of the `n` registered images whose camera centres are nearest the reference's (nearest
 /// first, ties by name). Images at the reference's own position are skipped: with no baseline a
 /// source constrains no depth (every plane maps a pixel to the same place).
@@ -146,12 +138,15 @@ pub fn nearest_sources(model: &ColmapModel, reference: &str, n: usize) -> Result
     })?;
     let centre = r.pose.camera_center();
     // "Identical" relative to the scene's scale, which SfM chooses arbitrarily.
-    let eps = 1e-9 * distance(centre, [0.0; 3]).max(1.0);
+    let eps = 1e-9 * centre.coords.norm().max(1.0);
     let mut others: Vec<(f64, &str)> = model
         .images
         .values()
         .filter(|im| im.name != reference)
-        .map(|im| (distance(im.pose.camera_center(), centre), im.name.as_str()))
+        .map(|im| {
+            let d = nalgebra::distance(&im.pose.camera_center(), &centre);
+            (d, im.name.as_str())
+        })
         .filter(|(d, _)| *d > eps)
         .collect();
     if others.is_empty() {
@@ -318,7 +313,7 @@ pub fn backproject(
             }
             let y = (v as f64 - k.cy) / k.fy;
             let x = (u as f64 - k.cx - k.skew * y) / k.fx;
-            let xyz = to_world.transform([x * z, y * z, z]);
+            let xyz = to_world.transform([x * z, y * z, z]).into();
             let rgb = if c >= 3 {
                 [
                     byte(colour.get(u, v, 0)),
@@ -404,7 +399,7 @@ mod tests {
             skew: 0.3,
         };
         // A camera rotated 90° about y and moved: world-to-camera.
-        let pose = Pose::new(
+        let pose = Pose::from_rows(
             [[0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]],
             [0.5, -0.2, 1.0],
         )
@@ -481,7 +476,7 @@ mod tests {
         assert_eq!(all.len(), scene.views.len() - 1);
         let d = |n: &str| {
             let c = model.image_by_name(n).unwrap().pose.camera_center();
-            distance(c, reference.pose.camera_center())
+            nalgebra::distance(&c, &reference.pose.camera_center())
         };
         assert!(all.windows(2).all(|w| d(&w[0]) <= d(&w[1])));
 

@@ -81,11 +81,7 @@ mod tests {
     fn camera(tx: f64) -> Camera {
         Camera {
             intrinsics: Intrinsics::new(200.0, 200.0, 127.5, 95.5),
-            pose: Pose::new(
-                [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
-                [tx, 0.0, 0.0],
-            )
-            .unwrap(),
+            pose: Pose::translation_only([tx, 0.0, 0.0]).unwrap(),
             width: 256,
             height: 192,
         }

@@ -10,6 +10,8 @@
 //! and because `K_s`'s last row is `(0, 0, 1)` the homogeneous coordinate of `H_i·(u, v, 1)` is
 //! exactly `ζ / z_i`: [`PlaneWarp::map`] gets `ζ` for free, with no per-pixel back-projection.
 
+use nalgebra::{Matrix3, Vector3};
+
 use crate::camera::Intrinsics;
 use crate::error::{MurkError, Result};
 use crate::mvs::pose::Pose;
@@ -139,38 +141,13 @@ impl PlaneSet {
     }
 }
 
-/// `K⁻¹` of a pinhole with skew (upper triangular, last row `(0, 0, 1)`).
-pub fn intrinsics_inverse(k: &Intrinsics) -> [[f64; 3]; 3] {
-    let (fx, fy, s) = (k.fx, k.fy, k.skew);
-    [
-        [1.0 / fx, -s / (fx * fy), (s * k.cy - k.cx * fy) / (fx * fy)],
-        [0.0, 1.0 / fy, -k.cy / fy],
-        [0.0, 0.0, 1.0],
-    ]
-}
-
-/// `K` as a 3×3 row-major matrix.
-pub fn intrinsics_matrix(k: &Intrinsics) -> [[f64; 3]; 3] {
-    [[k.fx, k.skew, k.cx], [0.0, k.fy, k.cy], [0.0, 0.0, 1.0]]
-}
-
-fn matmul(a: &[[f64; 3]; 3], b: &[[f64; 3]; 3]) -> [[f64; 3]; 3] {
-    let mut c = [[0.0; 3]; 3];
-    for (i, row) in c.iter_mut().enumerate() {
-        for (j, v) in row.iter_mut().enumerate() {
-            *v = a[i][0] * b[0][j] + a[i][1] * b[1][j] + a[i][2] * b[2][j];
-        }
-    }
-    c
-}
-
 /// The reference→source map for one plane `z = z_i` (Eq. 3.2 and 3.6), precomputed as the plane
 /// homography `H_i = K_s (R + t nᵀ / z_i) K_r⁻¹`.
 ///
 /// Inputs are trusted (validate intrinsics, poses and planes first); the map is pure arithmetic.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct PlaneWarp {
-    h: [[f64; 3]; 3],
+    h: Matrix3<f64>,
     depth: f64,
 }
 
@@ -179,23 +156,15 @@ impl PlaneWarp {
     /// seen by the source camera `k_src` whose frame is `relative` = `(R_{r→s}, t_{r→s})` away
     /// (see [`Pose::relative`]).
     pub fn new(k_ref: &Intrinsics, k_src: &Intrinsics, relative: &Pose, depth: f64) -> Self {
-        let r = &relative.rotation;
-        let t = &relative.translation;
-        // R + t nᵀ / z with n = (0, 0, 1): only the last column gains t / z.
-        let mut m = *r;
-        for (row, ti) in m.iter_mut().zip(t) {
-            row[2] += ti / depth;
-        }
-        let h = matmul(
-            &matmul(&intrinsics_matrix(k_src), &m),
-            &intrinsics_inverse(k_ref),
-        );
+        let n = Vector3::z();
+        let m = relative.rotation() + relative.translation() * n.transpose() / depth;
+        let h = k_src.matrix() * m * k_ref.inverse_matrix();
         Self { h, depth }
     }
 
-    /// The homography `H_i`, row-major, normalised so that its homogeneous output is `ζ / z_i`.
-    pub fn homography(&self) -> [[f64; 3]; 3] {
-        self.h
+    /// The homography `H_i`, normalised so that its homogeneous output is `ζ / z_i`.
+    pub fn homography(&self) -> &Matrix3<f64> {
+        &self.h
     }
 
     /// The plane's z-depth `z_i` in the reference camera (scene units).
@@ -209,9 +178,9 @@ impl PlaneWarp {
     #[inline]
     pub fn map(&self, u: f64, v: f64) -> (f64, f64, f64) {
         let h = &self.h;
-        let x = h[0][0] * u + h[0][1] * v + h[0][2];
-        let y = h[1][0] * u + h[1][1] * v + h[1][2];
-        let w = h[2][0] * u + h[2][1] * v + h[2][2];
+        let x = h[(0, 0)] * u + h[(0, 1)] * v + h[(0, 2)];
+        let y = h[(1, 0)] * u + h[(1, 1)] * v + h[(1, 2)];
+        let w = h[(2, 0)] * u + h[(2, 1)] * v + h[(2, 2)];
         // One reciprocal instead of two divisions: this sits in the cost volume's inner loop.
         let r = 1.0 / w;
         (x * r, y * r, w * self.depth)
@@ -222,11 +191,11 @@ impl PlaneWarp {
     pub fn row(&self, v: f64) -> RowWarp {
         let h = &self.h;
         RowWarp {
-            slope: [h[0][0], h[1][0], h[2][0]],
+            slope: [h[(0, 0)], h[(1, 0)], h[(2, 0)]],
             offset: [
-                h[0][1] * v + h[0][2],
-                h[1][1] * v + h[1][2],
-                h[2][1] * v + h[2][2],
+                h[(0, 1)] * v + h[(0, 2)],
+                h[(1, 1)] * v + h[(1, 2)],
+                h[(2, 1)] * v + h[(2, 2)],
             ],
             depth: self.depth,
         }
@@ -355,23 +324,6 @@ mod tests {
     }
 
     #[test]
-    fn intrinsics_inverse_is_inverse() {
-        let k = Intrinsics {
-            fx: 310.0,
-            fy: 290.0,
-            cx: 127.3,
-            cy: 95.1,
-            skew: 1.7,
-        };
-        let p = matmul(&intrinsics_matrix(&k), &intrinsics_inverse(&k));
-        for (i, row) in p.iter().enumerate() {
-            for (j, v) in row.iter().enumerate() {
-                assert!((v - if i == j { 1.0 } else { 0.0 }).abs() < 1e-12);
-            }
-        }
-    }
-
-    #[test]
     fn identity_pose_maps_pixel_to_itself() {
         let k = Intrinsics::new(200.0, 210.0, 127.5, 95.5);
         for z in [0.5, 3.0, 50.0] {
@@ -389,7 +341,7 @@ mod tests {
         // Source camera shifted by b along +x: x_s = x_r − b, so u' = u − fx·b/z, ζ = z.
         let k = Intrinsics::new(250.0, 250.0, 128.0, 96.0);
         let b = 0.2;
-        let rel = Pose::new(Pose::identity().rotation, [-b, 0.0, 0.0]).unwrap();
+        let rel = Pose::translation_only([-b, 0.0, 0.0]).unwrap();
         for z in [1.0, 2.5, 10.0] {
             let w = PlaneWarp::new(&k, &k, &rel, z);
             let (us, vs, zeta) = w.map(100.0, 40.0);
@@ -397,7 +349,7 @@ mod tests {
             assert!((vs - 40.0).abs() < 1e-12 && (zeta - z).abs() < 1e-12);
         }
         // Moving the source camera forward along +z changes ζ by the same amount.
-        let fwd = Pose::new(Pose::identity().rotation, [0.0, 0.0, -0.5]).unwrap();
+        let fwd = Pose::translation_only([0.0, 0.0, -0.5]).unwrap();
         let (_, _, zeta) = PlaneWarp::new(&k, &k, &fwd, 3.0).map(10.0, 20.0);
         assert!((zeta - 2.5).abs() < 1e-12);
     }

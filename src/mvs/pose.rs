@@ -4,6 +4,10 @@
 //! The plane sweep needs the reference-to-source transform `(R_{r→s}, t_{r→s})` of Eq. 3.2;
 //! [`Pose::relative`] builds it from two world-to-camera poses.
 
+use nalgebra::{
+    IsometryMatrix3, Matrix3, Point3, Quaternion, Rotation3, Translation3, UnitQuaternion, Vector3,
+};
+
 use crate::error::{MurkError, Result};
 
 /// Largest accepted `max |RᵀR − I|` entry. COLMAP writes quaternions with ~16 digits, so a
@@ -11,12 +15,13 @@ use crate::error::{MurkError, Result};
 pub const ROTATION_TOLERANCE: f64 = 1e-6;
 
 /// World-to-camera rigid transform: `x_cam = R·x_world + t` (scene units).
+///
+/// A validated [`IsometryMatrix3`]: the rotation is kept as the matrix it was given (a file's or
+/// a request's nine numbers, or the matrix of a COLMAP quaternion), so poses round-trip through
+/// the API and the model files without a quaternion in between.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Pose {
-    /// Rotation, row-major: `rotation[row][col]`.
-    pub rotation: [[f64; 3]; 3],
-    /// Translation, scene units.
-    pub translation: [f64; 3],
+    iso: IsometryMatrix3<f64>,
 }
 
 impl Default for Pose {
@@ -29,19 +34,31 @@ impl Pose {
     /// The identity transform (camera at the world origin looking along +z).
     pub fn identity() -> Self {
         Self {
-            rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
-            translation: [0.0; 3],
+            iso: IsometryMatrix3::identity(),
         }
     }
 
-    /// Pose from a rotation and translation, validated (see [`Pose::validate`]).
-    pub fn new(rotation: [[f64; 3]; 3], translation: [f64; 3]) -> Result<Self> {
-        let p = Self {
-            rotation,
-            translation,
-        };
-        p.validate()?;
-        Ok(p)
+    /// Pose from a rotation and translation (scene units), validated (see [`Pose::validate`]).
+    pub fn new(rotation: Matrix3<f64>, translation: Vector3<f64>) -> Result<Self> {
+        check_finite(&rotation, &translation)?;
+        check_rotation(&rotation)?;
+        Ok(Self {
+            iso: IsometryMatrix3::from_parts(
+                Translation3::from(translation),
+                Rotation3::from_matrix_unchecked(rotation),
+            ),
+        })
+    }
+
+    /// [`Pose::new`] from a row-major rotation `rows[row][col]` and a translation, the layout of
+    /// the API's and the model files' nine numbers.
+    pub fn from_rows(rows: [[f64; 3]; 3], translation: [f64; 3]) -> Result<Self> {
+        Self::new(Matrix3::from(rows).transpose(), Vector3::from(translation))
+    }
+
+    /// A camera that is only moved: identity rotation, `x_cam = x_world + t`.
+    pub fn translation_only(translation: [f64; 3]) -> Result<Self> {
+        Self::new(Matrix3::identity(), Vector3::from(translation))
     }
 
     /// Pose from COLMAP's `QW QX QY QZ TX TY TZ` (world-to-camera). The quaternion is normalised
@@ -54,8 +71,9 @@ impl Pose {
                 format!("quaternion must be finite, got {qvec:?}"),
             ));
         }
-        let n = qvec.iter().map(|v| v * v).sum::<f64>().sqrt();
-        if n < 1e-12 {
+        let [w, x, y, z] = qvec;
+        let q = Quaternion::new(w, x, y, z);
+        if q.norm() < 1e-12 {
             return Err(MurkError::invalid(
                 "qvec",
                 format!("quaternion must be non-zero, got {qvec:?}"),
@@ -67,170 +85,86 @@ impl Pose {
                 format!("translation must be finite, got {tvec:?}"),
             ));
         }
-        let [w, x, y, z] = qvec.map(|v| v / n);
-        let rotation = [
-            [
-                1.0 - 2.0 * (y * y + z * z),
-                2.0 * (x * y - w * z),
-                2.0 * (x * z + w * y),
-            ],
-            [
-                2.0 * (x * y + w * z),
-                1.0 - 2.0 * (x * x + z * z),
-                2.0 * (y * z - w * x),
-            ],
-            [
-                2.0 * (x * z - w * y),
-                2.0 * (y * z + w * x),
-                1.0 - 2.0 * (x * x + y * y),
-            ],
-        ];
         Ok(Self {
-            rotation,
-            translation: tvec,
+            iso: IsometryMatrix3::from_parts(
+                Translation3::from(Vector3::from(tvec)),
+                UnitQuaternion::from_quaternion(q).to_rotation_matrix(),
+            ),
         })
     }
 
-    /// Unit quaternion `(qw, qx, qy, qz)` of the rotation, with `qw ≥ 0` (q and −q are the same
-    /// rotation; COLMAP does not normalise the sign either, so compare rotations, not quaternions).
-    pub fn quaternion(&self) -> [f64; 4] {
-        let r = &self.rotation;
-        let trace = r[0][0] + r[1][1] + r[2][2];
-        // Shepperd's method: divide by the largest of the four candidates for accuracy.
-        let q = if trace > 0.0 {
-            let s = (trace + 1.0).sqrt() * 2.0;
-            [
-                0.25 * s,
-                (r[2][1] - r[1][2]) / s,
-                (r[0][2] - r[2][0]) / s,
-                (r[1][0] - r[0][1]) / s,
-            ]
-        } else if r[0][0] > r[1][1] && r[0][0] > r[2][2] {
-            let s = (1.0 + r[0][0] - r[1][1] - r[2][2]).sqrt() * 2.0;
-            [
-                (r[2][1] - r[1][2]) / s,
-                0.25 * s,
-                (r[0][1] + r[1][0]) / s,
-                (r[0][2] + r[2][0]) / s,
-            ]
-        } else if r[1][1] > r[2][2] {
-            let s = (1.0 + r[1][1] - r[0][0] - r[2][2]).sqrt() * 2.0;
-            [
-                (r[0][2] - r[2][0]) / s,
-                (r[0][1] + r[1][0]) / s,
-                0.25 * s,
-                (r[1][2] + r[2][1]) / s,
-            ]
-        } else {
-            let s = (1.0 + r[2][2] - r[0][0] - r[1][1]).sqrt() * 2.0;
-            [
-                (r[1][0] - r[0][1]) / s,
-                (r[0][2] + r[2][0]) / s,
-                (r[1][2] + r[2][1]) / s,
-                0.25 * s,
-            ]
-        };
-        let n = q.iter().map(|v| v * v).sum::<f64>().sqrt();
-        let sign = if q[0] < 0.0 { -1.0 } else { 1.0 };
-        q.map(|v| sign * v / n)
+    /// The rotation as a unit quaternion.
+    pub fn unit_quaternion(&self) -> UnitQuaternion<f64> {
+        UnitQuaternion::from_rotation_matrix(&self.iso.rotation)
+    }
+
+    /// COLMAP's `(qw, qx, qy, qz)` of the rotation, with `qw ≥ 0` (q and −q are the same
+    /// rotation; COLMAP does not normalise the sign either, so compare rotations, not
+    /// quaternions).
+    pub fn colmap_qvec(&self) -> [f64; 4] {
+        let q = self.unit_quaternion();
+        let sign = if q.w < 0.0 { -1.0 } else { 1.0 };
+        [q.w, q.i, q.j, q.k].map(|v| sign * v)
+    }
+
+    /// The rotation matrix `R`.
+    pub fn rotation(&self) -> &Matrix3<f64> {
+        self.iso.rotation.matrix()
+    }
+
+    /// The translation `t`, scene units.
+    pub fn translation(&self) -> &Vector3<f64> {
+        &self.iso.translation.vector
+    }
+
+    /// The rotation row-major, `rows[row][col]` (the API's layout).
+    pub fn rotation_rows(&self) -> [[f64; 3]; 3] {
+        self.rotation().transpose().into()
+    }
+
+    /// The transform as an isometry.
+    pub fn isometry(&self) -> &IsometryMatrix3<f64> {
+        &self.iso
+    }
+
+    /// The same rotation with the translation multiplied by `s`: the pose of the camera in a
+    /// world scaled by `s` about the origin.
+    pub fn scaled(&self, s: f64) -> Self {
+        let mut iso = self.iso;
+        iso.translation.vector *= s;
+        Self { iso }
     }
 
     /// Fails unless every entry is finite and `R` is a proper rotation (orthonormal within
     /// [`ROTATION_TOLERANCE`], determinant +1), naming `rotation` or `translation`.
     pub fn validate(&self) -> Result<()> {
-        if self.rotation.iter().flatten().any(|v| !v.is_finite()) {
-            return Err(MurkError::invalid(
-                "rotation",
-                format!("rotation must be finite, got {:?}", self.rotation),
-            ));
-        }
-        if self.translation.iter().any(|v| !v.is_finite()) {
-            return Err(MurkError::invalid(
-                "translation",
-                format!("translation must be finite, got {:?}", self.translation),
-            ));
-        }
-        let r = &self.rotation;
-        let mut worst = 0.0f64;
-        for i in 0..3 {
-            for j in 0..3 {
-                let dot: f64 = (0..3).map(|k| r[k][i] * r[k][j]).sum();
-                let target = if i == j { 1.0 } else { 0.0 };
-                worst = worst.max((dot - target).abs());
-            }
-        }
-        if worst > ROTATION_TOLERANCE {
-            return Err(MurkError::invalid(
-                "rotation",
-                format!(
-                    "rotation is not orthonormal: max |RᵀR − I| = {worst:.3e} > {ROTATION_TOLERANCE:e}"
-                ),
-            ));
-        }
-        if det3(r) < 0.0 {
-            return Err(MurkError::invalid(
-                "rotation",
-                "rotation has determinant −1 (a reflection, not a rotation)",
-            ));
-        }
-        Ok(())
+        check_finite(self.rotation(), self.translation())?;
+        check_rotation(self.rotation())
     }
 
     /// Applies the transform: `R·p + t`.
     #[inline]
-    pub fn transform(&self, p: [f64; 3]) -> [f64; 3] {
-        let r = &self.rotation;
-        let t = &self.translation;
-        [
-            r[0][0] * p[0] + r[0][1] * p[1] + r[0][2] * p[2] + t[0],
-            r[1][0] * p[0] + r[1][1] * p[1] + r[1][2] * p[2] + t[1],
-            r[2][0] * p[0] + r[2][1] * p[1] + r[2][2] * p[2] + t[2],
-        ]
+    pub fn transform(&self, p: impl Into<Point3<f64>>) -> Point3<f64> {
+        self.iso.transform_point(&p.into())
     }
 
     /// Rotates a direction: `R·d` (no translation).
     #[inline]
-    pub fn rotate(&self, d: [f64; 3]) -> [f64; 3] {
-        let r = &self.rotation;
-        [
-            r[0][0] * d[0] + r[0][1] * d[1] + r[0][2] * d[2],
-            r[1][0] * d[0] + r[1][1] * d[1] + r[1][2] * d[2],
-            r[2][0] * d[0] + r[2][1] * d[1] + r[2][2] * d[2],
-        ]
+    pub fn rotate(&self, d: impl Into<Vector3<f64>>) -> Vector3<f64> {
+        self.iso.transform_vector(&d.into())
     }
 
     /// The inverse transform (camera-to-world for a world-to-camera pose): `(Rᵀ, −Rᵀt)`.
     pub fn inverse(&self) -> Self {
-        let r = &self.rotation;
-        let rt = [
-            [r[0][0], r[1][0], r[2][0]],
-            [r[0][1], r[1][1], r[2][1]],
-            [r[0][2], r[1][2], r[2][2]],
-        ];
-        let t = &self.translation;
-        let mut ti = [0.0; 3];
-        for (i, row) in rt.iter().enumerate() {
-            ti[i] = -(row[0] * t[0] + row[1] * t[1] + row[2] * t[2]);
-        }
         Self {
-            rotation: rt,
-            translation: ti,
+            iso: self.iso.inverse(),
         }
     }
 
     /// `self ∘ other`: applies `other` first, then `self` (`x ↦ R_s(R_o x + t_o) + t_s`).
     pub fn compose(&self, other: &Pose) -> Self {
-        let a = &self.rotation;
-        let b = &other.rotation;
-        let mut r = [[0.0; 3]; 3];
-        for (i, row) in r.iter_mut().enumerate() {
-            for (j, v) in row.iter_mut().enumerate() {
-                *v = a[i][0] * b[0][j] + a[i][1] * b[1][j] + a[i][2] * b[2][j];
-            }
-        }
         Self {
-            rotation: r,
-            translation: self.transform(other.translation),
+            iso: self.iso * other.iso,
         }
     }
 
@@ -242,15 +176,50 @@ impl Pose {
     }
 
     /// Camera centre in world coordinates, `−Rᵀt` (scene units).
-    pub fn camera_center(&self) -> [f64; 3] {
-        self.inverse().translation
+    pub fn camera_center(&self) -> Point3<f64> {
+        Point3::from(self.inverse().iso.translation.vector)
     }
 }
 
-fn det3(r: &[[f64; 3]; 3]) -> f64 {
-    r[0][0] * (r[1][1] * r[2][2] - r[1][2] * r[2][1])
-        - r[0][1] * (r[1][0] * r[2][2] - r[1][2] * r[2][0])
-        + r[0][2] * (r[1][0] * r[2][1] - r[1][1] * r[2][0])
+fn check_finite(rotation: &Matrix3<f64>, translation: &Vector3<f64>) -> Result<()> {
+    if rotation.iter().any(|v| !v.is_finite()) {
+        return Err(MurkError::invalid(
+            "rotation",
+            format!(
+                "rotation must be finite, got {:?}",
+                <[[f64; 3]; 3]>::from(rotation.transpose())
+            ),
+        ));
+    }
+    if translation.iter().any(|v| !v.is_finite()) {
+        return Err(MurkError::invalid(
+            "translation",
+            format!(
+                "translation must be finite, got {:?}",
+                <[f64; 3]>::from(*translation)
+            ),
+        ));
+    }
+    Ok(())
+}
+
+fn check_rotation(r: &Matrix3<f64>) -> Result<()> {
+    let worst = (r.transpose() * r - Matrix3::identity()).amax();
+    if worst > ROTATION_TOLERANCE {
+        return Err(MurkError::invalid(
+            "rotation",
+            format!(
+                "rotation is not orthonormal: max |RᵀR − I| = {worst:.3e} > {ROTATION_TOLERANCE:e}"
+            ),
+        ));
+    }
+    if r.determinant() < 0.0 {
+        return Err(MurkError::invalid(
+            "rotation",
+            "rotation has determinant −1 (a reflection, not a rotation)",
+        ));
+    }
+    Ok(())
 }
 
 #[cfg(test)]
@@ -259,18 +228,9 @@ mod tests {
     use proptest::prelude::*;
 
     fn max_diff(a: &Pose, b: &Pose) -> f64 {
-        let r = a
-            .rotation
-            .iter()
-            .flatten()
-            .zip(b.rotation.iter().flatten())
-            .map(|(x, y)| (x - y).abs());
-        let t = a
-            .translation
-            .iter()
-            .zip(&b.translation)
-            .map(|(x, y)| (x - y).abs());
-        r.chain(t).fold(0.0, f64::max)
+        (a.rotation() - b.rotation())
+            .amax()
+            .max((a.translation() - b.translation()).amax())
     }
 
     use crate::error::field_of;
@@ -281,6 +241,8 @@ mod tests {
         let h = std::f64::consts::FRAC_1_SQRT_2;
         let p = Pose::from_colmap([h, 0.0, 0.0, h], [1.0, 2.0, 3.0]).unwrap();
         let x = p.rotate([1.0, 0.0, 0.0]);
+        // Row-major in and out.
+        assert_eq!(p.rotation_rows()[1][0], p.rotation()[(1, 0)]);
         assert!((x[0]).abs() < 1e-12 && (x[1] - 1.0).abs() < 1e-12 && x[2].abs() < 1e-12);
         assert!(p.validate().is_ok());
         // Camera centre maps to the origin of the camera frame.
@@ -321,14 +283,22 @@ mod tests {
             ),
             "tvec"
         );
-        let mut p = Pose::identity();
-        p.rotation[0][0] = 1.1;
-        assert_eq!(field_of(p.validate().unwrap_err()), "rotation");
-        p.rotation[0][0] = -1.0; // orthonormal but a reflection
-        assert_eq!(field_of(p.validate().unwrap_err()), "rotation");
-        let mut p = Pose::identity();
-        p.translation[2] = f64::NAN;
-        assert_eq!(field_of(p.validate().unwrap_err()), "translation");
+        let mut r = Matrix3::identity();
+        r[(0, 0)] = 1.1;
+        let err = Pose::new(r, Vector3::zeros()).unwrap_err();
+        assert_eq!(field_of(err), "rotation");
+        r[(0, 0)] = -1.0; // orthonormal but a reflection
+        assert_eq!(
+            field_of(Pose::new(r, Vector3::zeros()).unwrap_err()),
+            "rotation"
+        );
+        r[(0, 0)] = f64::NAN;
+        assert_eq!(
+            field_of(Pose::new(r, Vector3::zeros()).unwrap_err()),
+            "rotation"
+        );
+        let err = Pose::translation_only([0.0, 0.0, f64::NAN]).unwrap_err();
+        assert_eq!(field_of(err), "translation");
     }
 
     proptest! {
@@ -341,7 +311,7 @@ mod tests {
             prop_assume!(n > 1e-3);
             let p = Pose::from_colmap(q, t).unwrap();
             prop_assert!(p.validate().is_ok());
-            let q2 = p.quaternion();
+            let q2 = p.colmap_qvec();
             // Same rotation up to the sign of q.
             let sign = if q[0] < 0.0 { -1.0 } else { 1.0 };
             for k in 0..4 {

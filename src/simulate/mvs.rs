@@ -52,6 +52,7 @@
 use std::collections::BTreeMap;
 use std::path::Path;
 
+use nalgebra::{Matrix3, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
@@ -613,8 +614,8 @@ fn norm(v: V3) -> V3 {
 fn world_ray(k: &Intrinsics, cam_to_world: &Pose, u: f64, v: f64) -> (V3, V3, f64) {
     let d_cam = k.ray(u, v);
     (
-        cam_to_world.translation,
-        cam_to_world.rotate(d_cam),
+        (*cam_to_world.translation()).into(),
+        cam_to_world.rotate(d_cam).into(),
         d_cam[2],
     )
 }
@@ -623,22 +624,17 @@ fn yaw_pose(centre: V3, yaw: f64, pitch: f64) -> Result<Pose> {
     // Camera-to-world rotation: yaw about +y, then pitch about +x.
     let (cy, sy) = (yaw.cos(), yaw.sin());
     let (cp, sp) = (pitch.cos(), pitch.sin());
-    let ry = [[cy, 0.0, sy], [0.0, 1.0, 0.0], [-sy, 0.0, cy]];
-    let rx = [[1.0, 0.0, 0.0], [0.0, cp, -sp], [0.0, sp, cp]];
-    let c2w = Pose::new(ry, [0.0; 3])?.compose(&Pose::new(rx, [0.0; 3])?);
-    let r = c2w.inverse().rotation;
-    let rc = Pose::new(r, [0.0; 3])?.rotate(centre);
-    Pose::new(r, [-rc[0], -rc[1], -rc[2]])
+    let ry = Matrix3::new(cy, 0.0, sy, 0.0, 1.0, 0.0, -sy, 0.0, cy);
+    let rx = Matrix3::new(1.0, 0.0, 0.0, 0.0, cp, -sp, 0.0, sp, cp);
+    let r = (ry * rx).transpose();
+    Pose::new(r, -(r * Vector3::from(centre)))
 }
 
 fn poses(cfg: &MvsSimConfig, rng: &mut ChaCha8Rng) -> Result<(Vec<Pose>, usize)> {
     let b = cfg.trajectory_length;
     if cfg.rectified_pair {
         return Ok((
-            vec![
-                Pose::identity(),
-                Pose::new(Pose::identity().rotation, [-b, 0.0, 0.0])?,
-            ],
+            vec![Pose::identity(), Pose::translation_only([-b, 0.0, 0.0])?],
             0,
         ));
     }
@@ -827,13 +823,10 @@ fn scale_scene(scene: &mut MvsScene, s: f64) -> Result<()> {
         for z in v.depth.data_mut() {
             *z = (f64::from(*z) * s) as f32;
         }
-        v.pose.translation = v.pose.translation.map(|c| c * s);
+        v.pose = v.pose.scaled(s);
     }
     for img in scene.sparse.images.values_mut() {
-        let pose = Pose {
-            rotation: img.pose.rotation,
-            translation: img.pose.translation.map(|c| c * s),
-        };
+        let pose = img.pose.scaled(s);
         *img = ColmapImage::new(
             img.id,
             img.camera_id,
@@ -1150,7 +1143,7 @@ mod tests {
         let s = f64::from(plain.beta / scaled.beta);
         for (a, b) in plain.views.iter().zip(&scaled.views) {
             assert_eq!(a.hazy, b.hazy);
-            assert_eq!(a.pose.rotation, b.pose.rotation);
+            assert_eq!(a.pose.rotation(), b.pose.rotation());
             for (za, zb) in a.depth.data().iter().zip(b.depth.data()) {
                 assert!((f64::from(*za) * s - f64::from(*zb)).abs() < 1e-4 * f64::from(*zb));
             }
@@ -1204,8 +1197,11 @@ mod tests {
         };
         let s = simulate_mvs(&cfg, &Monitor::noop()).unwrap();
         let rel = Pose::relative(&s.views[0].pose, &s.views[1].pose);
-        assert_eq!(rel.rotation, Pose::identity().rotation);
-        assert_eq!(rel.translation, [-cfg.trajectory_length, 0.0, 0.0]);
+        assert_eq!(rel.rotation(), Pose::identity().rotation());
+        assert_eq!(
+            rel.translation().as_slice(),
+            [-cfg.trajectory_length, 0.0, 0.0]
+        );
         let bad = MvsSimConfig {
             rectified_pair: true,
             ..small(1)
@@ -1318,15 +1314,7 @@ mod tests {
                 .map(|(x, y)| (x - y).abs())
                 .fold(0.0f32, f32::max);
             assert!(worst <= 1.0 / 65535.0, "{worst}");
-            for (r1, r2) in a
-                .pose
-                .rotation
-                .iter()
-                .flatten()
-                .zip(b.pose.rotation.iter().flatten())
-            {
-                assert!((r1 - r2).abs() < 1e-9);
-            }
+            assert!((a.pose.rotation() - b.pose.rotation()).amax() < 1e-9);
         }
     }
 }

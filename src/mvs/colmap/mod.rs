@@ -256,8 +256,8 @@ impl ColmapImage {
         points2d: Vec<Point2D>,
     ) -> Result<Self> {
         pose.validate()?;
-        let qvec = pose.quaternion();
-        let tvec = pose.translation;
+        let qvec = pose.colmap_qvec();
+        let tvec = (*pose.translation()).into();
         Ok(Self {
             id,
             camera_id,

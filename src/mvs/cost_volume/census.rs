@@ -295,10 +295,7 @@ mod tests {
             cy: 6.0,
             skew: 0.0,
         };
-        let relative = Pose {
-            rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
-            translation: [-1.0, 0.0, 0.0],
-        };
+        let relative = Pose::translation_only([-1.0, 0.0, 0.0]).unwrap();
         // Disparity f·b/z: planes at z = 30/d for d = 1..=5 (the set is uniform in 1/z).
         let planes = PlaneSet::new(6.0, 30.0, 5).unwrap();
         let true_plane = (0..5)

@@ -427,11 +427,7 @@ mod tests {
     #[test]
     fn inverse_transmission_row_matches_exp() {
         let k = Intrinsics::new(30.0, 30.0, 20.0, 6.0);
-        let rel = Pose::new(
-            [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
-            [-0.3, 0.05, 0.1],
-        )
-        .unwrap();
+        let rel = Pose::translation_only([-0.3, 0.05, 0.1]).unwrap();
         let max_inv_t = inverse_transmission(0.0);
         for (z, beta, width) in [(1.0f64, 0.3f32, 37usize), (6.0, 0.8, 41), (2.0, 0.0, 3)] {
             let warp = PlaneWarp::new(&k, &k, &rel, z).row(4.0);
@@ -456,11 +452,7 @@ mod tests {
     /// Intrinsics and a reference → source pose with a sideways and forward baseline.
     fn test_geometry() -> (Intrinsics, Pose) {
         let k = Intrinsics::new(30.0, 30.0, 20.0, 6.0);
-        let rel = Pose::new(
-            [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
-            [-0.3, 0.05, 0.1],
-        )
-        .unwrap();
+        let rel = Pose::translation_only([-0.3, 0.05, 0.1]).unwrap();
         (k, rel)
     }
 

@@ -22,8 +22,7 @@ fn texture(x: f64, y: f64, c: usize) -> f32 {
 /// Source pose (world = reference camera frame) with centre `c` and a small yaw.
 fn source_pose(c: [f64; 3], yaw: f64) -> Pose {
     let r = Pose::from_colmap([(yaw / 2.0).cos(), 0.0, (yaw / 2.0).sin(), 0.0], [0.0; 3]).unwrap();
-    let rc = r.rotate(c);
-    Pose::new(r.rotation, [-rc[0], -rc[1], -rc[2]]).unwrap()
+    Pose::new(*r.rotation(), -r.rotate(c)).unwrap()
 }
 
 /// Renders the textured plane `z = depth` (reference frame) from a camera with `pose`:

@@ -376,11 +376,7 @@ mod tests {
         SourceGeometry {
             k_ref: k,
             k_src: k,
-            relative: Pose::new(
-                [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
-                [-b, 0.0, 0.0],
-            )
-            .unwrap(),
+            relative: Pose::translation_only([-b, 0.0, 0.0]).unwrap(),
             width: W,
             height: H,
         }

@@ -274,7 +274,7 @@ fn rig(z0: f64, slope: f64, textured_below_x: f64) -> Rig {
         let (img, z) = render(c, z0, slope, textured_below_x);
         depth.get_or_insert(z);
         images.push(img);
-        poses.push(Pose::new(Pose::identity().rotation, [-c[0], -c[1], -c[2]]).unwrap());
+        poses.push(Pose::translation_only([-c[0], -c[1], -c[2]]).unwrap());
     }
     Rig {
         images,

@@ -382,7 +382,7 @@ pub fn pose_from_proto(p: &pb::Pose) -> Result<Pose> {
             format!("need 3 values, got {}", p.translation.len()),
         )
     })?;
-    Pose::new(
+    Pose::from_rows(
         [[r[0], r[1], r[2]], [r[3], r[4], r[5]], [r[6], r[7], r[8]]],
         t,
     )
@@ -391,8 +391,8 @@ pub fn pose_from_proto(p: &pb::Pose) -> Result<Pose> {
 /// [`Pose`] for the wire.
 pub fn pose_to_proto(p: &Pose) -> pb::Pose {
     pb::Pose {
-        rotation: p.rotation.iter().flatten().copied().collect(),
-        translation: p.translation.to_vec(),
+        rotation: p.rotation_rows().iter().flatten().copied().collect(),
+        translation: p.translation().iter().copied().collect(),
     }
 }
 
@@ -465,7 +465,7 @@ mod tests {
         )
         .unwrap();
         let k = Intrinsics::new(50.0, 50.0, (w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0);
-        let pose = Pose::new(Pose::identity().rotation, [tx, 0.0, 0.0]).unwrap();
+        let pose = Pose::translation_only([tx, 0.0, 0.0]).unwrap();
         (img, k, pose)
     }
 
@@ -520,7 +520,10 @@ mod tests {
         );
         assert_eq!(input.sgm, SgmParams::default());
         assert_eq!(input.sources.len(), 1);
-        assert_eq!(input.sources[0].pose.translation, [-0.1, 0.0, 0.0]);
+        assert_eq!(
+            input.sources[0].pose.translation().as_slice(),
+            [-0.1, 0.0, 0.0]
+        );
         let eq37 = mvs_from_proto(
             &request(pb::CostVolumeKind::DehazingEq37),
             &ImageLimits::default(),
