@@ -15,6 +15,7 @@
 //! search is a log-spaced grid followed by Brent's method in the best bracket
 //! ([`crate::minimise::grid_then_brent`]).
 
+use nalgebra::Vector3;
 use rayon::prelude::*;
 
 use crate::minimise::grid_then_brent;
@@ -176,33 +177,29 @@ fn pixel_residual(
     g: &GTable,
     model: ShadingModel,
 ) -> f64 {
-    let x = px.unit_point.map(|v| v * d);
+    let x = Vector3::from(px.unit_point) * d;
     let lit = &px.lit[..px.lit.len().min(MAX_LIT)];
-    let (ata, atb) = normal_equations(lights, medium, g, model, x, lit);
-    let Some(sol) = solve3(ata, atb) else {
+    let (ata, atb) = normal_equations(lights, medium, g, model, &x, lit);
+    let Some(sol) = solve3(&ata, &atb) else {
         return 1.0;
     };
     let ll: f64 = lit.iter().map(|&(_, o)| o * o).sum();
     let res: f64 = match model {
         // Σ (L − D·ñ)² = LᵀL − 2 ñᵀDᵀL + ñᵀDᵀD ñ: the normal equations already hold it.
         ShadingModel::DirectOnly => {
-            let mut quad = 0.0;
-            for r in 0..3 {
-                quad += sol[r] * (ata[r][0] * sol[0] + ata[r][1] * sol[1] + ata[r][2] * sol[2]);
-            }
-            let cross = sol[0] * atb[0] + sol[1] * atb[1] + sol[2] * atb[2];
-            (ll - 2.0 * cross + quad).max(0.0)
+            let quad = sol.dot(&(ata * sol));
+            (ll - 2.0 * sol.dot(&atb) + quad).max(0.0)
         }
         ShadingModel::ForwardScatter => {
-            let len = (sol[0] * sol[0] + sol[1] * sol[1] + sol[2] * sol[2]).sqrt();
+            let len = sol.norm();
             if !(len.is_finite() && len > 0.0) {
                 return 1.0;
             }
-            let n0 = sol.map(|v| v / len);
-            let (n, rho) = refine_exact_g(lights, medium, g, x, lit, n0, len).unwrap_or((n0, len));
+            let n0 = sol / len;
+            let (n, rho) = refine_exact_g(lights, medium, g, &x, lit, n0, len).unwrap_or((n0, len));
             lit.iter()
                 .map(|&(i, obs)| {
-                    let pred = rho * exact_shading(&lights[i], medium, g, x, n);
+                    let pred = rho * exact_shading(&lights[i], medium, g, &x, &n);
                     (obs - pred) * (obs - pred)
                 })
                 .sum()

@@ -1,6 +1,7 @@
 //! Near-light photometric stereo with the source-surface forward-scatter term linearised by
 //! `G(T, n·l) ≈ G(T, 1)·n·l` (Eq. 4.55–4.59).
 
+use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
 
 use crate::ps::capture::PointLight;
@@ -24,22 +25,17 @@ pub fn shading_row(
     medium: &Medium,
     g: &GTable,
     model: ShadingModel,
-    x_mm: [f64; 3],
-) -> [f64; 3] {
-    let d = [
-        light.position_mm[0] - x_mm[0],
-        light.position_mm[1] - x_mm[1],
-        light.position_mm[2] - x_mm[2],
-    ];
-    let dist = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt().max(1e-9);
+    x_mm: &Vector3<f64>,
+) -> Vector3<f64> {
+    let d = Vector3::from(light.position_mm) - x_mm;
+    let dist = d.norm().max(1e-9);
     let t = medium.sigma_per_mm * dist;
     let mut gain = (-t).exp() / (dist * dist);
     if model == ShadingModel::ForwardScatter && t > 0.0 {
         gain += medium.beta_per_mm * medium.sigma_per_mm / (2.0 * std::f64::consts::PI * t)
             * g.eval(t, 1.0);
     }
-    let s = light.intensity * gain / dist;
-    [d[0] * s, d[1] * s, d[2] * s]
+    d * (light.intensity * gain / dist)
 }
 
 /// Per-pixel result of the photometric-stereo solve.
@@ -88,7 +84,7 @@ pub fn solve_normals(
             if !mask[p] {
                 return;
             }
-            let x = points_mm[p].map(f64::from);
+            let x = Vector3::from(points_mm[p].map(f64::from));
             let max_obs = reflected
                 .iter()
                 .map(|img| f64::from(img[p]))
@@ -107,26 +103,26 @@ pub fn solve_normals(
             }
             let lit = &lit[..count];
             // Normal equations DᵀD ñ = Dᵀ L, accumulated in f64.
-            let (ata, atb) = normal_equations(lights, medium, g, model, x, lit);
+            let (ata, atb) = normal_equations(lights, medium, g, model, &x, lit);
             if count < 3 {
                 return;
             }
-            let Some(sol) = solve3(ata, atb) else {
+            let Some(sol) = solve3(&ata, &atb) else {
                 return;
             };
-            let len = (sol[0] * sol[0] + sol[1] * sol[1] + sol[2] * sol[2]).sqrt();
+            let len = sol.norm();
             if len.is_nan() || len <= 0.0 || !len.is_finite() {
                 return;
             }
-            let mut n = [sol[0] / len, sol[1] / len, sol[2] / len];
+            let mut n = sol / len;
             let mut albedo = len;
             if refine && model == ShadingModel::ForwardScatter {
-                if let Some((rn, ra)) = refine_exact_g(lights, medium, g, x, lit, n, albedo) {
+                if let Some((rn, ra)) = refine_exact_g(lights, medium, g, &x, lit, n, albedo) {
                     n = rn;
                     albedo = ra;
                 }
             }
-            *normal = n.map(|v| v as f32);
+            *normal = [n.x as f32, n.y as f32, n.z as f32];
             *rho = albedo as f32;
             *ok = true;
         });
@@ -147,19 +143,15 @@ pub(crate) fn normal_equations(
     medium: &Medium,
     g: &GTable,
     model: ShadingModel,
-    x_mm: [f64; 3],
+    x_mm: &Vector3<f64>,
     lit: &[(usize, f64)],
-) -> ([[f64; 3]; 3], [f64; 3]) {
-    let mut ata = [[0.0f64; 3]; 3];
-    let mut atb = [0.0f64; 3];
+) -> (Matrix3<f64>, Vector3<f64>) {
+    let mut ata = Matrix3::zeros();
+    let mut atb = Vector3::zeros();
     for &(i, obs) in lit {
         let row = shading_row(&lights[i], medium, g, model, x_mm);
-        for r in 0..3 {
-            for c in 0..3 {
-                ata[r][c] += row[r] * row[c];
-            }
-            atb[r] += row[r] * obs;
-        }
+        ata += row * row.transpose();
+        atb += row * obs;
     }
     (ata, atb)
 }
@@ -170,18 +162,12 @@ pub(crate) fn exact_shading(
     light: &PointLight,
     medium: &Medium,
     g: &GTable,
-    x_mm: [f64; 3],
-    n: [f64; 3],
+    x_mm: &Vector3<f64>,
+    n: &Vector3<f64>,
 ) -> f64 {
-    let dv = [
-        light.position_mm[0] - x_mm[0],
-        light.position_mm[1] - x_mm[1],
-        light.position_mm[2] - x_mm[2],
-    ];
-    let d = (dv[0] * dv[0] + dv[1] * dv[1] + dv[2] * dv[2])
-        .sqrt()
-        .max(1e-9);
-    let c = (n[0] * dv[0] + n[1] * dv[1] + n[2] * dv[2]) / d;
+    let dv = Vector3::from(light.position_mm) - x_mm;
+    let d = dv.norm().max(1e-9);
+    let c = n.dot(&dv) / d;
     let t = medium.sigma_per_mm * d;
     let direct = light.intensity * (-t).exp() / (d * d);
     let fwd = medium.beta_per_mm * light.intensity / (2.0 * std::f64::consts::PI * d);
@@ -200,37 +186,31 @@ pub(crate) fn refine_exact_g(
     lights: &[PointLight],
     medium: &Medium,
     g: &GTable,
-    x: [f64; 3],
+    x: &Vector3<f64>,
     lit: &[(usize, f64)],
-    mut n: [f64; 3],
+    mut n: Vector3<f64>,
     mut rho: f64,
-) -> Option<([f64; 3], f64)> {
+) -> Option<(Vector3<f64>, f64)> {
     const STEPS: usize = 6;
     let beta = medium.beta_per_mm;
     let sigma = medium.sigma_per_mm;
     for _ in 0..STEPS {
         // Tangent basis of n.
-        let a = if n[0].abs() < 0.9 {
-            [1.0, 0.0, 0.0]
+        let a = if n.x.abs() < 0.9 {
+            Vector3::x()
         } else {
-            [0.0, 1.0, 0.0]
+            Vector3::y()
         };
-        let e1 = normalize(cross(n, a));
-        let e2 = cross(n, e1);
-        let mut jtj = [[0.0f64; 3]; 3];
-        let mut jtr = [0.0f64; 3];
+        let e1 = n.cross(&a).normalize();
+        let e2 = n.cross(&e1);
+        let mut jtj = Matrix3::zeros();
+        let mut jtr = Vector3::zeros();
         for &(i, obs) in lit {
             let light = &lights[i];
-            let dv = [
-                light.position_mm[0] - x[0],
-                light.position_mm[1] - x[1],
-                light.position_mm[2] - x[2],
-            ];
-            let d = (dv[0] * dv[0] + dv[1] * dv[1] + dv[2] * dv[2])
-                .sqrt()
-                .max(1e-9);
-            let l = [dv[0] / d, dv[1] / d, dv[2] / d];
-            let c = n[0] * l[0] + n[1] * l[1] + n[2] * l[2];
+            let dv = Vector3::from(light.position_mm) - x;
+            let d = dv.norm().max(1e-9);
+            let l = dv / d;
+            let c = n.dot(&l);
             let t = sigma * d;
             let direct = light.intensity * (-t).exp() / (d * d);
             let fwd = beta * light.intensity / (2.0 * std::f64::consts::PI * d);
@@ -239,29 +219,17 @@ pub(crate) fn refine_exact_g(
             let dshade = direct * if c > 0.0 { 1.0 } else { 0.0 } + fwd * dg;
             let r = obs - rho * shade;
             let jl = rho * dshade;
-            let j = [
-                jl * (l[0] * e1[0] + l[1] * e1[1] + l[2] * e1[2]),
-                jl * (l[0] * e2[0] + l[1] * e2[1] + l[2] * e2[2]),
-                shade,
-            ];
-            for r_ in 0..3 {
-                for c_ in 0..3 {
-                    jtj[r_][c_] += j[r_] * j[c_];
-                }
-                jtr[r_] += j[r_] * r;
-            }
+            let j = Vector3::new(jl * l.dot(&e1), jl * l.dot(&e2), shade);
+            jtj += j * j.transpose();
+            jtr += j * r;
         }
-        let step = solve3(jtj, jtr)?;
+        let step = solve3(&jtj, &jtr)?;
         if !step.iter().all(|v| v.is_finite()) {
             return None;
         }
         // Keep each step small against the linearisation's range.
         let (da, db) = (step[0].clamp(-0.2, 0.2), step[1].clamp(-0.2, 0.2));
-        n = normalize([
-            n[0] + da * e1[0] + db * e2[0],
-            n[1] + da * e1[1] + db * e2[1],
-            n[2] + da * e1[2] + db * e2[2],
-        ]);
+        n = (n + e1 * da + e2 * db).normalize();
         rho += step[2];
         if rho.is_nan() || rho <= 0.0 {
             return None;
@@ -273,41 +241,20 @@ pub(crate) fn refine_exact_g(
     Some((n, rho))
 }
 
-fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ]
-}
-
-fn normalize(v: [f64; 3]) -> [f64; 3] {
-    let l = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
-    [v[0] / l, v[1] / l, v[2] / l]
-}
-
 /// Solves a symmetric 3×3 system by Cramer's rule; `None` when it is (nearly) singular
-/// relative to its scale.
-pub(crate) fn solve3(a: [[f64; 3]; 3], b: [f64; 3]) -> Option<[f64; 3]> {
-    let det = |m: &[[f64; 3]; 3]| {
-        m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
-            - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
-            + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])
-    };
-    let d = det(&a);
-    let scale = a[0][0].abs().max(a[1][1].abs()).max(a[2][2].abs());
+/// relative to its scale. (Cramer's rule rather than a factorisation: the determinant it needs
+/// anyway is the singularity test, and it keeps the solves of sessions 9–24 bit for bit.)
+pub(crate) fn solve3(a: &Matrix3<f64>, b: &Vector3<f64>) -> Option<Vector3<f64>> {
+    let d = a.determinant();
+    let scale = a.diagonal().amax();
     if !d.is_finite() || d.abs() <= 1e-12 * scale * scale * scale {
         return None;
     }
-    let mut x = [0.0; 3];
-    for (c, xc) in x.iter_mut().enumerate() {
-        let mut m = a;
-        for r in 0..3 {
-            m[r][c] = b[r];
-        }
-        *xc = det(&m) / d;
-    }
-    Some(x)
+    Some(Vector3::from_fn(|c, _| {
+        let mut m = *a;
+        m.set_column(c, b);
+        m.determinant() / d
+    }))
 }
 
 /// Fills unsolved masked pixels with the normalised mean of their solved (or already filled)
@@ -368,14 +315,13 @@ mod tests {
 
     #[test]
     fn solve3_matches_known_solution_and_rejects_singular() {
-        let a = [[4.0, 1.0, 0.5], [1.0, 3.0, 0.2], [0.5, 0.2, 2.0]];
-        let x = [0.3, -1.2, 2.0];
-        let b = [0, 1, 2].map(|r| (0..3).map(|c| a[r][c] * x[c]).sum::<f64>());
-        let got = solve3(a, b).unwrap();
-        for k in 0..3 {
-            assert!((got[k] - x[k]).abs() < 1e-12);
-        }
-        assert!(solve3([[1.0, 1.0, 0.0], [1.0, 1.0, 0.0], [0.0, 0.0, 1.0]], b).is_none());
+        let a = Matrix3::new(4.0, 1.0, 0.5, 1.0, 3.0, 0.2, 0.5, 0.2, 2.0);
+        let x = Vector3::new(0.3, -1.2, 2.0);
+        let b = a * x;
+        let got = solve3(&a, &b).unwrap();
+        assert!((got - x).amax() < 1e-12);
+        let singular = Matrix3::new(1.0, 1.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0, 1.0);
+        assert!(solve3(&singular, &b).is_none());
     }
 
     #[test]
