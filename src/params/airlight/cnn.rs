@@ -80,9 +80,10 @@ pub(crate) struct AirlightNet {
     pub(crate) conv8: Conv2d,
 }
 
-/// Initial bias of conv8: the middle of the training range of `A`, [0.7, 1.0], so the freshly
-/// initialised network starts from the mean answer instead of 0 (initialisation only; the
-/// architecture is the reference's).
+/// Initial bias of conv8: the middle of the reference's training range of `A`, [0.7, 1.0], so
+/// the freshly initialised network starts near a typical answer instead of 0 (initialisation
+/// only; the architecture is the reference's). Kept at 0.85 with murk's wider range [0.4, 1.0]:
+/// the committed weights were trained from it.
 pub(crate) const CONV8_BIAS_INIT: f32 = 0.85;
 
 impl AirlightNet {
