@@ -26,6 +26,8 @@ use std::f64::consts::FRAC_PI_2;
 #[cfg(test)]
 use std::f64::consts::PI;
 
+#[cfg(test)]
+use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 
 use super::f_table::FTable;
@@ -194,26 +196,22 @@ pub(crate) fn lambertian_scatter_cs_fast(
 pub(crate) fn lambertian_quadrature(
     medium: &Medium,
     intensity: f64,
-    ray_p: [f64; 3],
-    q_mm: [f64; 3],
-    n_q: [f64; 3],
+    ray_p: Vector3<f64>,
+    q_mm: Vector3<f64>,
+    n_q: Vector3<f64>,
     len: f64,
 ) -> f64 {
     let (beta, sigma) = (medium.beta_per_mm, medium.sigma_per_mm);
     let k = intensity * beta / (4.0 * PI);
     let mut f = |x: f64| {
-        let v = [
-            x * ray_p[0] - q_mm[0],
-            x * ray_p[1] - q_mm[1],
-            x * ray_p[2] - q_mm[2],
-        ];
-        let d2 = v[0] * v[0] + v[1] * v[1] + v[2] * v[2];
+        let v = ray_p * x - q_mm;
+        let d2 = v.norm_squared();
         let d = d2.sqrt();
-        let cos = (n_q[0] * v[0] + n_q[1] * v[1] + n_q[2] * v[2]) / d;
+        let cos = n_q.dot(&v) / d;
         k * cos.max(0.0) * (-sigma * (x + d)).exp() / d2
     };
-    let dq = (q_mm[0] * q_mm[0] + q_mm[1] * q_mm[1] + q_mm[2] * q_mm[2]).sqrt();
-    let cos_g = (ray_p[0] * q_mm[0] + ray_p[1] * q_mm[1] + ray_p[2] * q_mm[2]) / dq;
+    let dq = q_mm.norm();
+    let cos_g = ray_p.dot(&q_mm) / dq;
     let h = dq * (1.0 - cos_g * cos_g).max(0.0).sqrt();
     let x0 = (dq * cos_g).max(0.0);
     let scale = k * (-sigma * (x0 + h)).exp() * PI / h.max(1e-3 * dq);
@@ -274,7 +272,7 @@ mod tests {
             let t = dot(n, q) / dot(n, ray);
             let end = dq + 20.0;
             for len in [end, if t > 0.0 { t.min(end) } else { end }, 0.5 * dq] {
-                let want = lambertian_quadrature(&m, 2.0, ray, q, n, len);
+                let want = lambertian_quadrature(&m, 2.0, ray.into(), q.into(), n.into(), len);
                 let acc = lambertian_scatter_cs(
                     ft,
                     m.beta_per_mm,

@@ -30,6 +30,7 @@
 //! Σ_q dA_q L_s(q) (Eq. 4.42 with Eq. 4.44's dA_q factored out). That is the layout's far
 //! window carried over the whole object at a coarser step, and it needs no extra unknown.
 
+use nalgebra::Vector3;
 use rayon::prelude::*;
 
 use super::forward_kernel::{k_entry_fast, Physics, Pre};
@@ -105,17 +106,16 @@ fn aggregate(
         .into_par_iter()
         .map(|i| {
             let (cx, cy) = (i % cw, i / cw);
-            let (mut pt, mut nn, mut da, mut count) = ([0.0f64; 3], [0.0f64; 3], 0.0, 0usize);
+            let (mut pt, mut nn, mut da, mut count) =
+                (Vector3::zeros(), Vector3::zeros(), 0.0, 0usize);
             for y in cy * c..((cy + 1) * c).min(h) {
                 for x in cx * c..((cx + 1) * c).min(w) {
                     let q = &pre[y * w + x];
                     if !mask[y * w + x] {
                         continue;
                     }
-                    for k in 0..3 {
-                        pt[k] += q.ray[k] * q.d;
-                        nn[k] += q.n[k];
-                    }
+                    pt += q.ray * q.d;
+                    nn += q.n;
                     da += q.da;
                     count += 1;
                 }

@@ -24,6 +24,7 @@
 //! - The view ray of a pixel is the direction of its surface point (points lie on their pixel
 //!   rays for geometry from a depth map, and this keeps d_vp and the ray consistent).
 
+use nalgebra::Vector3;
 use rayon::prelude::*;
 
 use super::f_table::FTable;
@@ -116,28 +117,15 @@ pub fn pixel_solid_angle(intrinsics: &Intrinsics, u: f64, v: f64) -> f64 {
     c * c * c / (intrinsics.fx * intrinsics.fy)
 }
 
-#[inline(always)]
-fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-
-#[inline(always)]
-fn cross_norm(a: [f64; 3], b: [f64; 3]) -> f64 {
-    let x = a[1] * b[2] - a[2] * b[1];
-    let y = a[2] * b[0] - a[0] * b[2];
-    let z = a[0] * b[1] - a[1] * b[0];
-    (x * x + y * y + z * z).sqrt()
-}
-
 /// Everything about a pixel that K_pq needs, whether it plays p or q.
 #[derive(Clone, Copy, Debug, Default)]
 pub(super) struct Pre {
     /// Unit view ray (direction of the point).
-    pub(super) ray: [f64; 3],
+    pub(super) ray: Vector3<f64>,
     /// Distance camera–point, mm.
     pub(super) d: f64,
     /// Unit normal.
-    pub(super) n: [f64; 3],
+    pub(super) n: Vector3<f64>,
     /// n·point: the tangent plane is {x : n·x = nq}.
     pub(super) nq: f64,
     /// Facet area dA (Eq. 4.44), mm².
@@ -147,15 +135,15 @@ pub(super) struct Pre {
 }
 
 impl Pre {
-    pub(super) fn new(point: [f64; 3], n: [f64; 3], omega: f64) -> Pre {
-        let d = dot(point, point).sqrt();
-        let ray = [point[0] / d, point[1] / d, point[2] / d];
-        let vn = (-dot(ray, n)).max(MIN_COS_VIEW);
+    pub(super) fn new(point: Vector3<f64>, n: Vector3<f64>, omega: f64) -> Pre {
+        let d = point.norm();
+        let ray = point / d;
+        let vn = (-ray.dot(&n)).max(MIN_COS_VIEW);
         Pre {
             ray,
             d,
             n,
-            nq: dot(n, point),
+            nq: n.dot(&point),
             da: omega * d * d / vn,
             att: 0.0,
         }
@@ -164,26 +152,25 @@ impl Pre {
     /// The mean geometry of `count` pixels from the sums of their points (`point_sum`, mm) and
     /// unit normals (`normal_sum`), with facet area `da` (mm²) and the attenuation e^{−σd}.
     pub(super) fn mean(
-        point_sum: [f64; 3],
-        normal_sum: [f64; 3],
+        point_sum: Vector3<f64>,
+        normal_sum: Vector3<f64>,
         count: usize,
         da: f64,
         sigma: f64,
     ) -> Pre {
-        let c = count as f64;
-        let point = [point_sum[0] / c, point_sum[1] / c, point_sum[2] / c];
-        let nl = dot(normal_sum, normal_sum).sqrt();
+        let point = point_sum / count as f64;
+        let nl = normal_sum.norm();
         let n = if nl > 0.0 {
-            [normal_sum[0] / nl, normal_sum[1] / nl, normal_sum[2] / nl]
+            normal_sum / nl
         } else {
-            [0.0, 0.0, -1.0]
+            Vector3::new(0.0, 0.0, -1.0)
         };
-        let d = dot(point, point).sqrt();
+        let d = point.norm();
         Pre {
-            ray: [point[0] / d, point[1] / d, point[2] / d],
+            ray: point / d,
             d,
             n,
-            nq: dot(n, point),
+            nq: n.dot(&point),
             da,
             att: (-sigma * d).exp(),
         }
@@ -228,8 +215,8 @@ fn k_entry(ph: &Physics, p: &Pre, q: &Pre) -> f64 {
             cos_g,
             sin_g,
             len,
-            dot(q.n, p.ray),
-            dot(q.n, q.ray),
+            q.n.dot(&p.ray),
+            q.n.dot(&q.ray),
         ),
     }
 }
@@ -256,8 +243,8 @@ pub(super) fn k_entry_fast(ph: &Physics, p: &Pre, q: &Pre) -> f64 {
             cos_g,
             sin_g,
             len,
-            dot(q.n, p.ray),
-            dot(q.n, q.ray),
+            q.n.dot(&p.ray),
+            q.n.dot(&q.ray),
         ),
     }
 }
@@ -265,9 +252,9 @@ pub(super) fn k_entry_fast(ph: &Physics, p: &Pre, q: &Pre) -> f64 {
 /// cos γ, sin γ and the lit ray length d_vp′ of K_pq.
 #[inline(always)]
 fn k_geometry(p: &Pre, q: &Pre) -> (f64, f64, f64) {
-    let cos_g = dot(p.ray, q.ray);
-    let sin_g = cross_norm(p.ray, q.ray);
-    let t = q.nq / dot(q.n, p.ray);
+    let cos_g = p.ray.dot(&q.ray);
+    let sin_g = p.ray.cross(&q.ray).norm();
+    let t = q.nq / q.n.dot(&p.ray);
     // NaN (parallel ray on the plane) and t ≤ 0 (never crosses ahead) both mean "no crossing".
     let len = if t > 0.0 { t.min(p.d) } else { p.d };
     (cos_g, sin_g, len)
@@ -282,10 +269,10 @@ pub fn kernel_entry(
     ft: &FTable,
     medium: &Medium,
     emission: FacetEmission,
-    ray_p: [f64; 3],
+    ray_p: Vector3<f64>,
     d_vp_mm: f64,
-    q_mm: [f64; 3],
-    n_q: [f64; 3],
+    q_mm: Vector3<f64>,
+    n_q: Vector3<f64>,
     pixel_solid_angle_q: f64,
 ) -> f64 {
     let p = Pre {
@@ -297,8 +284,8 @@ pub fn kernel_entry(
     k_entry(&Physics::new(ft, medium, emission), &p, &q)
 }
 
-fn f3(v: [f32; 3]) -> [f64; 3] {
-    [v[0] as f64, v[1] as f64, v[2] as f64]
+fn f3(v: [f32; 3]) -> Vector3<f64> {
+    Vector3::new(v[0] as f64, v[1] as f64, v[2] as f64)
 }
 
 /// Per-pixel precomputation for every pixel (unmasked ones are left at default and never read).
@@ -384,7 +371,8 @@ fn cell_geometry(
         .into_par_iter()
         .map(|c| {
             let (cx, cy) = (c % cw, c / cw);
-            let (mut pt, mut nn, mut da, mut count) = ([0.0f64; 3], [0.0f64; 3], 0.0, 0usize);
+            let (mut pt, mut nn, mut da, mut count) =
+                (Vector3::zeros(), Vector3::zeros(), 0.0, 0usize);
             let (mut inside, mut min_vn) = (0usize, f64::INFINITY);
             for y in cy * s..((cy + 1) * s).min(h) {
                 for x in cx * s..((cx + 1) * s).min(w) {
@@ -394,11 +382,9 @@ fn cell_geometry(
                         continue;
                     }
                     let q = &pre[i];
-                    for k in 0..3 {
-                        pt[k] += q.ray[k] * q.d;
-                        nn[k] += q.n[k];
-                    }
-                    min_vn = min_vn.min(-dot(q.ray, q.n));
+                    pt += q.ray * q.d;
+                    nn += q.n;
+                    min_vn = min_vn.min(-q.ray.dot(&q.n));
                     da += q.da;
                     count += 1;
                 }
@@ -1114,10 +1100,10 @@ pub(super) mod tests {
         }
     }
 
-    fn point(g: &SurfaceGeometry, i: usize) -> ([f64; 3], f64, [f64; 3]) {
+    fn point(g: &SurfaceGeometry, i: usize) -> (Vector3<f64>, f64, Vector3<f64>) {
         let p = f3(g.points_mm[i]);
-        let d = dot(p, p).sqrt();
-        (p, d, [p[0] / d, p[1] / d, p[2] / d])
+        let d = p.norm();
+        (p, d, p / d)
     }
 
     fn omega(g: &SurfaceGeometry, i: usize) -> f64 {
@@ -1130,14 +1116,14 @@ pub(super) mod tests {
         let (_, dp, rp) = point(g, pi);
         let (q, dq, rq) = point(g, qi);
         let n = f3(g.normals[qi]);
-        let vn = (-dot(rq, n)).max(MIN_COS_VIEW);
+        let vn = (-rq.dot(&n)).max(MIN_COS_VIEW);
         let da = omega(g, qi) * dq * dq / vn;
         // First crossing of p's ray with q's tangent plane, if ahead of the camera.
-        let t = dot(n, q) / dot(n, rp);
+        let t = n.dot(&q) / n.dot(&rp);
         let len = if t > 0.0 && t < dp { t } else { dp };
         match g.emission {
             FacetEmission::Isotropic => {
-                scatter_quadrature_cs(m, da, dq, dot(rp, rq), cross_norm(rp, rq), len)
+                scatter_quadrature_cs(m, da, dq, rp.dot(&rq), rp.cross(&rq).norm(), len)
             }
             FacetEmission::Lambertian => lambertian_quadrature(m, da, rp, q, n, len),
         }
@@ -1186,7 +1172,7 @@ pub(super) mod tests {
                 "({pi},{qi}): {got} vs {want}"
             );
             let n = f3(g.normals[qi]);
-            let t = dot(n, q) / dot(n, rp);
+            let t = n.dot(&q) / n.dot(&rp);
             if t > 0.0 && t < dp {
                 truncated += 1;
             }

@@ -16,6 +16,8 @@
 
 use std::f64::consts::{FRAC_PI_4, PI};
 
+use nalgebra::Vector3;
+
 use super::f_table::U_MAX;
 use super::facet_emission::FacetEmission;
 use super::forward_kernel::{k_entry_fast, Physics, Pre};
@@ -57,9 +59,9 @@ impl PreLanes {
     /// Pixel `i` as a [`Pre`] again.
     fn get(&self, i: usize) -> Pre {
         Pre {
-            ray: [self.ray[0][i], self.ray[1][i], self.ray[2][i]],
+            ray: Vector3::new(self.ray[0][i], self.ray[1][i], self.ray[2][i]),
             d: self.d[i],
-            n: [self.n[0][i], self.n[1][i], self.n[2][i]],
+            n: Vector3::new(self.n[0][i], self.n[1][i], self.n[2][i]),
             nq: self.nq[i],
             da: self.da[i],
             att: self.att[i],
@@ -270,7 +272,7 @@ mod tests {
                 let tilt = if r < 0.15 { 3.0 } else { 0.8 };
                 let sign = if r > 0.97 { 1.0 } else { -1.0 };
                 let n = unit([tilt * (lcg(seed) - 0.5), tilt * (lcg(seed) - 0.5), sign]);
-                let mut pre = Pre::new(point, n, 1e-4 * (0.5 + lcg(seed)));
+                let mut pre = Pre::new(point.into(), n.into(), 1e-4 * (0.5 + lcg(seed)));
                 pre.att = (-sigma * pre.d).exp();
                 pre
             })
