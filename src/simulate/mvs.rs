@@ -52,7 +52,7 @@
 use std::collections::BTreeMap;
 use std::path::Path;
 
-use nalgebra::{Matrix3, Vector3};
+use nalgebra::Matrix3;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
@@ -71,7 +71,7 @@ use crate::mvs::colmap::{
 use crate::mvs::pose::Pose;
 use crate::mvs::View;
 use crate::params::sparse::{PointSelection, SparseDepth};
-use crate::simulate::scene::{dot, Shape, V3};
+use crate::simulate::scene::{Shape, V3};
 
 /// `format` tag of `meta.json`.
 pub const MVS_SCENE_FORMAT: &str = "murk.mvs_scene";
@@ -503,7 +503,7 @@ struct SurfaceHit {
     material: Material,
 }
 
-const LIGHT: V3 = [-0.27, -0.87, -0.41];
+const LIGHT: [f64; 3] = [-0.27, -0.87, -0.41];
 
 impl World {
     fn random(cfg: &MvsSimConfig, rng: &mut ChaCha8Rng) -> Self {
@@ -518,8 +518,8 @@ impl World {
             let x = rng.random_range(-2.2..2.2);
             let z = rng.random_range(3.5..9.0);
             let shape = Shape::Box {
-                min: [x - sx / 2.0, FLOOR_Y - sy, z - sz / 2.0],
-                max: [x + sx / 2.0, FLOOR_Y, z + sz / 2.0],
+                min: V3::new(x - sx / 2.0, FLOOR_Y - sy, z - sz / 2.0),
+                max: V3::new(x + sx / 2.0, FLOOR_Y, z + sz / 2.0),
             };
             objects.push((shape, Material::random(rng, b == 0)));
         }
@@ -534,7 +534,7 @@ impl World {
             };
             objects.push((
                 Shape::Sphere {
-                    centre: [x, y, z],
+                    centre: V3::new(x, y, z),
                     radius: r,
                 },
                 Material::random(rng, false),
@@ -554,7 +554,7 @@ impl World {
         let hi = [ROOM_X, FLOOR_Y, self.back_z];
         let mut best = SurfaceHit {
             t: f64::INFINITY,
-            normal: [0.0, 0.0, -1.0],
+            normal: V3::new(0.0, 0.0, -1.0),
             material: self.room[5],
         };
         for a in 0..3 {
@@ -568,7 +568,7 @@ impl World {
             };
             let t = (bound - o[a]) / d[a];
             if t > 0.0 && t < best.t {
-                let mut n = [0.0; 3];
+                let mut n = V3::zeros();
                 n[a] = -d[a].signum();
                 best = SurfaceHit {
                     t,
@@ -592,30 +592,21 @@ impl World {
     /// Lambertian radiance at the hit of a ray, RGB, clamped to `[0.02, 0.98]`; the albedo is
     /// scaled by `albedo_scale` ([`MvsSimConfig::albedo_scale`]).
     fn radiance(&self, o: V3, d: V3, hit: &SurfaceHit, albedo_scale: f64) -> [f64; 3] {
-        let p = [
-            o[0] + hit.t * d[0],
-            o[1] + hit.t * d[1],
-            o[2] + hit.t * d[2],
-        ];
-        let n = norm(LIGHT);
-        let shade = 0.3 + 0.7 * dot(hit.normal, n).max(0.0);
+        let p = o + d * hit.t;
+        let n = V3::from(LIGHT).normalize();
+        let shade = 0.3 + 0.7 * hit.normal.dot(&n).max(0.0);
         hit.material
             .albedo(p)
             .map(|a| (a * albedo_scale * shade).clamp(0.02, 0.98))
     }
 }
 
-fn norm(v: V3) -> V3 {
-    let n = dot(v, v).sqrt();
-    [v[0] / n, v[1] / n, v[2] / n]
-}
-
 /// Camera-frame unit ray through pixel `(u, v)` and world-frame origin/direction.
 fn world_ray(k: &Intrinsics, cam_to_world: &Pose, u: f64, v: f64) -> (V3, V3, f64) {
     let d_cam = k.ray(u, v);
     (
-        (*cam_to_world.translation()).into(),
-        cam_to_world.rotate(d_cam).into(),
+        *cam_to_world.translation(),
+        cam_to_world.rotate(d_cam),
         d_cam[2],
     )
 }
@@ -627,7 +618,7 @@ fn yaw_pose(centre: V3, yaw: f64, pitch: f64) -> Result<Pose> {
     let ry = Matrix3::new(cy, 0.0, sy, 0.0, 1.0, 0.0, -sy, 0.0, cy);
     let rx = Matrix3::new(1.0, 0.0, 0.0, 0.0, cp, -sp, 0.0, sp, cp);
     let r = (ry * rx).transpose();
-    Pose::new(r, -(r * Vector3::from(centre)))
+    Pose::new(r, -(r * centre))
 }
 
 fn poses(cfg: &MvsSimConfig, rng: &mut ChaCha8Rng) -> Result<(Vec<Pose>, usize)> {
@@ -658,7 +649,7 @@ fn poses(cfg: &MvsSimConfig, rng: &mut ChaCha8Rng) -> Result<(Vec<Pose>, usize)>
         let wobble = 0.3f64.to_radians();
         let yaw = (-x / 7.0).atan() + rng.random_range(-wobble..=wobble);
         let pitch = rng.random_range(-wobble..=wobble);
-        out.push(yaw_pose(c, yaw, pitch)?);
+        out.push(yaw_pose(c.into(), yaw, pitch)?);
     }
     Ok((out, reference))
 }

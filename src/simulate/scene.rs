@@ -6,23 +6,13 @@ use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
+use nalgebra::Vector3;
+
 use crate::camera::Intrinsics;
 
-/// 3-vector helpers kept local: the simulator needs only a handful of operations.
-pub(crate) type V3 = [f64; 3];
-
-#[inline]
-pub(crate) fn dot(a: V3, b: V3) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-#[inline]
-pub(crate) fn sub(a: V3, b: V3) -> V3 {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-#[inline]
-pub(crate) fn scale(a: V3, k: f64) -> V3 {
-    [a[0] * k, a[1] * k, a[2] * k]
-}
+/// A point or direction of the simulators' scenes (metres for ToF, scene units for MVS); it
+/// serialises as `[x, y, z]`.
+pub(crate) type V3 = Vector3<f64>;
 
 /// Geometry of one object.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -118,9 +108,9 @@ impl Shape {
     pub(crate) fn intersect(&self, o: V3, d: V3, t_min: f64, t_max: f64) -> Option<(f64, V3)> {
         match *self {
             Shape::Sphere { centre, radius } => {
-                let oc = sub(o, centre);
-                let b = dot(oc, d);
-                let c = dot(oc, oc) - radius * radius;
+                let oc = o - centre;
+                let b = oc.dot(&d);
+                let c = oc.dot(&oc) - radius * radius;
                 let disc = b * b - c;
                 if disc < 0.0 {
                     return None;
@@ -128,8 +118,8 @@ impl Shape {
                 let sq = disc.sqrt();
                 for t in [-b - sq, -b + sq] {
                     if t > t_min && t < t_max {
-                        let p = [o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]];
-                        return Some((t, scale(sub(p, centre), 1.0 / radius)));
+                        let p = o + d * t;
+                        return Some((t, (p - centre) * (1.0 / radius)));
                     }
                 }
                 None
@@ -171,7 +161,7 @@ impl Shape {
                         return None;
                     }
                 }
-                let mut n = [0.0; 3];
+                let mut n = V3::zeros();
                 if t0 > t_min && t0 < t_max {
                     n[axis0] = sign0;
                     Some((t0, n))
@@ -190,9 +180,9 @@ impl Shape {
         match *self {
             Shape::Sphere { centre, radius } => (centre, radius),
             Shape::Box { min, max } => {
-                let c = scale([min[0] + max[0], min[1] + max[1], min[2] + max[2]], 0.5);
-                let h = sub(max, c);
-                (c, dot(h, h).sqrt())
+                let c = (min + max) * 0.5;
+                let h = max - c;
+                (c, h.dot(&h).sqrt())
             }
         }
     }
@@ -206,14 +196,14 @@ impl Scene {
         if d[2] > 1e-9 {
             best = Some(Hit {
                 t: self.wall_z_m / d[2],
-                normal: [0.0, 0.0, -1.0],
+                normal: V3::new(0.0, 0.0, -1.0),
                 albedo: self.wall_albedo,
                 is_object: false,
             });
         }
         for obj in &self.objects {
             let t_max = best.map_or(f64::INFINITY, |h| h.t);
-            if let Some((t, normal)) = obj.shape.intersect([0.0; 3], d, 1e-9, t_max) {
+            if let Some((t, normal)) = obj.shape.intersect(V3::zeros(), d, 1e-9, t_max) {
                 best = Some(Hit {
                     t,
                     normal,
@@ -228,21 +218,21 @@ impl Scene {
     /// True when an object blocks the open segment from `a` to `b` (the wall is behind
     /// everything and cannot shadow).
     pub(crate) fn occluded(&self, a: V3, b: V3) -> bool {
-        let ab = sub(b, a);
-        let len = dot(ab, ab).sqrt();
+        let ab = b - a;
+        let len = ab.dot(&ab).sqrt();
         if len <= 0.0 {
             return false;
         }
-        let d = scale(ab, 1.0 / len);
+        let d = ab * (1.0 / len);
         // Self-intersection guard: 1 µm is far below any feature size and far above f64 noise.
         let eps = 1e-6;
         self.objects.iter().any(|obj| {
             let (c, r) = obj.shape.bounding_sphere();
             // Distance from the bounding sphere's centre to the segment.
-            let ac = sub(c, a);
-            let t = dot(ac, d).clamp(0.0, len);
-            let q = sub(ac, scale(d, t));
-            if dot(q, q) > r * r {
+            let ac = c - a;
+            let t = ac.dot(&d).clamp(0.0, len);
+            let q = ac - (d * t);
+            if q.dot(&q) > r * r {
                 return false;
             }
             obj.shape.intersect(a, d, eps, len - eps).is_some()
@@ -315,10 +305,10 @@ impl Scene {
         for _attempt in 0..200 {
             let u = rng.random_range(0.3..0.7) * (width as f64 - 1.0);
             let v = rng.random_range(0.35..0.65) * (height as f64 - 1.0);
-            let dir = k.ray(u, v);
+            let dir = V3::from(k.ray(u, v));
             let radius = rng.random_range(0.2..0.3);
             let front = rng.random_range(0.75..1.05);
-            let centre = scale(dir, front + radius);
+            let centre = dir * (front + radius);
             let sphere = SceneObject {
                 shape: Shape::Sphere { centre, radius },
                 albedo: rng.random_range(0.6..0.9),
@@ -328,20 +318,20 @@ impl Scene {
             let panel_z = centre[2] + rng.random_range(0.5..1.0);
             let side = if rng.random_bool(0.5) { 1.0 } else { -1.0 };
             let shift = rng.random_range(0.6..1.2) * radius * panel_z / centre[2];
-            let half = [
+            let half = V3::new(
                 rng.random_range(0.25..0.4),
                 rng.random_range(0.15..0.25),
                 0.02,
-            ];
-            let c = [
+            );
+            let c = V3::new(
                 centre[0] * panel_z / centre[2] + side * (shift + half[0] * 0.5),
                 centre[1] * panel_z / centre[2] + rng.random_range(-0.5..0.5) * radius,
                 panel_z,
-            ];
+            );
             let panel = SceneObject {
                 shape: Shape::Box {
-                    min: sub(c, half),
-                    max: [c[0] + half[0], c[1] + half[1], c[2] + half[2]],
+                    min: (c - half),
+                    max: c + half,
                 },
                 albedo: rng.random_range(0.3..0.8),
             };
@@ -372,14 +362,13 @@ impl Scene {
         let obj = &self.objects[index];
         for y in (0..height).step_by(step) {
             for x in (0..width).step_by(step) {
-                let d = k.ray(x as f64, y as f64);
-                let Some((t, _)) = obj.shape.intersect([0.0; 3], d, 1e-9, f64::INFINITY) else {
+                let d = V3::from(k.ray(x as f64, y as f64));
+                let Some((t, _)) = obj.shape.intersect(V3::zeros(), d, 1e-9, f64::INFINITY) else {
                     continue;
                 };
-                let in_front =
-                    self.objects.iter().enumerate().any(|(j, o)| {
-                        j != index && o.shape.intersect([0.0; 3], d, 1e-9, t).is_some()
-                    });
+                let in_front = self.objects.iter().enumerate().any(|(j, o)| {
+                    j != index && o.shape.intersect(V3::zeros(), d, 1e-9, t).is_some()
+                });
                 if in_front {
                     hidden += 1;
                 } else {
@@ -402,11 +391,11 @@ impl Scene {
         for y in (0..height).step_by(step) {
             for x in (0..width).step_by(step) {
                 total += 1;
-                let d = k.ray(x as f64, y as f64);
+                let d = V3::from(k.ray(x as f64, y as f64));
                 let mut nearest: Option<(usize, f64)> = None;
                 for (i, o) in self.objects.iter().enumerate() {
                     let t_max = nearest.map_or(f64::INFINITY, |(_, t)| t);
-                    if let Some((t, _)) = o.shape.intersect([0.0; 3], d, 1e-9, t_max) {
+                    if let Some((t, _)) = o.shape.intersect(V3::zeros(), d, 1e-9, t_max) {
                         nearest = Some((i, t));
                     }
                 }
@@ -446,8 +435,8 @@ fn add_clear_objects(
         let (c, r) = obj.shape.bounding_sphere();
         let clear_of_others = objects.iter().all(|o| {
             let (c2, r2) = o.shape.bounding_sphere();
-            let dc = sub(c, c2);
-            dot(dc, dc).sqrt() > r + r2 + 0.05
+            let dc = c - c2;
+            dc.dot(&dc).sqrt() > r + r2 + 0.05
         });
         if clear_of_others {
             objects.push(obj);
@@ -460,28 +449,28 @@ fn random_object(rng: &mut ChaCha8Rng, k: &Intrinsics, width: usize, height: usi
     // Centre direction inside the central part of the view, so the object is mostly visible.
     let u = rng.random_range(0.15..0.85) * (width as f64 - 1.0);
     let v = rng.random_range(0.25..0.75) * (height as f64 - 1.0);
-    let dir = k.ray(u, v);
+    let dir = V3::from(k.ray(u, v));
     let kind = rng.random_range(0..3u32);
     let shape = match kind {
         0 => {
             let radius = rng.random_range(0.12..0.25);
             let range = rng.random_range(1.0 + radius..2.0);
             Shape::Sphere {
-                centre: scale(dir, range),
+                centre: (dir * range),
                 radius,
             }
         }
         1 => {
-            let h = [
+            let h = V3::new(
                 rng.random_range(0.08..0.22),
                 rng.random_range(0.08..0.22),
                 rng.random_range(0.08..0.2),
-            ];
+            );
             let range = rng.random_range(1.0 + h[2]..2.0);
-            let c = scale(dir, range);
+            let c = dir * range;
             Shape::Box {
-                min: sub(c, h),
-                max: [c[0] + h[0], c[1] + h[1], c[2] + h[2]],
+                min: (c - h),
+                max: c + h,
             }
         }
         _ => {
@@ -489,11 +478,11 @@ fn random_object(rng: &mut ChaCha8Rng, k: &Intrinsics, width: usize, height: usi
             let hw = rng.random_range(0.015..0.03);
             let hh = rng.random_range(0.2..0.35);
             let range = rng.random_range(1.0 + hw..2.0);
-            let c = scale(dir, range);
-            let h = [hw, hh, hw];
+            let c = dir * range;
+            let h = V3::new(hw, hh, hw);
             Shape::Box {
-                min: sub(c, h),
-                max: [c[0] + h[0], c[1] + h[1], c[2] + h[2]],
+                min: (c - h),
+                max: c + h,
             }
         }
     };
@@ -508,24 +497,28 @@ mod tests {
     #[test]
     fn sphere_and_box_hits_have_outward_normals() {
         let s = Shape::Sphere {
-            centre: [0.0, 0.0, 2.0],
+            centre: V3::new(0.0, 0.0, 2.0),
             radius: 0.5,
         };
-        let (t, n) = s.intersect([0.0; 3], [0.0, 0.0, 1.0], 0.0, 10.0).unwrap();
+        let (t, n) = s
+            .intersect(V3::zeros(), V3::new(0.0, 0.0, 1.0), 0.0, 10.0)
+            .unwrap();
         assert!((t - 1.5).abs() < 1e-12 && (n[2] + 1.0).abs() < 1e-12);
         let b = Shape::Box {
-            min: [-0.5, -0.5, 1.0],
-            max: [0.5, 0.5, 2.0],
+            min: V3::new(-0.5, -0.5, 1.0),
+            max: V3::new(0.5, 0.5, 2.0),
         };
-        let (t, n) = b.intersect([0.0; 3], [0.0, 0.0, 1.0], 0.0, 10.0).unwrap();
-        assert!((t - 1.0).abs() < 1e-12 && n == [0.0, 0.0, -1.0]);
+        let (t, n) = b
+            .intersect(V3::zeros(), V3::new(0.0, 0.0, 1.0), 0.0, 10.0)
+            .unwrap();
+        assert!((t - 1.0).abs() < 1e-12 && n == V3::new(0.0, 0.0, -1.0));
         // Exit through the far face from inside.
         let (t, n) = b
-            .intersect([0.0, 0.0, 1.5], [0.0, 0.0, 1.0], 0.0, 10.0)
+            .intersect(V3::new(0.0, 0.0, 1.5), V3::new(0.0, 0.0, 1.0), 0.0, 10.0)
             .unwrap();
-        assert!((t - 0.5).abs() < 1e-12 && n == [0.0, 0.0, 1.0]);
+        assert!((t - 0.5).abs() < 1e-12 && n == V3::new(0.0, 0.0, 1.0));
         assert!(b
-            .intersect([2.0, 0.0, 0.0], [0.0, 0.0, 1.0], 0.0, 10.0)
+            .intersect(V3::new(2.0, 0.0, 0.0), V3::new(0.0, 0.0, 1.0), 0.0, 10.0)
             .is_none());
     }
 
@@ -554,7 +547,7 @@ mod tests {
             let Shape::Sphere { centre, radius } = s.objects[0].shape else {
                 panic!("seed {seed}: the first object is the near sphere");
             };
-            let front = dot(centre, centre).sqrt() - radius;
+            let front = centre.dot(&centre).sqrt() - radius;
             assert!((0.75..=1.05).contains(&front), "seed {seed}: {front}");
             let hidden = s.hidden_share(1, &k, 512, 424);
             assert!(
@@ -573,14 +566,14 @@ mod tests {
             wall_albedo: 0.05,
             objects: vec![SceneObject {
                 shape: Shape::Sphere {
-                    centre: [0.0, 0.0, 2.0],
+                    centre: V3::new(0.0, 0.0, 2.0),
                     radius: 0.3,
                 },
                 albedo: 0.5,
             }],
         };
-        assert!(scene.occluded([0.0; 3], [0.0, 0.0, 4.0]));
-        assert!(!scene.occluded([0.0; 3], [0.0, 0.0, 1.0]));
-        assert!(!scene.occluded([1.0, 0.0, 0.0], [1.0, 0.0, 4.0]));
+        assert!(scene.occluded(V3::zeros(), V3::new(0.0, 0.0, 4.0)));
+        assert!(!scene.occluded(V3::zeros(), V3::new(0.0, 0.0, 1.0)));
+        assert!(!scene.occluded(V3::new(1.0, 0.0, 0.0), V3::new(1.0, 0.0, 4.0)));
     }
 }

@@ -46,7 +46,7 @@ use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::scene::{dot, scale, sub, Scene, SceneLayout, V3};
+use super::scene::{Scene, SceneLayout, V3};
 use crate::camera::Intrinsics;
 use crate::error::{MurkError, Result};
 use crate::image::ImageF32;
@@ -408,7 +408,7 @@ struct Model<'a> {
 
 impl<'a> Model<'a> {
     fn new(cfg: &TofSimConfig, scene: &'a Scene, beta_per_mm: f64) -> Self {
-        let light = [cfg.light_offset_mm * 1e-3, 0.0, 0.0];
+        let light = V3::new(cfg.light_offset_mm * 1e-3, 0.0, 0.0);
         let psi_h = cfg.beam_half_angle_deg.to_radians();
         let edge = cfg.beam_edge_width_deg.to_radians();
         let psi_in = psi_h - edge / 2.0;
@@ -418,8 +418,8 @@ impl<'a> Model<'a> {
             .iter()
             .map(|o| {
                 let (c, r) = o.shape.bounding_sphere();
-                let lc = sub(c, light);
-                dot(lc, lc).sqrt() - r
+                let lc = c - light;
+                lc.dot(&lc).sqrt() - r
             })
             .fold(f64::INFINITY, f64::min)
             .max(0.0);
@@ -465,10 +465,10 @@ impl<'a> Model<'a> {
     /// Direct phasor from surface point `p` (normal `n`, albedo `rho`) seen at camera distance
     /// `s` with extinction `beta` (per m). Eq. 5.18 with the offset, limited beam.
     fn direct(&self, p: V3, n: V3, rho: f64, s: f64, beta: f64, shadowed: bool) -> Phasor {
-        let lp = sub(self.light, p);
-        let rl2 = dot(lp, lp);
+        let lp = self.light - p;
+        let rl2 = lp.dot(&lp);
         let rl = rl2.sqrt();
-        let cos_i = dot(n, lp) / rl;
+        let cos_i = n.dot(&lp) / rl;
         if cos_i <= 0.0 || shadowed {
             return Phasor::default();
         }
@@ -499,9 +499,9 @@ impl<'a> Model<'a> {
             } else {
                 2.0
             };
-            let p = scale(d, s);
-            let v = sub(p, self.light);
-            let rl2 = dot(v, v);
+            let p = d * s;
+            let v = p - self.light;
+            let rl2 = v.dot(&v);
             let rl = rl2.sqrt();
             let b = self.beam(v[2] / rl);
             if b == 0.0 {
@@ -511,7 +511,7 @@ impl<'a> Model<'a> {
                 continue;
             }
             // Scattering angle between propagation (p−L)/r_l and the way back to the camera −d.
-            let cos_theta = -dot(v, d) / rl;
+            let cos_theta = -v.dot(&d) / rl;
             // ds = s·du in log space.
             let f = w
                 * s
@@ -537,7 +537,8 @@ impl<'a> Model<'a> {
 /// metres, without objects (no shadowing). Used to study saturation (Eq. 5.4–5.5).
 pub fn scatter_along_ray(cfg: &TofSimConfig, ray: [f64; 3], s_end_m: f64) -> Result<Phasor> {
     cfg.validate()?;
-    let n = dot(ray, ray).sqrt();
+    let ray = V3::from(ray);
+    let n = ray.norm();
     if !n.is_finite() || n <= 0.0 {
         return Err(MurkError::invalid(
             "ray",
@@ -556,7 +557,7 @@ pub fn scatter_along_ray(cfg: &TofSimConfig, ray: [f64; 3], s_end_m: f64) -> Res
         objects: Vec::new(),
     };
     let model = Model::new(cfg, &scene, cfg.effective_beta_per_mm());
-    Ok(model.scatter(scale(ray, 1.0 / n), s_end_m, false))
+    Ok(model.scatter(ray * (1.0 / n), s_end_m, false))
 }
 
 /// Per-pixel result, laid out so one allocation holds the whole frame.
@@ -609,7 +610,7 @@ pub fn simulate_tof(cfg: &TofSimConfig, monitor: &Monitor) -> Result<TofSimFrame
         let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed);
         rng.set_stream(1 + y as u64);
         for (x, px) in row.iter_mut().enumerate() {
-            let d = k.ray(x as f64, y as f64);
+            let d = V3::from(k.ray(x as f64, y as f64));
             *px = render_pixel(&model, cfg, d, &mut rng);
         }
         let done = rows_done.fetch_add(1, Ordering::Relaxed) + 1;
@@ -657,7 +658,7 @@ fn phase_f32(p: Phasor) -> f32 {
 fn render_pixel(model: &Model<'_>, cfg: &TofSimConfig, d: V3, rng: &mut ChaCha8Rng) -> PixelOut {
     let (direct_fog, direct_clear, scatter, range, z, mask) = match model.scene.cast(d) {
         Some(hit) => {
-            let p = scale(d, hit.t);
+            let p = d * hit.t;
             let shadowed = model.scene.occluded(p, model.light);
             let fog = model.direct(p, hit.normal, hit.albedo, hit.t, model.beta, shadowed);
             let clear = model.direct(p, hit.normal, hit.albedo, hit.t, 0.0, shadowed);
