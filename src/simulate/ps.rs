@@ -40,6 +40,7 @@
 
 use std::path::Path;
 
+use nalgebra::Vector3;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
@@ -299,23 +300,14 @@ pub struct PsSimCapture {
 }
 
 struct Hit {
-    point: [f64; 3],
-    normal: [f64; 3],
-}
-
-fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-
-fn normalize(v: [f64; 3]) -> [f64; 3] {
-    let n = dot(v, v).sqrt();
-    [v[0] / n, v[1] / n, v[2] / n]
+    point: Vector3<f64>,
+    normal: Vector3<f64>,
 }
 
 /// The object as a solid for ray casting.
 struct Solid {
     shape: PsShape,
-    centre: [f64; 3],
+    centre: Vector3<f64>,
     radius: f64,
 }
 
@@ -332,7 +324,7 @@ impl Solid {
 
     /// Bumpy-sphere radius in the unit direction `u` from the centre, and its gradient with
     /// respect to u (the z component is 0).
-    fn bumps_radius(&self, u: [f64; 3]) -> (f64, [f64; 3]) {
+    fn bumps_radius(&self, u: Vector3<f64>) -> (f64, Vector3<f64>) {
         const A: f64 = 0.06;
         const K: f64 = 6.0;
         let (sx, cx) = (K * u[0]).sin_cos();
@@ -340,7 +332,7 @@ impl Solid {
         let r = self.radius;
         (
             r * (1.0 + A * sx * sy),
-            [r * A * K * cx * sy, r * A * K * sx * cy, 0.0],
+            Vector3::new(r * A * K * cx * sy, r * A * K * sx * cy, 0.0),
         )
     }
 
@@ -348,14 +340,10 @@ impl Solid {
         0.9 * self.radius
     }
 
-    fn inside(&self, p: [f64; 3]) -> bool {
-        let d = [
-            p[0] - self.centre[0],
-            p[1] - self.centre[1],
-            p[2] - self.centre[2],
-        ];
+    fn inside(&self, p: Vector3<f64>) -> bool {
+        let d = p - self.centre;
         match self.shape {
-            PsShape::Sphere => dot(d, d) < self.radius * self.radius,
+            PsShape::Sphere => d.norm_squared() < self.radius * self.radius,
             PsShape::Vase => {
                 if d[1].abs() > self.half_height() {
                     return false;
@@ -364,58 +352,52 @@ impl Solid {
                 d[0] * d[0] + d[2] * d[2] < r * r
             }
             PsShape::Bumps => {
-                let l = dot(d, d).sqrt();
-                l == 0.0 || l < self.bumps_radius([d[0] / l, d[1] / l, d[2] / l]).0
+                let l = d.norm();
+                l == 0.0 || l < self.bumps_radius(d / l).0
             }
         }
     }
 
-    fn normal_at(&self, p: [f64; 3]) -> [f64; 3] {
-        let d = [
-            p[0] - self.centre[0],
-            p[1] - self.centre[1],
-            p[2] - self.centre[2],
-        ];
+    fn normal_at(&self, p: Vector3<f64>) -> Vector3<f64> {
+        let d = p - self.centre;
         match self.shape {
-            PsShape::Sphere => normalize(d),
+            PsShape::Sphere => d.normalize(),
             PsShape::Vase => {
                 let (r, dr) = self.vase_radius(d[1]);
-                normalize([d[0], -r * dr, d[2]])
+                Vector3::new(d[0], -r * dr, d[2]).normalize()
             }
             PsShape::Bumps => {
                 // ∇(|d| − r(u)) = u − (I − u uᵀ)·∇_u r/|d|.
-                let l = dot(d, d).sqrt();
-                let u = [d[0] / l, d[1] / l, d[2] / l];
+                let l = d.norm();
+                let u = d / l;
                 let (_, g) = self.bumps_radius(u);
-                let gu = dot(g, u);
-                normalize([
-                    u[0] - (g[0] - gu * u[0]) / l,
-                    u[1] - (g[1] - gu * u[1]) / l,
-                    u[2] - (g[2] - gu * u[2]) / l,
-                ])
+                let gu = g.dot(&u);
+                (u - (g - u * gu) / l).normalize()
             }
         }
     }
 
     /// First intersection of `origin + t·dir` (unit `dir`) with the solid for t in
     /// `(t_min, t_max)`.
-    fn first_hit(&self, origin: [f64; 3], dir: [f64; 3], t_min: f64, t_max: f64) -> Option<f64> {
-        let oc = [
-            origin[0] - self.centre[0],
-            origin[1] - self.centre[1],
-            origin[2] - self.centre[2],
-        ];
+    fn first_hit(
+        &self,
+        origin: Vector3<f64>,
+        dir: Vector3<f64>,
+        t_min: f64,
+        t_max: f64,
+    ) -> Option<f64> {
+        let oc = origin - self.centre;
         let bound = self.radius * 1.2;
         // Bounding sphere first: it also gives the sphere's exact answer.
-        let b = dot(oc, dir);
-        let c = dot(oc, oc) - bound * bound;
+        let b = oc.dot(&dir);
+        let c = oc.norm_squared() - bound * bound;
         let disc = b * b - c;
         if disc < 0.0 {
             return None;
         }
         let (t0, t1) = (-b - disc.sqrt(), -b + disc.sqrt());
         if self.shape == PsShape::Sphere {
-            let c = dot(oc, oc) - self.radius * self.radius;
+            let c = oc.norm_squared() - self.radius * self.radius;
             let disc = b * b - c;
             if disc < 0.0 {
                 return None;
@@ -428,13 +410,7 @@ impl Solid {
         if lo >= hi {
             return None;
         }
-        let at = |t: f64| {
-            [
-                origin[0] + t * dir[0],
-                origin[1] + t * dir[1],
-                origin[2] + t * dir[2],
-            ]
-        };
+        let at = |t: f64| origin + dir * t;
         let step = self.radius / 400.0;
         let mut t = lo;
         let mut prev = t;
@@ -457,18 +433,18 @@ impl Solid {
         None
     }
 
-    fn cast(&self, dir: [f64; 3]) -> Option<Hit> {
-        let t = self.first_hit([0.0; 3], dir, 0.0, f64::INFINITY)?;
-        let point = [t * dir[0], t * dir[1], t * dir[2]];
+    fn cast(&self, dir: Vector3<f64>) -> Option<Hit> {
+        let t = self.first_hit(Vector3::zeros(), dir, 0.0, f64::INFINITY)?;
+        let point = dir * t;
         let mut normal = self.normal_at(point);
-        if dot(normal, dir) > 0.0 {
-            normal = [-normal[0], -normal[1], -normal[2]];
+        if normal.dot(&dir) > 0.0 {
+            normal = -normal;
         }
         Some(Hit { point, normal })
     }
 }
 
-fn albedo_at(cfg: &PsSimConfig, p: [f64; 3]) -> f64 {
+fn albedo_at(cfg: &PsSimConfig, p: Vector3<f64>) -> f64 {
     if !cfg.textured {
         return cfg.albedo;
     }
@@ -488,7 +464,7 @@ pub fn simulate_ps(cfg: &PsSimConfig, monitor: &Monitor) -> Result<PsSimCapture>
     let lights = cfg.lights();
     let solid = Solid {
         shape: cfg.shape,
-        centre: [0.0, 0.0, cfg.object_distance_mm],
+        centre: Vector3::new(0.0, 0.0, cfg.object_distance_mm),
         radius: cfg.object_radius_mm,
     };
     let ft = FTable::global();
@@ -501,7 +477,10 @@ pub fn simulate_ps(cfg: &PsSimConfig, monitor: &Monitor) -> Result<PsSimCapture>
     let rays: Vec<[f64; 3]> = (0..n)
         .map(|p| intr.ray((p % w) as f64, (p / w) as f64))
         .collect();
-    let hits: Vec<Option<Hit>> = rays.par_iter().map(|&r| solid.cast(r)).collect();
+    let hits: Vec<Option<Hit>> = rays
+        .par_iter()
+        .map(|&r| solid.cast(Vector3::from(r)))
+        .collect();
     let mask: Vec<bool> = hits.iter().map(Option::is_some).collect();
     if !mask.iter().any(|&b| b) {
         return Err(MurkError::invalid(
@@ -515,10 +494,10 @@ pub fn simulate_ps(cfg: &PsSimConfig, monitor: &Monitor) -> Result<PsSimCapture>
     let mut points = vec![[0.0f32; 3]; n];
     for (p, hit) in hits.iter().enumerate() {
         if let Some(hit) = hit {
-            gt_normals[p] = hit.normal.map(|v| v as f32);
+            gt_normals[p] = hit.normal.map(|v| v as f32).into();
             gt_depth[p] = hit.point[2] as f32;
             gt_albedo[p] = albedo_at(cfg, hit.point) as f32;
-            points[p] = hit.point.map(|v| v as f32);
+            points[p] = hit.point.map(|v| v as f32).into();
         }
     }
     monitor.checkpoint()?;
@@ -532,14 +511,10 @@ pub fn simulate_ps(cfg: &PsSimConfig, monitor: &Monitor) -> Result<PsSimCapture>
                 .enumerate()
                 .map(|(p, hit)| {
                     let Some(hit) = hit else { return 0.0 };
-                    let to_light = [
-                        light.position_mm[0] - hit.point[0],
-                        light.position_mm[1] - hit.point[1],
-                        light.position_mm[2] - hit.point[2],
-                    ];
-                    let d = dot(to_light, to_light).sqrt();
-                    let l = [to_light[0] / d, to_light[1] / d, to_light[2] / d];
-                    let cos = dot(hit.normal, l);
+                    let to_light = Vector3::from(light.position_mm) - hit.point;
+                    let d = to_light.norm();
+                    let l = to_light / d;
+                    let cos = hit.normal.dot(&l);
                     let lit = cos > 0.0
                         && solid
                             .first_hit(hit.point, l, 1e-3 * cfg.object_radius_mm, d)
@@ -606,7 +581,7 @@ pub fn simulate_ps(cfg: &PsSimConfig, monitor: &Monitor) -> Result<PsSimCapture>
                 let val = match &hits[p] {
                     None => bg,
                     Some(hit) => {
-                        let d_vp = dot(hit.point, hit.point).sqrt();
+                        let d_vp = hit.point.norm();
                         f64::from(gt_reflected[i][p]) * (-medium.sigma_per_mm * d_vp).exp()
                             + scatter(d_vp)
                             + f64::from(forward[i][p])
@@ -962,7 +937,7 @@ mod tests {
         for shape in [PsShape::Sphere, PsShape::Vase, PsShape::Bumps] {
             let solid = Solid {
                 shape,
-                centre: [0.0, 0.0, 250.0],
+                centre: Vector3::new(0.0, 0.0, 250.0),
                 radius: 50.0,
             };
             let mut checked = 0;
@@ -970,38 +945,28 @@ mod tests {
                 // Rays from the camera over the object's silhouette.
                 let a = k as f64 * 0.731;
                 let r = 0.18 * ((k as f64 * 0.37).sin() * 0.5 + 0.5);
-                let dir = normalize([r * a.cos(), r * a.sin(), 1.0]);
-                let Some(t) = solid.first_hit([0.0; 3], dir, 1e-6, 1e4) else {
+                let dir = Vector3::new(r * a.cos(), r * a.sin(), 1.0).normalize();
+                let Some(t) = solid.first_hit(Vector3::zeros(), dir, 1e-6, 1e4) else {
                     continue;
                 };
-                let p = [t * dir[0], t * dir[1], t * dir[2]];
+                let p = dir * t;
                 let n = solid.normal_at(p);
-                assert!((dot(n, n) - 1.0).abs() < 1e-9);
+                assert!((n.norm_squared() - 1.0).abs() < 1e-9);
                 assert!(
-                    dot(n, dir) < 0.0,
+                    n.dot(&dir) < 0.0,
                     "{shape:?}: the visible side faces the camera"
                 );
                 let h = 0.05;
-                let at = |s: f64| [p[0] + s * n[0], p[1] + s * n[1], p[2] + s * n[2]];
+                let at = |s: f64| p + n * s;
                 assert!(!solid.inside(at(h)), "{shape:?}: outside along the normal");
                 assert!(solid.inside(at(-h)), "{shape:?}: inside against the normal");
                 // Half a millimetre along the tangent plane the surface is within 0.01 mm of
                 // it (curvature), so a normal off by more than ~6° fails one of these.
-                let t1 = normalize([n[1], -n[0], 0.0]);
-                let t2 = [
-                    n[1] * t1[2] - n[2] * t1[1],
-                    n[2] * t1[0] - n[0] * t1[2],
-                    n[0] * t1[1] - n[1] * t1[0],
-                ];
+                let t1 = Vector3::new(n[1], -n[0], 0.0).normalize();
+                let t2 = n.cross(&t1);
                 for t in [t1, t2] {
                     for sgn in [-0.5, 0.5] {
-                        let q = |s: f64| {
-                            [
-                                p[0] + sgn * t[0] + s * n[0],
-                                p[1] + sgn * t[1] + s * n[1],
-                                p[2] + sgn * t[2] + s * n[2],
-                            ]
-                        };
+                        let q = |s: f64| p + t * sgn + n * s;
                         if shape == PsShape::Vase && !solid.inside(q(-h)) && !solid.inside(q(h)) {
                             // Off the vase's top or bottom rim.
                             continue;
