@@ -376,6 +376,32 @@ fn simulate_mvs_then_params_estimates_and_writes_the_residual_grid() {
 }
 
 #[test]
+fn simulate_ps_textured_works_with_the_default_albedo_and_names_a_bad_one() {
+    let dir = tempfile::tempdir().unwrap();
+    let sim = |extra: &[&str]| {
+        murk()
+            .args(["simulate", "ps", "--textured", "--seed", "1"])
+            .args(["--width", "32", "--height", "32", "--far-stride", "4"])
+            .args(extra)
+            .arg("--out")
+            .arg(dir.path().join("capture"))
+            .output()
+            .unwrap()
+    };
+    let ok = sim(&[]);
+    assert!(
+        ok.status.success(),
+        "stderr: {}",
+        String::from_utf8_lossy(&ok.stderr)
+    );
+    let meta = std::fs::read_to_string(dir.path().join("capture/meta.json")).unwrap();
+    assert!(meta.contains("\"textured\": true"), "{meta}");
+    let bad = sim(&["--albedo", "0.9"]);
+    assert!(!bad.status.success());
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("albedo"));
+}
+
+#[test]
 fn simulate_ps_then_ps_client_writes_normals_depth_and_mesh() {
     let dir = tempfile::tempdir().unwrap();
     let capture = dir.path().join("capture");

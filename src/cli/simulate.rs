@@ -61,9 +61,13 @@ pub struct SimPsArgs {
     /// Number of lights on a ring around the camera.
     #[arg(long, default_value_t = 8)]
     pub lights: usize,
-    /// Give the object a smooth albedo pattern.
+    /// Give the object a smooth albedo pattern (±40 % about the mean albedo).
     #[arg(long)]
     pub textured: bool,
+    /// The object's (mean) albedo, in (0, 1]; textured, at most 1/1.4. Default: 0.8, or 0.6 with
+    /// --textured (the pattern's peaks must stay ≤ 1).
+    #[arg(long)]
+    pub albedo: Option<f64>,
     /// Standard deviation of additive Gaussian noise, image units.
     #[arg(long, default_value_t = 0.0)]
     pub noise_std: f64,
@@ -185,6 +189,11 @@ fn simulate_ps_capture(a: &SimPsArgs) -> anyhow::Result<()> {
         sigma_per_mm: a.sigma_per_mm,
         num_lights: a.lights,
         textured: a.textured,
+        albedo: a.albedo.unwrap_or(if a.textured {
+            0.6
+        } else {
+            PsSimConfig::default().albedo
+        }),
         noise_std: a.noise_std,
         far_stride: a.far_stride,
         facet_emission: a.facet_emission.into(),
