@@ -1,7 +1,7 @@
 //! Pinhole camera model shared by every method. Pixel coordinates: x to the right, y down, origin
 //! at the centre of the top-left pixel; camera frame: +z forward (optical axis), +x right, +y down.
 
-use nalgebra::{Matrix3, Point3};
+use nalgebra::{Matrix3, Point3, Vector3};
 
 use crate::error::{MurkError, Result};
 
@@ -51,11 +51,12 @@ impl Intrinsics {
     }
 
     /// Unit-length viewing ray (camera frame) through pixel `(u, v)`.
-    pub fn ray(&self, u: f64, v: f64) -> [f64; 3] {
+    pub fn ray(&self, u: f64, v: f64) -> Vector3<f64> {
         let y = (v - self.cy) / self.fy;
         let x = (u - self.cx - self.skew * y) / self.fx;
+        // Normalised by hand (not `normalize()`): `x² + y² + 1` keeps the published sum order.
         let n = (x * x + y * y + 1.0).sqrt();
-        [x / n, y / n, 1.0 / n]
+        Vector3::new(x / n, y / n, 1.0 / n)
     }
 
     /// `K` (pixels): `(u, v, 1)ᵀ ∝ K·(x, y, z)ᵀ`.

@@ -474,13 +474,10 @@ pub fn simulate_ps(cfg: &PsSimConfig, monitor: &Monitor) -> Result<PsSimCapture>
     let scattering = medium.beta_per_mm > 0.0;
     monitor.progress("geometry", 0.0);
 
-    let rays: Vec<[f64; 3]> = (0..n)
+    let rays: Vec<Vector3<f64>> = (0..n)
         .map(|p| intr.ray((p % w) as f64, (p / w) as f64))
         .collect();
-    let hits: Vec<Option<Hit>> = rays
-        .par_iter()
-        .map(|&r| solid.cast(Vector3::from(r)))
-        .collect();
+    let hits: Vec<Option<Hit>> = rays.par_iter().map(|&r| solid.cast(r)).collect();
     let mask: Vec<bool> = hits.iter().map(Option::is_some).collect();
     if !mask.iter().any(|&b| b) {
         return Err(MurkError::invalid(

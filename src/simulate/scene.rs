@@ -305,7 +305,7 @@ impl Scene {
         for _attempt in 0..200 {
             let u = rng.random_range(0.3..0.7) * (width as f64 - 1.0);
             let v = rng.random_range(0.35..0.65) * (height as f64 - 1.0);
-            let dir = V3::from(k.ray(u, v));
+            let dir = k.ray(u, v);
             let radius = rng.random_range(0.2..0.3);
             let front = rng.random_range(0.75..1.05);
             let centre = dir * (front + radius);
@@ -362,7 +362,7 @@ impl Scene {
         let obj = &self.objects[index];
         for y in (0..height).step_by(step) {
             for x in (0..width).step_by(step) {
-                let d = V3::from(k.ray(x as f64, y as f64));
+                let d = k.ray(x as f64, y as f64);
                 let Some((t, _)) = obj.shape.intersect(V3::zeros(), d, 1e-9, f64::INFINITY) else {
                     continue;
                 };
@@ -391,7 +391,7 @@ impl Scene {
         for y in (0..height).step_by(step) {
             for x in (0..width).step_by(step) {
                 total += 1;
-                let d = V3::from(k.ray(x as f64, y as f64));
+                let d = k.ray(x as f64, y as f64);
                 let mut nearest: Option<(usize, f64)> = None;
                 for (i, o) in self.objects.iter().enumerate() {
                     let t_max = nearest.map_or(f64::INFINITY, |(_, t)| t);
@@ -449,7 +449,7 @@ fn random_object(rng: &mut ChaCha8Rng, k: &Intrinsics, width: usize, height: usi
     // Centre direction inside the central part of the view, so the object is mostly visible.
     let u = rng.random_range(0.15..0.85) * (width as f64 - 1.0);
     let v = rng.random_range(0.25..0.75) * (height as f64 - 1.0);
-    let dir = V3::from(k.ray(u, v));
+    let dir = k.ray(u, v);
     let kind = rng.random_range(0..3u32);
     let shape = match kind {
         0 => {

@@ -535,9 +535,9 @@ impl<'a> Model<'a> {
 
 /// The fog-only phasor along the unit camera ray `ray` from `scatter_start_mm` to `s_end_m`
 /// metres, without objects (no shadowing). Used to study saturation (Eq. 5.4–5.5).
-pub fn scatter_along_ray(cfg: &TofSimConfig, ray: [f64; 3], s_end_m: f64) -> Result<Phasor> {
+pub fn scatter_along_ray(cfg: &TofSimConfig, ray: impl Into<V3>, s_end_m: f64) -> Result<Phasor> {
     cfg.validate()?;
-    let ray = V3::from(ray);
+    let ray = ray.into();
     let n = ray.norm();
     if !n.is_finite() || n <= 0.0 {
         return Err(MurkError::invalid(
@@ -610,7 +610,7 @@ pub fn simulate_tof(cfg: &TofSimConfig, monitor: &Monitor) -> Result<TofSimFrame
         let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed);
         rng.set_stream(1 + y as u64);
         for (x, px) in row.iter_mut().enumerate() {
-            let d = V3::from(k.ray(x as f64, y as f64));
+            let d = k.ray(x as f64, y as f64);
             *px = render_pixel(&model, cfg, d, &mut rng);
         }
         let done = rows_done.fetch_add(1, Ordering::Relaxed) + 1;

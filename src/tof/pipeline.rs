@@ -328,7 +328,7 @@ fn compose(input: &TofInput, params: &TofParams, est: &ScatterEstimate) -> Resul
             img.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
                 for (x, r) in row.iter_mut().enumerate() {
                     let d = k.ray(x as f64, y as f64);
-                    *r = range_from_path(2.0 * *r as f64, d, light) as f32;
+                    *r = range_from_path(2.0 * *r as f64, d.into(), light) as f32;
                 }
             });
         }

@@ -1,23 +1,19 @@
 //! Backscatter L_b along one viewing ray from one point source (Eq. 4.32, closed form Eq. 4.33).
 
+use nalgebra::Vector3;
+
 use super::f_table::FTable;
 use super::h::{scatter_cs, scatter_quadrature_cs};
 use super::Medium;
 
 /// Distance to the source and cos/sin of the angle γ between `ray` and the source direction,
 /// sin γ from the cross product so that small angles keep their relative accuracy.
-fn geometry(source_mm: [f64; 3], ray: [f64; 3]) -> (f64, f64, f64) {
-    let s = source_mm;
-    let d = (s[0] * s[0] + s[1] * s[1] + s[2] * s[2]).sqrt();
+fn geometry(source_mm: Vector3<f64>, ray: Vector3<f64>) -> (f64, f64, f64) {
+    let d = source_mm.norm();
     if d == 0.0 {
         return (0.0, 1.0, 0.0);
     }
-    let dot = ray[0] * s[0] + ray[1] * s[1] + ray[2] * s[2];
-    let cx = ray[1] * s[2] - ray[2] * s[1];
-    let cy = ray[2] * s[0] - ray[0] * s[2];
-    let cz = ray[0] * s[1] - ray[1] * s[0];
-    let cr = (cx * cx + cy * cy + cz * cz).sqrt();
-    (d, dot / d, cr / d)
+    (d, ray.dot(&source_mm) / d, ray.cross(&source_mm).norm() / d)
 }
 
 /// Backscatter (Eq. 4.33) at the camera (origin) along the unit viewing ray `ray` of length
@@ -28,11 +24,11 @@ pub fn backscatter(
     table: &FTable,
     medium: &Medium,
     intensity: f64,
-    source_mm: [f64; 3],
-    ray: [f64; 3],
+    source_mm: impl Into<Vector3<f64>>,
+    ray: impl Into<Vector3<f64>>,
     ray_length_mm: f64,
 ) -> f64 {
-    let (d, c, s) = geometry(source_mm, ray);
+    let (d, c, s) = geometry(source_mm.into(), ray.into());
     scatter_cs(
         table,
         medium.beta_per_mm,
@@ -50,11 +46,11 @@ pub fn backscatter(
 pub fn backscatter_quadrature(
     medium: &Medium,
     intensity: f64,
-    source_mm: [f64; 3],
-    ray: [f64; 3],
+    source_mm: impl Into<Vector3<f64>>,
+    ray: impl Into<Vector3<f64>>,
     ray_length_mm: f64,
 ) -> f64 {
-    let (d, c, s) = geometry(source_mm, ray);
+    let (d, c, s) = geometry(source_mm.into(), ray.into());
     if ray_length_mm.is_nan() || ray_length_mm <= 0.0 || d == 0.0 {
         return if d == 0.0 && ray_length_mm > 0.0 {
             f64::INFINITY
