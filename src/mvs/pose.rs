@@ -268,6 +268,21 @@ mod tests {
     }
 
     #[test]
+    fn rows_round_trip_and_scaling_moves_only_the_camera() {
+        let p = Pose::from_colmap([0.9, 0.1, -0.3, 0.2], [0.5, -1.0, 2.0]).unwrap();
+        let q = Pose::from_rows(p.rotation_rows(), [0.5, -1.0, 2.0]).unwrap();
+        assert_eq!(p, q, "row-major in, row-major out, bit for bit");
+        // Row-major: R·e_x is the first column, rows[·][0].
+        let rows = p.rotation_rows();
+        let x = p.rotate([1.0, 0.0, 0.0]);
+        assert_eq!([x[0], x[1], x[2]], [rows[0][0], rows[1][0], rows[2][0]]);
+        let s = p.scaled(2.5);
+        assert_eq!(s.rotation(), p.rotation());
+        let (c, cs) = (p.camera_center(), s.camera_center());
+        assert!((cs.coords - c.coords * 2.5).amax() < 1e-12);
+    }
+
+    #[test]
     fn validation_names_fields() {
         assert_eq!(
             field_of(Pose::from_colmap([0.0; 4], [0.0; 3]).unwrap_err()),
