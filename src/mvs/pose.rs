@@ -5,7 +5,7 @@
 //! [`Pose::relative`] builds it from two world-to-camera poses.
 
 use nalgebra::{
-    IsometryMatrix3, Matrix3, Point3, Quaternion, Rotation3, Translation3, UnitQuaternion, Vector3,
+    IsometryMatrix3, Matrix3, Point3, Rotation3, Translation3, UnitQuaternion, Vector3,
 };
 
 use crate::error::{MurkError, Result};
@@ -71,9 +71,9 @@ impl Pose {
                 format!("quaternion must be finite, got {qvec:?}"),
             ));
         }
-        let [w, x, y, z] = qvec;
-        let q = Quaternion::new(w, x, y, z);
-        if q.norm() < 1e-12 {
+        // Normalised in COLMAP's order of additions ((w² + x²) + y²) + z², for the same bits.
+        let n = qvec.iter().map(|v| v * v).sum::<f64>().sqrt();
+        if n < 1e-12 {
             return Err(MurkError::invalid(
                 "qvec",
                 format!("quaternion must be non-zero, got {qvec:?}"),
@@ -88,7 +88,7 @@ impl Pose {
         Ok(Self {
             iso: IsometryMatrix3::from_parts(
                 Translation3::from(Vector3::from(tvec)),
-                UnitQuaternion::from_quaternion(q).to_rotation_matrix(),
+                colmap_rotation(qvec.map(|v| v / n)),
             ),
         })
     }
@@ -181,6 +181,25 @@ impl Pose {
     }
 }
 
+/// The rotation matrix of a unit quaternion `(w, x, y, z)` as COLMAP computes it (Eigen's `toRotationMatrix`:
+/// `1 − 2(y² + z²)`, `2(xy − wz)`, …), bit for bit. nalgebra's
+/// [`UnitQuaternion::to_rotation_matrix`] forms the diagonal as `w² + x² − y² − z²`, which is
+/// the same rotation but rounds differently, so a model read by murk would sit an ulp away from
+/// the one COLMAP wrote.
+fn colmap_rotation([w, x, y, z]: [f64; 4]) -> Rotation3<f64> {
+    Rotation3::from_matrix_unchecked(Matrix3::new(
+        1.0 - 2.0 * (y * y + z * z),
+        2.0 * (x * y - w * z),
+        2.0 * (x * z + w * y),
+        2.0 * (x * y + w * z),
+        1.0 - 2.0 * (x * x + z * z),
+        2.0 * (y * z - w * x),
+        2.0 * (x * z - w * y),
+        2.0 * (y * z + w * x),
+        1.0 - 2.0 * (x * x + y * y),
+    ))
+}
+
 fn check_finite(rotation: &Matrix3<f64>, translation: &Vector3<f64>) -> Result<()> {
     if rotation.iter().any(|v| !v.is_finite()) {
         return Err(MurkError::invalid(
@@ -265,6 +284,22 @@ mod tests {
         for k in 0..3 {
             assert!((via[k] - direct[k]).abs() < 1e-12);
         }
+    }
+
+    #[test]
+    fn colmap_quaternions_give_colmaps_matrix_bit_for_bit() {
+        // 1 − 2(y² + z²) and 2(xy − wz), …: Eigen's toRotationMatrix, which COLMAP uses.
+        let q = [0.9, 0.1, -0.3, 0.2];
+        let n = (q.iter().map(|v| v * v).sum::<f64>()).sqrt();
+        let [w, x, y, z] = q.map(|v| v / n);
+        let r = Pose::from_colmap(q, [0.0; 3]).unwrap();
+        assert_eq!(r.rotation()[(0, 0)], 1.0 - 2.0 * (y * y + z * z));
+        assert_eq!(r.rotation()[(0, 1)], 2.0 * (x * y - w * z));
+        assert_eq!(r.rotation()[(2, 1)], 2.0 * (y * z + w * x));
+        let ulp_apart =
+            UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(0.9, 0.1, -0.3, 0.2))
+                .to_rotation_matrix();
+        assert!((ulp_apart.matrix() - r.rotation()).amax() < 1e-15);
     }
 
     #[test]
