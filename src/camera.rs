@@ -54,7 +54,8 @@ impl Intrinsics {
     pub fn ray(&self, u: f64, v: f64) -> Vector3<f64> {
         let y = (v - self.cy) / self.fy;
         let x = (u - self.cx - self.skew * y) / self.fx;
-        // Normalised by hand (not `normalize()`): `x² + y² + 1` keeps the published sum order.
+        // Normalised by hand: the third component is 1 before normalising, so `x² + y² + 1`
+        // saves a square, and the rays stay bit for bit what they were.
         let n = (x * x + y * y + 1.0).sqrt();
         Vector3::new(x / n, y / n, 1.0 / n)
     }

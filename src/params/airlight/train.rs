@@ -7,11 +7,11 @@
 //! median transmission (a wider range than the simulator's default, so the network sees thin
 //! and thick haze). With `varied_scenes` each scene also draws its own brightness against the
 //! airlight, furniture, field of view, trajectory and noise level ([`TrainConfig::sim_config`]),
-//! so that the network cannot learn `A` from one room's typical brightness. A pool of simulated images is
-//! generated once (both views of each scene), and every step draws a batch from it with random
-//! horizontal flips and a random global gain `g ≤ 1`. The gain is exact augmentation of the
-//! haze model, not a heuristic: `g·I = g·J·t + g·A·(1 − t)`, so a darkened hazy image is a hazy
-//! image of airlight `g·A`, and the target is scaled with it.
+//! so that the network cannot learn `A` from one room's typical brightness. A pool of simulated
+//! images is generated once (both views of each scene), and every step draws a batch from it
+//! with random horizontal flips and a random global gain `g ≤ 1`. The gain is exact
+//! augmentation of the haze model, not a heuristic: `g·I = g·J·t + g·A·(1 − t)`, so a darkened
+//! hazy image is a hazy image of airlight `g·A`, and the target is scaled with it.
 //!
 //! The held-out set uses a fixed range of scene seeds, disjoint from every training seed, and
 //! scores the CNN next to the dark-channel rule on the same images.
@@ -502,10 +502,19 @@ mod tests {
         );
 
         let held_out = simulate_samples(&cfg, &eval_seeds(2), false, &|| {}).unwrap();
-        let rows = evaluate(&a, &held_out, &[[0.0, 0.4], [0.4, 1.0]], &[[0.0, 1.0]]).unwrap();
+        // One band of A per held-out scene, and one that holds none (no row).
+        let (a0, a1) = (held_out[0].airlight, held_out[1].airlight);
+        assert_ne!(a0, a1);
+        let split = f64::from(0.5 * (a0 + a1));
+        let a_bins = [[0.0, split], [split, 1.1], [1.5, 2.0]];
+        let rows = evaluate(&a, &held_out, &[], &a_bins).unwrap();
+        assert_eq!(rows.len(), 3, "{rows:?}");
+        assert_eq!((rows[0].count, rows[1].count), (1, 1));
+        // The row of all scenes includes the largest values of t and A (half-open intervals).
         let all = rows.last().unwrap();
         assert_eq!(all.count, 2);
         assert!(all.mae_cnn.is_finite() && all.mae_dark_channel.is_finite());
+        assert!(all.airlight[1] > f64::from(a0.max(a1)));
     }
 
     #[test]
