@@ -110,7 +110,7 @@ impl Shape {
             Shape::Sphere { centre, radius } => {
                 let oc = o - centre;
                 let b = oc.dot(&d);
-                let c = oc.dot(&oc) - radius * radius;
+                let c = oc.norm_squared() - radius * radius;
                 let disc = b * b - c;
                 if disc < 0.0 {
                     return None;
@@ -182,7 +182,7 @@ impl Shape {
             Shape::Box { min, max } => {
                 let c = (min + max) * 0.5;
                 let h = max - c;
-                (c, h.dot(&h).sqrt())
+                (c, h.norm())
             }
         }
     }
@@ -219,7 +219,7 @@ impl Scene {
     /// everything and cannot shadow).
     pub(crate) fn occluded(&self, a: V3, b: V3) -> bool {
         let ab = b - a;
-        let len = ab.dot(&ab).sqrt();
+        let len = ab.norm();
         if len <= 0.0 {
             return false;
         }
@@ -231,8 +231,8 @@ impl Scene {
             // Distance from the bounding sphere's centre to the segment.
             let ac = c - a;
             let t = ac.dot(&d).clamp(0.0, len);
-            let q = ac - (d * t);
-            if q.dot(&q) > r * r {
+            let q = ac - d * t;
+            if q.norm_squared() > r * r {
                 return false;
             }
             obj.shape.intersect(a, d, eps, len - eps).is_some()
@@ -330,7 +330,7 @@ impl Scene {
             );
             let panel = SceneObject {
                 shape: Shape::Box {
-                    min: (c - half),
+                    min: c - half,
                     max: c + half,
                 },
                 albedo: rng.random_range(0.3..0.8),
@@ -436,7 +436,7 @@ fn add_clear_objects(
         let clear_of_others = objects.iter().all(|o| {
             let (c2, r2) = o.shape.bounding_sphere();
             let dc = c - c2;
-            dc.dot(&dc).sqrt() > r + r2 + 0.05
+            dc.norm() > r + r2 + 0.05
         });
         if clear_of_others {
             objects.push(obj);
@@ -456,7 +456,7 @@ fn random_object(rng: &mut ChaCha8Rng, k: &Intrinsics, width: usize, height: usi
             let radius = rng.random_range(0.12..0.25);
             let range = rng.random_range(1.0 + radius..2.0);
             Shape::Sphere {
-                centre: (dir * range),
+                centre: dir * range,
                 radius,
             }
         }
@@ -469,7 +469,7 @@ fn random_object(rng: &mut ChaCha8Rng, k: &Intrinsics, width: usize, height: usi
             let range = rng.random_range(1.0 + h[2]..2.0);
             let c = dir * range;
             Shape::Box {
-                min: (c - h),
+                min: c - h,
                 max: c + h,
             }
         }
@@ -481,7 +481,7 @@ fn random_object(rng: &mut ChaCha8Rng, k: &Intrinsics, width: usize, height: usi
             let c = dir * range;
             let h = V3::new(hw, hh, hw);
             Shape::Box {
-                min: (c - h),
+                min: c - h,
                 max: c + h,
             }
         }
@@ -547,7 +547,7 @@ mod tests {
             let Shape::Sphere { centre, radius } = s.objects[0].shape else {
                 panic!("seed {seed}: the first object is the near sphere");
             };
-            let front = centre.dot(&centre).sqrt() - radius;
+            let front = centre.norm() - radius;
             assert!((0.75..=1.05).contains(&front), "seed {seed}: {front}");
             let hidden = s.hidden_share(1, &k, 512, 424);
             assert!(

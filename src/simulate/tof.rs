@@ -419,7 +419,7 @@ impl<'a> Model<'a> {
             .map(|o| {
                 let (c, r) = o.shape.bounding_sphere();
                 let lc = c - light;
-                lc.dot(&lc).sqrt() - r
+                lc.norm() - r
             })
             .fold(f64::INFINITY, f64::min)
             .max(0.0);
@@ -466,7 +466,7 @@ impl<'a> Model<'a> {
     /// `s` with extinction `beta` (per m). Eq. 5.18 with the offset, limited beam.
     fn direct(&self, p: V3, n: V3, rho: f64, s: f64, beta: f64, shadowed: bool) -> Phasor {
         let lp = self.light - p;
-        let rl2 = lp.dot(&lp);
+        let rl2 = lp.norm_squared();
         let rl = rl2.sqrt();
         let cos_i = n.dot(&lp) / rl;
         if cos_i <= 0.0 || shadowed {
@@ -501,7 +501,7 @@ impl<'a> Model<'a> {
             };
             let p = d * s;
             let v = p - self.light;
-            let rl2 = v.dot(&v);
+            let rl2 = v.norm_squared();
             let rl = rl2.sqrt();
             let b = self.beam(v[2] / rl);
             if b == 0.0 {
