@@ -376,6 +376,51 @@ fn simulate_mvs_then_params_estimates_and_writes_the_residual_grid() {
 }
 
 #[test]
+fn train_airlight_evaluate_scores_weights_and_names_a_bad_file() {
+    let ok = murk()
+        .args([
+            "train",
+            "airlight",
+            "--evaluate",
+            "embedded",
+            "--eval-scenes",
+            "2",
+        ])
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&ok.stdout);
+    assert!(
+        ok.status.success(),
+        "stderr: {}",
+        String::from_utf8_lossy(&ok.stderr)
+    );
+    assert!(stdout.contains("A ~ U[0.4, 1], varied scenes"), "{stdout}");
+    let all = stdout
+        .lines()
+        .find(|l| l.contains("      2 "))
+        .unwrap_or_else(|| panic!("no row of both scenes in:\n{stdout}"));
+    let mae: f64 = all.split_whitespace().nth(5).unwrap().parse().unwrap();
+    assert!(mae.is_finite() && mae < 0.3, "{all}");
+
+    let dir = tempfile::tempdir().unwrap();
+    let junk = dir.path().join("junk.bpk");
+    std::fs::write(&junk, b"not a burnpack").unwrap();
+    for (file, says) in [
+        (dir.path().join("missing.bpk"), "reading"),
+        (junk, "airlight_weights"),
+    ] {
+        let bad = murk()
+            .args(["train", "airlight", "--eval-scenes", "2", "--evaluate"])
+            .arg(&file)
+            .output()
+            .unwrap();
+        assert!(!bad.status.success());
+        let err = String::from_utf8_lossy(&bad.stderr);
+        assert!(err.contains(says), "{err}");
+    }
+}
+
+#[test]
 fn simulate_ps_textured_works_with_the_default_albedo_and_names_a_bad_one() {
     let dir = tempfile::tempdir().unwrap();
     let sim = |extra: &[&str]| {
