@@ -360,6 +360,9 @@ fn simulate_mvs_then_params_estimates_and_writes_the_residual_grid() {
         .unwrap()
         .contains("per model unit"));
     assert!(params["joint_fit"]["equations"].as_u64().unwrap() > 0);
+    // No conflict between the points' A and A₀ is reported as such, not left out.
+    assert!(params["airlight_conflict"].is_null(), "{params}");
+    assert_eq!(params["warnings"], serde_json::json!([]));
     assert!(stdout.contains("NOT identifiable"), "{stdout}");
     // A given airlight without --airlight-source given is refused by the CLI.
     let bad = murk()

@@ -164,6 +164,29 @@ async fn default_request_fits_a_and_beta_to_the_points_and_reports_the_fit() {
     let joint = out.joint_fit.expect("joint fit reported");
     assert_eq!(joint.source_gains.len(), s.views.len() - 1);
     assert!(out.beta_range_from_points && out.beta_bound == pb::BetaBound::None as i32);
+    assert!(out.airlight_conflict.is_none() && out.warnings.is_empty());
+
+    // A₀ given 0.2 off, far beyond its stated error (the prior's scale): the points still place
+    // A, and the disagreement is reported, with a sentence for the user.
+    let mut far = req.clone();
+    far.airlight = s.airlight - 0.2;
+    let off = recon(&server)
+        .scattering_params(far)
+        .await
+        .expect("unary")
+        .into_inner();
+    let conflict = off.airlight_conflict.expect("conflict reported");
+    assert_eq!(conflict.airlight_initial, f64::from(s.airlight - 0.2));
+    // A given A₀'s typical error is the prior's scale the request states (here the default).
+    assert_eq!(
+        conflict.airlight_initial_error,
+        f64::from(murk::params::search::AIRLIGHT_PRIOR_SIGMA)
+    );
+    assert!(conflict.sigmas > 3.0, "{conflict:?}");
+    assert!((conflict.fitted_airlight - f64::from(s.airlight)).abs() < 0.05);
+    assert!(!off.identifiable, "{off:?}");
+    assert_eq!(off.warnings.len(), 1);
+    assert!(off.warnings[0].contains("SfM model"), "{:?}", off.warnings);
 
     // The points' tracks: masks naming every source change nothing (the same job), and masks
     // saying no source saw any point leave the fit without equations.

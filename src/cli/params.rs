@@ -231,6 +231,9 @@ pub fn run(a: ParamsArgs) -> anyhow::Result<()> {
         r.residual,
         r.num_sparse_points
     );
+    for w in &r.warnings {
+        println!("warning: {w}");
+    }
     if !r.identifiable {
         println!(
             "warning: beta is NOT identifiable from these views ({}); beta* is a guess",
@@ -385,19 +388,15 @@ fn params_json(r: &pb::ScatteringParamsResult, job_id: &str) -> serde_json::Valu
         },
         "airlight_initial": r.airlight_initial,
         "airlight_source": source_name(r.airlight_source),
-        "joint_fit": r.joint_fit.as_ref().map(|j| serde_json::json!({
-            "airlight": j.airlight,
-            "airlight_std_error": j.airlight_std_error,
-            "beta": j.beta,
-            "beta_std_error": finite_or_null(j.beta_std_error),
-            "source_gains": j.source_gains,
-            "vignetting_falloff": j.vignetting_falloff,
-            "source_falloffs": j.source_falloffs,
-            "equations": j.equations,
-            "rms_depth_difference": j.rms_depth_difference,
-            "residual_scale": j.residual_scale,
-            "identifiability": identifiability_name(j.identifiability),
+        "joint_fit": r.joint_fit.as_ref().map(joint_fit_json),
+        "airlight_conflict": r.airlight_conflict.as_ref().map(|c| serde_json::json!({
+            "fitted_airlight": c.fitted_airlight,
+            "fitted_airlight_std_error": c.fitted_airlight_std_error,
+            "airlight_initial": c.airlight_initial,
+            "airlight_initial_error": c.airlight_initial_error,
+            "sigmas": c.sigmas,
         })),
+        "warnings": r.warnings,
         "point_ratio": r.point_ratio.as_ref().map(|f| serde_json::json!({
             "beta": f.beta,
             "std_error": finite_or_null(f.std_error),
@@ -407,10 +406,7 @@ fn params_json(r: &pb::ScatteringParamsResult, job_id: &str) -> serde_json::Valu
         "residual": r.residual,
         "sparse_pixels": r.num_sparse_points,
         "searches": r.grid.iter().map(|g| serde_json::json!({
-            "stage": match pb::SearchStage::try_from(g.stage) {
-                Ok(pb::SearchStage::Joint) => "joint",
-                _ => "beta",
-            },
+            "stage": stage_name(g.stage),
             "airlight": g.airlight,
             "beta": g.beta,
             "residual": g.residual,
@@ -429,6 +425,31 @@ fn params_json(r: &pb::ScatteringParamsResult, job_id: &str) -> serde_json::Valu
     })
 }
 
+fn joint_fit_json(j: &pb::JointFit) -> serde_json::Value {
+    serde_json::json!({
+        "airlight": j.airlight,
+        "airlight_std_error": j.airlight_std_error,
+        "beta": j.beta,
+        "beta_std_error": finite_or_null(j.beta_std_error),
+        "source_gains": j.source_gains,
+        "vignetting_falloff": j.vignetting_falloff,
+        "source_falloffs": j.source_falloffs,
+        "equations": j.equations,
+        "rms_depth_difference": j.rms_depth_difference,
+        "residual_scale": j.residual_scale,
+        "identifiability": identifiability_name(j.identifiability),
+    })
+}
+
+/// Name of a search stage in `params.json` and `residuals.csv`.
+fn stage_name(v: i32) -> &'static str {
+    match pb::SearchStage::try_from(v) {
+        Ok(pb::SearchStage::Beta) => "beta",
+        Ok(pb::SearchStage::Joint) => "joint",
+        _ => "unknown",
+    }
+}
+
 fn finite_or_null(v: f64) -> serde_json::Value {
     if v.is_finite() {
         serde_json::json!(v)
@@ -443,6 +464,7 @@ fn identifiability_name(v: i32) -> &'static str {
         Ok(pb::Identifiability::NoDepthDifference) => "no_depth_difference",
         Ok(pb::Identifiability::TooFewPoints) => "too_few_points",
         Ok(pb::Identifiability::FlatResidual) => "flat_residual",
+        Ok(pb::Identifiability::AirlightConflict) => "airlight_conflict",
         _ => "unknown",
     }
 }
@@ -456,6 +478,9 @@ fn identifiability_text(v: i32) -> &'static str {
         }
         Ok(pb::Identifiability::TooFewPoints) => "too few usable SfM points",
         Ok(pb::Identifiability::FlatResidual) => "the points' residual is too flat in beta",
+        Ok(pb::Identifiability::AirlightConflict) => {
+            "the points' A conflicts with the image's airlight estimate: the SfM model may be wrong"
+        }
         _ => "unknown",
     }
 }
@@ -476,12 +501,14 @@ fn write_residuals_csv(path: &Path, r: &pb::ScatteringParamsResult) -> anyhow::R
     );
     writeln!(f, "stage,airlight,beta,residual")?;
     for g in &r.grid {
-        let stage = match pb::SearchStage::try_from(g.stage) {
-            Ok(pb::SearchStage::Beta) => "beta",
-            Ok(pb::SearchStage::Joint) => "joint",
-            _ => "unknown",
-        };
-        writeln!(f, "{stage},{},{},{}", g.airlight, g.beta, g.residual)?;
+        writeln!(
+            f,
+            "{},{},{},{}",
+            stage_name(g.stage),
+            g.airlight,
+            g.beta,
+            g.residual
+        )?;
     }
     f.flush()?;
     Ok(())

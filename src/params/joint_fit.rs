@@ -108,6 +108,10 @@ pub enum Identifiability {
     NoDepthDifference,
     /// Equations and depth differences exist, but β's standard error is too large.
     FlatResidual,
+    /// The fit determined `A` and β, but its `A` conflicts with the image's airlight estimate
+    /// beyond both their errors: a sign of a wrong SfM model (set by
+    /// [`crate::params::search::search_scattering`], which knows the estimator's error).
+    AirlightConflict,
 }
 
 impl Identifiability {
@@ -118,6 +122,7 @@ impl Identifiability {
             Self::TooFewPoints => "too_few_points",
             Self::NoDepthDifference => "no_depth_difference",
             Self::FlatResidual => "flat_residual",
+            Self::AirlightConflict => "airlight_conflict",
         }
     }
 }

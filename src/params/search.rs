@@ -30,6 +30,18 @@
 //! divided) with `search_planes` planes: the residual is read at a few thousand SfM pixels, so the
 //! full resolution buys little there; the caller computes the final depth `z* = F(A*, β*)` at full
 //! resolution.
+//!
+//! **When the points and the estimator disagree on `A`.** The joint fit lets the points override
+//! `A₀`, which is right when the estimator is off and wrong when the SfM model is: a model whose
+//! translation directions are tens of degrees off still reprojects within a pixel, but it distorts
+//! the points' depth differences, and the fit then moves `A` (by 0.10 and 0.24 on two of ten
+//! COLMAP models of forward-moving scenes, docs/ACCURACY.md). When `A*` and `A₀` differ by more
+//! than [`AIRLIGHT_CONFLICT_SIGMAS`] of their combined uncertainty (the estimator's typical
+//! error, `airlight_initial_error`, and the fit's standard error), the estimate is reported as
+//! not identifiable ([`Identifiability::AirlightConflict`], [`AirlightConflict`]). Neither value is
+//! substituted: which one is wrong cannot be told from these data (holding `A` at `A₀` and
+//! letting Eq. 3.9 arbitrate fixed `A` on one such model and made β worse on it, and preferred
+//! the fit on the other; docs/ACCURACY.md).
 
 use std::time::Instant;
 
@@ -57,6 +69,15 @@ pub const POINT_TRANSMISSION_RANGE: [f64; 2] = [0.02, 0.98];
 /// the points override an `A₀` that is far off (0.06 on unseen scenes). Measured against 0.03
 /// and a Gaussian 0.1 in docs/ACCURACY.md.
 pub const AIRLIGHT_PRIOR_SIGMA: f32 = 0.015;
+/// The joint fit's `A*` conflicts with the estimator's `A₀` when `|A* − A₀|` exceeds this many
+/// `√(σ₀² + se(A*)²)`, `σ₀` being the estimator's typical error
+/// ([`SearchParams::airlight_initial_error`]).
+pub const AIRLIGHT_CONFLICT_SIGMAS: f64 = 3.0;
+/// Typical error (≈ 1.25 × MAE) of the airlight CNN on held-out varied scenes (MAE 0.022,
+/// docs/AIRLIGHT.md): the default [`SearchParams::airlight_initial_error`].
+pub const CNN_AIRLIGHT_ERROR: f32 = 0.03;
+/// Typical error of the dark-channel airlight on the same held-out scenes (MAE 0.090).
+pub const DARK_CHANNEL_AIRLIGHT_ERROR: f32 = 0.11;
 
 /// Settings of [`search_scattering`]. Lengths in scene units, `β` per scene unit.
 #[derive(Clone, Debug, PartialEq)]
@@ -105,6 +126,10 @@ pub struct SearchParams {
     pub joint_fit: bool,
     /// Scale of the joint fit's Cauchy prior on `A` around `A₀`, in (0, 1].
     pub airlight_prior_sigma: f32,
+    /// Typical error of the estimator's `A₀`, in (0, 1]: a joint fit whose `A` lies more than
+    /// [`AIRLIGHT_CONFLICT_SIGMAS`] of it (with the fit's own error) away is reported as an
+    /// [`AirlightConflict`]. [`CNN_AIRLIGHT_ERROR`] by default.
+    pub airlight_initial_error: f32,
 }
 
 impl Default for SearchParams {
@@ -125,6 +150,7 @@ impl Default for SearchParams {
             beta_from_points: true,
             joint_fit: true,
             airlight_prior_sigma: AIRLIGHT_PRIOR_SIGMA,
+            airlight_initial_error: CNN_AIRLIGHT_ERROR,
         }
     }
 }
@@ -149,14 +175,13 @@ impl SearchParams {
                 );
             }
         }
-        if !(self.airlight_prior_sigma.is_finite()
-            && self.airlight_prior_sigma > 0.0
-            && self.airlight_prior_sigma <= 1.0)
-        {
-            return bad(
-                "airlight_prior_sigma",
-                format!("must be in (0, 1], got {}", self.airlight_prior_sigma),
-            );
+        for (f, v) in [
+            ("airlight_prior_sigma", self.airlight_prior_sigma),
+            ("airlight_initial_error", self.airlight_initial_error),
+        ] {
+            if !(v.is_finite() && v > 0.0 && v <= 1.0) {
+                return bad(f, format!("must be in (0, 1], got {v}"));
+            }
         }
         for (f, v) in [
             ("beta_steps", self.beta_steps),
@@ -254,6 +279,57 @@ pub enum BetaSource {
     Sweep,
 }
 
+/// The joint fit's `A` disagreed with the estimator's `A₀` by more than
+/// [`AIRLIGHT_CONFLICT_SIGMAS`] (see the module docs).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct AirlightConflict {
+    /// `A` of the joint fit (the estimate's `A*`).
+    pub fitted_airlight: f64,
+    /// Its standard error.
+    pub fitted_airlight_std_error: f64,
+    /// The estimator's `A₀`.
+    pub airlight_initial: f64,
+    /// The estimator's typical error used in the test.
+    pub airlight_initial_error: f64,
+    /// `|A_fit − A₀| / √(σ₀² + se²)`.
+    pub sigmas: f64,
+}
+
+impl AirlightConflict {
+    /// The test of the module docs on a joint fit; `None` when the two agree.
+    pub fn test(
+        fit: &JointFit,
+        airlight_initial: f64,
+        airlight_initial_error: f64,
+    ) -> Option<Self> {
+        let spread = (airlight_initial_error.powi(2) + fit.airlight_std_error.powi(2)).sqrt();
+        let sigmas = (fit.airlight - airlight_initial).abs() / spread;
+        (sigmas > AIRLIGHT_CONFLICT_SIGMAS).then_some(Self {
+            fitted_airlight: fit.airlight,
+            fitted_airlight_std_error: fit.airlight_std_error,
+            airlight_initial,
+            airlight_initial_error,
+            sigmas,
+        })
+    }
+
+    /// One sentence for a user: the two values and what to check.
+    pub fn describe(&self) -> String {
+        format!(
+            "the SfM points' intensities give A = {:.3} ± {:.3}, but the image's airlight \
+             estimate is A0 = {:.3} (typical error {:.3}; {:.1} sigma apart). A wrong SfM model \
+             (translation directions that are off distort the points' depth differences) or an \
+             airlight estimator outside its range causes this: A* and beta* are not reliable; \
+             check the model's poses",
+            self.fitted_airlight,
+            self.fitted_airlight_std_error,
+            self.airlight_initial,
+            self.airlight_initial_error,
+            self.sigmas
+        )
+    }
+}
+
 /// Which end of the β range an estimate was clamped to.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum BetaBound {
@@ -296,6 +372,9 @@ pub struct ScatteringEstimate {
     pub beta_unclamped: f32,
     /// The joint fit (always run, used when `joint_fit` is set and it determines β).
     pub joint: Option<JointFit>,
+    /// Set when the joint fit's `A*` conflicted with `A₀` (see the module docs); the estimate is
+    /// then reported as [`Identifiability::AirlightConflict`].
+    pub airlight_conflict: Option<AirlightConflict>,
     /// The points' transmission-ratio fit when step 1 tried it (reliable or not); β₀ came from
     /// it when [`PointRatioFit::is_reliable`] and the joint fit was not used.
     pub point_ratio: Option<PointRatioFit>,
@@ -488,18 +567,15 @@ pub fn search_scattering(
     // The joint fit always runs: its verdict says whether the data determine β at all.
     // The blurred samples are taken once, for the joint fit and the point-ratio fallback.
     let samples = blurred_ratio_samples(reference, sources, sparse);
-    let joint = fit_joint_samples(
-        &samples,
-        sparse,
-        &JointPriors {
-            airlight: f64::from(airlight_initial),
-            airlight_sigma: f64::from(params.airlight_prior_sigma),
-            gain_sigma: 0.2,
-            beta_start: f64::from((beta_lo.max(1e-6) * beta_hi).sqrt()),
-            falloff_sigma: crate::params::joint_fit::FALLOFF_PRIOR_SIGMA,
-            relative_falloff_sigma: crate::params::joint_fit::RELATIVE_FALLOFF_PRIOR_SIGMA,
-        },
-    );
+    let priors = JointPriors {
+        airlight: f64::from(airlight_initial),
+        airlight_sigma: f64::from(params.airlight_prior_sigma),
+        gain_sigma: 0.2,
+        beta_start: f64::from((beta_lo.max(1e-6) * beta_hi).sqrt()),
+        falloff_sigma: crate::params::joint_fit::FALLOFF_PRIOR_SIGMA,
+        relative_falloff_sigma: crate::params::joint_fit::RELATIVE_FALLOFF_PRIOR_SIGMA,
+    };
+    let joint = fit_joint_samples(&samples, sparse, &priors);
     // The joint fit's estimate is used whenever it converged with a finite standard error,
     // also when that error is too large to call β identifiable: it is still the data's best
     // estimate (on 20 held-out lateral scenes the one flat case erred by 0.07 with it and by 0.22
@@ -627,10 +703,25 @@ pub fn search_scattering(
     } else {
         None
     };
+    // Only an A* that came from the fit can conflict with A₀.
+    let airlight_conflict = joint
+        .as_ref()
+        .filter(|_| beta_source == BetaSource::JointFit)
+        .and_then(|j| {
+            AirlightConflict::test(
+                j,
+                f64::from(airlight_initial),
+                f64::from(params.airlight_initial_error),
+            )
+        });
     let identifiability = match beta_source {
-        BetaSource::JointFit => joint
-            .as_ref()
-            .map_or(Identifiability::FlatResidual, |j| j.identifiability),
+        BetaSource::JointFit => match joint.as_ref().map(|j| j.identifiability) {
+            Some(Identifiability::Identifiable) if airlight_conflict.is_some() => {
+                Identifiability::AirlightConflict
+            }
+            Some(other) => other,
+            None => Identifiability::FlatResidual,
+        },
         BetaSource::PointRatio => Identifiability::Identifiable,
         BetaSource::Sweep => match joint.as_ref().map(|j| j.identifiability) {
             // The fit determined β but the caller turned it off: the sweep's β is still a guess.
@@ -659,6 +750,7 @@ pub fn search_scattering(
         beta_bound,
         beta_unclamped,
         joint,
+        airlight_conflict,
         point_ratio,
         residual: best.0,
         grid,
@@ -784,6 +876,55 @@ mod tests {
         }
     }
 
+    /// An `A₀` far outside the estimator's typical error, on sound data: the fit still finds
+    /// `A` (the Cauchy prior lets the points decide), and the disagreement is reported as a
+    /// conflict that makes the estimate not identifiable, with `A*` and β* left as fitted. An
+    /// estimator known to be that inaccurate raises none.
+    #[test]
+    fn an_airlight_far_from_the_points_is_reported_as_a_conflict() {
+        // A held-out scene of docs/ACCURACY.md's table (A 0.602, β 0.244), the CNN 0.2 off.
+        let cfg = MvsSimConfig {
+            seed: 504,
+            airlight_range: [0.5, 1.0],
+            median_transmission_range: [0.1, 0.4],
+            ..MvsSimConfig::default()
+        };
+        let scene = simulate_mvs(&cfg, &Monitor::noop()).unwrap();
+        let a0 = scene.airlight + 0.2;
+        let est = run(&scene, a0, &fast());
+        assert_eq!(est.beta_source, BetaSource::JointFit);
+        let joint = est.joint.clone().unwrap();
+        assert_eq!(est.identifiability, Identifiability::AirlightConflict);
+        assert_eq!(joint.identifiability, Identifiability::Identifiable);
+        assert!((est.airlight - scene.airlight).abs() < 0.03, "{est:?}");
+        assert_eq!(
+            f64::from(est.airlight),
+            joint.airlight.clamp(1e-3, 1.0) as f32 as f64
+        );
+        let c = est.airlight_conflict.unwrap();
+        assert_eq!(c.fitted_airlight, joint.airlight);
+        assert_eq!(c.airlight_initial, f64::from(a0));
+        assert_eq!(c.airlight_initial_error, f64::from(CNN_AIRLIGHT_ERROR));
+        let spread = (c.airlight_initial_error.powi(2) + joint.airlight_std_error.powi(2)).sqrt();
+        assert!((c.sigmas - (joint.airlight - f64::from(a0)).abs() / spread).abs() < 1e-12);
+        assert!(c.sigmas > AIRLIGHT_CONFLICT_SIGMAS);
+        let text = c.describe();
+        assert!(
+            text.contains(&format!("A = {:.3}", joint.airlight))
+                && text.contains(&format!("A0 = {a0:.3}"))
+                && text.contains("SfM model"),
+            "{text}"
+        );
+
+        let lenient = SearchParams {
+            airlight_initial_error: 0.2,
+            ..fast()
+        };
+        let est = run(&scene, a0, &lenient);
+        assert_eq!(est.identifiability, Identifiability::Identifiable);
+        assert!(est.airlight_conflict.is_none());
+    }
+
     /// murk's default on a simulated room at reduced size (walking trajectory): A and β from
     /// the joint fit, although A₀ is 0.06 off, with standard errors; one depth evaluation; the
     /// range from the points, not binding. Without the joint fit the points' ratios at the true
@@ -801,6 +942,8 @@ mod tests {
         assert!(se_a > 0.0 && se_a < 0.05 && se_b > 0.0 && se_b < 0.15 * f64::from(est.beta));
         assert!(est.beta_range_from_points && est.beta_bound.is_none());
         assert!(est.beta_range[0] < est.beta && est.beta < est.beta_range[1]);
+        // 0.06 is 2 of the CNN's typical errors: no conflict.
+        assert!(est.airlight_conflict.is_none(), "{est:?}");
 
         let ratio = SearchParams {
             joint_fit: false,
@@ -1021,5 +1164,17 @@ mod tests {
         };
         let err = search_scattering(&reference, &sources, &sparse, 0.85, &planes, &bad, &monitor);
         assert_eq!(err.unwrap_err().field(), Some("params.beta_max"));
+        for v in [0.0, -0.1, 1.5, f32::NAN] {
+            let bad = SearchParams {
+                airlight_initial_error: v,
+                ..params.clone()
+            };
+            let err =
+                search_scattering(&reference, &sources, &sparse, 0.85, &planes, &bad, &monitor);
+            assert_eq!(
+                err.unwrap_err().field(),
+                Some("params.airlight_initial_error")
+            );
+        }
     }
 }

@@ -249,6 +249,12 @@ fn measure_search() {
     let sweep = std::env::var("MURK_SWEEP").is_ok();
     let params = SearchParams {
         airlight_prior_sigma: env_or("MURK_PRIOR_SIGMA", params.airlight_prior_sigma),
+        // The conflict test knows how far each estimator is typically off, as the service does.
+        airlight_initial_error: if cnn.is_some() {
+            crate::params::search::CNN_AIRLIGHT_ERROR
+        } else {
+            crate::params::search::DARK_CHANNEL_AIRLIGHT_ERROR
+        },
         // MURK_FIXED_RANGE=1: the session-12 range, the reference's [0.4, 0.8] ± 0.05.
         beta_min: std::env::var("MURK_FIXED_RANGE").is_ok().then_some(0.4),
         beta_max: std::env::var("MURK_FIXED_RANGE").is_ok().then_some(0.8),

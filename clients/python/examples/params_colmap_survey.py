@@ -7,10 +7,13 @@ images alone (SIFT, exhaustive matching, intrinsics fixed as for a calibrated ri
 and its own few points (SIFT finds little in the far haze), as a real capture's would.
 
 β is per model unit. It is made comparable with the scene's β through the model's unit, which
-this script measures itself, independently of murk: the scale of the similarity that maps the
-COLMAP camera centres onto the simulator's (Umeyama), cross-checked with the median ratio of the
-reference's ground-truth depth to the model points' depths at their pixels. The same scene is
-also run on the simulator's own model, so what the SfM costs is visible seed by seed.
+this script measures itself, independently of murk, in two ways: the scale of the similarity
+that maps the COLMAP camera centres onto the simulator's (Umeyama), and the median ratio of the
+reference's ground-truth depth to the model points' depths at their pixels. On a sound model the
+two agree. On a distorted one (a bas-relief ambiguity: translation directions tens of degrees
+off) they do not, and only the depth ratio converts β·z, the optical depth that murk's
+transmission and dehazing use, since β multiplies the model's depths. The same scene is also run
+on the simulator's own model, so what the SfM costs is visible seed by seed.
 
     pip install pycolmap './clients/python'    # murk_client reads the EXR depth
     cargo build --release
@@ -127,12 +130,17 @@ def murk_params(
 
 
 def report(label: str, rows: list[dict], key: str) -> None:
-    """MAE of A and of β (per scene unit) of the `key` estimates ("sfm" or "sim") over `rows`."""
+    """MAE of A and of β (per scene unit) of the `key` estimates ("sfm" or "sim") over `rows`;
+    for COLMAP models β is converted with the centres' unit and, after the slash, the depths'."""
     if not rows:
         return
     mae_a = np.mean([abs(r[key]["airlight"] - r["airlight"]) for r in rows])
     mae_b = np.mean([abs(r[key]["beta"] - r["beta"]) for r in rows])
-    print(f"{label} ({len(rows)}): MAE_A {mae_a:.4f}, MAE_beta {mae_b:.4f}")
+    line = f"{label} ({len(rows)}): MAE_A {mae_a:.4f}, MAE_beta {mae_b:.4f}"
+    if key == "sfm":
+        mae_d = np.mean([abs(r[key]["beta_via_depths"] - r["beta"]) for r in rows])
+        line += f" / {mae_d:.4f} (unit from centres / depths)"
+    print(line)
 
 
 def seeds_of(spec: str) -> list[int]:
@@ -159,7 +167,8 @@ def main() -> None:
     a.out.mkdir(parents=True, exist_ok=True)
     rows = []
     print(
-        "seed  A true  A sfm  A sim  | beta (per scene unit) true, sfm, sim | unit from centres/depths"
+        "seed  A true  A sfm  A sim  | beta (per scene unit) true, sfm (centres/depths), sim"
+        " | unit from centres/depths"
         " | pose err rot/dir deg | points | identifiability"
     )
     for seed in seeds_of(a.seeds):
@@ -205,6 +214,8 @@ def main() -> None:
                 "airlight": p["airlight"],
                 "beta_per_model_unit": p["beta"],
                 "beta": p["beta"] / unit_c,
+                # β·z in the model's own depths: the optical depth murk's outputs use.
+                "beta_via_depths": p["beta"] / unit_d,
                 # None when β* is the sweep's guess (not identifiable).
                 "beta_std_error": None if p["beta_std_error"] is None else p["beta_std_error"] / unit_c,
                 "identifiable": p["identifiable"],
@@ -218,7 +229,7 @@ def main() -> None:
             s = row["sfm"]
             print(
                 f"{seed:4d}  {meta['airlight']:.3f}  {s['airlight']:.3f}  {sim_params['airlight']:.3f}  |"
-                f"  {meta['beta']:.4f}    {s['beta']:.4f}    {sim_params['beta']:.4f}"
+                f"  {meta['beta']:.4f}  {s['beta']:.4f}/{s['beta_via_depths']:.4f}  {sim_params['beta']:.4f}"
                 f" | {unit_c:.4f}/{unit_d:.4f} | {rot_err:4.1f}/{dir_err:4.1f} | {model[1]:5d} |"
                 f" {s['identifiability']}"
             )
@@ -231,6 +242,9 @@ def main() -> None:
         report("COLMAP models, every registered seed", done, "sfm")
         report("simulator's models of the same seeds", done, "sim")
         report("COLMAP models murk calls identifiable", [r for r in done if r["sfm"]["identifiable"]], "sfm")
+        conflicts = [r for r in done if r["sfm"]["identifiability"] == "airlight_conflict"]
+        report("COLMAP models with an airlight conflict", conflicts, "sfm")
+        report("COLMAP models without one", [r for r in done if r not in conflicts], "sfm")
         # A similarity reconstruction has one unit: the centres' and the depths' scales agree. When
         # they do not, the model is distorted (small baselines leave SfM a bas-relief ambiguity),
         # and no β per model unit is a β per scene unit.

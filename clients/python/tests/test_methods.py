@@ -117,6 +117,8 @@ def test_scattering_params_recovers_a_and_beta(client: Client, mvs_scene_forward
     assert r.airlight_std_error is not None and r.beta_std_error_per_scene_unit is not None
     assert abs(r.beta_per_scene_unit - meta["beta"]) < 4 * r.beta_std_error_per_scene_unit + 0.01
     assert r.beta_range_from_points and r.beta_bound is None
+    # The points' A agrees with the dark channel's A0 within its typical error: no conflict.
+    assert r.airlight_conflict is None and r.warnings == ()
     assert len(r.source_gains) == 4 and all(abs(g - 1) < 0.05 for g in r.source_gains)
     assert r.depth.z_depth.shape == (72, 96) and r.depth.num_planes == 64
 

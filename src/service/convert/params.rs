@@ -20,10 +20,10 @@ use crate::monitor::Monitor;
 use crate::mvs::cost_volume::MAX_VOXELS;
 use crate::mvs::{estimate_depth, CostKind, DehazingOptions, PlaneSet, View, MAX_PLANES};
 use crate::params::airlight::{dark_channel_airlight, AirlightEstimator, DarkChannelParams};
-use crate::params::joint_fit::Identifiability;
+use crate::params::joint_fit::{Identifiability, JointFit};
 use crate::params::search::{
-    plane_range_from_sparse, search_scattering, BetaBound, BetaSource, SearchParams, SearchStage,
-    MIN_SPARSE_POINTS,
+    plane_range_from_sparse, search_scattering, AirlightConflict, BetaBound, BetaSource,
+    SearchParams, SearchStage, CNN_AIRLIGHT_ERROR, DARK_CHANNEL_AIRLIGHT_ERROR, MIN_SPARSE_POINTS,
 };
 use crate::params::sparse::SparseDepth;
 use crate::service::proto::v1 as pb;
@@ -200,6 +200,13 @@ pub fn params_from_proto(
         beta_from_points: req.beta_from_points.unwrap_or(d.beta_from_points),
         joint_fit: req.joint_fit.unwrap_or(d.joint_fit),
         airlight_prior_sigma: req.airlight_prior_sigma.unwrap_or(d.airlight_prior_sigma),
+        // How far A₀ is typically off, for the conflict test: measured for the estimators, the
+        // caller's own prior scale for a given A₀.
+        airlight_initial_error: match source {
+            pb::AirlightSource::Given => req.airlight_prior_sigma.unwrap_or(d.airlight_prior_sigma),
+            pb::AirlightSource::DarkChannel => DARK_CHANNEL_AIRLIGHT_ERROR,
+            _ => CNN_AIRLIGHT_ERROR,
+        },
     };
     search.validate()?;
     // 0 = from the views' displacement across the plane range, once both are known.
@@ -417,20 +424,39 @@ impl ParamsInput {
                 Some(BetaBound::Max) => pb::BetaBound::Max,
             } as i32,
             beta_unclamped: est.beta_unclamped,
-            joint_fit: est.joint.as_ref().map(|j| pb::JointFit {
-                airlight: j.airlight,
-                airlight_std_error: j.airlight_std_error,
-                beta: j.beta,
-                beta_std_error: j.beta_std_error,
-                source_gains: j.source_gains.clone(),
-                vignetting_falloff: j.vignetting_falloff,
-                source_falloffs: j.source_falloffs.clone(),
-                equations: u32::try_from(j.equations).unwrap_or(u32::MAX),
-                rms_depth_difference: j.rms_depth_difference,
-                residual_scale: j.residual_scale,
-                identifiability: identifiability_to_proto(j.identifiability) as i32,
-            }),
+            joint_fit: est.joint.as_ref().map(joint_fit_to_proto),
+            airlight_conflict: est
+                .airlight_conflict
+                .as_ref()
+                .map(|c| pb::AirlightConflict {
+                    fitted_airlight: c.fitted_airlight,
+                    fitted_airlight_std_error: c.fitted_airlight_std_error,
+                    airlight_initial: c.airlight_initial,
+                    airlight_initial_error: c.airlight_initial_error,
+                    sigmas: c.sigmas,
+                }),
+            warnings: est
+                .airlight_conflict
+                .iter()
+                .map(AirlightConflict::describe)
+                .collect(),
         })
+    }
+}
+
+fn joint_fit_to_proto(j: &JointFit) -> pb::JointFit {
+    pb::JointFit {
+        airlight: j.airlight,
+        airlight_std_error: j.airlight_std_error,
+        beta: j.beta,
+        beta_std_error: j.beta_std_error,
+        source_gains: j.source_gains.clone(),
+        vignetting_falloff: j.vignetting_falloff,
+        source_falloffs: j.source_falloffs.clone(),
+        equations: u32::try_from(j.equations).unwrap_or(u32::MAX),
+        rms_depth_difference: j.rms_depth_difference,
+        residual_scale: j.residual_scale,
+        identifiability: identifiability_to_proto(j.identifiability) as i32,
     }
 }
 
@@ -440,6 +466,7 @@ fn identifiability_to_proto(i: Identifiability) -> pb::Identifiability {
         Identifiability::NoDepthDifference => pb::Identifiability::NoDepthDifference,
         Identifiability::TooFewPoints => pb::Identifiability::TooFewPoints,
         Identifiability::FlatResidual => pb::Identifiability::FlatResidual,
+        Identifiability::AirlightConflict => pb::Identifiability::AirlightConflict,
     }
 }
 

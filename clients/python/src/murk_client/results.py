@@ -158,7 +158,9 @@ class ScatteringParamsResult:
     #: Whether the SfM points determine β*; when False β* is a guess, see ``identifiability``.
     identifiable: bool
     #: ``"identifiable"``, ``"no_depth_difference"`` (a rectified pair or sideways motion),
-    #: ``"too_few_points"`` or ``"flat_residual"``.
+    #: ``"too_few_points"``, ``"flat_residual"`` or ``"airlight_conflict"`` (the points' A
+    #: disagrees with the image's airlight estimate: the SfM model is likely wrong; see
+    #: ``airlight_conflict``).
     identifiability: str
     #: ``"joint_fit"`` (A, β and source gains fitted to the points), ``"point_ratio"`` or
     #: ``"sweep"``.
@@ -186,6 +188,13 @@ class ScatteringParamsResult:
     grid: list[ResidualSample]
     num_sparse_points: int
     depth: MvsDepthResult
+    #: When the joint fit's A* and the estimator's A0 disagree beyond both their errors:
+    #: ``{"fitted_airlight", "fitted_airlight_std_error", "airlight_initial",
+    #: "airlight_initial_error", "sigmas"}``; None otherwise (and from servers before
+    #: murk-algorithms-17).
+    airlight_conflict: dict[str, float] | None
+    #: What the caller should know about the estimate, one sentence each.
+    warnings: tuple[str, ...]
     job_id: str
     proto: params_pb2.ScatteringParamsResult
 
@@ -202,6 +211,7 @@ class ScatteringParamsResult:
             params_pb2.IDENTIFIABILITY_NO_DEPTH_DIFFERENCE: "no_depth_difference",
             params_pb2.IDENTIFIABILITY_TOO_FEW_POINTS: "too_few_points",
             params_pb2.IDENTIFIABILITY_FLAT_RESIDUAL: "flat_residual",
+            params_pb2.IDENTIFIABILITY_AIRLIGHT_CONFLICT: "airlight_conflict",
         }
         beta_sources = {
             params_pb2.BETA_SOURCE_JOINT_FIT: "joint_fit",
@@ -239,6 +249,18 @@ class ScatteringParamsResult:
             ],
             num_sparse_points=r.num_sparse_points,
             depth=MvsDepthResult.from_proto(r.depth, job_id),
+            airlight_conflict=(
+                {
+                    "fitted_airlight": r.airlight_conflict.fitted_airlight,
+                    "fitted_airlight_std_error": r.airlight_conflict.fitted_airlight_std_error,
+                    "airlight_initial": r.airlight_conflict.airlight_initial,
+                    "airlight_initial_error": r.airlight_conflict.airlight_initial_error,
+                    "sigmas": r.airlight_conflict.sigmas,
+                }
+                if r.HasField("airlight_conflict")
+                else None
+            ),
+            warnings=tuple(r.warnings),
             job_id=job_id,
             proto=r,
         )

@@ -88,6 +88,10 @@ class _IdentifiabilityEnumTypeWrapper(_enum_type_wrapper._EnumTypeWrapper[_Ident
     """Fewer than 300 usable point x source x channel equations."""
     IDENTIFIABILITY_FLAT_RESIDUAL: _Identifiability.ValueType  # 4
     """Equations and depth differences exist, but beta's standard error is too large."""
+    IDENTIFIABILITY_AIRLIGHT_CONFLICT: _Identifiability.ValueType  # 5
+    """The joint fit determined A and beta, but its A disagrees with the image's airlight estimate
+    A0 beyond both their errors (see AirlightConflict): the SfM model is likely wrong.
+    """
 
 class Identifiability(_Identifiability, metaclass=_IdentifiabilityEnumTypeWrapper):
     """Whether the SfM points determine beta."""
@@ -103,6 +107,10 @@ IDENTIFIABILITY_TOO_FEW_POINTS: Identifiability.ValueType  # 3
 """Fewer than 300 usable point x source x channel equations."""
 IDENTIFIABILITY_FLAT_RESIDUAL: Identifiability.ValueType  # 4
 """Equations and depth differences exist, but beta's standard error is too large."""
+IDENTIFIABILITY_AIRLIGHT_CONFLICT: Identifiability.ValueType  # 5
+"""The joint fit determined A and beta, but its A disagrees with the image's airlight estimate
+A0 beyond both their errors (see AirlightConflict): the SfM model is likely wrong.
+"""
 Global___Identifiability: _TypeAlias = Identifiability  # noqa: Y015
 
 class _BetaSource:
@@ -425,6 +433,8 @@ class ScatteringParamsResult(_message.Message):
     BETA_BOUND_FIELD_NUMBER: _builtins.int
     BETA_UNCLAMPED_FIELD_NUMBER: _builtins.int
     JOINT_FIT_FIELD_NUMBER: _builtins.int
+    AIRLIGHT_CONFLICT_FIELD_NUMBER: _builtins.int
+    WARNINGS_FIELD_NUMBER: _builtins.int
     airlight: _builtins.float
     """A* and beta* (per scene unit)."""
     beta: _builtins.float
@@ -479,6 +489,18 @@ class ScatteringParamsResult(_message.Message):
     def joint_fit(self) -> Global___JointFit:
         """The joint fit, which always runs."""
 
+    @_builtins.property
+    def airlight_conflict(self) -> Global___AirlightConflict:
+        """Set when the joint fit's A* and the estimator's A0 disagree by more than 3 of their combined
+        uncertainty (the estimator's typical error and the fit's standard error): a sign of a wrong
+        SfM model, or of an estimator outside its range. identifiability is then
+        AIRLIGHT_CONFLICT; A* and beta* stay the fit's.
+        """
+
+    @_builtins.property
+    def warnings(self) -> _containers.RepeatedScalarFieldContainer[_builtins.str]:
+        """Sentences for the user about the estimate (the airlight conflict, when there is one)."""
+
     def __init__(
         self,
         *,
@@ -506,10 +528,12 @@ class ScatteringParamsResult(_message.Message):
         beta_bound: Global___BetaBound.ValueType = ...,
         beta_unclamped: _builtins.float = ...,
         joint_fit: Global___JointFit | None = ...,
+        airlight_conflict: Global___AirlightConflict | None = ...,
+        warnings: _abc.Iterable[_builtins.str] | None = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _typing.Literal["_airlight_std_error", b"_airlight_std_error", "_beta_std_error", b"_beta_std_error", "airlight_std_error", b"airlight_std_error", "beta_std_error", b"beta_std_error", "depth", b"depth", "joint_fit", b"joint_fit", "point_ratio", b"point_ratio"]  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["_airlight_std_error", b"_airlight_std_error", "_beta_std_error", b"_beta_std_error", "airlight_conflict", b"airlight_conflict", "airlight_std_error", b"airlight_std_error", "beta_std_error", b"beta_std_error", "depth", b"depth", "joint_fit", b"joint_fit", "point_ratio", b"point_ratio"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["_airlight_std_error", b"_airlight_std_error", "_beta_std_error", b"_beta_std_error", "airlight", b"airlight", "airlight_initial", b"airlight_initial", "airlight_seconds", b"airlight_seconds", "airlight_source", b"airlight_source", "airlight_std_error", b"airlight_std_error", "beta", b"beta", "beta_bound", b"beta_bound", "beta_initial", b"beta_initial", "beta_max", b"beta_max", "beta_min", b"beta_min", "beta_range_from_points", b"beta_range_from_points", "beta_source", b"beta_source", "beta_std_error", b"beta_std_error", "beta_unclamped", b"beta_unclamped", "depth", b"depth", "depth_seconds", b"depth_seconds", "grid", b"grid", "identifiability", b"identifiability", "identifiable", b"identifiable", "joint_fit", b"joint_fit", "num_sparse_points", b"num_sparse_points", "point_ratio", b"point_ratio", "residual", b"residual", "search_seconds", b"search_seconds"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["_airlight_std_error", b"_airlight_std_error", "_beta_std_error", b"_beta_std_error", "airlight", b"airlight", "airlight_conflict", b"airlight_conflict", "airlight_initial", b"airlight_initial", "airlight_seconds", b"airlight_seconds", "airlight_source", b"airlight_source", "airlight_std_error", b"airlight_std_error", "beta", b"beta", "beta_bound", b"beta_bound", "beta_initial", b"beta_initial", "beta_max", b"beta_max", "beta_min", b"beta_min", "beta_range_from_points", b"beta_range_from_points", "beta_source", b"beta_source", "beta_std_error", b"beta_std_error", "beta_unclamped", b"beta_unclamped", "depth", b"depth", "depth_seconds", b"depth_seconds", "grid", b"grid", "identifiability", b"identifiability", "identifiable", b"identifiable", "joint_fit", b"joint_fit", "num_sparse_points", b"num_sparse_points", "point_ratio", b"point_ratio", "residual", b"residual", "search_seconds", b"search_seconds", "warnings", b"warnings"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     _WhichOneofReturnType__airlight_std_error: _TypeAlias = _typing.Literal["airlight_std_error"]  # noqa: Y015
     _WhichOneofArgType__airlight_std_error: _TypeAlias = _typing.Literal["_airlight_std_error", b"_airlight_std_error"]  # noqa: Y015
@@ -521,6 +545,44 @@ class ScatteringParamsResult(_message.Message):
     def WhichOneof(self, oneof_group: _WhichOneofArgType__beta_std_error) -> _WhichOneofReturnType__beta_std_error | None: ...
 
 Global___ScatteringParamsResult: _TypeAlias = ScatteringParamsResult  # noqa: Y015
+
+@_typing.final
+class AirlightConflict(_message.Message):
+    """The joint fit's A against the estimator's A0."""
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    FITTED_AIRLIGHT_FIELD_NUMBER: _builtins.int
+    FITTED_AIRLIGHT_STD_ERROR_FIELD_NUMBER: _builtins.int
+    AIRLIGHT_INITIAL_FIELD_NUMBER: _builtins.int
+    AIRLIGHT_INITIAL_ERROR_FIELD_NUMBER: _builtins.int
+    SIGMAS_FIELD_NUMBER: _builtins.int
+    fitted_airlight: _builtins.float
+    """A of the joint fit (A*) and its standard error."""
+    fitted_airlight_std_error: _builtins.float
+    airlight_initial: _builtins.float
+    """The estimator's A0 and the typical error the test used for it (CNN 0.03, dark channel
+    0.11, a given A0 the request's airlight_prior_sigma).
+    """
+    airlight_initial_error: _builtins.float
+    sigmas: _builtins.float
+    """|A* - A0| / sqrt(airlight_initial_error^2 + fitted_airlight_std_error^2)."""
+    def __init__(
+        self,
+        *,
+        fitted_airlight: _builtins.float = ...,
+        fitted_airlight_std_error: _builtins.float = ...,
+        airlight_initial: _builtins.float = ...,
+        airlight_initial_error: _builtins.float = ...,
+        sigmas: _builtins.float = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["airlight_initial", b"airlight_initial", "airlight_initial_error", b"airlight_initial_error", "fitted_airlight", b"fitted_airlight", "fitted_airlight_std_error", b"fitted_airlight_std_error", "sigmas", b"sigmas"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___AirlightConflict: _TypeAlias = AirlightConflict  # noqa: Y015
 
 @_typing.final
 class JointFit(_message.Message):
