@@ -259,6 +259,25 @@ impl RowWarpF32 {
             hw,
         )
     }
+
+    /// `1 / w` when the homogeneous scale `w` is the same positive value along the whole row
+    /// (`slope[2] = 0`: no rotation between the views, as in a rectified pair or a rig that only
+    /// translates), else `None`.
+    #[inline(always)]
+    pub fn constant_reciprocal(&self) -> Option<f32> {
+        (self.slope[2] == 0.0 && self.offset[2] > 0.0).then(|| 1.0 / self.offset[2])
+    }
+
+    /// [`Self::project`] of a row whose [`Self::constant_reciprocal`] is `r`: no division per
+    /// column, and the same values to the bit (`0·x + offset[2]` is `offset[2]` for `x ≥ 0`).
+    #[inline(always)]
+    pub fn project_with(&self, x: f32, r: f32) -> (f32, f32, f32) {
+        (
+            (self.slope[0] * x + self.offset[0]) * r,
+            (self.slope[1] * x + self.offset[1]) * r,
+            self.offset[2],
+        )
+    }
 }
 
 #[cfg(test)]
@@ -352,6 +371,39 @@ mod tests {
         let fwd = Pose::translation_only([0.0, 0.0, -0.5]).unwrap();
         let (_, _, zeta) = PlaneWarp::new(&k, &k, &fwd, 3.0).map(10.0, 20.0);
         assert!((zeta - 2.5).abs() < 1e-12);
+    }
+
+    /// Views that only translate (a rectified pair, a rig moving forward, with different
+    /// intrinsics) have one homogeneous scale along each row, and projecting with its reciprocal
+    /// gives the general projection's values to the bit; a rotation between the views has none.
+    #[test]
+    fn translation_only_rows_project_with_one_reciprocal_bit_for_bit() {
+        let k_ref = Intrinsics::new(250.0, 240.0, 128.0, 96.0);
+        let k_src = Intrinsics::new(230.0, 235.0, 120.5, 99.0);
+        for t in [[-0.2, 0.0, 0.0], [0.05, -0.1, -0.4], [0.0, 0.0, 0.3]] {
+            let rel = Pose::translation_only(t).unwrap();
+            for z in [0.7, 3.0, 40.0] {
+                let warp = PlaneWarp::new(&k_ref, &k_src, &rel, z);
+                for y in [0.0, 17.0, 191.0] {
+                    let row = warp.row(y).to_f32();
+                    let r = row.constant_reciprocal().expect("no rotation");
+                    for x in (0..256).map(|x| x as f32) {
+                        let (a, b, c) = row.project(x);
+                        let (d, e, f) = row.project_with(x, r);
+                        assert_eq!(
+                            (a.to_bits(), b.to_bits(), c.to_bits()),
+                            (d.to_bits(), e.to_bits(), f.to_bits()),
+                            "t {t:?} z {z} row {y} column {x}"
+                        );
+                    }
+                }
+            }
+        }
+        let turned = Pose::from_colmap([1.0, 0.0, 0.05, 0.0], [-0.2, 0.0, 0.0]).unwrap();
+        let row = PlaneWarp::new(&k_ref, &k_src, &turned, 3.0)
+            .row(10.0)
+            .to_f32();
+        assert_eq!(row.constant_reciprocal(), None);
     }
 
     proptest! {

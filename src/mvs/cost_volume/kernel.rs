@@ -268,8 +268,24 @@ pub(super) fn source_coords(
 ) {
     let warp = warp.to_f32();
     let (wmax, hmax) = ((width - 1) as f32, (height - 1) as f32);
+    // Views without a rotation between them (a rectified pair) share one 1/w along the row.
+    match warp.constant_reciprocal() {
+        Some(r) => coords_along(us, vs, wmax, hmax, |x| warp.project_with(x, r)),
+        None => coords_along(us, vs, wmax, hmax, |x| warp.project(x)),
+    }
+}
+
+/// The loop of [`source_coords`] for one way of projecting a column.
+#[inline(always)]
+fn coords_along(
+    us: &mut [f32],
+    vs: &mut [f32],
+    wmax: f32,
+    hmax: f32,
+    project: impl Fn(f32) -> (f32, f32, f32),
+) {
     for (x, (us, vs)) in us.iter_mut().zip(vs.iter_mut()).enumerate() {
-        let (a, b, hw) = warp.project(x as f32);
+        let (a, b, hw) = project(x as f32);
         let inside = hw > 0.0 && a >= 0.0 && b >= 0.0 && a <= wmax && b <= hmax;
         *us = if inside { a } else { f32::NAN };
         *vs = b;

@@ -71,13 +71,24 @@ const OUTSIDE: u32 = u32::MAX;
 #[inline(always)]
 fn target(warp: &RowWarpF32, x: f32, w: f32, h: f32) -> u32 {
     let (u, v, hw) = warp.project(x);
+    target_at(u, v, hw, w, h)
+}
+
+/// [`target`] from the projected point `(u, v)` and its homogeneous scale `hw`.
+#[inline(always)]
+fn target_at(u: f32, v: f32, hw: f32, w: f32, h: f32) -> u32 {
     let inside = hw > 0.0 && u >= -0.5 && u < w - 0.5 && v >= -0.5 && v < h - 0.5;
     let (u, v) = if inside {
         (u + 0.5, v + 0.5)
     } else {
         (0.0, 0.0)
     };
-    let q = v as u32 * w as u32 + u as u32;
+    // SAFETY: `u` and `v` are finite and in [0, 2³¹): either 0, or in [0, w) and [0, h) by the
+    // bounds check. The saturating `as u32` (NaN and range checks per lane, and no f32 → u32
+    // vector instruction before AVX-512) left the claims' loop scalar; this truncation is the
+    // same value and one vector instruction.
+    let (ui, vi) = unsafe { (u.to_int_unchecked::<i32>(), v.to_int_unchecked::<i32>()) };
+    let q = vi as u32 * w as u32 + ui as u32;
     if inside {
         q
     } else {
@@ -85,27 +96,51 @@ fn target(warp: &RowWarpF32, x: f32, w: f32, h: f32) -> u32 {
     }
 }
 
-/// [`target`] of every plane's warp `targets[i]` at column `x` into `out[i]`.
-fn targets_of(avx2: bool, targets: &[RowWarpF32], x: f32, w: f32, h: f32, out: &mut [u32]) {
+/// [`target`] of every plane's warp `targets[i]` at column `x` into `out[i]`. `reciprocals`
+/// holds every warp's [`RowWarpF32::constant_reciprocal`] when all have one (a rectified pair:
+/// no division per voxel, the same targets), else it is empty.
+fn targets_of(
+    avx2: bool,
+    targets: &[RowWarpF32],
+    reciprocals: &[f32],
+    x: f32,
+    w: f32,
+    h: f32,
+    out: &mut [u32],
+) {
     #[inline(always)]
-    fn plain(targets: &[RowWarpF32], x: f32, w: f32, h: f32, out: &mut [u32]) {
-        for (o, t) in out.iter_mut().zip(targets) {
-            *o = target(t, x, w, h);
+    fn plain(targets: &[RowWarpF32], reciprocals: &[f32], x: f32, w: f32, h: f32, out: &mut [u32]) {
+        if reciprocals.is_empty() {
+            for (o, t) in out.iter_mut().zip(targets) {
+                *o = target(t, x, w, h);
+            }
+        } else {
+            for ((o, t), &r) in out.iter_mut().zip(targets).zip(reciprocals) {
+                let (u, v, hw) = t.project_with(x, r);
+                *o = target_at(u, v, hw, w, h);
+            }
         }
     }
     #[cfg(target_arch = "x86_64")]
     {
         #[target_feature(enable = "avx2")]
-        unsafe fn with_avx2(targets: &[RowWarpF32], x: f32, w: f32, h: f32, out: &mut [u32]) {
-            plain(targets, x, w, h, out)
+        unsafe fn with_avx2(
+            targets: &[RowWarpF32],
+            reciprocals: &[f32],
+            x: f32,
+            w: f32,
+            h: f32,
+            out: &mut [u32],
+        ) {
+            plain(targets, reciprocals, x, w, h, out)
         }
         if avx2 {
             // SAFETY: the caller detected AVX2 on this CPU ([`crate::cpu::avx2_enabled`]).
-            return unsafe { with_avx2(targets, x, w, h, out) };
+            return unsafe { with_avx2(targets, reciprocals, x, w, h, out) };
         }
     }
     let _ = avx2;
-    plain(targets, x, w, h, out)
+    plain(targets, reciprocals, x, w, h, out)
 }
 
 /// Marker of a source pixel that no reference voxel lands on.
@@ -153,15 +188,21 @@ impl SourceClaims {
         let (sw, sh) = (g.width as f32, g.height as f32);
         let y0 = rows.start;
         let avx2 = crate::cpu::avx2_enabled();
+        type Scratch = (Vec<RowWarpF32>, Vec<f32>, Vec<u32>);
         rows.into_par_iter().for_each_init(
-            || (Vec::new(), vec![0u32; n]),
-            |(row_targets, q): &mut (Vec<RowWarpF32>, Vec<u32>), y| {
+            || (Vec::new(), Vec::new(), vec![0u32; n]),
+            |(row_targets, reciprocals, q): &mut Scratch, y| {
                 row_targets.clear();
                 row_targets.extend(self.warps.iter().map(|wp| wp.row(y as f64).to_f32()));
+                reciprocals.clear();
+                reciprocals.extend(row_targets.iter().map_while(|t| t.constant_reciprocal()));
+                if reciprocals.len() != row_targets.len() {
+                    reciprocals.clear();
+                }
                 for x in 0..w {
                     let p = (y - y0) * w + x;
                     let curve = &sum[p * n..(p + 1) * n];
-                    targets_of(avx2, row_targets, x as f32, sw, sh, q);
+                    targets_of(avx2, row_targets, reciprocals, x as f32, sw, sh, q);
                     for (i, (&q, &c)) in q.iter().zip(curve).enumerate() {
                         if q == OUTSIDE {
                             continue;
@@ -394,6 +435,38 @@ mod tests {
             .iter()
             .flat_map(|&t| (0..N).map(move |i| (i as f32 - t as f32).abs()))
             .collect()
+    }
+
+    /// The claims' shortcut for rows without a rotation (one reciprocal per plane) gives every
+    /// voxel the target the general projection gives it.
+    #[test]
+    fn targets_with_constant_reciprocals_match_the_general_ones() {
+        let planes = PlaneSet::new(1.0, 10.0, N).unwrap();
+        let g = rectified(&planes);
+        let claims = SourceClaims::new(&g, &planes);
+        let avx2 = crate::cpu::avx2_enabled();
+        let (mut general, mut fast) = (vec![0u32; N], vec![0u32; N]);
+        let mut inside = 0;
+        for y in 0..H {
+            let rows: Vec<RowWarpF32> = claims
+                .warps
+                .iter()
+                .map(|wp| wp.row(y as f64).to_f32())
+                .collect();
+            let reciprocals: Vec<f32> = rows
+                .iter()
+                .filter_map(|r| r.constant_reciprocal())
+                .collect();
+            assert_eq!(reciprocals.len(), N);
+            for x in 0..W {
+                let (w, h) = (W as f32, H as f32);
+                targets_of(avx2, &rows, &[], x as f32, w, h, &mut general);
+                targets_of(avx2, &rows, &reciprocals, x as f32, w, h, &mut fast);
+                assert_eq!(general, fast, "row {y} column {x}");
+                inside += general.iter().filter(|&&q| q != OUTSIDE).count();
+            }
+        }
+        assert!(inside > W * H * N / 2, "{inside}");
     }
 
     #[test]
