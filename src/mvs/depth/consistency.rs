@@ -96,26 +96,31 @@ fn target_at(u: f32, v: f32, hw: f32, w: f32, h: f32) -> u32 {
     }
 }
 
-/// [`target`] of every plane's warp `targets[i]` at column `x` into `out[i]`. `reciprocals`
-/// holds every warp's [`RowWarpF32::constant_reciprocal`] when all have one (a rectified pair:
-/// no division per voxel, the same targets), else it is empty.
-fn targets_of(
-    avx2: bool,
-    targets: &[RowWarpF32],
-    reciprocals: &[f32],
-    x: f32,
+/// One reference row's warps into a `w×h` source, for [`targets_of`].
+#[derive(Clone, Copy)]
+struct RowTargets<'a> {
+    /// Every plane's warp on the row.
+    warps: &'a [RowWarpF32],
+    /// Every warp's [`RowWarpF32::constant_reciprocal`] when all have one (a rectified pair: no
+    /// division per voxel, the same targets), else empty.
+    reciprocals: &'a [f32],
+    /// Source width, pixels.
     w: f32,
+    /// Source height, pixels.
     h: f32,
-    out: &mut [u32],
-) {
+}
+
+/// [`target`] of every plane's warp at column `x` into `out[i]`.
+fn targets_of(avx2: bool, row: RowTargets<'_>, x: f32, out: &mut [u32]) {
     #[inline(always)]
-    fn plain(targets: &[RowWarpF32], reciprocals: &[f32], x: f32, w: f32, h: f32, out: &mut [u32]) {
-        if reciprocals.is_empty() {
-            for (o, t) in out.iter_mut().zip(targets) {
+    fn plain(row: RowTargets<'_>, x: f32, out: &mut [u32]) {
+        let (w, h) = (row.w, row.h);
+        if row.reciprocals.is_empty() {
+            for (o, t) in out.iter_mut().zip(row.warps) {
                 *o = target(t, x, w, h);
             }
         } else {
-            for ((o, t), &r) in out.iter_mut().zip(targets).zip(reciprocals) {
+            for ((o, t), &r) in out.iter_mut().zip(row.warps).zip(row.reciprocals) {
                 let (u, v, hw) = t.project_with(x, r);
                 *o = target_at(u, v, hw, w, h);
             }
@@ -124,23 +129,16 @@ fn targets_of(
     #[cfg(target_arch = "x86_64")]
     {
         #[target_feature(enable = "avx2")]
-        unsafe fn with_avx2(
-            targets: &[RowWarpF32],
-            reciprocals: &[f32],
-            x: f32,
-            w: f32,
-            h: f32,
-            out: &mut [u32],
-        ) {
-            plain(targets, reciprocals, x, w, h, out)
+        unsafe fn with_avx2(row: RowTargets<'_>, x: f32, out: &mut [u32]) {
+            plain(row, x, out)
         }
         if avx2 {
             // SAFETY: the caller detected AVX2 on this CPU ([`crate::cpu::avx2_enabled`]).
-            return unsafe { with_avx2(targets, reciprocals, x, w, h, out) };
+            return unsafe { with_avx2(row, x, out) };
         }
     }
     let _ = avx2;
-    plain(targets, reciprocals, x, w, h, out)
+    plain(row, x, out)
 }
 
 /// Marker of a source pixel that no reference voxel lands on.
@@ -199,10 +197,16 @@ impl SourceClaims {
                 if reciprocals.len() != row_targets.len() {
                     reciprocals.clear();
                 }
+                let row = RowTargets {
+                    warps: row_targets,
+                    reciprocals,
+                    w: sw,
+                    h: sh,
+                };
                 for x in 0..w {
                     let p = (y - y0) * w + x;
                     let curve = &sum[p * n..(p + 1) * n];
-                    targets_of(avx2, row_targets, reciprocals, x as f32, sw, sh, q);
+                    targets_of(avx2, row, x as f32, q);
                     for (i, (&q, &c)) in q.iter().zip(curve).enumerate() {
                         if q == OUTSIDE {
                             continue;
@@ -458,10 +462,15 @@ mod tests {
                 .filter_map(|r| r.constant_reciprocal())
                 .collect();
             assert_eq!(reciprocals.len(), N);
+            let row = |reciprocals| RowTargets {
+                warps: &rows,
+                reciprocals,
+                w: W as f32,
+                h: H as f32,
+            };
             for x in 0..W {
-                let (w, h) = (W as f32, H as f32);
-                targets_of(avx2, &rows, &[], x as f32, w, h, &mut general);
-                targets_of(avx2, &rows, &reciprocals, x as f32, w, h, &mut fast);
+                targets_of(avx2, row(&[]), x as f32, &mut general);
+                targets_of(avx2, row(&reciprocals), x as f32, &mut fast);
                 assert_eq!(general, fast, "row {y} column {x}");
                 inside += general.iter().filter(|&&q| q != OUTSIDE).count();
             }
