@@ -319,8 +319,8 @@ impl AirlightConflict {
             "the SfM points' intensities give A = {:.3} ± {:.3}, but the image's airlight \
              estimate is A0 = {:.3} (typical error {:.3}; {:.1} sigma apart). A wrong SfM model \
              (translation directions that are off distort the points' depth differences) or an \
-             airlight estimator outside its range causes this: A* and beta* are not reliable; \
-             check the model's poses",
+             airlight estimator outside its range causes this: A* is not reliable, and beta* may \
+             not be either; check the model's poses",
             self.fitted_airlight,
             self.fitted_airlight_std_error,
             self.airlight_initial,
@@ -372,8 +372,9 @@ pub struct ScatteringEstimate {
     pub beta_unclamped: f32,
     /// The joint fit (always run, used when `joint_fit` is set and it determines β).
     pub joint: Option<JointFit>,
-    /// Set when the joint fit's `A*` conflicted with `A₀` (see the module docs); the estimate is
-    /// then reported as [`Identifiability::AirlightConflict`].
+    /// Set when the joint fit's `A*` conflicted with `A₀` (see the module docs); an estimate the
+    /// fit called identifiable is then reported as [`Identifiability::AirlightConflict`] (one it
+    /// did not keeps its own reason).
     pub airlight_conflict: Option<AirlightConflict>,
     /// The points' transmission-ratio fit when step 1 tried it (reliable or not); β₀ came from
     /// it when [`PointRatioFit::is_reliable`] and the joint fit was not used.
