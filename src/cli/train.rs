@@ -67,6 +67,10 @@ pub struct TrainAirlightArgs {
     /// trajectory and noise.
     #[arg(long)]
     pub uniform_rooms: bool,
+    /// Draw each image's darkening gain independently of its A (before session 26: the weights
+    /// of session 25), instead of drawing the target A uniformly first.
+    #[arg(long)]
+    pub independent_gain: bool,
 }
 
 /// Runs a train subcommand.
@@ -99,6 +103,7 @@ fn train_airlight(a: &TrainAirlightArgs) -> anyhow::Result<()> {
         transmission_range: [a.t_min, a.t_max],
         airlight_range: [a.a_min, a.a_max],
         varied_scenes: !a.uniform_rooms,
+        uniform_targets: !a.independent_gain,
         ..TrainConfig::default()
     };
     cfg.validate().context("invalid training settings")?;
