@@ -123,6 +123,28 @@ def test_scattering_params_recovers_a_and_beta(client: Client, mvs_scene_forward
     assert r.depth.z_depth.shape == (72, 96) and r.depth.num_planes == 64
 
 
+def test_scattering_params_reports_an_airlight_conflict(client: Client, mvs_scene_forward: Path) -> None:
+    meta = read_meta(mvs_scene_forward)
+    model = mc.load_colmap_model(mvs_scene_forward / "sparse")
+    ref = meta["reference"]
+    # A0 given 0.3 away from the truth, far beyond its stated error (the prior's default scale):
+    # the points still place A, and the result says the two disagree.
+    a0 = meta["airlight"] - 0.3
+    r = client.scattering_params(
+        model.view(ref, mvs_scene_forward / "images"),
+        [model.view(n, mvs_scene_forward / "images") for n in model.nearest_sources(ref, 4)],
+        model.points_scene_units,
+        airlight_source="given",
+        airlight=a0,
+        options={"num_planes": 64, "search_planes": 32},
+    )
+    c = r.airlight_conflict
+    assert isinstance(c, mc.AirlightConflict), r.airlight_conflict
+    assert abs(c.airlight_initial - a0) < 1e-6 and c.sigmas > 3
+    assert abs(c.fitted_airlight - meta["airlight"]) < 0.05
+    assert not r.identifiable and len(r.warnings) == 1 and "SfM model" in r.warnings[0]
+
+
 def test_photometric_stereo_normals(client: Client, ps_scene: Path) -> None:
     cap = mc.load_ps_capture(ps_scene)
     assert len(cap.lights) == 8 and cap.initial_distance_mm is not None

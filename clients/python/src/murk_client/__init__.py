@@ -48,6 +48,7 @@ from .requests import (
     tof_depth_request,
 )
 from .results import (
+    AirlightConflict,
     MvsDepthResult,
     PhotometricStereoResult,
     ResidualSample,
@@ -61,6 +62,7 @@ from .types import Intrinsics, JobState, JobStatus, Pose, PsLight, View
 __version__ = "0.1.0"
 
 __all__ = [
+    "AirlightConflict",
     "Client",
     "ClientInputError",
     "ColmapCamera",

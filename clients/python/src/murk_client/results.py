@@ -145,6 +145,22 @@ class ResidualSample:
 
 
 @dataclass(frozen=True)
+class AirlightConflict:
+    """The joint fit's A* against the airlight estimator's A0, when they disagree by more than 3
+    of ``sqrt(airlight_initial_error**2 + fitted_airlight_std_error**2)``: the likeliest cause is
+    a wrong SfM model (its translation directions off), else an estimator outside its range."""
+
+    fitted_airlight: float
+    fitted_airlight_std_error: float
+    airlight_initial: float
+    #: The estimator's typical error the test used (CNN 0.03, dark channel 0.11, a given A0 the
+    #: request's prior scale).
+    airlight_initial_error: float
+    #: ``|A* - A0|`` over the combined error.
+    sigmas: float
+
+
+@dataclass(frozen=True)
 class ScatteringParamsResult:
     """A*, β* of Algorithm 1 and the depth with them, with what the data say about them."""
 
@@ -188,11 +204,10 @@ class ScatteringParamsResult:
     grid: list[ResidualSample]
     num_sparse_points: int
     depth: MvsDepthResult
-    #: When the joint fit's A* and the estimator's A0 disagree beyond both their errors:
-    #: ``{"fitted_airlight", "fitted_airlight_std_error", "airlight_initial",
-    #: "airlight_initial_error", "sigmas"}``; None otherwise (and from servers before
-    #: murk-algorithms-17).
-    airlight_conflict: dict[str, float] | None
+    #: Set when the joint fit's A* and the estimator's A0 disagree beyond both their errors
+    #: (``identifiability`` is then ``"airlight_conflict"`` unless the fit had another reason);
+    #: None otherwise, and from servers before murk-algorithms-17.
+    airlight_conflict: AirlightConflict | None
     #: What the caller should know about the estimate, one sentence each.
     warnings: tuple[str, ...]
     job_id: str
@@ -250,13 +265,13 @@ class ScatteringParamsResult:
             num_sparse_points=r.num_sparse_points,
             depth=MvsDepthResult.from_proto(r.depth, job_id),
             airlight_conflict=(
-                {
-                    "fitted_airlight": r.airlight_conflict.fitted_airlight,
-                    "fitted_airlight_std_error": r.airlight_conflict.fitted_airlight_std_error,
-                    "airlight_initial": r.airlight_conflict.airlight_initial,
-                    "airlight_initial_error": r.airlight_conflict.airlight_initial_error,
-                    "sigmas": r.airlight_conflict.sigmas,
-                }
+                AirlightConflict(
+                    fitted_airlight=r.airlight_conflict.fitted_airlight,
+                    fitted_airlight_std_error=r.airlight_conflict.fitted_airlight_std_error,
+                    airlight_initial=r.airlight_conflict.airlight_initial,
+                    airlight_initial_error=r.airlight_conflict.airlight_initial_error,
+                    sigmas=r.airlight_conflict.sigmas,
+                )
                 if r.HasField("airlight_conflict")
                 else None
             ),
