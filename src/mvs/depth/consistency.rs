@@ -141,6 +141,14 @@ fn targets_of(avx2: bool, row: RowTargets<'_>, x: f32, out: &mut [u32]) {
     plain(row, x, out)
 }
 
+/// Per-task buffers of [`SourceClaims::add_row`], reused from row to row.
+#[derive(Default)]
+pub struct ClaimScratch {
+    warps: Vec<RowWarpF32>,
+    reciprocals: Vec<f32>,
+    targets: Vec<u32>,
+}
+
 /// Marker of a source pixel that no reference voxel lands on.
 const UNCLAIMED: u64 = u64::MAX;
 
@@ -182,46 +190,52 @@ impl SourceClaims {
     /// (pixel-major `[row][x][plane]`, `w` pixels wide, one curve of `n` planes per pixel,
     /// `sum`'s first row being reference row `rows.start`).
     pub fn add(&self, sum: &[f32], n: usize, w: usize, rows: std::ops::Range<usize>) {
-        let g = &self.geometry;
-        let (sw, sh) = (g.width as f32, g.height as f32);
         let y0 = rows.start;
+        rows.into_par_iter()
+            .for_each_init(ClaimScratch::default, |scratch, y| {
+                self.add_row(y, &sum[(y - y0) * w * n..][..w * n], n, scratch)
+            });
+    }
+
+    /// [`Self::add`] for one reference row `y` whose aggregated costs are `row` (`[x][plane]`,
+    /// `n` planes per pixel), for a caller that has the row in cache for other work too.
+    pub fn add_row(&self, y: usize, row: &[f32], n: usize, scratch: &mut ClaimScratch) {
+        let g = &self.geometry;
         let avx2 = crate::cpu::avx2_enabled();
-        type Scratch = (Vec<RowWarpF32>, Vec<f32>, Vec<u32>);
-        rows.into_par_iter().for_each_init(
-            || (Vec::new(), Vec::new(), vec![0u32; n]),
-            |(row_targets, reciprocals, q): &mut Scratch, y| {
-                row_targets.clear();
-                row_targets.extend(self.warps.iter().map(|wp| wp.row(y as f64).to_f32()));
-                reciprocals.clear();
-                reciprocals.extend(row_targets.iter().map_while(|t| t.constant_reciprocal()));
-                if reciprocals.len() != row_targets.len() {
-                    reciprocals.clear();
+        let ClaimScratch {
+            warps,
+            reciprocals,
+            targets: q,
+        } = scratch;
+        warps.clear();
+        warps.extend(self.warps.iter().map(|wp| wp.row(y as f64).to_f32()));
+        reciprocals.clear();
+        reciprocals.extend(warps.iter().map_while(|t| t.constant_reciprocal()));
+        if reciprocals.len() != warps.len() {
+            reciprocals.clear();
+        }
+        q.resize(n, OUTSIDE);
+        let targets = RowTargets {
+            warps,
+            reciprocals,
+            w: g.width as f32,
+            h: g.height as f32,
+        };
+        for (x, curve) in row.chunks_exact(n).enumerate() {
+            targets_of(avx2, targets, x as f32, q);
+            for (i, (&q, &c)) in q.iter().zip(curve).enumerate() {
+                if q == OUTSIDE {
+                    continue;
                 }
-                let row = RowTargets {
-                    warps: row_targets,
-                    reciprocals,
-                    w: sw,
-                    h: sh,
-                };
-                for x in 0..w {
-                    let p = (y - y0) * w + x;
-                    let curve = &sum[p * n..(p + 1) * n];
-                    targets_of(avx2, row, x as f32, q);
-                    for (i, (&q, &c)) in q.iter().zip(curve).enumerate() {
-                        if q == OUTSIDE {
-                            continue;
-                        }
-                        let key = (u64::from(c.max(0.0).to_bits()) << 32) | u64::from(!(i as u32));
-                        // Most claims lose: a plain load first skips the locked
-                        // read-modify-write for them.
-                        let slot = &self.best[q as usize];
-                        if key < slot.load(Ordering::Relaxed) {
-                            slot.fetch_min(key, Ordering::Relaxed);
-                        }
-                    }
+                let key = (u64::from(c.max(0.0).to_bits()) << 32) | u64::from(!(i as u32));
+                // Most claims lose: a plain load first skips the locked read-modify-write for
+                // them.
+                let slot = &self.best[q as usize];
+                if key < slot.load(Ordering::Relaxed) {
+                    slot.fetch_min(key, Ordering::Relaxed);
                 }
-            },
-        );
+            }
+        }
     }
 
     /// The winning plane at every source pixel, with the warps the check needs again.

@@ -32,6 +32,8 @@ pub mod sgm;
 pub mod vignetting;
 pub mod window;
 
+use rayon::prelude::*;
+
 use crate::error::{MurkError, Result};
 use crate::image::ImageF32;
 use crate::monitor::Monitor;
@@ -42,7 +44,7 @@ use crate::mvs::cost_volume::{
 use crate::mvs::plane_sweep::PlaneSet;
 
 use crate::mvs::pose::Pose;
-use consistency::{SourceClaims, SourceGeometry, SourceWinners, Verdict};
+use consistency::{ClaimScratch, SourceClaims, SourceGeometry, SourceWinners, Verdict};
 
 pub use select::{select_curve, Selection};
 pub use sgm::Penalties;
@@ -765,14 +767,20 @@ fn strip_selections(
     let own =
         (strip.core.start - strip.rows.start) * w * n..(strip.core.end - strip.rows.start) * w * n;
     let own_sum = &sum[own];
-    for c in claims {
-        c.add(own_sum, n, w, strip.core.clone());
-    }
-    let selections = select::select_each(
-        own_sum,
-        n,
-        select::CONFIDENCE_EPS_PER_PATH * params.num_paths as f32,
-    );
+    // Each own row's claims and selections in one pass while the row is in cache (the aggregated
+    // volume is read once instead of once per source and again for the selection).
+    let eps = select::CONFIDENCE_EPS_PER_PATH * params.num_paths as f32;
+    let mut selections = vec![select::Selection::NONE; strip.core.len() * w];
+    selections
+        .par_chunks_mut(w)
+        .zip(own_sum.par_chunks(w * n))
+        .enumerate()
+        .for_each_init(ClaimScratch::default, |scratch, (k, (selected, row))| {
+            for c in claims {
+                c.add_row(strip.core.start + k, row, n, scratch);
+            }
+            select::select_into(row, n, eps, selected);
+        });
     Ok((selections, [costs, data]))
 }
 

@@ -29,6 +29,14 @@ pub struct Selection {
     pub confidence: f32,
 }
 
+impl Selection {
+    /// Plane 0 with no confidence: the value of a buffer before selection fills it.
+    pub const NONE: Self = Self {
+        index: 0.0,
+        confidence: 0.0,
+    };
+}
+
 /// The smallest value of `s` (`+∞` when empty) with 8 running minima, so the loop vectorises
 /// (one scalar minimum is a loop-carried dependency LLVM will not reassociate for floats). The
 /// values must not be NaN.
@@ -79,8 +87,19 @@ pub fn select_curve(s: &[f32], eps: f32) -> Selection {
 }
 
 /// [`select_curve`] for every pixel of a pixel-major `[pixel][plane]` volume of `n` planes
-/// (`n ≥ 1`), compiled for AVX2 where the CPU has it (the same results: only minima).
+/// (`n ≥ 1`), in parallel ([`select_into`] on chunks of pixels).
 pub fn select_each(sum: &[f32], n: usize, eps: f32) -> Vec<Selection> {
+    const PIXELS: usize = 256;
+    let mut out = vec![Selection::NONE; sum.len() / n.max(1)];
+    out.par_chunks_mut(PIXELS)
+        .zip(sum.par_chunks(PIXELS * n.max(1)))
+        .for_each(|(o, c)| select_into(c, n, eps, o));
+    out
+}
+
+/// [`select_curve`] of each curve of `curves` (`n ≥ 1` planes per pixel) into `out`, one per
+/// pixel, compiled for AVX2 where the CPU has it (the same results: only minima).
+pub fn select_into(curves: &[f32], n: usize, eps: f32, out: &mut [Selection]) {
     #[inline(always)]
     fn plain(curves: &[f32], n: usize, eps: f32, out: &mut [Selection]) {
         for (o, c) in out.iter_mut().zip(curves.chunks_exact(n)) {
@@ -88,29 +107,17 @@ pub fn select_each(sum: &[f32], n: usize, eps: f32) -> Vec<Selection> {
         }
     }
     #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx2")]
-    unsafe fn with_avx2(curves: &[f32], n: usize, eps: f32, out: &mut [Selection]) {
-        plain(curves, n, eps, out)
+    {
+        #[target_feature(enable = "avx2")]
+        unsafe fn with_avx2(curves: &[f32], n: usize, eps: f32, out: &mut [Selection]) {
+            plain(curves, n, eps, out)
+        }
+        if crate::cpu::avx2_enabled() {
+            // SAFETY: the CPU has AVX2 ([`crate::cpu::avx2_enabled`]).
+            return unsafe { with_avx2(curves, n, eps, out) };
+        }
     }
-    const PIXELS: usize = 256;
-    let avx2 = crate::cpu::avx2_enabled();
-    let blank = Selection {
-        index: 0.0,
-        confidence: 0.0,
-    };
-    let mut out = vec![blank; sum.len() / n.max(1)];
-    out.par_chunks_mut(PIXELS)
-        .zip(sum.par_chunks(PIXELS * n.max(1)))
-        .for_each(|(o, c)| {
-            #[cfg(target_arch = "x86_64")]
-            if avx2 {
-                // SAFETY: the CPU has AVX2 ([`crate::cpu::avx2_enabled`]).
-                return unsafe { with_avx2(c, n, eps, o) };
-            }
-            let _ = avx2;
-            plain(c, n, eps, o)
-        });
-    out
+    plain(curves, n, eps, out)
 }
 
 #[cfg(test)]
