@@ -3,13 +3,25 @@
 
 mod common;
 
-use std::process::Command;
+use std::process::{Command, Output};
 
 use common::*;
 use murk::service::proto::v1 as pb;
 
 fn murk() -> Command {
     Command::new(env!("CARGO_BIN_EXE_murk"))
+}
+
+/// The run's stdout; fails the test with both streams when the run failed.
+fn succeeded(out: &Output) -> String {
+    let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
+    assert!(
+        out.status.success(),
+        "{:?}\nstdout: {stdout}\nstderr: {}",
+        out.status,
+        String::from_utf8_lossy(&out.stderr)
+    );
+    stdout
 }
 
 #[tokio::test]
@@ -42,11 +54,7 @@ async fn simulate_then_tof_client_writes_outputs() {
     })
     .await
     .unwrap();
-    assert!(
-        output.status.success(),
-        "stderr: {}",
-        String::from_utf8_lossy(&output.stderr)
-    );
+    succeeded(&output);
     for f in [
         "range_m.exr",
         "z_depth_m.exr",
@@ -164,11 +172,7 @@ fn simulate_mvs_then_mvs_client_writes_depth_and_point_cloud() {
         .arg(&scene)
         .output()
         .unwrap();
-    assert!(
-        sim.status.success(),
-        "{}",
-        String::from_utf8_lossy(&sim.stderr)
-    );
+    succeeded(&sim);
     let said = String::from_utf8_lossy(&sim.stdout);
     assert!(
         said.contains("airlight A =") && said.contains("median transmission"),
@@ -201,12 +205,7 @@ fn simulate_mvs_then_mvs_client_writes_depth_and_point_cloud() {
         .arg(&out)
         .output()
         .unwrap();
-    let stdout = String::from_utf8_lossy(&run.stdout);
-    assert!(
-        run.status.success(),
-        "stdout: {stdout}\nstderr: {}",
-        String::from_utf8_lossy(&run.stderr)
-    );
+    let stdout = succeeded(&run);
     assert!(stdout.contains("ground-truth airlight"), "{stdout}");
     assert!(
         stdout.contains("C.P."),
@@ -300,11 +299,7 @@ fn simulate_mvs_then_params_estimates_and_writes_the_residual_grid() {
         .arg(&scene)
         .output()
         .unwrap();
-    assert!(
-        sim.status.success(),
-        "{}",
-        String::from_utf8_lossy(&sim.stderr)
-    );
+    succeeded(&sim);
     let meta: serde_json::Value =
         serde_json::from_slice(&std::fs::read(scene.join("meta.json")).unwrap()).unwrap();
     let reference = meta["reference"].as_str().unwrap().to_string();
@@ -324,12 +319,7 @@ fn simulate_mvs_then_params_estimates_and_writes_the_residual_grid() {
         .arg(&out)
         .output()
         .unwrap();
-    let stdout = String::from_utf8_lossy(&run.stdout);
-    assert!(
-        run.status.success(),
-        "stdout: {stdout}\nstderr: {}",
-        String::from_utf8_lossy(&run.stderr)
-    );
+    let stdout = succeeded(&run);
     assert!(
         stdout.contains("A* =") && stdout.contains("beta* ="),
         "{stdout}"
@@ -391,12 +381,7 @@ fn train_airlight_evaluate_scores_weights_and_names_a_bad_file() {
         ])
         .output()
         .unwrap();
-    let stdout = String::from_utf8_lossy(&ok.stdout);
-    assert!(
-        ok.status.success(),
-        "stderr: {}",
-        String::from_utf8_lossy(&ok.stderr)
-    );
+    let stdout = succeeded(&ok);
     assert!(stdout.contains("A ~ U[0.4, 1], varied scenes"), "{stdout}");
     let all = stdout
         .lines()
@@ -437,11 +422,7 @@ fn simulate_ps_textured_works_with_the_default_albedo_and_names_a_bad_one() {
             .unwrap()
     };
     let ok = sim(&[]);
-    assert!(
-        ok.status.success(),
-        "stderr: {}",
-        String::from_utf8_lossy(&ok.stderr)
-    );
+    succeeded(&ok);
     let meta = std::fs::read_to_string(dir.path().join("capture/meta.json")).unwrap();
     assert!(meta.contains("\"textured\": true"), "{meta}");
     let bad = sim(&["--albedo", "0.9"]);
@@ -481,12 +462,7 @@ fn simulate_ps_then_ps_client_writes_normals_depth_and_mesh() {
         .arg(&out)
         .output()
         .unwrap();
-    let stdout = String::from_utf8_lossy(&output.stdout);
-    assert!(
-        output.status.success(),
-        "stderr: {}",
-        String::from_utf8_lossy(&output.stderr)
-    );
+    let stdout = succeeded(&output);
     for f in [
         "normals.exr",
         "normals.png",
