@@ -29,7 +29,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 
 use rayon::prelude::*;
 
-use super::sgm::DIRECTIONS;
+use super::sgm::{PathCost, DIRECTIONS};
 use crate::camera::Intrinsics;
 use crate::mvs::plane_sweep::{PlaneSet, PlaneWarp, RowWarpF32};
 use crate::mvs::pose::Pose;
@@ -193,13 +193,22 @@ impl SourceClaims {
         let y0 = rows.start;
         rows.into_par_iter()
             .for_each_init(ClaimScratch::default, |scratch, y| {
-                self.add_row(y, &sum[(y - y0) * w * n..][..w * n], n, scratch)
+                self.add_row(y, &sum[(y - y0) * w * n..][..w * n], n, 1.0, scratch)
             });
     }
 
     /// [`Self::add`] for one reference row `y` whose aggregated costs are `row` (`[x][plane]`,
-    /// `n` planes per pixel), for a caller that has the row in cache for other work too.
-    pub fn add_row(&self, y: usize, row: &[f32], n: usize, scratch: &mut ClaimScratch) {
+    /// `n` planes per pixel), for a caller that has the row in cache for other work too. `unit`
+    /// converts `row`'s values to cost units (1 for `f32` costs; [`super::quantise::Quantiser::unit`]
+    /// for a strip's `u16` levels), so that claims of rows from different strips compare.
+    pub fn add_row<T: PathCost>(
+        &self,
+        y: usize,
+        row: &[T],
+        n: usize,
+        unit: f32,
+        scratch: &mut ClaimScratch,
+    ) {
         let g = &self.geometry;
         let avx2 = crate::cpu::avx2_enabled();
         let ClaimScratch {
@@ -227,7 +236,8 @@ impl SourceClaims {
                 if q == OUTSIDE {
                     continue;
                 }
-                let key = (u64::from(c.max(0.0).to_bits()) << 32) | u64::from(!(i as u32));
+                let cost = c.to_f32() * unit;
+                let key = (u64::from(cost.max(0.0).to_bits()) << 32) | u64::from(!(i as u32));
                 // Most claims lose: a plain load first skips the locked read-modify-write for
                 // them.
                 let slot = &self.best[q as usize];

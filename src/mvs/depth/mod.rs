@@ -27,6 +27,7 @@ pub mod contrast;
 pub mod exposure;
 pub mod filter;
 pub mod presmooth;
+pub mod quantise;
 pub mod select;
 pub mod sgm;
 pub mod vignetting;
@@ -45,6 +46,7 @@ use crate::mvs::plane_sweep::PlaneSet;
 
 use crate::mvs::pose::Pose;
 use consistency::{ClaimScratch, SourceClaims, SourceGeometry, SourceWinners, Verdict};
+use quantise::Quantiser;
 
 pub use select::{select_curve, Selection};
 pub use sgm::Penalties;
@@ -740,7 +742,7 @@ fn strip_selections(
         &weights[strip.rows.start * w..strip.rows.end * w]
     };
     let mut costs = crate::large_buffer::reuse_f32(spare, data.len());
-    window::window_to_pixel_major(
+    let largest = window::window_to_pixel_major(
         &data,
         strip_weights,
         w,
@@ -751,33 +753,41 @@ fn strip_selections(
         monitor,
     )?;
     monitor.checkpoint()?;
-    let sum = &mut data;
+    let quant = Quantiser::new(largest, params.p2.max(params.p1), params.num_paths);
+    let len = data.len();
+    // The plane-major volume is spent once windowed: its memory holds the strip's `u16` levels
+    // and then `S`, two half-size volumes, so the strip still holds two volumes at a time.
+    let halves: &mut [u16] = bytemuck::cast_slice_mut(&mut data[..]);
+    let (levels, sum) = halves.split_at_mut(len);
+    let row_len = w * n;
     sgm::aggregate_into(
-        &costs,
+        levels,
+        &|y, row| quant.quantise_row(&costs[y * row_len..][..row_len], row),
         sum,
         w,
         rows,
         n,
         params.num_paths,
-        &params.penalties(),
+        &quant.penalties(&params.penalties()),
         Some(sgm::Guide::rows(guide, strip.rows.clone())),
         &monitor.sub(0.1, 0.9),
     )?;
     monitor.checkpoint()?;
-    let own =
-        (strip.core.start - strip.rows.start) * w * n..(strip.core.end - strip.rows.start) * w * n;
+    let own = (strip.core.start - strip.rows.start) * row_len
+        ..(strip.core.end - strip.rows.start) * row_len;
     let own_sum = &sum[own];
     // Each own row's claims and selections in one pass while the row is in cache (the aggregated
     // volume is read once instead of once per source and again for the selection).
-    let eps = select::CONFIDENCE_EPS_PER_PATH * params.num_paths as f32;
+    let eps = quant.scaled(select::CONFIDENCE_EPS_PER_PATH * params.num_paths as f32);
+    let unit = quant.unit();
     let mut selections = vec![select::Selection::NONE; strip.core.len() * w];
     selections
         .par_chunks_mut(w)
-        .zip(own_sum.par_chunks(w * n))
+        .zip(own_sum.par_chunks(row_len))
         .enumerate()
         .for_each_init(ClaimScratch::default, |scratch, (k, (selected, row))| {
             for c in claims {
-                c.add_row(strip.core.start + k, row, n, scratch);
+                c.add_row(strip.core.start + k, row, n, unit, scratch);
             }
             select::select_into(row, n, eps, selected);
         });

@@ -16,6 +16,8 @@
 
 use rayon::prelude::*;
 
+use super::sgm::PathCost;
+
 /// `ε` of the confidence per aggregation path, cost units: a second-best aggregated cost below
 /// about `0.01` per path is indistinguishable from a perfect (flat) match.
 pub const CONFIDENCE_EPS_PER_PATH: f32 = 0.01;
@@ -37,44 +39,45 @@ impl Selection {
     };
 }
 
-/// The smallest value of `s` (`+∞` when empty) with 8 running minima, so the loop vectorises
+/// The smallest value of `s` (`None` when empty) with 16 running minima, so the loop vectorises
 /// (one scalar minimum is a loop-carried dependency LLVM will not reassociate for floats). The
 /// values must not be NaN.
 #[inline(always)]
-fn min_of(s: &[f32]) -> f32 {
-    const LANES: usize = 8;
-    let mut acc = [f32::INFINITY; LANES];
+fn min_of<T: PathCost>(s: &[T]) -> Option<T> {
+    const LANES: usize = 16;
+    let mut acc = [T::MAX; LANES];
     let mut chunks = s.chunks_exact(LANES);
     for c in &mut chunks {
         for j in 0..LANES {
-            acc[j] = if c[j] < acc[j] { c[j] } else { acc[j] };
+            acc[j] = acc[j].lesser(c[j]);
         }
     }
-    let m = chunks
-        .remainder()
-        .iter()
-        .fold(f32::INFINITY, |a, &b| if b < a { b } else { a });
-    acc.iter().fold(m, |a, &b| if b < a { b } else { a })
+    let m = chunks.remainder().iter().fold(T::MAX, |a, &b| a.lesser(b));
+    (!s.is_empty()).then(|| acc.iter().fold(m, |a, &b| a.lesser(b)))
 }
 
-/// Selects the minimum of one curve (see the module docs); `eps` is the confidence's `ε`.
-/// Values must be finite (aggregated costs are).
+/// Selects the minimum of one curve (see the module docs); `eps` is the confidence's `ε`, in
+/// the curve's units. Values must be finite (aggregated costs are): `f32` in cost units, or
+/// `u16` levels ([`super::quantise`]), whose parabola and confidence are computed in `f32`.
 #[inline(always)]
-pub fn select_curve(s: &[f32], eps: f32) -> Selection {
+pub fn select_curve<T: PathCost>(s: &[T], eps: f32) -> Selection {
     let n = s.len();
-    let s1 = min_of(s);
+    let Some(s1) = min_of(s) else {
+        return Selection::NONE;
+    };
     // The first index holding the minimum: the lowest index on ties.
     let best = s.iter().position(|&v| v == s1).unwrap_or(0);
-    let s1 = s.get(best).copied().unwrap_or(f32::INFINITY);
+    let s1 = s1.to_f32();
     let mut delta = 0.0f32;
     if best > 0 && best + 1 < n {
-        let (a, b, c) = (s[best - 1], s1, s[best + 1]);
+        let (a, b, c) = (s[best - 1].to_f32(), s1, s[best + 1].to_f32());
         let denom = a - 2.0 * b + c;
         if denom > 0.0 {
             delta = (0.5 * (a - c) / denom).clamp(-0.5, 0.5);
         }
     }
-    let s2 = min_of(&s[..best.saturating_sub(1)]).min(min_of(&s[(best + 2).min(n)..]));
+    let outside = |r: &[T]| min_of(r).map_or(f32::INFINITY, T::to_f32);
+    let s2 = outside(&s[..best.saturating_sub(1)]).min(outside(&s[(best + 2).min(n)..]));
     let confidence = if s2.is_finite() && s2 + eps > 0.0 {
         ((s2 - s1) / (s2 + eps)).clamp(0.0, 1.0)
     } else {
@@ -88,7 +91,7 @@ pub fn select_curve(s: &[f32], eps: f32) -> Selection {
 
 /// [`select_curve`] for every pixel of a pixel-major `[pixel][plane]` volume of `n` planes
 /// (`n ≥ 1`), in parallel ([`select_into`] on chunks of pixels).
-pub fn select_each(sum: &[f32], n: usize, eps: f32) -> Vec<Selection> {
+pub fn select_each<T: PathCost>(sum: &[T], n: usize, eps: f32) -> Vec<Selection> {
     const PIXELS: usize = 256;
     let mut out = vec![Selection::NONE; sum.len() / n.max(1)];
     out.par_chunks_mut(PIXELS)
@@ -99,9 +102,9 @@ pub fn select_each(sum: &[f32], n: usize, eps: f32) -> Vec<Selection> {
 
 /// [`select_curve`] of each curve of `curves` (`n ≥ 1` planes per pixel) into `out`, one per
 /// pixel, compiled for AVX2 where the CPU has it (the same results: only minima).
-pub fn select_into(curves: &[f32], n: usize, eps: f32, out: &mut [Selection]) {
+pub fn select_into<T: PathCost>(curves: &[T], n: usize, eps: f32, out: &mut [Selection]) {
     #[inline(always)]
-    fn plain(curves: &[f32], n: usize, eps: f32, out: &mut [Selection]) {
+    fn plain<T: PathCost>(curves: &[T], n: usize, eps: f32, out: &mut [Selection]) {
         for (o, c) in out.iter_mut().zip(curves.chunks_exact(n)) {
             *o = select_curve(c, eps);
         }
@@ -109,7 +112,7 @@ pub fn select_into(curves: &[f32], n: usize, eps: f32, out: &mut [Selection]) {
     #[cfg(target_arch = "x86_64")]
     {
         #[target_feature(enable = "avx2")]
-        unsafe fn with_avx2(curves: &[f32], n: usize, eps: f32, out: &mut [Selection]) {
+        unsafe fn with_avx2<T: PathCost>(curves: &[T], n: usize, eps: f32, out: &mut [Selection]) {
             plain(curves, n, eps, out)
         }
         if crate::cpu::avx2_enabled() {
@@ -173,9 +176,14 @@ mod tests {
                 .map(|&v| f32::from(v) * 0.25)
                 .collect();
             let got = select_each(&sum, n, 0.08);
+            // The same curves as u16 levels (×4): the same winners, refinements and confidences.
+            let levels: Vec<u16> = sum.iter().map(|&v| (v * 4.0) as u16).collect();
+            let got_levels = select_each(&levels, n, 0.32);
             for (k, c) in sum.chunks_exact(n).enumerate() {
                 prop_assert_eq!(got[k], naive(c, 0.08));
                 prop_assert_eq!(select_curve(c, 0.08), naive(c, 0.08));
+                let scaled: Vec<f32> = c.iter().map(|&v| v * 4.0).collect();
+                prop_assert_eq!(got_levels[k], naive(&scaled, 0.32));
             }
         }
     }

@@ -97,113 +97,196 @@ impl Penalties {
     }
 }
 
-/// Lanes of the explicitly unrolled plane loop in [`path_step`]: 8 independent running minima
-/// let LLVM keep the min-reduction in vector registers (a single scalar accumulator is a
-/// loop-carried dependency it will not reassociate for floats).
-const LANES: usize = 8;
+/// The value type of an aggregation: `f32` (cost units, the plain arithmetic the tests check
+/// against) or `u16` (integer levels of a quantised volume, [`super::quantise`]; as in SGBM).
+/// On integers below 2²⁴ both give the same sums, so the `u16` run is the `f32` run of the
+/// quantised costs, at half the memory traffic and twice the lanes per instruction.
+pub trait PathCost:
+    Copy + Send + Sync + PartialEq + PartialOrd + std::fmt::Debug + 'static
+{
+    /// Larger than every path cost: the identity of [`PathCost::lesser`].
+    const MAX: Self;
+    /// `self + o`; saturating at `u16::MAX` for `u16`, so an overflow can only merge the
+    /// largest sums, never wrap (with [`super::quantise`]'s levels none occurs).
+    fn add(self, o: Self) -> Self;
+    /// `self − o` for `self ≥ o` (the recursion's subtraction of the previous minimum).
+    fn sub(self, o: Self) -> Self;
+    /// The smaller value, without NaN handling: one vector `min` instead of `minnum`'s
+    /// compare-and-blend. Costs are finite: `depth_from_costs` rejects non-finite ones before
+    /// aggregation, and [`aggregate`] documents the requirement.
+    fn lesser(self, o: Self) -> Self;
+    /// A penalty given in this type's units as `f32` (`u16` rounds to the nearest level).
+    fn penalty(p: f32) -> Self;
+    /// The value as `f32`.
+    fn to_f32(self) -> f32;
+}
 
-/// `min` without NaN handling: one `minps` instead of `minnum`'s compare-and-blend. Costs are
-/// finite: `depth_from_costs` rejects non-finite ones before aggregation, and [`aggregate`]
-/// documents the requirement.
-#[inline(always)]
-fn fmin(a: f32, b: f32) -> f32 {
-    if a < b {
-        a
-    } else {
-        b
+impl PathCost for f32 {
+    const MAX: Self = f32::INFINITY;
+    #[inline(always)]
+    fn add(self, o: Self) -> Self {
+        self + o
+    }
+    #[inline(always)]
+    fn sub(self, o: Self) -> Self {
+        self - o
+    }
+    #[inline(always)]
+    fn lesser(self, o: Self) -> Self {
+        if self < o {
+            self
+        } else {
+            o
+        }
+    }
+    #[inline(always)]
+    fn penalty(p: f32) -> Self {
+        p
+    }
+    #[inline(always)]
+    fn to_f32(self) -> f32 {
+        self
     }
 }
 
-/// The recursion for one interior plane.
+impl PathCost for u16 {
+    const MAX: Self = u16::MAX;
+    #[inline(always)]
+    fn add(self, o: Self) -> Self {
+        self.saturating_add(o)
+    }
+    #[inline(always)]
+    fn sub(self, o: Self) -> Self {
+        // `self ≥ o` where the recursion subtracts; wrapping keeps a debug build from checking
+        // what the caller guarantees.
+        self.wrapping_sub(o)
+    }
+    #[inline(always)]
+    fn lesser(self, o: Self) -> Self {
+        if self < o {
+            self
+        } else {
+            o
+        }
+    }
+    #[inline(always)]
+    fn penalty(p: f32) -> Self {
+        // `as` saturates: a penalty beyond the range is `u16::MAX`, a NaN 0 (validated away).
+        // `+ ½` and truncation round a non-negative penalty like `round` without a libm call.
+        (p + 0.5) as u16
+    }
+    #[inline(always)]
+    fn to_f32(self) -> f32 {
+        f32::from(self)
+    }
+}
+
+/// Lanes of the explicitly unrolled plane loop in [`path_step`]: independent running minima let
+/// LLVM keep the min-reduction in vector registers (a single scalar accumulator is a
+/// loop-carried dependency it will not reassociate for floats). 16 fills one AVX2 register of
+/// `u16` (two of `f32`).
+const LANES: usize = 16;
+
+/// The recursion for one interior plane. `m − prev_min ≥ 0` is taken first so that `u16` never
+/// leaves its range between the two operations.
 #[inline(always)]
-fn path_value(c: f32, below: f32, at: f32, above: f32, p1: f32, jump: f32, prev_min: f32) -> f32 {
-    c + fmin(fmin(at, fmin(below, above) + p1), jump) - prev_min
+fn path_value<T: PathCost>(c: T, below: T, at: T, above: T, p1: T, jump: T, prev_min: T) -> T {
+    c.add(
+        at.lesser(below.lesser(above).add(p1))
+            .lesser(jump)
+            .sub(prev_min),
+    )
 }
 
 /// [`path_step`] through a copy compiled with AVX2 when `avx2` (the CPU has it): the same
-/// operations on 8-lane registers instead of SSE2's 4, so the same results bit for bit (no
-/// fused multiply-adds are introduced: the recursion has only additions and minima).
+/// operations on wider registers, so the same results bit for bit (no fused multiply-adds are
+/// introduced: the recursion has only additions and minima).
 #[inline]
 #[allow(clippy::too_many_arguments)]
-fn path_step_fast<const SET: bool>(
+fn path_step_fast<T: PathCost, const SET: bool>(
     avx2: bool,
-    c: &[f32],
-    prev: &[f32],
-    prev_min: f32,
-    p1: f32,
-    p2: f32,
-    out: &mut [f32],
-    sum: &mut [f32],
-) -> f32 {
+    c: &[T],
+    prev: &[T],
+    prev_min: T,
+    p1: T,
+    p2: T,
+    out: &mut [T],
+    sum: &mut [T],
+) -> T {
     #[cfg(target_arch = "x86_64")]
     {
         #[target_feature(enable = "avx2")]
         #[allow(clippy::too_many_arguments)]
-        unsafe fn with_avx2<const SET: bool>(
-            c: &[f32],
-            prev: &[f32],
-            prev_min: f32,
-            p1: f32,
-            p2: f32,
-            out: &mut [f32],
-            sum: &mut [f32],
-        ) -> f32 {
-            path_step::<SET>(c, prev, prev_min, p1, p2, out, sum)
+        unsafe fn with_avx2<T: PathCost, const SET: bool>(
+            c: &[T],
+            prev: &[T],
+            prev_min: T,
+            p1: T,
+            p2: T,
+            out: &mut [T],
+            sum: &mut [T],
+        ) -> T {
+            path_step::<T, SET>(c, prev, prev_min, p1, p2, out, sum)
         }
         if avx2 {
             // SAFETY: the caller detected AVX2 on this CPU ([`crate::cpu::avx2_enabled`]).
-            return unsafe { with_avx2::<SET>(c, prev, prev_min, p1, p2, out, sum) };
+            return unsafe { with_avx2::<T, SET>(c, prev, prev_min, p1, p2, out, sum) };
         }
     }
     let _ = avx2;
-    path_step::<SET>(c, prev, prev_min, p1, p2, out, sum)
+    path_step::<T, SET>(c, prev, prev_min, p1, p2, out, sum)
 }
 
 /// `sum += l`, or `sum = l` for the first direction of a sweep that initialises `S` (`SET`), which
 /// saves clearing the volume first.
 #[inline(always)]
-fn accumulate<const SET: bool>(sum: &mut f32, l: f32) {
+fn accumulate<T: PathCost, const SET: bool>(sum: &mut T, l: T) {
     if SET {
         *sum = l;
     } else {
-        *sum += l;
+        *sum = sum.add(l);
     }
 }
 
 /// One path step (the recursion in the module docs) for one pixel: writes `L_r(p, ·)` into
 /// `out`, adds it to `sum` (or sets `sum` to it: `SET`) and returns `min_i L_r(p, i)`.
 #[inline(always)]
-fn path_step<const SET: bool>(
-    c: &[f32],
-    prev: &[f32],
-    prev_min: f32,
-    p1: f32,
-    p2: f32,
-    out: &mut [f32],
-    sum: &mut [f32],
-) -> f32 {
+fn path_step<T: PathCost, const SET: bool>(
+    c: &[T],
+    prev: &[T],
+    prev_min: T,
+    p1: T,
+    p2: T,
+    out: &mut [T],
+    sum: &mut [T],
+) -> T {
     let n = c.len();
-    let jump = prev_min + p2;
+    let jump = prev_min.add(p2);
     if n == 1 {
-        let l = c[0] + fmin(prev[0], jump) - prev_min;
+        let l = c[0].add(prev[0].lesser(jump).sub(prev_min));
         out[0] = l;
-        accumulate::<SET>(&mut sum[0], l);
+        accumulate::<T, SET>(&mut sum[0], l);
         return l;
     }
-    let first = c[0] + fmin(fmin(prev[0], prev[1] + p1), jump) - prev_min;
+    let first = c[0].add(prev[0].lesser(prev[1].add(p1)).lesser(jump).sub(prev_min));
     out[0] = first;
-    accumulate::<SET>(&mut sum[0], first);
-    let last = c[n - 1] + fmin(fmin(prev[n - 1], prev[n - 2] + p1), jump) - prev_min;
+    accumulate::<T, SET>(&mut sum[0], first);
+    let last = c[n - 1].add(
+        prev[n - 1]
+            .lesser(prev[n - 2].add(p1))
+            .lesser(jump)
+            .sub(prev_min),
+    );
     out[n - 1] = last;
-    accumulate::<SET>(&mut sum[n - 1], last);
-    let mut m = fmin(first, last);
+    accumulate::<T, SET>(&mut sum[n - 1], last);
+    let mut m = first.lesser(last);
     // Interior planes 1..n−1 as three shifted views of `prev`, in fixed-size chunks: the
     // chunk bodies have no bounds checks and vectorise, with one running minimum per lane.
     let inner = n - 2;
     let (c_in, below, at, above) = (&c[1..n - 1], &prev[..n - 2], &prev[1..n - 1], &prev[2..]);
     let (out_in, sum_in) = (&mut out[1..n - 1], &mut sum[1..n - 1]);
     let full = inner / LANES * LANES;
-    let mut acc = [f32::INFINITY; LANES];
+    let mut acc = [T::MAX; LANES];
     for (((((cc, lo), mid), hi), oo), ss) in c_in[..full]
         .chunks_exact(LANES)
         .zip(below[..full].chunks_exact(LANES))
@@ -215,27 +298,27 @@ fn path_step<const SET: bool>(
         for j in 0..LANES {
             let l = path_value(cc[j], lo[j], mid[j], hi[j], p1, jump, prev_min);
             oo[j] = l;
-            accumulate::<SET>(&mut ss[j], l);
-            acc[j] = fmin(acc[j], l);
+            accumulate::<T, SET>(&mut ss[j], l);
+            acc[j] = acc[j].lesser(l);
         }
     }
     for j in full..inner {
         let l = path_value(c_in[j], below[j], at[j], above[j], p1, jump, prev_min);
         out_in[j] = l;
-        accumulate::<SET>(&mut sum_in[j], l);
-        m = fmin(m, l);
+        accumulate::<T, SET>(&mut sum_in[j], l);
+        m = m.lesser(l);
     }
-    acc.iter().fold(m, |a, &b| fmin(a, b))
+    acc.iter().fold(m, |a, &b| a.lesser(b))
 }
 
 /// Starts a path at the border: `L_r = C` (added to `sum`, or set: `SET`).
 #[inline]
-fn path_start<const SET: bool>(c: &[f32], out: &mut [f32], sum: &mut [f32]) -> f32 {
-    let mut m = f32::INFINITY;
+fn path_start<T: PathCost, const SET: bool>(c: &[T], out: &mut [T], sum: &mut [T]) -> T {
+    let mut m = T::MAX;
     for ((&ci, o), s) in c.iter().zip(out.iter_mut()).zip(sum.iter_mut()) {
         *o = ci;
-        accumulate::<SET>(s, ci);
-        m = m.min(ci);
+        accumulate::<T, SET>(s, ci);
+        m = m.lesser(ci);
     }
     m
 }
@@ -244,10 +327,11 @@ fn path_start<const SET: bool>(c: &[f32], out: &mut [f32], sum: &mut [f32]) -> f
 /// first `num_paths` (4 or 8) of [`DIRECTIONS`] and returns `S` in the same layout.
 /// `guide` (the reference image's `h` rows of this volume, [`Guide::rows`]) enables the adaptive
 /// `P2`. Costs must be finite (a NaN cost makes the minima along its paths unspecified, never a
-/// panic).
+/// panic). `T = f32` aggregates in cost units; `u16` takes integer levels and penalties in
+/// levels (see [`PathCost`]).
 #[allow(clippy::too_many_arguments)]
-pub fn aggregate(
-    costs: &[f32],
+pub fn aggregate<T: PathCost + Default>(
+    costs: &[T],
     w: usize,
     h: usize,
     n: usize,
@@ -255,15 +339,30 @@ pub fn aggregate(
     pen: &Penalties,
     guide: Option<Guide<'_>>,
     monitor: &Monitor,
-) -> Result<Vec<f32>> {
-    let mut sum = crate::large_buffer::zeroed_f32(w * h * n);
-    aggregate_into(costs, &mut sum, w, h, n, num_paths, pen, guide, monitor)?;
+) -> Result<Vec<T>> {
+    let mut sum = vec![T::default(); w * h * n];
+    let mut rows = costs.to_vec();
+    aggregate_into(
+        &mut rows,
+        &|_, _| {},
+        &mut sum,
+        w,
+        h,
+        n,
+        num_paths,
+        pen,
+        guide,
+        monitor,
+    )?;
     Ok(sum)
 }
 
 /// [`aggregate`] into `sum` (`w·h·n` values, whatever they hold: every value is overwritten), so
 /// that a caller estimating depth strip by strip reuses one buffer instead of faulting in a
-/// fresh one per strip.
+/// fresh one per strip. `fill_row(y, row)` writes row `y`'s costs into `costs` (`row` is that
+/// row of it) just before the first sweep reads them, so a caller can produce the costs row by
+/// row while they are in cache (quantising a float volume, [`super::quantise`]); a caller whose
+/// `costs` are complete passes a closure that does nothing.
 ///
 /// The directions that share a sweep run together so each sweep streams the volumes through
 /// memory once: both horizontal directions on a row while it is in cache (one rayon task per
@@ -272,9 +371,10 @@ pub fn aggregate(
 /// volumes are read and written 3 times instead of once per direction (8); only the order of
 /// the additions into `S` differs from one direction at a time.
 #[allow(clippy::too_many_arguments)]
-pub fn aggregate_into(
-    costs: &[f32],
-    sum: &mut [f32],
+pub fn aggregate_into<T: PathCost>(
+    costs: &mut [T],
+    fill_row: &(dyn Fn(usize, &mut [T]) + Sync),
+    sum: &mut [T],
     w: usize,
     h: usize,
     n: usize,
@@ -283,14 +383,18 @@ pub fn aggregate_into(
     guide: Option<Guide<'_>>,
     monitor: &Monitor,
 ) -> Result<()> {
-    debug_assert_eq!(costs.len(), w * h * n);
+    assert_eq!(
+        costs.len(),
+        w * h * n,
+        "costs must hold one value per voxel"
+    );
     assert_eq!(sum.len(), costs.len(), "sum must hold one value per voxel");
     let avx2 = crate::cpu::avx2_enabled();
     let dirs = &DIRECTIONS[..num_paths.min(DIRECTIONS.len())];
     let along = |dy: i32| -> Vec<i32> { dirs.iter().filter(|d| d.1 == dy).map(|d| d.0).collect() };
     monitor.checkpoint()?;
     // Every listing of directions starts with both horizontal ones, which initialise `S`.
-    horizontal(costs, sum, w, n, &along(0), pen, guide, avx2);
+    horizontal(costs, fill_row, sum, w, n, &along(0), pen, guide, avx2);
     monitor.progress("mvs.sgm", 1.0 / 3.0);
     for (k, dy) in [1, -1].into_iter().enumerate() {
         let dxs = along(dy);
@@ -302,13 +406,14 @@ pub fn aggregate_into(
     Ok(())
 }
 
-/// The horizontal directions `dxs` (`±1`): rows are independent paths. Each row's `S` is set to
-/// the sum of the directions' path costs (the first direction writes it, so it need not be
-/// cleared first).
+/// The horizontal directions `dxs` (`±1`): rows are independent paths. Each row's costs are
+/// filled first (`fill_row`), then its `S` is set to the sum of the directions' path costs (the
+/// first direction writes it, so it need not be cleared first).
 #[allow(clippy::too_many_arguments)]
-fn horizontal(
-    costs: &[f32],
-    sum: &mut [f32],
+fn horizontal<T: PathCost>(
+    costs: &mut [T],
+    fill_row: &(dyn Fn(usize, &mut [T]) + Sync),
+    sum: &mut [T],
     w: usize,
     n: usize,
     dxs: &[i32],
@@ -316,32 +421,34 @@ fn horizontal(
     guide: Option<Guide<'_>>,
     avx2: bool,
 ) {
+    let p1 = T::penalty(pen.p1);
     sum.par_chunks_mut(w * n)
-        .zip(costs.par_chunks(w * n))
+        .zip(costs.par_chunks_mut(w * n))
         .enumerate()
         .for_each_init(
-            || (vec![0.0f32; n], vec![0.0f32; n]),
+            || (vec![T::MAX; n], vec![T::MAX; n]),
             |(prev, cur), (y, (srow, crow))| {
+                fill_row(y, crow);
                 for (k, &dx) in dxs.iter().enumerate() {
-                    let mut prev_min = 0.0;
+                    let mut prev_min = T::MAX;
                     for step in 0..w {
                         let x = if dx > 0 { step } else { w - 1 - step };
                         let c = &crow[x * n..(x + 1) * n];
                         let s = &mut srow[x * n..(x + 1) * n];
                         // The row's first direction sets `S`, the others add to it.
                         let m = match (step, k) {
-                            (0, 0) => path_start::<true>(c, cur, s),
-                            (0, _) => path_start::<false>(c, cur, s),
+                            (0, 0) => path_start::<T, true>(c, cur, s),
+                            (0, _) => path_start::<T, false>(c, cur, s),
                             _ => {
                                 let xp = if dx > 0 { x - 1 } else { x + 1 };
-                                let p2 = pen.p2_at(guide, xp, y, x, y);
+                                let p2 = T::penalty(pen.p2_at(guide, xp, y, x, y));
                                 if k == 0 {
-                                    path_step_fast::<true>(
-                                        avx2, c, prev, prev_min, pen.p1, p2, cur, s,
+                                    path_step_fast::<T, true>(
+                                        avx2, c, prev, prev_min, p1, p2, cur, s,
                                     )
                                 } else {
-                                    path_step_fast::<false>(
-                                        avx2, c, prev, prev_min, pen.p1, p2, cur, s,
+                                    path_step_fast::<T, false>(
+                                        avx2, c, prev, prev_min, p1, p2, cur, s,
                                     )
                                 }
                             }
@@ -351,7 +458,10 @@ fn horizontal(
                     }
                 }
                 if dxs.is_empty() {
-                    srow.fill(0.0);
+                    for (s, &c) in srow.iter_mut().zip(crow.iter()) {
+                        // No horizontal direction: `S` starts from nothing (`c − c`).
+                        *s = c.sub(c);
+                    }
                 }
             },
         );
@@ -361,9 +471,9 @@ fn horizontal(
 /// order, pixels of a row in parallel, each pixel's curves of every direction updated back to
 /// back while its cost and `S` curves are in cache. Row buffers are `[x][direction][plane]`.
 #[allow(clippy::too_many_arguments)]
-fn row_sweep(
-    costs: &[f32],
-    sum: &mut [f32],
+fn row_sweep<T: PathCost>(
+    costs: &[T],
+    sum: &mut [T],
     w: usize,
     h: usize,
     n: usize,
@@ -376,10 +486,11 @@ fn row_sweep(
 ) -> Result<()> {
     let row_len = w * n;
     let k = dxs.len();
-    let mut prev = vec![0.0f32; k * row_len];
-    let mut cur = vec![0.0f32; k * row_len];
-    let mut prev_min = vec![0.0f32; k * w];
-    let mut cur_min = vec![0.0f32; k * w];
+    let p1 = T::penalty(pen.p1);
+    let mut prev = vec![T::MAX; k * row_len];
+    let mut cur = vec![T::MAX; k * row_len];
+    let mut prev_min = vec![T::MAX; k * w];
+    let mut cur_min = vec![T::MAX; k * w];
     for step in 0..h {
         monitor.checkpoint()?;
         let y = if dy > 0 { step } else { h - 1 - step };
@@ -408,17 +519,17 @@ fn row_sweep(
                     {
                         let xp = x as i64 - dx as i64;
                         *m = if step == 0 || xp < 0 || xp >= w as i64 {
-                            path_start::<false>(c, out, s)
+                            path_start::<T, false>(c, out, s)
                         } else {
                             let xp = xp as usize;
-                            let p2 = pen.p2_at(guide, xp, yp, x, y);
+                            let p2 = T::penalty(pen.p2_at(guide, xp, yp, x, y));
                             let at = (xp * k + d) * n;
-                            path_step_fast::<false>(
+                            path_step_fast::<T, false>(
                                 avx2,
                                 c,
                                 &prev_r[at..at + n],
                                 prev_min_r[xp * k + d],
-                                pen.p1,
+                                p1,
                                 p2,
                                 out,
                                 s,

@@ -29,6 +29,9 @@ const BAND_ROWS: usize = 32;
 /// (weights, window, transpose). Each task keeps `2r + 1` horizontally filtered pixel-major rows
 /// in a ring, so the vertical mean is a contiguous, vectorised sum over planes. Horizontal sums
 /// run in `f64` (running sums along a row); the vertical sum adds `2r + 1` `f32` values.
+///
+/// Returns the largest value written (0 for an empty volume), which sets the strip's
+/// quantisation ([`super::quantise`]) without another pass over the volume.
 #[allow(clippy::too_many_arguments)]
 pub fn window_to_pixel_major(
     data: &[f32],
@@ -39,13 +42,13 @@ pub fn window_to_pixel_major(
     r: usize,
     out: &mut [f32],
     monitor: &Monitor,
-) -> Result<()> {
+) -> Result<f32> {
     let npix = w * h;
     assert_eq!(data.len(), npix * n, "volume size");
     assert_eq!(out.len(), data.len(), "output size");
     assert!(weights.is_empty() || weights.len() == npix, "weights size");
     if npix == 0 || n == 0 {
-        return Ok(());
+        return Ok(0.0);
     }
     monitor.checkpoint()?;
     // 1 / (pixels of the clipped window) along each axis: a multiply per voxel, not a divide.
@@ -64,11 +67,13 @@ pub fn window_to_pixel_major(
     } else {
         Vec::new()
     };
-    out.par_chunks_mut(BAND_ROWS * row_len)
+    let largest = out
+        .par_chunks_mut(BAND_ROWS * row_len)
         .enumerate()
-        .for_each_init(
+        .map_init(
             || vec![0.0f32; ring_len * row_len],
             |ring, (band, out_band)| {
+                let mut largest = 0.0f32;
                 let y0 = band * BAND_ROWS;
                 let y1 = (y0 + BAND_ROWS).min(h);
                 // The next row to filter into the ring.
@@ -99,11 +104,14 @@ pub fn window_to_pixel_major(
                     let dst = &mut out_band[(y - y0) * row_len..][..row_len];
                     let lo = y.saturating_sub(r);
                     let k = inv_y[y] as f32;
-                    vertical_mean_fast(avx2, ring, row_len, lo..=last, k, dst);
+                    largest =
+                        largest.max(vertical_mean_fast(avx2, ring, row_len, lo..=last, k, dst));
                 }
+                largest
             },
-        );
-    Ok(())
+        )
+        .reduce(|| 0.0, f32::max);
+    Ok(largest)
 }
 
 /// Values of a pixel-major row summed together by [`vertical_mean`]: 256 bytes of `dst`, which
@@ -120,7 +128,7 @@ fn vertical_mean_fast(
     rows: std::ops::RangeInclusive<usize>,
     k: f32,
     dst: &mut [f32],
-) {
+) -> f32 {
     #[cfg(target_arch = "x86_64")]
     {
         #[target_feature(enable = "avx2")]
@@ -130,7 +138,7 @@ fn vertical_mean_fast(
             rows: std::ops::RangeInclusive<usize>,
             k: f32,
             dst: &mut [f32],
-        ) {
+        ) -> f32 {
             vertical_mean(ring, row_len, rows, k, dst)
         }
         if avx2 {
@@ -146,7 +154,8 @@ fn vertical_mean_fast(
 /// (image row `y` in slot `y mod (ring length)`), in chunks of [`VERTICAL_CHUNK`]: each ring row
 /// is read once and `dst` written once (adding whole rows one at a time into `dst` streamed it
 /// through memory once per row). The additions happen in the same order, so the sums are the
-/// same to the bit.
+/// same to the bit. Returns the largest value of `dst` (0 if it is empty; the values are not
+/// NaN: the costs are finite).
 #[inline(always)]
 fn vertical_mean(
     ring: &[f32],
@@ -154,7 +163,9 @@ fn vertical_mean(
     rows: std::ops::RangeInclusive<usize>,
     k: f32,
     dst: &mut [f32],
-) {
+) -> f32 {
+    const LANES: usize = 8;
+    let mut largest = [0.0f32; LANES];
     let ring_len = ring.len() / row_len;
     let (lo, last) = (*rows.start(), *rows.end());
     let row = |yy: usize| &ring[(yy % ring_len) * row_len..][..row_len];
@@ -169,7 +180,18 @@ fn vertical_mean(
         for o in d.iter_mut() {
             *o *= k;
         }
+        // One running maximum per lane, so the loop stays vectorised; `d` is in L1.
+        let mut lanes = d.chunks_exact(LANES);
+        for c in &mut lanes {
+            for j in 0..LANES {
+                largest[j] = if c[j] > largest[j] { c[j] } else { largest[j] };
+            }
+        }
+        for (j, &v) in lanes.remainder().iter().enumerate() {
+            largest[j] = if v > largest[j] { v } else { largest[j] };
+        }
     }
+    largest.iter().fold(0.0, |a, &b| if b > a { b } else { a })
 }
 
 /// [`horizontal_row`] compiled for AVX2 when `avx2` (the CPU has it): the same operations on
@@ -322,8 +344,11 @@ mod tests {
                 .collect();
             for wts in [&weights[..], &[]] {
                 let mut out = vec![f32::NAN; data.len()];
-                window_to_pixel_major(&data, wts, w, h, n, r, &mut out, &Monitor::noop()).unwrap();
+                let largest =
+                    window_to_pixel_major(&data, wts, w, h, n, r, &mut out, &Monitor::noop())
+                        .unwrap();
                 let want = reference(&data, wts, w, h, n, r);
+                assert_eq!(largest, out.iter().copied().fold(0.0, f32::max));
                 for (k, (a, b)) in out.iter().zip(&want).enumerate() {
                     assert!(
                         (a - b).abs() < 1e-5,
