@@ -17,7 +17,13 @@ const HUGE_PAGE: usize = 2 << 20;
 /// A `vec![0.0f32; len]` whose whole 2 MiB-aligned interior is advised to the kernel as a
 /// transparent-huge-page candidate before anything touches it.
 pub fn zeroed_f32(len: usize) -> Vec<f32> {
-    let mut data = vec![0.0f32; len];
+    zeroed(len)
+}
+
+/// [`zeroed_f32`] for any plain numeric type (the `u16` levels of SGM).
+pub fn zeroed<T: bytemuck::Zeroable + Copy>(len: usize) -> Vec<T> {
+    // All-zero bytes: `vec!` takes already-zeroed pages from the allocator instead of a memset.
+    let mut data = vec![T::zeroed(); len];
     advise_huge_pages(&mut data);
     data
 }
@@ -26,17 +32,22 @@ pub fn zeroed_f32(len: usize) -> Vec<f32> {
 /// values kept from `buf` are left as they are (no `memset`, no fresh pages to fault in), new
 /// ones are zero; a new [`zeroed_f32`] when its capacity is too small. Depth estimation in
 /// strips hands each strip's spent volumes on to the next this way.
-pub fn reuse_f32(mut buf: Vec<f32>, len: usize) -> Vec<f32> {
+pub fn reuse_f32(buf: Vec<f32>, len: usize) -> Vec<f32> {
+    reuse(buf, len)
+}
+
+/// [`reuse_f32`] for any plain numeric type.
+pub fn reuse<T: bytemuck::Zeroable + Copy>(mut buf: Vec<T>, len: usize) -> Vec<T> {
     if buf.capacity() < len {
         drop(buf);
-        return zeroed_f32(len);
+        return zeroed(len);
     }
-    buf.resize(len, 0.0);
+    buf.resize(len, T::zeroed());
     buf
 }
 
 #[cfg(target_os = "linux")]
-fn advise_huge_pages(data: &mut [f32]) {
+fn advise_huge_pages<T>(data: &mut [T]) {
     let start = data.as_mut_ptr() as usize;
     let end = start + std::mem::size_of_val(data);
     let aligned_start = start.next_multiple_of(HUGE_PAGE);
@@ -57,7 +68,7 @@ fn advise_huge_pages(data: &mut [f32]) {
 }
 
 #[cfg(not(target_os = "linux"))]
-fn advise_huge_pages(_data: &mut [f32]) {}
+fn advise_huge_pages<T>(_data: &mut [T]) {}
 
 #[cfg(test)]
 mod tests {

@@ -11,16 +11,18 @@
 //!    for RGB ([`crate::mvs::cost_volume`]), plus the optional census term
 //!    ([`crate::mvs::cost_volume::census`]);
 //! 2. contrast normalisation: each pixel's curve weighted by `clamp(c₀/c_p, 1, w_max)` from the
-//!    reference's local contrast ([`contrast`]), then the box mean of each plane ([`window`]);
+//!    reference's local contrast ([`contrast`]), then the box mean of each plane ([`window`]),
+//!    written as 12-bit `u16` levels of the strip's largest weighted cost ([`quantise`]);
 //! 3. semi-global aggregation over 8 (or 4) paths with penalties `P1`, `P2` on plane-index
-//!    jumps, `P2` optionally adapted to the reference image gradient ([`sgm`]);
+//!    jumps, `P2` optionally adapted to the reference image gradient ([`sgm`]), in `u16`;
 //! 4. winner-take-all, parabola sub-plane refinement in inverse depth and a confidence from the
 //!    aggregated curve ([`select`]);
 //! 5. optional guided, confidence-weighted median of inverse depth ([`filter`]).
 //!
-//! Memory: the volume is transposed once to pixel-major order (`W·H·N` `f32`) and one
-//! aggregated volume of the same size holds the sum over all paths: at 256×192×256 that is
-//! 2 × 50 MB (plus the cost volume itself while it is transposed).
+//! Memory: the `f32` volume (`W·H·N`, plane-major) is windowed once into pixel-major `u16`
+//! levels, and the sum over all paths, also `u16`, takes the `f32` volume's memory once the
+//! window has read it: at 256×192×256, 50 MB plus 25 MB. Larger volumes go in horizontal strips
+//! ([`SgmParams::volume_budget_mib`]).
 
 pub mod consistency;
 pub mod contrast;
@@ -137,13 +139,15 @@ pub struct SgmParams {
     pub vignetting_compensation: bool,
     /// Memory bound, MiB (`1 ..= 65536`): when the `f32` cost volume of the whole reference
     /// is larger, depth is estimated in horizontal strips whose volume (own rows plus
-    /// [`STRIP_OVERLAP_ROWS`] above and below) fits it. The cost volume, its pixel-major copy
-    /// and the aggregated costs are three strip volumes of which at most two are alive at once,
-    /// so the peak is about twice this plus the images. Strips change SGM's vertical and
-    /// diagonal paths only beyond the overlap: on the hazy Aloe pair (640×480, 173 planes)
-    /// 0.06 % of the pixels moved, by at most 0.2 % of the inverse-depth range, at 48 MiB; on a
-    /// simulated 160×120 scene cut into 15-row strips 98 % stayed within one plane step, with
-    /// the same C.P. Default 64.
+    /// [`STRIP_OVERLAP_ROWS`] above and below) fits it. A strip holds its `f32` cost volume
+    /// and one half-size `u16` volume at a time (the windowed levels, then the aggregated costs
+    /// in the cost volume's memory, [`quantise`]), so the peak is about 1.5 times this plus
+    /// the images. Strips change SGM's vertical and diagonal paths only beyond the overlap: on
+    /// the hazy Aloe pair (640×480, 173 planes) 0.06 % of the pixels moved, by at most 0.2 % of
+    /// the inverse-depth range, at 48 MiB; on a simulated 160×120 scene cut into 15-row strips
+    /// 98 % stayed within one plane step, with the same C.P. Default 96: three strips on that
+    /// pair (the overlap adds 20 % to the rows processed, against 40 % in five strips at 64),
+    /// a peak of about 220 MiB for the whole `murk mvs` process.
     pub volume_budget_mib: usize,
 }
 
@@ -166,7 +170,7 @@ impl Default for SgmParams {
             exposure_compensation: true,
             census_weight: 0.0,
             vignetting_compensation: true,
-            volume_budget_mib: 64,
+            volume_budget_mib: 96,
         }
     }
 }
@@ -525,16 +529,17 @@ pub fn estimate_depth(
     let strips = strips_of(w, h, n, params.volume_budget_mib);
     let mut selections = Vec::with_capacity(w * h);
     let k = strips.len() as f32;
-    // Two volumes of the tallest strip, handed from strip to strip (see `strip_selections`).
+    // The `f32` volume and the `u16` levels of the tallest strip, handed from strip to strip
+    // (see `strip_selections`).
     let tallest = strips.iter().map(|s| s.rows.len()).max().unwrap_or(0) * w * n;
-    let mut spare = [
+    let mut spare = (
         crate::large_buffer::zeroed_f32(tallest),
-        crate::large_buffer::zeroed_f32(tallest),
-    ];
+        crate::large_buffer::zeroed::<u16>(tallest),
+    );
     for (j, strip) in strips.iter().enumerate() {
         let m = monitor.sub(j as f32 / k, (j as f32 + 0.5) / k);
         let volume = build_cost_volume_rows_in(
-            std::mem::take(&mut spare[0]),
+            std::mem::take(&mut spare.0),
             &reference,
             &sources,
             planes,
@@ -563,7 +568,7 @@ pub fn estimate_depth(
         let m = monitor.sub((j as f32 + 0.5) / k, (j as f32 + 1.0) / k);
         let (strip_selection, spent) = strip_selections(
             data,
-            std::mem::take(&mut spare[1]),
+            std::mem::take(&mut spare.1),
             strip,
             w,
             planes,
@@ -716,15 +721,20 @@ fn contrast_weights_of(guide: &ImageF32, params: &SgmParams) -> Vec<f32> {
     contrast::contrast_weights(&c, params.contrast_percentile, params.contrast_max_weight)
 }
 
+/// A strip's `f32` cost volume and its `u16` levels, handed on to the next strip.
+type StripBuffers = (Vec<f32>, Vec<u16>);
+
 /// Steps 2–4 of the module docs on one strip's `[plane][row][x]` volume `data`: contrast
-/// weights, box window, SGM, selection; the strip's own rows' aggregated costs also go to the
-/// sources' `claims`. Returns the selections of the strip's own rows and the two volume buffers,
-/// spent, for the next strip: the pixel-major costs go to `spare`'s memory when it is large
-/// enough, the aggregated costs overwrite `data`, so the strip holds two volumes at a time.
+/// weights, box window and quantisation to `u16` levels ([`quantise`]), SGM on the levels,
+/// selection; the strip's own rows' aggregated costs also go to the sources' `claims`. Returns
+/// the selections of the strip's own rows and the two buffers, spent, for the next strip: the
+/// levels go to `spare`'s memory when it is large enough, and `S` (also `u16`) to the first half
+/// of `data`'s once the window has read it, so a strip holds its `f32` volume and one half-size
+/// volume at a time.
 #[allow(clippy::too_many_arguments)]
 fn strip_selections(
     mut data: Vec<f32>,
-    spare: Vec<f32>,
+    spare: Vec<u16>,
     strip: &Strip,
     w: usize,
     planes: &PlaneSet,
@@ -733,36 +743,38 @@ fn strip_selections(
     params: &SgmParams,
     claims: &[SourceClaims],
     monitor: &Monitor,
-) -> Result<(Vec<Selection>, [Vec<f32>; 2])> {
+) -> Result<(Vec<Selection>, StripBuffers)> {
     let n = planes.num_planes;
     let rows = strip.rows.len();
+    let len = data.len();
     let strip_weights = if weights.is_empty() {
         weights
     } else {
         &weights[strip.rows.start * w..strip.rows.end * w]
     };
-    let mut costs = crate::large_buffer::reuse_f32(spare, data.len());
-    let largest = window::window_to_pixel_major(
+    let quant = Quantiser::new(
+        window::largest_weighted(&data, strip_weights, w, rows, n),
+        params.p2.max(params.p1),
+        params.num_paths,
+    );
+    let mut levels = crate::large_buffer::reuse::<u16>(spare, len);
+    window::window_to_levels(
         &data,
         strip_weights,
         w,
         rows,
         n,
         params.cost_window_radius,
-        &mut costs,
+        &quant,
+        &mut levels,
         monitor,
     )?;
     monitor.checkpoint()?;
-    let quant = Quantiser::new(largest, params.p2.max(params.p1), params.num_paths);
-    let len = data.len();
-    // The plane-major volume is spent once windowed: its memory holds the strip's `u16` levels
-    // and then `S`, two half-size volumes, so the strip still holds two volumes at a time.
-    let halves: &mut [u16] = bytemuck::cast_slice_mut(&mut data[..]);
-    let (levels, sum) = halves.split_at_mut(len);
+    // The plane-major volume is spent once windowed: its memory holds `S`.
+    let sum = &mut bytemuck::cast_slice_mut::<f32, u16>(&mut data[..])[..len];
     let row_len = w * n;
     sgm::aggregate_into(
-        levels,
-        &|y, row| quant.quantise_row(&costs[y * row_len..][..row_len], row),
+        &levels,
         sum,
         w,
         rows,
@@ -791,7 +803,7 @@ fn strip_selections(
             }
             select::select_into(row, n, eps, selected);
         });
-    Ok((selections, [costs, data]))
+    Ok((selections, (data, levels)))
 }
 
 /// Step 5 and the rejections: the consistency verdicts from the sources' `claims` (none when

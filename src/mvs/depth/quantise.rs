@@ -87,34 +87,38 @@ impl Quantiser {
     }
 
     /// `dst[i] = round(src[i] · k)`, clamped to `[0, Q]` (a cost above `max_cost` takes the top
-    /// level; a NaN, which validation keeps out, level 0).
+    /// level; a NaN, which validation keeps out, level 0), compiled for AVX2 where the CPU has
+    /// it (the same levels).
     pub fn quantise_row(&self, src: &[f32], dst: &mut [u16]) {
-        #[inline(always)]
-        fn plain(k: f32, top: f32, src: &[f32], dst: &mut [u16]) {
-            for (d, &c) in dst.iter_mut().zip(src) {
-                let v = c * k + 0.5;
-                // `v > 0` is false for NaN, so `v` ends finite in `[0, Q]`.
-                let v = if v > 0.0 { v } else { 0.0 };
-                let v = if v < top { v } else { top };
-                // SAFETY: `v` is finite and in `[0, 4095]`, so it fits `i32`; truncating
-                // `v + ½` rounds half up. (The saturating `as` keeps this loop scalar.)
-                *d = unsafe { v.to_int_unchecked::<i32>() } as u16;
-            }
-        }
-        assert_eq!(src.len(), dst.len(), "row lengths");
-        let (k, top) = (self.per_unit, f32::from(self.levels));
         #[cfg(target_arch = "x86_64")]
         {
             #[target_feature(enable = "avx2")]
-            unsafe fn with_avx2(k: f32, top: f32, src: &[f32], dst: &mut [u16]) {
-                plain(k, top, src, dst)
+            unsafe fn with_avx2(q: &Quantiser, src: &[f32], dst: &mut [u16]) {
+                q.quantise_inline(src, dst)
             }
             if crate::cpu::avx2_enabled() {
                 // SAFETY: the CPU has AVX2 ([`crate::cpu::avx2_enabled`]).
-                return unsafe { with_avx2(k, top, src, dst) };
+                return unsafe { with_avx2(self, src, dst) };
             }
         }
-        plain(k, top, src, dst)
+        self.quantise_inline(src, dst)
+    }
+
+    /// [`Quantiser::quantise_row`] inlined into the caller, which may be compiled for AVX2
+    /// itself (the box window's vertical mean quantises each chunk while it is in L1).
+    #[inline(always)]
+    pub(super) fn quantise_inline(&self, src: &[f32], dst: &mut [u16]) {
+        assert_eq!(src.len(), dst.len(), "row lengths");
+        let (k, top) = (self.per_unit, f32::from(self.levels));
+        for (d, &c) in dst.iter_mut().zip(src) {
+            let v = c * k + 0.5;
+            // `v > 0` is false for NaN, so `v` ends finite in `[0, Q]`.
+            let v = if v > 0.0 { v } else { 0.0 };
+            let v = if v < top { v } else { top };
+            // SAFETY: `v` is finite and in `[0, 4095]`, so it fits `i32`; truncating `v + ½`
+            // rounds half up. (The saturating `as` keeps this loop scalar.)
+            *d = unsafe { v.to_int_unchecked::<i32>() } as u16;
+        }
     }
 }
 

@@ -6,10 +6,11 @@
 //! `L_r(p, i) = C(p, i) + min(L_r(p−r, i), L_r(p−r, i±1) + P1, min_k L_r(p−r, k) + P2) − min_k L_r(p−r, k)`
 //!
 //! and the aggregated volume is `S(p, i) = Σ_r L_r(p, i)` over 4 or 8 directions. Subtracting
-//! `min_k L_r(p−r, k)` keeps `L_r ≤ C_max + P2`, so `f32` never overflows. A path starts at the
+//! `min_k L_r(p−r, k)` keeps `L_r ≤ C_max + P2`, so the values stay bounded: `u16` levels of a
+//! quantised volume ([`PathCost`], [`super::quantise`]) never saturate. A path starts at the
 //! image border with `L_r = C`.
 //!
-//! Layout and memory: costs and `S` are **pixel-major** `[y][x][plane]` `f32` (the caller
+//! Layout and memory: costs and `S` are **pixel-major** `[y][x][plane]` (the caller
 //! transposes once), so each path update is a contiguous, vectorisable loop over planes, and
 //! every direction adds straight into the one `S` volume — no per-direction volumes. The
 //! directions run in three sweeps ([`aggregate_into`]): both horizontal ones on each row (one
@@ -302,11 +303,31 @@ fn path_step<T: PathCost, const SET: bool>(
             acc[j] = acc[j].lesser(l);
         }
     }
-    for j in full..inner {
-        let l = path_value(c_in[j], below[j], at[j], above[j], p1, jump, prev_min);
-        out_in[j] = l;
-        accumulate::<T, SET>(&mut sum_in[j], l);
-        m = m.lesser(l);
+    if full < inner && inner >= LANES {
+        // The remainder as one more full chunk ending at the last interior plane: its first
+        // planes were done above, so their values are recomputed (the same, from the same
+        // inputs) and written again, but added to `sum` only once.
+        let t = inner - LANES;
+        for (j, a) in acc.iter_mut().enumerate() {
+            let k = t + j;
+            let l = path_value(c_in[k], below[k], at[k], above[k], p1, jump, prev_min);
+            out_in[k] = l;
+            let s = &mut sum_in[k];
+            let fresh = k >= full;
+            *s = match (SET, fresh) {
+                (_, false) => *s,
+                (true, true) => l,
+                (false, true) => s.add(l),
+            };
+            *a = a.lesser(l);
+        }
+    } else {
+        for j in full..inner {
+            let l = path_value(c_in[j], below[j], at[j], above[j], p1, jump, prev_min);
+            out_in[j] = l;
+            accumulate::<T, SET>(&mut sum_in[j], l);
+            m = m.lesser(l);
+        }
     }
     acc.iter().fold(m, |a, &b| a.lesser(b))
 }
@@ -341,28 +362,13 @@ pub fn aggregate<T: PathCost + Default>(
     monitor: &Monitor,
 ) -> Result<Vec<T>> {
     let mut sum = vec![T::default(); w * h * n];
-    let mut rows = costs.to_vec();
-    aggregate_into(
-        &mut rows,
-        &|_, _| {},
-        &mut sum,
-        w,
-        h,
-        n,
-        num_paths,
-        pen,
-        guide,
-        monitor,
-    )?;
+    aggregate_into(costs, &mut sum, w, h, n, num_paths, pen, guide, monitor)?;
     Ok(sum)
 }
 
 /// [`aggregate`] into `sum` (`w·h·n` values, whatever they hold: every value is overwritten), so
 /// that a caller estimating depth strip by strip reuses one buffer instead of faulting in a
-/// fresh one per strip. `fill_row(y, row)` writes row `y`'s costs into `costs` (`row` is that
-/// row of it) just before the first sweep reads them, so a caller can produce the costs row by
-/// row while they are in cache (quantising a float volume, [`super::quantise`]); a caller whose
-/// `costs` are complete passes a closure that does nothing.
+/// fresh one per strip.
 ///
 /// The directions that share a sweep run together so each sweep streams the volumes through
 /// memory once: both horizontal directions on a row while it is in cache (one rayon task per
@@ -372,8 +378,7 @@ pub fn aggregate<T: PathCost + Default>(
 /// the additions into `S` differs from one direction at a time.
 #[allow(clippy::too_many_arguments)]
 pub fn aggregate_into<T: PathCost>(
-    costs: &mut [T],
-    fill_row: &(dyn Fn(usize, &mut [T]) + Sync),
+    costs: &[T],
     sum: &mut [T],
     w: usize,
     h: usize,
@@ -394,7 +399,7 @@ pub fn aggregate_into<T: PathCost>(
     let along = |dy: i32| -> Vec<i32> { dirs.iter().filter(|d| d.1 == dy).map(|d| d.0).collect() };
     monitor.checkpoint()?;
     // Every listing of directions starts with both horizontal ones, which initialise `S`.
-    horizontal(costs, fill_row, sum, w, n, &along(0), pen, guide, avx2);
+    horizontal(costs, sum, w, n, &along(0), pen, guide, avx2);
     monitor.progress("mvs.sgm", 1.0 / 3.0);
     for (k, dy) in [1, -1].into_iter().enumerate() {
         let dxs = along(dy);
@@ -406,13 +411,12 @@ pub fn aggregate_into<T: PathCost>(
     Ok(())
 }
 
-/// The horizontal directions `dxs` (`±1`): rows are independent paths. Each row's costs are
-/// filled first (`fill_row`), then its `S` is set to the sum of the directions' path costs (the
-/// first direction writes it, so it need not be cleared first).
+/// The horizontal directions `dxs` (`±1`): rows are independent paths. Each row's `S` is set to
+/// the sum of the directions' path costs (the first direction writes it, so it need not be
+/// cleared first).
 #[allow(clippy::too_many_arguments)]
 fn horizontal<T: PathCost>(
-    costs: &mut [T],
-    fill_row: &(dyn Fn(usize, &mut [T]) + Sync),
+    costs: &[T],
     sum: &mut [T],
     w: usize,
     n: usize,
@@ -423,12 +427,11 @@ fn horizontal<T: PathCost>(
 ) {
     let p1 = T::penalty(pen.p1);
     sum.par_chunks_mut(w * n)
-        .zip(costs.par_chunks_mut(w * n))
+        .zip(costs.par_chunks(w * n))
         .enumerate()
         .for_each_init(
             || (vec![T::MAX; n], vec![T::MAX; n]),
             |(prev, cur), (y, (srow, crow))| {
-                fill_row(y, crow);
                 for (k, &dx) in dxs.iter().enumerate() {
                     let mut prev_min = T::MAX;
                     for step in 0..w {

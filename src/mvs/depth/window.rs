@@ -7,6 +7,7 @@
 
 use rayon::prelude::*;
 
+use super::quantise::Quantiser;
 use crate::error::Result;
 use crate::monitor::Monitor;
 
@@ -18,37 +19,122 @@ const PLANE_GROUP: usize = 8;
 /// bands waste less; 32 rows leave several tasks per strip for 2+ cores.
 const BAND_ROWS: usize = 32;
 
-/// The contrast weights, box mean and transpose of steps 2 of [`super`] in one pass: from the
-/// `[plane][y][x]` volume `data` (`n` planes of `w·h`) into the pixel-major `[y][x][plane]`
-/// volume `out` (same length; every value is overwritten, so it may hold anything):
+/// The largest weighted cost `weights[y][x] · data[i][y][x]` of the `[plane][y][x]` volume
+/// `data` (`n` planes of `w·h`; `weights` row-major `w·h`, empty = all 1), 0 for an empty
+/// volume. Every box mean of [`window_to_levels`] is at most this, so it sets the strip's
+/// quantisation before the window runs. Costs must not be NaN. One streaming read of the
+/// volume, plane by plane on rayon.
+pub fn largest_weighted(data: &[f32], weights: &[f32], w: usize, h: usize, n: usize) -> f32 {
+    /// The largest `row[x] · weights[x]` (`row[x]` without weights), 8 running maxima over
+    /// fixed-size chunks so the loop vectorises.
+    #[inline(always)]
+    fn row_max(row: &[f32], weights: Option<&[f32]>) -> f32 {
+        const LANES: usize = 8;
+        #[inline(always)]
+        fn larger(a: f32, b: f32) -> f32 {
+            if b > a {
+                b
+            } else {
+                a
+            }
+        }
+        let mut m = [0.0f32; LANES];
+        let mut rest = 0.0f32;
+        let full = row.len() / LANES * LANES;
+        match weights {
+            Some(wts) => {
+                for (c, wt) in row[..full]
+                    .chunks_exact(LANES)
+                    .zip(wts[..full].chunks_exact(LANES))
+                {
+                    for j in 0..LANES {
+                        m[j] = larger(m[j], c[j] * wt[j]);
+                    }
+                }
+                for (&c, &wt) in row[full..].iter().zip(&wts[full..]) {
+                    rest = larger(rest, c * wt);
+                }
+            }
+            None => {
+                for c in row[..full].chunks_exact(LANES) {
+                    for j in 0..LANES {
+                        m[j] = larger(m[j], c[j]);
+                    }
+                }
+                for &c in &row[full..] {
+                    rest = larger(rest, c);
+                }
+            }
+        }
+        m.iter().fold(rest, |a, &b| larger(a, b))
+    }
+    #[inline(always)]
+    fn plane_max(plane: &[f32], weights: &[f32], w: usize) -> f32 {
+        plane
+            .chunks_exact(w)
+            .enumerate()
+            .map(|(y, row)| {
+                let wts = (!weights.is_empty()).then(|| &weights[y * w..(y + 1) * w]);
+                row_max(row, wts)
+            })
+            .fold(0.0, f32::max)
+    }
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    unsafe fn plane_max_avx2(plane: &[f32], weights: &[f32], w: usize) -> f32 {
+        plane_max(plane, weights, w)
+    }
+    assert_eq!(data.len(), w * h * n, "volume size");
+    assert!(weights.is_empty() || weights.len() == w * h, "weights size");
+    if w * h == 0 {
+        return 0.0;
+    }
+    let avx2 = crate::cpu::avx2_enabled();
+    data.par_chunks(w * h)
+        .map(|plane| {
+            #[cfg(target_arch = "x86_64")]
+            if avx2 {
+                // SAFETY: the CPU has AVX2 ([`crate::cpu::avx2_enabled`]).
+                return unsafe { plane_max_avx2(plane, weights, w) };
+            }
+            let _ = avx2;
+            plane_max(plane, weights, w)
+        })
+        .reduce(|| 0.0, f32::max)
+}
+
+/// The contrast weights, box mean, transpose and quantisation of step 2 of [`super`] in one
+/// pass: from the `[plane][y][x]` volume `data` (`n` planes of `w·h`) into the pixel-major
+/// `[y][x][plane]` volume of `u16` levels `out` (same length; every value is overwritten, so it
+/// may hold anything):
 ///
-/// `out[y][x][i] = mean over the (2r+1)² window, clipped at the border, of weights[y'][x']·data[i][y'][x']`
+/// `out[y][x][i] = quant(mean over the (2r+1)² window, clipped at the border, of weights[y'][x']·data[i][y'][x'])`
 ///
-/// with `weights` row-major `w·h` (empty = all 1) and `r = 0` meaning no window. Reading the
-/// plane-major volume once and writing the pixel-major one once replaces three passes over it
-/// (weights, window, transpose). Each task keeps `2r + 1` horizontally filtered pixel-major rows
-/// in a ring, so the vertical mean is a contiguous, vectorised sum over planes. Horizontal sums
-/// run in `f64` (running sums along a row); the vertical sum adds `2r + 1` `f32` values.
-///
-/// Returns the largest value written (0 for an empty volume), which sets the strip's
-/// quantisation ([`super::quantise`]) without another pass over the volume.
+/// with `weights` row-major `w·h` (empty = all 1), `r = 0` meaning no window and `quant`
+/// [`Quantiser::quantise_row`]. Reading the plane-major volume once and writing the pixel-major
+/// levels once replaces four passes over it (weights, window, transpose, quantisation). Each
+/// task keeps `2r + 1` horizontally filtered pixel-major rows in a ring, so the vertical mean is
+/// a contiguous, vectorised sum over planes. Horizontal sums run in `f64` (running sums along a
+/// row); the vertical sum adds `2r + 1` `f32` values, 64 at a time in L1, which are quantised
+/// there: the `f32` means never reach memory.
 #[allow(clippy::too_many_arguments)]
-pub fn window_to_pixel_major(
+pub fn window_to_levels(
     data: &[f32],
     weights: &[f32],
     w: usize,
     h: usize,
     n: usize,
     r: usize,
-    out: &mut [f32],
+    quant: &Quantiser,
+    out: &mut [u16],
     monitor: &Monitor,
-) -> Result<f32> {
+) -> Result<()> {
     let npix = w * h;
     assert_eq!(data.len(), npix * n, "volume size");
     assert_eq!(out.len(), data.len(), "output size");
     assert!(weights.is_empty() || weights.len() == npix, "weights size");
     if npix == 0 || n == 0 {
-        return Ok(0.0);
+        return Ok(());
     }
     monitor.checkpoint()?;
     // 1 / (pixels of the clipped window) along each axis: a multiply per voxel, not a divide.
@@ -67,13 +153,11 @@ pub fn window_to_pixel_major(
     } else {
         Vec::new()
     };
-    let largest = out
-        .par_chunks_mut(BAND_ROWS * row_len)
+    out.par_chunks_mut(BAND_ROWS * row_len)
         .enumerate()
-        .map_init(
+        .for_each_init(
             || vec![0.0f32; ring_len * row_len],
             |ring, (band, out_band)| {
-                let mut largest = 0.0f32;
                 let y0 = band * BAND_ROWS;
                 let y1 = (y0 + BAND_ROWS).min(h);
                 // The next row to filter into the ring.
@@ -104,18 +188,15 @@ pub fn window_to_pixel_major(
                     let dst = &mut out_band[(y - y0) * row_len..][..row_len];
                     let lo = y.saturating_sub(r);
                     let k = inv_y[y] as f32;
-                    largest =
-                        largest.max(vertical_mean_fast(avx2, ring, row_len, lo..=last, k, dst));
+                    vertical_mean_fast(avx2, ring, row_len, lo..=last, k, quant, dst);
                 }
-                largest
             },
-        )
-        .reduce(|| 0.0, f32::max);
-    Ok(largest)
+        );
+    Ok(())
 }
 
-/// Values of a pixel-major row summed together by [`vertical_mean`]: 256 bytes of `dst`, which
-/// stay in L1 while every ring row adds to them.
+/// Values of a pixel-major row summed together by [`vertical_mean`]: 256 bytes, which stay in
+/// L1 while every ring row adds to them.
 const VERTICAL_CHUNK: usize = 64;
 
 /// [`vertical_mean`] compiled for AVX2 when `avx2` (the CPU has it): the same additions on wider
@@ -127,8 +208,9 @@ fn vertical_mean_fast(
     row_len: usize,
     rows: std::ops::RangeInclusive<usize>,
     k: f32,
-    dst: &mut [f32],
-) -> f32 {
+    quant: &Quantiser,
+    dst: &mut [u16],
+) {
     #[cfg(target_arch = "x86_64")]
     {
         #[target_feature(enable = "avx2")]
@@ -137,61 +219,51 @@ fn vertical_mean_fast(
             row_len: usize,
             rows: std::ops::RangeInclusive<usize>,
             k: f32,
-            dst: &mut [f32],
-        ) -> f32 {
-            vertical_mean(ring, row_len, rows, k, dst)
+            quant: &Quantiser,
+            dst: &mut [u16],
+        ) {
+            vertical_mean(ring, row_len, rows, k, quant, dst)
         }
         if avx2 {
             // SAFETY: the caller detected AVX2 on this CPU ([`crate::cpu::avx2_enabled`]).
-            return unsafe { with_avx2(ring, row_len, rows, k, dst) };
+            return unsafe { with_avx2(ring, row_len, rows, k, quant, dst) };
         }
     }
     let _ = avx2;
-    vertical_mean(ring, row_len, rows, k, dst)
+    vertical_mean(ring, row_len, rows, k, quant, dst)
 }
 
-/// `dst = (row[lo] + row[lo+1] + … + row[last]) · k` over the ring's horizontally filtered rows
-/// (image row `y` in slot `y mod (ring length)`), in chunks of [`VERTICAL_CHUNK`]: each ring row
-/// is read once and `dst` written once (adding whole rows one at a time into `dst` streamed it
-/// through memory once per row). The additions happen in the same order, so the sums are the
-/// same to the bit. Returns the largest value of `dst` (0 if it is empty; the values are not
-/// NaN: the costs are finite).
+/// `dst = quant((row[lo] + row[lo+1] + … + row[last]) · k)` over the ring's horizontally
+/// filtered rows (image row `y` in slot `y mod (ring length)`), in chunks of
+/// [`VERTICAL_CHUNK`] summed in L1: each ring row is read once and `dst` written once. The
+/// additions happen in row order.
 #[inline(always)]
 fn vertical_mean(
     ring: &[f32],
     row_len: usize,
     rows: std::ops::RangeInclusive<usize>,
     k: f32,
-    dst: &mut [f32],
-) -> f32 {
-    const LANES: usize = 8;
-    let mut largest = [0.0f32; LANES];
+    quant: &Quantiser,
+    dst: &mut [u16],
+) {
     let ring_len = ring.len() / row_len;
     let (lo, last) = (*rows.start(), *rows.end());
     let row = |yy: usize| &ring[(yy % ring_len) * row_len..][..row_len];
+    let mut means = [0.0f32; VERTICAL_CHUNK];
     for (c, d) in dst.chunks_mut(VERTICAL_CHUNK).enumerate() {
         let span = c * VERTICAL_CHUNK..c * VERTICAL_CHUNK + d.len();
-        d.copy_from_slice(&row(lo)[span.clone()]);
+        let m = &mut means[..d.len()];
+        m.copy_from_slice(&row(lo)[span.clone()]);
         for yy in lo + 1..=last {
-            for (o, &v) in d.iter_mut().zip(&row(yy)[span.clone()]) {
+            for (o, &v) in m.iter_mut().zip(&row(yy)[span.clone()]) {
                 *o += v;
             }
         }
-        for o in d.iter_mut() {
+        for o in m.iter_mut() {
             *o *= k;
         }
-        // One running maximum per lane, so the loop stays vectorised; `d` is in L1.
-        let mut lanes = d.chunks_exact(LANES);
-        for c in &mut lanes {
-            for j in 0..LANES {
-                largest[j] = if c[j] > largest[j] { c[j] } else { largest[j] };
-            }
-        }
-        for (j, &v) in lanes.remainder().iter().enumerate() {
-            largest[j] = if v > largest[j] { v } else { largest[j] };
-        }
+        quant.quantise_inline(m, d);
     }
-    largest.iter().fold(0.0, |a, &b| if b > a { b } else { a })
 }
 
 /// [`horizontal_row`] compiled for AVX2 when `avx2` (the CPU has it): the same operations on
@@ -325,7 +397,7 @@ mod tests {
     }
 
     #[test]
-    fn window_to_pixel_major_matches_direct_sum() {
+    fn window_to_levels_matches_direct_sum() {
         // Heights beyond one band, plane counts around the plane group, windows wider than the
         // image, with and without weights.
         for (w, h, n, r) in [
@@ -335,6 +407,7 @@ mod tests {
             (1, 1, 1, 4),
             (16, 40, 17, 5),
             (5, 33, 9, 0),
+            (70, 3, 2, 1),
         ] {
             let data: Vec<f32> = (0..w * h * n)
                 .map(|i| ((i * 37) % 11) as f32 * 0.1)
@@ -343,18 +416,34 @@ mod tests {
                 .map(|i| 1.0 + ((i * 7) % 5) as f32 * 0.5)
                 .collect();
             for wts in [&weights[..], &[]] {
-                let mut out = vec![f32::NAN; data.len()];
-                let largest =
-                    window_to_pixel_major(&data, wts, w, h, n, r, &mut out, &Monitor::noop())
-                        .unwrap();
+                let largest = largest_weighted(&data, wts, w, h, n);
+                let direct = (0..w * h * n)
+                    .map(|k| data[k] * wts.get(k % (w * h)).copied().unwrap_or(1.0))
+                    .fold(0.0f32, f32::max);
+                assert_eq!(largest, direct, "{w}x{h}x{n}");
+                let quant = Quantiser::new(largest, 0.1, 8);
+                let per_level = quant.scaled(1.0);
+                let mut out = vec![u16::MAX; data.len()];
+                window_to_levels(&data, wts, w, h, n, r, &quant, &mut out, &Monitor::noop())
+                    .unwrap();
                 let want = reference(&data, wts, w, h, n, r);
-                assert_eq!(largest, out.iter().copied().fold(0.0, f32::max));
-                for (k, (a, b)) in out.iter().zip(&want).enumerate() {
+                for (k, (&a, &b)) in out.iter().zip(&want).enumerate() {
+                    // Rounded to the nearest level (a mean's last-bit difference from the
+                    // direct sum may round the other way at a half level).
                     assert!(
-                        (a - b).abs() < 1e-5,
-                        "{w}x{h}x{n} r={r} voxel {k}: {a} vs {b}"
+                        (f32::from(a) - b * per_level).abs() <= 0.5 + 1e-3,
+                        "{w}x{h}x{n} r={r} voxel {k}: level {a} for mean {b}"
                     );
+                    assert!(a <= quant.levels());
                 }
+                crate::cpu::force_scalar(true);
+                let mut plain = vec![0u16; data.len()];
+                window_to_levels(&data, wts, w, h, n, r, &quant, &mut plain, &Monitor::noop())
+                    .unwrap();
+                let plain_largest = largest_weighted(&data, wts, w, h, n);
+                crate::cpu::force_scalar(false);
+                assert_eq!(plain, out);
+                assert_eq!(plain_largest, largest);
             }
         }
     }
