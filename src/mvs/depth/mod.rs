@@ -898,7 +898,8 @@ pub fn depth_from_cost_volume(
 
 /// [`depth_from_cost_volume`] on raw costs: `data` is a `[plane][y][x]` `f32` volume of
 /// `planes.num_planes` planes of `w×h` pixels (cost units as in [`SgmParams`]). Fails naming
-/// `costs` for a wrong length or non-finite cost, `guide` for a guide of another size.
+/// `costs` for a wrong length or a negative or non-finite cost (SGM aggregates unsigned 12-bit
+/// levels of the costs, [`quantise`]), `guide` for a guide of another size.
 pub fn depth_from_costs(
     data: Vec<f32>,
     w: usize,
@@ -921,8 +922,11 @@ pub fn depth_from_costs(
             ),
         ));
     }
-    if data.iter().any(|c| !c.is_finite()) {
-        return Err(MurkError::invalid("costs", "costs must be finite"));
+    if let Some(c) = data.iter().find(|c| !(c.is_finite() && **c >= 0.0)) {
+        return Err(MurkError::invalid(
+            "costs",
+            format!("costs must be finite and >= 0 (cost units), got {c}"),
+        ));
     }
     if guide.dims() != (w, h) {
         return Err(MurkError::invalid(

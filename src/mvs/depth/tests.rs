@@ -208,6 +208,18 @@ fn params_validation_names_fields() {
         Err(MurkError::InvalidArgument { field, .. }) => assert_eq!(field, "costs"),
         other => panic!("{other:?}"),
     }
+    // Negative and non-finite costs would be clamped by the quantisation: refused instead.
+    for bad in [-0.5, f32::NAN, f32::INFINITY] {
+        let mut costs = vec![0.25; 36];
+        costs[7] = bad;
+        match depth_from_costs(costs, 3, 3, &planes, &g, &d, &Monitor::noop()) {
+            Err(MurkError::InvalidArgument { field, reason }) => {
+                assert_eq!(field, "costs");
+                assert!(reason.contains(">= 0"), "{reason}");
+            }
+            other => panic!("{bad}: {other:?}"),
+        }
+    }
 }
 
 // --- Rendered planes ------------------------------------------------------------------------
