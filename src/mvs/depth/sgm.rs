@@ -115,7 +115,14 @@ pub trait PathCost:
     /// The smaller value, without NaN handling: one vector `min` instead of `minnum`'s
     /// compare-and-blend. Costs are finite: `depth_from_costs` rejects non-finite ones before
     /// aggregation, and [`aggregate`] documents the requirement.
-    fn lesser(self, o: Self) -> Self;
+    #[inline(always)]
+    fn lesser(self, o: Self) -> Self {
+        if self < o {
+            self
+        } else {
+            o
+        }
+    }
     /// A penalty given in this type's units as `f32` (`u16` rounds to the nearest level).
     fn penalty(p: f32) -> Self;
     /// The value as `f32`.
@@ -131,14 +138,6 @@ impl PathCost for f32 {
     #[inline(always)]
     fn sub(self, o: Self) -> Self {
         self - o
-    }
-    #[inline(always)]
-    fn lesser(self, o: Self) -> Self {
-        if self < o {
-            self
-        } else {
-            o
-        }
     }
     #[inline(always)]
     fn penalty(p: f32) -> Self {
@@ -161,14 +160,6 @@ impl PathCost for u16 {
         // `self ≥ o` where the recursion subtracts; wrapping keeps a debug build from checking
         // what the caller guarantees.
         self.wrapping_sub(o)
-    }
-    #[inline(always)]
-    fn lesser(self, o: Self) -> Self {
-        if self < o {
-            self
-        } else {
-            o
-        }
     }
     #[inline(always)]
     fn penalty(p: f32) -> Self {
