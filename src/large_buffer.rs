@@ -1,5 +1,5 @@
-//! Zeroed `f32` buffers for the MVS volumes (`W·H·N` floats, 50 MB at 256×192×256) backed by
-//! transparent huge pages where Linux offers them.
+//! Zeroed buffers for the MVS volumes (`W·H·N` `f32` or `u16` values, 50 MB of `f32` at
+//! 256×192×256) backed by transparent huge pages where Linux offers them.
 //!
 //! Why: a fresh 50 MB volume is first touched inside the plane sweep, and on the project's VMs
 //! each 4 KiB first-touch page fault is expensive (and the faults of the two workers contend on
@@ -14,13 +14,9 @@
 /// Huge-page size on x86-64 and aarch64 Linux with 4 KiB base pages.
 const HUGE_PAGE: usize = 2 << 20;
 
-/// A `vec![0.0f32; len]` whose whole 2 MiB-aligned interior is advised to the kernel as a
-/// transparent-huge-page candidate before anything touches it.
-pub fn zeroed_f32(len: usize) -> Vec<f32> {
-    zeroed(len)
-}
-
-/// [`zeroed_f32`] for any plain numeric type (the `u16` levels of SGM).
+/// A `vec![0; len]` of a plain numeric type (the `f32` cost volume, SGM's `u16` levels) whose
+/// whole 2 MiB-aligned interior is advised to the kernel as a transparent-huge-page candidate
+/// before anything touches it.
 pub fn zeroed<T: bytemuck::Zeroable + Copy>(len: usize) -> Vec<T> {
     // All-zero bytes: `vec!` takes already-zeroed pages from the allocator instead of a memset.
     let mut data = vec![T::zeroed(); len];
@@ -30,13 +26,8 @@ pub fn zeroed<T: bytemuck::Zeroable + Copy>(len: usize) -> Vec<T> {
 
 /// `buf` reused as a buffer of `len` values for a caller that overwrites every one of them: the
 /// values kept from `buf` are left as they are (no `memset`, no fresh pages to fault in), new
-/// ones are zero; a new [`zeroed_f32`] when its capacity is too small. Depth estimation in
-/// strips hands each strip's spent volumes on to the next this way.
-pub fn reuse_f32(buf: Vec<f32>, len: usize) -> Vec<f32> {
-    reuse(buf, len)
-}
-
-/// [`reuse_f32`] for any plain numeric type.
+/// ones are zero; a new [`zeroed`] when its capacity is too small. Depth estimation in strips
+/// hands each strip's spent volumes on to the next this way.
 pub fn reuse<T: bytemuck::Zeroable + Copy>(mut buf: Vec<T>, len: usize) -> Vec<T> {
     if buf.capacity() < len {
         drop(buf);
@@ -79,7 +70,7 @@ mod tests {
     #[test]
     fn zeroed_and_full_length() {
         for len in [0usize, 1, 1000, HUGE_PAGE / 4, 3 * HUGE_PAGE / 4 + 17] {
-            let mut v = zeroed_f32(len);
+            let mut v = zeroed::<f32>(len);
             assert_eq!(v.len(), len);
             assert!(v.iter().all(|&x| x == 0.0));
             for (i, x) in v.iter_mut().enumerate() {
@@ -96,7 +87,7 @@ mod tests {
         for (had, len) in [(100usize, 40usize), (100, 100), (10, 1000), (0, 0)] {
             let buf = vec![7.0; had];
             let ptr = buf.as_ptr();
-            let v = reuse_f32(buf, len);
+            let v = reuse(buf, len);
             assert_eq!(v.len(), len);
             assert_eq!(v.as_ptr() == ptr, len <= had);
             assert!(v[had.min(len)..].iter().all(|&x| x == 0.0));

@@ -39,7 +39,7 @@
 //! buffers are per worker and reused, so nothing is allocated per voxel or per row. The row
 //! kernels are in `kernel.rs` (scalar, the reference) and `simd.rs` (AVX2, chosen at run time,
 //! tested equal to the scalar rows); the volume's memory comes from
-//! [`crate::large_buffer::zeroed_f32`] (transparent huge pages on Linux).
+//! [`crate::large_buffer::zeroed`] (transparent huge pages on Linux).
 
 pub mod census;
 mod kernel;
@@ -489,7 +489,7 @@ pub fn build_cost_volume_rows_in(
         .collect();
     let penalty = c as f32;
     // Every voxel is assigned (`mean_or_penalty` ends each row), so reused memory is not zeroed.
-    let mut data = crate::large_buffer::reuse_f32(buffer, voxels);
+    let mut data = crate::large_buffer::reuse(buffer, voxels);
     let refd = reference.image.data();
     let dehaze = kind.dehazing().is_some();
     // The default dehazing volume has a closed-form row kernel; β = 0 keeps the generic one so

@@ -533,7 +533,7 @@ pub fn estimate_depth(
     // (see `strip_selections`).
     let tallest = strips.iter().map(|s| s.rows.len()).max().unwrap_or(0) * w * n;
     let mut spare = (
-        crate::large_buffer::zeroed_f32(tallest),
+        crate::large_buffer::zeroed::<f32>(tallest),
         crate::large_buffer::zeroed::<u16>(tallest),
     );
     for (j, strip) in strips.iter().enumerate() {

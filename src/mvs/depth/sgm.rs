@@ -107,6 +107,8 @@ pub trait PathCost:
 {
     /// Larger than every path cost: the identity of [`PathCost::lesser`].
     const MAX: Self;
+    /// Zero.
+    const ZERO: Self;
     /// `self + o`; saturating at `u16::MAX` for `u16`, so an overflow can only merge the
     /// largest sums, never wrap (with [`super::quantise`]'s levels none occurs).
     fn add(self, o: Self) -> Self;
@@ -131,6 +133,7 @@ pub trait PathCost:
 
 impl PathCost for f32 {
     const MAX: Self = f32::INFINITY;
+    const ZERO: Self = 0.0;
     #[inline(always)]
     fn add(self, o: Self) -> Self {
         self + o
@@ -151,6 +154,7 @@ impl PathCost for f32 {
 
 impl PathCost for u16 {
     const MAX: Self = u16::MAX;
+    const ZERO: Self = 0;
     #[inline(always)]
     fn add(self, o: Self) -> Self {
         self.saturating_add(o)
@@ -342,7 +346,7 @@ fn path_start<T: PathCost, const SET: bool>(c: &[T], out: &mut [T], sum: &mut [T
 /// panic). `T = f32` aggregates in cost units; `u16` takes integer levels and penalties in
 /// levels (see [`PathCost`]).
 #[allow(clippy::too_many_arguments)]
-pub fn aggregate<T: PathCost + Default>(
+pub fn aggregate<T: PathCost>(
     costs: &[T],
     w: usize,
     h: usize,
@@ -352,7 +356,7 @@ pub fn aggregate<T: PathCost + Default>(
     guide: Option<Guide<'_>>,
     monitor: &Monitor,
 ) -> Result<Vec<T>> {
-    let mut sum = vec![T::default(); w * h * n];
+    let mut sum = vec![T::ZERO; w * h * n];
     aggregate_into(costs, &mut sum, w, h, n, num_paths, pen, guide, monitor)?;
     Ok(sum)
 }
@@ -452,10 +456,7 @@ fn horizontal<T: PathCost>(
                     }
                 }
                 if dxs.is_empty() {
-                    for (s, &c) in srow.iter_mut().zip(crow.iter()) {
-                        // No horizontal direction: `S` starts from nothing (`c − c`).
-                        *s = c.sub(c);
-                    }
+                    srow.fill(T::ZERO);
                 }
             },
         );

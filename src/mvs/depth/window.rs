@@ -262,7 +262,7 @@ fn vertical_mean(
         for o in m.iter_mut() {
             *o *= k;
         }
-        quant.quantise_inline(m, d);
+        quant.quantise_row(m, d);
     }
 }
 
