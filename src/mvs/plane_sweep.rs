@@ -226,6 +226,29 @@ impl RowWarp {
         }
     }
 
+    /// `(du, v)` when this row maps to the source as a horizontal shift, `u ↦ (u + du, v)`, to
+    /// within `tolerance_px` pixels over the `width` columns of the row, and lies in front of the
+    /// source camera: no rotation between the views (`slope[2] = 0`), the same horizontal scale
+    /// and no vertical slope, as for a rectified pair (the views of a rig that translates along
+    /// its rows). `du` and `v` are the fit at the row's centre, finite. `None` otherwise.
+    pub fn shift(&self, width: usize, tolerance_px: f64) -> Option<(f64, f64)> {
+        let [s0, s1, s2] = self.slope;
+        let [o0, o1, o2] = self.offset;
+        if s2 != 0.0 || o2.is_nan() || o2 <= 0.0 {
+            return None;
+        }
+        let half = width.saturating_sub(1) as f64 / 2.0;
+        let (scale, tilt) = (s0 / o2 - 1.0, s1 / o2);
+        // The affine map `u(x) = (1 + scale)·x + o0/o2` against `x + du` with `du` fitted at the
+        // centre differs by at most |scale|·half at either end (likewise `v`).
+        let (du, v) = (o0 / o2 + scale * half, o1 / o2 + tilt * half);
+        (scale.abs() * half <= tolerance_px
+            && tilt.abs() * half <= tolerance_px
+            && du.is_finite()
+            && v.is_finite())
+        .then_some((du, v))
+    }
+
     /// Same as [`PlaneWarp::map`]`(u, v)` for this row's `v`.
     #[inline]
     pub fn map(&self, u: f64) -> (f64, f64, f64) {
@@ -404,6 +427,46 @@ mod tests {
             .row(10.0)
             .to_f32();
         assert_eq!(row.constant_reciprocal(), None);
+    }
+
+    /// A rectified pair's rows are shifts: `map` moves every column by `du` and keeps `v`; a
+    /// vertical baseline, a forward baseline (a zoom), other focal lengths and a rotation are not.
+    #[test]
+    fn rectified_rows_are_shifts_and_others_are_not() {
+        let k = Intrinsics::new(250.0, 240.0, 128.0, 96.0);
+        let side = Pose::translation_only([-0.2, 0.0, 0.0]).unwrap();
+        for z in [0.7, 3.0, 40.0] {
+            let warp = PlaneWarp::new(&k, &k, &side, z);
+            for y in [0.0, 17.0, 191.0] {
+                let row = warp.row(y);
+                let (du, v) = row.shift(256, 1e-3).expect("a rectified row");
+                for x in [0.0, 100.0, 255.0] {
+                    let (u, vv, _) = row.map(x);
+                    assert!((u - (x + du)).abs() < 1e-9 && (vv - v).abs() < 1e-9);
+                }
+                assert!((du - (-0.2 * 250.0 / z)).abs() < 1e-9 && (v - y).abs() < 1e-9);
+            }
+        }
+        let other_k = Intrinsics::new(230.0, 240.0, 128.0, 96.0);
+        let turned = Pose::from_colmap([1.0, 0.0, 0.05, 0.0], [-0.2, 0.0, 0.0]).unwrap();
+        // A vertical baseline moves whole rows (a shift by 0 columns to another `v`); a forward
+        // baseline zooms, another focal length scales, a rotation turns.
+        for (k_src, rel, is_shift) in [
+            (k, Pose::translation_only([0.0, -0.2, 0.0]).unwrap(), true),
+            (k, Pose::translation_only([-0.2, 0.0, 0.3]).unwrap(), false),
+            (other_k, side, false),
+            (k, turned, false),
+        ] {
+            let row = PlaneWarp::new(&k, &k_src, &rel, 3.0).row(10.0);
+            assert_eq!(row.shift(256, 1e-3).is_some(), is_shift, "{rel:?}");
+            // The oracle: whether some column leaves `x + du`, `v` by more than the tolerance.
+            let (u0, v0, _) = row.map(0.0);
+            let moves = (0..256).any(|x| {
+                let (u, v, _) = row.map(x as f64);
+                ((u - u0) - x as f64).abs() > 1e-3 || (v - v0).abs() > 1e-3
+            });
+            assert_eq!(is_shift, !moves, "{rel:?}");
+        }
     }
 
     proptest! {

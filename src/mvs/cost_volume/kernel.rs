@@ -3,6 +3,7 @@
 //! dehazing is the identity) they agree bit for bit.
 
 use super::sample::bilinear_inside;
+use super::shift::{self, ShiftRow};
 use super::simd::{self, RowInputs};
 use crate::atmosphere::inverse_transmission;
 use crate::mvs::plane_sweep::{PlaneWarp, RowWarp};
@@ -15,6 +16,9 @@ pub(super) struct SourcePlane<'a> {
     /// The same image as [`super::sample::pad_rgb4`] pixels for the RGB direct rows' AVX2 loop;
     /// empty otherwise.
     pub padded: &'a [[f32; 4]],
+    /// The same image as channel planes ([`super::shift::planar`], same offset as `padded`) for
+    /// the direct rows whose warp is a horizontal shift; empty where the source has none.
+    pub planar: &'a [f32],
     pub warp: PlaneWarp,
 }
 
@@ -68,6 +72,8 @@ pub(super) struct RowScratch {
     inv_t: Vec<f32>,
     /// The dehazed reference row in the 4-lane layout (Eq. 3.7's AVX2 loop).
     jr4: Vec<[f32; 4]>,
+    /// One source's costs along a shift row ([`super::shift`]).
+    shift_cost: Vec<f32>,
 }
 
 /// Fills one row of one plane. `penalty` is γ (Eq. 3.7) and also the cost of a voxel that no
@@ -310,6 +316,7 @@ pub(super) fn fill_row_observation<const C: usize, const HAZE: bool>(
     y: usize,
     reference: &[f32],
     reference_rgb4: &[[f32; 4]],
+    reference_planar: &[f32],
     width: usize,
     height: usize,
     sources: &[SourcePlane<'_>],
@@ -331,9 +338,9 @@ pub(super) fn fill_row_observation<const C: usize, const HAZE: bool>(
     scratch.inv_t.resize(width, 0.0);
     let ratio_row = &mut scratch.inv_t[..width];
     let t_r = haze.ref_t;
+    scratch.shift_cost.resize(width, 0.0);
     for s in sources {
         let warp = s.warp.row(y as f64);
-        simd::source_coords(&warp, width, height, us_row, vs_row);
         if HAZE {
             // k = t_r/t_s per pixel of the row.
             simd::inverse_transmission_row(&warp, haze.beta, ratio_row);
@@ -341,6 +348,30 @@ pub(super) fn fill_row_observation<const C: usize, const HAZE: bool>(
                 *r *= t_r;
             }
         }
+        let shift = (!s.planar.is_empty() && !reference_planar.is_empty())
+            .then(|| warp.shift(width, shift::SHIFT_TOLERANCE_PX))
+            .flatten();
+        if let Some((du, v)) = shift {
+            let row = ShiftRow {
+                reference: reference_planar,
+                source: s.planar,
+                y,
+                du,
+                v,
+            };
+            shift::accumulate::<C, HAZE>(
+                sum,
+                observed,
+                &mut scratch.shift_cost,
+                row,
+                ratio_row,
+                width,
+                height,
+                penalty,
+            );
+            continue;
+        }
+        simd::source_coords(&warp, width, height, us_row, vs_row);
         let inputs = RowInputs {
             us: us_row,
             vs: vs_row,
@@ -520,11 +551,13 @@ mod tests {
                 SourcePlane {
                     data: &src,
                     padded: &src4,
+                    planar: &[],
                     warp: PlaneWarp::new(&k, &k, &rel, z),
                 },
                 SourcePlane {
                     data: &refd,
                     padded: &ref4,
+                    planar: &[],
                     warp: PlaneWarp::new(&k, &k, &Pose::identity(), z),
                 },
             ];
@@ -535,7 +568,17 @@ mod tests {
                 for scalar in [false, true] {
                     crate::cpu::force_scalar(scalar);
                     fill_row_observation::<3, false>(
-                        &mut f, y, &refd, &ref4, w, h, &sources, haze, 3.0, &mut s,
+                        &mut f,
+                        y,
+                        &refd,
+                        &ref4,
+                        &[],
+                        w,
+                        h,
+                        &sources,
+                        haze,
+                        3.0,
+                        &mut s,
                     );
                     assert_eq!(g, f, "z {z}, row {y}, scalar {scalar}");
                 }
@@ -546,6 +589,7 @@ mod tests {
             let gray = [SourcePlane {
                 data: gray_src,
                 padded: &[],
+                planar: &[],
                 warp: PlaneWarp::new(&k, &k, &rel, z),
             }];
             for y in 0..h {
@@ -556,6 +600,7 @@ mod tests {
                     &mut f,
                     y,
                     gray_ref,
+                    &[],
                     &[],
                     w,
                     h,
@@ -586,6 +631,7 @@ mod tests {
             let sources = [SourcePlane {
                 data: &src,
                 padded: &src4,
+                planar: &[],
                 warp: PlaneWarp::new(&k, &k, &rel, z),
             }];
             let haze = haze_at(
@@ -602,7 +648,17 @@ mod tests {
                 for scalar in [false, true] {
                     crate::cpu::force_scalar(scalar);
                     fill_row_observation::<3, true>(
-                        &mut f, y, &refd, &ref4, w, h, &sources, haze, 3.0, &mut s,
+                        &mut f,
+                        y,
+                        &refd,
+                        &ref4,
+                        &[],
+                        w,
+                        h,
+                        &sources,
+                        haze,
+                        3.0,
+                        &mut s,
                     );
                     for (x, (g, f)) in g.iter().zip(&f).enumerate() {
                         assert!(
@@ -612,6 +668,105 @@ mod tests {
                     }
                 }
                 crate::cpu::force_scalar(false);
+            }
+        }
+    }
+
+    /// Rows whose warp is a horizontal shift (a rectified pair; a vertical baseline) take the
+    /// shift path when the channel planes are given, and agree with the general path, RGB and
+    /// grey, ordinary and observation-space: bit for bit for an integer shift, up to the rounding
+    /// of the general path's coordinates otherwise, with the same pixels observed (columns that
+    /// leave the source get the penalty in both).
+    #[test]
+    fn shift_rows_match_the_general_rows() {
+        let (w, h) = (43usize, 12usize);
+        let (refd, src) = (
+            test_image(w, h, 0, 1000.0, 0.0),
+            test_image(w, h, 7, 1000.0, 0.0),
+        );
+        let k = Intrinsics::new(30.0, 30.0, 20.0, 6.0);
+        let (a, beta) = (0.8f32, 0.3f32);
+        for (t, z, integer) in [
+            ([-0.3, 0.0, 0.0], 1.0, true),  // du = −9 exactly
+            ([-0.3, 0.0, 0.0], 2.5, false), // du = −3.6
+            ([0.5, 0.0, 0.0], 0.7, false),  // du ≈ +21.4: half the row leaves the source
+            ([0.0, 0.11, 0.0], 1.3, false), // v = y + 2.54…, fy ≠ 0, the last rows leave it
+            ([-0.2, 0.0, 0.0], 1e9, false), // du = −6e−9: fx rounds to 1 in the cell to the left
+        ] {
+            let rel = Pose::translation_only(t).unwrap();
+            let warp = PlaneWarp::new(&k, &k, &rel, z);
+            assert!(warp.row(3.0).shift(w, shift::SHIFT_TOLERANCE_PX).is_some());
+            for (c, haze_on) in [(3usize, false), (3, true), (1, false), (1, true)] {
+                let offset = if haze_on { a } else { 0.0 };
+                let (rd, sd) = (&refd[..w * h * c], &src[..w * h * c]);
+                let (ref4, src4) = if c == 3 {
+                    (pad_rgb4(rd, offset), pad_rgb4(sd, offset))
+                } else {
+                    (Vec::new(), Vec::new())
+                };
+                let (ref_planar, src_planar) =
+                    (shift::planar(rd, c, offset), shift::planar(sd, c, offset));
+                let haze = if haze_on {
+                    haze_at(
+                        a,
+                        beta,
+                        z,
+                        DehazingResidual::ObservationSpace,
+                        f32::INFINITY,
+                    )
+                } else {
+                    haze_at(0.0, 0.0, z, DehazingResidual::Eq37, 0.0)
+                };
+                let penalty = c as f32;
+                let general = [SourcePlane {
+                    data: sd,
+                    padded: &src4,
+                    planar: &[],
+                    warp,
+                }];
+                let shifted = [SourcePlane {
+                    planar: &src_planar,
+                    ..general[0]
+                }];
+                for y in 0..h {
+                    let (mut g, mut f) = (vec![0.0; w], vec![0.0; w]);
+                    let mut s = RowScratch::default();
+                    macro_rules! row {
+                        ($c:literal, $haze:literal, $out:expr, $planar:expr, $srcs:expr) => {
+                            fill_row_observation::<$c, $haze>(
+                                $out, y, rd, &ref4, $planar, w, h, $srcs, haze, penalty, &mut s,
+                            )
+                        };
+                    }
+                    match (c, haze_on) {
+                        (3, false) => {
+                            row!(3, false, &mut g, &[], &general);
+                            row!(3, false, &mut f, &ref_planar, &shifted);
+                        }
+                        (3, true) => {
+                            row!(3, true, &mut g, &[], &general);
+                            row!(3, true, &mut f, &ref_planar, &shifted);
+                        }
+                        (1, false) => {
+                            row!(1, false, &mut g, &[], &general);
+                            row!(1, false, &mut f, &ref_planar, &shifted);
+                        }
+                        _ => {
+                            row!(1, true, &mut g, &[], &general);
+                            row!(1, true, &mut f, &ref_planar, &shifted);
+                        }
+                    }
+                    for (x, (g, f)) in g.iter().zip(&f).enumerate() {
+                        let at = format!("t {t:?} z {z} c {c} haze {haze_on} ({x}, {y})");
+                        // Unobserved on one side only would be the penalty against a cost.
+                        assert_eq!(*g == penalty, *f == penalty, "{at}: {g} vs {f}");
+                        if integer && !haze_on && c == 3 {
+                            assert_eq!(g, f, "{at}");
+                        } else {
+                            assert!((g - f).abs() <= 1e-4 * g.max(1.0), "{at}: {g} vs {f}");
+                        }
+                    }
+                }
             }
         }
     }
@@ -634,6 +789,7 @@ mod tests {
             let sources = [SourcePlane {
                 data: &src,
                 padded: &src4,
+                planar: &[],
                 warp: PlaneWarp::new(&k, &k, &rel, z),
             }];
             let haze = haze_at(a, beta, z, DehazingResidual::Eq37, margin);
@@ -641,6 +797,7 @@ mod tests {
             let plain = [SourcePlane {
                 data: &src,
                 padded: &[],
+                planar: &[],
                 warp: PlaneWarp::new(&k, &k, &rel, z),
             }];
             for y in 0..h {

@@ -44,6 +44,7 @@
 pub mod census;
 mod kernel;
 pub mod sample;
+mod shift;
 mod simd;
 
 use rayon::prelude::*;
@@ -522,6 +523,29 @@ pub fn build_cost_volume_rows_in(
     };
     let ref4 = rgb4(reference.image);
     let sources4: Vec<Vec<[f32; 4]>> = sources.iter().map(|s| rgb4(s.image)).collect();
+    // Channel planes for the direct rows of sources whose rows are horizontal shifts of the
+    // reference's (a rectified pair), judged on the middle row and plane; a row that is not a
+    // shift after all takes the general loop.
+    let shift_planar: Vec<Vec<f32>> = sources
+        .iter()
+        .zip(&relatives)
+        .map(|(s, rel)| {
+            let direct = observation || !dehaze;
+            let z = planes.depth(n_planes as f64 / 2.0);
+            let mid =
+                PlaneWarp::new(&reference.intrinsics, &s.intrinsics, rel, z).row((h / 2) as f64);
+            if direct && w >= 2 && h >= 2 && mid.shift(w, shift::SHIFT_TOLERANCE_PX).is_some() {
+                shift::planar(s.image.data(), c, rgb4_offset)
+            } else {
+                Vec::new()
+            }
+        })
+        .collect();
+    let ref_planar = if shift_planar.iter().any(|p| !p.is_empty()) {
+        shift::planar(refd, c, rgb4_offset)
+    } else {
+        Vec::new()
+    };
     let done = std::sync::atomic::AtomicUsize::new(0);
     // One rayon task per plane: a plane is ~50k voxels of independent work, and parallelising
     // over planes instead of over each plane's rows saves a fork-join (and the workers' sleep
@@ -534,13 +558,19 @@ pub fn build_cost_volume_rows_in(
             monitor.checkpoint()?;
             let z = planes.depth(i as f64);
             plane_sources.clear();
-            plane_sources.extend(sources.iter().zip(&relatives).zip(&sources4).map(
-                |((s, rel), padded)| SourcePlane {
-                    data: s.image.data(),
-                    padded,
-                    warp: PlaneWarp::new(&reference.intrinsics, &s.intrinsics, rel, z),
-                },
-            ));
+            plane_sources.extend(
+                sources
+                    .iter()
+                    .zip(&relatives)
+                    .zip(&sources4)
+                    .zip(&shift_planar)
+                    .map(|(((s, rel), padded), planar)| SourcePlane {
+                        data: s.image.data(),
+                        padded,
+                        planar,
+                        warp: PlaneWarp::new(&reference.intrinsics, &s.intrinsics, rel, z),
+                    }),
+            );
             let haze = match kind.dehazing() {
                 None => Haze {
                     airlight: 0.0,
@@ -576,17 +606,57 @@ pub fn build_cost_volume_rows_in(
                 let y = rows.start + k;
                 match (c, dehaze) {
                     (1, true) if observation => fill_row_observation::<1, true>(
-                        row, y, refd, &ref4, w, h, srcs, haze, penalty, scratch,
+                        row,
+                        y,
+                        refd,
+                        &ref4,
+                        &ref_planar,
+                        w,
+                        h,
+                        srcs,
+                        haze,
+                        penalty,
+                        scratch,
                     ),
                     (_, true) if observation => fill_row_observation::<3, true>(
-                        row, y, refd, &ref4, w, h, srcs, haze, penalty, scratch,
+                        row,
+                        y,
+                        refd,
+                        &ref4,
+                        &ref_planar,
+                        w,
+                        h,
+                        srcs,
+                        haze,
+                        penalty,
+                        scratch,
                     ),
                     // The ordinary volume's direct row (bit-identical to the generic one).
                     (1, false) => fill_row_observation::<1, false>(
-                        row, y, refd, &ref4, w, h, srcs, haze, penalty, scratch,
+                        row,
+                        y,
+                        refd,
+                        &ref4,
+                        &ref_planar,
+                        w,
+                        h,
+                        srcs,
+                        haze,
+                        penalty,
+                        scratch,
                     ),
                     (_, false) => fill_row_observation::<3, false>(
-                        row, y, refd, &ref4, w, h, srcs, haze, penalty, scratch,
+                        row,
+                        y,
+                        refd,
+                        &ref4,
+                        &ref_planar,
+                        w,
+                        h,
+                        srcs,
+                        haze,
+                        penalty,
+                        scratch,
                     ),
                     (1, true) => {
                         fill_row::<1, true>(row, y, refd, w, h, srcs, haze, penalty, scratch)

@@ -1,0 +1,188 @@
+//! Cost-volume rows whose warp is a horizontal shift (a rectified pair, a rig translating along
+//! its rows: [`crate::mvs::plane_sweep::RowWarp::shift`]).
+//!
+//! Why: on such a row every sample sits at `(x + du, v)` with one `du` and one `v`, so the
+//! bilinear weights `(fx, fy)` are the same for the whole row and the source pixels it reads are
+//! consecutive. The general loop computes each pixel's coordinates, cell and weights and reads a
+//! 4-lane pixel at a time ([`super::simd`]); here each channel is one contiguous run of the
+//! source's channel plane, eight pixels per AVX2 instruction, and no coordinates are computed.
+//!
+//! The arithmetic per sample and per channel is the general loop's (`t = p₀ + fx·(p₁ − p₀)`, then
+//! `t + fy·(b − t)`; the residual `(I_r − o) − k(I_s − o)`; channels summed from 0 up), on
+//! images minus the same offset `o` ([`planar`]), so a row agrees with the general loop to the bit
+//! when the general loop's per-pixel `fx` equals the row's (an integer shift) and up to the `f32`
+//! rounding of the coordinates otherwise (tested).
+
+/// Largest distance, pixels, between a sample of the shift path and the exact warp of its row
+/// that still counts as a shift: the general path's `f32` coordinates round by about this much
+/// at a few thousand pixels.
+pub(super) const SHIFT_TOLERANCE_PX: f64 = 1e-3;
+
+/// A `C`-channel interleaved image as `C` channel planes (`[c][y][x]`), each value minus
+/// `offset` (the airlight for the observation-space dehazing volume, 0 for the ordinary one).
+pub(super) fn planar(data: &[f32], channels: usize, offset: f32) -> Vec<f32> {
+    let pixels = data.len() / channels.max(1);
+    let mut out = vec![0.0f32; data.len()];
+    for (c, plane) in out.chunks_exact_mut(pixels.max(1)).enumerate() {
+        for (o, px) in plane.iter_mut().zip(data.chunks_exact(channels)) {
+            *o = px[c] - offset;
+        }
+    }
+    out
+}
+
+/// One shift row: the source sample of pixel `x` is at `(x + du, v)`.
+#[derive(Clone, Copy, Debug)]
+pub(super) struct ShiftRow<'a> {
+    /// Reference row `y`'s channel planes' rows are read from here ([`planar`], whole image).
+    pub reference: &'a [f32],
+    /// The source's channel planes ([`planar`], same offset).
+    pub source: &'a [f32],
+    /// Reference row.
+    pub y: usize,
+    /// Column shift, pixels.
+    pub du: f64,
+    /// Source row coordinate, pixels.
+    pub v: f64,
+}
+
+/// Adds this source's cost `Σ_c |(I_r − o) − k(I_s − o)|` (`k = ratio[x]` when `HAZE`, else 1;
+/// capped at `penalty` when `HAZE`) to `sum[x]` and 1 to `observed[x]` for every pixel of the
+/// row whose sample lies inside the source (`0 ≤ x + du ≤ w − 1`, `0 ≤ v ≤ h − 1`). `cost` is
+/// scratch of at least `width` values. Images are at least 2×2.
+#[allow(clippy::too_many_arguments)]
+#[inline]
+pub(super) fn accumulate<const C: usize, const HAZE: bool>(
+    sum: &mut [f32],
+    observed: &mut [u32],
+    cost: &mut [f32],
+    row: ShiftRow<'_>,
+    ratio: &[f32],
+    width: usize,
+    height: usize,
+    penalty: f32,
+) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        #[target_feature(enable = "avx2")]
+        #[allow(clippy::too_many_arguments)]
+        unsafe fn with_avx2<const C: usize, const HAZE: bool>(
+            sum: &mut [f32],
+            observed: &mut [u32],
+            cost: &mut [f32],
+            row: ShiftRow<'_>,
+            ratio: &[f32],
+            width: usize,
+            height: usize,
+            penalty: f32,
+        ) {
+            accumulate_body::<C, HAZE>(sum, observed, cost, row, ratio, width, height, penalty)
+        }
+        if crate::cpu::avx2_enabled() {
+            // SAFETY: the CPU has AVX2 ([`crate::cpu::avx2_enabled`]).
+            return unsafe {
+                with_avx2::<C, HAZE>(sum, observed, cost, row, ratio, width, height, penalty)
+            };
+        }
+    }
+    accumulate_body::<C, HAZE>(sum, observed, cost, row, ratio, width, height, penalty)
+}
+
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn accumulate_body<const C: usize, const HAZE: bool>(
+    sum: &mut [f32],
+    observed: &mut [u32],
+    cost: &mut [f32],
+    row: ShiftRow<'_>,
+    ratio: &[f32],
+    width: usize,
+    height: usize,
+    penalty: f32,
+) {
+    let (w, h) = (width, height);
+    let (wmax, hmax) = ((w - 1) as f64, (h - 1) as f64);
+    // `!(a <= b)` is true for NaN too.
+    if !(row.v >= 0.0 && row.v <= hmax) {
+        return;
+    }
+    // Observed columns `lo..=hi`: `0 ≤ x + du ≤ w − 1`.
+    let lo = (-row.du).ceil().max(0.0);
+    let hi = (wmax - row.du).floor().min(wmax);
+    // (`du` is finite: [`crate::mvs::plane_sweep::RowWarp::shift`].)
+    if lo > hi {
+        return;
+    }
+    let (lo, hi) = (lo as usize, hi as usize);
+    // The cell and weights of the general sampler: `x₀ = ⌊u⌋` at most `w − 2`, `fx = u − x₀`.
+    let y0 = (row.v.floor() as usize).min(h - 2);
+    let fy = (row.v - y0 as f64) as f32;
+    let whole = row.du.floor();
+    let fx = (row.du - whole) as f32;
+    let whole = whole as isize;
+    // Columns whose right neighbour `x + ⌊du⌋ + 1` is inside; the last observed column may sit
+    // exactly on the border (`u = w − 1`, `fx = 0`), where the general sampler takes the cell to
+    // its left with `fx = 1`.
+    let end = ((w as isize - 1 - whole).max(0) as usize).clamp(lo, hi + 1);
+    let cost = &mut cost[lo..=hi];
+    cost.fill(0.0);
+    for c in 0..C {
+        let plane = &row.source[c * w * h..(c + 1) * w * h];
+        let top = &plane[y0 * w..(y0 + 1) * w];
+        let bottom = &plane[(y0 + 1) * w..(y0 + 2) * w];
+        let ir = &row.reference[(c * h + row.y) * w..][lo..=hi];
+        let k = &ratio[lo..=hi];
+        let start = (lo as isize + whole) as usize;
+        let n = end - lo;
+        let sample = |x0: usize, fx: f32| -> f32 {
+            let t = top[x0] + fx * (top[x0 + 1] - top[x0]);
+            if fy == 0.0 {
+                t
+            } else {
+                let b = bottom[x0] + fx * (bottom[x0 + 1] - bottom[x0]);
+                t + fy * (b - t)
+            }
+        };
+        let residual = |j: usize, is: f32| -> f32 {
+            if HAZE {
+                ir[j] - k[j] * is
+            } else {
+                ir[j] - is
+            }
+        };
+        // The contiguous part: `top[start..start + n]` and its right neighbours, vectorised.
+        if fy == 0.0 {
+            let (p0, p1) = (&top[start..start + n], &top[start + 1..start + n + 1]);
+            for (j, (o, (&a, &b))) in cost[..n].iter_mut().zip(p0.iter().zip(p1)).enumerate() {
+                *o += residual(j, a + fx * (b - a)).abs();
+            }
+        } else {
+            let (p0, p1) = (&top[start..start + n], &top[start + 1..start + n + 1]);
+            let (q0, q1) = (&bottom[start..start + n], &bottom[start + 1..start + n + 1]);
+            for (j, (o, ((&a, &b), (&d, &e)))) in cost[..n]
+                .iter_mut()
+                .zip(p0.iter().zip(p1).zip(q0.iter().zip(q1)))
+                .enumerate()
+            {
+                let t = a + fx * (b - a);
+                let bt = d + fx * (e - d);
+                *o += residual(j, t + fy * (bt - t)).abs();
+            }
+        }
+        // The border column, as the general sampler clamps it.
+        for x in end..=hi {
+            let u = x as f64 + row.du;
+            let x0 = (u.floor() as usize).min(w - 2);
+            let j = x - lo;
+            cost[j] += residual(j, sample(x0, (u - x0 as f64) as f32)).abs();
+        }
+    }
+    for ((s, o), &c) in sum[lo..=hi]
+        .iter_mut()
+        .zip(&mut observed[lo..=hi])
+        .zip(cost.iter())
+    {
+        *s += if HAZE { c.min(penalty) } else { c };
+        *o += 1;
+    }
+}
