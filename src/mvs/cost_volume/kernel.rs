@@ -22,6 +22,17 @@ pub(super) struct SourcePlane<'a> {
     pub warp: PlaneWarp,
 }
 
+/// The reference image in the forms the direct rows ([`fill_row_observation`]) read.
+#[derive(Clone, Copy)]
+pub(super) struct ReferenceImages<'a> {
+    /// Interleaved, `width × height × C`.
+    pub data: &'a [f32],
+    /// [`super::sample::pad_rgb4`] pixels for the RGB AVX2 loop; empty otherwise.
+    pub rgb4: &'a [[f32; 4]],
+    /// Channel planes ([`super::shift::planar`]); empty where no source has shift rows.
+    pub planar: &'a [f32],
+}
+
 /// Per-plane constants of the dehazing volume: the reference is dehazed with the plane's own
 /// depth `z_i` (Eq. 3.5), so `J_r = I_r·inv_t + offset` with both constant over the plane.
 #[derive(Clone, Copy)]
@@ -307,16 +318,14 @@ fn coords_along(
 /// bit for bit what [`fill_row`] computes without dehazing (tested).
 ///
 /// Where the CPU has AVX2 the row runs through [`simd`]'s loops, eight pixels at a time (RGB
-/// reads `reference_rgb4` and the sources' `padded` images, [`super::sample::pad_rgb4`]); the
+/// reads the reference's `rgb4` and the sources' `padded` images, [`super::sample::pad_rgb4`]); the
 /// scalar loop below does the rest of the row, or all of it.
 #[allow(clippy::too_many_arguments)]
 #[inline]
 pub(super) fn fill_row_observation<const C: usize, const HAZE: bool>(
     out: &mut [f32],
     y: usize,
-    reference: &[f32],
-    reference_rgb4: &[[f32; 4]],
-    reference_planar: &[f32],
+    reference: ReferenceImages<'_>,
     width: usize,
     height: usize,
     sources: &[SourcePlane<'_>],
@@ -324,7 +333,7 @@ pub(super) fn fill_row_observation<const C: usize, const HAZE: bool>(
     penalty: f32,
     scratch: &mut RowScratch,
 ) {
-    let row = &reference[y * width * C..(y + 1) * width * C];
+    let row = &reference.data[y * width * C..(y + 1) * width * C];
     let a = haze.airlight;
     scratch.sum.clear();
     scratch.sum.resize(width, 0.0);
@@ -348,12 +357,12 @@ pub(super) fn fill_row_observation<const C: usize, const HAZE: bool>(
                 *r *= t_r;
             }
         }
-        let shift = (!s.planar.is_empty() && !reference_planar.is_empty())
+        let shift = (!s.planar.is_empty() && !reference.planar.is_empty())
             .then(|| warp.shift(width, shift::SHIFT_TOLERANCE_PX))
             .flatten();
         if let Some((du, v)) = shift {
             let row = ShiftRow {
-                reference: reference_planar,
+                reference: reference.planar,
                 source: s.planar,
                 y,
                 du,
@@ -383,7 +392,7 @@ pub(super) fn fill_row_observation<const C: usize, const HAZE: bool>(
                 sum,
                 observed,
                 &inputs,
-                &reference_rgb4[y * width..(y + 1) * width],
+                &reference.rgb4[y * width..(y + 1) * width],
                 s.padded,
                 width,
                 height,
@@ -533,6 +542,11 @@ mod tests {
             test_image(w, h, 7, 700.0, 0.2),
         );
         let (ref4, src4) = (pad_rgb4(&refd, 0.0), pad_rgb4(&src, 0.0));
+        let images = ReferenceImages {
+            data: &refd,
+            rgb4: &ref4,
+            planar: &[],
+        };
         let (k, rel) = test_geometry();
         let haze = Haze {
             airlight: 0.0,
@@ -568,17 +582,7 @@ mod tests {
                 for scalar in [false, true] {
                     crate::cpu::force_scalar(scalar);
                     fill_row_observation::<3, false>(
-                        &mut f,
-                        y,
-                        &refd,
-                        &ref4,
-                        &[],
-                        w,
-                        h,
-                        &sources,
-                        haze,
-                        3.0,
-                        &mut s,
+                        &mut f, y, images, w, h, &sources, haze, 3.0, &mut s,
                     );
                     assert_eq!(g, f, "z {z}, row {y}, scalar {scalar}");
                 }
@@ -596,12 +600,15 @@ mod tests {
                 let (mut g, mut f) = (vec![0.0; w], vec![0.0; w]);
                 let mut s = RowScratch::default();
                 fill_row::<1, false>(&mut g, y, gray_ref, w, h, &gray, haze, 1.0, &mut s);
+                let gray_images = ReferenceImages {
+                    data: gray_ref,
+                    rgb4: &[],
+                    planar: &[],
+                };
                 fill_row_observation::<1, false>(
                     &mut f,
                     y,
-                    gray_ref,
-                    &[],
-                    &[],
+                    gray_images,
                     w,
                     h,
                     &gray,
@@ -626,6 +633,11 @@ mod tests {
         );
         let (a, beta) = (0.8f32, 0.3f32);
         let (ref4, src4) = (pad_rgb4(&refd, a), pad_rgb4(&src, a));
+        let images = ReferenceImages {
+            data: &refd,
+            rgb4: &ref4,
+            planar: &[],
+        };
         let (k, rel) = test_geometry();
         for z in [1.0f64, 2.5, 6.0] {
             let sources = [SourcePlane {
@@ -648,17 +660,7 @@ mod tests {
                 for scalar in [false, true] {
                     crate::cpu::force_scalar(scalar);
                     fill_row_observation::<3, true>(
-                        &mut f,
-                        y,
-                        &refd,
-                        &ref4,
-                        &[],
-                        w,
-                        h,
-                        &sources,
-                        haze,
-                        3.0,
-                        &mut s,
+                        &mut f, y, images, w, h, &sources, haze, 3.0, &mut s,
                     );
                     for (x, (g, f)) in g.iter().zip(&f).enumerate() {
                         assert!(
@@ -734,7 +736,19 @@ mod tests {
                     macro_rules! row {
                         ($c:literal, $haze:literal, $out:expr, $planar:expr, $srcs:expr) => {
                             fill_row_observation::<$c, $haze>(
-                                $out, y, rd, &ref4, $planar, w, h, $srcs, haze, penalty, &mut s,
+                                $out,
+                                y,
+                                ReferenceImages {
+                                    data: rd,
+                                    rgb4: &ref4,
+                                    planar: $planar,
+                                },
+                                w,
+                                h,
+                                $srcs,
+                                haze,
+                                penalty,
+                                &mut s,
                             )
                         };
                     }

@@ -57,7 +57,7 @@ use crate::monitor::Monitor;
 use crate::mvs::plane_sweep::{PlaneSet, PlaneWarp};
 use crate::mvs::pose::Pose;
 
-use kernel::{fill_row, fill_row_observation, Haze, RowScratch, SourcePlane};
+use kernel::{fill_row, fill_row_observation, Haze, ReferenceImages, RowScratch, SourcePlane};
 
 /// Largest accepted volume, in voxels (`W·H·N`): 2²⁹ `f32`s are 2 GiB.
 pub const MAX_VOXELS: usize = 1 << 29;
@@ -602,61 +602,26 @@ pub fn build_cost_volume_rows_in(
                 }
             };
             let srcs = &plane_sources[..];
+            let images = ReferenceImages {
+                data: refd,
+                rgb4: &ref4,
+                planar: &ref_planar,
+            };
             for (k, row) in out.chunks_exact_mut(w).enumerate() {
                 let y = rows.start + k;
                 match (c, dehaze) {
                     (1, true) if observation => fill_row_observation::<1, true>(
-                        row,
-                        y,
-                        refd,
-                        &ref4,
-                        &ref_planar,
-                        w,
-                        h,
-                        srcs,
-                        haze,
-                        penalty,
-                        scratch,
+                        row, y, images, w, h, srcs, haze, penalty, scratch,
                     ),
                     (_, true) if observation => fill_row_observation::<3, true>(
-                        row,
-                        y,
-                        refd,
-                        &ref4,
-                        &ref_planar,
-                        w,
-                        h,
-                        srcs,
-                        haze,
-                        penalty,
-                        scratch,
+                        row, y, images, w, h, srcs, haze, penalty, scratch,
                     ),
                     // The ordinary volume's direct row (bit-identical to the generic one).
                     (1, false) => fill_row_observation::<1, false>(
-                        row,
-                        y,
-                        refd,
-                        &ref4,
-                        &ref_planar,
-                        w,
-                        h,
-                        srcs,
-                        haze,
-                        penalty,
-                        scratch,
+                        row, y, images, w, h, srcs, haze, penalty, scratch,
                     ),
                     (_, false) => fill_row_observation::<3, false>(
-                        row,
-                        y,
-                        refd,
-                        &ref4,
-                        &ref_planar,
-                        w,
-                        h,
-                        srcs,
-                        haze,
-                        penalty,
-                        scratch,
+                        row, y, images, w, h, srcs, haze, penalty, scratch,
                     ),
                     (1, true) => {
                         fill_row::<1, true>(row, y, refd, w, h, srcs, haze, penalty, scratch)
