@@ -420,12 +420,124 @@ pub fn build_cost_volume_rows(
     rows: std::ops::Range<usize>,
     monitor: &Monitor,
 ) -> Result<CostVolume> {
-    build_cost_volume_rows_in(Vec::new(), reference, sources, planes, kind, rows, monitor)
+    let images = SweepImages::new(reference, sources, planes, kind)?;
+    build_cost_volume_rows_in(
+        Vec::new(),
+        reference,
+        sources,
+        planes,
+        kind,
+        rows,
+        &images,
+        monitor,
+    )
+}
+
+/// Whether `kind` takes the closed-form direct rows ([`kernel::fill_row_observation`]) with
+/// dehazing: the default dehazing volume. `β = 0` keeps the generic row, so that "β = 0 ⇒
+/// dehazing = ordinary" stays exact.
+fn observation_kernel(kind: CostKind) -> bool {
+    matches!(
+        kind.dehazing(),
+        Some((p, o)) if p.beta > 0.0
+            && o.residual == DehazingResidual::ObservationSpace
+            && o.range == RangePenalty::Off
+    )
+}
+
+/// The copies of the images that the row loops read, made once per volume and shared by the
+/// strips of [`build_cost_volume_rows_in`] (per strip they were a few megabytes of fresh pages
+/// each): 4-lane RGB pixels ([`sample::pad_rgb4`]) and, for sources whose rows are horizontal
+/// shifts of the reference's, channel planes ([`shift::planar`]).
+pub struct SweepImages {
+    ref4: Vec<[f32; 4]>,
+    sources4: Vec<Vec<[f32; 4]>>,
+    ref_planar: Vec<f32>,
+    shift_planar: Vec<Vec<f32>>,
+}
+
+impl SweepImages {
+    /// The copies for these views, planes and cost (validated first, with the errors of
+    /// [`build_cost_volume`]).
+    pub fn new(
+        reference: &View<'_>,
+        sources: &[View<'_>],
+        planes: &PlaneSet,
+        kind: CostKind,
+    ) -> Result<Self> {
+        validate_inputs(reference, sources, planes, kind)?;
+        let (w, h, c) = (
+            reference.image.width(),
+            reference.image.height(),
+            reference.image.channels(),
+        );
+        let n_planes = planes.num_planes;
+        let refd = reference.image.data();
+        let dehaze = kind.dehazing().is_some();
+        let observation = observation_kernel(kind);
+        let relatives: Vec<Pose> = sources
+            .iter()
+            .map(|s| Pose::relative(&reference.pose, &s.pose))
+            .collect();
+        // The RGB direct rows' vector loop reads one 4-lane register per pixel, minus the airlight
+        // for the dehazing volume; the copies are two passes over the images against W·H·N samples.
+        let rgb4_offset = match kind.dehazing() {
+            Some((p, _)) if observation => p.airlight,
+            _ => 0.0,
+        };
+        // Eq. 3.7 with a hard or noise-widened range check (not the soft penalty) has a vector
+        // loop too, on the plain images.
+        let eq37_vector = matches!(
+            kind.dehazing(),
+            Some((_, o)) if o.residual == DehazingResidual::Eq37
+                && !matches!(o.range, RangePenalty::Soft { .. })
+        );
+        let rgb4 = |img: &ImageF32| {
+            if c == 3 && (observation || !dehaze || eq37_vector) {
+                sample::pad_rgb4(img.data(), rgb4_offset)
+            } else {
+                Vec::new()
+            }
+        };
+        let ref4 = rgb4(reference.image);
+        let sources4: Vec<Vec<[f32; 4]>> = sources.iter().map(|s| rgb4(s.image)).collect();
+        // Channel planes for the direct rows of sources whose rows are horizontal shifts of the
+        // reference's (a rectified pair), judged on the middle row and plane; a row that is not a
+        // shift after all takes the general loop.
+        let shift_planar: Vec<Vec<f32>> = sources
+            .iter()
+            .zip(&relatives)
+            .map(|(s, rel)| {
+                let direct = observation || !dehaze;
+                let z = planes.depth(n_planes as f64 / 2.0);
+                let mid = PlaneWarp::new(&reference.intrinsics, &s.intrinsics, rel, z)
+                    .row((h / 2) as f64);
+                if direct && w >= 2 && h >= 2 && mid.shift(w, shift::SHIFT_TOLERANCE_PX).is_some() {
+                    shift::planar(s.image.data(), c, rgb4_offset)
+                } else {
+                    Vec::new()
+                }
+            })
+            .collect();
+        let ref_planar = if shift_planar.iter().any(|p| !p.is_empty()) {
+            shift::planar(refd, c, rgb4_offset)
+        } else {
+            Vec::new()
+        };
+        Ok(Self {
+            ref4,
+            sources4,
+            ref_planar,
+            shift_planar,
+        })
+    }
 }
 
 /// [`build_cost_volume_rows`] into `buffer`'s memory when its capacity holds the volume (its
 /// contents do not matter), so that depth estimated strip by strip reuses the previous strip's
-/// volumes instead of faulting in fresh pages for each.
+/// volumes instead of faulting in fresh pages for each, with the image copies `images` made
+/// once for all strips ([`SweepImages::new`] of the same views, planes and cost).
+#[allow(clippy::too_many_arguments)]
 pub fn build_cost_volume_rows_in(
     buffer: Vec<f32>,
     reference: &View<'_>,
@@ -433,9 +545,15 @@ pub fn build_cost_volume_rows_in(
     planes: &PlaneSet,
     kind: CostKind,
     rows: std::ops::Range<usize>,
+    images: &SweepImages,
     monitor: &Monitor,
 ) -> Result<CostVolume> {
     validate_inputs(reference, sources, planes, kind)?;
+    assert_eq!(
+        images.sources4.len(),
+        sources.len(),
+        "the image copies are of other views"
+    );
     if rows.is_empty() || rows.end > reference.image.height() {
         return Err(MurkError::invalid(
             "rows",
@@ -493,59 +611,13 @@ pub fn build_cost_volume_rows_in(
     let mut data = crate::large_buffer::reuse(buffer, voxels);
     let refd = reference.image.data();
     let dehaze = kind.dehazing().is_some();
-    // The default dehazing volume has a closed-form row kernel; β = 0 keeps the generic one so
-    // that "β = 0 ⇒ dehazing = ordinary" stays exact.
-    let observation = matches!(
-        kind.dehazing(),
-        Some((p, o)) if p.beta > 0.0
-            && o.residual == DehazingResidual::ObservationSpace
-            && o.range == RangePenalty::Off
-    );
-    // The RGB direct rows' vector loop reads one 4-lane register per pixel, minus the airlight
-    // for the dehazing volume; the copies are two passes over the images against W·H·N samples.
-    let rgb4_offset = match kind.dehazing() {
-        Some((p, _)) if observation => p.airlight,
-        _ => 0.0,
-    };
-    // Eq. 3.7 with a hard or noise-widened range check (not the soft penalty) has a vector
-    // loop too, on the plain images.
-    let eq37_vector = matches!(
-        kind.dehazing(),
-        Some((_, o)) if o.residual == DehazingResidual::Eq37
-            && !matches!(o.range, RangePenalty::Soft { .. })
-    );
-    let rgb4 = |img: &ImageF32| {
-        if c == 3 && (observation || !dehaze || eq37_vector) {
-            sample::pad_rgb4(img.data(), rgb4_offset)
-        } else {
-            Vec::new()
-        }
-    };
-    let ref4 = rgb4(reference.image);
-    let sources4: Vec<Vec<[f32; 4]>> = sources.iter().map(|s| rgb4(s.image)).collect();
-    // Channel planes for the direct rows of sources whose rows are horizontal shifts of the
-    // reference's (a rectified pair), judged on the middle row and plane; a row that is not a
-    // shift after all takes the general loop.
-    let shift_planar: Vec<Vec<f32>> = sources
-        .iter()
-        .zip(&relatives)
-        .map(|(s, rel)| {
-            let direct = observation || !dehaze;
-            let z = planes.depth(n_planes as f64 / 2.0);
-            let mid =
-                PlaneWarp::new(&reference.intrinsics, &s.intrinsics, rel, z).row((h / 2) as f64);
-            if direct && w >= 2 && h >= 2 && mid.shift(w, shift::SHIFT_TOLERANCE_PX).is_some() {
-                shift::planar(s.image.data(), c, rgb4_offset)
-            } else {
-                Vec::new()
-            }
-        })
-        .collect();
-    let ref_planar = if shift_planar.iter().any(|p| !p.is_empty()) {
-        shift::planar(refd, c, rgb4_offset)
-    } else {
-        Vec::new()
-    };
+    let observation = observation_kernel(kind);
+    let SweepImages {
+        ref4,
+        sources4,
+        ref_planar,
+        shift_planar,
+    } = images;
     let done = std::sync::atomic::AtomicUsize::new(0);
     // One rayon task per plane: a plane is ~50k voxels of independent work, and parallelising
     // over planes instead of over each plane's rows saves a fork-join (and the workers' sleep
@@ -562,8 +634,8 @@ pub fn build_cost_volume_rows_in(
                 sources
                     .iter()
                     .zip(&relatives)
-                    .zip(&sources4)
-                    .zip(&shift_planar)
+                    .zip(sources4)
+                    .zip(shift_planar)
                     .map(|(((s, rel), padded), planar)| SourcePlane {
                         data: s.image.data(),
                         padded,
@@ -604,8 +676,8 @@ pub fn build_cost_volume_rows_in(
             let srcs = &plane_sources[..];
             let images = ReferenceImages {
                 data: refd,
-                rgb4: &ref4,
-                planar: &ref_planar,
+                rgb4: ref4,
+                planar: ref_planar,
             };
             for (k, row) in out.chunks_exact_mut(w).enumerate() {
                 let y = rows.start + k;

@@ -42,7 +42,7 @@ use crate::image::ImageF32;
 use crate::monitor::Monitor;
 use crate::mvs::cost_volume::census::{self, CensusImage, CensusSource};
 use crate::mvs::cost_volume::{
-    build_cost_volume_rows_in, validate_inputs, CostKind, CostVolume, View,
+    build_cost_volume_rows_in, validate_inputs, CostKind, CostVolume, SweepImages, View,
 };
 use crate::mvs::plane_sweep::PlaneSet;
 
@@ -532,6 +532,7 @@ pub fn estimate_depth(
     // The `f32` volume and the `u16` levels of the tallest strip, handed from strip to strip
     // (see `strip_selections`).
     let tallest = strips.iter().map(|s| s.rows.len()).max().unwrap_or(0) * w * n;
+    let images = SweepImages::new(&reference, &sources, planes, kind)?;
     let mut spare = (
         crate::large_buffer::zeroed::<f32>(tallest),
         crate::large_buffer::zeroed::<u16>(tallest),
@@ -545,6 +546,7 @@ pub fn estimate_depth(
             planes,
             kind,
             strip.rows.clone(),
+            &images,
             &m,
         )?;
         let mut data = volume.into_vec();
