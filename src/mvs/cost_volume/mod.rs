@@ -531,6 +531,23 @@ impl SweepImages {
             shift_planar,
         })
     }
+
+    /// Whether every copy is empty or the size of its view's image (the loops index them by
+    /// the views' sizes).
+    fn fits(&self, reference: &View<'_>, sources: &[View<'_>]) -> bool {
+        let sized = |len: usize, img: &ImageF32, per_pixel: usize| {
+            len == 0 || len == img.width() * img.height() * per_pixel
+        };
+        let c = reference.image.channels();
+        self.sources4.len() == sources.len()
+            && self.shift_planar.len() == sources.len()
+            && sized(self.ref4.len(), reference.image, 1)
+            && sized(self.ref_planar.len(), reference.image, c)
+            && sources.iter().enumerate().all(|(k, s)| {
+                sized(self.sources4[k].len(), s.image, 1)
+                    && sized(self.shift_planar[k].len(), s.image, c)
+            })
+    }
 }
 
 /// [`build_cost_volume_rows`] into `buffer`'s memory when its capacity holds the volume (its
@@ -549,11 +566,12 @@ pub fn build_cost_volume_rows_in(
     monitor: &Monitor,
 ) -> Result<CostVolume> {
     validate_inputs(reference, sources, planes, kind)?;
-    assert_eq!(
-        images.sources4.len(),
-        sources.len(),
-        "the image copies are of other views"
-    );
+    if !images.fits(reference, sources) {
+        return Err(MurkError::invalid(
+            "images",
+            "the image copies were made from other views (SweepImages::new of these views)",
+        ));
+    }
     if rows.is_empty() || rows.end > reference.image.height() {
         return Err(MurkError::invalid(
             "rows",

@@ -585,3 +585,33 @@ fn bad_dehazing_options_are_rejected() {
         "options.noise_sigma"
     );
 }
+
+/// Strips share one set of image copies; copies made from other views are refused, naming
+/// `images`, and the right ones give the rows of the whole volume.
+#[test]
+fn image_copies_of_other_views_are_refused() {
+    let s = scene(2.0, 0.8, 0.3, &[[0.3, 0.0, 0.0], [-0.25, 0.0, 0.0]]);
+    let v = s.views();
+    let (p, kind) = (planes(), CostKind::Ordinary);
+    let images = SweepImages::new(&v[0], &v[1..], &p, kind).unwrap();
+    let rows = 3..9;
+    let run = |sources: &[View<'_>]| {
+        build_cost_volume_rows_in(
+            Vec::new(),
+            &v[0],
+            sources,
+            &p,
+            kind,
+            rows.clone(),
+            &images,
+            &Monitor::noop(),
+        )
+    };
+    assert_eq!(field_of(run(&v[1..2]).unwrap_err()), "images");
+    let strip = run(&v[1..]).unwrap();
+    let whole = build_cost_volume(&v[0], &v[1..], &p, kind, &Monitor::noop()).unwrap();
+    for i in 0..p.num_planes {
+        let want = &whole.plane(i)[rows.start * W..rows.end * W];
+        assert_eq!(strip.plane(i), want, "plane {i}");
+    }
+}
