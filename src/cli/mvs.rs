@@ -111,7 +111,7 @@ pub struct MvsArgs {
     #[arg(long)]
     pub speckle_max_size: Option<u32>,
     /// Memory bound of the cost volume, MiB: larger volumes are processed in horizontal strips
-    /// (server default 96; the peak is about 1.5 times this plus the images).
+    /// (server default 96; the peak is about 1.25 times this plus the images).
     #[arg(long)]
     pub volume_budget_mib: Option<u32>,
     /// Points below this confidence are left out of points.ply (0 keeps all).

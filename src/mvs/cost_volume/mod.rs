@@ -566,6 +566,57 @@ pub fn build_cost_volume_rows_in(
     monitor: &Monitor,
 ) -> Result<CostVolume> {
     validate_inputs(reference, sources, planes, kind)?;
+    let voxels = volume_voxels(reference.image.width(), rows.len(), planes.num_planes)?;
+    let mut data = crate::large_buffer::reuse(buffer, voxels);
+    fill_cost_rows(
+        &mut data,
+        reference,
+        sources,
+        planes,
+        kind,
+        rows.clone(),
+        images,
+        monitor,
+    )?;
+    Ok(CostVolume {
+        width: reference.image.width(),
+        height: rows.len(),
+        planes: *planes,
+        penalty: reference.image.channels() as f32,
+        data,
+    })
+}
+
+/// `w × rows × planes` voxels, or an error naming `planes.num_planes` beyond [`MAX_VOXELS`].
+fn volume_voxels(w: usize, rows: usize, n_planes: usize) -> Result<usize> {
+    w.checked_mul(rows)
+        .and_then(|p| p.checked_mul(n_planes))
+        .filter(|&v| v <= MAX_VOXELS)
+        .ok_or_else(|| {
+            MurkError::invalid(
+                "planes.num_planes",
+                format!("{w}x{rows} pixels x {n_planes} planes exceeds the limit of {MAX_VOXELS} voxels"),
+            )
+        })
+}
+
+/// The cost volume's rows `rows` ([`build_cost_volume_rows_in`]'s values) written into `out`
+/// (`[plane][row][x]`, `planes.num_planes · rows.len() · W` values; its contents do not matter),
+/// for a caller that builds a strip a few rows at a time and keeps each band of rows in cache.
+/// The views are not validated again: `images` must come from [`SweepImages::new`] of the same
+/// views, planes and cost, which validates them (only their sizes are checked here, naming
+/// `images`; rows outside the reference are refused naming `rows`, a wrong `out` naming `out`).
+#[allow(clippy::too_many_arguments)]
+pub fn fill_cost_rows(
+    out: &mut [f32],
+    reference: &View<'_>,
+    sources: &[View<'_>],
+    planes: &PlaneSet,
+    kind: CostKind,
+    rows: std::ops::Range<usize>,
+    images: &SweepImages,
+    monitor: &Monitor,
+) -> Result<()> {
     if !images.fits(reference, sources) {
         return Err(MurkError::invalid(
             "images",
@@ -607,26 +658,22 @@ pub fn build_cost_volume_rows_in(
     };
     let n_pix = w * rows.len();
     let n_planes = planes.num_planes;
-    let voxels = n_pix
-        .checked_mul(n_planes)
-        .filter(|&v| v <= MAX_VOXELS)
-        .ok_or_else(|| {
-            MurkError::invalid(
-                "planes.num_planes",
-                format!(
-                    "{w}x{} pixels x {n_planes} planes exceeds the limit of {MAX_VOXELS} voxels",
-                    rows.len()
-                ),
-            )
-        })?;
+    if out.len() != n_pix * n_planes {
+        return Err(MurkError::invalid(
+            "out",
+            format!(
+                "{} values for {w}x{} pixels x {n_planes} planes",
+                out.len(),
+                rows.len()
+            ),
+        ));
+    }
 
     let relatives: Vec<Pose> = sources
         .iter()
         .map(|s| Pose::relative(&reference.pose, &s.pose))
         .collect();
     let penalty = c as f32;
-    // Every voxel is assigned (`mean_or_penalty` ends each row), so reused memory is not zeroed.
-    let mut data = crate::large_buffer::reuse(buffer, voxels);
     let refd = reference.image.data();
     let dehaze = kind.dehazing().is_some();
     let observation = observation_kernel(kind);
@@ -640,7 +687,8 @@ pub fn build_cost_volume_rows_in(
     // One rayon task per plane: a plane is ~50k voxels of independent work, and parallelising
     // over planes instead of over each plane's rows saves a fork-join (and the workers' sleep
     // and wake-up) per plane. Each worker reuses its row scratch and source list across planes.
-    data.par_chunks_mut(n_pix).enumerate().try_for_each_init(
+    // Every voxel is assigned (`mean_or_penalty` ends each row), so reused memory is not zeroed.
+    out.par_chunks_mut(n_pix).enumerate().try_for_each_init(
         || (RowScratch::default(), Vec::with_capacity(sources.len())),
         |(scratch, plane_sources): &mut (RowScratch, Vec<SourcePlane<'_>>),
          (i, out)|
@@ -725,14 +773,7 @@ pub fn build_cost_volume_rows_in(
             monitor.progress("mvs.cost_volume", k as f32 / n_planes as f32);
             Ok(())
         },
-    )?;
-    Ok(CostVolume {
-        width: w,
-        height: rows.len(),
-        planes: *planes,
-        penalty,
-        data,
-    })
+    )
 }
 
 #[cfg(test)]

@@ -12,17 +12,20 @@
 //!    ([`crate::mvs::cost_volume::census`]);
 //! 2. contrast normalisation: each pixel's curve weighted by `clamp(c₀/c_p, 1, w_max)` from the
 //!    reference's local contrast ([`contrast`]), then the box mean of each plane ([`window`]),
-//!    written as 12-bit `u16` levels of the strip's largest weighted cost ([`quantise`]);
+//!    written as `u16` levels of the largest weighted cost the strip can hold ([`quantise`]);
 //! 3. semi-global aggregation over 8 (or 4) paths with penalties `P1`, `P2` on plane-index
 //!    jumps, `P2` optionally adapted to the reference image gradient ([`sgm`]), in `u16`;
 //! 4. winner-take-all, parabola sub-plane refinement in inverse depth and a confidence from the
 //!    aggregated curve ([`select`]);
 //! 5. optional guided, confidence-weighted median of inverse depth ([`filter`]).
 //!
-//! Memory: the `f32` volume (`W·H·N`, plane-major) is windowed once into pixel-major `u16`
-//! levels, and the sum over all paths, also `u16`, takes the `f32` volume's memory once the
-//! window has read it: at 256×192×256, 50 MB plus 25 MB. Larger volumes go in horizontal strips
-//! ([`SgmParams::volume_budget_mib`]).
+//! Memory: [`estimate_depth`] builds each strip's `f32` costs (plane-major) a band of rows at a
+//! time and windows each band into the strip's pixel-major `u16` levels at once, so no `f32`
+//! volume of the whole strip exists; the sum over all paths is a second `u16` volume. The
+//! levels' scale is therefore fixed before any cost is computed, from the largest cost the
+//! volume can hold ([`quantise`]). At 256×192×256: two 25 MB volumes and a 24 MB band. Larger
+//! volumes go in horizontal strips ([`SgmParams::volume_budget_mib`]). [`depth_from_costs`],
+//! given a whole `f32` volume, windows it at once and aggregates into its memory.
 
 pub mod consistency;
 pub mod contrast;
@@ -42,7 +45,7 @@ use crate::image::ImageF32;
 use crate::monitor::Monitor;
 use crate::mvs::cost_volume::census::{self, CensusImage, CensusSource};
 use crate::mvs::cost_volume::{
-    build_cost_volume_rows_in, validate_inputs, CostKind, CostVolume, SweepImages, View,
+    fill_cost_rows, validate_inputs, CostKind, CostVolume, SweepImages, View,
 };
 use crate::mvs::plane_sweep::PlaneSet;
 
@@ -139,15 +142,15 @@ pub struct SgmParams {
     pub vignetting_compensation: bool,
     /// Memory bound, MiB (`1 ..= 65536`): when the `f32` cost volume of the whole reference
     /// is larger, depth is estimated in horizontal strips whose volume (own rows plus
-    /// [`STRIP_OVERLAP_ROWS`] above and below) fits it. A strip holds its `f32` cost volume
-    /// and one half-size `u16` volume at a time (the windowed levels, then the aggregated costs
-    /// in the cost volume's memory, [`quantise`]), so the peak is about 1.5 times this plus
-    /// the images. Strips change SGM's vertical and diagonal paths only beyond the overlap: on
+    /// [`STRIP_OVERLAP_ROWS`] above and below) fits it. A strip holds two `u16` volumes (the
+    /// windowed levels and the aggregated costs, [`quantise`]; together the size of the `f32`
+    /// volume) and one band of `f32` costs, at most a quarter of this (the strip's costs are
+    /// built and windowed band by band), so the peak is about 1.25 times this plus the images. Strips change SGM's vertical and diagonal paths only beyond the overlap: on
     /// the hazy Aloe pair (640×480, 173 planes) 0.06 % of the pixels moved, by at most 0.2 % of
     /// the inverse-depth range, at 48 MiB; on a simulated 160×120 scene cut into 15-row strips
     /// 98 % stayed within one plane step, with the same C.P. Default 96: three strips on that
     /// pair (the overlap adds 20 % to the rows processed, against 40 % in five strips at 64),
-    /// a peak of about 220 MiB for the whole `murk mvs` process.
+    /// a peak of about 205 MiB for the whole `murk mvs` process.
     pub volume_budget_mib: usize,
 }
 
@@ -527,61 +530,95 @@ pub fn estimate_depth(
         .map(|g| SourceClaims::new(g, planes))
         .collect();
     let strips = strips_of(w, h, n, params.volume_budget_mib);
+    let band_rows = band_rows_of(w, n, params.cost_window_radius, params.volume_budget_mib);
+    let r = params.cost_window_radius;
     let mut selections = Vec::with_capacity(w * h);
     let k = strips.len() as f32;
-    // The `f32` volume and the `u16` levels of the tallest strip, handed from strip to strip
-    // (see `strip_selections`).
-    let tallest = strips.iter().map(|s| s.rows.len()).max().unwrap_or(0) * w * n;
     let images = SweepImages::new(&reference, &sources, planes, kind)?;
-    let mut spare = (
-        crate::large_buffer::zeroed::<f32>(tallest),
-        crate::large_buffer::zeroed::<u16>(tallest),
-    );
+    // The levels and the aggregated costs of the tallest strip, and one band's `f32` costs,
+    // reused from strip to strip and band to band.
+    let tallest = strips.iter().map(|s| s.rows.len()).max().unwrap_or(0) * w * n;
+    let mut levels = crate::large_buffer::zeroed::<u16>(tallest);
+    let mut sum = crate::large_buffer::zeroed::<u16>(tallest);
+    let mut band = crate::large_buffer::zeroed::<f32>((band_rows + 2 * r).min(h) * w * n);
     for (j, strip) in strips.iter().enumerate() {
+        let rows = strip.rows.len();
+        let row_len = w * n;
+        let strip_weights = if weights.is_empty() {
+            &weights[..]
+        } else {
+            &weights[strip.rows.start * w..strip.rows.end * w]
+        };
+        let quant = Quantiser::new(
+            cost_bound(channels, strip_weights, params.census_weight),
+            params.p2.max(params.p1),
+            params.num_paths,
+        );
         let m = monitor.sub(j as f32 / k, (j as f32 + 0.5) / k);
-        let volume = build_cost_volume_rows_in(
-            std::mem::take(&mut spare.0),
-            &reference,
-            &sources,
-            planes,
-            kind,
-            strip.rows.clone(),
-            &images,
-            &m,
-        )?;
-        let mut data = volume.into_vec();
-        if let Some((reference_codes, _)) = &census {
-            census::add_census_costs(
-                &mut data,
-                reference_codes,
-                &reference.intrinsics,
-                &census_sources,
+        // Bands of equal height, so that the last one is not a sliver that one worker windows.
+        let bands = rows.div_ceil(band_rows);
+        let band_rows = rows.div_ceil(bands);
+        for b in 0..bands {
+            let m = m.sub(b as f32 / bands as f32, (b + 1) as f32 / bands as f32);
+            // Strip-relative: the band's own rows and the rows their windows read.
+            let own = b * band_rows..((b + 1) * band_rows).min(rows);
+            let read = own.start.saturating_sub(r)..(own.end + r).min(rows);
+            let in_image = strip.rows.start + read.start..strip.rows.start + read.end;
+            band = crate::large_buffer::reuse(std::mem::take(&mut band), read.len() * row_len);
+            fill_cost_rows(
+                &mut band,
+                &reference,
+                &sources,
                 planes,
-                strip.rows.clone(),
-                params.census_weight,
-                if weights.is_empty() {
-                    &weights
-                } else {
-                    &weights[strip.rows.start * w..strip.rows.end * w]
-                },
+                kind,
+                in_image.clone(),
+                &images,
+                &m,
+            )?;
+            if let Some((reference_codes, _)) = &census {
+                census::add_census_costs(
+                    &mut band,
+                    reference_codes,
+                    &reference.intrinsics,
+                    &census_sources,
+                    planes,
+                    in_image.clone(),
+                    params.census_weight,
+                    if weights.is_empty() {
+                        &weights
+                    } else {
+                        &weights[in_image.start * w..in_image.end * w]
+                    },
+                    &m,
+                )?;
+            }
+            window::window_rows_to_levels(
+                &band,
+                read,
+                strip_weights,
+                w,
+                rows,
+                n,
+                r,
+                own.clone(),
+                &quant,
+                &mut levels[own.start * row_len..own.end * row_len],
                 &m,
             )?;
         }
         let m = monitor.sub((j as f32 + 0.5) / k, (j as f32 + 1.0) / k);
-        let (strip_selection, spent) = strip_selections(
-            data,
-            std::mem::take(&mut spare.1),
+        selections.extend(strip_selections(
+            &levels[..rows * row_len],
+            &mut sum[..rows * row_len],
+            &quant,
             strip,
             w,
             planes,
             guide,
-            &weights,
             params,
             &claims,
             &m,
-        )?;
-        selections.extend(strip_selection);
-        spare = spent;
+        )?);
     }
     let mut depth = finish_depth(selections, w, h, planes, guide, params, claims, monitor)?;
     depth.source_gains = source_gains;
@@ -723,60 +760,53 @@ fn contrast_weights_of(guide: &ImageF32, params: &SgmParams) -> Vec<f32> {
     contrast::contrast_weights(&c, params.contrast_percentile, params.contrast_max_weight)
 }
 
-/// A strip's `f32` cost volume and its `u16` levels, handed on to the next strip.
-type StripBuffers = (Vec<f32>, Vec<u16>);
+/// The largest weighted cost a strip's windowed means can reach, known before any cost is
+/// computed, so that a strip is quantised band by band as its costs are built: every voxel of
+/// the volume is at most `γ = C` (`channels`, [`crate::mvs::cost_volume`]: the dehazing volume
+/// caps its voxels there, the ordinary one reaches it only for images outside `[0, 1]`, which
+/// then take the top level, a truncated cost), times the strip's largest contrast weight, plus
+/// the census term, which arrives unweighted and is at most `census_weight`. On the hazy Aloe
+/// pair every strip's largest weighted cost was exactly this (the out-of-view penalty at the
+/// largest weight), so its levels are those of the exact maximum.
+fn cost_bound(channels: usize, strip_weights: &[f32], census_weight: f32) -> f32 {
+    let w_max = strip_weights.iter().copied().fold(1.0f32, f32::max);
+    channels as f32 * w_max + census_weight
+}
 
-/// Steps 2–4 of the module docs on one strip's `[plane][row][x]` volume `data`: contrast
-/// weights, box window and quantisation to `u16` levels ([`quantise`]), SGM on the levels,
-/// selection; the strip's own rows' aggregated costs also go to the sources' `claims`. Returns
-/// the selections of the strip's own rows and the two buffers, spent, for the next strip: the
-/// levels go to `spare`'s memory when it is large enough, and `S` (also `u16`) to the first half
-/// of `data`'s once the window has read it, so a strip holds its `f32` volume and one half-size
-/// volume at a time.
+/// Own rows per band of a strip whose costs are built and windowed together (see
+/// [`estimate_depth`]): the band's `f32` costs, with the `r` rows above and below that its
+/// windows read, take at most a quarter of the volume budget and at most 32 MiB, so they are
+/// still in cache when the window reads them; at least 8 rows, so the rows recomputed for the
+/// windows stay a small share.
+fn band_rows_of(w: usize, n: usize, r: usize, budget_mib: usize) -> usize {
+    let row_bytes = (w * n * std::mem::size_of::<f32>()).max(1);
+    let bytes = ((budget_mib << 20) / 4).min(32 << 20);
+    (bytes / row_bytes).saturating_sub(2 * r).max(8)
+}
+
+/// Steps 3–4 of the module docs on one strip's `u16` levels (pixel-major `[row][x][plane]`,
+/// the strip's rows, scaled by `quant`): SGM into `sum` (same length, contents overwritten),
+/// then the selections of the strip's own rows, whose aggregated costs also go to the sources'
+/// `claims`.
 #[allow(clippy::too_many_arguments)]
 fn strip_selections(
-    mut data: Vec<f32>,
-    spare: Vec<u16>,
+    levels: &[u16],
+    sum: &mut [u16],
+    quant: &Quantiser,
     strip: &Strip,
     w: usize,
     planes: &PlaneSet,
     guide: &ImageF32,
-    weights: &[f32],
     params: &SgmParams,
     claims: &[SourceClaims],
     monitor: &Monitor,
-) -> Result<(Vec<Selection>, StripBuffers)> {
+) -> Result<Vec<Selection>> {
     let n = planes.num_planes;
     let rows = strip.rows.len();
-    let len = data.len();
-    let strip_weights = if weights.is_empty() {
-        weights
-    } else {
-        &weights[strip.rows.start * w..strip.rows.end * w]
-    };
-    let quant = Quantiser::new(
-        window::largest_weighted(&data, strip_weights, w, rows, n),
-        params.p2.max(params.p1),
-        params.num_paths,
-    );
-    let mut levels = crate::large_buffer::reuse::<u16>(spare, len);
-    window::window_to_levels(
-        &data,
-        strip_weights,
-        w,
-        rows,
-        n,
-        params.cost_window_radius,
-        &quant,
-        &mut levels,
-        monitor,
-    )?;
-    monitor.checkpoint()?;
-    // The plane-major volume is spent once windowed: its memory holds `S`.
-    let sum = &mut bytemuck::cast_slice_mut::<f32, u16>(&mut data[..])[..len];
     let row_len = w * n;
+    monitor.checkpoint()?;
     sgm::aggregate_into(
-        &levels,
+        levels,
         sum,
         w,
         rows,
@@ -805,7 +835,7 @@ fn strip_selections(
             }
             select::select_into(row, n, eps, selected);
         });
-    Ok((selections, (data, levels)))
+    Ok(selections)
 }
 
 /// Step 5 and the rejections: the consistency verdicts from the sources' `claims` (none when
@@ -900,7 +930,7 @@ pub fn depth_from_cost_volume(
 
 /// [`depth_from_cost_volume`] on raw costs: `data` is a `[plane][y][x]` `f32` volume of
 /// `planes.num_planes` planes of `w×h` pixels (cost units as in [`SgmParams`]). Fails naming
-/// `costs` for a wrong length or a negative or non-finite cost (SGM aggregates unsigned 12-bit
+/// `costs` for a wrong length or a negative or non-finite cost (SGM aggregates unsigned integer
 /// levels of the costs, [`quantise`]), `guide` for a guide of another size.
 pub fn depth_from_costs(
     data: Vec<f32>,
@@ -946,14 +976,36 @@ pub fn depth_from_costs(
         rows: 0..h,
         core: 0..h,
     };
-    let (selections, _) = strip_selections(
-        data,
-        Vec::new(),
+    // Given costs have no known bound: the exact largest weighted cost sets the levels.
+    let quant = Quantiser::new(
+        window::largest_weighted(&data, &weights, w, h, n),
+        params.p2.max(params.p1),
+        params.num_paths,
+    );
+    let mut levels = crate::large_buffer::zeroed::<u16>(data.len());
+    window::window_to_levels(
+        &data,
+        &weights,
+        w,
+        h,
+        n,
+        params.cost_window_radius,
+        &quant,
+        &mut levels,
+        monitor,
+    )?;
+    // The plane-major volume is spent once windowed: its memory holds `S`.
+    let len = data.len();
+    let mut data = data;
+    let sum = &mut bytemuck::cast_slice_mut::<f32, u16>(&mut data[..])[..len];
+    let selections = strip_selections(
+        &levels,
+        sum,
+        &quant,
         &whole,
         w,
         planes,
         guide,
-        &weights,
         params,
         &[],
         monitor,

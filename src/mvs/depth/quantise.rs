@@ -7,19 +7,26 @@
 //!
 //! Each strip's windowed costs `c ∈ [0, c_max]` become levels `q = round(c · k)`, `k = Q / c_max`,
 //! and the penalties `P1`, `P2` (and the selection's `ε`) are scaled by the same `k`, so the
-//! aggregation is the `f32` one of costs rounded to a step of `c_max / Q`: with `Q = 4095` (12
-//! bits) the simulator's full-size C.P. moved by 0.1–0.3 points and the hazy Aloe pair not at all
-//! (docs/BENCHMARKS.md). `Q` shrinks where the penalties are large against `c_max`, so that a sum
-//! of `paths` path costs, each at most `Q + P2·k` (the recursion's bound), still fits `u16`:
-//! the integer sums then never saturate and equal the `f32` sums of the levels exactly.
+//! aggregation is the `f32` one of costs rounded to a step of `c_max / Q`. `Q` is as large as
+//! `u16` sums allow: a sum of `paths` path costs, each at most `Q + P2·k` (the recursion's
+//! bound), must fit `u16`, so the integer sums never saturate and equal the `f32` sums of the
+//! levels exactly. With 8 paths and the default `P2` that is about 8000 levels (13 bits); with
+//! `Q = 4095` (12 bits) the simulator's full-size C.P. had moved by 0.1–0.3 points against `f32`
+//! and the hazy Aloe pair not at all (docs/BENCHMARKS.md).
+//!
+//! `c_max` is known before a strip's costs are ([`super::estimate_depth`] builds and quantises
+//! them band by band): the largest weighted cost the volume can hold. A larger cost, which only
+//! the ordinary volume of images outside `[0, 1]` produces, takes the top level: a truncated
+//! cost.
 //!
 //! `S` of different strips is in different levels; [`Quantiser::unit`] converts it back to cost
 //! units where strips meet (the consistency check's claims).
 
 use super::sgm::Penalties;
 
-/// The most levels a strip's costs get: 12 bits, the precision measured in docs/BENCHMARKS.md.
-pub const MAX_LEVELS: u16 = 4095;
+/// The most levels a strip's costs get (14 bits, reached with 4 paths and small penalties; 8
+/// paths leave room for about half of it, see the module docs).
+pub const MAX_LEVELS: u16 = 16383;
 
 /// The scale from one strip's costs to `u16` levels.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -39,14 +46,13 @@ impl Quantiser {
     pub fn new(max_cost: f32, p2: f32, num_paths: usize) -> Self {
         // paths · (Q + P2·Q/c_max + ½) ≤ 65535, with ½ for the rounding of P2.
         let per_path = (f64::from(u16::MAX) / num_paths.max(1) as f64) - 0.5;
+        let most = per_path.floor().clamp(1.0, f64::from(MAX_LEVELS));
         let (q, per_unit) = if max_cost.is_finite() && max_cost > 0.0 {
             let ratio = f64::from(p2.max(0.0)) / f64::from(max_cost);
-            let q = (per_path / (1.0 + ratio))
-                .floor()
-                .clamp(1.0, f64::from(MAX_LEVELS)) as u16;
+            let q = (per_path / (1.0 + ratio)).floor().clamp(1.0, most) as u16;
             (q, (f64::from(q) / f64::from(max_cost)) as f32)
         } else {
-            (MAX_LEVELS, 1.0)
+            (most as u16, 1.0)
         };
         Self {
             per_unit,
@@ -97,7 +103,7 @@ impl Quantiser {
             // `v > 0` is false for NaN, so `v` ends finite in `[0, Q]`.
             let v = if v > 0.0 { v } else { 0.0 };
             let v = if v < top { v } else { top };
-            // SAFETY: `v` is finite and in `[0, 4095]`, so it fits `i32`; truncating `v + ½`
+            // SAFETY: `v` is finite and in `[0, MAX_LEVELS]`, so it fits `i32`; truncating `v + ½`
             // rounds half up. (The saturating `as` keeps this loop scalar.)
             *d = unsafe { v.to_int_unchecked::<i32>() } as u16;
         }
@@ -138,8 +144,11 @@ mod tests {
             q.quantise_row(&[max, 0.0, max * 2.0], &mut top);
             assert_eq!(top, [q.levels(), 0, q.levels()]);
         }
-        assert_eq!(Quantiser::new(4.0, 0.1, 8).levels(), MAX_LEVELS);
-        assert_eq!(Quantiser::new(0.0, 0.1, 8).levels(), MAX_LEVELS);
+        // As many levels as the u16 sums allow: 8 · (Q + P2·Q/c_max + ½) ≤ 65535.
+        assert_eq!(Quantiser::new(4.0, 0.1, 8).levels(), 7991);
+        assert_eq!(Quantiser::new(12.0, 0.0, 4).levels(), MAX_LEVELS);
+        assert_eq!(Quantiser::new(0.0, 0.1, 8).levels(), 8191);
+        assert_eq!(Quantiser::new(0.0, 0.1, 4).levels(), MAX_LEVELS);
     }
 
     #[test]

@@ -151,8 +151,8 @@ fn sub_plane_refinement_recovers_fractional_minimum() {
     let guide = ImageF32::filled(w, h, 3, 0.5);
     let r = depth_from_costs(data, w, h, &planes, &guide, &params, &Monitor::noop()).unwrap();
     let want = planes.inverse_depth(f64::from(m));
-    // SGM aggregates the curve as 12-bit levels (`quantise`): the vertex moves by a few
-    // hundredths of a plane (0.01 here), not more.
+    // SGM aggregates the curve as integer levels (`quantise`, 13 bits here): the vertex moves
+    // by a few thousandths of a plane, not more.
     let plane_step = planes.inverse_depth(1.0) - planes.inverse_depth(0.0);
     for (&inv, &z) in r.inverse_depth.data().iter().zip(r.z_depth.data()) {
         assert!(
@@ -389,6 +389,131 @@ fn confidence_high_on_texture_low_on_flat() {
     };
     let (tex, flat) = (median(4, W / 2 - 10), median(W / 2 + 10, W - 4));
     assert!(tex > 0.3 && flat < 0.5 * tex, "textured {tex}, flat {flat}");
+}
+
+/// The bound that quantises a strip before its costs exist holds every weighted voxel of each
+/// cost kind, with the census term and without, on hazy views of the test rig (whose sources see
+/// only part of the reference at the near planes, so out-of-view penalties are among the voxels):
+/// no cost takes the top level by truncation. Without weights the bound is reached where a voxel
+/// that no source sees holds the penalty `γ`.
+#[test]
+fn cost_bound_holds_every_weighted_cost() {
+    use crate::atmosphere::AtmosphereParams;
+    use crate::mvs::cost_volume::{build_cost_volume, DehazingOptions};
+    let rig = rig(4.0, 0.3, f64::INFINITY);
+    let atm = AtmosphereParams {
+        airlight: 0.8,
+        beta: 0.2,
+    };
+    // The views hazed with the rig's depth seen from the reference (enough for the bound).
+    let hazy: Vec<ImageF32> = rig
+        .images
+        .iter()
+        .map(|img| {
+            let mut out = img.clone();
+            for y in 0..H {
+                for x in 0..W {
+                    let t = (-0.2 * rig.depth.get(x, y, 0)).exp();
+                    for c in 0..3 {
+                        out.set(x, y, c, img.get(x, y, c) * t + 0.8 * (1.0 - t));
+                    }
+                }
+            }
+            out
+        })
+        .collect();
+    let views: Vec<View<'_>> = hazy
+        .iter()
+        .zip(&rig.poses)
+        .map(|(image, pose)| View {
+            image,
+            intrinsics: k(),
+            pose: *pose,
+        })
+        .collect();
+    let planes = PlaneSet::new(1.0, 10.0, 48).unwrap();
+    let params = SgmParams::default();
+    let weights = contrast_weights_of(views[0].image, &params);
+    let w_max = weights.iter().copied().fold(1.0f32, f32::max);
+    assert!(w_max > 1.0, "the rig's contrast weights reach above 1");
+    let codes = census::census_transform(views[0].image);
+    let source_codes: Vec<CensusImage> = views[1..]
+        .iter()
+        .map(|v| census::census_transform(v.image))
+        .collect();
+    let census_sources: Vec<CensusSource<'_>> = views[1..]
+        .iter()
+        .zip(&source_codes)
+        .map(|(v, c)| CensusSource {
+            census: c,
+            intrinsics: v.intrinsics,
+            relative: Pose::relative(&views[0].pose, &v.pose),
+        })
+        .collect();
+    for kind in [
+        CostKind::Ordinary,
+        CostKind::Dehazing(atm),
+        CostKind::DehazingWith(atm, DehazingOptions::default()),
+    ] {
+        for census_weight in [0.0f32, 1.5] {
+            let mut data =
+                build_cost_volume(&views[0], &views[1..], &planes, kind, &Monitor::noop())
+                    .unwrap()
+                    .into_vec();
+            if census_weight > 0.0 {
+                census::add_census_costs(
+                    &mut data,
+                    &codes,
+                    &k(),
+                    &census_sources,
+                    &planes,
+                    0..H,
+                    census_weight,
+                    &weights,
+                    &Monitor::noop(),
+                )
+                .unwrap();
+            }
+            let largest = window::largest_weighted(&data, &weights, W, H, planes.num_planes);
+            let bound = cost_bound(3, &weights, census_weight);
+            assert!(
+                largest <= bound * (1.0 + 1e-6),
+                "{kind:?} census {census_weight}: {largest} > {bound}"
+            );
+            // With one source, the near planes' voxels it does not see hold exactly γ: the
+            // unweighted bound is reached.
+            if census_weight == 0.0 {
+                let one =
+                    build_cost_volume(&views[0], &views[1..2], &planes, kind, &Monitor::noop())
+                        .unwrap()
+                        .into_vec();
+                let largest = window::largest_weighted(&one, &[], W, H, planes.num_planes);
+                assert_eq!(largest, cost_bound(3, &[], 0.0), "{kind:?}");
+            }
+        }
+    }
+}
+
+/// Bands of a strip take a quarter of the budget (at most 32 MiB) with their window rows, and
+/// at least 8 own rows.
+#[test]
+fn bands_fit_a_quarter_of_the_budget() {
+    for (w, n, r, mib) in [
+        (640, 173, 2, 96),
+        (256, 256, 2, 96),
+        (4000, 256, 16, 1024),
+        (640, 480, 0, 1),
+    ] {
+        let rows = band_rows_of(w, n, r, mib);
+        assert!(rows >= 8);
+        if rows > 8 {
+            let bytes = (rows + 2 * r) * w * n * 4;
+            assert!(
+                bytes <= ((mib << 20) / 4).min(32 << 20),
+                "{w}x{n} r={r} {mib} MiB: {rows} rows"
+            );
+        }
+    }
 }
 
 /// Strips partition the rows, each strip's volume covers its own rows plus the overlap, and a

@@ -15,9 +15,12 @@ use crate::monitor::Monitor;
 /// one contiguous run of the pixel-major row (32 bytes), not one scattered float per plane.
 const PLANE_GROUP: usize = 8;
 
-/// Rows per rayon task. Each task also filters the `r` rows above and below its band, so taller
-/// bands waste less; 32 rows leave several tasks per strip for 2+ cores.
-const BAND_ROWS: usize = 32;
+/// The fewest and most output rows per rayon task. Each task also filters the `r` rows above and
+/// below its rows, so taller tasks waste less; a band of a few dozen rows still gets one task
+/// per worker.
+const MIN_TASK_ROWS: usize = 8;
+/// See [`MIN_TASK_ROWS`].
+const MAX_TASK_ROWS: usize = 32;
 
 /// The largest weighted cost `weights[y][x] · data[i][y][x]` of the `[plane][y][x]` volume
 /// `data` (`n` planes of `w·h`; `weights` row-major `w·h`, empty = all 1), 0 for an empty
@@ -114,9 +117,9 @@ pub fn largest_weighted(data: &[f32], weights: &[f32], w: usize, h: usize, n: us
 /// [`Quantiser::quantise_row`]. Reading the plane-major volume once and writing the pixel-major
 /// levels once replaces four passes over it (weights, window, transpose, quantisation). Each
 /// task keeps `2r + 1` horizontally filtered pixel-major rows in a ring, so the vertical mean is
-/// a contiguous, vectorised sum over planes. Horizontal sums run in `f64` (running sums along a
-/// row); the vertical sum adds `2r + 1` `f32` values, 64 at a time in L1, which are quantised
-/// there: the `f32` means never reach memory.
+/// a contiguous, vectorised sum over planes. Both sums add `2r + 1` `f32` values directly (no
+/// running sums, so no drift along a row): the horizontal one along each plane row, the vertical
+/// one 64 values at a time in L1, where they are quantised: the `f32` means never reach memory.
 #[allow(clippy::too_many_arguments)]
 pub fn window_to_levels(
     data: &[f32],
@@ -129,18 +132,52 @@ pub fn window_to_levels(
     out: &mut [u16],
     monitor: &Monitor,
 ) -> Result<()> {
-    let npix = w * h;
+    assert_eq!(data.len(), w * h * n, "volume size");
+    window_rows_to_levels(data, 0..h, weights, w, h, n, r, 0..h, quant, out, monitor)
+}
+
+/// [`window_to_levels`] of the output rows `out_rows` of an `h`-row volume whose rows
+/// `data_rows` only are in `data` (`[plane][row][x]`, `n` planes of `w · data_rows.len()`):
+/// `out` gets those rows' levels (`[row][x][plane]`, `out_rows.len() · w · n` values), the same
+/// as the rows of the whole volume's [`window_to_levels`]. `data_rows` must hold every row the
+/// windows of `out_rows` read (`r` rows above and below, clipped at `0` and `h`). `weights` cover
+/// all `h` rows (row-major `w·h`, empty = all 1). A strip is windowed band by band this way, each
+/// band's costs computed just before and still in cache.
+#[allow(clippy::too_many_arguments)]
+pub fn window_rows_to_levels(
+    data: &[f32],
+    data_rows: std::ops::Range<usize>,
+    weights: &[f32],
+    w: usize,
+    h: usize,
+    n: usize,
+    r: usize,
+    out_rows: std::ops::Range<usize>,
+    quant: &Quantiser,
+    out: &mut [u16],
+    monitor: &Monitor,
+) -> Result<()> {
+    let npix = w * data_rows.len();
     assert_eq!(data.len(), npix * n, "volume size");
-    assert_eq!(out.len(), data.len(), "output size");
-    assert!(weights.is_empty() || weights.len() == npix, "weights size");
-    if npix == 0 || n == 0 {
+    assert_eq!(out.len(), out_rows.len() * w * n, "output size");
+    assert!(weights.is_empty() || weights.len() == w * h, "weights size");
+    assert!(
+        data_rows.end <= h && out_rows.end <= h,
+        "rows inside the volume"
+    );
+    if out_rows.is_empty() || w == 0 || n == 0 {
         return Ok(());
     }
+    assert!(
+        data_rows.start <= out_rows.start.saturating_sub(r)
+            && data_rows.end >= (out_rows.end + r).min(h),
+        "data rows hold the windows of the output rows"
+    );
     monitor.checkpoint()?;
     // 1 / (pixels of the clipped window) along each axis: a multiply per voxel, not a divide.
-    let inv_counts = |len: usize| -> Vec<f64> {
+    let inv_counts = |len: usize| -> Vec<f32> {
         (0..len)
-            .map(|i| 1.0 / ((i + r + 1).min(len) - i.saturating_sub(r)) as f64)
+            .map(|i| 1.0 / ((i + r + 1).min(len) - i.saturating_sub(r)) as f32)
             .collect()
     };
     let (inv_x, inv_y) = (inv_counts(w), inv_counts(h));
@@ -153,13 +190,23 @@ pub fn window_to_levels(
     } else {
         Vec::new()
     };
-    out.par_chunks_mut(BAND_ROWS * row_len)
+    // At least one task per worker for a band of a few dozen rows, each refiltering `2r` rows.
+    let task_rows = out_rows
+        .len()
+        .div_ceil(rayon::current_num_threads())
+        .clamp(MIN_TASK_ROWS, MAX_TASK_ROWS);
+    out.par_chunks_mut(task_rows * row_len)
         .enumerate()
         .for_each_init(
-            || vec![0.0f32; ring_len * row_len],
-            |ring, (band, out_band)| {
-                let y0 = band * BAND_ROWS;
-                let y1 = (y0 + BAND_ROWS).min(h);
+            || {
+                (
+                    vec![0.0f32; ring_len * row_len],
+                    HorizontalScratch::new(w, r),
+                )
+            },
+            |(ring, scratch), (task, out_task)| {
+                let y0 = out_rows.start + task * task_rows;
+                let y1 = (y0 + task_rows).min(out_rows.end);
                 // The next row to filter into the ring.
                 let mut next = y0.saturating_sub(r);
                 for y in y0..y1 {
@@ -179,15 +226,16 @@ pub fn window_to_levels(
                             npix,
                             n,
                             r,
-                            next,
+                            next - data_rows.start,
                             &inv_x,
+                            scratch,
                             slot,
                         );
                         next += 1;
                     }
-                    let dst = &mut out_band[(y - y0) * row_len..][..row_len];
+                    let dst = &mut out_task[(y - y0) * row_len..][..row_len];
                     let lo = y.saturating_sub(r);
-                    let k = inv_y[y] as f32;
+                    let k = inv_y[y];
                     vertical_mean_fast(avx2, ring, row_len, lo..=last, k, quant, dst);
                 }
             },
@@ -279,7 +327,8 @@ fn horizontal_row_fast(
     n: usize,
     r: usize,
     y: usize,
-    inv_x: &[f64],
+    inv_x: &[f32],
+    scratch: &mut HorizontalScratch,
     slot: &mut [f32],
 ) {
     #[cfg(target_arch = "x86_64")]
@@ -294,25 +343,46 @@ fn horizontal_row_fast(
             n: usize,
             r: usize,
             y: usize,
-            inv_x: &[f64],
+            inv_x: &[f32],
+            scratch: &mut HorizontalScratch,
             slot: &mut [f32],
         ) {
-            horizontal_row(data, weights, w, npix, n, r, y, inv_x, slot)
+            horizontal_row(data, weights, w, npix, n, r, y, inv_x, scratch, slot)
         }
         if avx2 {
             // SAFETY: the caller detected AVX2 on this CPU ([`crate::cpu::avx2_enabled`]).
-            return unsafe { with_avx2(data, weights, w, npix, n, r, y, inv_x, slot) };
+            return unsafe { with_avx2(data, weights, w, npix, n, r, y, inv_x, scratch, slot) };
         }
     }
     let _ = avx2;
-    horizontal_row(data, weights, w, npix, n, r, y, inv_x, slot)
+    horizontal_row(data, weights, w, npix, n, r, y, inv_x, scratch, slot)
+}
+
+/// Per-task buffers of [`horizontal_row`]: one zero-padded weighted plane row and the box means
+/// of a [`PLANE_GROUP`] of plane rows, all in L1 for rows up to a few thousand pixels.
+struct HorizontalScratch {
+    /// `r` zeros, the weighted row (`w`), `r` zeros: the clipped window's missing pixels add 0.
+    padded: Vec<f32>,
+    /// The group's box means, plane row after plane row (`PLANE_GROUP · w`).
+    means: Vec<f32>,
+}
+
+impl HorizontalScratch {
+    fn new(w: usize, r: usize) -> Self {
+        Self {
+            padded: vec![0.0; w + 2 * r],
+            means: vec![0.0; PLANE_GROUP * w],
+        }
+    }
 }
 
 /// Row `y` of every plane, weighted by that row's `weights` (`w` values) and box-summed along
 /// the row (mean over the clipped window), into the pixel-major row `slot` (`[x][plane]`).
-/// Planes go in groups of
-/// [`PLANE_GROUP`] with one running `f64` sum per plane: independent lanes, so the loop over `x`
-/// vectorises across the group's planes and writes each pixel's group contiguously.
+///
+/// Each plane row's window is `2r + 1` shifted additions of the zero-padded weighted row, 8
+/// columns per AVX2 instruction and exact to `f32` rounding with no running-sum drift; the means
+/// of a [`PLANE_GROUP`] of planes are then written transposed, each pixel's group as one
+/// contiguous run of `slot`.
 #[allow(clippy::too_many_arguments)]
 #[inline(always)]
 fn horizontal_row(
@@ -323,36 +393,44 @@ fn horizontal_row(
     n: usize,
     r: usize,
     y: usize,
-    inv_x: &[f64],
+    inv_x: &[f32],
+    scratch: &mut HorizontalScratch,
     slot: &mut [f32],
 ) {
+    let HorizontalScratch { padded, means } = scratch;
     let mut g0 = 0;
     while g0 < n {
         let g = PLANE_GROUP.min(n - g0);
-        let rows: [&[f32]; PLANE_GROUP] =
-            std::array::from_fn(|j| &data[(g0 + j.min(g - 1)) * npix + y * w..][..w]);
-        let mut acc = [0.0f64; PLANE_GROUP];
-        // The first window, up to but excluding column r.
-        for x in 0..r.min(w) {
-            for j in 0..PLANE_GROUP {
-                acc[j] += f64::from(rows[j][x] * weights[x]);
+        for j in 0..g {
+            let src = &data[(g0 + j) * npix + y * w..][..w];
+            for ((o, &c), &wt) in padded[r..r + w].iter_mut().zip(src).zip(weights) {
+                *o = c * wt;
             }
-        }
-        for (x, px) in slot.chunks_exact_mut(n).enumerate() {
-            if x + r < w {
-                let xi = x + r;
-                for j in 0..PLANE_GROUP {
-                    acc[j] += f64::from(rows[j][xi] * weights[xi]);
+            let m = &mut means[j * w..][..w];
+            m.copy_from_slice(&padded[..w]);
+            for k in 1..=2 * r {
+                for (o, &v) in m.iter_mut().zip(&padded[k..k + w]) {
+                    *o += v;
                 }
             }
-            let k = inv_x[x];
-            for (j, o) in px[g0..g0 + g].iter_mut().enumerate() {
-                *o = (acc[j] * k) as f32;
+            for (o, &k) in m.iter_mut().zip(inv_x) {
+                *o *= k;
             }
-            if x >= r {
-                let xo = x - r;
-                for j in 0..PLANE_GROUP {
-                    acc[j] -= f64::from(rows[j][xo] * weights[xo]);
+        }
+        if g == PLANE_GROUP {
+            // Fixed-size groups: the compiler turns the 8 loads per pixel into a transpose.
+            for (x, px) in slot.chunks_exact_mut(n).enumerate() {
+                let dst: &mut [f32; PLANE_GROUP] = (&mut px[g0..g0 + PLANE_GROUP])
+                    .try_into()
+                    .expect("group of PLANE_GROUP planes");
+                for (j, o) in dst.iter_mut().enumerate() {
+                    *o = means[j * w + x];
+                }
+            }
+        } else {
+            for (x, px) in slot.chunks_exact_mut(n).enumerate() {
+                for (j, o) in px[g0..g0 + g].iter_mut().enumerate() {
+                    *o = means[j * w + x];
                 }
             }
         }
@@ -394,6 +472,69 @@ mod tests {
             }
         }
         out
+    }
+
+    /// A volume windowed band by band, each band's rows and the rows its windows read given
+    /// alone, is the whole volume windowed at once, bit for bit (AVX2 and plain code).
+    #[test]
+    fn bands_window_like_the_whole_volume() {
+        for (w, h, n, r, band) in [
+            (13, 40, 11, 2, 8),
+            (9, 37, 8, 3, 5),
+            (20, 17, 17, 0, 4),
+            (7, 30, 3, 5, 9),
+            (16, 12, 9, 1, 12),
+            (5, 9, 2, 2, 1),
+        ] {
+            let data: Vec<f32> = (0..w * h * n)
+                .map(|i| ((i * 53) % 17) as f32 * 0.07)
+                .collect();
+            let weights: Vec<f32> = (0..w * h)
+                .map(|i| 1.0 + ((i * 11) % 7) as f32 * 0.4)
+                .collect();
+            let quant = Quantiser::new(largest_weighted(&data, &weights, w, h, n), 0.3, 8);
+            for scalar in [false, true] {
+                crate::cpu::force_scalar(scalar);
+                let mut whole = vec![0u16; data.len()];
+                window_to_levels(
+                    &data,
+                    &weights,
+                    w,
+                    h,
+                    n,
+                    r,
+                    &quant,
+                    &mut whole,
+                    &Monitor::noop(),
+                )
+                .unwrap();
+                let mut banded = vec![u16::MAX; data.len()];
+                for y0 in (0..h).step_by(band) {
+                    let own = y0..(y0 + band).min(h);
+                    let read = own.start.saturating_sub(r)..(own.end + r).min(h);
+                    let part: Vec<f32> = (0..n)
+                        .flat_map(|i| &data[(i * h + read.start) * w..(i * h + read.end) * w])
+                        .copied()
+                        .collect();
+                    window_rows_to_levels(
+                        &part,
+                        read,
+                        &weights,
+                        w,
+                        h,
+                        n,
+                        r,
+                        own.clone(),
+                        &quant,
+                        &mut banded[own.start * w * n..own.end * w * n],
+                        &Monitor::noop(),
+                    )
+                    .unwrap();
+                }
+                crate::cpu::force_scalar(false);
+                assert_eq!(banded, whole, "{w}x{h}x{n} r={r} bands of {band}");
+            }
+        }
     }
 
     #[test]

@@ -265,8 +265,8 @@ class SgmOptions(_message.Message):
     volume_budget_mib: _builtins.int
     """Memory bound, MiB, 1 to 65536, default 96: when the f32 cost volume of the whole reference is
     larger, depth is estimated in horizontal strips (with 24 rows of overlap) whose volume fits
-    it; the peak is about 1.5 times this plus the images. A 640 x 480 pair with ~170 planes peaks
-    near 220 MiB with the default (the whole murk mvs process, server included).
+    it; the peak is about 1.25 times this plus the images. A 640 x 480 pair with ~170 planes peaks
+    near 205 MiB with the default (the whole murk mvs process, server included).
     """
     exposure_compensation: _builtins.bool
     """Estimate each source camera's gain per channel relative to the reference (from the matching
