@@ -152,11 +152,11 @@ fn sub_plane_refinement_recovers_fractional_minimum() {
     let r = depth_from_costs(data, w, h, &planes, &guide, &params, &Monitor::noop()).unwrap();
     let want = planes.inverse_depth(f64::from(m));
     // SGM aggregates the curve as integer levels (`quantise`, 13 bits here): the vertex moves
-    // by a few thousandths of a plane, not more.
+    // by 0.006 plane here (0.01 with session 27's 12 bits), not more.
     let plane_step = planes.inverse_depth(1.0) - planes.inverse_depth(0.0);
     for (&inv, &z) in r.inverse_depth.data().iter().zip(r.z_depth.data()) {
         assert!(
-            (f64::from(inv) - want).abs() < 0.03 * plane_step.abs(),
+            (f64::from(inv) - want).abs() < 0.015 * plane_step.abs(),
             "{inv} vs {want}"
         );
         assert!((z * inv - 1.0).abs() < 1e-6, "z {z} is not 1 / {inv}");
