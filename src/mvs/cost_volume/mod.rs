@@ -454,6 +454,10 @@ pub struct SweepImages {
     sources4: Vec<Vec<[f32; 4]>>,
     ref_planar: Vec<f32>,
     shift_planar: Vec<Vec<f32>>,
+    /// The reference's noise σ ([`estimate_noise_sigma`], a median over the whole image) where
+    /// the cost's range check needs it and its options do not give it, else 0: estimated once,
+    /// not once per band of rows.
+    noise_sigma: f32,
 }
 
 impl SweepImages {
@@ -524,11 +528,26 @@ impl SweepImages {
         } else {
             Vec::new()
         };
+        let noise_sigma = match kind.dehazing() {
+            Some((_, o))
+                if o.noise_sigma.is_none()
+                    && matches!(
+                        o.range,
+                        RangePenalty::NoiseAware { .. }
+                            | RangePenalty::ReferenceAware { .. }
+                            | RangePenalty::Soft { .. }
+                    ) =>
+            {
+                estimate_noise_sigma(reference.image)
+            }
+            _ => 0.0,
+        };
         Ok(Self {
             ref4,
             sources4,
             ref_planar,
             shift_planar,
+            noise_sigma,
         })
     }
 
@@ -568,8 +587,13 @@ pub fn build_cost_volume_rows_in(
     validate_inputs(reference, sources, planes, kind)?;
     let voxels = volume_voxels(reference.image.width(), rows.len(), planes.num_planes)?;
     let mut data = crate::large_buffer::reuse(buffer, voxels);
+    let layout = RowsLayout {
+        plane_stride: reference.image.width() * rows.len(),
+        first_row: 0,
+    };
     fill_cost_rows(
         &mut data,
+        layout,
         reference,
         sources,
         planes,
@@ -600,15 +624,27 @@ fn volume_voxels(w: usize, rows: usize, n_planes: usize) -> Result<usize> {
         })
 }
 
-/// The cost volume's rows `rows` ([`build_cost_volume_rows_in`]'s values) written into `out`
-/// (`[plane][row][x]`, `planes.num_planes · rows.len() · W` values; its contents do not matter),
-/// for a caller that builds a strip a few rows at a time and keeps each band of rows in cache.
-/// The views are not validated again: `images` must come from [`SweepImages::new`] of the same
-/// views, planes and cost, which validates them (only their sizes are checked here, naming
-/// `images`; rows outside the reference are refused naming `rows`, a wrong `out` naming `out`).
+/// Where [`fill_cost_rows`] writes in its buffer: plane `i`'s rows start at
+/// `i · plane_stride + first_row · W`, so a caller can keep rows it already has in front of them.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct RowsLayout {
+    /// Values from one plane's rows to the next plane's.
+    pub plane_stride: usize,
+    /// Rows of each plane's part before the written ones.
+    pub first_row: usize,
+}
+
+/// The cost volume's rows `rows` ([`build_cost_volume_rows_in`]'s values) written into `out` as
+/// `layout` says (`planes.num_planes · plane_stride` values; the values outside the written rows
+/// are left as they are), for a caller that builds a strip a band of rows at a time, each band
+/// windowed while in cache. The views are not validated again: `images` must come from
+/// [`SweepImages::new`] of the same views, planes and cost, which validates them (only their
+/// sizes are checked here, naming `images`; rows outside the reference are refused naming
+/// `rows`, a buffer or layout that does not hold them naming `out`).
 #[allow(clippy::too_many_arguments)]
 pub fn fill_cost_rows(
     out: &mut [f32],
+    layout: RowsLayout,
     reference: &View<'_>,
     sources: &[View<'_>],
     planes: &PlaneSet,
@@ -641,10 +677,7 @@ pub fn fill_cost_rows(
     );
     // Noise margin (observation units) of the hard range check: 0 for Eq. 3.7, ∞ for none;
     // and of the soft one.
-    let sigma = |o: &DehazingOptions| {
-        o.noise_sigma
-            .unwrap_or_else(|| estimate_noise_sigma(reference.image))
-    };
+    let sigma = |o: &DehazingOptions| o.noise_sigma.unwrap_or(images.noise_sigma);
     // (reference margin, source margin, soft margin)
     let (margin, src_margin, soft_margin) = match kind.dehazing() {
         None => (0.0, 0.0, None),
@@ -658,11 +691,16 @@ pub fn fill_cost_rows(
     };
     let n_pix = w * rows.len();
     let n_planes = planes.num_planes;
-    if out.len() != n_pix * n_planes {
+    let RowsLayout {
+        plane_stride,
+        first_row,
+    } = layout;
+    if plane_stride < (first_row + rows.len()) * w || out.len() != plane_stride * n_planes {
         return Err(MurkError::invalid(
             "out",
             format!(
-                "{} values for {w}x{} pixels x {n_planes} planes",
+                "{} values with {plane_stride} per plane cannot hold rows {first_row}.. of \
+                 {w}x{} pixels x {n_planes} planes",
                 out.len(),
                 rows.len()
             ),
@@ -682,98 +720,102 @@ pub fn fill_cost_rows(
         sources4,
         ref_planar,
         shift_planar,
+        ..
     } = images;
     let done = std::sync::atomic::AtomicUsize::new(0);
     // One rayon task per plane: a plane is ~50k voxels of independent work, and parallelising
     // over planes instead of over each plane's rows saves a fork-join (and the workers' sleep
     // and wake-up) per plane. Each worker reuses its row scratch and source list across planes.
     // Every voxel is assigned (`mean_or_penalty` ends each row), so reused memory is not zeroed.
-    out.par_chunks_mut(n_pix).enumerate().try_for_each_init(
-        || (RowScratch::default(), Vec::with_capacity(sources.len())),
-        |(scratch, plane_sources): &mut (RowScratch, Vec<SourcePlane<'_>>),
-         (i, out)|
-         -> Result<()> {
-            monitor.checkpoint()?;
-            let z = planes.depth(i as f64);
-            plane_sources.clear();
-            plane_sources.extend(
-                sources
-                    .iter()
-                    .zip(&relatives)
-                    .zip(sources4)
-                    .zip(shift_planar)
-                    .map(|(((s, rel), padded), planar)| SourcePlane {
-                        data: s.image.data(),
-                        padded,
-                        planar,
-                        warp: PlaneWarp::new(&reference.intrinsics, &s.intrinsics, rel, z),
-                    }),
-            );
-            let haze = match kind.dehazing() {
-                None => Haze {
-                    airlight: 0.0,
-                    beta: 0.0,
-                    ref_inv_t: 1.0,
-                    ref_offset: 0.0,
-                    ref_t: 1.0,
-                    residual: DehazingResidual::Eq37,
-                    ref_lo: 0.0,
-                    ref_hi: 1.0,
-                    src_margin: 0.0,
-                    soft_margin: None,
-                },
-                Some((p, o)) => {
-                    let t = transmission(p.beta, z as f32);
-                    let inv_t = inverse_transmission(t);
-                    Haze {
-                        airlight: p.airlight,
-                        beta: p.beta,
-                        ref_inv_t: inv_t,
-                        ref_offset: p.airlight * (1.0 - inv_t),
-                        ref_t: t.max(crate::atmosphere::MIN_TRANSMISSION),
-                        residual: o.residual,
-                        ref_lo: -margin * inv_t,
-                        ref_hi: 1.0 + margin * inv_t,
-                        src_margin,
-                        soft_margin,
+    out.par_chunks_mut(plane_stride)
+        .enumerate()
+        .try_for_each_init(
+            || (RowScratch::default(), Vec::with_capacity(sources.len())),
+            |(scratch, plane_sources): &mut (RowScratch, Vec<SourcePlane<'_>>),
+             (i, plane)|
+             -> Result<()> {
+                let out = &mut plane[first_row * w..][..n_pix];
+                monitor.checkpoint()?;
+                let z = planes.depth(i as f64);
+                plane_sources.clear();
+                plane_sources.extend(
+                    sources
+                        .iter()
+                        .zip(&relatives)
+                        .zip(sources4)
+                        .zip(shift_planar)
+                        .map(|(((s, rel), padded), planar)| SourcePlane {
+                            data: s.image.data(),
+                            padded,
+                            planar,
+                            warp: PlaneWarp::new(&reference.intrinsics, &s.intrinsics, rel, z),
+                        }),
+                );
+                let haze = match kind.dehazing() {
+                    None => Haze {
+                        airlight: 0.0,
+                        beta: 0.0,
+                        ref_inv_t: 1.0,
+                        ref_offset: 0.0,
+                        ref_t: 1.0,
+                        residual: DehazingResidual::Eq37,
+                        ref_lo: 0.0,
+                        ref_hi: 1.0,
+                        src_margin: 0.0,
+                        soft_margin: None,
+                    },
+                    Some((p, o)) => {
+                        let t = transmission(p.beta, z as f32);
+                        let inv_t = inverse_transmission(t);
+                        Haze {
+                            airlight: p.airlight,
+                            beta: p.beta,
+                            ref_inv_t: inv_t,
+                            ref_offset: p.airlight * (1.0 - inv_t),
+                            ref_t: t.max(crate::atmosphere::MIN_TRANSMISSION),
+                            residual: o.residual,
+                            ref_lo: -margin * inv_t,
+                            ref_hi: 1.0 + margin * inv_t,
+                            src_margin,
+                            soft_margin,
+                        }
+                    }
+                };
+                let srcs = &plane_sources[..];
+                let images = ReferenceImages {
+                    data: refd,
+                    rgb4: ref4,
+                    planar: ref_planar,
+                };
+                for (k, row) in out.chunks_exact_mut(w).enumerate() {
+                    let y = rows.start + k;
+                    match (c, dehaze) {
+                        (1, true) if observation => fill_row_observation::<1, true>(
+                            row, y, images, w, h, srcs, haze, penalty, scratch,
+                        ),
+                        (_, true) if observation => fill_row_observation::<3, true>(
+                            row, y, images, w, h, srcs, haze, penalty, scratch,
+                        ),
+                        // The ordinary volume's direct row (bit-identical to the generic one).
+                        (1, false) => fill_row_observation::<1, false>(
+                            row, y, images, w, h, srcs, haze, penalty, scratch,
+                        ),
+                        (_, false) => fill_row_observation::<3, false>(
+                            row, y, images, w, h, srcs, haze, penalty, scratch,
+                        ),
+                        (1, true) => {
+                            fill_row::<1, true>(row, y, refd, w, h, srcs, haze, penalty, scratch)
+                        }
+                        (_, true) => {
+                            fill_row::<3, true>(row, y, refd, w, h, srcs, haze, penalty, scratch)
+                        }
                     }
                 }
-            };
-            let srcs = &plane_sources[..];
-            let images = ReferenceImages {
-                data: refd,
-                rgb4: ref4,
-                planar: ref_planar,
-            };
-            for (k, row) in out.chunks_exact_mut(w).enumerate() {
-                let y = rows.start + k;
-                match (c, dehaze) {
-                    (1, true) if observation => fill_row_observation::<1, true>(
-                        row, y, images, w, h, srcs, haze, penalty, scratch,
-                    ),
-                    (_, true) if observation => fill_row_observation::<3, true>(
-                        row, y, images, w, h, srcs, haze, penalty, scratch,
-                    ),
-                    // The ordinary volume's direct row (bit-identical to the generic one).
-                    (1, false) => fill_row_observation::<1, false>(
-                        row, y, images, w, h, srcs, haze, penalty, scratch,
-                    ),
-                    (_, false) => fill_row_observation::<3, false>(
-                        row, y, images, w, h, srcs, haze, penalty, scratch,
-                    ),
-                    (1, true) => {
-                        fill_row::<1, true>(row, y, refd, w, h, srcs, haze, penalty, scratch)
-                    }
-                    (_, true) => {
-                        fill_row::<3, true>(row, y, refd, w, h, srcs, haze, penalty, scratch)
-                    }
-                }
-            }
-            let k = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
-            monitor.progress("mvs.cost_volume", k as f32 / n_planes as f32);
-            Ok(())
-        },
-    )
+                let k = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+                monitor.progress("mvs.cost_volume", k as f32 / n_planes as f32);
+                Ok(())
+            },
+        )
 }
 
 #[cfg(test)]

@@ -45,7 +45,7 @@ use crate::image::ImageF32;
 use crate::monitor::Monitor;
 use crate::mvs::cost_volume::census::{self, CensusImage, CensusSource};
 use crate::mvs::cost_volume::{
-    fill_cost_rows, validate_inputs, CostKind, CostVolume, SweepImages, View,
+    fill_cost_rows, validate_inputs, CostKind, CostVolume, RowsLayout, SweepImages, View,
 };
 use crate::mvs::plane_sweep::PlaneSet;
 
@@ -354,6 +354,20 @@ pub fn estimate_depth(
     params: &SgmParams,
     monitor: &Monitor,
 ) -> Result<DepthResult> {
+    estimate_depth_in_bands(reference, sources, planes, kind, params, None, monitor)
+}
+
+/// [`estimate_depth`] with strips built in bands of `band_rows` own rows (default
+/// [`band_rows_of`]); the depth does not depend on it (tested).
+fn estimate_depth_in_bands(
+    reference: &View<'_>,
+    sources: &[View<'_>],
+    planes: &PlaneSet,
+    kind: CostKind,
+    params: &SgmParams,
+    band_rows: Option<usize>,
+    monitor: &Monitor,
+) -> Result<DepthResult> {
     params.validate().map_err(|e| e.within("sgm"))?;
     // Invalid images are left to `build_cost_volume` to report; smoothing keeps their sizes and
     // spreads NaN, so the field it names is unchanged.
@@ -530,7 +544,9 @@ pub fn estimate_depth(
         .map(|g| SourceClaims::new(g, planes))
         .collect();
     let strips = strips_of(w, h, n, params.volume_budget_mib);
-    let band_rows = band_rows_of(w, n, params.cost_window_radius, params.volume_budget_mib);
+    let band_rows = band_rows
+        .unwrap_or_else(|| band_rows_of(w, n, params.cost_window_radius, params.volume_budget_mib))
+        .max(1);
     let r = params.cost_window_radius;
     let mut selections = Vec::with_capacity(w * h);
     let k = strips.len() as f32;
@@ -558,26 +574,56 @@ pub fn estimate_depth(
         // Bands of equal height, so that the last one is not a sliver that one worker windows.
         let bands = rows.div_ceil(band_rows);
         let band_rows = rows.div_ceil(bands);
+        // The previous band's rows (strip-relative) and plane stride in `band`.
+        let mut kept: Option<(std::ops::Range<usize>, usize)> = None;
         for b in 0..bands {
             let m = m.sub(b as f32 / bands as f32, (b + 1) as f32 / bands as f32);
             // Strip-relative: the band's own rows and the rows their windows read.
             let own = b * band_rows..((b + 1) * band_rows).min(rows);
             let read = own.start.saturating_sub(r)..(own.end + r).min(rows);
+            let stride = read.len() * w;
+            // The `2r` rows both bands' windows read are the previous band's last rows: moved to
+            // the front of each plane instead of computed again (with the census term, which
+            // adds to whole bands, they are computed again).
+            let have = match &kept {
+                Some((prev, prev_stride))
+                    if census.is_none() && prev.start <= read.start && read.start < prev.end =>
+                {
+                    let count = prev.end.min(read.end) - read.start;
+                    move_plane_rows(
+                        &mut band,
+                        n,
+                        *prev_stride,
+                        (read.start - prev.start) * w,
+                        stride,
+                        count * w,
+                    );
+                    count
+                }
+                _ => 0,
+            };
+            let band = &mut band[..n * stride];
+            if have < read.len() {
+                let todo = strip.rows.start + read.start + have..strip.rows.start + read.end;
+                fill_cost_rows(
+                    band,
+                    RowsLayout {
+                        plane_stride: stride,
+                        first_row: have,
+                    },
+                    &reference,
+                    &sources,
+                    planes,
+                    kind,
+                    todo,
+                    &images,
+                    &m,
+                )?;
+            }
             let in_image = strip.rows.start + read.start..strip.rows.start + read.end;
-            band = crate::large_buffer::reuse(std::mem::take(&mut band), read.len() * row_len);
-            fill_cost_rows(
-                &mut band,
-                &reference,
-                &sources,
-                planes,
-                kind,
-                in_image.clone(),
-                &images,
-                &m,
-            )?;
             if let Some((reference_codes, _)) = &census {
                 census::add_census_costs(
-                    &mut band,
+                    band,
                     reference_codes,
                     &reference.intrinsics,
                     &census_sources,
@@ -593,8 +639,8 @@ pub fn estimate_depth(
                 )?;
             }
             window::window_rows_to_levels(
-                &band,
-                read,
+                band,
+                read.clone(),
                 strip_weights,
                 w,
                 rows,
@@ -605,6 +651,7 @@ pub fn estimate_depth(
                 &mut levels[own.start * row_len..own.end * row_len],
                 &m,
             )?;
+            kept = Some((read, stride));
         }
         let m = monitor.sub((j as f32 + 0.5) / k, (j as f32 + 1.0) / k);
         selections.extend(strip_selections(
@@ -771,6 +818,34 @@ fn contrast_weights_of(guide: &ImageF32, params: &SgmParams) -> Vec<f32> {
 fn cost_bound(channels: usize, strip_weights: &[f32], census_weight: f32) -> f32 {
     let w_max = strip_weights.iter().copied().fold(1.0f32, f32::max);
     channels as f32 * w_max + census_weight
+}
+
+/// Moves `len` values at `offset` in each of the `n` planes of `buf`, `old_stride` apart, to the
+/// start of each plane `new_stride` apart: the plane order is chosen so that no plane's values
+/// are overwritten before they are moved (`offset + len ≤ old_stride`, `len ≤ new_stride`).
+fn move_plane_rows(
+    buf: &mut [f32],
+    n: usize,
+    old_stride: usize,
+    offset: usize,
+    new_stride: usize,
+    len: usize,
+) {
+    assert!(
+        offset + len <= old_stride && len <= new_stride,
+        "rows inside the planes"
+    );
+    let mut step = |i: usize| {
+        let from = i * old_stride + offset;
+        buf.copy_within(from..from + len, i * new_stride);
+    };
+    // Growing planes move from the last (each destination lies past every earlier plane's
+    // values); shrinking ones from the first.
+    if new_stride >= old_stride {
+        (0..n).rev().for_each(&mut step);
+    } else {
+        (0..n).for_each(&mut step);
+    }
 }
 
 /// Own rows per band of a strip whose costs are built and windowed together (see

@@ -494,6 +494,75 @@ fn cost_bound_holds_every_weighted_cost() {
     }
 }
 
+/// The depth does not depend on the bands a strip is built in: bands of a few rows (whose
+/// windows' rows are moved from band to band, or computed again with the census term) give the
+/// one-band depth bit for bit, in one strip and in several.
+#[test]
+fn bands_do_not_change_the_depth() {
+    use crate::atmosphere::AtmosphereParams;
+    use crate::mvs::cost_volume::DehazingOptions;
+    let rig = rig(4.0, 0.3, f64::INFINITY);
+    let views: Vec<View<'_>> = rig
+        .images
+        .iter()
+        .zip(&rig.poses)
+        .map(|(image, pose)| View {
+            image,
+            intrinsics: k(),
+            pose: *pose,
+        })
+        .collect();
+    let planes = PlaneSet::new(2.0, 10.0, 64).unwrap();
+    let atm = AtmosphereParams {
+        airlight: 0.8,
+        beta: 0.1,
+    };
+    for (kind, census_weight, budget) in [
+        (CostKind::Ordinary, 0.0, 96),
+        (
+            CostKind::DehazingWith(atm, DehazingOptions::default()),
+            0.0,
+            96,
+        ),
+        (CostKind::Dehazing(atm), 1.0, 96),
+        (CostKind::Ordinary, 0.0, 1),
+    ] {
+        let params = SgmParams {
+            census_weight,
+            volume_budget_mib: budget,
+            ..SgmParams::default()
+        };
+        let depth = |bands| {
+            estimate_depth_in_bands(
+                &views[0],
+                &views[1..],
+                &planes,
+                kind,
+                &params,
+                bands,
+                &Monitor::noop(),
+            )
+            .unwrap()
+        };
+        // 1 MiB: strips of 16 own rows (the volume is 1.2 MiB).
+        assert_eq!(strips_of(W, H, 64, budget).len() > 1, budget == 1);
+        let whole = depth(Some(H));
+        for rows in [1, 3, 5, 8, 13] {
+            let banded = depth(Some(rows));
+            assert_eq!(
+                banded.z_depth.data(),
+                whole.z_depth.data(),
+                "{kind:?} {rows}"
+            );
+            assert_eq!(
+                banded.confidence.data(),
+                whole.confidence.data(),
+                "{kind:?} {rows}"
+            );
+        }
+    }
+}
+
 /// Bands of a strip take a quarter of the budget (at most 32 MiB) with their window rows, and
 /// at least 8 own rows.
 #[test]
