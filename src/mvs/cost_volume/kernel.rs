@@ -56,6 +56,22 @@ pub(super) struct Haze {
     pub soft_margin: Option<f32>,
 }
 
+impl Haze {
+    /// The ordinary volume's constants: no airlight, no dehazing (`J = I`), the `[0, 1]` range.
+    pub const CLEAR: Haze = Haze {
+        airlight: 0.0,
+        beta: 0.0,
+        ref_inv_t: 1.0,
+        ref_offset: 0.0,
+        ref_t: 1.0,
+        residual: DehazingResidual::Eq37,
+        ref_lo: 0.0,
+        ref_hi: 1.0,
+        src_margin: 0.0,
+        soft_margin: None,
+    };
+}
+
 /// `max(0, dist(j, [0, 1]) − margin)`: how far a dehazed value lies outside its noise-widened
 /// range.
 #[inline]
@@ -548,18 +564,7 @@ mod tests {
             planar: &[],
         };
         let (k, rel) = test_geometry();
-        let haze = Haze {
-            airlight: 0.0,
-            beta: 0.0,
-            ref_inv_t: 1.0,
-            ref_offset: 0.0,
-            ref_t: 1.0,
-            residual: DehazingResidual::Eq37,
-            ref_lo: 0.0,
-            ref_hi: 1.0,
-            src_margin: 0.0,
-            soft_margin: None,
-        };
+        let haze = Haze::CLEAR;
         for z in [1.0f64, 2.5, 6.0] {
             let sources = [
                 SourcePlane {

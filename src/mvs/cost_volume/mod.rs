@@ -752,18 +752,7 @@ pub fn fill_cost_rows(
                         }),
                 );
                 let haze = match kind.dehazing() {
-                    None => Haze {
-                        airlight: 0.0,
-                        beta: 0.0,
-                        ref_inv_t: 1.0,
-                        ref_offset: 0.0,
-                        ref_t: 1.0,
-                        residual: DehazingResidual::Eq37,
-                        ref_lo: 0.0,
-                        ref_hi: 1.0,
-                        src_margin: 0.0,
-                        soft_margin: None,
-                    },
+                    None => Haze::CLEAR,
                     Some((p, o)) => {
                         let t = transmission(p.beta, z as f32);
                         let inv_t = inverse_transmission(t);

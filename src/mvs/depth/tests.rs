@@ -298,17 +298,21 @@ fn rig(z0: f64, slope: f64, textured_below_x: f64) -> Rig {
     }
 }
 
-fn run(rig: &Rig, planes: &PlaneSet, params: &SgmParams) -> DepthResult {
-    let views: Vec<View<'_>> = rig
-        .images
+/// Views of `images` from the rig's cameras `poses`, the reference first.
+fn views_of<'a>(images: &'a [ImageF32], poses: &[Pose]) -> Vec<View<'a>> {
+    images
         .iter()
-        .zip(&rig.poses)
+        .zip(poses)
         .map(|(image, pose)| View {
             image,
             intrinsics: k(),
             pose: *pose,
         })
-        .collect();
+        .collect()
+}
+
+fn run(rig: &Rig, planes: &PlaneSet, params: &SgmParams) -> DepthResult {
+    let views = views_of(&rig.images, &rig.poses);
     estimate_depth(
         &views[0],
         &views[1..],
@@ -422,15 +426,7 @@ fn cost_bound_holds_every_weighted_cost() {
             out
         })
         .collect();
-    let views: Vec<View<'_>> = hazy
-        .iter()
-        .zip(&rig.poses)
-        .map(|(image, pose)| View {
-            image,
-            intrinsics: k(),
-            pose: *pose,
-        })
-        .collect();
+    let views = views_of(&hazy, &rig.poses);
     let planes = PlaneSet::new(1.0, 10.0, 48).unwrap();
     let params = SgmParams::default();
     let weights = contrast_weights_of(views[0].image, &params);
@@ -502,16 +498,7 @@ fn bands_do_not_change_the_depth() {
     use crate::atmosphere::AtmosphereParams;
     use crate::mvs::cost_volume::DehazingOptions;
     let rig = rig(4.0, 0.3, f64::INFINITY);
-    let views: Vec<View<'_>> = rig
-        .images
-        .iter()
-        .zip(&rig.poses)
-        .map(|(image, pose)| View {
-            image,
-            intrinsics: k(),
-            pose: *pose,
-        })
-        .collect();
+    let views = views_of(&rig.images, &rig.poses);
     let planes = PlaneSet::new(2.0, 10.0, 64).unwrap();
     let atm = AtmosphereParams {
         airlight: 0.8,
