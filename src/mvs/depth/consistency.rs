@@ -7,7 +7,10 @@
 //! (Eq. 3.2). The source's winner at `q` is the plane of the lowest aggregated cost over every
 //! `(p, i)` that lands there: one pass over the aggregated volume, with a 64-bit atomic minimum
 //! per source pixel that packs the cost's bits (non-negative `f32`s order like their bit
-//! patterns) above the plane index. Reference pixel `p` with winner `i*` is **consistent** with
+//! patterns) above the plane index. On a rectified pair, whose rows land on one source row by a
+//! whole-pixel shift per plane, a row's claims are first reduced per source column (plane by
+//! plane over contiguous columns) and take one atomic minimum per column
+//! ([`SourceClaims::add_row`]). Reference pixel `p` with winner `i*` is **consistent** with
 //! a source when the source's winner at `q* = round(π(p; z_{i*}))` is within `tolerance` planes
 //! of `i*`. When the source pixel is claimed by a nearer plane (a larger index) by more than the
 //! tolerance, a nearer surface hides `p` from that source: **occluded**; any other disagreement
@@ -141,12 +144,59 @@ fn targets_of(avx2: bool, row: RowTargets<'_>, x: f32, out: &mut [u32]) {
     plain(row, x, out)
 }
 
+/// Tolerance of a row's warps, pixels over the row, to count as whole-pixel shifts
+/// ([`crate::mvs::plane_sweep::RowWarp::shift`]), as the cost volume's shift rows.
+const SHIFT_TOLERANCE_PX: f64 = 1e-3;
+
+/// Where a reference row's voxels land when every plane's warp moves the row onto one source
+/// row as a horizontal shift (a rectified pair): the voxel `(x, i)` lands on source pixel
+/// `start + x + offsets[i]` when `0 ≤ x + offsets[i] < w_src`, else outside. `offsets[i]` is
+/// `du_i` rounded and the row `v` rounded, so a target differs from the projection's rounding
+/// only where `x + du_i` lies within the shift's tolerance of a half pixel. The claims and the
+/// check use this same rule for such rows, so a voxel and its check agree on the pixel.
+fn shift_targets(
+    warps: &[PlaneWarp],
+    y: usize,
+    w_ref: usize,
+    g: &SourceGeometry,
+    offsets: &mut Vec<i32>,
+) -> Option<usize> {
+    offsets.clear();
+    let mut row = None;
+    for wp in warps {
+        let (du, v) = wp.row(y as f64).shift(w_ref, SHIFT_TOLERANCE_PX)?;
+        let v = (v + 0.5).floor();
+        if !(0.0..g.height as f64).contains(&v) || row.is_some_and(|r| r != v) {
+            return None;
+        }
+        row = Some(v);
+        offsets.push(
+            (du + 0.5)
+                .floor()
+                .clamp(-(1 << 30) as f64, (1 << 30) as f64) as i32,
+        );
+    }
+    row.map(|v| v as usize * g.width)
+}
+
+/// The columns `x` of a `w`-pixel reference row whose voxel at `offset` lands inside a
+/// `w_src`-pixel source row.
+#[inline]
+fn inside_columns(offset: i32, w: usize, w_src: usize) -> std::ops::Range<usize> {
+    let lo = (-(offset as i64)).max(0) as usize;
+    let hi = (w_src as i64 - offset as i64).clamp(0, w as i64) as usize;
+    lo.min(hi)..hi
+}
+
 /// Per-task buffers of [`SourceClaims::add_row`], reused from row to row.
 #[derive(Default)]
 pub struct ClaimScratch {
     warps: Vec<RowWarpF32>,
     reciprocals: Vec<f32>,
     targets: Vec<u32>,
+    offsets: Vec<i32>,
+    /// A shift row's best `(level, plane)` key per source column.
+    local: Vec<u32>,
 }
 
 /// Marker of a source pixel that no reference voxel lands on.
@@ -215,7 +265,14 @@ impl SourceClaims {
             warps,
             reciprocals,
             targets: q,
+            offsets,
+            local,
         } = scratch;
+        let w = row.len() / n.max(1);
+        if let Some(start) = shift_targets(&self.warps, y, w, g, offsets) {
+            self.add_shift_row(row, n, unit, start, offsets, local);
+            return;
+        }
         warps.clear();
         warps.extend(self.warps.iter().map(|wp| wp.row(y as f64).to_f32()));
         reciprocals.clear();
@@ -244,6 +301,62 @@ impl SourceClaims {
                 if key < slot.load(Ordering::Relaxed) {
                     slot.fetch_min(key, Ordering::Relaxed);
                 }
+            }
+        }
+    }
+
+    /// [`Self::add_row`] of a row whose voxels land on one source row at `start` by the
+    /// whole-pixel `offsets` ([`shift_targets`]). For `u16` levels the row's claims are first
+    /// reduced per source column as `u32` keys `(level << 16) | (0xFFFF − i)`, plane by plane
+    /// over contiguous columns (a vector minimum, no atomics), and the source row then takes one
+    /// atomic minimum per column: the same winners, because the cost `level · unit` orders like
+    /// the level and ties still go to the higher plane. `f32` costs take the per-voxel loop.
+    fn add_shift_row<T: PathCost>(
+        &self,
+        row: &[T],
+        n: usize,
+        unit: f32,
+        start: usize,
+        offsets: &[i32],
+        local: &mut Vec<u32>,
+    ) {
+        let w = row.len() / n.max(1);
+        let w_src = self.geometry.width;
+        let claim = |q: usize, cost: f32, i: usize| {
+            let key = (u64::from(cost.max(0.0).to_bits()) << 32) | u64::from(!(i as u32));
+            let slot = &self.best[start + q];
+            if key < slot.load(Ordering::Relaxed) {
+                slot.fetch_min(key, Ordering::Relaxed);
+            }
+        };
+        if row.first().and_then(|c| c.level()).is_none() {
+            for (i, &o) in offsets.iter().enumerate() {
+                for x in inside_columns(o, w, w_src) {
+                    claim(
+                        (x as i64 + o as i64) as usize,
+                        row[x * n + i].to_f32() * unit,
+                        i,
+                    );
+                }
+            }
+            return;
+        }
+        local.clear();
+        local.resize(w_src, u32::MAX);
+        for (i, &o) in offsets.iter().enumerate() {
+            let cols = inside_columns(o, w, w_src);
+            let tag = 0xFFFF - i as u32;
+            let dst = &mut local[(cols.start as i64 + o as i64) as usize..][..cols.len()];
+            for (d, x) in dst.iter_mut().zip(cols) {
+                let level = u32::from(row[x * n + i].level().unwrap_or(u16::MAX));
+                let key = (level << 16) | tag;
+                *d = (*d).min(key);
+            }
+        }
+        for (q, &k) in local.iter().enumerate() {
+            if k != u32::MAX {
+                let i = (0xFFFF - (k & 0xFFFF)) as usize;
+                claim(q, (k >> 16) as f32 * unit, i);
             }
         }
     }
@@ -282,40 +395,78 @@ pub struct SourceWinners {
 /// The verdict for every reference pixel (row-major `w×h`) from its winning plane
 /// `winner[p]` (an integer plane index) and each source's winners.
 pub fn check(winner: &[u32], w: usize, sources: &[SourceWinners], tolerance: f32) -> Vec<Verdict> {
-    winner
-        .par_iter()
+    let mut verdicts = vec![Verdict::Consistent; winner.len()];
+    verdicts
+        .par_chunks_mut(w.max(1))
+        .zip(winner.par_chunks(w.max(1)))
         .enumerate()
-        .map(|(p, &i)| {
-            let (x, y) = (p % w, p / w);
-            let (mut seen, mut occluded) = (0usize, 0usize);
-            for s in sources {
-                let g = &s.geometry;
-                // The claims' arithmetic, so a voxel and its check agree on the pixel.
+        .for_each_init(
+            || vec![Vec::new(); sources.len()],
+            |offsets, (y, (out, row))| {
+                // Each source's shift targets of this row, as its claims had them.
+                let shifts: Vec<Option<usize>> = sources
+                    .iter()
+                    .zip(offsets.iter_mut())
+                    .map(|(s, o)| shift_targets(&s.warps, y, w, &s.geometry, o))
+                    .collect();
+                for (x, (v, &i)) in out.iter_mut().zip(row).enumerate() {
+                    *v = verdict_of(x, y, i, sources, &shifts, offsets, tolerance);
+                }
+            },
+        );
+    verdicts
+}
+
+/// [`check`]'s verdict for reference pixel `(x, y)` with winner `i`, given each source's
+/// [`shift_targets`] of row `y` (start and offsets).
+fn verdict_of(
+    x: usize,
+    y: usize,
+    i: u32,
+    sources: &[SourceWinners],
+    shifts: &[Option<usize>],
+    offsets: &[Vec<i32>],
+    tolerance: f32,
+) -> Verdict {
+    let (mut seen, mut occluded) = (0usize, 0usize);
+    for ((s, shift), offsets) in sources.iter().zip(shifts).zip(offsets) {
+        let g = &s.geometry;
+        // The claims' targets, so a voxel and its check agree on the pixel.
+        let q = match shift {
+            Some(start) => {
+                let c = x as i64 + i64::from(offsets[i as usize]);
+                if (0..g.width as i64).contains(&c) {
+                    (start + c as usize) as u32
+                } else {
+                    OUTSIDE
+                }
+            }
+            None => {
                 let warp = s.warps[i as usize].row(y as f64).to_f32();
-                let q = target(&warp, x as f32, g.width as f32, g.height as f32);
-                if q == OUTSIDE {
-                    continue;
-                }
-                let j = s.wins[q as usize];
-                if j == u32::MAX {
-                    continue;
-                }
-                seen += 1;
-                let d = j as f32 - i as f32;
-                if d.abs() <= tolerance {
-                    return Verdict::Consistent;
-                }
-                if d > tolerance {
-                    occluded += 1;
-                }
+                target(&warp, x as f32, g.width as f32, g.height as f32)
             }
-            match (seen, occluded) {
-                (0, _) => Verdict::Consistent,
-                (s, o) if s == o => Verdict::Occluded,
-                _ => Verdict::Mismatch,
-            }
-        })
-        .collect()
+        };
+        if q == OUTSIDE {
+            continue;
+        }
+        let j = s.wins[q as usize];
+        if j == u32::MAX {
+            continue;
+        }
+        seen += 1;
+        let d = j as f32 - i as f32;
+        if d.abs() <= tolerance {
+            return Verdict::Consistent;
+        }
+        if d > tolerance {
+            occluded += 1;
+        }
+    }
+    match (seen, occluded) {
+        (0, _) => Verdict::Consistent,
+        (s, o) if s == o => Verdict::Occluded,
+        _ => Verdict::Mismatch,
+    }
 }
 
 /// Rejects speckles (see the module docs) as mismatches: the pixels of 4-connected regions of
@@ -500,6 +651,76 @@ mod tests {
             }
         }
         assert!(inside > W * H * N / 2, "{inside}");
+    }
+
+    /// On a rectified pair every row is a shift row, and its targets are the projection's (the
+    /// test geometry's disparities are whole pixels, so no target sits at a half pixel); a
+    /// forward baseline has no shift rows.
+    #[test]
+    fn shift_targets_are_the_projections_targets() {
+        let planes = PlaneSet::new(1.0, 10.0, N).unwrap();
+        let g = rectified(&planes);
+        let claims = SourceClaims::new(&g, &planes);
+        let mut offsets = Vec::new();
+        let mut inside = 0;
+        for y in 0..H {
+            let start = shift_targets(&claims.warps, y, W, &g, &mut offsets).expect("shift row");
+            assert_eq!(start, y * W);
+            for (i, wp) in claims.warps.iter().enumerate() {
+                let row = wp.row(y as f64).to_f32();
+                for x in 0..W {
+                    let want = target(&row, x as f32, W as f32, H as f32);
+                    let c = x as i64 + i64::from(offsets[i]);
+                    let got = if (0..W as i64).contains(&c) {
+                        (start + c as usize) as u32
+                    } else {
+                        OUTSIDE
+                    };
+                    assert_eq!(got, want, "row {y} plane {i} column {x}");
+                    inside += usize::from(got != OUTSIDE);
+                }
+            }
+        }
+        assert!(inside > W * H * N / 2, "{inside}");
+        let forward = SourceGeometry {
+            relative: Pose::translation_only([0.0, 0.0, -0.5]).unwrap(),
+            ..g
+        };
+        let claims = SourceClaims::new(&forward, &planes);
+        assert!(shift_targets(&claims.warps, 1, W, &forward, &mut offsets).is_none());
+    }
+
+    /// A shift row's `u16` claims, reduced per source column as `(level, plane)` keys before one
+    /// atomic minimum per column, give the winners of the per-voxel loop over the same costs
+    /// in cost units, ties included (levels drawn from a few values, so many tie).
+    #[test]
+    fn u16_shift_claims_equal_per_voxel_claims() {
+        let planes = PlaneSet::new(1.0, 10.0, N).unwrap();
+        let g = rectified(&planes);
+        let mut s = 12345u64;
+        let levels: Vec<u16> = (0..W * H * N)
+            .map(|_| {
+                s = s
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                ((s >> 33) % 7) as u16 * 300
+            })
+            .collect();
+        let unit = 0.37f32;
+        let costs: Vec<f32> = levels.iter().map(|&l| f32::from(l) * unit).collect();
+        let (fast, plain) = (
+            SourceClaims::new(&g, &planes),
+            SourceClaims::new(&g, &planes),
+        );
+        let mut scratch = ClaimScratch::default();
+        for y in 0..H {
+            let r = y * W * N..(y + 1) * W * N;
+            fast.add_row(y, &levels[r.clone()], N, unit, &mut scratch);
+            plain.add_row(y, &costs[r], N, 1.0, &mut scratch);
+        }
+        let (fast, plain) = (fast.winners(), plain.winners());
+        assert_eq!(fast.wins, plain.wins);
+        assert!(fast.wins.iter().filter(|&&j| j != u32::MAX).count() > W * H / 2);
     }
 
     #[test]

@@ -129,6 +129,8 @@ pub trait PathCost:
     fn penalty(p: f32) -> Self;
     /// The value as `f32`.
     fn to_f32(self) -> f32;
+    /// The value as an integer level when the type holds levels (`u16`), `None` for `f32`.
+    fn level(self) -> Option<u16>;
 }
 
 impl PathCost for f32 {
@@ -149,6 +151,10 @@ impl PathCost for f32 {
     #[inline(always)]
     fn to_f32(self) -> f32 {
         self
+    }
+    #[inline(always)]
+    fn level(self) -> Option<u16> {
+        None
     }
 }
 
@@ -174,6 +180,10 @@ impl PathCost for u16 {
     #[inline(always)]
     fn to_f32(self) -> f32 {
         f32::from(self)
+    }
+    #[inline(always)]
+    fn level(self) -> Option<u16> {
+        Some(self)
     }
 }
 
