@@ -59,6 +59,13 @@ use crate::mvs::pose::Pose;
 
 use kernel::{fill_row, fill_row_observation, Haze, ReferenceImages, RowScratch, SourcePlane};
 
+/// `γ` for images of `channels` channels: the cost of a voxel no source sees, and the cap of every
+/// dehazing voxel (the module docs). No voxel of a volume over images in `[0, 1]` exceeds it,
+/// which lets depth estimation scale a strip's levels before any cost is computed.
+pub fn penalty_for(channels: usize) -> f32 {
+    channels as f32
+}
+
 /// Largest accepted volume, in voxels (`W·H·N`): 2²⁹ `f32`s are 2 GiB.
 pub const MAX_VOXELS: usize = 1 << 29;
 
@@ -606,7 +613,7 @@ pub fn build_cost_volume_rows_in(
         width: reference.image.width(),
         height: rows.len(),
         planes: *planes,
-        penalty: reference.image.channels() as f32,
+        penalty: penalty_for(reference.image.channels()),
         data,
     })
 }
@@ -711,7 +718,7 @@ pub fn fill_cost_rows(
         .iter()
         .map(|s| Pose::relative(&reference.pose, &s.pose))
         .collect();
-    let penalty = c as f32;
+    let penalty = penalty_for(c);
     let refd = reference.image.data();
     let dehaze = kind.dehazing().is_some();
     let observation = observation_kernel(kind);

@@ -615,3 +615,66 @@ fn image_copies_of_other_views_are_refused() {
         assert_eq!(strip.plane(i), want, "plane {i}");
     }
 }
+
+/// `fill_cost_rows` writes the rows where its layout says, leaving the rest of the buffer as it
+/// was, and refuses a buffer or layout that cannot hold them (naming `out`), rows outside the
+/// reference (naming `rows`) and copies of other views (naming `images`).
+#[test]
+fn fill_cost_rows_writes_at_its_layout_and_refuses_what_does_not_fit() {
+    let s = scene(2.0, 0.8, 0.3, &[[0.3, 0.0, 0.0], [-0.25, 0.0, 0.0]]);
+    let v = s.views();
+    let (p, kind) = (planes(), CostKind::Ordinary);
+    let images = SweepImages::new(&v[0], &v[1..], &p, kind).unwrap();
+    let whole = build_cost_volume(&v[0], &v[1..], &p, kind, &Monitor::noop()).unwrap();
+    let n = p.num_planes;
+    // Planes of 6 rows, the given 4 rows (image rows 5..9) written from row 2.
+    let layout = RowsLayout {
+        plane_stride: 6 * W,
+        first_row: 2,
+    };
+    let fill = |out: &mut [f32], layout, rows: std::ops::Range<usize>, sources: &[View<'_>]| {
+        fill_cost_rows(
+            out,
+            layout,
+            &v[0],
+            sources,
+            &p,
+            kind,
+            rows,
+            &images,
+            &Monitor::noop(),
+        )
+    };
+    let mut out = vec![-1.0f32; n * 6 * W];
+    fill(&mut out, layout, 5..9, &v[1..]).unwrap();
+    for i in 0..n {
+        let plane = &out[i * 6 * W..(i + 1) * 6 * W];
+        assert!(plane[..2 * W].iter().all(|&c| c == -1.0), "plane {i} kept");
+        assert_eq!(&plane[2 * W..], &whole.plane(i)[5 * W..9 * W], "plane {i}");
+    }
+    let too_short = RowsLayout {
+        plane_stride: 5 * W,
+        first_row: 2,
+    };
+    let mut short = vec![0.0f32; n * 5 * W];
+    assert_eq!(
+        field_of(fill(&mut short, too_short, 5..9, &v[1..]).unwrap_err()),
+        "out"
+    );
+    assert_eq!(
+        field_of(fill(&mut out[1..], layout, 5..9, &v[1..]).unwrap_err()),
+        "out"
+    );
+    assert_eq!(
+        field_of(fill(&mut out, layout, 5..5, &v[1..]).unwrap_err()),
+        "rows"
+    );
+    assert_eq!(
+        field_of(fill(&mut out, layout, H - 2..H + 2, &v[1..]).unwrap_err()),
+        "rows"
+    );
+    assert_eq!(
+        field_of(fill(&mut out, layout, 5..9, &v[1..2]).unwrap_err()),
+        "images"
+    );
+}

@@ -401,16 +401,23 @@ pub fn check(winner: &[u32], w: usize, sources: &[SourceWinners], tolerance: f32
         .zip(winner.par_chunks(w.max(1)))
         .enumerate()
         .for_each_init(
-            || vec![Vec::new(); sources.len()],
-            |offsets, (y, (out, row))| {
+            || {
+                (
+                    vec![Vec::new(); sources.len()],
+                    Vec::with_capacity(sources.len()),
+                )
+            },
+            |(offsets, shifts), (y, (out, row))| {
                 // Each source's shift targets of this row, as its claims had them.
-                let shifts: Vec<Option<usize>> = sources
-                    .iter()
-                    .zip(offsets.iter_mut())
-                    .map(|(s, o)| shift_targets(&s.warps, y, w, &s.geometry, o))
-                    .collect();
+                shifts.clear();
+                shifts.extend(
+                    sources
+                        .iter()
+                        .zip(offsets.iter_mut())
+                        .map(|(s, o)| shift_targets(&s.warps, y, w, &s.geometry, o)),
+                );
                 for (x, (v, &i)) in out.iter_mut().zip(row).enumerate() {
-                    *v = verdict_of(x, y, i, sources, &shifts, offsets, tolerance);
+                    *v = verdict_of(x, y, i, sources, shifts, offsets, tolerance);
                 }
             },
         );

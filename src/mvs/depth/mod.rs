@@ -45,7 +45,8 @@ use crate::image::ImageF32;
 use crate::monitor::Monitor;
 use crate::mvs::cost_volume::census::{self, CensusImage, CensusSource};
 use crate::mvs::cost_volume::{
-    fill_cost_rows, validate_inputs, CostKind, CostVolume, RowsLayout, SweepImages, View,
+    fill_cost_rows, penalty_for, validate_inputs, CostKind, CostVolume, RowsLayout, SweepImages,
+    View,
 };
 use crate::mvs::plane_sweep::PlaneSet;
 
@@ -809,15 +810,14 @@ fn contrast_weights_of(guide: &ImageF32, params: &SgmParams) -> Vec<f32> {
 
 /// The largest weighted cost a strip's windowed means can reach, known before any cost is
 /// computed, so that a strip is quantised band by band as its costs are built: every voxel of
-/// the volume is at most `γ = C` (`channels`, [`crate::mvs::cost_volume`]: the dehazing volume
-/// caps its voxels there, the ordinary one reaches it only for images outside `[0, 1]`, which
+/// the volume is at most `γ` ([`penalty_for`]`(channels)`: the dehazing volume caps its voxels there, the ordinary one reaches it only for images outside `[0, 1]`, which
 /// then take the top level, a truncated cost), times the strip's largest contrast weight, plus
 /// the census term, which arrives unweighted and is at most `census_weight`. On the hazy Aloe
 /// pair every strip's largest weighted cost was exactly this (the out-of-view penalty at the
 /// largest weight), so its levels are those of the exact maximum.
 fn cost_bound(channels: usize, strip_weights: &[f32], census_weight: f32) -> f32 {
     let w_max = strip_weights.iter().copied().fold(1.0f32, f32::max);
-    channels as f32 * w_max + census_weight
+    penalty_for(channels) * w_max + census_weight
 }
 
 /// Moves `len` values at `offset` in each of the `n` planes of `buf`, `old_stride` apart, to the
