@@ -2,12 +2,16 @@
 //!
 //! The AVX2 loops (the MVS cost volume's rows, SGM's path step, the photometric-stereo kernel
 //! entries) compute the same results as their plain copies, bit for bit; tests check that by
-//! forcing the plain copies on a CPU that has AVX2 ([`force_scalar`]).
+//! forcing the plain copies on a CPU that has AVX2 ([`force_scalar`]). The few loops with an
+//! AVX-512 copy as well ([`avx512bw_enabled`]) are checked against the AVX2 and plain ones the
+//! same way ([`force_no_avx512`]).
 
 #[cfg(test)]
 thread_local! {
     /// Set by tests to run the plain loops on this thread.
     static FORCE_SCALAR: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
+    /// Set by tests to run the AVX2 (or plain) loops instead of the AVX-512 ones on this thread.
+    static FORCE_NO_AVX512: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
 }
 
 /// Whether the AVX2 loops run: the CPU has AVX2 (the standard library caches the detection),
@@ -33,4 +37,31 @@ pub(crate) fn avx2_enabled() -> bool {
 #[cfg(test)]
 pub(crate) fn force_scalar(on: bool) {
     FORCE_SCALAR.with(|f| f.set(on));
+}
+
+/// Whether the AVX-512 loops run: the CPU has AVX-512 F, BW (16-bit lanes and masks) and VL,
+/// and no test on this thread asked for the AVX2 or plain loops. Always false off x86-64.
+#[inline]
+pub(crate) fn avx512bw_enabled() -> bool {
+    #[cfg(test)]
+    if FORCE_SCALAR.with(|f| f.get()) || FORCE_NO_AVX512.with(|f| f.get()) {
+        return false;
+    }
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::arch::is_x86_feature_detected!("avx512f")
+            && std::arch::is_x86_feature_detected!("avx512bw")
+            && std::arch::is_x86_feature_detected!("avx512vl")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
+
+/// Makes [`avx512bw_enabled`] report false on this thread (`true`) or the CPU's answer again
+/// (`false`); [`avx2_enabled`] is unchanged.
+#[cfg(test)]
+pub(crate) fn force_no_avx512(on: bool) {
+    FORCE_NO_AVX512.with(|f| f.set(on));
 }

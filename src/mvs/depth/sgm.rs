@@ -16,8 +16,14 @@
 //! directions run in three sweeps ([`aggregate_into`]): both horizontal ones on each row (one
 //! rayon task per row, two-curve buffers), then those with `dy = +1` and those with `dy = −1`,
 //! each a sweep of rows in path order (each row depends on the previous) whose pixels are split
-//! across rayon tasks, with two `W·N` row buffers per direction. A cancellation checkpoint
+//! across rayon tasks, with two `W·(N+2)` row buffers per direction. A cancellation checkpoint
 //! precedes each sweep and each row of the row sweeps.
+//!
+//! Every path-cost curve in those buffers has a sentinel `MAX` before its first and after its
+//! last plane, so the recursion's `±1` neighbours need no special first and last plane: every
+//! plane takes the same vector operations. With AVX-512 (16-bit lanes and masks) the `u16` step
+//! is one masked loop of 32 planes at a time, the last chunk masked too, with no scalar code per
+//! pixel ([`path_step_u16_avx512`]).
 
 use rayon::prelude::*;
 
@@ -131,6 +137,23 @@ pub trait PathCost:
     fn to_f32(self) -> f32;
     /// The value as an integer level when the type holds levels (`u16`), `None` for `f32`.
     fn level(self) -> Option<u16>;
+    /// [`path_step`] through this type's AVX-512 copy, `None` when it has none (`f32`).
+    ///
+    /// # Safety
+    /// The CPU has AVX-512 F, BW and VL ([`crate::cpu::avx512bw_enabled`]).
+    #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
+    unsafe fn path_step_avx512<const SET: bool>(
+        _c: &[Self],
+        _prev: &[Self],
+        _prev_min: Self,
+        _p1: Self,
+        _p2: Self,
+        _out: &mut [Self],
+        _sum: &mut [Self],
+    ) -> Option<Self> {
+        None
+    }
 }
 
 impl PathCost for f32 {
@@ -185,6 +208,44 @@ impl PathCost for u16 {
     fn level(self) -> Option<u16> {
         Some(self)
     }
+    #[inline(always)]
+    unsafe fn path_step_avx512<const SET: bool>(
+        c: &[Self],
+        prev: &[Self],
+        prev_min: Self,
+        p1: Self,
+        p2: Self,
+        out: &mut [Self],
+        sum: &mut [Self],
+    ) -> Option<Self> {
+        #[cfg(target_arch = "x86_64")]
+        {
+            // SAFETY: the caller's contract (the CPU has AVX-512 F, BW and VL).
+            Some(unsafe { path_step_u16_avx512::<SET>(c, prev, prev_min, p1, p2, out, sum) })
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        {
+            let _ = (c, prev, prev_min, p1, p2, out, sum);
+            None
+        }
+    }
+}
+
+/// Which copy of the path step runs, read once per aggregation on the calling thread (a test's
+/// [`crate::cpu::force_scalar`] is thread-local and does not reach rayon's workers).
+#[derive(Clone, Copy, Debug)]
+struct Isa {
+    avx2: bool,
+    avx512: bool,
+}
+
+impl Isa {
+    fn detect() -> Self {
+        Self {
+            avx2: crate::cpu::avx2_enabled(),
+            avx512: crate::cpu::avx512bw_enabled(),
+        }
+    }
 }
 
 /// Lanes of the explicitly unrolled plane loop in [`path_step`]: independent running minima let
@@ -204,13 +265,14 @@ fn path_value<T: PathCost>(c: T, below: T, at: T, above: T, p1: T, jump: T, prev
     )
 }
 
-/// [`path_step`] through a copy compiled with AVX2 when `avx2` (the CPU has it): the same
-/// operations on wider registers, so the same results bit for bit (no fused multiply-adds are
-/// introduced: the recursion has only additions and minima).
+/// [`path_step`] through the AVX-512 copy of `T` when `isa` allows and `T` has one, else a copy
+/// compiled with AVX2 when the CPU has it: the same operations on wider registers, so the same
+/// results bit for bit (no fused multiply-adds are introduced: the recursion has only additions
+/// and minima).
 #[inline]
 #[allow(clippy::too_many_arguments)]
 fn path_step_fast<T: PathCost, const SET: bool>(
-    avx2: bool,
+    isa: Isa,
     c: &[T],
     prev: &[T],
     prev_min: T,
@@ -219,6 +281,13 @@ fn path_step_fast<T: PathCost, const SET: bool>(
     out: &mut [T],
     sum: &mut [T],
 ) -> T {
+    if isa.avx512 {
+        // SAFETY: `isa.avx512` is set only where the CPU has AVX-512 F, BW and VL.
+        if let Some(m) = unsafe { T::path_step_avx512::<SET>(c, prev, prev_min, p1, p2, out, sum) }
+        {
+            return m;
+        }
+    }
     #[cfg(target_arch = "x86_64")]
     {
         #[target_feature(enable = "avx2")]
@@ -234,13 +303,84 @@ fn path_step_fast<T: PathCost, const SET: bool>(
         ) -> T {
             path_step::<T, SET>(c, prev, prev_min, p1, p2, out, sum)
         }
-        if avx2 {
+        if isa.avx2 {
             // SAFETY: the caller detected AVX2 on this CPU ([`crate::cpu::avx2_enabled`]).
             return unsafe { with_avx2::<T, SET>(c, prev, prev_min, p1, p2, out, sum) };
         }
     }
-    let _ = avx2;
     path_step::<T, SET>(c, prev, prev_min, p1, p2, out, sum)
+}
+
+/// [`path_step`] for `u16` levels with AVX-512: 32 planes per instruction, the last chunk
+/// masked (loads, stores and the running minimum), so a curve of any length runs without a
+/// scalar remainder. `prev` and `out` are padded curves (`n + 2`, sentinels `MAX` at both ends,
+/// [`path_step`]); the masked-off lanes are neither stored nor in the minimum.
+///
+/// # Safety
+/// The CPU has AVX-512 F, BW and VL.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512bw,avx512vl,avx2,sse4.1")]
+#[allow(clippy::too_many_arguments)]
+unsafe fn path_step_u16_avx512<const SET: bool>(
+    c: &[u16],
+    prev: &[u16],
+    prev_min: u16,
+    p1: u16,
+    p2: u16,
+    out: &mut [u16],
+    sum: &mut [u16],
+) -> u16 {
+    use std::arch::x86_64::*;
+    let n = c.len();
+    // Checked, not assumed: the masked accesses below stay inside these lengths.
+    assert!(
+        prev.len() == n + 2 && out.len() == n + 2 && sum.len() == n,
+        "padded curves of n + 2 values and n sums"
+    );
+    let jump = _mm512_set1_epi16(prev_min.saturating_add(p2) as i16);
+    let vp1 = _mm512_set1_epi16(p1 as i16);
+    let vmin = _mm512_set1_epi16(prev_min as i16);
+    let mut acc = _mm512_set1_epi16(-1);
+    let (cp, pp) = (c.as_ptr().cast::<i16>(), prev.as_ptr().cast::<i16>());
+    let (op, sp) = (
+        out.as_mut_ptr().cast::<i16>().wrapping_add(1),
+        sum.as_mut_ptr().cast::<i16>(),
+    );
+    let mut i = 0;
+    while i < n {
+        let left = n - i;
+        let k: __mmask32 = if left >= 32 { !0 } else { (1u32 << left) - 1 };
+        // SAFETY: lane `j` of a chunk is touched only where `i + j < n` (mask `k`): `c[i + j]`,
+        // `sum[i + j]`, `prev[i + j ..= i + j + 2]` (length n + 2) and `out[1 + i + j]`.
+        unsafe {
+            let cc = _mm512_maskz_loadu_epi16(k, cp.add(i));
+            let below = _mm512_maskz_loadu_epi16(k, pp.add(i));
+            let at = _mm512_maskz_loadu_epi16(k, pp.add(i + 1));
+            let above = _mm512_maskz_loadu_epi16(k, pp.add(i + 2));
+            // The order of `path_value`: min, saturating + P1, min, min, wrapping − prev_min,
+            // saturating + C.
+            let m = _mm512_min_epu16(at, _mm512_adds_epu16(_mm512_min_epu16(below, above), vp1));
+            let l = _mm512_adds_epu16(cc, _mm512_sub_epi16(_mm512_min_epu16(m, jump), vmin));
+            _mm512_mask_storeu_epi16(op.add(i), k, l);
+            let s = if SET {
+                l
+            } else {
+                _mm512_adds_epu16(_mm512_maskz_loadu_epi16(k, sp.add(i)), l)
+            };
+            _mm512_mask_storeu_epi16(sp.add(i), k, s);
+            acc = _mm512_mask_min_epu16(acc, k, acc, l);
+        }
+        i += 32;
+    }
+    let half = _mm256_min_epu16(
+        _mm512_castsi512_si256(acc),
+        _mm512_extracti64x4_epi64::<1>(acc),
+    );
+    let quarter = _mm_min_epu16(
+        _mm256_castsi256_si128(half),
+        _mm256_extracti128_si256::<1>(half),
+    );
+    (_mm_cvtsi128_si32(_mm_minpos_epu16(quarter)) & 0xFFFF) as u16
 }
 
 /// `sum += l`, or `sum = l` for the first direction of a sweep that initialises `S` (`SET`), which
@@ -256,6 +396,10 @@ fn accumulate<T: PathCost, const SET: bool>(sum: &mut T, l: T) {
 
 /// One path step (the recursion in the module docs) for one pixel: writes `L_r(p, ·)` into
 /// `out`, adds it to `sum` (or sets `sum` to it: `SET`) and returns `min_i L_r(p, i)`.
+///
+/// `prev` and `out` are padded curves of `n + 2` values (`n = c.len()`): the curve at `1..=n`
+/// and `MAX` at `0` and `n + 1` (never written here), which no minimum takes, so every plane is
+/// an interior one.
 #[inline(always)]
 fn path_step<T: PathCost, const SET: bool>(
     c: &[T],
@@ -268,38 +412,19 @@ fn path_step<T: PathCost, const SET: bool>(
 ) -> T {
     let n = c.len();
     let jump = prev_min.add(p2);
-    if n == 1 {
-        let l = c[0].add(prev[0].lesser(jump).sub(prev_min));
-        out[0] = l;
-        accumulate::<T, SET>(&mut sum[0], l);
-        return l;
-    }
-    let first = c[0].add(prev[0].lesser(prev[1].add(p1)).lesser(jump).sub(prev_min));
-    out[0] = first;
-    accumulate::<T, SET>(&mut sum[0], first);
-    let last = c[n - 1].add(
-        prev[n - 1]
-            .lesser(prev[n - 2].add(p1))
-            .lesser(jump)
-            .sub(prev_min),
-    );
-    out[n - 1] = last;
-    accumulate::<T, SET>(&mut sum[n - 1], last);
-    let mut m = first.lesser(last);
-    // Interior planes 1..n−1 as three shifted views of `prev`, in fixed-size chunks: the
-    // chunk bodies have no bounds checks and vectorise, with one running minimum per lane.
-    let inner = n - 2;
-    let (c_in, below, at, above) = (&c[1..n - 1], &prev[..n - 2], &prev[1..n - 1], &prev[2..]);
-    let (out_in, sum_in) = (&mut out[1..n - 1], &mut sum[1..n - 1]);
-    let full = inner / LANES * LANES;
+    let (below, at, above) = (&prev[..n], &prev[1..n + 1], &prev[2..n + 2]);
+    let (out, sum) = (&mut out[1..n + 1], &mut sum[..n]);
+    // In fixed-size chunks: the chunk bodies have no bounds checks and vectorise, with one
+    // running minimum per lane.
+    let full = n / LANES * LANES;
     let mut acc = [T::MAX; LANES];
-    for (((((cc, lo), mid), hi), oo), ss) in c_in[..full]
+    for (((((cc, lo), mid), hi), oo), ss) in c[..full]
         .chunks_exact(LANES)
         .zip(below[..full].chunks_exact(LANES))
         .zip(at[..full].chunks_exact(LANES))
         .zip(above[..full].chunks_exact(LANES))
-        .zip(out_in[..full].chunks_exact_mut(LANES))
-        .zip(sum_in[..full].chunks_exact_mut(LANES))
+        .zip(out[..full].chunks_exact_mut(LANES))
+        .zip(sum[..full].chunks_exact_mut(LANES))
     {
         for j in 0..LANES {
             let l = path_value(cc[j], lo[j], mid[j], hi[j], p1, jump, prev_min);
@@ -308,40 +433,22 @@ fn path_step<T: PathCost, const SET: bool>(
             acc[j] = acc[j].lesser(l);
         }
     }
-    if full < inner && inner >= LANES {
-        // The remainder as one more full chunk ending at the last interior plane: its first
-        // planes were done above, so their values are recomputed (the same, from the same
-        // inputs) and written again, but added to `sum` only once.
-        let t = inner - LANES;
-        for (j, a) in acc.iter_mut().enumerate() {
-            let k = t + j;
-            let l = path_value(c_in[k], below[k], at[k], above[k], p1, jump, prev_min);
-            out_in[k] = l;
-            let s = &mut sum_in[k];
-            let fresh = k >= full;
-            *s = match (SET, fresh) {
-                (_, false) => *s,
-                (true, true) => l,
-                (false, true) => s.add(l),
-            };
-            *a = a.lesser(l);
-        }
-    } else {
-        for j in full..inner {
-            let l = path_value(c_in[j], below[j], at[j], above[j], p1, jump, prev_min);
-            out_in[j] = l;
-            accumulate::<T, SET>(&mut sum_in[j], l);
-            m = m.lesser(l);
-        }
+    let mut m = T::MAX;
+    for j in full..n {
+        let l = path_value(c[j], below[j], at[j], above[j], p1, jump, prev_min);
+        out[j] = l;
+        accumulate::<T, SET>(&mut sum[j], l);
+        m = m.lesser(l);
     }
     acc.iter().fold(m, |a, &b| a.lesser(b))
 }
 
-/// Starts a path at the border: `L_r = C` (added to `sum`, or set: `SET`).
+/// Starts a path at the border: `L_r = C` (added to `sum`, or set: `SET`) into the padded
+/// curve `out` ([`path_step`]).
 #[inline]
 fn path_start<T: PathCost, const SET: bool>(c: &[T], out: &mut [T], sum: &mut [T]) -> T {
     let mut m = T::MAX;
-    for ((&ci, o), s) in c.iter().zip(out.iter_mut()).zip(sum.iter_mut()) {
+    for ((&ci, o), s) in c.iter().zip(out[1..].iter_mut()).zip(sum.iter_mut()) {
         *o = ci;
         accumulate::<T, SET>(s, ci);
         m = m.lesser(ci);
@@ -399,17 +506,17 @@ pub fn aggregate_into<T: PathCost>(
         "costs must hold one value per voxel"
     );
     assert_eq!(sum.len(), costs.len(), "sum must hold one value per voxel");
-    let avx2 = crate::cpu::avx2_enabled();
+    let isa = Isa::detect();
     let dirs = &DIRECTIONS[..num_paths.min(DIRECTIONS.len())];
     let along = |dy: i32| -> Vec<i32> { dirs.iter().filter(|d| d.1 == dy).map(|d| d.0).collect() };
     monitor.checkpoint()?;
     // Every listing of directions starts with both horizontal ones, which initialise `S`.
-    horizontal(costs, sum, w, n, &along(0), pen, guide, avx2);
+    horizontal(costs, sum, w, n, &along(0), pen, guide, isa);
     monitor.progress("mvs.sgm", 1.0 / 3.0);
     for (k, dy) in [1, -1].into_iter().enumerate() {
         let dxs = along(dy);
         if !dxs.is_empty() {
-            row_sweep(costs, sum, w, h, n, &dxs, dy, pen, guide, avx2, monitor)?;
+            row_sweep(costs, sum, w, h, n, &dxs, dy, pen, guide, isa, monitor)?;
         }
         monitor.progress("mvs.sgm", (k + 2) as f32 / 3.0);
     }
@@ -428,14 +535,15 @@ fn horizontal<T: PathCost>(
     dxs: &[i32],
     pen: &Penalties,
     guide: Option<Guide<'_>>,
-    avx2: bool,
+    isa: Isa,
 ) {
     let p1 = T::penalty(pen.p1);
     sum.par_chunks_mut(w * n)
         .zip(costs.par_chunks(w * n))
         .enumerate()
         .for_each_init(
-            || (vec![T::MAX; n], vec![T::MAX; n]),
+            // Padded curves ([`path_step`]).
+            || (vec![T::MAX; n + 2], vec![T::MAX; n + 2]),
             |(prev, cur), (y, (srow, crow))| {
                 for (k, &dx) in dxs.iter().enumerate() {
                     let mut prev_min = T::MAX;
@@ -452,11 +560,11 @@ fn horizontal<T: PathCost>(
                                 let p2 = T::penalty(pen.p2_at(guide, xp, y, x, y));
                                 if k == 0 {
                                     path_step_fast::<T, true>(
-                                        avx2, c, prev, prev_min, p1, p2, cur, s,
+                                        isa, c, prev, prev_min, p1, p2, cur, s,
                                     )
                                 } else {
                                     path_step_fast::<T, false>(
-                                        avx2, c, prev, prev_min, p1, p2, cur, s,
+                                        isa, c, prev, prev_min, p1, p2, cur, s,
                                     )
                                 }
                             }
@@ -474,7 +582,8 @@ fn horizontal<T: PathCost>(
 
 /// The directions `(dx, dy)` for `dx` in `dxs`, all with the same `dy = ±1`: rows in path
 /// order, pixels of a row in parallel, each pixel's curves of every direction updated back to
-/// back while its cost and `S` curves are in cache. Row buffers are `[x][direction][plane]`.
+/// back while its cost and `S` curves are in cache. Row buffers are `[x][direction][plane]`,
+/// each curve padded ([`path_step`]: `n + 2` values).
 #[allow(clippy::too_many_arguments)]
 fn row_sweep<T: PathCost>(
     costs: &[T],
@@ -486,14 +595,15 @@ fn row_sweep<T: PathCost>(
     dy: i32,
     pen: &Penalties,
     guide: Option<Guide<'_>>,
-    avx2: bool,
+    isa: Isa,
     monitor: &Monitor,
 ) -> Result<()> {
     let row_len = w * n;
     let k = dxs.len();
+    let np = n + 2;
     let p1 = T::penalty(pen.p1);
-    let mut prev = vec![T::MAX; k * row_len];
-    let mut cur = vec![T::MAX; k * row_len];
+    let mut prev = vec![T::MAX; k * w * np];
+    let mut cur = vec![T::MAX; k * w * np];
     let mut prev_min = vec![T::MAX; k * w];
     let mut cur_min = vec![T::MAX; k * w];
     for step in 0..h {
@@ -504,21 +614,21 @@ fn row_sweep<T: PathCost>(
         let srow = &mut sum[y * row_len..(y + 1) * row_len];
         let (prev_r, prev_min_r) = (&prev[..], &prev_min[..]);
         srow.par_chunks_mut(PIXEL_CHUNK * n)
-            .zip(cur.par_chunks_mut(PIXEL_CHUNK * k * n))
+            .zip(cur.par_chunks_mut(PIXEL_CHUNK * k * np))
             .zip(cur_min.par_chunks_mut(PIXEL_CHUNK * k))
             .enumerate()
             .for_each(|(chunk, ((s_chunk, cur_chunk), min_chunk))| {
                 let x0 = chunk * PIXEL_CHUNK;
                 let parts = s_chunk
                     .chunks_exact_mut(n)
-                    .zip(cur_chunk.chunks_exact_mut(k * n))
+                    .zip(cur_chunk.chunks_exact_mut(k * np))
                     .zip(min_chunk.chunks_exact_mut(k));
                 for (j, ((s, outs), mins)) in parts.enumerate() {
                     let x = x0 + j;
                     let c = &crow[x * n..(x + 1) * n];
                     for (d, ((&dx, out), m)) in dxs
                         .iter()
-                        .zip(outs.chunks_exact_mut(n))
+                        .zip(outs.chunks_exact_mut(np))
                         .zip(mins.iter_mut())
                         .enumerate()
                     {
@@ -528,11 +638,11 @@ fn row_sweep<T: PathCost>(
                         } else {
                             let xp = xp as usize;
                             let p2 = T::penalty(pen.p2_at(guide, xp, yp, x, y));
-                            let at = (xp * k + d) * n;
+                            let at = (xp * k + d) * np;
                             path_step_fast::<T, false>(
-                                avx2,
+                                isa,
                                 c,
-                                &prev_r[at..at + n],
+                                &prev_r[at..at + np],
                                 prev_min_r[xp * k + d],
                                 p1,
                                 p2,

@@ -124,6 +124,54 @@ fn fast_sgm_equals_reference() {
     }
 }
 
+/// The `u16` aggregation gives the same sums bit for bit through its AVX-512 copy (masked
+/// 32-lane chunks), the AVX2 copy and the plain loops, for curves shorter than, equal to and
+/// longer than a chunk, with and without a masked last chunk, and with levels near the top of
+/// the range (where the saturating additions matter).
+#[test]
+fn u16_aggregation_is_the_same_in_every_instruction_set() {
+    let (w, h) = (37, 7);
+    for n in [1usize, 2, 15, 16, 17, 31, 32, 33, 64, 173] {
+        for top in [4000u16, 60000] {
+            let c: Vec<u16> = lcg(n as u64 + u64::from(top), w * h * n)
+                .iter()
+                .map(|v| (v * f32::from(top)) as u16)
+                .collect();
+            let guide = ImageF32::from_vec(w, h, 3, lcg(7, w * h * 3)).unwrap();
+            let pen = Penalties {
+                p1: 40.0,
+                p2: 900.0,
+                p2_gradient_scale: 0.05,
+            };
+            let run = |no_avx512: bool, scalar: bool| {
+                crate::cpu::force_no_avx512(no_avx512);
+                crate::cpu::force_scalar(scalar);
+                let s = aggregate(
+                    &c,
+                    w,
+                    h,
+                    n,
+                    8,
+                    &pen,
+                    Some(Guide::new(&guide)),
+                    &Monitor::noop(),
+                )
+                .unwrap();
+                crate::cpu::force_no_avx512(false);
+                crate::cpu::force_scalar(false);
+                s
+            };
+            let widest = run(false, false);
+            assert_eq!(widest, run(true, false), "AVX2 copy, {n} planes, top {top}");
+            assert_eq!(
+                widest,
+                run(true, true),
+                "plain loops, {n} planes, top {top}"
+            );
+        }
+    }
+}
+
 #[test]
 fn sub_plane_refinement_recovers_fractional_minimum() {
     let n = 32;
