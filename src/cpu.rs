@@ -65,3 +65,24 @@ pub(crate) fn avx512bw_enabled() -> bool {
 pub(crate) fn force_no_avx512(on: bool) {
     FORCE_NO_AVX512.with(|f| f.set(on));
 }
+
+/// Which copies of the hot loops run, read once on the calling thread and handed to loops that
+/// run on rayon's workers (a test's [`force_scalar`] and [`force_no_avx512`] are thread-local
+/// and do not reach the workers).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) struct Isa {
+    /// [`avx2_enabled`].
+    pub avx2: bool,
+    /// [`avx512bw_enabled`].
+    pub avx512: bool,
+}
+
+impl Isa {
+    /// The copies this thread may use now.
+    pub(crate) fn detect() -> Self {
+        Self {
+            avx2: avx2_enabled(),
+            avx512: avx512bw_enabled(),
+        }
+    }
+}

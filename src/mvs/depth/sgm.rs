@@ -27,6 +27,7 @@
 
 use rayon::prelude::*;
 
+use crate::cpu::Isa;
 use crate::error::Result;
 use crate::image::ImageF32;
 use crate::monitor::Monitor;
@@ -227,23 +228,6 @@ impl PathCost for u16 {
         {
             let _ = (c, prev, prev_min, p1, p2, out, sum);
             None
-        }
-    }
-}
-
-/// Which copy of the path step runs, read once per aggregation on the calling thread (a test's
-/// [`crate::cpu::force_scalar`] is thread-local and does not reach rayon's workers).
-#[derive(Clone, Copy, Debug)]
-struct Isa {
-    avx2: bool,
-    avx512: bool,
-}
-
-impl Isa {
-    fn detect() -> Self {
-        Self {
-            avx2: crate::cpu::avx2_enabled(),
-            avx512: crate::cpu::avx512bw_enabled(),
         }
     }
 }
