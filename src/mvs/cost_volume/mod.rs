@@ -226,21 +226,25 @@ pub fn estimate_noise_sigma(image: &ImageF32) -> f32 {
     }
     let d = image.data();
     let at = |x: usize, y: usize, ch: usize| d[(y * w + x) * c + ch];
-    let mut r = Vec::with_capacity((w - 2) * (h - 2) * c);
-    for y in 1..h - 1 {
-        for x in 1..w - 1 {
-            for ch in 0..c {
-                let v = at(x - 1, y - 1, ch) - 2.0 * at(x, y - 1, ch) + at(x + 1, y - 1, ch)
-                    - 2.0 * at(x - 1, y, ch)
-                    + 4.0 * at(x, y, ch)
-                    - 2.0 * at(x + 1, y, ch)
-                    + at(x - 1, y + 1, ch)
-                    - 2.0 * at(x, y + 1, ch)
-                    + at(x + 1, y + 1, ch);
-                r.push(v.abs());
-            }
+    // Row by row on rayon: the median below depends only on the values, not their order.
+    let row_len = (w - 2) * c;
+    let mut r = vec![0.0f32; (h - 2) * row_len];
+    r.par_chunks_mut(row_len).enumerate().for_each(|(k, out)| {
+        let y = k + 1;
+        for (o, (x, ch)) in out
+            .iter_mut()
+            .zip((1..w - 1).flat_map(|x| (0..c).map(move |ch| (x, ch))))
+        {
+            let v = at(x - 1, y - 1, ch) - 2.0 * at(x, y - 1, ch) + at(x + 1, y - 1, ch)
+                - 2.0 * at(x - 1, y, ch)
+                + 4.0 * at(x, y, ch)
+                - 2.0 * at(x + 1, y, ch)
+                + at(x - 1, y + 1, ch)
+                - 2.0 * at(x, y + 1, ch)
+                + at(x + 1, y + 1, ch);
+            *o = v.abs();
         }
-    }
+    });
     let mid = r.len() / 2;
     let (_, m, _) = r.select_nth_unstable_by(mid, f32::total_cmp);
     *m / (0.6745 * 6.0)
@@ -510,32 +514,37 @@ impl SweepImages {
                 Vec::new()
             }
         };
-        let ref4 = rgb4(reference.image);
-        let sources4: Vec<Vec<[f32; 4]>> = sources.iter().map(|s| rgb4(s.image)).collect();
         // Channel planes for the direct rows of sources whose rows are horizontal shifts of the
         // reference's (a rectified pair), judged on the middle row and plane; a row that is not a
         // shift after all takes the general loop.
-        let shift_planar: Vec<Vec<f32>> = sources
-            .iter()
-            .zip(&relatives)
-            .map(|(s, rel)| {
-                let direct = observation || !dehaze;
-                let z = planes.depth(n_planes as f64 / 2.0);
-                let mid = PlaneWarp::new(&reference.intrinsics, &s.intrinsics, rel, z)
-                    .row((h / 2) as f64);
-                if direct && w >= 2 && h >= 2 && mid.shift(w, shift::SHIFT_TOLERANCE_PX).is_some() {
-                    shift::planar(s.image.data(), c, rgb4_offset)
-                } else {
-                    Vec::new()
-                }
-            })
-            .collect();
-        let ref_planar = if shift_planar.iter().any(|p| !p.is_empty()) {
-            shift::planar(refd, c, rgb4_offset)
-        } else {
-            Vec::new()
+        let shift_copies = || {
+            let shift_planar: Vec<Vec<f32>> = sources
+                .par_iter()
+                .zip(&relatives)
+                .map(|(s, rel)| {
+                    let direct = observation || !dehaze;
+                    let z = planes.depth(n_planes as f64 / 2.0);
+                    let mid = PlaneWarp::new(&reference.intrinsics, &s.intrinsics, rel, z)
+                        .row((h / 2) as f64);
+                    if direct
+                        && w >= 2
+                        && h >= 2
+                        && mid.shift(w, shift::SHIFT_TOLERANCE_PX).is_some()
+                    {
+                        shift::planar(s.image.data(), c, rgb4_offset)
+                    } else {
+                        Vec::new()
+                    }
+                })
+                .collect();
+            let ref_planar = if shift_planar.iter().any(|p| !p.is_empty()) {
+                shift::planar(refd, c, rgb4_offset)
+            } else {
+                Vec::new()
+            };
+            (shift_planar, ref_planar)
         };
-        let noise_sigma = match kind.dehazing() {
+        let noise = || match kind.dehazing() {
             Some((_, o))
                 if o.noise_sigma.is_none()
                     && matches!(
@@ -549,6 +558,21 @@ impl SweepImages {
             }
             _ => 0.0,
         };
+        // The copies and the noise estimate are independent passes over the images: run together.
+        let ((ref4, sources4), ((shift_planar, ref_planar), noise_sigma)) = rayon::join(
+            || {
+                rayon::join(
+                    || rgb4(reference.image),
+                    || {
+                        sources
+                            .par_iter()
+                            .map(|s| rgb4(s.image))
+                            .collect::<Vec<_>>()
+                    },
+                )
+            },
+            || rayon::join(shift_copies, noise),
+        );
         Ok(Self {
             ref4,
             sources4,
