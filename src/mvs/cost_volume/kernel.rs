@@ -459,7 +459,11 @@ pub(super) fn inverse_transmission_row(warp: &RowWarp, beta: f32, out: &mut [f32
     let last = out.len().saturating_sub(1) as f64;
     let (start, end) = ((b * z0).exp(), (b * (z0 + dz * last)).exp());
     let max_inv_t = f64::from(inverse_transmission(0.0));
-    if start.is_normal() && end.is_normal() {
+    if dz == 0.0 && start.is_normal() {
+        // A row at one depth (a fronto-parallel plane seen by a camera that does not tilt
+        // against it, e.g. either view of a rectified pair): the sequence below with step 1.
+        out.fill(start.min(max_inv_t) as f32);
+    } else if start.is_normal() && end.is_normal() {
         // Four interleaved geometric sequences (ratio step⁴) so the multiplies do not form one
         // latency-bound chain across the row.
         let step = (b * dz).exp();
@@ -495,14 +499,24 @@ mod tests {
     use crate::mvs::pose::Pose;
 
     /// The interleaved geometric sequence equals one `exp` per pixel (clamped), on rows whose
-    /// length is not a multiple of the 4 lanes.
+    /// length is not a multiple of the 4 lanes, of a source that tilts against the plane (depth
+    /// varies along the row) and of one that does not (one depth per row: the constant fill).
     #[test]
     fn inverse_transmission_row_matches_exp() {
         let k = Intrinsics::new(30.0, 30.0, 20.0, 6.0);
-        let rel = Pose::translation_only([-0.3, 0.05, 0.1]).unwrap();
+        let (c, s) = (0.2f64.cos(), 0.2f64.sin());
+        let tilted = Pose::from_rows(
+            [[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]],
+            [-0.3, 0.05, 0.1],
+        )
+        .unwrap();
+        let straight = Pose::translation_only([-0.3, 0.05, 0.1]).unwrap();
         let max_inv_t = inverse_transmission(0.0);
-        for (z, beta, width) in [(1.0f64, 0.3f32, 37usize), (6.0, 0.8, 41), (2.0, 0.0, 3)] {
-            let warp = PlaneWarp::new(&k, &k, &rel, z).row(4.0);
+        for ((z, beta, width), rel) in [(1.0f64, 0.3f32, 37usize), (6.0, 0.8, 41), (2.0, 0.0, 3)]
+            .into_iter()
+            .flat_map(|case| [(case, &tilted), (case, &straight)])
+        {
+            let warp = PlaneWarp::new(&k, &k, rel, z).row(4.0);
             let mut fast = vec![0.0f32; width];
             inverse_transmission_row(&warp, beta, &mut fast);
             let (slope, offset, depth) = warp.coefficients();
