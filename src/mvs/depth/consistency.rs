@@ -188,6 +188,114 @@ fn inside_columns(offset: i32, w: usize, w_src: usize) -> std::ops::Range<usize>
     lo.min(hi)..hi
 }
 
+/// The per-source-column reduction of a shift row's `u16` claims ([`SourceClaims::add_row`]):
+/// `local[x + offsets[i]] = min(local[x + offsets[i]], (levels[x·n + i] << 16) | (0xFFFF − i))`
+/// over the row's pixels `x` (`levels` is `[x][plane]`, `n` planes per pixel) whose target lies
+/// in `local` (the source row). Plane by plane over contiguous columns; with `avx512` (the CPU
+/// has AVX-512 F, BW and VL) each plane's levels are gathered 16 pixels at a time (a stride of
+/// `n` values) and the keys' minimum is one vector operation, the same keys and minima as the
+/// plain loop.
+fn reduce_shift_levels(avx512: bool, levels: &[u16], n: usize, offsets: &[i32], local: &mut [u32]) {
+    let w = levels.len() / n.max(1);
+    #[cfg(target_arch = "x86_64")]
+    if avx512 && n > 0 && std::mem::size_of_val(levels) < i32::MAX as usize {
+        // SAFETY: the CPU has AVX-512 F, BW and VL (the caller's `avx512`), and `levels` is
+        // addressable by `i32` byte offsets (checked above).
+        unsafe { reduce_shift_levels_avx512(levels, n, w, offsets, local) };
+        return;
+    }
+    let _ = avx512;
+    for (i, &o) in offsets.iter().enumerate() {
+        let cols = inside_columns(o, w, local.len());
+        if cols.is_empty() {
+            // Every voxel of the plane lands outside (and `cols.start + o` may be negative).
+            continue;
+        }
+        let tag = 0xFFFF - i as u32;
+        let dst = &mut local[(cols.start as i64 + o as i64) as usize..][..cols.len()];
+        for (d, x) in dst.iter_mut().zip(cols) {
+            let key = (u32::from(levels[x * n + i]) << 16) | tag;
+            *d = (*d).min(key);
+        }
+    }
+}
+
+/// [`reduce_shift_levels`] with AVX-512: per plane, 16 pixels' levels by one masked gather of
+/// the 32-bit words that hold them (the word starting at the level, or for the last plane the
+/// word ending at it, so no gather reads outside `levels`), then 16 keys and one masked
+/// minimum into `local`.
+///
+/// # Safety
+/// The CPU has AVX-512 F, BW and VL; `levels` (`w·n` values) is under `i32::MAX` bytes.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512bw,avx512vl,avx2")]
+unsafe fn reduce_shift_levels_avx512(
+    levels: &[u16],
+    n: usize,
+    w: usize,
+    offsets: &[i32],
+    local: &mut [u32],
+) {
+    use std::arch::x86_64::*;
+    assert!(
+        levels.len() == w * n && offsets.len() <= n,
+        "w·n levels, n offsets"
+    );
+    let base = levels.as_ptr().cast::<i32>();
+    let stride = _mm512_set1_epi32((2 * n) as i32);
+    let lane = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+    let low = _mm512_set1_epi32(0xFFFF);
+    for (i, &o) in offsets.iter().enumerate() {
+        let cols = inside_columns(o, w, local.len());
+        let tag = _mm512_set1_epi32((0xFFFF - i) as i32);
+        // The level of plane `i` is the low half of the word at it, or for the last of `n ≥ 2`
+        // planes (whose word would reach into the next pixel, past the last one) the high half
+        // of the word before it. With one plane the last pixel is left to the scalar below.
+        let (first_byte, high) = if n == 1 || i + 1 < n {
+            (2 * i as i32, false)
+        } else {
+            (2 * i as i32 - 2, true)
+        };
+        let mut x = cols.start;
+        while x < cols.end {
+            let count = (cols.end - x).min(16);
+            let mut k: __mmask16 = if count == 16 { !0 } else { (1u16 << count) - 1 };
+            if n == 1 && !high && x + count == w {
+                // One plane: the last pixel's word would end past `levels`; the scalar below.
+                k &= !(1u16 << (count - 1));
+            }
+            let pixels = _mm512_add_epi32(_mm512_set1_epi32(x as i32), lane);
+            let offs = _mm512_add_epi32(
+                _mm512_mullo_epi32(pixels, stride),
+                _mm512_set1_epi32(first_byte),
+            );
+            // SAFETY: lane `j < count` reads the 4 bytes at `2(x + j)n + first_byte`, inside
+            // `levels` for every pixel but (with one plane) the last, which the mask excludes;
+            // the masked `local` accesses stay in `x + o .. x + o + count ⊂ 0..local.len()`
+            // ([`inside_columns`]).
+            unsafe {
+                let words = _mm512_mask_i32gather_epi32::<1>(_mm512_setzero_si512(), k, offs, base);
+                let level = if high {
+                    _mm512_srli_epi32::<16>(words)
+                } else {
+                    _mm512_and_si512(words, low)
+                };
+                let keys = _mm512_or_si512(_mm512_slli_epi32::<16>(level), tag);
+                let dst = local.as_mut_ptr().add((x as i64 + o as i64) as usize);
+                let cur = _mm512_maskz_loadu_epi32(k, dst.cast::<i32>());
+                _mm512_mask_storeu_epi32(dst.cast::<i32>(), k, _mm512_min_epu32(cur, keys));
+            }
+            if k.count_ones() as usize != count {
+                let last = x + count - 1;
+                let q = (last as i64 + o as i64) as usize;
+                let key = (u32::from(levels[last * n + i]) << 16) | (0xFFFF - i as u32);
+                local[q] = local[q].min(key);
+            }
+            x += count;
+        }
+    }
+}
+
 /// Per-task buffers of [`SourceClaims::add_row`], reused from row to row.
 #[derive(Default)]
 pub struct ClaimScratch {
@@ -329,7 +437,7 @@ impl SourceClaims {
                 slot.fetch_min(key, Ordering::Relaxed);
             }
         };
-        if row.first().and_then(|c| c.level()).is_none() {
+        let Some(levels) = T::as_levels(row) else {
             for (i, &o) in offsets.iter().enumerate() {
                 for x in inside_columns(o, w, w_src) {
                     claim(
@@ -340,19 +448,10 @@ impl SourceClaims {
                 }
             }
             return;
-        }
+        };
         local.clear();
         local.resize(w_src, u32::MAX);
-        for (i, &o) in offsets.iter().enumerate() {
-            let cols = inside_columns(o, w, w_src);
-            let tag = 0xFFFF - i as u32;
-            let dst = &mut local[(cols.start as i64 + o as i64) as usize..][..cols.len()];
-            for (d, x) in dst.iter_mut().zip(cols) {
-                let level = u32::from(row[x * n + i].level().unwrap_or(u16::MAX));
-                let key = (level << 16) | tag;
-                *d = (*d).min(key);
-            }
-        }
+        reduce_shift_levels(crate::cpu::avx512bw_enabled(), levels, n, offsets, local);
         for (q, &k) in local.iter().enumerate() {
             if k != u32::MAX {
                 let i = (0xFFFF - (k & 0xFFFF)) as usize;
@@ -728,6 +827,47 @@ mod tests {
         let (fast, plain) = (fast.winners(), plain.winners());
         assert_eq!(fast.wins, plain.wins);
         assert!(fast.wins.iter().filter(|&&j| j != u32::MAX).count() > W * H / 2);
+    }
+
+    /// The gathered AVX-512 reduction of a shift row's keys equals the plain loop's, for one
+    /// plane and many, rows of one pixel and more, source rows shorter and longer than the
+    /// reference's, and offsets that put some, all or none of a plane outside the source.
+    #[test]
+    fn shift_level_reduction_is_the_same_gathered() {
+        if !crate::cpu::avx512bw_enabled() {
+            eprintln!("skipped: this CPU has no AVX-512 BW");
+            return;
+        }
+        let mut s = 99u64;
+        let mut next = |m: u64| {
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (s >> 33) % m
+        };
+        for n in [1usize, 2, 3, 17, 173] {
+            for w in [1usize, 5, 16, 37] {
+                for w_src in [w.saturating_sub(3).max(1), w, w + 7] {
+                    let levels: Vec<u16> = (0..w * n).map(|_| next(9000) as u16).collect();
+                    let offsets: Vec<i32> = (0..n)
+                        .map(|_| next(2 * w as u64 + 9) as i32 - w as i32 - 4)
+                        .collect();
+                    let start: Vec<u32> = (0..w_src)
+                        .map(|_| {
+                            if next(3) == 0 {
+                                u32::MAX
+                            } else {
+                                next(1 << 31) as u32
+                            }
+                        })
+                        .collect();
+                    let (mut plain, mut gathered) = (start.clone(), start);
+                    reduce_shift_levels(false, &levels, n, &offsets, &mut plain);
+                    reduce_shift_levels(true, &levels, n, &offsets, &mut gathered);
+                    assert_eq!(plain, gathered, "n {n}, w {w}, source row {w_src}");
+                }
+            }
+        }
     }
 
     #[test]

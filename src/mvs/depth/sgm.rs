@@ -138,6 +138,12 @@ pub trait PathCost:
     fn to_f32(self) -> f32;
     /// The value as an integer level when the type holds levels (`u16`), `None` for `f32`.
     fn level(self) -> Option<u16>;
+    /// The values as `u16` levels when the type holds levels, `None` for `f32`.
+    #[inline(always)]
+    fn as_levels(values: &[Self]) -> Option<&[u16]> {
+        let _ = values;
+        None
+    }
     /// [`path_step`] through this type's AVX-512 copy, `None` when it has none (`f32`).
     ///
     /// # Safety
@@ -208,6 +214,10 @@ impl PathCost for u16 {
     #[inline(always)]
     fn level(self) -> Option<u16> {
         Some(self)
+    }
+    #[inline(always)]
+    fn as_levels(values: &[Self]) -> Option<&[u16]> {
+        Some(values)
     }
     #[inline(always)]
     unsafe fn path_step_avx512<const SET: bool>(
