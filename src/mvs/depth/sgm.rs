@@ -136,8 +136,6 @@ pub trait PathCost:
     fn penalty(p: f32) -> Self;
     /// The value as `f32`.
     fn to_f32(self) -> f32;
-    /// The value as an integer level when the type holds levels (`u16`), `None` for `f32`.
-    fn level(self) -> Option<u16>;
     /// The values as `u16` levels when the type holds levels, `None` for `f32`.
     #[inline(always)]
     fn as_levels(values: &[Self]) -> Option<&[u16]> {
@@ -182,10 +180,6 @@ impl PathCost for f32 {
     fn to_f32(self) -> f32 {
         self
     }
-    #[inline(always)]
-    fn level(self) -> Option<u16> {
-        None
-    }
 }
 
 impl PathCost for u16 {
@@ -210,10 +204,6 @@ impl PathCost for u16 {
     #[inline(always)]
     fn to_f32(self) -> f32 {
         f32::from(self)
-    }
-    #[inline(always)]
-    fn level(self) -> Option<u16> {
-        Some(self)
     }
     #[inline(always)]
     fn as_levels(values: &[Self]) -> Option<&[u16]> {
