@@ -16,7 +16,7 @@
 /// Largest distance, pixels, between a sample of the shift path and the exact warp of its row
 /// that still counts as a shift: the general path's `f32` coordinates round by about this much
 /// at a few thousand pixels.
-pub(super) const SHIFT_TOLERANCE_PX: f64 = 1e-3;
+pub(crate) const SHIFT_TOLERANCE_PX: f64 = 1e-3;
 
 /// A `C`-channel interleaved image as `C` channel planes (`[c][y][x]`), each value minus
 /// `offset` (the airlight for the observation-space dehazing volume, 0 for the ordinary one).

@@ -34,6 +34,7 @@ use rayon::prelude::*;
 
 use super::sgm::{PathCost, DIRECTIONS};
 use crate::camera::Intrinsics;
+use crate::mvs::cost_volume::SHIFT_TOLERANCE_PX;
 use crate::mvs::plane_sweep::{PlaneSet, PlaneWarp, RowWarpF32};
 use crate::mvs::pose::Pose;
 
@@ -144,15 +145,12 @@ fn targets_of(avx2: bool, row: RowTargets<'_>, x: f32, out: &mut [u32]) {
     plain(row, x, out)
 }
 
-/// Tolerance of a row's warps, pixels over the row, to count as whole-pixel shifts
-/// ([`crate::mvs::plane_sweep::RowWarp::shift`]), as the cost volume's shift rows.
-const SHIFT_TOLERANCE_PX: f64 = 1e-3;
-
 /// Where a reference row's voxels land when every plane's warp moves the row onto one source
 /// row as a horizontal shift (a rectified pair): the voxel `(x, i)` lands on source pixel
 /// `start + x + offsets[i]` when `0 ≤ x + offsets[i] < w_src`, else outside. `offsets[i]` is
 /// `du_i` rounded and the row `v` rounded, so a target differs from the projection's rounding
-/// only where `x + du_i` lies within the shift's tolerance of a half pixel. The claims and the
+/// only where `x + du_i` lies within the shift's tolerance of a half pixel (the cost volume's
+/// [`SHIFT_TOLERANCE_PX`], so the sweep and the claims agree on which rows are shifts). The claims and the
 /// check use this same rule for such rows, so a voxel and its check agree on the pixel.
 fn shift_targets(
     warps: &[PlaneWarp],
@@ -188,8 +186,22 @@ fn inside_columns(offset: i32, w: usize, w_src: usize) -> std::ops::Range<usize>
     lo.min(hi)..hi
 }
 
+/// A shift row's claim of plane `i` at `level` as one `u32`: smaller is better, and of equal
+/// levels the higher plane (the nearer surface) wins, as in the 64-bit keys of
+/// [`SourceClaims`].
+#[inline(always)]
+fn shift_key(level: u16, i: usize) -> u32 {
+    (u32::from(level) << 16) | (0xFFFF - i as u32)
+}
+
+/// The level and the plane of a [`shift_key`].
+#[inline]
+fn shift_key_parts(key: u32) -> (u16, usize) {
+    ((key >> 16) as u16, (0xFFFF - (key & 0xFFFF)) as usize)
+}
+
 /// The per-source-column reduction of a shift row's `u16` claims ([`SourceClaims::add_row`]):
-/// `local[x + offsets[i]] = min(local[x + offsets[i]], (levels[x·n + i] << 16) | (0xFFFF − i))`
+/// `local[x + offsets[i]] = min(local[x + offsets[i]], shift_key(levels[x·n + i], i))`
 /// over the row's pixels `x` (`levels` is `[x][plane]`, `n` planes per pixel) whose target lies
 /// in `local` (the source row). Plane by plane over contiguous columns; with `avx512` (the CPU
 /// has AVX-512 F, BW and VL) each plane's levels are gathered 16 pixels at a time (a stride of
@@ -211,11 +223,9 @@ fn reduce_shift_levels(avx512: bool, levels: &[u16], n: usize, offsets: &[i32], 
             // Every voxel of the plane lands outside (and `cols.start + o` may be negative).
             continue;
         }
-        let tag = 0xFFFF - i as u32;
         let dst = &mut local[(cols.start as i64 + o as i64) as usize..][..cols.len()];
         for (d, x) in dst.iter_mut().zip(cols) {
-            let key = (u32::from(levels[x * n + i]) << 16) | tag;
-            *d = (*d).min(key);
+            *d = (*d).min(shift_key(levels[x * n + i], i));
         }
     }
 }
@@ -247,7 +257,8 @@ unsafe fn reduce_shift_levels_avx512(
     let low = _mm512_set1_epi32(0xFFFF);
     for (i, &o) in offsets.iter().enumerate() {
         let cols = inside_columns(o, w, local.len());
-        let tag = _mm512_set1_epi32((0xFFFF - i) as i32);
+        // `shift_key`'s low half, the same for every lane of the plane.
+        let tag = _mm512_set1_epi32(shift_key(0, i) as i32);
         // The level of plane `i` is the low half of the word at it, or for the last of `n ≥ 2`
         // planes (whose word would reach into the next pixel, past the last one) the high half
         // of the word before it. With one plane the last pixel is left to the scalar below.
@@ -260,7 +271,7 @@ unsafe fn reduce_shift_levels_avx512(
         while x < cols.end {
             let count = (cols.end - x).min(16);
             let mut k: __mmask16 = if count == 16 { !0 } else { (1u16 << count) - 1 };
-            if n == 1 && !high && x + count == w {
+            if n == 1 && x + count == w {
                 // One plane: the last pixel's word would end past `levels`; the scalar below.
                 k &= !(1u16 << (count - 1));
             }
@@ -288,8 +299,7 @@ unsafe fn reduce_shift_levels_avx512(
             if k.count_ones() as usize != count {
                 let last = x + count - 1;
                 let q = (last as i64 + o as i64) as usize;
-                let key = (u32::from(levels[last * n + i]) << 16) | (0xFFFF - i as u32);
-                local[q] = local[q].min(key);
+                local[q] = local[q].min(shift_key(levels[last * n + i], i));
             }
             x += count;
         }
@@ -415,7 +425,7 @@ impl SourceClaims {
 
     /// [`Self::add_row`] of a row whose voxels land on one source row at `start` by the
     /// whole-pixel `offsets` ([`shift_targets`]). For `u16` levels the row's claims are first
-    /// reduced per source column as `u32` keys `(level << 16) | (0xFFFF − i)`, plane by plane
+    /// reduced per source column as `u32` keys ([`shift_key`]), plane by plane
     /// over contiguous columns (a vector minimum, no atomics), and the source row then takes one
     /// atomic minimum per column: the same winners, because the cost `level · unit` orders like
     /// the level and ties still go to the higher plane. `f32` costs take the per-voxel loop.
@@ -454,8 +464,8 @@ impl SourceClaims {
         reduce_shift_levels(crate::cpu::avx512bw_enabled(), levels, n, offsets, local);
         for (q, &k) in local.iter().enumerate() {
             if k != u32::MAX {
-                let i = (0xFFFF - (k & 0xFFFF)) as usize;
-                claim(q, (k >> 16) as f32 * unit, i);
+                let (level, i) = shift_key_parts(k);
+                claim(q, f32::from(level) * unit, i);
             }
         }
     }
