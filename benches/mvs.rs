@@ -5,6 +5,8 @@
 //!
 //! A rectified 640×480 pair with the whole depth pipeline (consistency check, strips).
 //!
+//! SGM alone on one strip of that pair's size as `u16` levels (640×160, 173 planes, 8 paths).
+//!
 //! Run: `cargo bench --bench mvs`.
 
 use criterion::{criterion_group, criterion_main, Criterion};
@@ -171,5 +173,49 @@ fn bench_stereo_pair(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, bench, bench_stereo_pair);
+/// SGM alone on a strip the size of hazy Aloe's (640×160 pixels, 173 planes) as `u16` levels,
+/// 8 and 4 paths: the aggregation `estimate_depth` runs once per strip. Levels are seeded
+/// pseudo-random in `0..4000` and the penalties in levels, as the quantiser's are.
+fn bench_sgm(c: &mut Criterion) {
+    use murk::mvs::depth::sgm::{aggregate_into, Penalties};
+    let (w, h, n) = (640usize, 160usize, 173usize);
+    let mut state = 12345u64;
+    let levels: Vec<u16> = (0..w * h * n)
+        .map(|_| {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((state >> 33) % 4000) as u16
+        })
+        .collect();
+    let mut sum = vec![0u16; levels.len()];
+    let pen = Penalties {
+        p1: 300.0,
+        p2: 1200.0,
+        p2_gradient_scale: 0.0,
+    };
+    let mut g = c.benchmark_group("mvs_sgm_u16_640x160x173");
+    g.sample_size(20);
+    for paths in [8usize, 4] {
+        g.bench_function(format!("{paths}_paths"), |b| {
+            b.iter(|| {
+                aggregate_into(
+                    &levels,
+                    &mut sum,
+                    w,
+                    h,
+                    n,
+                    paths,
+                    &pen,
+                    None,
+                    &Monitor::noop(),
+                )
+                .expect("aggregate")
+            })
+        });
+    }
+    g.finish();
+}
+
+criterion_group!(benches, bench, bench_stereo_pair, bench_sgm);
 criterion_main!(benches);
