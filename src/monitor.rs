@@ -74,6 +74,16 @@ impl Monitor {
         }
     }
 
+    /// The same cancellation without progress reports: for work running beside other work
+    /// under one span (parallel strips), whose caller reports the progress of all of it.
+    pub fn silent(&self) -> Monitor {
+        Monitor {
+            cancelled: self.cancelled.clone(),
+            sink: None,
+            span: self.span,
+        }
+    }
+
     /// Reports `fraction ∈ [0, 1]` of this monitor's span, under the name `stage`.
     pub fn progress(&self, stage: &str, fraction: f32) {
         if let Some(sink) = &self.sink {

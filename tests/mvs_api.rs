@@ -133,7 +133,7 @@ async fn unary_and_jobs_api_agree_beat_chance_and_resubmission_is_cached() {
     let mut equivalent = req.clone();
     equivalent.cost_volume = pb::CostVolumeKind::Unspecified as i32;
     equivalent.sgm = Some(pb::SgmOptions {
-        num_paths: Some(8),
+        num_paths: Some(5),
         ..Default::default()
     });
     let eq = c

@@ -110,8 +110,12 @@ pub struct MvsArgs {
     /// Reject depth speckles smaller than this many pixels (0 = off; server default W·H/3000).
     #[arg(long)]
     pub speckle_max_size: Option<u32>,
-    /// Memory bound of the cost volume, MiB: larger volumes are processed in horizontal strips
-    /// (server default 96; the peak is about 1.25 times this plus the images).
+    /// SGM path directions: 5 (one top-to-bottom pass that keeps no volume; server default), 8
+    /// (upward paths too: two passes over a stored volume) or 4 (horizontal and vertical).
+    #[arg(long)]
+    pub paths: Option<u32>,
+    /// Memory bound of the cost volume with 8 or 4 paths, MiB: larger volumes are processed in
+    /// horizontal strips (server default 96; the peak is about 1.25 times this plus the images).
     #[arg(long)]
     pub volume_budget_mib: Option<u32>,
     /// Points below this confidence are left out of points.ply (0 keeps all).
@@ -186,6 +190,7 @@ pub fn run(a: MvsArgs) -> anyhow::Result<()> {
         || a.no_vignetting_compensation
         || a.speckle_max_size.is_some()
         || a.volume_budget_mib.is_some()
+        || a.paths.is_some()
     {
         request.sgm = Some(pb::SgmOptions {
             presmooth_sigma_px: a.presmooth_sigma,
@@ -196,6 +201,7 @@ pub fn run(a: MvsArgs) -> anyhow::Result<()> {
             vignetting_compensation: a.no_vignetting_compensation.then_some(false),
             speckle_max_size_px: a.speckle_max_size,
             volume_budget_mib: a.volume_budget_mib,
+            num_paths: a.paths,
             ..Default::default()
         });
     }

@@ -733,13 +733,18 @@ fn strips_match_the_whole_volume() {
     let scene = simulate_mvs(&MvsSimConfig::with_size(160, 120), &Monitor::noop()).unwrap();
     // 160 px × 64 planes × 4 bytes = 40 KiB a row: 1 MiB holds 25 rows, so strips of 16 own
     // rows with 24 rows of overlap each side (8 strips).
-    let whole = depth_of(&scene, &planes, &SgmParams::default());
+    // Strips are where the paths run both ways (8 paths): the default one pass keeps no volume.
+    let eight = SgmParams {
+        num_paths: 8,
+        ..SgmParams::default()
+    };
+    let whole = depth_of(&scene, &planes, &eight);
     let strips = depth_of(
         &scene,
         &planes,
         &SgmParams {
             volume_budget_mib: 1,
-            ..SgmParams::default()
+            ..eight
         },
     );
     let n = whole.inverse_depth.data().len();

@@ -21,7 +21,7 @@ use crate::tof::estimate_tof_depth;
 
 /// Bumped whenever an algorithm's output for the same request may change, so cached results of
 /// older code are never served for new submissions.
-pub const ALGORITHM_VERSION: &str = "murk-algorithms-19";
+pub const ALGORITHM_VERSION: &str = "murk-algorithms-20";
 
 /// Limits enforced per request.
 #[derive(Clone, Copy, Debug)]

@@ -13,13 +13,22 @@
 //! 2. contrast normalisation: each pixel's curve weighted by `clamp(c₀/c_p, 1, w_max)` from the
 //!    reference's local contrast ([`contrast`]), then the box mean of each plane ([`window`]),
 //!    written as `u16` levels of the largest weighted cost the strip can hold ([`quantise`]);
-//! 3. semi-global aggregation over 8 (or 4) paths with penalties `P1`, `P2` on plane-index
-//!    jumps, `P2` optionally adapted to the reference image gradient ([`sgm`]), in `u16`;
+//! 3. semi-global aggregation with penalties `P1`, `P2` on plane-index jumps, `P2` optionally
+//!    adapted to the reference image gradient ([`sgm`]), in `u16`: by default over the 5 paths
+//!    of one top-to-bottom pass ([`sgm::ONE_PASS_DIRECTIONS`], OpenCV's `MODE_SGBM`), or over 8
+//!    (or 4) paths in two passes;
 //! 4. winner-take-all, parabola sub-plane refinement in inverse depth and a confidence from the
 //!    aggregated curve ([`select`]);
 //! 5. optional guided, confidence-weighted median of inverse depth ([`filter`]).
 //!
-//! Memory: [`estimate_depth`] builds each strip's `f32` costs (plane-major) a band of rows at a
+//! Memory, 5 paths (the default): every path reaches a row from rows above it, so rows stream
+//! from costs to selections a band at a time ([`one_pass_selections`]): a band's `f32` costs,
+//! its `u16` levels, one row of sums and one row of path costs per direction, a few MiB per
+//! stripe and nothing the size of the volume. Stripes of about 256 rows run in parallel, each
+//! one's paths starting 24 rows above it.
+//!
+//! Memory, 8 or 4 paths: the upward paths need the whole volume of levels and of sums.
+//! [`estimate_depth`] builds each strip's `f32` costs (plane-major) a band of rows at a
 //! time and windows each band into the strip's pixel-major `u16` levels at once, so no `f32`
 //! volume of the whole strip exists; the sum over all paths is a second `u16` volume. The
 //! levels' scale is therefore fixed before any cost is computed, from the largest cost the
@@ -99,7 +108,13 @@ pub struct SgmParams {
     /// `τ` of the adaptive `P2` (see [`Penalties::p2_gradient_scale`]), pixel-value units;
     /// `0` = constant `P2`. Finite and `≥ 0`.
     pub p2_gradient_scale: f32,
-    /// Number of path directions: 4 (horizontal + vertical) or 8 (plus diagonals).
+    /// Number of path directions: 5 ([`sgm::ONE_PASS_DIRECTIONS`]: both horizontal ones and the
+    /// three going down, one pass that keeps no volume), 8 (all, two passes over stored volumes
+    /// bounded by [`SgmParams::volume_budget_mib`]) or 4 (horizontal + vertical, two passes).
+    ///
+    /// 5 is the default: on the hazy Aloe pair it is 0.05 points of C.P. below 8 paths (95.27
+    /// against 95.32 %) at about three quarters of the time and 60 % of the peak memory, and on
+    /// the simulator's hazy scenes its mean C.P. is as high (docs/ACCURACY.md).
     pub num_paths: usize,
     /// Radius of the per-plane box mean applied before aggregation, pixels (`0` = none,
     /// at most 16).
@@ -141,8 +156,8 @@ pub struct SgmParams {
     /// before the cost volume ([`vignetting`]); the fall-off is reported in
     /// [`DepthResult::vignetting_falloff`]. Used by [`estimate_depth`]. Default on.
     pub vignetting_compensation: bool,
-    /// Memory bound, MiB (`1 ..= 65536`): when the `f32` cost volume of the whole reference
-    /// is larger, depth is estimated in horizontal strips whose volume (own rows plus
+    /// Memory bound with 8 or 4 paths, MiB (`1 ..= 65536`; the default 5 paths keep no volume
+    /// and ignore it): when the `f32` cost volume of the whole reference is larger, depth is estimated in horizontal strips whose volume (own rows plus
     /// [`STRIP_OVERLAP_ROWS`] above and below) fits it. A strip holds two `u16` volumes (the
     /// windowed levels and the aggregated costs, [`quantise`]; together the size of the `f32`
     /// volume) and one band of `f32` costs, at most a quarter of this (the strip's costs are
@@ -161,7 +176,7 @@ impl Default for SgmParams {
             p1: 0.01,
             p2: 0.1,
             p2_gradient_scale: 0.05,
-            num_paths: 8,
+            num_paths: 5,
             cost_window_radius: 2,
             post_filter: PostFilter::None,
             presmooth_sigma_px: 0.8,
@@ -205,10 +220,10 @@ impl SgmParams {
                 format!("must be finite and >= 0, got {}", self.p2_gradient_scale),
             ));
         }
-        if self.num_paths != 4 && self.num_paths != 8 {
+        if ![4, 5, 8].contains(&self.num_paths) {
             return Err(MurkError::invalid(
                 "num_paths",
-                format!("must be 4 or 8, got {}", self.num_paths),
+                format!("must be 4, 5 or 8, got {}", self.num_paths),
             ));
         }
         if self.cost_window_radius > 16 {
@@ -355,18 +370,38 @@ pub fn estimate_depth(
     params: &SgmParams,
     monitor: &Monitor,
 ) -> Result<DepthResult> {
-    estimate_depth_in_bands(reference, sources, planes, kind, params, None, monitor)
+    estimate_depth_in_bands(
+        reference,
+        sources,
+        planes,
+        kind,
+        params,
+        Layout::default(),
+        monitor,
+    )
 }
 
-/// [`estimate_depth`] with strips built in bands of `band_rows` own rows (default
-/// [`band_rows_of`]); the depth does not depend on it (tested).
+/// How [`estimate_depth_in_bands`] lays out its work; the defaults are [`estimate_depth`]'s.
+#[derive(Clone, Copy, Debug, Default)]
+struct Layout {
+    /// Own rows per band (default [`band_rows_of`] for strips, [`ONE_PASS_BAND_ROWS`] for the
+    /// one pass); the depth does not depend on it (tested).
+    band_rows: Option<usize>,
+    /// Own rows per one-pass stripe (default [`ONE_PASS_STRIPE_ROWS`]).
+    stripe_rows: Option<usize>,
+    /// With 5 paths, aggregate strip volumes ([`strip_pass_selections`]) instead of streaming
+    /// rows: the same depth where the one pass has one stripe and the volumes one strip (tested).
+    volumes: bool,
+}
+
+/// [`estimate_depth`] with its work laid out as `layout` says.
 fn estimate_depth_in_bands(
     reference: &View<'_>,
     sources: &[View<'_>],
     planes: &PlaneSet,
     kind: CostKind,
     params: &SgmParams,
-    band_rows: Option<usize>,
+    layout: Layout,
     monitor: &Monitor,
 ) -> Result<DepthResult> {
     params.validate().map_err(|e| e.within("sgm"))?;
@@ -516,7 +551,6 @@ fn estimate_depth_in_bands(
     };
     let guide = reference.image;
     let (w, h) = guide.dims();
-    let n = planes.num_planes;
     let weights = contrast_weights_of(guide, params);
     // Codes of the views as the photometric term sees them (smoothed, gains divided out).
     let census: Option<(CensusImage, Vec<CensusImage>)> = (params.census_weight > 0.0).then(|| {
@@ -544,27 +578,209 @@ fn estimate_depth_in_bands(
         .iter()
         .map(|g| SourceClaims::new(g, planes))
         .collect();
+    let images = SweepImages::new(&reference, &sources, planes, kind)?;
+    let source = LevelSource {
+        reference: &reference,
+        sources: &sources,
+        planes,
+        kind,
+        images: &images,
+        census: census
+            .as_ref()
+            .map(|(codes, _)| (codes, &census_sources[..])),
+        weights: &weights,
+        census_weight: params.census_weight,
+        radius: params.cost_window_radius,
+    };
+    let selections = if params.num_paths == 5 && !layout.volumes {
+        one_pass_selections(&source, guide, params, layout, &claims, monitor)?
+    } else {
+        let bands = layout.band_rows;
+        strip_pass_selections(&source, channels, guide, params, bands, &claims, monitor)?
+    };
+    let mut depth = finish_depth(selections, w, h, planes, guide, params, claims, monitor)?;
+    depth.source_gains = source_gains;
+    depth.vignetting_falloff = falloff;
+    depth.warnings = bound_warnings(&depth.source_gains, channels, falloff, &source_falloffs);
+    depth.source_falloffs = source_falloffs;
+    Ok(depth)
+}
+
+/// What building rows of `u16` levels needs besides the rows (step 1–2 of the module docs):
+/// the views as the cost sees them and their sweep copies, the census codes, and the contrast
+/// weights of the whole reference.
+struct LevelSource<'a> {
+    reference: &'a View<'a>,
+    sources: &'a [View<'a>],
+    planes: &'a PlaneSet,
+    kind: CostKind,
+    images: &'a SweepImages,
+    /// The reference's census codes and the sources' (with their geometry), when the census
+    /// term is on.
+    census: Option<(&'a CensusImage, &'a [CensusSource<'a>])>,
+    /// Contrast weights, row-major over the whole reference (empty = all 1).
+    weights: &'a [f32],
+    census_weight: f32,
+    /// Radius of the box window, pixels.
+    radius: usize,
+}
+
+impl LevelSource<'_> {
+    fn width(&self) -> usize {
+        self.reference.image.width()
+    }
+
+    fn height(&self) -> usize {
+        self.reference.image.height()
+    }
+
+    fn planes(&self) -> usize {
+        self.planes.num_planes
+    }
+}
+
+/// One band's `f32` costs (`[plane][row][x]`) and which image rows it holds, reused band after
+/// band: a band's first rows are usually the previous band's last ones (the rows both bands'
+/// windows read), moved to the front of each plane instead of computed again.
+struct Band {
+    costs: Vec<f32>,
+    /// The image rows of the last band and its plane stride.
+    kept: Option<(std::ops::Range<usize>, usize)>,
+}
+
+impl Band {
+    /// A band of up to `rows` rows of `w`-pixel, `n`-plane costs.
+    fn new(rows: usize, w: usize, n: usize) -> Self {
+        Self {
+            costs: crate::large_buffer::zeroed::<f32>(rows * w * n),
+            kept: None,
+        }
+    }
+
+    /// The levels of image rows `own` into `out` (`[row][x][plane]`, `own.len() · w · n`
+    /// values), scaled by `quant`: their costs and those of the rows their windows read are
+    /// built (or moved from the last band), the census term added, and the window run, clipped
+    /// at the rows `clip` (a strip's rows, or the whole image's). The band must hold
+    /// `own.len() + 2r` rows.
+    fn levels(
+        &mut self,
+        src: &LevelSource<'_>,
+        clip: std::ops::Range<usize>,
+        own: std::ops::Range<usize>,
+        quant: &Quantiser,
+        out: &mut [u16],
+        monitor: &Monitor,
+    ) -> Result<()> {
+        let (w, n, r) = (src.width(), src.planes(), src.radius);
+        let read = own.start.saturating_sub(r).max(clip.start)..(own.end + r).min(clip.end);
+        let stride = read.len() * w;
+        // Cost rows do not depend on the band or the strip, so any row of the last band is
+        // moved; with the census term, which adds to whole bands, they are computed again.
+        let have = match &self.kept {
+            Some((prev, prev_stride))
+                if src.census.is_none() && prev.start <= read.start && read.start < prev.end =>
+            {
+                let count = prev.end.min(read.end) - read.start;
+                move_plane_rows(
+                    &mut self.costs,
+                    n,
+                    *prev_stride,
+                    (read.start - prev.start) * w,
+                    stride,
+                    count * w,
+                );
+                count
+            }
+            _ => 0,
+        };
+        let band = &mut self.costs[..n * stride];
+        if have < read.len() {
+            fill_cost_rows(
+                band,
+                RowsLayout {
+                    plane_stride: stride,
+                    first_row: have,
+                },
+                src.reference,
+                src.sources,
+                src.planes,
+                src.kind,
+                read.start + have..read.end,
+                src.images,
+                monitor,
+            )?;
+        }
+        let weights_of = |rows: &std::ops::Range<usize>| {
+            if src.weights.is_empty() {
+                src.weights
+            } else {
+                &src.weights[rows.start * w..rows.end * w]
+            }
+        };
+        if let Some((reference_codes, census_sources)) = src.census {
+            census::add_census_costs(
+                band,
+                reference_codes,
+                &src.reference.intrinsics,
+                census_sources,
+                src.planes,
+                read.clone(),
+                src.census_weight,
+                weights_of(&read),
+                monitor,
+            )?;
+        }
+        window::window_rows_to_levels(
+            band,
+            read.start - clip.start..read.end - clip.start,
+            weights_of(&clip),
+            w,
+            clip.len(),
+            n,
+            r,
+            own.start - clip.start..own.end - clip.start,
+            quant,
+            out,
+            monitor,
+        )?;
+        self.kept = Some((read, stride));
+        Ok(())
+    }
+}
+
+/// Steps 1–4 of the module docs with 8 or 4 paths: strip by strip ([`strips_of`]), each strip's
+/// levels built band by band ([`band_rows_of`] own rows, or `band_rows`), then SGM over the
+/// strip's levels into its sums and the selections of its own rows ([`strip_selections`]).
+fn strip_pass_selections(
+    src: &LevelSource<'_>,
+    channels: usize,
+    guide: &ImageF32,
+    params: &SgmParams,
+    band_rows: Option<usize>,
+    claims: &[SourceClaims],
+    monitor: &Monitor,
+) -> Result<Vec<Selection>> {
+    let (w, h, n) = (src.width(), src.height(), src.planes());
+    let r = params.cost_window_radius;
     let strips = strips_of(w, h, n, params.volume_budget_mib);
     let band_rows = band_rows
-        .unwrap_or_else(|| band_rows_of(w, n, params.cost_window_radius, params.volume_budget_mib))
+        .unwrap_or_else(|| band_rows_of(w, n, r, params.volume_budget_mib))
         .max(1);
-    let r = params.cost_window_radius;
     let mut selections = Vec::with_capacity(w * h);
     let k = strips.len() as f32;
-    let images = SweepImages::new(&reference, &sources, planes, kind)?;
     // The levels and the aggregated costs of the tallest strip, and one band's `f32` costs,
     // reused from strip to strip and band to band.
     let tallest = strips.iter().map(|s| s.rows.len()).max().unwrap_or(0) * w * n;
     let mut levels = crate::large_buffer::zeroed::<u16>(tallest);
     let mut sum = crate::large_buffer::zeroed::<u16>(tallest);
-    let mut band = crate::large_buffer::zeroed::<f32>((band_rows + 2 * r).min(h) * w * n);
+    let mut band = Band::new((band_rows + 2 * r).min(h), w, n);
+    let row_len = w * n;
     for (j, strip) in strips.iter().enumerate() {
         let rows = strip.rows.len();
-        let row_len = w * n;
-        let strip_weights = if weights.is_empty() {
-            &weights[..]
+        let strip_weights = if src.weights.is_empty() {
+            src.weights
         } else {
-            &weights[strip.rows.start * w..strip.rows.end * w]
+            &src.weights[strip.rows.start * w..strip.rows.end * w]
         };
         let quant = Quantiser::new(
             cost_bound(channels, strip_weights, params.census_weight),
@@ -575,84 +791,18 @@ fn estimate_depth_in_bands(
         // Bands of equal height, so that the last one is not a sliver that one worker windows.
         let bands = rows.div_ceil(band_rows);
         let band_rows = rows.div_ceil(bands);
-        // The previous band's rows (strip-relative) and plane stride in `band`.
-        let mut kept: Option<(std::ops::Range<usize>, usize)> = None;
         for b in 0..bands {
             let m = m.sub(b as f32 / bands as f32, (b + 1) as f32 / bands as f32);
-            // Strip-relative: the band's own rows and the rows their windows read.
+            // Strip-relative own rows of the band.
             let own = b * band_rows..((b + 1) * band_rows).min(rows);
-            let read = own.start.saturating_sub(r)..(own.end + r).min(rows);
-            let stride = read.len() * w;
-            // The `2r` rows both bands' windows read are the previous band's last rows: moved to
-            // the front of each plane instead of computed again (with the census term, which
-            // adds to whole bands, they are computed again).
-            let have = match &kept {
-                Some((prev, prev_stride))
-                    if census.is_none() && prev.start <= read.start && read.start < prev.end =>
-                {
-                    let count = prev.end.min(read.end) - read.start;
-                    move_plane_rows(
-                        &mut band,
-                        n,
-                        *prev_stride,
-                        (read.start - prev.start) * w,
-                        stride,
-                        count * w,
-                    );
-                    count
-                }
-                _ => 0,
-            };
-            let band = &mut band[..n * stride];
-            if have < read.len() {
-                let todo = strip.rows.start + read.start + have..strip.rows.start + read.end;
-                fill_cost_rows(
-                    band,
-                    RowsLayout {
-                        plane_stride: stride,
-                        first_row: have,
-                    },
-                    &reference,
-                    &sources,
-                    planes,
-                    kind,
-                    todo,
-                    &images,
-                    &m,
-                )?;
-            }
-            let in_image = strip.rows.start + read.start..strip.rows.start + read.end;
-            if let Some((reference_codes, _)) = &census {
-                census::add_census_costs(
-                    band,
-                    reference_codes,
-                    &reference.intrinsics,
-                    &census_sources,
-                    planes,
-                    in_image.clone(),
-                    params.census_weight,
-                    if weights.is_empty() {
-                        &weights
-                    } else {
-                        &weights[in_image.start * w..in_image.end * w]
-                    },
-                    &m,
-                )?;
-            }
-            window::window_rows_to_levels(
-                band,
-                read.clone(),
-                strip_weights,
-                w,
-                rows,
-                n,
-                r,
-                own.clone(),
+            band.levels(
+                src,
+                strip.rows.clone(),
+                strip.rows.start + own.start..strip.rows.start + own.end,
                 &quant,
                 &mut levels[own.start * row_len..own.end * row_len],
                 &m,
             )?;
-            kept = Some((read, stride));
         }
         let m = monitor.sub((j as f32 + 0.5) / k, (j as f32 + 1.0) / k);
         selections.extend(strip_selections(
@@ -661,19 +811,104 @@ fn estimate_depth_in_bands(
             &quant,
             strip,
             w,
-            planes,
+            src.planes,
             guide,
             params,
-            &claims,
+            claims,
             &m,
         )?);
     }
-    let mut depth = finish_depth(selections, w, h, planes, guide, params, claims, monitor)?;
-    depth.source_gains = source_gains;
-    depth.vignetting_falloff = falloff;
-    depth.warnings = bound_warnings(&depth.source_gains, channels, falloff, &source_falloffs);
-    depth.source_falloffs = source_falloffs;
-    Ok(depth)
+    Ok(selections)
+}
+
+/// Own rows of a one-pass stripe ([`one_pass_selections`]), about: tall enough that the paths'
+/// warm-up rows above each stripe ([`STRIP_OVERLAP_ROWS`]) are a small share, and fixed, so the
+/// depth does not depend on the number of cores.
+const ONE_PASS_STRIPE_ROWS: usize = 256;
+
+/// Own rows of a one-pass band: its costs and levels stay within a few MiB per stripe.
+const ONE_PASS_BAND_ROWS: usize = 16;
+
+/// Steps 1–4 of the module docs with the 5 one-pass paths ([`sgm::ONE_PASS_DIRECTIONS`]): rows
+/// stream from costs to selections, a band at a time, and no volume of the strip or image is
+/// kept. The image is split into stripes of about [`ONE_PASS_STRIPE_ROWS`] own rows run in
+/// parallel, each stripe's paths starting [`STRIP_OVERLAP_ROWS`] rows above its own rows (the
+/// window is clipped at the image's rows, not the stripe's). One quantiser serves the whole
+/// image.
+fn one_pass_selections(
+    src: &LevelSource<'_>,
+    guide: &ImageF32,
+    params: &SgmParams,
+    layout: Layout,
+    claims: &[SourceClaims],
+    monitor: &Monitor,
+) -> Result<Vec<Selection>> {
+    let (w, h, n) = (src.width(), src.height(), src.planes());
+    let r = params.cost_window_radius;
+    let row_len = w * n;
+    let quant = Quantiser::new(
+        cost_bound(
+            src.reference.image.channels(),
+            src.weights,
+            params.census_weight,
+        ),
+        params.p2.max(params.p1),
+        params.num_paths,
+    );
+    let pen = quant.penalties(&params.penalties());
+    let eps = quant.scaled(select::CONFIDENCE_EPS_PER_PATH * params.num_paths as f32);
+    let unit = quant.unit();
+    let isa = crate::cpu::Isa::detect();
+    let count = h
+        .div_ceil(layout.stripe_rows.unwrap_or(ONE_PASS_STRIPE_ROWS).max(1))
+        .max(1);
+    let own = h.div_ceil(count).max(1);
+    let total = (0..h.div_ceil(own))
+        .map(|k| ((k + 1) * own).min(h) - (k * own).saturating_sub(STRIP_OVERLAP_ROWS))
+        .sum::<usize>()
+        .max(1);
+    let done = std::sync::Mutex::new(0usize);
+    let silent = monitor.silent();
+    let mut selections = vec![Selection::NONE; w * h];
+    selections
+        .par_chunks_mut(own * w)
+        .enumerate()
+        .try_for_each(|(k, selected)| -> Result<()> {
+            let core = k * own..((k + 1) * own).min(h);
+            let rows = core.start.saturating_sub(STRIP_OVERLAP_ROWS)..core.end;
+            let band_rows = (layout.band_rows)
+                .unwrap_or(ONE_PASS_BAND_ROWS)
+                .clamp(1, rows.len());
+            let mut band = Band::new((band_rows + 2 * r).min(h), w, n);
+            let mut levels = crate::large_buffer::zeroed::<u16>(band_rows * row_len);
+            let mut sum = vec![0u16; row_len];
+            let mut pass = sgm::OnePass::new(w, n, isa);
+            let mut scratch = ClaimScratch::default();
+            let mut y0 = rows.start;
+            while y0 < rows.end {
+                silent.checkpoint()?;
+                let y1 = (y0 + band_rows).min(rows.end);
+                let levels = &mut levels[..(y1 - y0) * row_len];
+                band.levels(src, 0..h, y0..y1, &quant, levels, &silent)?;
+                for (y, crow) in (y0..y1).zip(levels.chunks_exact(row_len)) {
+                    pass.row(crow, &mut sum, y, &pen, Some(sgm::Guide::new(guide)));
+                    if core.contains(&y) {
+                        for c in claims {
+                            c.add_row(y, &sum, n, unit, &mut scratch);
+                        }
+                        let at = (y - core.start) * w;
+                        select::select_into(&sum, n, eps, &mut selected[at..at + w]);
+                    }
+                }
+                // Counted and reported under one lock, so stripes never report out of order.
+                let mut done = done.lock().unwrap_or_else(|e| e.into_inner());
+                *done += y1 - y0;
+                monitor.progress("mvs.depth", 0.95 * *done as f32 / total as f32);
+                y0 = y1;
+            }
+            Ok(())
+        })?;
+    Ok(selections)
 }
 
 /// A sentence for each source gain and each fall-off that ended at a bound of its search

@@ -5,7 +5,8 @@
 //!
 //! `L_r(p, i) = C(p, i) + min(L_r(p−r, i), L_r(p−r, i±1) + P1, min_k L_r(p−r, k) + P2) − min_k L_r(p−r, k)`
 //!
-//! and the aggregated volume is `S(p, i) = Σ_r L_r(p, i)` over 4 or 8 directions. Subtracting
+//! and the aggregated volume is `S(p, i) = Σ_r L_r(p, i)` over 4, 5 ([`ONE_PASS_DIRECTIONS`],
+//! aggregated row by row by [`OnePass`]) or 8 directions. Subtracting
 //! `min_k L_r(p−r, k)` keeps `L_r ≤ C_max + P2`, so the values stay bounded: `u16` levels of a
 //! quantised volume ([`PathCost`], [`super::quantise`]) never saturate. A path starts at the
 //! image border with `L_r = C`.
@@ -44,6 +45,21 @@ pub const DIRECTIONS: [(i32, i32); 8] = [
     (1, -1),
     (-1, -1),
 ];
+
+/// The 5 directions of one top-to-bottom pass (OpenCV's `MODE_SGBM`): both horizontal ones and
+/// the three with `dy = +1`. Every path then reaches a pixel from rows already swept, so
+/// [`OnePass`] aggregates a row as soon as its costs exist, keeping one row of path costs per
+/// direction instead of the volumes of costs and sums that the upward paths need.
+pub const ONE_PASS_DIRECTIONS: [(i32, i32); 5] = [(1, 0), (-1, 0), (0, 1), (1, 1), (-1, 1)];
+
+/// The directions of a `num_paths` aggregation: the first 4 of [`DIRECTIONS`] (horizontal and
+/// vertical), [`ONE_PASS_DIRECTIONS`] for 5, all 8 for 8.
+pub fn directions(num_paths: usize) -> &'static [(i32, i32)] {
+    match num_paths {
+        5 => &ONE_PASS_DIRECTIONS,
+        n => &DIRECTIONS[..n.min(DIRECTIONS.len())],
+    }
+}
 
 /// Pixels per rayon task in the row-sweeping directions: enough work per task (16 curves of N
 /// planes) to hide scheduling overhead, small enough to balance over 2+ cores.
@@ -491,7 +507,7 @@ pub fn aggregate_into<T: PathCost>(
     );
     assert_eq!(sum.len(), costs.len(), "sum must hold one value per voxel");
     let isa = Isa::detect();
-    let dirs = &DIRECTIONS[..num_paths.min(DIRECTIONS.len())];
+    let dirs = directions(num_paths);
     let along = |dy: i32| -> Vec<i32> { dirs.iter().filter(|d| d.1 == dy).map(|d| d.0).collect() };
     monitor.checkpoint()?;
     // Every listing of directions starts with both horizontal ones, which initialise `S`.
@@ -521,47 +537,76 @@ fn horizontal<T: PathCost>(
     guide: Option<Guide<'_>>,
     isa: Isa,
 ) {
-    let p1 = T::penalty(pen.p1);
     sum.par_chunks_mut(w * n)
         .zip(costs.par_chunks(w * n))
         .enumerate()
         .for_each_init(
-            // Padded curves ([`path_step`]).
-            || (vec![T::MAX; n + 2], vec![T::MAX; n + 2]),
-            |(prev, cur), (y, (srow, crow))| {
-                for (k, &dx) in dxs.iter().enumerate() {
-                    let mut prev_min = T::MAX;
-                    for step in 0..w {
-                        let x = if dx > 0 { step } else { w - 1 - step };
-                        let c = &crow[x * n..(x + 1) * n];
-                        let s = &mut srow[x * n..(x + 1) * n];
-                        // The row's first direction sets `S`, the others add to it.
-                        let m = match (step, k) {
-                            (0, 0) => path_start::<T, true>(c, cur, s),
-                            (0, _) => path_start::<T, false>(c, cur, s),
-                            _ => {
-                                let xp = if dx > 0 { x - 1 } else { x + 1 };
-                                let p2 = T::penalty(pen.p2_at(guide, xp, y, x, y));
-                                if k == 0 {
-                                    path_step_fast::<T, true>(
-                                        isa, c, prev, prev_min, p1, p2, cur, s,
-                                    )
-                                } else {
-                                    path_step_fast::<T, false>(
-                                        isa, c, prev, prev_min, p1, p2, cur, s,
-                                    )
-                                }
-                            }
-                        };
-                        prev_min = m;
-                        std::mem::swap(prev, cur);
-                    }
-                }
-                if dxs.is_empty() {
-                    srow.fill(T::ZERO);
-                }
+            || HorizontalCurves::new(n),
+            |curves, (y, (srow, crow))| {
+                horizontal_row(crow, srow, y, w, n, dxs, pen, guide, isa, curves)
             },
         );
+}
+
+/// The two padded curves ([`path_step`]) a horizontal path carries from pixel to pixel.
+struct HorizontalCurves<T> {
+    prev: Vec<T>,
+    cur: Vec<T>,
+}
+
+impl<T: PathCost> HorizontalCurves<T> {
+    fn new(n: usize) -> Self {
+        Self {
+            prev: vec![T::MAX; n + 2],
+            cur: vec![T::MAX; n + 2],
+        }
+    }
+}
+
+/// [`horizontal`] on row `y` (`crow` its costs, `srow` its `S`, both `[x][plane]`).
+#[allow(clippy::too_many_arguments)]
+#[inline]
+fn horizontal_row<T: PathCost>(
+    crow: &[T],
+    srow: &mut [T],
+    y: usize,
+    w: usize,
+    n: usize,
+    dxs: &[i32],
+    pen: &Penalties,
+    guide: Option<Guide<'_>>,
+    isa: Isa,
+    curves: &mut HorizontalCurves<T>,
+) {
+    let p1 = T::penalty(pen.p1);
+    let HorizontalCurves { prev, cur } = curves;
+    for (k, &dx) in dxs.iter().enumerate() {
+        let mut prev_min = T::MAX;
+        for step in 0..w {
+            let x = if dx > 0 { step } else { w - 1 - step };
+            let c = &crow[x * n..(x + 1) * n];
+            let s = &mut srow[x * n..(x + 1) * n];
+            // The row's first direction sets `S`, the others add to it.
+            let m = match (step, k) {
+                (0, 0) => path_start::<T, true>(c, cur, s),
+                (0, _) => path_start::<T, false>(c, cur, s),
+                _ => {
+                    let xp = if dx > 0 { x - 1 } else { x + 1 };
+                    let p2 = T::penalty(pen.p2_at(guide, xp, y, x, y));
+                    if k == 0 {
+                        path_step_fast::<T, true>(isa, c, prev, prev_min, p1, p2, cur, s)
+                    } else {
+                        path_step_fast::<T, false>(isa, c, prev, prev_min, p1, p2, cur, s)
+                    }
+                }
+            };
+            prev_min = m;
+            std::mem::swap(prev, cur);
+        }
+    }
+    if dxs.is_empty() {
+        srow.fill(T::ZERO);
+    }
 }
 
 /// The directions `(dx, dy)` for `dx` in `dxs`, all with the same `dy = ±1`: rows in path
@@ -583,43 +628,99 @@ fn row_sweep<T: PathCost>(
     monitor: &Monitor,
 ) -> Result<()> {
     let row_len = w * n;
-    let k = dxs.len();
-    let np = n + 2;
-    let p1 = T::penalty(pen.p1);
-    let mut prev = vec![T::MAX; k * w * np];
-    let mut cur = vec![T::MAX; k * w * np];
-    let mut prev_min = vec![T::MAX; k * w];
-    let mut cur_min = vec![T::MAX; k * w];
+    let mut curves = RowCurves::new(w, n, dxs.len());
     for step in 0..h {
         monitor.checkpoint()?;
         let y = if dy > 0 { step } else { h - 1 - step };
         let yp = if dy > 0 { y.wrapping_sub(1) } else { y + 1 };
-        let crow = &costs[y * row_len..(y + 1) * row_len];
-        let srow = &mut sum[y * row_len..(y + 1) * row_len];
-        let (prev_r, prev_min_r) = (&prev[..], &prev_min[..]);
-        srow.par_chunks_mut(PIXEL_CHUNK * n)
-            .zip(cur.par_chunks_mut(PIXEL_CHUNK * k * np))
-            .zip(cur_min.par_chunks_mut(PIXEL_CHUNK * k))
-            .enumerate()
-            .for_each(|(chunk, ((s_chunk, cur_chunk), min_chunk))| {
-                let x0 = chunk * PIXEL_CHUNK;
-                let parts = s_chunk
-                    .chunks_exact_mut(n)
-                    .zip(cur_chunk.chunks_exact_mut(k * np))
-                    .zip(min_chunk.chunks_exact_mut(k));
-                for (j, ((s, outs), mins)) in parts.enumerate() {
-                    let x = x0 + j;
-                    let c = &crow[x * n..(x + 1) * n];
-                    for (d, ((&dx, out), m)) in dxs
-                        .iter()
-                        .zip(outs.chunks_exact_mut(np))
-                        .zip(mins.iter_mut())
-                        .enumerate()
-                    {
-                        let xp = x as i64 - dx as i64;
-                        *m = if step == 0 || xp < 0 || xp >= w as i64 {
-                            path_start::<T, false>(c, out, s)
-                        } else {
+        sweep_row(
+            &costs[y * row_len..(y + 1) * row_len],
+            &mut sum[y * row_len..(y + 1) * row_len],
+            y,
+            (step > 0).then_some(yp),
+            w,
+            n,
+            dxs,
+            pen,
+            guide,
+            isa,
+            &mut curves,
+        );
+    }
+    Ok(())
+}
+
+/// The padded path-cost curves (`[x][direction][plane]`, [`path_step`]: `n + 2` values each) and
+/// their minima of the previous and the current row of a row sweep.
+struct RowCurves<T> {
+    prev: Vec<T>,
+    cur: Vec<T>,
+    prev_min: Vec<T>,
+    cur_min: Vec<T>,
+}
+
+impl<T: PathCost> RowCurves<T> {
+    fn new(w: usize, n: usize, directions: usize) -> Self {
+        let len = directions * w * (n + 2);
+        Self {
+            prev: vec![T::MAX; len],
+            cur: vec![T::MAX; len],
+            prev_min: vec![T::MAX; directions * w],
+            cur_min: vec![T::MAX; directions * w],
+        }
+    }
+}
+
+/// One row `y` of [`row_sweep`] (`crow` its costs, `srow` its `S` added to): each pixel's curves
+/// of every direction `(dx, dy)`, `dx` in `dxs`, continued from the previous row `yp` of the
+/// sweep in `curves` (`None`: the paths start here), pixels split across rayon tasks. The row's
+/// curves become `curves`' previous ones.
+#[allow(clippy::too_many_arguments)]
+fn sweep_row<T: PathCost>(
+    crow: &[T],
+    srow: &mut [T],
+    y: usize,
+    yp: Option<usize>,
+    w: usize,
+    n: usize,
+    dxs: &[i32],
+    pen: &Penalties,
+    guide: Option<Guide<'_>>,
+    isa: Isa,
+    curves: &mut RowCurves<T>,
+) {
+    let k = dxs.len();
+    let np = n + 2;
+    let p1 = T::penalty(pen.p1);
+    let RowCurves {
+        prev,
+        cur,
+        prev_min,
+        cur_min,
+    } = curves;
+    let (prev_r, prev_min_r) = (&prev[..], &prev_min[..]);
+    srow.par_chunks_mut(PIXEL_CHUNK * n)
+        .zip(cur.par_chunks_mut(PIXEL_CHUNK * k * np))
+        .zip(cur_min.par_chunks_mut(PIXEL_CHUNK * k))
+        .enumerate()
+        .for_each(|(chunk, ((s_chunk, cur_chunk), min_chunk))| {
+            let x0 = chunk * PIXEL_CHUNK;
+            let parts = s_chunk
+                .chunks_exact_mut(n)
+                .zip(cur_chunk.chunks_exact_mut(k * np))
+                .zip(min_chunk.chunks_exact_mut(k));
+            for (j, ((s, outs), mins)) in parts.enumerate() {
+                let x = x0 + j;
+                let c = &crow[x * n..(x + 1) * n];
+                for (d, ((&dx, out), m)) in dxs
+                    .iter()
+                    .zip(outs.chunks_exact_mut(np))
+                    .zip(mins.iter_mut())
+                    .enumerate()
+                {
+                    let xp = x as i64 - dx as i64;
+                    *m = match yp {
+                        Some(yp) if xp >= 0 && xp < w as i64 => {
                             let xp = xp as usize;
                             let p2 = T::penalty(pen.p2_at(guide, xp, yp, x, y));
                             let at = (xp * k + d) * np;
@@ -633,12 +734,101 @@ fn row_sweep<T: PathCost>(
                                 out,
                                 s,
                             )
-                        };
-                    }
+                        }
+                        _ => path_start::<T, false>(c, out, s),
+                    };
                 }
-            });
-        std::mem::swap(&mut prev, &mut cur);
-        std::mem::swap(&mut prev_min, &mut cur_min);
+            }
+        });
+    std::mem::swap(prev, cur);
+    std::mem::swap(prev_min, cur_min);
+}
+
+/// Aggregation over [`ONE_PASS_DIRECTIONS`] one row at a time, top to bottom: each row's `S` is
+/// known as soon as its costs are, so a caller streams costs in and takes `S` out row by row and
+/// no volume is kept. Rows given to [`OnePass::row`] are `y₀, y₀ + 1, …`; the vertical and
+/// diagonal paths start at `y₀`. The same sums as [`aggregate_into`] with 5 paths on those rows,
+/// bit for bit (tested).
+pub(crate) struct OnePass<T> {
+    w: usize,
+    n: usize,
+    isa: Isa,
+    horizontal: HorizontalCurves<T>,
+    vertical: RowCurves<T>,
+    /// The last row aggregated.
+    last: Option<usize>,
+}
+
+impl<T: PathCost> OnePass<T> {
+    /// A pass over `w`-pixel rows of `n` planes, with the instruction sets `isa` (detected on the
+    /// caller's thread: [`Isa::detect`]).
+    pub(crate) fn new(w: usize, n: usize, isa: Isa) -> Self {
+        Self {
+            w,
+            n,
+            isa,
+            horizontal: HorizontalCurves::new(n),
+            vertical: RowCurves::new(w, n, 3),
+            last: None,
+        }
     }
-    Ok(())
+
+    /// `S` of row `y` into `srow` (every value overwritten) from its costs `crow` (both
+    /// `[x][plane]`, `w · n` values); `y` follows the previous row given, `guide` (rows from 0)
+    /// enables the adaptive `P2`.
+    pub(crate) fn row(
+        &mut self,
+        crow: &[T],
+        srow: &mut [T],
+        y: usize,
+        pen: &Penalties,
+        guide: Option<Guide<'_>>,
+    ) {
+        let (w, n) = (self.w, self.n);
+        assert!(
+            crow.len() == w * n && srow.len() == w * n,
+            "one row of costs and of sums"
+        );
+        assert!(
+            self.last.is_none_or(|l| l + 1 == y),
+            "rows in order, one after another"
+        );
+        let along = |dy: i32| -> [i32; 3] {
+            let mut out = [0; 3];
+            for (o, d) in out
+                .iter_mut()
+                .zip(ONE_PASS_DIRECTIONS.iter().filter(|d| d.1 == dy))
+            {
+                *o = d.0;
+            }
+            out
+        };
+        let (level, down) = ([1, -1], along(1));
+        horizontal_row(
+            crow,
+            srow,
+            y,
+            w,
+            n,
+            &level,
+            pen,
+            guide,
+            self.isa,
+            &mut self.horizontal,
+        );
+        sweep_row(
+            crow,
+            srow,
+            y,
+            self.last,
+            w,
+            n,
+            &down,
+            pen,
+            guide,
+            self.isa,
+            &mut self.vertical,
+        );
+        self.last = Some(y);
+    }
 }

@@ -1,4 +1,4 @@
-use super::sgm::{aggregate, Guide, Penalties, DIRECTIONS};
+use super::sgm::{aggregate, directions, Guide, Penalties};
 use super::*;
 use crate::camera::Intrinsics;
 use crate::mvs::pose::Pose;
@@ -28,7 +28,7 @@ fn reference_sgm(
 ) -> Vec<f32> {
     let idx = |x: usize, y: usize, d: usize| (y * w + x) * n + d;
     let mut s = vec![0.0f32; w * h * n];
-    for &(dx, dy) in &DIRECTIONS[..paths] {
+    for &(dx, dy) in directions(paths) {
         let mut l = vec![0.0f32; w * h * n];
         let ys: Vec<usize> = if dy >= 0 {
             (0..h).collect()
@@ -91,6 +91,8 @@ fn fast_sgm_equals_reference() {
     for (n, paths, tau) in [
         (7, 8, 0.05f32),
         (5, 4, 0.0),
+        (9, 5, 0.05),
+        (33, 5, 0.0),
         (1, 8, 0.1),
         (2, 8, 0.05),
         (27, 8, 0.05),
@@ -121,6 +123,49 @@ fn fast_sgm_equals_reference() {
                 "voxel {i}: {a} vs {b}"
             );
         }
+    }
+}
+
+/// [`sgm::OnePass`], fed a row at a time, gives [`aggregate`]'s 5-path sums bit for bit, in `f32`
+/// and in `u16` levels, with and without the adaptive `P2`, from the first row or from a later
+/// one (its guide rows then numbered from that row, as a stripe's are), with pixels split
+/// across several tasks (`w` > the row sweep's chunk).
+#[test]
+fn one_pass_rows_equal_the_five_path_aggregation() {
+    fn check<T: sgm::PathCost>(c: &[T], guide: &ImageF32, (w, h, n): (usize, usize, usize)) {
+        let isa = crate::cpu::Isa::detect();
+        for tau in [0.0f32, 0.05] {
+            let pen = Penalties {
+                p1: 3.0,
+                p2: 40.0,
+                p2_gradient_scale: tau,
+            };
+            for y0 in [0, 3] {
+                let rows = &c[y0 * w * n..];
+                let g = Guide::rows(guide, y0..h);
+                let whole =
+                    aggregate(rows, w, h - y0, n, 5, &pen, Some(g), &Monitor::noop()).unwrap();
+                let mut pass = sgm::OnePass::new(w, n, isa);
+                let mut sum = vec![T::ZERO; w * n];
+                for (y, (crow, expected)) in rows
+                    .chunks_exact(w * n)
+                    .zip(whole.chunks_exact(w * n))
+                    .enumerate()
+                {
+                    pass.row(crow, &mut sum, y, &pen, Some(g));
+                    assert!(sum == expected, "row {y} from {y0}, tau {tau}, n {n}");
+                }
+            }
+        }
+    }
+    let (w, h) = (37, 9);
+    let guide = ImageF32::from_vec(w, h, 3, lcg(99, w * h * 3)).unwrap();
+    for n in [1usize, 7, 33] {
+        let c = lcg(n as u64, w * h * n);
+        let floats: Vec<f32> = c.iter().map(|v| 30.0 * v).collect();
+        let levels: Vec<u16> = c.iter().map(|v| (4000.0 * v) as u16).collect();
+        check(&floats, &guide, (w, h, n));
+        check(&levels, &guide, (w, h, n));
     }
 }
 
@@ -552,49 +597,144 @@ fn bands_do_not_change_the_depth() {
         airlight: 0.8,
         beta: 0.1,
     };
-    for (kind, census_weight, budget) in [
-        (CostKind::Ordinary, 0.0, 96),
-        (
-            CostKind::DehazingWith(atm, DehazingOptions::default()),
-            0.0,
-            96,
-        ),
-        (CostKind::Dehazing(atm), 1.0, 96),
-        (CostKind::Ordinary, 0.0, 1),
+    for num_paths in [8, 5] {
+        for (kind, census_weight, budget) in [
+            (CostKind::Ordinary, 0.0, 96),
+            (
+                CostKind::DehazingWith(atm, DehazingOptions::default()),
+                0.0,
+                96,
+            ),
+            (CostKind::Dehazing(atm), 1.0, 96),
+            (CostKind::Ordinary, 0.0, 1),
+        ] {
+            let params = SgmParams {
+                census_weight,
+                volume_budget_mib: budget,
+                num_paths,
+                ..SgmParams::default()
+            };
+            let depth = |band_rows, stripe_rows| {
+                let layout = Layout {
+                    band_rows,
+                    stripe_rows,
+                    volumes: false,
+                };
+                estimate_depth_in_bands(
+                    &views[0],
+                    &views[1..],
+                    &planes,
+                    kind,
+                    &params,
+                    layout,
+                    &Monitor::noop(),
+                )
+                .unwrap()
+            };
+            // 1 MiB: strips of 16 own rows (the volume is 1.2 MiB); one pass: stripes of 20.
+            assert_eq!(strips_of(W, H, 64, budget).len() > 1, budget == 1);
+            let stripes = (budget == 1).then_some(20);
+            let whole = depth(Some(H), stripes);
+            for rows in [1, 3, 5, 8, 13] {
+                let banded = depth(Some(rows), stripes);
+                let what = format!("{num_paths} paths, {kind:?}, {rows} rows");
+                assert_eq!(banded.z_depth.data(), whole.z_depth.data(), "{what}");
+                assert_eq!(banded.confidence.data(), whole.confidence.data(), "{what}");
+            }
+        }
+    }
+}
+
+/// The one pass streams rows into exactly the depth that aggregating the whole levels volume
+/// with the same 5 paths gives, where both see the image whole (one stripe, one strip): the
+/// same costs, window, quantiser, sums, claims and selections.
+#[test]
+fn one_pass_streams_what_the_volumes_aggregate() {
+    use crate::atmosphere::AtmosphereParams;
+    let rig = rig(4.0, 0.3, 60.0);
+    let views = views_of(&rig.images, &rig.poses);
+    let planes = PlaneSet::new(2.0, 10.0, 48).unwrap();
+    let atm = AtmosphereParams {
+        airlight: 0.8,
+        beta: 0.1,
+    };
+    for (kind, census_weight) in [
+        (CostKind::Ordinary, 0.0),
+        (CostKind::Dehazing(atm), 0.0),
+        (CostKind::Dehazing(atm), 1.0),
     ] {
         let params = SgmParams {
             census_weight,
-            volume_budget_mib: budget,
+            num_paths: 5,
             ..SgmParams::default()
         };
-        let depth = |bands| {
+        let depth = |volumes| {
+            let layout = Layout {
+                volumes,
+                ..Layout::default()
+            };
             estimate_depth_in_bands(
                 &views[0],
                 &views[1..],
                 &planes,
                 kind,
                 &params,
-                bands,
+                layout,
                 &Monitor::noop(),
             )
             .unwrap()
         };
-        // 1 MiB: strips of 16 own rows (the volume is 1.2 MiB).
-        assert_eq!(strips_of(W, H, 64, budget).len() > 1, budget == 1);
-        let whole = depth(Some(H));
-        for rows in [1, 3, 5, 8, 13] {
-            let banded = depth(Some(rows));
-            assert_eq!(
-                banded.z_depth.data(),
-                whole.z_depth.data(),
-                "{kind:?} {rows}"
-            );
-            assert_eq!(
-                banded.confidence.data(),
-                whole.confidence.data(),
-                "{kind:?} {rows}"
-            );
-        }
+        let (streamed, volumes) = (depth(false), depth(true));
+        assert_eq!(streamed.z_depth.data(), volumes.z_depth.data(), "{kind:?}");
+        assert_eq!(
+            streamed.confidence.data(),
+            volumes.confidence.data(),
+            "{kind:?}"
+        );
+    }
+}
+
+/// Stripes of the one pass (paths started [`STRIP_OVERLAP_ROWS`] rows above each stripe's own
+/// rows instead of at the image's top) change the depth little: within one plane step at
+/// nearly every pixel.
+#[test]
+fn one_pass_stripes_match_one_stripe() {
+    let rig = rig(4.0, 0.3, 60.0);
+    let views = views_of(&rig.images, &rig.poses);
+    let planes = PlaneSet::new(2.0, 10.0, 48).unwrap();
+    let params = SgmParams {
+        num_paths: 5,
+        ..SgmParams::default()
+    };
+    let depth = |stripe_rows| {
+        let layout = Layout {
+            stripe_rows,
+            ..Layout::default()
+        };
+        estimate_depth_in_bands(
+            &views[0],
+            &views[1..],
+            &planes,
+            CostKind::Ordinary,
+            &params,
+            layout,
+            &Monitor::noop(),
+        )
+        .unwrap()
+    };
+    let whole = depth(None);
+    let tol = planes.inverse_depth_step() as f32;
+    for stripe_rows in [10, 15, 32] {
+        let striped = depth(Some(stripe_rows));
+        let n = whole.inverse_depth.data().len();
+        let same = whole
+            .inverse_depth
+            .data()
+            .iter()
+            .zip(striped.inverse_depth.data())
+            .filter(|(a, b)| (*a - *b).abs() <= tol)
+            .count();
+        assert!(same as f64 >= 0.95 * n as f64, "{stripe_rows}: {same}/{n}");
     }
 }
 

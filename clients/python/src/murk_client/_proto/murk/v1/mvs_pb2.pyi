@@ -229,7 +229,12 @@ class SgmOptions(_message.Message):
     finite and >= 0; 0 = constant P2. Default 0.05.
     """
     num_paths: _builtins.int
-    """Aggregation directions: 4 (horizontal + vertical) or 8 (plus diagonals). Default 8."""
+    """Aggregation directions: 5, 8 or 4. Default 5: left-right, right-left, and the three that
+    go down (vertical and both diagonals), aggregated in one top-to-bottom pass that keeps no
+    cost volume (OpenCV's MODE_SGBM directions). 8 adds the three that go up, which needs a
+    second, bottom-to-top pass over stored costs and sums (see volume_budget_mib); 4 is
+    horizontal and vertical.
+    """
     cost_window_radius: _builtins.int
     """Radius of the box mean applied to each plane before aggregation, pixels, 0 to 16 (0 = none).
     Default 2 (a 5 x 5 window).
@@ -263,10 +268,12 @@ class SgmOptions(_message.Message):
     """
     speckle_range_planes: _builtins.float
     volume_budget_mib: _builtins.int
-    """Memory bound, MiB, 1 to 65536, default 96: when the f32 cost volume of the whole reference is
-    larger, depth is estimated in horizontal strips (with 24 rows of overlap) whose volume fits
-    it; the peak is about 1.25 times this plus the images. A 640 x 480 pair with ~170 planes peaks
-    near 205 MiB with the default (the whole murk mvs process, server included).
+    """Memory bound with 8 or 4 paths, MiB, 1 to 65536, default 96: when the f32 cost volume of the
+    whole reference is larger, depth is estimated in horizontal strips (with 24 rows of overlap)
+    whose volume fits it; the peak is about 1.25 times this plus the images. A 640 x 480 pair
+    with ~170 planes peaks near 205 MiB with the default (the whole murk mvs process, server
+    included). The default 5 paths keep a few MiB of rows per stripe instead (about 125 MiB peak
+    for that pair) and ignore this bound.
     """
     exposure_compensation: _builtins.bool
     """Estimate each source camera's gain per channel relative to the reference (from the matching
