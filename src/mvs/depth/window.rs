@@ -347,7 +347,7 @@ fn horizontal_row_fast(
             scratch: &mut HorizontalScratch,
             slot: &mut [f32],
         ) {
-            horizontal_row(data, weights, w, npix, n, r, y, inv_x, scratch, slot)
+            horizontal_row::<true>(data, weights, w, npix, n, r, y, inv_x, scratch, slot)
         }
         if avx2 {
             // SAFETY: the caller detected AVX2 on this CPU ([`crate::cpu::avx2_enabled`]).
@@ -355,7 +355,7 @@ fn horizontal_row_fast(
         }
     }
     let _ = avx2;
-    horizontal_row(data, weights, w, npix, n, r, y, inv_x, scratch, slot)
+    horizontal_row::<false>(data, weights, w, npix, n, r, y, inv_x, scratch, slot)
 }
 
 /// Per-task buffers of [`horizontal_row`]: one zero-padded weighted plane row and the box means
@@ -382,10 +382,11 @@ impl HorizontalScratch {
 /// Each plane row's window is `2r + 1` shifted additions of the zero-padded weighted row, 8
 /// columns per AVX2 instruction and exact to `f32` rounding with no running-sum drift; the means
 /// of a [`PLANE_GROUP`] of planes are then written transposed, each pixel's group as one
-/// contiguous run of `slot`.
+/// contiguous run of `slot` (with `AVX2`, which only a caller compiled for AVX2 may set, 8
+/// pixels' groups at a time by an 8×8 transpose in registers).
 #[allow(clippy::too_many_arguments)]
 #[inline(always)]
-fn horizontal_row(
+fn horizontal_row<const AVX2: bool>(
     data: &[f32],
     weights: &[f32],
     w: usize,
@@ -418,8 +419,14 @@ fn horizontal_row(
             }
         }
         if g == PLANE_GROUP {
-            // Fixed-size groups: the compiler turns the 8 loads per pixel into a transpose.
-            for (x, px) in slot.chunks_exact_mut(n).enumerate() {
+            let mut done = 0;
+            #[cfg(target_arch = "x86_64")]
+            if AVX2 {
+                // SAFETY: `AVX2` is set only by the caller compiled for AVX2 after detecting it.
+                done = unsafe { transpose_groups_avx2(means, w, n, g0, slot) };
+            }
+            // Fixed-size groups, one pixel at a time.
+            for (x, px) in slot.chunks_exact_mut(n).enumerate().skip(done) {
                 let dst: &mut [f32; PLANE_GROUP] = (&mut px[g0..g0 + PLANE_GROUP])
                     .try_into()
                     .expect("group of PLANE_GROUP planes");
@@ -436,6 +443,77 @@ fn horizontal_row(
         }
         g0 += g;
     }
+}
+
+/// `slot[x·n + g0 + j] = means[j·w + x]` for the [`PLANE_GROUP`] rows `j` of `means` and the
+/// pixels `x` of every whole block of 8: each block is 8 loads, an 8×8 transpose in registers
+/// and 8 stores of a pixel's group, instead of 64 scalar loads and stores. Returns the pixels
+/// done (a multiple of 8); the caller does the rest.
+///
+/// # Safety
+/// The CPU has AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn transpose_groups_avx2(
+    means: &[f32],
+    w: usize,
+    n: usize,
+    g0: usize,
+    slot: &mut [f32],
+) -> usize {
+    use std::arch::x86_64::*;
+    const _: () = assert!(PLANE_GROUP == 8, "an 8x8 transpose");
+    assert!(means.len() >= PLANE_GROUP * w && slot.len() >= w * n && g0 + PLANE_GROUP <= n);
+    let blocks = w / 8;
+    let m = means.as_ptr();
+    let out = slot.as_mut_ptr();
+    for b in 0..blocks {
+        let x = b * 8;
+        // SAFETY: rows `j < 8` of `means` hold `w` values and `x + 8 ≤ w`; each store writes
+        // `slot[(x + k)·n + g0 ..][..8]`, inside `slot` since `x + k < w` and `g0 + 8 ≤ n`
+        // (asserted above).
+        unsafe {
+            let r0 = _mm256_loadu_ps(m.add(x));
+            let r1 = _mm256_loadu_ps(m.add(w + x));
+            let r2 = _mm256_loadu_ps(m.add(2 * w + x));
+            let r3 = _mm256_loadu_ps(m.add(3 * w + x));
+            let r4 = _mm256_loadu_ps(m.add(4 * w + x));
+            let r5 = _mm256_loadu_ps(m.add(5 * w + x));
+            let r6 = _mm256_loadu_ps(m.add(6 * w + x));
+            let r7 = _mm256_loadu_ps(m.add(7 * w + x));
+            // Interleave pairs of rows, then pairs of pairs, then swap 128-bit halves.
+            let t0 = _mm256_unpacklo_ps(r0, r1);
+            let t1 = _mm256_unpackhi_ps(r0, r1);
+            let t2 = _mm256_unpacklo_ps(r2, r3);
+            let t3 = _mm256_unpackhi_ps(r2, r3);
+            let t4 = _mm256_unpacklo_ps(r4, r5);
+            let t5 = _mm256_unpackhi_ps(r4, r5);
+            let t6 = _mm256_unpacklo_ps(r6, r7);
+            let t7 = _mm256_unpackhi_ps(r6, r7);
+            let u0 = _mm256_shuffle_ps::<0x44>(t0, t2);
+            let u1 = _mm256_shuffle_ps::<0xEE>(t0, t2);
+            let u2 = _mm256_shuffle_ps::<0x44>(t1, t3);
+            let u3 = _mm256_shuffle_ps::<0xEE>(t1, t3);
+            let u4 = _mm256_shuffle_ps::<0x44>(t4, t6);
+            let u5 = _mm256_shuffle_ps::<0xEE>(t4, t6);
+            let u6 = _mm256_shuffle_ps::<0x44>(t5, t7);
+            let u7 = _mm256_shuffle_ps::<0xEE>(t5, t7);
+            let cols = [
+                _mm256_permute2f128_ps::<0x20>(u0, u4),
+                _mm256_permute2f128_ps::<0x20>(u1, u5),
+                _mm256_permute2f128_ps::<0x20>(u2, u6),
+                _mm256_permute2f128_ps::<0x20>(u3, u7),
+                _mm256_permute2f128_ps::<0x31>(u0, u4),
+                _mm256_permute2f128_ps::<0x31>(u1, u5),
+                _mm256_permute2f128_ps::<0x31>(u2, u6),
+                _mm256_permute2f128_ps::<0x31>(u3, u7),
+            ];
+            for (k, c) in cols.into_iter().enumerate() {
+                _mm256_storeu_ps(out.add((x + k) * n + g0), c);
+            }
+        }
+    }
+    blocks * 8
 }
 
 #[cfg(test)]
