@@ -57,8 +57,9 @@ fn nearest_sources<'a>(views: &[View<'a>], reference: usize, n: usize) -> Vec<Vi
     others.iter().take(n).map(|&i| views[i]).collect()
 }
 
-/// [`evaluate_with`] with the default [`SgmParams`], but for the census term's weight, which
-/// `MURK_CENSUS_WEIGHT` sets for the measurements (default: the library's).
+/// [`evaluate_with`] with the default [`SgmParams`], but for the census term's weight and the
+/// number of SGM paths, which `MURK_CENSUS_WEIGHT` and `MURK_PATHS` set for the measurements
+/// (default: the library's).
 fn evaluate(
     scene: &MvsScene,
     planes: &PlaneSet,
@@ -71,6 +72,10 @@ fn evaluate(
             .ok()
             .and_then(|v| v.parse().ok())
             .unwrap_or(defaults.census_weight),
+        num_paths: std::env::var("MURK_PATHS")
+            .ok()
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(defaults.num_paths),
         ..defaults
     };
     evaluate_with(scene, planes, kind, num_sources, &sgm)
