@@ -84,27 +84,27 @@ fn bench(c: &mut Criterion) {
         })
     });
     let kind = CostKind::DehazingWith(atm, DehazingOptions::default());
+    let eight = SgmParams {
+        num_paths: 8,
+        ..SgmParams::default()
+    };
     for n_src in [1usize, 4] {
-        g.bench_function(format!("dehazing_default_sgm/{n_src}src"), |b| {
-            b.iter(|| {
-                estimate_depth(
-                    &reference,
-                    &sources[..n_src],
-                    &planes,
-                    kind,
-                    &SgmParams::default(),
-                    &monitor,
-                )
-                .expect("depth")
-            })
-        });
+        for (name, sgm) in [("default", SgmParams::default()), ("eight_paths", eight)] {
+            g.bench_function(format!("dehazing_{name}_sgm/{n_src}src"), |b| {
+                b.iter(|| {
+                    estimate_depth(&reference, &sources[..n_src], &planes, kind, &sgm, &monitor)
+                        .expect("depth")
+                })
+            });
+        }
     }
     g.finish();
 }
 
 /// A rectified 640×480 pair (the size of issue 21's real-pair target) over 128 planes: the
-/// whole depth with the defaults (consistency check, speckle rejection, strips under the
-/// 64 MiB budget), without the check, and as one volume (no strips; 2 × 150 MiB).
+/// whole depth with the defaults (consistency check, speckle rejection, 5 paths in one pass),
+/// without the check, with 8 paths (strips under the default budget, or one volume), with the
+/// census term, and without the exposure and fall-off estimates.
 fn bench_stereo_pair(c: &mut Criterion) {
     let cfg = MvsSimConfig {
         num_views: 2,
@@ -138,9 +138,19 @@ fn bench_stereo_pair(c: &mut Criterion) {
                 ..SgmParams::default()
             },
         ),
+        // 8 paths: the upward ones need the stored volumes, in strips under the default
+        // budget or as one volume (2 × 80 MiB of `u16`).
         (
-            "one_volume",
+            "eight_paths",
             SgmParams {
+                num_paths: 8,
+                ..SgmParams::default()
+            },
+        ),
+        (
+            "eight_paths_one_volume",
+            SgmParams {
+                num_paths: 8,
                 volume_budget_mib: 1024,
                 ..SgmParams::default()
             },
