@@ -1,9 +1,11 @@
 //! MVS in haze (issue 3): cost volumes (Eq. 3.1, Eq. 3.7 and the default noise-balanced
 //! dehazing residual) at the reference's DCV size 256×192 with 256 planes, 1 and 4 sources, and
-//! the full depth (pre-smoothing + cost volume + contrast normalisation + 8-path SGM +
-//! selection), and the pre-smoothing of one view and the contrast normalisation alone.
+//! the full depth (pre-smoothing + cost volume + contrast normalisation + SGM over the default 5
+//! paths in one pass, or 8 in two + selection), and the pre-smoothing of one view and the
+//! contrast normalisation alone.
 //!
-//! A rectified 640×480 pair with the whole depth pipeline (consistency check, strips).
+//! A rectified 640×480 pair with the whole depth pipeline (consistency check; 5 paths, or 8 in
+//! strips or one volume).
 //!
 //! SGM alone on one strip of that pair's size as `u16` levels (640×160, 173 planes, 8 paths).
 //!

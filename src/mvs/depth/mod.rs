@@ -881,24 +881,37 @@ fn one_pass_selections(
                 .clamp(1, rows.len());
             let mut band = Band::new((band_rows + 2 * r).min(h), w, n);
             let mut levels = crate::large_buffer::zeroed::<u16>(band_rows * row_len);
-            let mut sum = vec![0u16; row_len];
+            let mut sums = crate::large_buffer::zeroed::<u16>(band_rows * row_len);
             let mut pass = sgm::OnePass::new(w, n, isa);
-            let mut scratch = ClaimScratch::default();
             let mut y0 = rows.start;
             while y0 < rows.end {
                 silent.checkpoint()?;
                 let y1 = (y0 + band_rows).min(rows.end);
                 let levels = &mut levels[..(y1 - y0) * row_len];
                 band.levels(src, 0..h, y0..y1, &quant, levels, &silent)?;
-                for (y, crow) in (y0..y1).zip(levels.chunks_exact(row_len)) {
-                    pass.row(crow, &mut sum, y, &pen, Some(sgm::Guide::new(guide)));
-                    if core.contains(&y) {
-                        for c in claims {
-                            c.add_row(y, &sum, n, unit, &mut scratch);
-                        }
-                        let at = (y - core.start) * w;
-                        select::select_into(&sum, n, eps, &mut selected[at..at + w]);
-                    }
+                let sums = &mut sums[..(y1 - y0) * row_len];
+                let rows_of_band = levels
+                    .chunks_exact(row_len)
+                    .zip(sums.chunks_exact_mut(row_len));
+                for (y, (crow, srow)) in (y0..y1).zip(rows_of_band) {
+                    pass.row(crow, srow, y, &pen, Some(sgm::Guide::new(guide)));
+                }
+                // The band's own rows' claims and selections, row by row in parallel.
+                let own = y0.max(core.start)..y1.min(core.end);
+                if !own.is_empty() {
+                    let own_sums = &sums[(own.start - y0) * row_len..(own.end - y0) * row_len];
+                    let own_selected =
+                        &mut selected[(own.start - core.start) * w..(own.end - core.start) * w];
+                    own_sums
+                        .par_chunks(row_len)
+                        .zip(own_selected.par_chunks_mut(w))
+                        .enumerate()
+                        .for_each_init(ClaimScratch::default, |scratch, (i, (srow, sel))| {
+                            for c in claims {
+                                c.add_row(own.start + i, srow, n, unit, scratch);
+                            }
+                            select::select_into(srow, n, eps, sel);
+                        });
                 }
                 // Counted and reported under one lock, so stripes never report out of order.
                 let mut done = done.lock().unwrap_or_else(|e| e.into_inner());

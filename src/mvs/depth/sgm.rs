@@ -753,7 +753,11 @@ pub(crate) struct OnePass<T> {
     w: usize,
     n: usize,
     isa: Isa,
-    horizontal: HorizontalCurves<T>,
+    /// The left-to-right and the right-to-left path's curves: the two run side by side.
+    rightward: HorizontalCurves<T>,
+    leftward: HorizontalCurves<T>,
+    /// The right-to-left path's costs of the row, added to `S` when both are done.
+    leftward_row: Vec<T>,
     vertical: RowCurves<T>,
     /// The last row aggregated.
     last: Option<usize>,
@@ -767,7 +771,9 @@ impl<T: PathCost> OnePass<T> {
             w,
             n,
             isa,
-            horizontal: HorizontalCurves::new(n),
+            rightward: HorizontalCurves::new(n),
+            leftward: HorizontalCurves::new(n),
+            leftward_row: vec![T::ZERO; w * n],
             vertical: RowCurves::new(w, n, 3),
             last: None,
         }
@@ -803,19 +809,22 @@ impl<T: PathCost> OnePass<T> {
             }
             out
         };
-        let (level, down) = ([1, -1], along(1));
-        horizontal_row(
-            crow,
-            srow,
-            y,
-            w,
-            n,
-            &level,
-            pen,
-            guide,
-            self.isa,
-            &mut self.horizontal,
+        let down = along(1);
+        let isa = self.isa;
+        // Both horizontal paths at once, each in its own row: `L→ + L←` is the same sum as the
+        // second added to the first in place.
+        let (right, left, left_row) = (
+            &mut self.rightward,
+            &mut self.leftward,
+            &mut self.leftward_row,
         );
+        rayon::join(
+            || horizontal_row(crow, srow, y, w, n, &[1], pen, guide, isa, right),
+            || horizontal_row(crow, left_row, y, w, n, &[-1], pen, guide, isa, left),
+        );
+        for (s, &l) in srow.iter_mut().zip(left_row.iter()) {
+            *s = s.add(l);
+        }
         sweep_row(
             crow,
             srow,
