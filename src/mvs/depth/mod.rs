@@ -826,6 +826,34 @@ fn strip_pass_selections(
 /// depth does not depend on the number of cores.
 const ONE_PASS_STRIPE_ROWS: usize = 256;
 
+/// The one pass's stripes of an `h`-row image, about `stripe_rows` own rows each: `core` the rows
+/// a stripe decides (a partition of the image, in order), `rows` those it aggregates, its core
+/// and the [`STRIP_OVERLAP_ROWS`] above it where its paths start. Every stripe aggregates about
+/// the same number of rows (the first, with no rows above it, decides more), so stripes running
+/// side by side finish together.
+fn one_pass_stripes(h: usize, stripe_rows: usize) -> Vec<Strip> {
+    let count = h.div_ceil(stripe_rows.max(1)).max(1);
+    let ov = STRIP_OVERLAP_ROWS;
+    let each = (h + (count - 1) * ov).div_ceil(count);
+    let mut out = Vec::with_capacity(count);
+    let mut start = 0;
+    while start < h {
+        let own = if start == 0 {
+            each
+        } else {
+            each.saturating_sub(ov)
+        }
+        .max(1);
+        let core = start..(start + own).min(h);
+        out.push(Strip {
+            rows: core.start.saturating_sub(ov)..core.end,
+            core: core.clone(),
+        });
+        start = core.end;
+    }
+    out
+}
+
 /// Own rows of a one-pass band: its costs and levels stay within a few MiB per stripe.
 const ONE_PASS_BAND_ROWS: usize = 16;
 
@@ -859,23 +887,23 @@ fn one_pass_selections(
     let eps = quant.scaled(select::CONFIDENCE_EPS_PER_PATH * params.num_paths as f32);
     let unit = quant.unit();
     let isa = crate::cpu::Isa::detect();
-    let count = h
-        .div_ceil(layout.stripe_rows.unwrap_or(ONE_PASS_STRIPE_ROWS).max(1))
-        .max(1);
-    let own = h.div_ceil(count).max(1);
-    let total = (0..h.div_ceil(own))
-        .map(|k| ((k + 1) * own).min(h) - (k * own).saturating_sub(STRIP_OVERLAP_ROWS))
-        .sum::<usize>()
-        .max(1);
+    let stripes = one_pass_stripes(h, layout.stripe_rows.unwrap_or(ONE_PASS_STRIPE_ROWS));
+    let total = stripes.iter().map(|s| s.rows.len()).sum::<usize>().max(1);
     let done = std::sync::Mutex::new(0usize);
     let silent = monitor.silent();
     let mut selections = vec![Selection::NONE; w * h];
-    selections
-        .par_chunks_mut(own * w)
-        .enumerate()
-        .try_for_each(|(k, selected)| -> Result<()> {
-            let core = k * own..((k + 1) * own).min(h);
-            let rows = core.start.saturating_sub(STRIP_OVERLAP_ROWS)..core.end;
+    // Each stripe's own rows' selections, split off in order.
+    let mut parts = Vec::with_capacity(stripes.len());
+    let mut rest = &mut selections[..];
+    for stripe in &stripes {
+        let (part, tail) = rest.split_at_mut(stripe.core.len() * w);
+        parts.push((stripe, part));
+        rest = tail;
+    }
+    parts
+        .into_par_iter()
+        .try_for_each(|(stripe, selected)| -> Result<()> {
+            let Strip { rows, core } = stripe.clone();
             let band_rows = (layout.band_rows)
                 .unwrap_or(ONE_PASS_BAND_ROWS)
                 .clamp(1, rows.len());

@@ -694,6 +694,51 @@ fn one_pass_streams_what_the_volumes_aggregate() {
     }
 }
 
+/// The one pass's stripes partition the image in order, each aggregating its own rows and the
+/// overlap above them, and all about the same number of rows.
+#[test]
+fn one_pass_stripes_partition_the_image_evenly() {
+    assert_eq!(
+        one_pass_stripes(480, 256),
+        vec![
+            Strip {
+                rows: 0..252,
+                core: 0..252
+            },
+            Strip {
+                rows: 228..480,
+                core: 252..480
+            },
+        ]
+    );
+    for h in [1usize, 5, 24, 60, 192, 255, 256, 257, 480, 1080, 2160] {
+        for stripe_rows in [1usize, 10, 32, 256] {
+            let stripes = one_pass_stripes(h, stripe_rows);
+            let mut next = 0;
+            for s in &stripes {
+                assert_eq!(s.core.start, next, "{h} {stripe_rows}: {stripes:?}");
+                assert!(!s.core.is_empty() && s.core.end <= h);
+                assert_eq!(
+                    s.rows,
+                    s.core.start.saturating_sub(STRIP_OVERLAP_ROWS)..s.core.end
+                );
+                next = s.core.end;
+            }
+            assert_eq!(next, h, "{h} {stripe_rows}");
+            let sizes: Vec<usize> = stripes.iter().map(|s| s.rows.len()).collect();
+            let (lo, hi) = (sizes.iter().min().unwrap(), sizes.iter().max().unwrap());
+            // The last stripe may be short; the others differ by at most one row, unless the
+            // stripes are shorter than the overlap (then each decides one row).
+            let full = &sizes[..sizes.len() - 1];
+            if stripe_rows > STRIP_OVERLAP_ROWS && !full.is_empty() {
+                let (a, b) = (full.iter().min().unwrap(), full.iter().max().unwrap());
+                assert!(b - a <= 1, "{h} {stripe_rows}: {sizes:?}");
+            }
+            assert!(hi >= lo);
+        }
+    }
+}
+
 /// Stripes of the one pass (paths started [`STRIP_OVERLAP_ROWS`] rows above each stripe's own
 /// rows instead of at the image's top) change the depth little: within one plane step at
 /// nearly every pixel.
