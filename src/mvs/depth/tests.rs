@@ -620,16 +620,7 @@ fn bands_do_not_change_the_depth() {
                     stripe_rows,
                     volumes: false,
                 };
-                estimate_depth_in_bands(
-                    &views[0],
-                    &views[1..],
-                    &planes,
-                    kind,
-                    &params,
-                    layout,
-                    &Monitor::noop(),
-                )
-                .unwrap()
+                rig_depth(&views, &planes, kind, &params, layout)
             };
             // 1 MiB: strips of 16 own rows (the volume is 1.2 MiB); one pass: stripes of 20.
             assert_eq!(strips_of(W, H, 64, budget).len() > 1, budget == 1);
@@ -643,6 +634,28 @@ fn bands_do_not_change_the_depth() {
             }
         }
     }
+}
+
+/// [`estimate_depth_in_bands`] of the rig's `views` (the first the reference) laid out as
+/// `layout`.
+fn rig_depth(
+    views: &[View<'_>],
+    planes: &PlaneSet,
+    kind: CostKind,
+    params: &SgmParams,
+    layout: Layout,
+) -> DepthResult {
+    let monitor = Monitor::noop();
+    estimate_depth_in_bands(
+        &views[0],
+        &views[1..],
+        planes,
+        kind,
+        params,
+        layout,
+        &monitor,
+    )
+    .unwrap()
 }
 
 /// The one pass streams rows into exactly the depth that aggregating the whole levels volume
@@ -673,16 +686,7 @@ fn one_pass_streams_what_the_volumes_aggregate() {
                 volumes,
                 ..Layout::default()
             };
-            estimate_depth_in_bands(
-                &views[0],
-                &views[1..],
-                &planes,
-                kind,
-                &params,
-                layout,
-                &Monitor::noop(),
-            )
-            .unwrap()
+            rig_depth(&views, &planes, kind, &params, layout)
         };
         let (streamed, volumes) = (depth(false), depth(true));
         assert_eq!(streamed.z_depth.data(), volumes.z_depth.data(), "{kind:?}");
@@ -756,16 +760,7 @@ fn one_pass_stripes_match_one_stripe() {
             stripe_rows,
             ..Layout::default()
         };
-        estimate_depth_in_bands(
-            &views[0],
-            &views[1..],
-            &planes,
-            CostKind::Ordinary,
-            &params,
-            layout,
-            &Monitor::noop(),
-        )
-        .unwrap()
+        rig_depth(&views, &planes, CostKind::Ordinary, &params, layout)
     };
     let whole = depth(None);
     let tol = planes.inverse_depth_step() as f32;
