@@ -1192,6 +1192,9 @@ fn run_job(inner: &Inner, entry: &Arc<JobEntry>) {
     let progress_entry = entry.clone();
     let sink: ProgressSink = Arc::new(move |stage: &str, fraction: f32| {
         progress_entry.tx.send_if_modified(|s| {
+            // Never backwards: parallel parts of a method report from several threads, whose
+            // reports can arrive out of order.
+            let fraction = fraction.max(s.progress);
             // Coalesce: watchers only care about visible changes.
             if s.state != JobState::Running
                 || (s.stage == stage && (fraction - s.progress).abs() < 0.002)

@@ -230,6 +230,37 @@ async fn progress_reaches_watchers() {
     assert!(s.start_time.is_some() && s.end_time.is_some());
 }
 
+/// Reports that arrive out of order (parallel parts of a method report from several threads)
+/// never move a job's progress backwards.
+#[tokio::test]
+async fn progress_never_goes_backwards() {
+    let m = manager(4);
+    let release = Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let (tx, rx) = mpsc::channel();
+    let go = release.clone();
+    let h = m
+        .submit(
+            "",
+            "14",
+            "t",
+            Box::new(move |mon| {
+                mon.progress("parts", 0.6);
+                mon.progress("parts", 0.3);
+                let _ = tx.send(());
+                while !go.load(Ordering::SeqCst) {
+                    std::thread::yield_now();
+                }
+                Ok(vec![])
+            }),
+        )
+        .unwrap();
+    rx.recv_timeout(Duration::from_secs(10)).unwrap();
+    let mid = h.handle.subscribe().borrow().progress;
+    release.store(true, Ordering::SeqCst);
+    assert_eq!(mid, 0.6);
+    assert_eq!(wait_terminal(&h.handle).await.progress, 1.0);
+}
+
 /// Work that signals when it starts and ignores cancellation until released (a stage without
 /// checkpoints), so a cancel stays pending.
 fn deaf(started: mpsc::Sender<()>, release: Arc<std::sync::atomic::AtomicBool>) -> Work {
