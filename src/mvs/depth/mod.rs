@@ -48,6 +48,7 @@ pub mod vignetting;
 pub mod window;
 
 use rayon::prelude::*;
+use std::sync::atomic::{AtomicUsize, Ordering};
 
 use crate::error::{MurkError, Result};
 use crate::image::ImageF32;
@@ -156,17 +157,18 @@ pub struct SgmParams {
     /// before the cost volume ([`vignetting`]); the fall-off is reported in
     /// [`DepthResult::vignetting_falloff`]. Used by [`estimate_depth`]. Default on.
     pub vignetting_compensation: bool,
-    /// Memory bound with 8 or 4 paths, MiB (`1 ..= 65536`; the default 5 paths keep no volume
-    /// and ignore it): when the `f32` cost volume of the whole reference is larger, depth is estimated in horizontal strips whose volume (own rows plus
-    /// [`STRIP_OVERLAP_ROWS`] above and below) fits it. A strip holds two `u16` volumes (the
-    /// windowed levels and the aggregated costs, [`quantise`]; together the size of the `f32`
-    /// volume) and one band of `f32` costs, at most a quarter of this (the strip's costs are
-    /// built and windowed band by band), so the peak is about 1.25 times this plus the images. Strips change SGM's vertical and diagonal paths only beyond the overlap: on
-    /// the hazy Aloe pair (640×480, 173 planes) 0.06 % of the pixels moved, by at most 0.2 % of
-    /// the inverse-depth range, at 48 MiB; on a simulated 160×120 scene cut into 15-row strips
-    /// 98 % stayed within one plane step, with the same C.P. Default 96: three strips on that
-    /// pair (the overlap adds 20 % to the rows processed, against 40 % in five strips at 64),
-    /// a peak of about 205 MiB for the whole `murk mvs` process.
+    /// Memory bound with 8 or 4 paths, MiB (`1 ..= 65536`; the default 5 paths keep no volume and
+    /// ignore it): when the `f32` cost volume of the whole reference is larger, depth is estimated
+    /// in horizontal strips whose volume (own rows plus [`STRIP_OVERLAP_ROWS`] above and below)
+    /// fits it. A strip holds two `u16` volumes (the windowed levels and the aggregated costs,
+    /// [`quantise`]; together the size of the `f32` volume) and one band of `f32` costs, at most a
+    /// quarter of this (the strip's costs are built and windowed band by band), so the peak is
+    /// about 1.25 times this plus the images. Strips change SGM's vertical and diagonal paths only
+    /// beyond the overlap: on the hazy Aloe pair (640×480, 173 planes) 0.06 % of the pixels moved,
+    /// by at most 0.2 % of the inverse-depth range, at 48 MiB; on a simulated 160×120 scene cut
+    /// into 15-row strips 98 % stayed within one plane step, with the same C.P. Default 96: three
+    /// strips on that pair (the overlap adds 20 % to the rows processed, against 40 % in five
+    /// strips at 64), a peak of about 205 MiB for the whole `murk mvs` process.
     pub volume_budget_mib: usize,
 }
 
@@ -596,7 +598,7 @@ fn estimate_depth_in_bands(
         one_pass_selections(&source, guide, params, layout, &claims, monitor)?
     } else {
         let bands = layout.band_rows;
-        strip_pass_selections(&source, channels, guide, params, bands, &claims, monitor)?
+        strip_pass_selections(&source, guide, params, bands, &claims, monitor)?
     };
     let mut depth = finish_depth(selections, w, h, planes, guide, params, claims, monitor)?;
     depth.source_gains = source_gains;
@@ -636,6 +638,16 @@ impl LevelSource<'_> {
 
     fn planes(&self) -> usize {
         self.planes.num_planes
+    }
+
+    /// The contrast weights of the image rows `rows` (empty when there are none).
+    fn weights_of(&self, rows: &std::ops::Range<usize>) -> &[f32] {
+        if self.weights.is_empty() {
+            self.weights
+        } else {
+            let w = self.width();
+            &self.weights[rows.start * w..rows.end * w]
+        }
     }
 }
 
@@ -710,13 +722,6 @@ impl Band {
                 monitor,
             )?;
         }
-        let weights_of = |rows: &std::ops::Range<usize>| {
-            if src.weights.is_empty() {
-                src.weights
-            } else {
-                &src.weights[rows.start * w..rows.end * w]
-            }
-        };
         if let Some((reference_codes, census_sources)) = src.census {
             census::add_census_costs(
                 band,
@@ -726,14 +731,14 @@ impl Band {
                 src.planes,
                 read.clone(),
                 src.census_weight,
-                weights_of(&read),
+                src.weights_of(&read),
                 monitor,
             )?;
         }
         window::window_rows_to_levels(
             band,
             read.start - clip.start..read.end - clip.start,
-            weights_of(&clip),
+            src.weights_of(&clip),
             w,
             clip.len(),
             n,
@@ -753,7 +758,6 @@ impl Band {
 /// strip's levels into its sums and the selections of its own rows ([`strip_selections`]).
 fn strip_pass_selections(
     src: &LevelSource<'_>,
-    channels: usize,
     guide: &ImageF32,
     params: &SgmParams,
     band_rows: Option<usize>,
@@ -761,7 +765,7 @@ fn strip_pass_selections(
     monitor: &Monitor,
 ) -> Result<Vec<Selection>> {
     let (w, h, n) = (src.width(), src.height(), src.planes());
-    let r = params.cost_window_radius;
+    let r = src.radius;
     let strips = strips_of(w, h, n, params.volume_budget_mib);
     let band_rows = band_rows
         .unwrap_or_else(|| band_rows_of(w, n, r, params.volume_budget_mib))
@@ -777,13 +781,12 @@ fn strip_pass_selections(
     let row_len = w * n;
     for (j, strip) in strips.iter().enumerate() {
         let rows = strip.rows.len();
-        let strip_weights = if src.weights.is_empty() {
-            src.weights
-        } else {
-            &src.weights[strip.rows.start * w..strip.rows.end * w]
-        };
         let quant = Quantiser::new(
-            cost_bound(channels, strip_weights, params.census_weight),
+            cost_bound(
+                src.reference.image.channels(),
+                src.weights_of(&strip.rows),
+                params.census_weight,
+            ),
             params.p2.max(params.p1),
             params.num_paths,
         );
@@ -872,7 +875,7 @@ fn one_pass_selections(
     monitor: &Monitor,
 ) -> Result<Vec<Selection>> {
     let (w, h, n) = (src.width(), src.height(), src.planes());
-    let r = params.cost_window_radius;
+    let r = src.radius;
     let row_len = w * n;
     let quant = Quantiser::new(
         cost_bound(
@@ -884,12 +887,10 @@ fn one_pass_selections(
         params.num_paths,
     );
     let pen = quant.penalties(&params.penalties());
-    let eps = quant.scaled(select::CONFIDENCE_EPS_PER_PATH * params.num_paths as f32);
-    let unit = quant.unit();
     let isa = crate::cpu::Isa::detect();
     let stripes = one_pass_stripes(h, layout.stripe_rows.unwrap_or(ONE_PASS_STRIPE_ROWS));
     let total = stripes.iter().map(|s| s.rows.len()).sum::<usize>().max(1);
-    let done = std::sync::Mutex::new(0usize);
+    let done = AtomicUsize::new(0);
     let silent = monitor.silent();
     let mut selections = vec![Selection::NONE; w * h];
     // Each stripe's own rows' selections, split off in order.
@@ -924,27 +925,23 @@ fn one_pass_selections(
                 for (y, (crow, srow)) in (y0..y1).zip(rows_of_band) {
                     pass.row(crow, srow, y, &pen, Some(sgm::Guide::new(guide)));
                 }
-                // The band's own rows' claims and selections, row by row in parallel.
                 let own = y0.max(core.start)..y1.min(core.end);
                 if !own.is_empty() {
-                    let own_sums = &sums[(own.start - y0) * row_len..(own.end - y0) * row_len];
-                    let own_selected =
-                        &mut selected[(own.start - core.start) * w..(own.end - core.start) * w];
-                    own_sums
-                        .par_chunks(row_len)
-                        .zip(own_selected.par_chunks_mut(w))
-                        .enumerate()
-                        .for_each_init(ClaimScratch::default, |scratch, (i, (srow, sel))| {
-                            for c in claims {
-                                c.add_row(own.start + i, srow, n, unit, scratch);
-                            }
-                            select::select_into(srow, n, eps, sel);
-                        });
+                    claim_and_select(
+                        &sums[(own.start - y0) * row_len..(own.end - y0) * row_len],
+                        own.start,
+                        w,
+                        n,
+                        &quant,
+                        params,
+                        claims,
+                        &mut selected[(own.start - core.start) * w..(own.end - core.start) * w],
+                    );
                 }
-                // Counted and reported under one lock, so stripes never report out of order.
-                let mut done = done.lock().unwrap_or_else(|e| e.into_inner());
-                *done += y1 - y0;
-                monitor.progress("mvs.depth", 0.95 * *done as f32 / total as f32);
+                // The job's progress sink never moves backwards, so stripes may report in any
+                // order.
+                let done = done.fetch_add(y1 - y0, Ordering::Relaxed) + (y1 - y0);
+                monitor.progress("mvs.depth", 0.95 * done as f32 / total as f32);
                 y0 = y1;
             }
             Ok(())
@@ -1170,23 +1167,49 @@ fn strip_selections(
     monitor.checkpoint()?;
     let own = (strip.core.start - strip.rows.start) * row_len
         ..(strip.core.end - strip.rows.start) * row_len;
-    let own_sum = &sum[own];
-    // Each own row's claims and selections in one pass while the row is in cache (the aggregated
-    // volume is read once instead of once per source and again for the selection).
+    let mut selections = vec![select::Selection::NONE; strip.core.len() * w];
+    claim_and_select(
+        &sum[own],
+        strip.core.start,
+        w,
+        n,
+        quant,
+        params,
+        claims,
+        &mut selections,
+    );
+    Ok(selections)
+}
+
+/// The claims and the selections of consecutive `w`-pixel rows from `first_row` on, whose
+/// aggregated costs are `sums` (`[row][x][plane]`, `n` planes, levels of `quant`), into `selected` (`w`
+/// per row): each row's claims and selection in one pass while it is in cache (the sums are
+/// read once instead of once per source and again for the selection), rows in parallel.
+#[allow(clippy::too_many_arguments)]
+fn claim_and_select(
+    sums: &[u16],
+    first_row: usize,
+    w: usize,
+    n: usize,
+    quant: &Quantiser,
+    params: &SgmParams,
+    claims: &[SourceClaims],
+    selected: &mut [Selection],
+) {
+    if w * n == 0 {
+        return;
+    }
     let eps = quant.scaled(select::CONFIDENCE_EPS_PER_PATH * params.num_paths as f32);
     let unit = quant.unit();
-    let mut selections = vec![select::Selection::NONE; strip.core.len() * w];
-    selections
-        .par_chunks_mut(w)
-        .zip(own_sum.par_chunks(row_len))
+    sums.par_chunks(w * n)
+        .zip(selected.par_chunks_mut(w))
         .enumerate()
-        .for_each_init(ClaimScratch::default, |scratch, (k, (selected, row))| {
+        .for_each_init(ClaimScratch::default, |scratch, (k, (row, sel))| {
             for c in claims {
-                c.add_row(strip.core.start + k, row, n, unit, scratch);
+                c.add_row(first_row + k, row, n, unit, scratch);
             }
-            select::select_into(row, n, eps, selected);
+            select::select_into(row, n, eps, sel);
         });
-    Ok(selections)
 }
 
 /// Step 5 and the rejections: the consistency verdicts from the sources' `claims` (none when

@@ -52,6 +52,10 @@ pub const DIRECTIONS: [(i32, i32); 8] = [
 /// direction instead of the volumes of costs and sums that the upward paths need.
 pub const ONE_PASS_DIRECTIONS: [(i32, i32); 5] = [(1, 0), (-1, 0), (0, 1), (1, 1), (-1, 1)];
 
+/// The `dx` of [`ONE_PASS_DIRECTIONS`]' three downward directions, in their order (the order
+/// [`aggregate_into`]'s top-to-bottom sweep adds them to `S`).
+const ONE_PASS_DOWNWARD_DX: [i32; 3] = [0, 1, -1];
+
 /// The directions of a `num_paths` aggregation: the first 4 of [`DIRECTIONS`] (horizontal and
 /// vertical), [`ONE_PASS_DIRECTIONS`] for 5, all 8 for 8.
 pub fn directions(num_paths: usize) -> &'static [(i32, i32)] {
@@ -799,17 +803,6 @@ impl<T: PathCost> OnePass<T> {
             self.last.is_none_or(|l| l + 1 == y),
             "rows in order, one after another"
         );
-        let along = |dy: i32| -> [i32; 3] {
-            let mut out = [0; 3];
-            for (o, d) in out
-                .iter_mut()
-                .zip(ONE_PASS_DIRECTIONS.iter().filter(|d| d.1 == dy))
-            {
-                *o = d.0;
-            }
-            out
-        };
-        let down = along(1);
         let isa = self.isa;
         // Both horizontal paths at once, each in its own row: `L→ + L←` is the same sum as the
         // second added to the first in place.
@@ -832,10 +825,10 @@ impl<T: PathCost> OnePass<T> {
             self.last,
             w,
             n,
-            &down,
+            &ONE_PASS_DOWNWARD_DX,
             pen,
             guide,
-            self.isa,
+            isa,
             &mut self.vertical,
         );
         self.last = Some(y);
