@@ -12,6 +12,8 @@
 //! Run: `cargo bench --bench mvs`.
 
 use criterion::{criterion_group, criterion_main, Criterion};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
 
 use murk::atmosphere::AtmosphereParams;
 use murk::mvs::{
@@ -191,14 +193,9 @@ fn bench_stereo_pair(c: &mut Criterion) {
 fn bench_sgm(c: &mut Criterion) {
     use murk::mvs::depth::sgm::{aggregate_into, Penalties};
     let (w, h, n) = (640usize, 160usize, 173usize);
-    let mut state = 12345u64;
+    let mut rng = ChaCha8Rng::seed_from_u64(12345);
     let levels: Vec<u16> = (0..w * h * n)
-        .map(|_| {
-            state = state
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            ((state >> 33) % 4000) as u16
-        })
+        .map(|_| rng.random_range(0..4000u16))
         .collect();
     let mut sum = vec![0u16; levels.len()];
     let pen = Penalties {
