@@ -143,69 +143,116 @@ pub fn add_census_costs(
     let n_pix = w * rows.len();
     debug_assert_eq!(volume.len(), n_pix * planes.num_planes);
     debug_assert!(pixel_weights.is_empty() || pixel_weights.len() == n_pix);
-    let scale = weight / CENSUS_BITS as f32;
+    let census = CensusRows {
+        reference,
+        k_ref,
+        sources,
+        planes,
+        rows,
+        weight,
+        pixel_weights,
+    };
     volume.par_chunks_mut(n_pix).enumerate().try_for_each_init(
-        || {
-            (
-                vec![0u32; w],
-                vec![0u32; w],
-                Vec::with_capacity(sources.len()),
-            )
-        },
-        |(hamming, seen, warps), (i, plane)| -> Result<()> {
+        CensusScratch::default,
+        |scratch, (i, plane)| -> Result<()> {
             monitor.checkpoint()?;
-            let z = planes.depth(i as f64);
-            // Each source's homography once per plane; rows take their affine-in-x slice of it.
-            warps.clear();
-            warps.extend(
-                sources
-                    .iter()
-                    .map(|s| PlaneWarp::new(k_ref, &s.intrinsics, &s.relative, z)),
-            );
-            for (k, out) in plane.chunks_exact_mut(w).enumerate() {
-                let y = rows.start + k;
-                let ref_codes = &reference.codes[y * w..(y + 1) * w];
-                hamming.fill(0);
-                seen.fill(0);
-                for (s, plane_warp) in sources.iter().zip(warps.iter()) {
-                    let (sw, sh) = (s.census.width, s.census.height);
-                    let (max_u, max_v) = ((sw - 1) as f32, (sh - 1) as f32);
-                    let warp = plane_warp.row(y as f64).to_f32();
-                    for (x, (&rc, (hm, sn))) in ref_codes
-                        .iter()
-                        .zip(hamming.iter_mut().zip(seen.iter_mut()))
-                        .enumerate()
-                    {
-                        let (u, v, hw) = warp.project(x as f32);
-                        if hw > 0.0 && u >= 0.0 && v >= 0.0 && u <= max_u && v <= max_v {
-                            // Inside the hull, so rounding stays in the image. Through `i32`:
-                            // f32 → i32 is one instruction, f32 → usize a two-range sequence.
-                            let (xs, ys) = ((u + 0.5) as i32 as usize, (v + 0.5) as i32 as usize);
-                            *hm += (rc ^ s.census.codes[ys * sw + xs]).count_ones();
-                            *sn += 1;
-                        }
-                    }
-                }
-                let weights_row = (!pixel_weights.is_empty()).then(|| &pixel_weights[k * w..][..w]);
-                for (x, (o, (&hm, &sn))) in out
-                    .iter_mut()
-                    .zip(hamming.iter().zip(seen.iter()))
-                    .enumerate()
-                {
-                    let term = if sn == 0 {
-                        weight
-                    } else {
-                        scale * hm as f32 / sn as f32
-                    };
-                    *o += match weights_row {
-                        Some(wr) => term / wr[x],
-                        None => term,
-                    };
-                }
-            }
+            census.add_to_plane(i, plane, scratch);
             Ok(())
         },
     )
+}
+
+/// Per-worker buffers of [`CensusRows::add_to_plane`], reused from plane to plane.
+#[derive(Default)]
+pub struct CensusScratch {
+    hamming: Vec<u32>,
+    seen: Vec<u32>,
+    warps: Vec<PlaneWarp>,
+}
+
+/// [`add_census_costs`] a plane at a time, for a caller that runs more per plane (the box window
+/// of a group of planes while their rows are in L2).
+pub struct CensusRows<'a> {
+    /// The reference's codes.
+    pub reference: &'a CensusImage,
+    /// The reference's intrinsics.
+    pub k_ref: &'a Intrinsics,
+    /// The sources.
+    pub sources: &'a [CensusSource<'a>],
+    /// The planes.
+    pub planes: &'a PlaneSet,
+    /// The reference rows the planes' values cover.
+    pub rows: std::ops::Range<usize>,
+    /// The term's weight.
+    pub weight: f32,
+    /// Contrast weights, row-major over `rows`, or empty.
+    pub pixel_weights: &'a [f32],
+}
+
+impl CensusRows<'_> {
+    /// [`add_census_costs`] on plane `i`'s rows `plane` (`rows.len() · W` values).
+    pub fn add_to_plane(&self, i: usize, plane: &mut [f32], scratch: &mut CensusScratch) {
+        let w = self.reference.width;
+        debug_assert_eq!(plane.len(), w * self.rows.len());
+        let scale = self.weight / CENSUS_BITS as f32;
+        let CensusScratch {
+            hamming,
+            seen,
+            warps,
+        } = scratch;
+        hamming.resize(w, 0);
+        seen.resize(w, 0);
+        let z = self.planes.depth(i as f64);
+        // Each source's homography once per plane; rows take their affine-in-x slice of it.
+        warps.clear();
+        warps.extend(
+            self.sources
+                .iter()
+                .map(|s| PlaneWarp::new(self.k_ref, &s.intrinsics, &s.relative, z)),
+        );
+        for (k, out) in plane.chunks_exact_mut(w).enumerate() {
+            let y = self.rows.start + k;
+            let ref_codes = &self.reference.codes[y * w..(y + 1) * w];
+            hamming.fill(0);
+            seen.fill(0);
+            for (s, plane_warp) in self.sources.iter().zip(warps.iter()) {
+                let (sw, sh) = (s.census.width, s.census.height);
+                let (max_u, max_v) = ((sw - 1) as f32, (sh - 1) as f32);
+                let warp = plane_warp.row(y as f64).to_f32();
+                for (x, (&rc, (hm, sn))) in ref_codes
+                    .iter()
+                    .zip(hamming.iter_mut().zip(seen.iter_mut()))
+                    .enumerate()
+                {
+                    let (u, v, hw) = warp.project(x as f32);
+                    if hw > 0.0 && u >= 0.0 && v >= 0.0 && u <= max_u && v <= max_v {
+                        // Inside the hull, so rounding stays in the image. Through `i32`:
+                        // f32 → i32 is one instruction, f32 → usize a two-range sequence.
+                        let (xs, ys) = ((u + 0.5) as i32 as usize, (v + 0.5) as i32 as usize);
+                        *hm += (rc ^ s.census.codes[ys * sw + xs]).count_ones();
+                        *sn += 1;
+                    }
+                }
+            }
+            let weights_row =
+                (!self.pixel_weights.is_empty()).then(|| &self.pixel_weights[k * w..][..w]);
+            for (x, (o, (&hm, &sn))) in out
+                .iter_mut()
+                .zip(hamming.iter().zip(seen.iter()))
+                .enumerate()
+            {
+                let term = if sn == 0 {
+                    self.weight
+                } else {
+                    scale * hm as f32 / sn as f32
+                };
+                *o += match weights_row {
+                    Some(wr) => term / wr[x],
+                    None => term,
+                };
+            }
+        }
+    }
 }
 
 #[cfg(test)]

@@ -687,43 +687,8 @@ pub fn fill_cost_rows(
     images: &SweepImages,
     monitor: &Monitor,
 ) -> Result<()> {
-    if !images.fits(reference, sources) {
-        return Err(MurkError::invalid(
-            "images",
-            "the image copies were made from other views (SweepImages::new of these views)",
-        ));
-    }
-    if rows.is_empty() || rows.end > reference.image.height() {
-        return Err(MurkError::invalid(
-            "rows",
-            format!(
-                "rows {}..{} are empty or outside the reference's {} rows",
-                rows.start,
-                rows.end,
-                reference.image.height()
-            ),
-        ));
-    }
-    let (w, h, c) = (
-        reference.image.width(),
-        reference.image.height(),
-        reference.image.channels(),
-    );
-    // Noise margin (observation units) of the hard range check: 0 for Eq. 3.7, ∞ for none;
-    // and of the soft one.
-    let sigma = |o: &DehazingOptions| o.noise_sigma.unwrap_or(images.noise_sigma);
-    // (reference margin, source margin, soft margin)
-    let (margin, src_margin, soft_margin) = match kind.dehazing() {
-        None => (0.0, 0.0, None),
-        Some((_, o)) => match o.range {
-            RangePenalty::Hard => (0.0, 0.0, None),
-            RangePenalty::Off => (f32::INFINITY, f32::INFINITY, None),
-            RangePenalty::NoiseAware { k } => (k * sigma(&o), k * sigma(&o), None),
-            RangePenalty::ReferenceAware { k } => (k * sigma(&o), f32::INFINITY, None),
-            RangePenalty::Soft { k } => (f32::INFINITY, f32::INFINITY, Some(k * sigma(&o))),
-        },
-    };
-    let n_pix = w * rows.len();
+    let cost_rows = CostRows::new(reference, sources, planes, kind, rows.clone(), images)?;
+    let w = reference.image.width();
     let n_planes = planes.num_planes;
     let RowsLayout {
         plane_stride,
@@ -740,105 +705,191 @@ pub fn fill_cost_rows(
             ),
         ));
     }
-
-    let relatives: Vec<Pose> = sources
-        .iter()
-        .map(|s| Pose::relative(&reference.pose, &s.pose))
-        .collect();
-    let penalty = penalty_for(c);
-    let refd = reference.image.data();
-    let dehaze = kind.dehazing().is_some();
-    let observation = observation_kernel(kind);
-    let SweepImages {
-        ref4,
-        sources4,
-        ref_planar,
-        shift_planar,
-        ..
-    } = images;
+    let n_pix = w * rows.len();
     let done = std::sync::atomic::AtomicUsize::new(0);
     // One rayon task per plane: a plane is ~50k voxels of independent work, and parallelising
     // over planes instead of over each plane's rows saves a fork-join (and the workers' sleep
     // and wake-up) per plane. Each worker reuses its row scratch and source list across planes.
-    // Every voxel is assigned (`mean_or_penalty` ends each row), so reused memory is not zeroed.
     out.par_chunks_mut(plane_stride)
         .enumerate()
-        .try_for_each_init(
-            || (RowScratch::default(), Vec::with_capacity(sources.len())),
-            |(scratch, plane_sources): &mut (RowScratch, Vec<SourcePlane<'_>>),
-             (i, plane)|
-             -> Result<()> {
-                let out = &mut plane[first_row * w..][..n_pix];
-                monitor.checkpoint()?;
-                let z = planes.depth(i as f64);
-                plane_sources.clear();
-                plane_sources.extend(
-                    sources
-                        .iter()
-                        .zip(&relatives)
-                        .zip(sources4)
-                        .zip(shift_planar)
-                        .map(|(((s, rel), padded), planar)| SourcePlane {
-                            data: s.image.data(),
-                            padded,
-                            planar,
-                            warp: PlaneWarp::new(&reference.intrinsics, &s.intrinsics, rel, z),
-                        }),
-                );
-                let haze = match kind.dehazing() {
-                    None => Haze::CLEAR,
-                    Some((p, o)) => {
-                        let t = transmission(p.beta, z as f32);
-                        let inv_t = inverse_transmission(t);
-                        Haze {
-                            airlight: p.airlight,
-                            beta: p.beta,
-                            ref_inv_t: inv_t,
-                            ref_offset: p.airlight * (1.0 - inv_t),
-                            ref_t: t.max(crate::atmosphere::MIN_TRANSMISSION),
-                            residual: o.residual,
-                            ref_lo: -margin * inv_t,
-                            ref_hi: 1.0 + margin * inv_t,
-                            src_margin,
-                            soft_margin,
-                        }
-                    }
-                };
-                let srcs = &plane_sources[..];
-                let images = ReferenceImages {
-                    data: refd,
-                    rgb4: ref4,
-                    planar: ref_planar,
-                };
-                for (k, row) in out.chunks_exact_mut(w).enumerate() {
-                    let y = rows.start + k;
-                    match (c, dehaze) {
-                        (1, true) if observation => fill_row_observation::<1, true>(
-                            row, y, images, w, h, srcs, haze, penalty, scratch,
-                        ),
-                        (_, true) if observation => fill_row_observation::<3, true>(
-                            row, y, images, w, h, srcs, haze, penalty, scratch,
-                        ),
-                        // The ordinary volume's direct row (bit-identical to the generic one).
-                        (1, false) => fill_row_observation::<1, false>(
-                            row, y, images, w, h, srcs, haze, penalty, scratch,
-                        ),
-                        (_, false) => fill_row_observation::<3, false>(
-                            row, y, images, w, h, srcs, haze, penalty, scratch,
-                        ),
-                        (1, true) => {
-                            fill_row::<1, true>(row, y, refd, w, h, srcs, haze, penalty, scratch)
-                        }
-                        (_, true) => {
-                            fill_row::<3, true>(row, y, refd, w, h, srcs, haze, penalty, scratch)
-                        }
-                    }
-                }
-                let k = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
-                monitor.progress("mvs.cost_volume", k as f32 / n_planes as f32);
-                Ok(())
+        .try_for_each_init(CostScratch::default, |scratch, (i, plane)| -> Result<()> {
+            monitor.checkpoint()?;
+            cost_rows.fill_plane(i, &mut plane[first_row * w..][..n_pix], scratch);
+            let k = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+            monitor.progress("mvs.cost_volume", k as f32 / n_planes as f32);
+            Ok(())
+        })
+}
+
+/// Per-worker buffers of [`CostRows::fill_plane`], reused from plane to plane: the row scratch
+/// and the plane's list of sources.
+#[derive(Default)]
+pub struct CostScratch<'a> {
+    rows: RowScratch,
+    sources: Vec<SourcePlane<'a>>,
+}
+
+/// The cost volume's rows `rows` of the views, ready to be written a plane at a time
+/// ([`CostRows::fill_plane`]): a caller that runs more per plane than the costs (the box window
+/// of a group of planes while their rows are in L2) calls it from its own tasks.
+pub struct CostRows<'a> {
+    reference: &'a View<'a>,
+    sources: &'a [View<'a>],
+    planes: &'a PlaneSet,
+    kind: CostKind,
+    rows: std::ops::Range<usize>,
+    images: &'a SweepImages,
+    relatives: Vec<Pose>,
+    /// Noise margins (observation units) of the hard range check on the reference and on the
+    /// sources (0 for Eq. 3.7, ∞ for none), and of the soft one.
+    margin: f32,
+    src_margin: f32,
+    soft_margin: Option<f32>,
+}
+
+impl<'a> CostRows<'a> {
+    /// The rows `rows` of the views' costs. The views are not validated again: `images` must
+    /// come from [`SweepImages::new`] of the same views, planes and cost, which validates them
+    /// (only their sizes are checked here, naming `images`; rows outside the reference are
+    /// refused naming `rows`).
+    pub fn new(
+        reference: &'a View<'a>,
+        sources: &'a [View<'a>],
+        planes: &'a PlaneSet,
+        kind: CostKind,
+        rows: std::ops::Range<usize>,
+        images: &'a SweepImages,
+    ) -> Result<Self> {
+        if !images.fits(reference, sources) {
+            return Err(MurkError::invalid(
+                "images",
+                "the image copies were made from other views (SweepImages::new of these views)",
+            ));
+        }
+        if rows.is_empty() || rows.end > reference.image.height() {
+            return Err(MurkError::invalid(
+                "rows",
+                format!(
+                    "rows {}..{} are empty or outside the reference's {} rows",
+                    rows.start,
+                    rows.end,
+                    reference.image.height()
+                ),
+            ));
+        }
+        let sigma = |o: &DehazingOptions| o.noise_sigma.unwrap_or(images.noise_sigma);
+        let (margin, src_margin, soft_margin) = match kind.dehazing() {
+            None => (0.0, 0.0, None),
+            Some((_, o)) => match o.range {
+                RangePenalty::Hard => (0.0, 0.0, None),
+                RangePenalty::Off => (f32::INFINITY, f32::INFINITY, None),
+                RangePenalty::NoiseAware { k } => (k * sigma(&o), k * sigma(&o), None),
+                RangePenalty::ReferenceAware { k } => (k * sigma(&o), f32::INFINITY, None),
+                RangePenalty::Soft { k } => (f32::INFINITY, f32::INFINITY, Some(k * sigma(&o))),
             },
-        )
+        };
+        let relatives = sources
+            .iter()
+            .map(|s| Pose::relative(&reference.pose, &s.pose))
+            .collect();
+        Ok(Self {
+            reference,
+            sources,
+            planes,
+            kind,
+            rows,
+            images,
+            relatives,
+            margin,
+            src_margin,
+            soft_margin,
+        })
+    }
+
+    /// Plane `i`'s costs of the rows into `out` (`rows.len() · W` values, row after row). Every
+    /// value is assigned (`mean_or_penalty` ends each row), so `out` may hold anything.
+    pub fn fill_plane(&self, i: usize, out: &mut [f32], scratch: &mut CostScratch<'a>) {
+        let (w, h, c) = (
+            self.reference.image.width(),
+            self.reference.image.height(),
+            self.reference.image.channels(),
+        );
+        assert_eq!(out.len(), w * self.rows.len(), "a plane's rows");
+        let SweepImages {
+            ref4,
+            sources4,
+            ref_planar,
+            shift_planar,
+            ..
+        } = self.images;
+        let z = self.planes.depth(i as f64);
+        let reference = self.reference;
+        let plane_sources = &mut scratch.sources;
+        plane_sources.clear();
+        plane_sources.extend(
+            self.sources
+                .iter()
+                .zip(&self.relatives)
+                .zip(sources4)
+                .zip(shift_planar)
+                .map(|(((s, rel), padded), planar)| SourcePlane {
+                    data: s.image.data(),
+                    padded,
+                    planar,
+                    warp: PlaneWarp::new(&reference.intrinsics, &s.intrinsics, rel, z),
+                }),
+        );
+        let haze = match self.kind.dehazing() {
+            None => Haze::CLEAR,
+            Some((p, o)) => {
+                let t = transmission(p.beta, z as f32);
+                let inv_t = inverse_transmission(t);
+                Haze {
+                    airlight: p.airlight,
+                    beta: p.beta,
+                    ref_inv_t: inv_t,
+                    ref_offset: p.airlight * (1.0 - inv_t),
+                    ref_t: t.max(crate::atmosphere::MIN_TRANSMISSION),
+                    residual: o.residual,
+                    ref_lo: -self.margin * inv_t,
+                    ref_hi: 1.0 + self.margin * inv_t,
+                    src_margin: self.src_margin,
+                    soft_margin: self.soft_margin,
+                }
+            }
+        };
+        let penalty = penalty_for(c);
+        let refd = reference.image.data();
+        let dehaze = self.kind.dehazing().is_some();
+        let observation = observation_kernel(self.kind);
+        let srcs = &plane_sources[..];
+        let images = ReferenceImages {
+            data: refd,
+            rgb4: ref4,
+            planar: ref_planar,
+        };
+        let scratch = &mut scratch.rows;
+        for (k, row) in out.chunks_exact_mut(w).enumerate() {
+            let y = self.rows.start + k;
+            match (c, dehaze) {
+                (1, true) if observation => fill_row_observation::<1, true>(
+                    row, y, images, w, h, srcs, haze, penalty, scratch,
+                ),
+                (_, true) if observation => fill_row_observation::<3, true>(
+                    row, y, images, w, h, srcs, haze, penalty, scratch,
+                ),
+                // The ordinary volume's direct row (bit-identical to the generic one).
+                (1, false) => fill_row_observation::<1, false>(
+                    row, y, images, w, h, srcs, haze, penalty, scratch,
+                ),
+                (_, false) => fill_row_observation::<3, false>(
+                    row, y, images, w, h, srcs, haze, penalty, scratch,
+                ),
+                (1, true) => fill_row::<1, true>(row, y, refd, w, h, srcs, haze, penalty, scratch),
+                (_, true) => fill_row::<3, true>(row, y, refd, w, h, srcs, haze, penalty, scratch),
+            }
+        }
+    }
 }
 
 #[cfg(test)]

@@ -25,7 +25,9 @@
 //! from costs to selections a band at a time ([`one_pass_selections`]): a band's `f32` costs,
 //! its `u16` levels, one row of sums and one row of path costs per direction, a few MiB per
 //! stripe and nothing the size of the volume. Stripes of about 256 rows run in parallel, each
-//! one's paths starting 24 rows above it.
+//! one's paths starting 24 rows above it. Within a band, a group of 8 planes at a time is
+//! costed, windowed and written as levels ([`window::window_groups_to_levels`]), so the group's
+//! rows (410 KB at 640 pixels) stay in L2 between the three steps.
 //!
 //! Memory, 8 or 4 paths: the upward paths need the whole volume of levels and of sums.
 //! [`estimate_depth`] builds each strip's `f32` costs (plane-major) a band of rows at a
@@ -53,10 +55,9 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use crate::error::{MurkError, Result};
 use crate::image::ImageF32;
 use crate::monitor::Monitor;
-use crate::mvs::cost_volume::census::{self, CensusImage, CensusSource};
+use crate::mvs::cost_volume::census::{self, CensusImage, CensusRows, CensusScratch, CensusSource};
 use crate::mvs::cost_volume::{
-    fill_cost_rows, penalty_for, validate_inputs, CostKind, CostVolume, RowsLayout, SweepImages,
-    View,
+    penalty_for, validate_inputs, CostKind, CostRows, CostScratch, CostVolume, SweepImages, View,
 };
 use crate::mvs::plane_sweep::PlaneSet;
 
@@ -651,13 +652,16 @@ impl LevelSource<'_> {
     }
 }
 
-/// One band's `f32` costs (`[plane][row][x]`) and which image rows it holds, reused band after
-/// band: a band's first rows are usually the previous band's last ones (the rows both bands'
-/// windows read), moved to the front of each plane instead of computed again.
+/// One band's costs (`[plane][row][x]`, each plane's rows `stride` values apart) and which image
+/// rows it holds, reused band after band: a band's first rows are usually the previous band's
+/// last ones (the rows both bands' windows read), whose weighted horizontal means are moved to
+/// the front of each plane instead of computed again.
 struct Band {
     costs: Vec<f32>,
-    /// The image rows of the last band and its plane stride.
-    kept: Option<(std::ops::Range<usize>, usize)>,
+    /// Values from one plane's rows to the next plane's: the most rows a band holds.
+    stride: usize,
+    /// The image rows of the last band.
+    kept: Option<std::ops::Range<usize>>,
 }
 
 impl Band {
@@ -665,15 +669,17 @@ impl Band {
     fn new(rows: usize, w: usize, n: usize) -> Self {
         Self {
             costs: crate::large_buffer::zeroed::<f32>(rows * w * n),
+            stride: rows * w,
             kept: None,
         }
     }
 
     /// The levels of image rows `own` into `out` (`[row][x][plane]`, `own.len() · w · n`
     /// values), scaled by `quant`: their costs and those of the rows their windows read are
-    /// built (or moved from the last band), the census term added, and the window run, clipped
-    /// at the rows `clip` (a strip's rows, or the whole image's). The band must hold
-    /// `own.len() + 2r` rows.
+    /// built (or their means moved from the last band), the census term added, and the window
+    /// run, clipped at the rows `clip` (a strip's rows, or the whole image's), a group of planes
+    /// at a time while its rows are in L2 ([`window::window_groups_to_levels`]). The band must
+    /// hold `own.len() + 2r` rows.
     fn levels(
         &mut self,
         src: &LevelSource<'_>,
@@ -685,70 +691,79 @@ impl Band {
     ) -> Result<()> {
         let (w, n, r) = (src.width(), src.planes(), src.radius);
         let read = own.start.saturating_sub(r).max(clip.start)..(own.end + r).min(clip.end);
-        let stride = read.len() * w;
-        // Cost rows do not depend on the band or the strip, so any row of the last band is
-        // moved; with the census term, which adds to whole bands, they are computed again.
-        let have = match &self.kept {
-            Some((prev, prev_stride))
+        let (held, stride) = (read.len(), self.stride);
+        assert!(
+            held * w <= stride,
+            "the band holds the rows its windows read"
+        );
+        // A row's horizontal means do not depend on the band or the strip, so any row of the
+        // last band is moved; with the census term, which adds to whole bands' costs, they are
+        // computed again.
+        let (have, shift) = match &self.kept {
+            Some(prev)
                 if src.census.is_none() && prev.start <= read.start && read.start < prev.end =>
             {
-                let count = prev.end.min(read.end) - read.start;
-                move_plane_rows(
-                    &mut self.costs,
-                    n,
-                    *prev_stride,
-                    (read.start - prev.start) * w,
-                    stride,
-                    count * w,
-                );
-                count
+                (prev.end.min(read.end) - read.start, read.start - prev.start)
             }
-            _ => 0,
+            _ => (0, 0),
         };
-        let band = &mut self.costs[..n * stride];
-        if have < read.len() {
-            fill_cost_rows(
-                band,
-                RowsLayout {
-                    plane_stride: stride,
-                    first_row: have,
-                },
-                src.reference,
-                src.sources,
-                src.planes,
-                src.kind,
-                read.start + have..read.end,
-                src.images,
-                monitor,
-            )?;
-        }
-        if let Some((reference_codes, census_sources)) = src.census {
-            census::add_census_costs(
-                band,
-                reference_codes,
-                &src.reference.intrinsics,
-                census_sources,
-                src.planes,
-                read.clone(),
-                src.census_weight,
-                src.weights_of(&read),
-                monitor,
-            )?;
-        }
-        window::window_rows_to_levels(
-            band,
-            read.start - clip.start..read.end - clip.start,
+        // The kept means are invalid from here until every group has been rebuilt.
+        self.kept = None;
+        let costs = (have < held)
+            .then(|| {
+                CostRows::new(
+                    src.reference,
+                    src.sources,
+                    src.planes,
+                    src.kind,
+                    read.start + have..read.end,
+                    src.images,
+                )
+            })
+            .transpose()?;
+        let census = src.census.map(|(codes, sources)| CensusRows {
+            reference: codes,
+            k_ref: &src.reference.intrinsics,
+            sources,
+            planes: src.planes,
+            rows: read.clone(),
+            weight: src.census_weight,
+            pixel_weights: src.weights_of(&read),
+        });
+        let groups = n.div_ceil(window::LEVEL_GROUP);
+        let done = std::sync::atomic::AtomicUsize::new(0);
+        window::window_groups_to_levels(
+            &mut self.costs[..n * stride],
+            stride,
+            window::GroupRows {
+                data_rows: read.start - clip.start..read.end - clip.start,
+                filtered: have,
+                out_rows: own.start - clip.start..own.end - clip.start,
+            },
             src.weights_of(&clip),
-            w,
-            clip.len(),
-            n,
-            r,
-            own.start - clip.start..own.end - clip.start,
+            (w, clip.len(), n, r),
             quant,
             out,
+            || (CostScratch::default(), CensusScratch::default()),
+            |(cost_scratch, census_scratch), g0, group| {
+                for (j, plane) in group.chunks_exact_mut(stride).enumerate() {
+                    if have > 0 && shift > 0 {
+                        plane.copy_within(shift * w..(shift + have) * w, 0);
+                    }
+                    if let Some(costs) = &costs {
+                        costs.fill_plane(g0 + j, &mut plane[have * w..held * w], cost_scratch);
+                    }
+                    if let Some(census) = &census {
+                        census.add_to_plane(g0 + j, &mut plane[..held * w], census_scratch);
+                    }
+                }
+                let k = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+                monitor.progress("mvs.cost_volume", k as f32 / groups as f32);
+                Ok(())
+            },
             monitor,
         )?;
-        self.kept = Some((read, stride));
+        self.kept = Some(read);
         Ok(())
     }
 }
@@ -1093,34 +1108,6 @@ fn cost_bound(channels: usize, strip_weights: &[f32], census_weight: f32) -> f32
     penalty_for(channels) * w_max + census_weight
 }
 
-/// Moves `len` values at `offset` in each of the `n` planes of `buf`, `old_stride` apart, to the
-/// start of each plane `new_stride` apart: the plane order is chosen so that no plane's values
-/// are overwritten before they are moved (`offset + len ≤ old_stride`, `len ≤ new_stride`).
-fn move_plane_rows(
-    buf: &mut [f32],
-    n: usize,
-    old_stride: usize,
-    offset: usize,
-    new_stride: usize,
-    len: usize,
-) {
-    assert!(
-        offset + len <= old_stride && len <= new_stride,
-        "rows inside the planes"
-    );
-    let mut step = |i: usize| {
-        let from = i * old_stride + offset;
-        buf.copy_within(from..from + len, i * new_stride);
-    };
-    // Growing planes move from the last (each destination lies past every earlier plane's
-    // values); shrinking ones from the first.
-    if new_stride >= old_stride {
-        (0..n).rev().for_each(&mut step);
-    } else {
-        (0..n).for_each(&mut step);
-    }
-}
-
 /// Own rows per band of a strip whose costs are built and windowed together (see
 /// [`estimate_depth`]): the band's `f32` costs, with the `r` rows above and below that its
 /// windows read, take at most a quarter of the volume budget and at most 32 MiB, so they are
@@ -1357,8 +1344,9 @@ pub fn depth_from_costs(
         params.num_paths,
     );
     let mut levels = crate::large_buffer::zeroed::<u16>(data.len());
+    let mut data = data;
     window::window_to_levels(
-        &data,
+        &mut data,
         &weights,
         w,
         h,
@@ -1370,7 +1358,6 @@ pub fn depth_from_costs(
     )?;
     // The plane-major volume is spent once windowed: its memory holds `S`.
     let len = data.len();
-    let mut data = data;
     let sum = &mut bytemuck::cast_slice_mut::<f32, u16>(&mut data[..])[..len];
     let selections = strip_selections(
         &levels,
