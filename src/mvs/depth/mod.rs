@@ -731,7 +731,7 @@ impl Band {
             pixel_weights: src.weights_of(&read),
         });
         let groups = n.div_ceil(window::LEVEL_GROUP);
-        let done = std::sync::atomic::AtomicUsize::new(0);
+        let done = AtomicUsize::new(0);
         window::window_groups_to_levels(
             &mut self.costs[..n * stride],
             stride,
@@ -757,7 +757,7 @@ impl Band {
                         census.add_to_plane(g0 + j, &mut plane[..held * w], census_scratch);
                     }
                 }
-                let k = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+                let k = done.fetch_add(1, Ordering::Relaxed) + 1;
                 monitor.progress("mvs.cost_volume", k as f32 / groups as f32);
                 Ok(())
             },
