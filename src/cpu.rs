@@ -86,3 +86,31 @@ impl Isa {
         }
     }
 }
+
+/// Defines `$vis fn $name(..) -> $ret` that calls the plain function `$body` (which must be
+/// `#[inline(always)]`) through a copy compiled with AVX2 enabled where the CPU has it
+/// ([`avx2_enabled`]): the same operations on wider registers, so the same results. The target
+/// feature enables neither FMA nor fast-math, so the compiler may not contract or reorder the
+/// body's float operations in either copy.
+macro_rules! compiled_for_avx2 {
+    ($(#[$doc:meta])* $vis:vis fn $name:ident($($arg:ident: $ty:ty),* $(,)?) $(-> $ret:ty)?
+        => $body:path;) => {
+        $(#[$doc])*
+        #[inline]
+        $vis fn $name($($arg: $ty),*) $(-> $ret)? {
+            #[cfg(target_arch = "x86_64")]
+            {
+                #[target_feature(enable = "avx2")]
+                unsafe fn with_avx2($($arg: $ty),*) $(-> $ret)? {
+                    $body($($arg),*)
+                }
+                if $crate::cpu::avx2_enabled() {
+                    // SAFETY: AVX2 is present.
+                    return unsafe { with_avx2($($arg),*) };
+                }
+            }
+            $body($($arg),*)
+        }
+    };
+}
+pub(crate) use compiled_for_avx2;

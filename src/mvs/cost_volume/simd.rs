@@ -8,7 +8,7 @@
 //!   tried first and are slow on Zen 3; see docs/BENCHMARKS.md.)
 //! - Grey ([`accumulate`]): eight pixels at a time, corners fetched with gathers.
 //! - The per-row passes (source coordinates, `1/t_s`, the dehazed reference, the mean) are the
-//!   scalar functions compiled a second time for AVX2 ([`compiled_for_avx2`]).
+//!   scalar functions compiled a second time for AVX2 ([`crate::cpu::compiled_for_avx2`]).
 //!
 //! The arithmetic is the scalar loop's, operation for operation and in the same order (separate
 //! multiply and add, no FMA; channels summed from 0 up), so each lane is bit for bit the scalar
@@ -18,48 +18,24 @@
 //! `width mod 8` pixels of a row, the scalar loop runs.
 
 use super::kernel::Haze;
-use crate::cpu::avx2_enabled;
+use crate::cpu::{avx2_enabled, compiled_for_avx2};
 use crate::mvs::plane_sweep::RowWarp;
-
-/// Defines `pub(super) fn $name(..)` that calls the scalar function `$body` (which must be
-/// `#[inline(always)]`) through a copy compiled with AVX2 enabled where the CPU has it: the same
-/// operations on wider registers, so the same results.
-macro_rules! compiled_for_avx2 {
-    ($(#[$doc:meta])* fn $name:ident($($arg:ident: $ty:ty),* $(,)?) => $body:path;) => {
-        $(#[$doc])*
-        #[inline]
-        pub(super) fn $name($($arg: $ty),*) {
-            #[cfg(target_arch = "x86_64")]
-            {
-                #[target_feature(enable = "avx2")]
-                unsafe fn with_avx2($($arg: $ty),*) {
-                    $body($($arg),*)
-                }
-                if avx2_enabled() {
-                    // SAFETY: AVX2 is present.
-                    return unsafe { with_avx2($($arg),*) };
-                }
-            }
-            $body($($arg),*)
-        }
-    };
-}
 
 compiled_for_avx2! {
     /// [`super::kernel::source_coords`] (the same coordinates bit for bit).
-    fn source_coords(warp: &RowWarp, width: usize, height: usize, us: &mut [f32], vs: &mut [f32])
+    pub(super) fn source_coords(warp: &RowWarp, width: usize, height: usize, us: &mut [f32], vs: &mut [f32])
         => super::kernel::source_coords;
 }
 
 compiled_for_avx2! {
     /// [`super::kernel::inverse_transmission_row`].
-    fn inverse_transmission_row(warp: &RowWarp, beta: f32, out: &mut [f32])
+    pub(super) fn inverse_transmission_row(warp: &RowWarp, beta: f32, out: &mut [f32])
         => super::kernel::inverse_transmission_row;
 }
 
 compiled_for_avx2! {
     /// [`super::kernel::mean_or_penalty`].
-    fn mean_or_penalty(out: &mut [f32], sum: &[f32], observed: &[u32], penalty: f32)
+    pub(super) fn mean_or_penalty(out: &mut [f32], sum: &[f32], observed: &[u32], penalty: f32)
         => super::kernel::mean_or_penalty;
 }
 
@@ -67,7 +43,7 @@ compiled_for_avx2! {
     /// The reference row dehazed with the plane's depth (Eq. 3.5,
     /// `J_r = I_r·(1/t_r) + A(1 − 1/t_r)`) in the 4-lane layout, and whether all three channels
     /// lie in `[ref_lo, ref_hi]` (the scalar prelude's operations per pixel).
-    fn dehaze_reference_rgb4(row: &[f32], haze: Haze, jr4: &mut [[f32; 4]], ok: &mut [bool])
+    pub(super) fn dehaze_reference_rgb4(row: &[f32], haze: Haze, jr4: &mut [[f32; 4]], ok: &mut [bool])
         => dehaze_reference_rgb4_body;
 }
 

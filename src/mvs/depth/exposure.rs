@@ -26,6 +26,7 @@
 use rayon::prelude::*;
 
 use crate::atmosphere::{inverse_transmission, transmission, MIN_TRANSMISSION};
+use crate::cpu::compiled_for_avx2;
 use crate::image::ImageF32;
 use crate::minimise::grid_then_brent;
 use crate::mvs::cost_volume::sample::bilinear_inside;
@@ -50,8 +51,9 @@ pub fn at_bound(gain: f32) -> bool {
     (gain / GAIN_RANGE.0 - 1.0).abs() < 1e-3 || (gain / GAIN_RANGE.1 - 1.0).abs() < 1e-3
 }
 
-/// One sample row's reference values, planes per sample, `k`, source values and the radii of
-/// the reference and source positions (the fields of [`Samples`], before they are joined).
+/// One sample row's reference values, planes per sample, `k`, source values (interleaved by
+/// channel) and the radii of the reference and source positions (the fields of [`Samples`],
+/// before they are joined).
 type RowSamples = (Vec<f32>, Vec<usize>, Vec<f32>, Vec<f32>, Vec<f32>, Vec<f32>);
 
 /// One sample pixel's reference values minus the airlight and, per plane that sees it, `k` and
@@ -60,12 +62,14 @@ pub(super) struct Samples {
     channels: usize,
     /// `I_r − A` per sample and channel.
     reference: Vec<f32>,
-    /// Start of each sample's planes in `k` (and, times `channels`, in `source`); one extra end.
+    /// Start of each sample's planes in `k`, `source[c]` and `src_r2`; one extra end.
     start: Vec<usize>,
     /// `k = t_r/t_s` per visible (sample, plane) (1 for the ordinary volume).
     k: Vec<f32>,
-    /// `I_s` per visible (sample, plane) and channel.
-    source: Vec<f32>,
+    /// `I_s` per channel, then per visible (sample, plane): a sample's planes are contiguous
+    /// in each channel, so the searches' loops over them run on vector registers
+    /// ([`lowest_scaled`]).
+    source: Vec<Vec<f32>>,
     /// `r²` of each sample in the reference ([`super::vignetting::radius2`]).
     ref_r2: Vec<f32>,
     /// `r²` of each visible (sample, plane)'s position in the source.
@@ -86,6 +90,10 @@ impl Samples {
             reference.image.width(),
             reference.image.height(),
             reference.image.channels(),
+        );
+        debug_assert!(
+            c <= MAX_CHANNELS,
+            "views are validated to have 1 or 3 channels"
         );
         let (sw, sh) = (source.image.width(), source.image.height());
         let (airlight, beta) = match kind.dehazing() {
@@ -108,7 +116,7 @@ impl Samples {
             reference: Vec::new(),
             start: vec![0],
             k: Vec::new(),
-            source: Vec::new(),
+            source: vec![Vec::new(); c],
             ref_r2: Vec::new(),
             src_r2: Vec::new(),
             airlight,
@@ -168,18 +176,62 @@ impl Samples {
                 s.start.push(last + n);
             }
             s.k.extend(ks);
-            s.source.extend(src);
+            for (ch, plane) in s.source.iter_mut().enumerate() {
+                plane.extend(src.iter().skip(ch).step_by(c));
+            }
         }
         s
     }
 
+    /// Sample `j`'s planes as the lowest-cost loops read them.
+    #[inline]
+    fn planes_of(&self, j: usize) -> SamplePlanes<'_> {
+        let (c, planes) = (self.channels, self.start[j]..self.start[j + 1]);
+        let mut source: [&[f32]; MAX_CHANNELS] = [&[]; MAX_CHANNELS];
+        for (s, plane) in source.iter_mut().zip(&self.source) {
+            *s = &plane[planes.clone()];
+        }
+        SamplePlanes {
+            reference: &self.reference[j * c..(j + 1) * c],
+            k: &self.k[planes.clone()],
+            src_r2: &self.src_r2[planes],
+            source,
+        }
+    }
+
     /// Sample `j`'s best (over the planes) capped residual with channel `c` of the source divided
     /// by `gains[c]`, and that plane's index into `k` (`usize::MAX` when no plane is under the
-    /// cap).
-    #[inline]
+    /// cap): the first plane of least cost. [`Samples::lowest`] is its cost alone, faster.
     pub(super) fn best(&self, j: usize, inv_gains: &[f32]) -> (f32, usize) {
-        // A factor of exactly 1 multiplies exactly: the same residuals, bit for bit.
-        self.best_source_scaled(j, inv_gains, |_| 1.0)
+        // The least cost on vector registers, then the first plane that has it: the same plane
+        // as a scan that keeps the first strictly lower cost, since every cost is the same
+        // expression in both loops (bit for bit).
+        let lowest = self.lowest(j, inv_gains);
+        if lowest >= self.penalty {
+            return (self.penalty, usize::MAX);
+        }
+        let (c, a) = (self.channels, self.airlight);
+        let r = &self.reference[j * c..(j + 1) * c];
+        let first = (self.start[j]..self.start[j + 1]).find(|&i| {
+            let k = self.k[i];
+            let mut cost = 0.0f32;
+            for ((&rv, plane), &ig) in r.iter().zip(&self.source).zip(inv_gains) {
+                cost += (rv - k * (plane[i] * ig * 1.0 - a)).abs();
+            }
+            cost == lowest
+        });
+        debug_assert!(
+            first.is_some(),
+            "the least cost is one of the planes' costs"
+        );
+        (lowest, first.unwrap_or(usize::MAX))
+    }
+
+    /// The cost of [`Samples::best`] alone.
+    #[inline]
+    pub(super) fn lowest(&self, j: usize, inv_gains: &[f32]) -> f32 {
+        // A factor of exactly 1/1 multiplies exactly: the same residuals, bit for bit.
+        self.lowest_source_scaled(j, inv_gains, 1.0, 0.0)
     }
 
     /// Σ over every `stride`-th sample of the best (over the planes) capped residual of channel
@@ -188,17 +240,18 @@ impl Samples {
     /// the search use every sample).
     fn objective(&self, ch: usize, gain: f32, stride: usize) -> f64 {
         let (c, a, inv_g) = (self.channels, self.airlight, 1.0 / gain);
-        (0..self.start.len() - 1)
+        (0..self.len())
             .into_par_iter()
             .step_by(stride)
             .map(|j| {
-                let r = self.reference[j * c + ch];
-                let mut best = 1.0f32;
-                for i in self.start[j]..self.start[j + 1] {
-                    let cost = (r - self.k[i] * (self.source[i * c + ch] * inv_g - a)).abs();
-                    best = best.min(cost);
-                }
-                f64::from(best)
+                let planes = self.start[j]..self.start[j + 1];
+                f64::from(lowest_in_channel(
+                    self.reference[j * c + ch],
+                    &self.k[planes.clone()],
+                    &self.source[ch][planes],
+                    inv_g,
+                    a,
+                ))
             })
             .sum()
     }
@@ -223,12 +276,8 @@ impl Samples {
             }
             let k = self.k[i];
             let r = &self.reference[j * c..(j + 1) * c];
-            for ((&rv, &sv), ch) in r
-                .iter()
-                .zip(&self.source[i * c..(i + 1) * c])
-                .zip(&mut pairs)
-            {
-                let m = k * sv;
+            for ((&rv, plane), ch) in r.iter().zip(&self.source).zip(&mut pairs) {
+                let m = k * plane[i];
                 if m > 0.0 {
                     ch.push(((rv + k * a) / m, m));
                 }
@@ -244,63 +293,48 @@ impl Samples {
             .collect()
     }
 
-    /// [`Samples::best`] with both views divided by the fall-off `1 + a·r²`
-    /// ([`super::vignetting`]), the residual measured in the reference's recorded units (times
-    /// its `1 + a·r²`): dividing both views by more than 1 would otherwise shrink every residual
-    /// and favour brighter corners whatever the data. Equal to [`Samples::best`] for `a = 0`.
+    /// Sample `j`'s best (over the planes) capped residual with both views divided by the
+    /// fall-off `1 + a·r²` ([`super::vignetting`]), the residual measured in the reference's
+    /// recorded units (times its `1 + a·r²`): dividing both views by more than 1 would otherwise
+    /// shrink every residual and favour brighter corners whatever the data. Equal to
+    /// [`Samples::lowest`] for `a = 0`.
     #[inline]
-    pub(super) fn best_vignetted(&self, j: usize, inv_gains: &[f32], a: f32) -> (f32, usize) {
-        let (c, air) = (self.channels, self.airlight);
-        let vr = 1.0 + a * self.ref_r2[j];
-        let r = &self.reference[j * c..(j + 1) * c];
-        let mut best = (self.penalty, usize::MAX);
-        for i in self.start[j]..self.start[j + 1] {
-            let k = self.k[i];
-            let inv_vs = 1.0 / (1.0 + a * self.src_r2[i]);
-            let src = &self.source[i * c..(i + 1) * c];
-            let cost: f32 = r
-                .iter()
-                .zip(src)
-                .zip(inv_gains)
-                .map(|((&rv, &sv), &ig)| {
-                    (rv + air - vr * (air + k * (sv * ig * inv_vs - air))).abs()
-                })
-                .sum();
-            if cost < best.0 {
-                best = (cost, i);
-            }
-        }
-        best
+    pub(super) fn lowest_vignetted(&self, j: usize, inv_gains: &[f32], a: f32) -> f32 {
+        let falloff = Falloff {
+            ref_factor: 1.0 + a * self.ref_r2[j],
+            a,
+        };
+        lowest_vignetted(
+            &self.planes_of(j),
+            inv_gains,
+            falloff,
+            self.airlight,
+            self.penalty,
+        )
     }
 
-    /// [`Samples::best`] with each source value also multiplied by `factor(r²)` of its
+    /// [`Samples::lowest`] with each source value also multiplied by `norm / (1 + δ·r²)` of its
     /// position in the source: a source fall-off relative to the reference's
-    /// ([`super::vignetting::estimate_relative_falloff`]). Equal to [`Samples::best`] for a
-    /// factor of 1.
+    /// ([`super::vignetting::estimate_relative_falloff`]), normalised by `norm`. Equal to
+    /// [`Samples::lowest`] for `norm = 1`, `δ = 0`.
     #[inline]
-    pub(super) fn best_source_scaled(
+    pub(super) fn lowest_source_scaled(
         &self,
         j: usize,
         inv_gains: &[f32],
-        factor: impl Fn(f32) -> f32,
-    ) -> (f32, usize) {
-        let (c, a) = (self.channels, self.airlight);
-        let r = &self.reference[j * c..(j + 1) * c];
-        let mut best = (self.penalty, usize::MAX);
-        for i in self.start[j]..self.start[j + 1] {
-            let (k, f) = (self.k[i], factor(self.src_r2[i]));
-            let src = &self.source[i * c..(i + 1) * c];
-            let cost: f32 = r
-                .iter()
-                .zip(src)
-                .zip(inv_gains)
-                .map(|((&rv, &sv), &ig)| (rv - k * (sv * ig * f - a)).abs())
-                .sum();
-            if cost < best.0 {
-                best = (cost, i);
-            }
-        }
-        best
+        norm: f32,
+        delta: f32,
+    ) -> f32 {
+        lowest_scaled(
+            &self.planes_of(j),
+            inv_gains,
+            Falloff {
+                ref_factor: norm,
+                a: delta,
+            },
+            self.airlight,
+            self.penalty,
+        )
     }
 
     /// Mean `r²` of the source positions of every visible (sample, plane); 0 when empty.
@@ -317,9 +351,10 @@ impl Samples {
     pub(super) fn with_source_falloff(&self, a: f32) -> Samples {
         let c = self.channels;
         let mut source = self.source.clone();
-        for (px, &r2) in source.chunks_exact_mut(c).zip(&self.src_r2) {
-            let f = 1.0 / (1.0 + a * r2);
-            px.iter_mut().for_each(|v| *v *= f);
+        for plane in &mut source {
+            for (v, &r2) in plane.iter_mut().zip(&self.src_r2) {
+                *v *= 1.0 / (1.0 + a * r2);
+            }
         }
         Samples {
             channels: c,
@@ -345,6 +380,188 @@ impl Samples {
     }
 }
 
+/// Most channels a view has (RGB; grey has one).
+const MAX_CHANNELS: usize = 3;
+
+/// Planes the lowest-cost loops take at once: one AVX2 register of `f32`.
+const LANES: usize = 8;
+
+/// One sample's reference values (`I_r − A` per channel) and, per plane that sees it, `k`, the
+/// source position's `r²` and the source's values per channel (unused channels empty).
+struct SamplePlanes<'a> {
+    reference: &'a [f32],
+    k: &'a [f32],
+    src_r2: &'a [f32],
+    source: [&'a [f32]; MAX_CHANNELS],
+}
+
+/// A fall-off `1 + a·r²` in a lowest-cost loop: `ref_factor` is what the reference's side is
+/// multiplied by (`1 + a·r_ref²`, or the relative search's normalisation).
+#[derive(Clone, Copy)]
+struct Falloff {
+    ref_factor: f32,
+    a: f32,
+}
+
+/// The smaller of `best` and every lane of `lanes` (a minimum, so the order does not matter).
+#[inline(always)]
+fn lowest_lane(lanes: [f32; LANES], mut best: f32) -> f32 {
+    for v in lanes {
+        if v < best {
+            best = v;
+        }
+    }
+    best
+}
+
+/// `min(1, min_i |r − k_i·(s_i·inv_g − a)|)` over a sample's planes, one channel: the loop of
+/// [`Samples::objective`], eight planes at a time.
+#[inline(always)]
+fn lowest_in_channel_body(r: f32, k: &[f32], source: &[f32], inv_g: f32, a: f32) -> f32 {
+    let cost = |k: f32, s: f32| (r - k * (s * inv_g - a)).abs();
+    let mut lanes = [1.0f32; LANES];
+    let (k8, s8) = (k.chunks_exact(LANES), source.chunks_exact(LANES));
+    let (k_rest, s_rest) = (k8.remainder(), s8.remainder());
+    for (k, s) in k8.zip(s8) {
+        for l in 0..LANES {
+            let c = cost(k[l], s[l]);
+            if c < lanes[l] {
+                lanes[l] = c;
+            }
+        }
+    }
+    let mut best = lowest_lane(lanes, 1.0);
+    for (&k, &s) in k_rest.iter().zip(s_rest) {
+        best = best.min(cost(k, s));
+    }
+    best
+}
+
+compiled_for_avx2! {
+    /// [`lowest_in_channel_body`].
+    fn lowest_in_channel(r: f32, k: &[f32], source: &[f32], inv_g: f32, a: f32) -> f32
+        => lowest_in_channel_body;
+}
+
+/// The least (capped at `penalty`) of `Σ_c |r_c − k·(s_c·ig_c·f − A)|` over a sample's planes,
+/// `f = falloff.ref_factor / (1 + falloff.a·r_s²)`: [`Samples::best`]'s cost with the source's
+/// fall-off relative to the reference's divided out. Eight planes at a time; every lane's cost
+/// is the scalar expression's, operation for operation.
+#[inline(always)]
+fn lowest_scaled_body(
+    p: &SamplePlanes<'_>,
+    inv_gains: &[f32],
+    falloff: Falloff,
+    airlight: f32,
+    penalty: f32,
+) -> f32 {
+    let factor = |r2: f32| falloff.ref_factor / (1.0 + falloff.a * r2);
+    let term = |rv: f32, k: f32, s: f32, ig: f32, f: f32| (rv - k * (s * ig * f - airlight)).abs();
+    let n = p.k.len();
+    let whole = n - n % LANES;
+    let mut lanes = [penalty; LANES];
+    for i in (0..whole).step_by(LANES) {
+        let k = &p.k[i..i + LANES];
+        let f: [f32; LANES] = std::array::from_fn(|l| factor(p.src_r2[i + l]));
+        let mut cost = [0.0f32; LANES];
+        for ((&rv, src), &ig) in p.reference.iter().zip(&p.source).zip(inv_gains) {
+            let s = &src[i..i + LANES];
+            for l in 0..LANES {
+                cost[l] += term(rv, k[l], s[l], ig, f[l]);
+            }
+        }
+        for l in 0..LANES {
+            if cost[l] < lanes[l] {
+                lanes[l] = cost[l];
+            }
+        }
+    }
+    let mut best = lowest_lane(lanes, penalty);
+    for i in whole..n {
+        let f = factor(p.src_r2[i]);
+        let mut cost = 0.0f32;
+        for ((&rv, src), &ig) in p.reference.iter().zip(&p.source).zip(inv_gains) {
+            cost += term(rv, p.k[i], src[i], ig, f);
+        }
+        if cost < best {
+            best = cost;
+        }
+    }
+    best
+}
+
+compiled_for_avx2! {
+    /// [`lowest_scaled_body`].
+    fn lowest_scaled(
+        p: &SamplePlanes<'_>,
+        inv_gains: &[f32],
+        falloff: Falloff,
+        airlight: f32,
+        penalty: f32,
+    ) -> f32 => lowest_scaled_body;
+}
+
+/// The least (capped at `penalty`) of `Σ_c |r_c + A − v_r·(A + k·(s_c·ig_c/v_s − A))|` over a
+/// sample's planes, `v_r = falloff.ref_factor` and `v_s = 1 + falloff.a·r_s²`: both views
+/// divided by the shared fall-off, the residual in the reference's recorded units
+/// ([`Samples::lowest_vignetted`]). Eight planes at a time, each lane the scalar expression.
+#[inline(always)]
+fn lowest_vignetted_body(
+    p: &SamplePlanes<'_>,
+    inv_gains: &[f32],
+    falloff: Falloff,
+    airlight: f32,
+    penalty: f32,
+) -> f32 {
+    let vr = falloff.ref_factor;
+    let inv_vs = |r2: f32| 1.0 / (1.0 + falloff.a * r2);
+    let term = |rv: f32, k: f32, s: f32, ig: f32, inv_v: f32| {
+        (rv + airlight - vr * (airlight + k * (s * ig * inv_v - airlight))).abs()
+    };
+    let n = p.k.len();
+    let whole = n - n % LANES;
+    let mut lanes = [penalty; LANES];
+    for i in (0..whole).step_by(LANES) {
+        let k = &p.k[i..i + LANES];
+        let inv_v: [f32; LANES] = std::array::from_fn(|l| inv_vs(p.src_r2[i + l]));
+        let mut cost = [0.0f32; LANES];
+        for ((&rv, src), &ig) in p.reference.iter().zip(&p.source).zip(inv_gains) {
+            let s = &src[i..i + LANES];
+            for l in 0..LANES {
+                cost[l] += term(rv, k[l], s[l], ig, inv_v[l]);
+            }
+        }
+        for l in 0..LANES {
+            if cost[l] < lanes[l] {
+                lanes[l] = cost[l];
+            }
+        }
+    }
+    let mut best = lowest_lane(lanes, penalty);
+    for i in whole..n {
+        let inv_v = inv_vs(p.src_r2[i]);
+        let mut cost = 0.0f32;
+        for ((&rv, src), &ig) in p.reference.iter().zip(&p.source).zip(inv_gains) {
+            cost += term(rv, p.k[i], src[i], ig, inv_v);
+        }
+        if cost < best {
+            best = cost;
+        }
+    }
+    best
+}
+
+compiled_for_avx2! {
+    /// [`lowest_vignetted_body`].
+    fn lowest_vignetted(
+        p: &SamplePlanes<'_>,
+        inv_gains: &[f32],
+        falloff: Falloff,
+        airlight: f32,
+        penalty: f32,
+    ) -> f32 => lowest_vignetted_body;
+}
+
 /// The weighted median of `(value, weight)` pairs (sorted in place), `None` when empty.
 fn weighted_median(pairs: &mut [(f32, f32)]) -> Option<f32> {
     pairs.sort_by(|x, y| x.0.total_cmp(&y.0));
@@ -361,13 +578,19 @@ fn weighted_median(pairs: &mut [(f32, f32)]) -> Option<f32> {
 
 /// The gain of each channel of `source` relative to the same channel of `reference` (see the
 /// module docs), one per image channel: exposure moves them together, white balance apart. All
-/// 1 when no sample pixel is seen by the source.
+/// 1 when no sample pixel is seen by the source, or when the views do not both have 1 or 3
+/// channels.
 pub fn estimate_gains(
     reference: &View<'_>,
     source: &View<'_>,
     planes: &PlaneSet,
     kind: CostKind,
 ) -> Vec<f32> {
+    let c = reference.image.channels();
+    if !matches!(c, 1 | 3) || source.image.channels() != c {
+        // The cost volume rejects such views with a named field; nothing to estimate here.
+        return vec![1.0; c];
+    }
     gains_from_samples(&Samples::collect(reference, source, planes, kind))
 }
 
@@ -548,6 +771,127 @@ mod tests {
                     );
                 }
             }
+        }
+    }
+
+    /// Samples with random values: sample `j` has `j % 21` planes (none, fewer than a vector,
+    /// several vectors and a remainder), and every third plane repeats the one before it, so
+    /// that equal least costs occur and the first must win.
+    fn random_samples(channels: usize, seed: u64) -> Samples {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+        let mut s = Samples {
+            channels,
+            reference: Vec::new(),
+            start: vec![0],
+            k: Vec::new(),
+            source: vec![Vec::new(); channels],
+            ref_r2: Vec::new(),
+            src_r2: Vec::new(),
+            airlight: 0.8,
+            penalty: channels as f32,
+        };
+        for j in 0..60 {
+            s.reference
+                .extend((0..channels).map(|_| rng.random_range(-0.8f32..0.2)));
+            s.ref_r2.push(rng.random_range(0.0f32..1.0));
+            for i in 0..j % 21 {
+                if i % 3 == 2 {
+                    let last = s.k.len() - 1;
+                    s.k.push(s.k[last]);
+                    s.src_r2.push(s.src_r2[last]);
+                    for plane in &mut s.source {
+                        plane.push(plane[last]);
+                    }
+                    continue;
+                }
+                s.k.push(rng.random_range(0.5f32..3.0));
+                s.src_r2.push(rng.random_range(0.0f32..1.0));
+                for plane in &mut s.source {
+                    plane.push(rng.random_range(0.0f32..1.0));
+                }
+            }
+            s.start.push(s.k.len());
+        }
+        s
+    }
+
+    /// The searches' loops before they ran on vector registers: every plane's cost in turn,
+    /// the first strictly lower kept. `factor` multiplies the source value; `vignetted` is
+    /// `Some(a)` for [`Samples::lowest_vignetted`]'s residual.
+    fn scanned(
+        s: &Samples,
+        j: usize,
+        inv_gains: &[f32],
+        factor: impl Fn(f32) -> f32,
+        vignetted: Option<f32>,
+    ) -> (f32, usize) {
+        let (c, air) = (s.channels, s.airlight);
+        let r = &s.reference[j * c..(j + 1) * c];
+        let mut best = (s.penalty, usize::MAX);
+        for i in s.start[j]..s.start[j + 1] {
+            let k = s.k[i];
+            let cost: f32 = (0..c)
+                .map(|ch| {
+                    let (rv, sv, ig) = (r[ch], s.source[ch][i], inv_gains[ch]);
+                    match vignetted {
+                        None => (rv - k * (sv * ig * factor(s.src_r2[i]) - air)).abs(),
+                        Some(a) => {
+                            let vr = 1.0 + a * s.ref_r2[j];
+                            let inv_vs = 1.0 / (1.0 + a * s.src_r2[i]);
+                            (rv + air - vr * (air + k * (sv * ig * inv_vs - air))).abs()
+                        }
+                    }
+                })
+                .sum();
+            if cost < best.0 {
+                best = (cost, i);
+            }
+        }
+        best
+    }
+
+    /// The vector loops give the scanned loops' least costs and first planes bit for bit, with
+    /// AVX2 and without, for grey and RGB samples.
+    #[test]
+    fn lowest_costs_match_the_scanned_planes() {
+        for (channels, seed) in [(1usize, 3u64), (3, 4)] {
+            let s = random_samples(channels, seed);
+            let inv_gains: Vec<f32> = [0.9f32, 1.07, 1.21][..channels].to_vec();
+            for scalar in [false, true] {
+                crate::cpu::force_scalar(scalar);
+                for j in 0..s.len() {
+                    let plain = scanned(&s, j, &inv_gains, |_| 1.0, None);
+                    assert_eq!(s.best(j, &inv_gains), plain, "sample {j}");
+                    assert_eq!(s.lowest(j, &inv_gains).to_bits(), plain.0.to_bits());
+                    for (norm, d) in [(1.1f32, 0.25f32), (0.93, -0.2)] {
+                        let want = scanned(&s, j, &inv_gains, |r2| norm / (1.0 + d * r2), None);
+                        let got = s.lowest_source_scaled(j, &inv_gains, norm, d);
+                        assert_eq!(got.to_bits(), want.0.to_bits(), "sample {j}");
+                    }
+                    for a in [-0.3f32, 0.0, 0.15] {
+                        let want = scanned(&s, j, &inv_gains, |_| 1.0, Some(a));
+                        let got = s.lowest_vignetted(j, &inv_gains, a);
+                        assert_eq!(got.to_bits(), want.0.to_bits(), "sample {j}, a {a}");
+                    }
+                    for (ch, &inv_g) in inv_gains.iter().enumerate() {
+                        let planes = s.start[j]..s.start[j + 1];
+                        let r = s.reference[j * channels + ch];
+                        let want = planes.clone().fold(1.0f32, |best, i| {
+                            best.min((r - s.k[i] * (s.source[ch][i] * inv_g - s.airlight)).abs())
+                        });
+                        let got = lowest_in_channel(
+                            r,
+                            &s.k[planes.clone()],
+                            &s.source[ch][planes],
+                            inv_g,
+                            s.airlight,
+                        );
+                        assert_eq!(got.to_bits(), want.to_bits(), "sample {j}, channel {ch}");
+                    }
+                }
+            }
+            crate::cpu::force_scalar(false);
         }
     }
 

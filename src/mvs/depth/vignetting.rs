@@ -104,7 +104,7 @@ fn objective(samples: &[(&Samples, &[f32])], a: f32, stride: usize) -> f64 {
             (0..s.len())
                 .into_par_iter()
                 .step_by(stride)
-                .map(|j| f64::from(s.best_vignetted(j, &inv_g, a).0))
+                .map(|j| f64::from(s.lowest_vignetted(j, &inv_g, a)))
                 .sum::<f64>()
         })
         .sum()
@@ -203,10 +203,7 @@ pub(super) fn estimate_relative_falloff(samples: &Samples, gains: &[f32]) -> (f3
         (0..samples.len())
             .into_par_iter()
             .step_by(stride)
-            .map(|j| {
-                let best = samples.best_source_scaled(j, &inv_g, |r2| norm / (1.0 + d * r2));
-                f64::from(best.0)
-            })
+            .map(|j| f64::from(samples.lowest_source_scaled(j, &inv_g, norm, d)))
             .sum()
     };
     let found = grid_then_brent(
@@ -244,7 +241,7 @@ pub(super) fn estimate_relative_falloff(samples: &Samples, gains: &[f32]) -> (f3
         let inv_g: Vec<f32> = gains.iter().map(|g| 1.0 / g).collect();
         let total = (0..relieved.len())
             .into_par_iter()
-            .map(|j| f64::from(relieved.best(j, &inv_g).0))
+            .map(|j| f64::from(relieved.lowest(j, &inv_g)))
             .sum();
         (total, gains)
     };
