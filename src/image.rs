@@ -114,7 +114,22 @@ impl ImageF32 {
 
     /// Fails with the first non-finite sample's position, naming no field (callers add it).
     pub fn ensure_finite(&self) -> Result<()> {
-        if let Some(i) = self.data.iter().position(|v| !v.is_finite()) {
+        // Whole blocks tested without an early exit (a vector loop), then the first bad value
+        // looked for in the first block that has one: every call scans the whole image, and a
+        // scalar scan that stops at the first bad value took about 1 ms per 640×480 RGB view.
+        const BLOCK: usize = 256;
+        let first_bad = self
+            .data
+            .chunks(BLOCK)
+            .position(|block| !block.iter().fold(true, |ok, v| ok & v.is_finite()))
+            .and_then(|b| {
+                let block = &self.data[b * BLOCK..];
+                block
+                    .iter()
+                    .position(|v| !v.is_finite())
+                    .map(|i| b * BLOCK + i)
+            });
+        if let Some(i) = first_bad {
             let px = i / self.channels;
             return Err(MurkError::invalid(
                 "",
@@ -225,6 +240,17 @@ mod tests {
         img.set(2, 1, 0, f32::NAN);
         let err = img.ensure_finite().unwrap_err().to_string();
         assert!(err.contains("(2, 1)"), "{err}");
+        // Past the first block of the scan, with a later block bad too: the first is named.
+        let mut big = ImageF32::filled(300, 4, 3, 0.5);
+        big.set(7, 1, 2, f32::INFINITY);
+        big.set(250, 3, 0, f32::NAN);
+        let err = big.ensure_finite().unwrap_err().to_string();
+        assert!(err.contains("inf at pixel (7, 1)"), "{err}");
+        big.set(7, 1, 2, 0.5);
+        let err = big.ensure_finite().unwrap_err().to_string();
+        assert!(err.contains("NaN at pixel (250, 3)"), "{err}");
+        big.set(250, 3, 0, 0.5);
+        assert!(big.ensure_finite().is_ok());
     }
 }
 

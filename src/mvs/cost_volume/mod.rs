@@ -463,15 +463,59 @@ fn observation_kernel(kind: CostKind) -> bool {
 /// strips of [`build_cost_volume_rows_in`] (per strip they were a few megabytes of fresh pages
 /// each): 4-lane RGB pixels ([`sample::pad_rgb4`]) and, for sources whose rows are horizontal
 /// shifts of the reference's, channel planes ([`shift::planar`]).
+///
+/// A shifting source's rows read its planes, not its 4-lane copy, so that copy (and the
+/// reference's, when every source shifts) is made only when a plane has a row that does not
+/// shift after all ([`Rgb4Copy`]): on a rectified pair, 10 MB of copies at 640×480 that no
+/// row reads.
 pub struct SweepImages {
-    ref4: Vec<[f32; 4]>,
-    sources4: Vec<Vec<[f32; 4]>>,
+    ref4: Rgb4Copy,
+    sources4: Vec<Rgb4Copy>,
     ref_planar: Vec<f32>,
     shift_planar: Vec<Vec<f32>>,
     /// The reference's noise σ ([`estimate_noise_sigma`], a median over the whole image) where
     /// the cost's range check needs it and its options do not give it, else 0: estimated once,
     /// not once per band of rows.
     noise_sigma: f32,
+}
+
+/// A view's [`sample::pad_rgb4`] copy, made now or when first needed.
+struct Rgb4Copy {
+    copy: std::sync::OnceLock<Vec<[f32; 4]>>,
+    /// Whether the cost's loops read this copy at all (else it stays empty).
+    wanted: bool,
+    /// Subtracted from every value ([`sample::pad_rgb4`]'s offset).
+    offset: f32,
+}
+
+impl Rgb4Copy {
+    /// The copy of `image`, made now, if `now` and the loops want it.
+    fn new(image: &ImageF32, wanted: bool, offset: f32, now: bool) -> Self {
+        let copy = std::sync::OnceLock::new();
+        if wanted && now {
+            let _ = copy.set(sample::pad_rgb4(image.data(), offset));
+        }
+        Self {
+            copy,
+            wanted,
+            offset,
+        }
+    }
+
+    /// The copy of `image` (the view it was made for), made on the first call where it was
+    /// not made up front; empty where the loops do not want it.
+    fn get(&self, image: &ImageF32) -> &[[f32; 4]] {
+        if !self.wanted {
+            return &[];
+        }
+        self.copy
+            .get_or_init(|| sample::pad_rgb4(image.data(), self.offset))
+    }
+
+    /// Values in the copy made so far (0 before it is made).
+    fn len(&self) -> usize {
+        self.copy.get().map_or(0, Vec::len)
+    }
 }
 
 impl SweepImages {
@@ -510,42 +554,45 @@ impl SweepImages {
             Some((_, o)) if o.residual == DehazingResidual::Eq37
                 && !matches!(o.range, RangePenalty::Soft { .. })
         );
-        let rgb4 = |img: &ImageF32| {
-            if c == 3 && (observation || !dehaze || eq37_vector) {
-                sample::pad_rgb4(img.data(), rgb4_offset)
-            } else {
-                Vec::new()
-            }
-        };
+        let wanted = c == 3 && (observation || !dehaze || eq37_vector);
         // Channel planes for the direct rows of sources whose rows are horizontal shifts of the
         // reference's (a rectified pair), judged on the middle row and plane; a row that is not a
         // shift after all takes the general loop.
         let shift_copies = || {
-            let shift_planar: Vec<Vec<f32>> = sources
-                .par_iter()
+            let shifting: Vec<bool> = sources
+                .iter()
                 .zip(&relatives)
                 .map(|(s, rel)| {
                     let direct = observation || !dehaze;
                     let z = planes.depth(n_planes as f64 / 2.0);
                     let mid = PlaneWarp::new(&reference.intrinsics, &s.intrinsics, rel, z)
                         .row((h / 2) as f64);
-                    if direct
-                        && w >= 2
-                        && h >= 2
-                        && mid.shift(w, shift::SHIFT_TOLERANCE_PX).is_some()
-                    {
-                        shift::planar(s.image.data(), c, rgb4_offset)
+                    direct && w >= 2 && h >= 2 && mid.shift(w, shift::SHIFT_TOLERANCE_PX).is_some()
+                })
+                .collect();
+            // The sources' planes and the reference's are independent copies: made together.
+            rayon::join(
+                || {
+                    sources
+                        .par_iter()
+                        .zip(&shifting)
+                        .map(|(s, &shifts)| {
+                            if shifts {
+                                shift::planar(s.image.data(), c, rgb4_offset)
+                            } else {
+                                Vec::new()
+                            }
+                        })
+                        .collect::<Vec<_>>()
+                },
+                || {
+                    if shifting.iter().any(|&s| s) {
+                        shift::planar(refd, c, rgb4_offset)
                     } else {
                         Vec::new()
                     }
-                })
-                .collect();
-            let ref_planar = if shift_planar.iter().any(|p| !p.is_empty()) {
-                shift::planar(refd, c, rgb4_offset)
-            } else {
-                Vec::new()
-            };
-            (shift_planar, ref_planar)
+                },
+            )
         };
         let noise = || match kind.dehazing() {
             Some((_, o))
@@ -562,19 +609,20 @@ impl SweepImages {
             _ => 0.0,
         };
         // The copies and the noise estimate are independent passes over the images: run together.
-        let ((ref4, sources4), ((shift_planar, ref_planar), noise_sigma)) = rayon::join(
+        // A source with shift planes gets its 4-lane copy only if a row needs it.
+        let ((shift_planar, ref_planar), noise_sigma) = rayon::join(shift_copies, noise);
+        let all_shift = shift_planar.iter().all(|p| !p.is_empty());
+        let (ref4, sources4) = rayon::join(
+            || Rgb4Copy::new(reference.image, wanted, rgb4_offset, !all_shift),
             || {
-                rayon::join(
-                    || rgb4(reference.image),
-                    || {
-                        sources
-                            .par_iter()
-                            .map(|s| rgb4(s.image))
-                            .collect::<Vec<_>>()
-                    },
-                )
+                sources
+                    .par_iter()
+                    .zip(&shift_planar)
+                    .map(|(s, planar)| {
+                        Rgb4Copy::new(s.image, wanted, rgb4_offset, planar.is_empty())
+                    })
+                    .collect::<Vec<_>>()
             },
-            || rayon::join(shift_copies, noise),
         );
         Ok(Self {
             ref4,
@@ -826,19 +874,45 @@ impl<'a> CostRows<'a> {
         let reference = self.reference;
         let plane_sources = &mut scratch.sources;
         plane_sources.clear();
+        // Whether every row of this plane reads the source's shift planes (the row loops'
+        // own test), so that its 4-lane copy is not needed.
+        let shifts = |planar: &[f32], warp: &PlaneWarp| {
+            !planar.is_empty()
+                && !ref_planar.is_empty()
+                && self.rows.clone().all(|y| {
+                    warp.row(y as f64)
+                        .shift(w, shift::SHIFT_TOLERANCE_PX)
+                        .is_some()
+                })
+        };
+        let mut every_source_shifts = true;
         plane_sources.extend(
             self.sources
                 .iter()
                 .zip(&self.relatives)
                 .zip(sources4)
                 .zip(shift_planar)
-                .map(|(((s, rel), padded), planar)| SourcePlane {
-                    data: s.image.data(),
-                    padded,
-                    planar,
-                    warp: PlaneWarp::new(&reference.intrinsics, &s.intrinsics, rel, z),
+                .map(|(((s, rel), copy), planar)| {
+                    let warp = PlaneWarp::new(&reference.intrinsics, &s.intrinsics, rel, z);
+                    let padded = if shifts(planar, &warp) {
+                        &[]
+                    } else {
+                        every_source_shifts = false;
+                        copy.get(s.image)
+                    };
+                    SourcePlane {
+                        data: s.image.data(),
+                        padded,
+                        planar,
+                        warp,
+                    }
                 }),
         );
+        let ref4 = if every_source_shifts {
+            &[]
+        } else {
+            ref4.get(reference.image)
+        };
         let haze = match self.kind.dehazing() {
             None => Haze::CLEAR,
             Some((p, o)) => {

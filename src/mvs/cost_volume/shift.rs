@@ -13,6 +13,8 @@
 //! when the general loop's per-pixel `fx` equals the row's (an integer shift) and up to the `f32`
 //! rounding of the coordinates otherwise (tested).
 
+use rayon::prelude::*;
+
 /// Largest distance, pixels, between a sample of the shift path and the exact warp of its row
 /// that still counts as a shift: the general path's `f32` coordinates round by about this much
 /// at a few thousand pixels.
@@ -21,12 +23,20 @@ pub(crate) const SHIFT_TOLERANCE_PX: f64 = 1e-3;
 /// A `C`-channel interleaved image as `C` channel planes (`[c][y][x]`), each value minus
 /// `offset` (the airlight for the observation-space dehazing volume, 0 for the ordinary one).
 pub(super) fn planar(data: &[f32], channels: usize, offset: f32) -> Vec<f32> {
-    let pixels = data.len() / channels.max(1);
+    // Blocks of pixels on rayon: the copy's fresh pages cost more than the copy itself.
+    const BLOCK: usize = 8192;
+    let channels = channels.max(1);
+    let pixels = data.len() / channels;
     let mut out = vec![0.0f32; data.len()];
     for (c, plane) in out.chunks_exact_mut(pixels.max(1)).enumerate() {
-        for (o, px) in plane.iter_mut().zip(data.chunks_exact(channels)) {
-            *o = px[c] - offset;
-        }
+        plane
+            .par_chunks_mut(BLOCK)
+            .zip(data.par_chunks(BLOCK * channels))
+            .for_each(|(plane, data)| {
+                for (o, px) in plane.iter_mut().zip(data.chunks_exact(channels)) {
+                    *o = px[c] - offset;
+                }
+            });
     }
     out
 }

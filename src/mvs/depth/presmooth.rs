@@ -35,6 +35,28 @@ fn taps(sigma_px: f32) -> Vec<f32> {
     k.into_iter().map(|v| v / s).collect()
 }
 
+/// Output rows per task of [`gaussian_presmooth`].
+const BLOCK_ROWS: usize = 16;
+
+/// One row's horizontal pass: the row with `r` replicated border pixels on each side in
+/// `padded`, then tap `j` adds `k[j]` times that padded row shifted by `j` pixels to the whole
+/// output row at once (contiguous and vectorised; each output value still sums its taps from
+/// the first, as the direct convolution does).
+#[inline]
+fn horizontal(row: &[f32], out: &mut [f32], padded: &mut [f32], k: &[f32], w: usize, c: usize) {
+    let r = k.len() / 2;
+    for (x, px) in padded.chunks_exact_mut(c).enumerate() {
+        let xx = x.saturating_sub(r).min(w - 1);
+        px.copy_from_slice(&row[xx * c..(xx + 1) * c]);
+    }
+    out.fill(0.0);
+    for (j, &kv) in k.iter().enumerate() {
+        for (o, &v) in out.iter_mut().zip(&padded[j * c..j * c + w * c]) {
+            *o += kv * v;
+        }
+    }
+}
+
 /// Separable Gaussian blur of every channel with standard deviation `sigma_px` (pixels);
 /// borders are clamped (replicated). `sigma_px ≤ 0` returns a copy.
 pub fn gaussian_presmooth(img: &ImageF32, sigma_px: f32) -> ImageF32 {
@@ -43,43 +65,41 @@ pub fn gaussian_presmooth(img: &ImageF32, sigma_px: f32) -> ImageF32 {
         return img.clone();
     }
     let k = taps(sigma_px);
-    let r = (k.len() / 2) as isize;
+    let r = k.len() / 2;
     let src = img.data();
     let row_len = w * c;
-    // Horizontal pass, one row per task: the row with `r` replicated border pixels on each side,
-    // then tap `j` adds `k[j]` times that padded row shifted by `j` pixels to the whole output
-    // row at once (contiguous and vectorised; each output value still sums its taps from the
-    // first, as the direct convolution does).
-    let mut tmp = vec![0.0f32; w * h * c];
-    let ru = r as usize;
-    tmp.par_chunks_mut(row_len)
-        .zip(src.par_chunks(row_len))
+    // Blocks of output rows, one per task: the horizontal pass of the rows a block reads (its
+    // own and `r` on each side, clamped to the image) into the task's scratch, then the
+    // vertical pass into the output. Rows at a block's edge are filtered by both blocks, which
+    // costs less than the fresh pages of a whole-image intermediate (3.7 MB at 640×480 RGB).
+    let mut out = vec![0.0f32; w * h * c];
+    out.par_chunks_mut(row_len * BLOCK_ROWS)
+        .enumerate()
         .for_each_init(
-            || vec![0.0f32; (w + 2 * ru) * c],
-            |padded, (out, row)| {
-                for (x, px) in padded.chunks_exact_mut(c).enumerate() {
-                    let xx = x.saturating_sub(ru).min(w - 1);
-                    px.copy_from_slice(&row[xx * c..(xx + 1) * c]);
+            || (vec![0.0f32; (w + 2 * r) * c], Vec::new()),
+            |(padded, filtered), (b, block)| {
+                let y0 = b * BLOCK_ROWS;
+                let rows = block.len() / row_len;
+                let (lo, hi) = (y0.saturating_sub(r), (y0 + rows + r).min(h));
+                filtered.resize((hi - lo) * row_len, 0.0);
+                for (row, out) in src[lo * row_len..hi * row_len]
+                    .chunks_exact(row_len)
+                    .zip(filtered.chunks_exact_mut(row_len))
+                {
+                    horizontal(row, out, padded, &k, w, c);
                 }
-                out.fill(0.0);
-                for (j, &kv) in k.iter().enumerate() {
-                    for (o, &v) in out.iter_mut().zip(&padded[j * c..j * c + row_len]) {
-                        *o += kv * v;
+                for (i, o) in block.chunks_exact_mut(row_len).enumerate() {
+                    o.fill(0.0);
+                    for (j, kv) in k.iter().enumerate() {
+                        let yy = (y0 + i + j).saturating_sub(r).min(h - 1);
+                        let t = &filtered[(yy - lo) * row_len..][..row_len];
+                        for (ov, tv) in o.iter_mut().zip(t) {
+                            *ov += kv * tv;
+                        }
                     }
                 }
             },
         );
-    // Vertical pass, one output row per task.
-    let mut out = vec![0.0f32; w * h * c];
-    out.par_chunks_mut(row_len).enumerate().for_each(|(y, o)| {
-        o.fill(0.0);
-        for (j, kv) in k.iter().enumerate() {
-            let yy = (y as isize + j as isize - r).clamp(0, h as isize - 1) as usize;
-            for (ov, tv) in o.iter_mut().zip(&tmp[yy * row_len..][..row_len]) {
-                *ov += kv * tv;
-            }
-        }
-    });
     ImageF32::from_vec(w, h, c, out).expect("same dimensions as the input")
 }
 
@@ -126,6 +146,61 @@ mod tests {
             let fast = gaussian_presmooth(&img, sigma);
             for (a, b) in fast.data().iter().zip(naive(&img, sigma)) {
                 prop_assert!((a - b).abs() < 1e-5, "{a} vs {b}");
+            }
+        }
+    }
+
+    /// The two passes over the whole image, each value's taps summed from the first: the
+    /// blocked filter's arithmetic, so it must agree to the bit, however the rows fall into
+    /// blocks.
+    #[test]
+    fn blocks_match_the_whole_image_passes() {
+        for (w, h, c, sigma) in [
+            (9usize, 37usize, 3usize, 0.8f32),
+            (5, 50, 1, 1.7),
+            (4, 3, 3, 1.0),
+        ] {
+            let data: Vec<f32> = (0..w * h * c)
+                .map(|i| ((i as u64 * 2654435761) % 1000) as f32 / 1000.0)
+                .collect();
+            let img = ImageF32::from_vec(w, h, c, data.clone()).unwrap();
+            let k = taps(sigma);
+            let r = (k.len() / 2) as isize;
+            let at = |x: isize, y: isize| {
+                (
+                    y.clamp(0, h as isize - 1) as usize,
+                    x.clamp(0, w as isize - 1) as usize,
+                )
+            };
+            let mut tmp = vec![0.0f32; w * h * c];
+            for y in 0..h as isize {
+                for x in 0..w as isize {
+                    for ch in 0..c {
+                        let mut v = 0.0f32;
+                        for (j, kv) in k.iter().enumerate() {
+                            let (yy, xx) = at(x + j as isize - r, y);
+                            v += kv * data[(yy * w + xx) * c + ch];
+                        }
+                        tmp[(y as usize * w + x as usize) * c + ch] = v;
+                    }
+                }
+            }
+            let mut want = vec![0.0f32; w * h * c];
+            for y in 0..h as isize {
+                for x in 0..w as isize {
+                    for ch in 0..c {
+                        let mut v = 0.0f32;
+                        for (j, kv) in k.iter().enumerate() {
+                            let (yy, xx) = at(x, y + j as isize - r);
+                            v += kv * tmp[(yy * w + xx) * c + ch];
+                        }
+                        want[(y as usize * w + x as usize) * c + ch] = v;
+                    }
+                }
+            }
+            let got = gaussian_presmooth(&img, sigma);
+            for (i, (a, b)) in got.data().iter().zip(&want).enumerate() {
+                assert_eq!(a.to_bits(), b.to_bits(), "{w}x{h}x{c}, value {i}");
             }
         }
     }
