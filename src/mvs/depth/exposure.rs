@@ -443,20 +443,18 @@ compiled_for_avx2! {
         => lowest_in_channel_body;
 }
 
-/// The least (capped at `penalty`) of `Σ_c |r_c − k·(s_c·ig_c·f − A)|` over a sample's planes,
-/// `f = falloff.ref_factor / (1 + falloff.a·r_s²)`: [`Samples::best`]'s cost with the source's
-/// fall-off relative to the reference's divided out. Eight planes at a time; every lane's cost
-/// is the scalar expression's, operation for operation.
+/// The least (capped at `penalty`) over a sample's planes of `Σ_c term(r_c, k, s_c, ig_c, f)`,
+/// `f = factor(r_s²)` per plane: the loop both fall-off searches share. Eight planes at a time;
+/// every lane's cost is the scalar expression's, operation for operation, and the last
+/// `n mod 8` planes take the same expression one by one.
 #[inline(always)]
-fn lowest_scaled_body(
+fn lowest_over_planes(
     p: &SamplePlanes<'_>,
     inv_gains: &[f32],
-    falloff: Falloff,
-    airlight: f32,
     penalty: f32,
+    factor: impl Fn(f32) -> f32,
+    term: impl Fn(f32, f32, f32, f32, f32) -> f32,
 ) -> f32 {
-    let factor = |r2: f32| falloff.ref_factor / (1.0 + falloff.a * r2);
-    let term = |rv: f32, k: f32, s: f32, ig: f32, f: f32| (rv - k * (s * ig * f - airlight)).abs();
     let n = p.k.len();
     let whole = n - n % LANES;
     let mut lanes = [penalty; LANES];
@@ -490,6 +488,26 @@ fn lowest_scaled_body(
     best
 }
 
+/// The least (capped at `penalty`) of `Σ_c |r_c − k·(s_c·ig_c·f − A)|` over a sample's planes,
+/// `f = falloff.ref_factor / (1 + falloff.a·r_s²)`: [`Samples::best`]'s cost with the source's
+/// fall-off relative to the reference's divided out.
+#[inline(always)]
+fn lowest_scaled_body(
+    p: &SamplePlanes<'_>,
+    inv_gains: &[f32],
+    falloff: Falloff,
+    airlight: f32,
+    penalty: f32,
+) -> f32 {
+    lowest_over_planes(
+        p,
+        inv_gains,
+        penalty,
+        |r2| falloff.ref_factor / (1.0 + falloff.a * r2),
+        |rv, k, s, ig, f| (rv - k * (s * ig * f - airlight)).abs(),
+    )
+}
+
 compiled_for_avx2! {
     /// [`lowest_scaled_body`].
     fn lowest_scaled(
@@ -504,7 +522,7 @@ compiled_for_avx2! {
 /// The least (capped at `penalty`) of `Σ_c |r_c + A − v_r·(A + k·(s_c·ig_c/v_s − A))|` over a
 /// sample's planes, `v_r = falloff.ref_factor` and `v_s = 1 + falloff.a·r_s²`: both views
 /// divided by the shared fall-off, the residual in the reference's recorded units
-/// ([`Samples::lowest_vignetted`]). Eight planes at a time, each lane the scalar expression.
+/// ([`Samples::lowest_vignetted`]).
 #[inline(always)]
 fn lowest_vignetted_body(
     p: &SamplePlanes<'_>,
@@ -514,41 +532,15 @@ fn lowest_vignetted_body(
     penalty: f32,
 ) -> f32 {
     let vr = falloff.ref_factor;
-    let inv_vs = |r2: f32| 1.0 / (1.0 + falloff.a * r2);
-    let term = |rv: f32, k: f32, s: f32, ig: f32, inv_v: f32| {
-        (rv + airlight - vr * (airlight + k * (s * ig * inv_v - airlight))).abs()
-    };
-    let n = p.k.len();
-    let whole = n - n % LANES;
-    let mut lanes = [penalty; LANES];
-    for i in (0..whole).step_by(LANES) {
-        let k = &p.k[i..i + LANES];
-        let inv_v: [f32; LANES] = std::array::from_fn(|l| inv_vs(p.src_r2[i + l]));
-        let mut cost = [0.0f32; LANES];
-        for ((&rv, src), &ig) in p.reference.iter().zip(&p.source).zip(inv_gains) {
-            let s = &src[i..i + LANES];
-            for l in 0..LANES {
-                cost[l] += term(rv, k[l], s[l], ig, inv_v[l]);
-            }
-        }
-        for l in 0..LANES {
-            if cost[l] < lanes[l] {
-                lanes[l] = cost[l];
-            }
-        }
-    }
-    let mut best = lowest_lane(lanes, penalty);
-    for i in whole..n {
-        let inv_v = inv_vs(p.src_r2[i]);
-        let mut cost = 0.0f32;
-        for ((&rv, src), &ig) in p.reference.iter().zip(&p.source).zip(inv_gains) {
-            cost += term(rv, p.k[i], src[i], ig, inv_v);
-        }
-        if cost < best {
-            best = cost;
-        }
-    }
-    best
+    lowest_over_planes(
+        p,
+        inv_gains,
+        penalty,
+        |r2| 1.0 / (1.0 + falloff.a * r2),
+        |rv, k, s, ig, inv_v| {
+            (rv + airlight - vr * (airlight + k * (s * ig * inv_v - airlight))).abs()
+        },
+    )
 }
 
 compiled_for_avx2! {
