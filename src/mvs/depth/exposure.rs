@@ -213,10 +213,9 @@ impl Samples {
         let (c, a) = (self.channels, self.airlight);
         let r = &self.reference[j * c..(j + 1) * c];
         let first = (self.start[j]..self.start[j + 1]).find(|&i| {
-            let k = self.k[i];
             let mut cost = 0.0f32;
             for ((&rv, plane), &ig) in r.iter().zip(&self.source).zip(inv_gains) {
-                cost += (rv - k * (plane[i] * ig * 1.0 - a)).abs();
+                cost += scaled_residual(rv, self.k[i], plane[i], ig, 1.0, a);
             }
             cost == lowest
         });
@@ -350,10 +349,11 @@ impl Samples {
     /// compensate`] of the source image would, up to the bilinear interpolation's order).
     pub(super) fn with_source_falloff(&self, a: f32) -> Samples {
         let c = self.channels;
+        let factors: Vec<f32> = self.src_r2.iter().map(|&r2| 1.0 / (1.0 + a * r2)).collect();
         let mut source = self.source.clone();
         for plane in &mut source {
-            for (v, &r2) in plane.iter_mut().zip(&self.src_r2) {
-                *v *= 1.0 / (1.0 + a * r2);
+            for (v, &f) in plane.iter_mut().zip(&factors) {
+                *v *= f;
             }
         }
         Samples {
@@ -414,27 +414,32 @@ fn lowest_lane(lanes: [f32; LANES], mut best: f32) -> f32 {
     best
 }
 
+/// The residual `|r − k·(s·ig·f − A)|` of one channel at one plane (Eq. 3.5's observation-space
+/// residual with the source's gain and relative fall-off divided out): the one expression the
+/// searches' loops and [`Samples::best`]'s scan share, so that their costs agree to the bit.
+#[inline(always)]
+fn scaled_residual(r: f32, k: f32, s: f32, ig: f32, f: f32, airlight: f32) -> f32 {
+    (r - k * (s * ig * f - airlight)).abs()
+}
+
 /// `min(1, min_i |r − k_i·(s_i·inv_g − a)|)` over a sample's planes, one channel: the loop of
-/// [`Samples::objective`], eight planes at a time.
+/// [`Samples::objective`] ([`lowest_over_planes`] on that channel alone, capped at 1).
 #[inline(always)]
 fn lowest_in_channel_body(r: f32, k: &[f32], source: &[f32], inv_g: f32, a: f32) -> f32 {
-    let cost = |k: f32, s: f32| (r - k * (s * inv_g - a)).abs();
-    let mut lanes = [1.0f32; LANES];
-    let (k8, s8) = (k.chunks_exact(LANES), source.chunks_exact(LANES));
-    let (k_rest, s_rest) = (k8.remainder(), s8.remainder());
-    for (k, s) in k8.zip(s8) {
-        for l in 0..LANES {
-            let c = cost(k[l], s[l]);
-            if c < lanes[l] {
-                lanes[l] = c;
-            }
-        }
-    }
-    let mut best = lowest_lane(lanes, 1.0);
-    for (&k, &s) in k_rest.iter().zip(s_rest) {
-        best = best.min(cost(k, s));
-    }
-    best
+    let p = SamplePlanes {
+        reference: &[r],
+        k,
+        src_r2: k,
+        source: [source, &[], &[]],
+    };
+    // A factor of exactly 1 multiplies exactly; `src_r2` is not read by it.
+    lowest_over_planes(
+        &p,
+        &[inv_g],
+        1.0,
+        |_| 1.0,
+        |rv, k, s, ig, f| scaled_residual(rv, k, s, ig, f, a),
+    )
 }
 
 compiled_for_avx2! {
@@ -504,7 +509,7 @@ fn lowest_scaled_body(
         inv_gains,
         penalty,
         |r2| falloff.ref_factor / (1.0 + falloff.a * r2),
-        |rv, k, s, ig, f| (rv - k * (s * ig * f - airlight)).abs(),
+        |rv, k, s, ig, f| scaled_residual(rv, k, s, ig, f, airlight),
     )
 }
 
