@@ -373,9 +373,7 @@ pub(super) fn fill_row_observation<const C: usize, const HAZE: bool>(
                 *r *= t_r;
             }
         }
-        let shift = (!s.planar.is_empty() && !reference.planar.is_empty())
-            .then(|| warp.shift(width, shift::SHIFT_TOLERANCE_PX))
-            .flatten();
+        let shift = shift::row_shift(s.planar, reference.planar, &warp, width);
         if let Some((du, v)) = shift {
             let row = ShiftRow {
                 reference: reference.planar,

@@ -877,13 +877,9 @@ impl<'a> CostRows<'a> {
         // Whether every row of this plane reads the source's shift planes (the row loops'
         // own test), so that its 4-lane copy is not needed.
         let shifts = |planar: &[f32], warp: &PlaneWarp| {
-            !planar.is_empty()
-                && !ref_planar.is_empty()
-                && self.rows.clone().all(|y| {
-                    warp.row(y as f64)
-                        .shift(w, shift::SHIFT_TOLERANCE_PX)
-                        .is_some()
-                })
+            self.rows
+                .clone()
+                .all(|y| shift::row_shift(planar, ref_planar, &warp.row(y as f64), w).is_some())
         };
         let mut every_source_shifts = true;
         plane_sources.extend(

@@ -15,10 +15,28 @@
 
 use rayon::prelude::*;
 
+use crate::mvs::plane_sweep::RowWarp;
+
 /// Largest distance, pixels, between a sample of the shift path and the exact warp of its row
 /// that still counts as a shift: the general path's `f32` coordinates round by about this much
 /// at a few thousand pixels.
 pub(crate) const SHIFT_TOLERANCE_PX: f64 = 1e-3;
+
+/// The shift `(du, v)` of a row whose warp is `warp`, where the source and the reference both
+/// have channel planes ([`planar`]): the test that sends a row to [`accumulate`], shared by the
+/// row loop and by [`super::CostRows::fill_plane`]'s planning of the 4-lane copies. `None`
+/// sends the row to the general loop.
+pub(super) fn row_shift(
+    source_planar: &[f32],
+    reference_planar: &[f32],
+    warp: &RowWarp,
+    width: usize,
+) -> Option<(f64, f64)> {
+    if source_planar.is_empty() || reference_planar.is_empty() {
+        return None;
+    }
+    warp.shift(width, SHIFT_TOLERANCE_PX)
+}
 
 /// A `C`-channel interleaved image as `C` channel planes (`[c][y][x]`), each value minus
 /// `offset` (the airlight for the observation-space dehazing volume, 0 for the ordinary one).
