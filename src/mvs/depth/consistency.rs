@@ -671,11 +671,10 @@ pub fn fill_rejected(inv: &mut [f32], verdict: &[Verdict], w: usize, h: usize) {
     // For each rejected pixel, the nearest accepted pixel along `(dx, dy)` for `dx = −1, 0, 1`
     // ([`NONE`] where the walk leaves the image first): the rows swept from the side the
     // directions point to, `reach[x][k]` the first accepted pixel at or beyond column `x` of
-    // the row swept last along direction `k`.
+    // the row swept last along direction `k` (all [`NONE`] before the first row: off the image).
     let sweep = |dy: isize| -> Vec<[usize; 3]> {
         let mut nearest = vec![[NONE; 3]; slots[h]];
         let (mut reach, mut next) = (vec![[NONE; 3]; w], vec![[NONE; 3]; w]);
-        let mut swept_any = false;
         let mut row = |y: usize| {
             let mut slot = slots[y];
             for (x, out) in next.iter_mut().enumerate() {
@@ -685,11 +684,9 @@ pub fn fill_rejected(inv: &mut [f32], verdict: &[Verdict], w: usize, h: usize) {
                     continue;
                 }
                 let mut near = [NONE; 3];
-                if swept_any {
-                    for (k, n) in near.iter_mut().enumerate() {
-                        if let Some(xx) = (x + k).checked_sub(1).filter(|&xx| xx < w) {
-                            *n = reach[xx][k];
-                        }
+                for (k, n) in near.iter_mut().enumerate() {
+                    if let Some(xx) = (x + k).checked_sub(1).filter(|&xx| xx < w) {
+                        *n = reach[xx][k];
                     }
                 }
                 *out = near;
@@ -697,7 +694,6 @@ pub fn fill_rejected(inv: &mut [f32], verdict: &[Verdict], w: usize, h: usize) {
                 slot += 1;
             }
             std::mem::swap(&mut reach, &mut next);
-            swept_any = true;
         };
         if dy > 0 {
             (0..h).rev().for_each(&mut row);
