@@ -45,9 +45,16 @@ const BLOCK_ROWS: usize = 16;
 #[inline]
 fn horizontal(row: &[f32], out: &mut [f32], padded: &mut [f32], k: &[f32], w: usize, c: usize) {
     let r = k.len() / 2;
-    for (x, px) in padded.chunks_exact_mut(c).enumerate() {
-        let xx = x.saturating_sub(r).min(w - 1);
-        px.copy_from_slice(&row[xx * c..(xx + 1) * c]);
+    // The row in one copy and only the border pixels one by one: a copy per pixel is a call
+    // to `memcpy` of `c` values each (3.4 % of the MVS job's instructions at 640×480 RGB).
+    let (left, rest) = padded.split_at_mut(r * c);
+    let (inner, right) = rest.split_at_mut(w * c);
+    inner.copy_from_slice(&row[..w * c]);
+    for px in left.chunks_exact_mut(c) {
+        px.copy_from_slice(&row[..c]);
+    }
+    for px in right.chunks_exact_mut(c) {
+        px.copy_from_slice(&row[(w - 1) * c..w * c]);
     }
     out.fill(0.0);
     for (j, &kv) in k.iter().enumerate() {
