@@ -349,6 +349,36 @@ pub(super) fn fill_row_observation<const C: usize, const HAZE: bool>(
     penalty: f32,
     scratch: &mut RowScratch,
 ) {
+    let t_r = haze.ref_t;
+    // k = t_r/t_s per pixel of the row.
+    let ratio_of = |warp: &RowWarp, ratio_row: &mut [f32]| {
+        simd::inverse_transmission_row(warp, haze.beta, ratio_row);
+        for r in ratio_row.iter_mut() {
+            *r *= t_r;
+        }
+    };
+    scratch.inv_t.resize(width, 0.0);
+    if let [s] = sources {
+        let warp = s.warp.row(y as f64);
+        if let Some((du, v)) = shift::row_shift(s.planar, reference.planar, &warp, width) {
+            // One source whose row shifts (a rectified pair): the mean of its sums is its
+            // cost, written without them.
+            let ratio_row = &mut scratch.inv_t[..width];
+            if HAZE {
+                ratio_of(&warp, ratio_row);
+            }
+            let row = ShiftRow {
+                reference: reference.planar,
+                source: s.planar,
+                y,
+                du,
+                v,
+            };
+            let target = shift::Target::Only(out);
+            shift::accumulate::<C, HAZE>(target, row, ratio_row, width, height, penalty);
+            return;
+        }
+    }
     let row = &reference.data[y * width * C..(y + 1) * width * C];
     let a = haze.airlight;
     scratch.sum.clear();
@@ -360,18 +390,12 @@ pub(super) fn fill_row_observation<const C: usize, const HAZE: bool>(
     let sum = &mut scratch.sum[..width];
     let observed = &mut scratch.observed[..width];
     let (us_row, vs_row) = (&mut scratch.us[..width], &mut scratch.vs[..width]);
-    scratch.inv_t.resize(width, 0.0);
     let ratio_row = &mut scratch.inv_t[..width];
-    let t_r = haze.ref_t;
     scratch.shift_cost.resize(width, 0.0);
     for s in sources {
         let warp = s.warp.row(y as f64);
         if HAZE {
-            // k = t_r/t_s per pixel of the row.
-            simd::inverse_transmission_row(&warp, haze.beta, ratio_row);
-            for r in ratio_row.iter_mut() {
-                *r *= t_r;
-            }
+            ratio_of(&warp, ratio_row);
         }
         let shift = shift::row_shift(s.planar, reference.planar, &warp, width);
         if let Some((du, v)) = shift {
@@ -383,9 +407,11 @@ pub(super) fn fill_row_observation<const C: usize, const HAZE: bool>(
                 v,
             };
             shift::accumulate::<C, HAZE>(
-                sum,
-                observed,
-                &mut scratch.shift_cost,
+                shift::Target::Sums {
+                    sum,
+                    observed,
+                    cost: &mut scratch.shift_cost,
+                },
                 row,
                 ratio_row,
                 width,
@@ -795,6 +821,95 @@ mod tests {
                             assert_eq!(g, f, "{at}");
                         } else {
                             assert!((g - f).abs() <= 1e-4 * g.max(1.0), "{at}: {g} vs {f}");
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    /// The only source's shift costs, written straight to the row ([`shift::Target::Only`]),
+    /// are bit for bit the mean that [`mean_or_penalty`] takes of the same source's sums
+    /// ([`shift::Target::Sums`]), with the penalty where the sample leaves the source: RGB and
+    /// grey, ordinary and observation-space, whole and fractional shifts, rows that leave the
+    /// source at either end or entirely, on top of a row that held other values.
+    #[test]
+    fn only_source_costs_are_the_mean_of_its_sums() {
+        let (w, h) = (43usize, 12usize);
+        let (refd, src) = (
+            test_image(w, h, 0, 1000.0, 0.0),
+            test_image(w, h, 7, 1000.0, 0.0),
+        );
+        let ratio: Vec<f32> = (0..w).map(|x| 0.8 + 0.01 * x as f32).collect();
+        for (du, v) in [
+            (-9.0, 3.0),
+            (-3.6, 3.0),
+            (21.4, 5.0),
+            (2.5, 4.54),
+            (-6e-9, 0.0),
+            (0.0, 11.0),
+            (50.0, 2.0),
+            (-3.0, 11.5),
+        ] {
+            for c in [3usize, 1] {
+                let (rd, sd) = (&refd[..w * h * c], &src[..w * h * c]);
+                let (ref_planar, src_planar) =
+                    (shift::planar(rd, c, 0.2), shift::planar(sd, c, 0.2));
+                for y in [0, 5, h - 1] {
+                    let row = ShiftRow {
+                        reference: &ref_planar,
+                        source: &src_planar,
+                        y,
+                        du,
+                        v,
+                    };
+                    let penalty = 0.6 * c as f32;
+                    let only_and_mean = |haze: bool| {
+                        let mut only = vec![-7.0f32; w];
+                        let (mut sum, mut observed, mut cost) =
+                            (vec![0.0f32; w], vec![0u32; w], vec![-7.0f32; w]);
+                        macro_rules! both {
+                            ($c:literal, $haze:literal) => {{
+                                shift::accumulate::<$c, $haze>(
+                                    shift::Target::Only(&mut only),
+                                    row,
+                                    &ratio,
+                                    w,
+                                    h,
+                                    penalty,
+                                );
+                                shift::accumulate::<$c, $haze>(
+                                    shift::Target::Sums {
+                                        sum: &mut sum,
+                                        observed: &mut observed,
+                                        cost: &mut cost,
+                                    },
+                                    row,
+                                    &ratio,
+                                    w,
+                                    h,
+                                    penalty,
+                                );
+                            }};
+                        }
+                        match (c, haze) {
+                            (3, false) => both!(3, false),
+                            (3, true) => both!(3, true),
+                            (1, false) => both!(1, false),
+                            _ => both!(1, true),
+                        }
+                        let mut mean = vec![0.0f32; w];
+                        mean_or_penalty(&mut mean, &sum, &observed, penalty);
+                        (only, mean)
+                    };
+                    for haze in [false, true] {
+                        let (only, mean) = only_and_mean(haze);
+                        for (x, (o, m)) in only.iter().zip(&mean).enumerate() {
+                            assert_eq!(
+                                o.to_bits(),
+                                m.to_bits(),
+                                "du {du} v {v} c {c} haze {haze} ({x}, {y}): {o} vs {m}"
+                            );
                         }
                     }
                 }

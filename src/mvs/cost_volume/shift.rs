@@ -74,16 +74,29 @@ pub(super) struct ShiftRow<'a> {
     pub v: f64,
 }
 
-/// Adds this source's cost `Σ_c |(I_r − o) − k(I_s − o)|` (`k = ratio[x]` when `HAZE`, else 1;
-/// capped at `penalty` when `HAZE`) to `sum[x]` and 1 to `observed[x]` for every pixel of the
-/// row whose sample lies inside the source (`0 ≤ x + du ≤ w − 1`, `0 ≤ v ≤ h − 1`). `cost` is
-/// scratch of at least `width` values. Images are at least 2×2.
+/// Where [`accumulate`] puts one source's costs of a row.
+pub(super) enum Target<'a> {
+    /// Added to the running sums of several sources: `sum[x] += cost`, `observed[x] += 1`;
+    /// `cost` is scratch of at least `width` values.
+    Sums {
+        sum: &'a mut [f32],
+        observed: &'a mut [u32],
+        cost: &'a mut [f32],
+    },
+    /// The costs of the only source, written: `out[x] = cost`, and `penalty` where the sample
+    /// is outside the source. That is the mean [`super::kernel::mean_or_penalty`] takes of one
+    /// source's sums bit for bit (`0 + c = c` and `c / 1 = c` for costs `≥ +0`), without
+    /// clearing, adding to and dividing the sums.
+    Only(&'a mut [f32]),
+}
+
+/// This source's cost `Σ_c |(I_r − o) − k(I_s − o)|` (`k = ratio[x]` when `HAZE`, else 1;
+/// capped at `penalty` when `HAZE`) for every pixel of the row whose sample lies inside the
+/// source (`0 ≤ x + du ≤ w − 1`, `0 ≤ v ≤ h − 1`), put into `target`. Images are at least 2×2.
 #[allow(clippy::too_many_arguments)]
 #[inline]
 pub(super) fn accumulate<const C: usize, const HAZE: bool>(
-    sum: &mut [f32],
-    observed: &mut [u32],
-    cost: &mut [f32],
+    target: Target<'_>,
     row: ShiftRow<'_>,
     ratio: &[f32],
     width: usize,
@@ -93,35 +106,42 @@ pub(super) fn accumulate<const C: usize, const HAZE: bool>(
     #[cfg(target_arch = "x86_64")]
     {
         #[target_feature(enable = "avx2")]
-        #[allow(clippy::too_many_arguments)]
         unsafe fn with_avx2<const C: usize, const HAZE: bool>(
-            sum: &mut [f32],
-            observed: &mut [u32],
-            cost: &mut [f32],
+            target: Target<'_>,
             row: ShiftRow<'_>,
             ratio: &[f32],
             width: usize,
             height: usize,
             penalty: f32,
         ) {
-            accumulate_body::<C, HAZE>(sum, observed, cost, row, ratio, width, height, penalty)
+            accumulate_body::<C, HAZE>(target, row, ratio, width, height, penalty)
         }
         if crate::cpu::avx2_enabled() {
             // SAFETY: the CPU has AVX2 ([`crate::cpu::avx2_enabled`]).
-            return unsafe {
-                with_avx2::<C, HAZE>(sum, observed, cost, row, ratio, width, height, penalty)
-            };
+            return unsafe { with_avx2::<C, HAZE>(target, row, ratio, width, height, penalty) };
         }
     }
-    accumulate_body::<C, HAZE>(sum, observed, cost, row, ratio, width, height, penalty)
+    accumulate_body::<C, HAZE>(target, row, ratio, width, height, penalty)
 }
 
-#[allow(clippy::too_many_arguments)]
+/// The observed columns `lo..=hi` of a shift row (`0 ≤ x + du ≤ w − 1`, `0 ≤ v ≤ h − 1`), or
+/// `None` where no pixel of the row is observed.
+#[inline(always)]
+fn observed_columns(row: &ShiftRow<'_>, w: usize, h: usize) -> Option<(usize, usize)> {
+    let (wmax, hmax) = ((w - 1) as f64, (h - 1) as f64);
+    // `!(a <= b)` is true for NaN too.
+    if !(row.v >= 0.0 && row.v <= hmax) {
+        return None;
+    }
+    let lo = (-row.du).ceil().max(0.0);
+    let hi = (wmax - row.du).floor().min(wmax);
+    // (`du` is finite: [`crate::mvs::plane_sweep::RowWarp::shift`].)
+    (lo <= hi).then_some((lo as usize, hi as usize))
+}
+
 #[inline(always)]
 fn accumulate_body<const C: usize, const HAZE: bool>(
-    sum: &mut [f32],
-    observed: &mut [u32],
-    cost: &mut [f32],
+    target: Target<'_>,
     row: ShiftRow<'_>,
     ratio: &[f32],
     width: usize,
@@ -129,19 +149,12 @@ fn accumulate_body<const C: usize, const HAZE: bool>(
     penalty: f32,
 ) {
     let (w, h) = (width, height);
-    let (wmax, hmax) = ((w - 1) as f64, (h - 1) as f64);
-    // `!(a <= b)` is true for NaN too.
-    if !(row.v >= 0.0 && row.v <= hmax) {
+    let Some((lo, hi)) = observed_columns(&row, w, h) else {
+        if let Target::Only(out) = target {
+            out[..w].fill(penalty);
+        }
         return;
-    }
-    // Observed columns `lo..=hi`: `0 ≤ x + du ≤ w − 1`.
-    let lo = (-row.du).ceil().max(0.0);
-    let hi = (wmax - row.du).floor().min(wmax);
-    // (`du` is finite: [`crate::mvs::plane_sweep::RowWarp::shift`].)
-    if lo > hi {
-        return;
-    }
-    let (lo, hi) = (lo as usize, hi as usize);
+    };
     // The cell and weights of the general sampler: `x₀ = ⌊u⌋` at most `w − 2`, `fx = u − x₀`.
     let y0 = (row.v.floor() as usize).min(h - 2);
     let fy = (row.v - y0 as f64) as f32;
@@ -152,8 +165,19 @@ fn accumulate_body<const C: usize, const HAZE: bool>(
     // exactly on the border (`u = w − 1`, `fx = 0`), where the general sampler takes the cell to
     // its left with `fx = 1`.
     let end = ((w as isize - 1 - whole).max(0) as usize).clamp(lo, hi + 1);
-    let cost = &mut cost[lo..=hi];
-    cost.fill(0.0);
+    // The only source's costs go straight to the output; several sources' through scratch.
+    let (cost, sums) = match target {
+        Target::Only(out) => {
+            out[..lo].fill(penalty);
+            out[hi + 1..w].fill(penalty);
+            (&mut out[lo..=hi], None)
+        }
+        Target::Sums {
+            sum,
+            observed,
+            cost,
+        } => (&mut cost[lo..=hi], Some((sum, observed))),
+    };
     for c in 0..C {
         let plane = &row.source[c * w * h..(c + 1) * w * h];
         let top = &plane[y0 * w..(y0 + 1) * w];
@@ -178,11 +202,20 @@ fn accumulate_body<const C: usize, const HAZE: bool>(
                 ir[j] - is
             }
         };
+        // The first channel writes the cost, the others add to it: `0 + x = x` for `x ≥ +0`,
+        // so this is the sum from zero bit for bit without clearing it first.
+        let put = |o: &mut f32, v: f32| {
+            if c == 0 {
+                *o = v;
+            } else {
+                *o += v;
+            }
+        };
         // The contiguous part: `top[start..start + n]` and its right neighbours, vectorised.
         if fy == 0.0 {
             let (p0, p1) = (&top[start..start + n], &top[start + 1..start + n + 1]);
             for (j, (o, (&a, &b))) in cost[..n].iter_mut().zip(p0.iter().zip(p1)).enumerate() {
-                *o += residual(j, a + fx * (b - a)).abs();
+                put(o, residual(j, a + fx * (b - a)).abs());
             }
         } else {
             let (p0, p1) = (&top[start..start + n], &top[start + 1..start + n + 1]);
@@ -194,7 +227,7 @@ fn accumulate_body<const C: usize, const HAZE: bool>(
             {
                 let t = a + fx * (b - a);
                 let bt = d + fx * (e - d);
-                *o += residual(j, t + fy * (bt - t)).abs();
+                put(o, residual(j, t + fy * (bt - t)).abs());
             }
         }
         // The border column, as the general sampler clamps it.
@@ -202,15 +235,29 @@ fn accumulate_body<const C: usize, const HAZE: bool>(
             let u = x as f64 + row.du;
             let x0 = (u.floor() as usize).min(w - 2);
             let j = x - lo;
-            cost[j] += residual(j, sample(x0, (u - x0 as f64) as f32)).abs();
+            put(
+                &mut cost[j],
+                residual(j, sample(x0, (u - x0 as f64) as f32)).abs(),
+            );
         }
     }
-    for ((s, o), &c) in sum[lo..=hi]
-        .iter_mut()
-        .zip(&mut observed[lo..=hi])
-        .zip(cost.iter())
-    {
-        *s += if HAZE { c.min(penalty) } else { c };
-        *o += 1;
+    match sums {
+        None => {
+            if HAZE {
+                for o in cost.iter_mut() {
+                    *o = o.min(penalty);
+                }
+            }
+        }
+        Some((sum, observed)) => {
+            for ((s, o), &c) in sum[lo..=hi]
+                .iter_mut()
+                .zip(&mut observed[lo..=hi])
+                .zip(cost.iter())
+            {
+                *s += if HAZE { c.min(penalty) } else { c };
+                *o += 1;
+            }
+        }
     }
 }
