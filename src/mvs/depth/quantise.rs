@@ -93,21 +93,34 @@ impl Quantiser {
 
     /// `dst[i] = round(src[i] · k)`, clamped to `[0, Q]` (a cost above `max_cost` takes the top
     /// level; a NaN, which validation keeps out, level 0). Inlined into the caller, so it runs
-    /// on the caller's vector width (the box window's AVX2 copy quantises each chunk of means
-    /// while it is in L1).
+    /// on the caller's vector width.
     #[inline(always)]
     pub fn quantise_row(&self, src: &[f32], dst: &mut [u16]) {
         assert_eq!(src.len(), dst.len(), "row lengths");
-        let (k, top) = (self.per_unit, f32::from(self.levels));
         for (d, &c) in dst.iter_mut().zip(src) {
-            let v = c * k + 0.5;
-            // `v > 0` is false for NaN, so `v` ends finite in `[0, Q]`.
-            let v = if v > 0.0 { v } else { 0.0 };
-            let v = if v < top { v } else { top };
-            // SAFETY: `v` is finite and in `[0, MAX_LEVELS]`, so it fits `i32`; truncating `v + ½`
-            // rounds half up. (The saturating `as` keeps this loop scalar.)
-            *d = unsafe { v.to_int_unchecked::<i32>() } as u16;
+            *d = self.level(c);
         }
+    }
+
+    /// `(k, Q)`: levels per cost unit and the top level as `f32`, for a vector copy of
+    /// [`Self::level`].
+    pub(crate) fn factors(&self) -> (f32, f32) {
+        (self.per_unit, f32::from(self.levels))
+    }
+
+    /// `round(c · k)` clamped to `[0, Q]`, the level of one cost (see [`Self::quantise_row`]).
+    /// Branch-free, so a loop of it vectorises (the box window's AVX2 copy quantises each
+    /// chunk of means while they are in registers).
+    #[inline(always)]
+    pub fn level(&self, c: f32) -> u16 {
+        let v = c * self.per_unit + 0.5;
+        // `v > 0` is false for NaN, so `v` ends finite in `[0, Q]`.
+        let v = if v > 0.0 { v } else { 0.0 };
+        let top = f32::from(self.levels);
+        let v = if v < top { v } else { top };
+        // SAFETY: `v` is finite and in `[0, MAX_LEVELS]`, so it fits `i32`; truncating `v + ½`
+        // rounds half up. (The saturating `as` keeps a loop scalar.)
+        unsafe { v.to_int_unchecked::<i32>() as u16 }
     }
 }
 

@@ -12,7 +12,7 @@ use crate::error::Result;
 use crate::monitor::Monitor;
 
 /// Planes windowed together by [`window_groups_to_levels`], one rayon task per group: a group's
-/// costs for a band of rows (410 KB for 8 planes of 20 rows of 640 pixels) stay in L2 from the
+/// costs for a band of rows (164 KB for 8 planes of 8 rows of 640 pixels) stay in L2 from the
 /// moment they are computed until their levels are written, and each pixel's levels of a group
 /// are written as one contiguous run of the pixel-major row (16 bytes).
 pub const LEVEL_GROUP: usize = 8;
@@ -328,8 +328,9 @@ impl GroupWindow<'_> {
                 g0: usize,
                 scratch: &mut GroupScratch,
             ) {
-                // SAFETY: passed on from the caller.
-                unsafe { this.group(group, stride, g0, scratch) }
+                // SAFETY: passed on from the caller; this function runs only where the CPU
+                // has AVX2.
+                unsafe { this.group::<true>(group, stride, g0, scratch) }
             }
             if avx2 {
                 // SAFETY: the caller detected AVX2 on this CPU ([`crate::cpu::avx2_enabled`]);
@@ -339,7 +340,7 @@ impl GroupWindow<'_> {
         }
         let _ = avx2;
         // SAFETY: passed on from the caller.
-        unsafe { self.group(group, stride, g0, scratch) }
+        unsafe { self.group::<false>(group, stride, g0, scratch) }
     }
 
     /// The group's held rows from `filtered` on filtered in place ([`horizontal_in_place`]),
@@ -348,7 +349,7 @@ impl GroupWindow<'_> {
     /// # Safety
     /// No other task writes the planes `g0..g0 + group.len() / stride` of `out` meanwhile.
     #[inline(always)]
-    unsafe fn group(
+    unsafe fn group<const AVX2: bool>(
         &self,
         group: &mut [f32],
         stride: usize,
@@ -367,7 +368,7 @@ impl GroupWindow<'_> {
             for k in self.filtered..held {
                 let y = self.data_rows.start + k;
                 let row_weights = (!self.weights.is_empty()).then(|| &self.weights[y * w..][..w]);
-                horizontal_in_place(
+                horizontal_in_place::<AVX2>(
                     &mut plane[k * w..][..w],
                     row_weights,
                     r,
@@ -382,17 +383,15 @@ impl GroupWindow<'_> {
             let last = (y + r).min(self.h - 1) - self.data_rows.start;
             let k = self.inv_y[y];
             for (j, plane) in group.chunks_exact(stride).enumerate() {
-                let row = |i: usize| &plane[i * w..][..w];
-                means.copy_from_slice(row(lo));
-                for i in lo + 1..=last {
-                    for (o, &v) in means.iter_mut().zip(row(i)) {
-                        *o += v;
-                    }
-                }
-                for o in means.iter_mut() {
-                    *o *= k;
-                }
-                self.quant.quantise_row(means, &mut levels[j * w..][..w]);
+                vertical_levels::<AVX2>(
+                    &plane[..(last + 1) * w],
+                    w,
+                    lo,
+                    k,
+                    self.quant,
+                    means,
+                    &mut levels[j * w..][..w],
+                );
             }
             // SAFETY: this row's pixels' planes `g0..g0 + g` are inside `out` and written by
             // this task alone (the caller's promise).
@@ -409,7 +408,7 @@ impl GroupWindow<'_> {
 /// additions of the padded weighted row, in order from the leftmost, times `inv_x`. `padded`
 /// holds `w + 2r` values.
 #[inline(always)]
-fn horizontal_in_place(
+fn horizontal_in_place<const AVX2: bool>(
     row: &mut [f32],
     weights: Option<&[f32]>,
     r: usize,
@@ -429,15 +428,201 @@ fn horizontal_in_place(
         // Multiplying by 1 changes no value, so unit weights are a copy.
         None => padded[r..r + w].copy_from_slice(row),
     }
-    row.copy_from_slice(&padded[..w]);
+    let mut done = 0;
+    #[cfg(target_arch = "x86_64")]
+    if AVX2 {
+        // SAFETY: `AVX2` is set only where the CPU has it ([`GroupWindow::group_fast`]).
+        done = unsafe { box_row_avx2(padded, 2 * r + 1, inv_x, row) };
+    }
+    let row = &mut row[done..];
+    row.copy_from_slice(&padded[done..w]);
     for k in 1..=2 * r {
-        for (o, &v) in row.iter_mut().zip(&padded[k..k + w]) {
+        for (o, &v) in row.iter_mut().zip(&padded[done + k..k + w]) {
             *o += v;
         }
     }
-    for (o, &k) in row.iter_mut().zip(inv_x) {
+    for (o, &k) in row.iter_mut().zip(&inv_x[done..]) {
         *o *= k;
     }
+}
+
+/// The levels of one output row of one plane: `out[x] = quant(k · (rows[lo][x] + … +
+/// rows[last][x]))`, `rows` holding `w`-value rows up to `last` (its length), added in that
+/// order, scaled and quantised ([`Quantiser::quantise_row`]); `means` is scratch of `w`
+/// values. With `AVX2` (only where the CPU has it) 8 pixels at a time in registers
+/// ([`vertical_levels_avx2`]), else, and for the rest of the row, as passes over the row.
+#[inline(always)]
+fn vertical_levels<const AVX2: bool>(
+    rows: &[f32],
+    w: usize,
+    lo: usize,
+    k: f32,
+    quant: &Quantiser,
+    means: &mut [f32],
+    out: &mut [u16],
+) {
+    let last = rows.len() / w - 1;
+    let mut done = 0;
+    #[cfg(target_arch = "x86_64")]
+    if AVX2 {
+        // SAFETY: `AVX2` is set only where the CPU has it ([`GroupWindow::group_fast`]).
+        done = unsafe { vertical_levels_avx2(rows, w, lo, k, quant, out) };
+    }
+    if done < w {
+        let row = |i: usize| &rows[i * w..][done..w];
+        let means = &mut means[done..w];
+        means.copy_from_slice(row(lo));
+        for i in lo + 1..=last {
+            for (o, &v) in means.iter_mut().zip(row(i)) {
+                *o += v;
+            }
+        }
+        for o in means.iter_mut() {
+            *o *= k;
+        }
+        quant.quantise_row(means, &mut out[done..w]);
+    }
+}
+
+/// [`horizontal_in_place`]'s sums of the padded row for the first `8·⌊w/8⌋` pixels, 8 at a
+/// time in one register: `row[x] = (padded[x] + padded[x + 1] + … + padded[x + taps − 1]) ·
+/// inv_x[x]`, added in that order, so the same values as the plain passes (a copy, `taps − 1`
+/// additions and a scaling, each over the whole row) in one pass instead of `taps + 1`. The
+/// common widths (3, 5, 7 taps) are unrolled. Returns the pixels done.
+///
+/// # Safety
+/// The CPU has AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn box_row_avx2(padded: &[f32], taps: usize, inv_x: &[f32], row: &mut [f32]) -> usize {
+    assert!(taps >= 1 && padded.len() + 1 >= row.len() + taps && inv_x.len() >= row.len());
+    // SAFETY: the CPU has AVX2 (the caller's promise); the lengths are asserted above.
+    unsafe {
+        match taps {
+            3 => box_row_taps::<3>(padded, 3, inv_x, row),
+            5 => box_row_taps::<5>(padded, 5, inv_x, row),
+            7 => box_row_taps::<7>(padded, 7, inv_x, row),
+            _ => box_row_taps::<0>(padded, taps, inv_x, row),
+        }
+    }
+}
+
+/// [`box_row_avx2`] with `TAPS` taps known at compile time (`0`: `taps` at run time).
+///
+/// # Safety
+/// The CPU has AVX2; `padded.len() + 1 ≥ row.len() + taps`, `inv_x.len() ≥ row.len()`.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[inline]
+unsafe fn box_row_taps<const TAPS: usize>(
+    padded: &[f32],
+    taps: usize,
+    inv_x: &[f32],
+    row: &mut [f32],
+) -> usize {
+    use std::arch::x86_64::*;
+    let taps = if TAPS > 0 { TAPS } else { taps };
+    let w = row.len();
+    let (p, iv, o) = (padded.as_ptr(), inv_x.as_ptr(), row.as_mut_ptr());
+    let mut x = 0;
+    while x + 8 <= w {
+        // SAFETY: `x + 8 ≤ w`, so every load reads `padded[x + k ..][..8]` with
+        // `x + k + 8 ≤ w + taps − 1 ≤ padded.len()`, `inv_x[x..x + 8]` and writes `row[x..x + 8]`.
+        unsafe {
+            let mut acc = _mm256_loadu_ps(p.add(x));
+            for k in 1..taps {
+                acc = _mm256_add_ps(acc, _mm256_loadu_ps(p.add(x + k)));
+            }
+            _mm256_storeu_ps(o.add(x), _mm256_mul_ps(acc, _mm256_loadu_ps(iv.add(x))));
+        }
+        x += 8;
+    }
+    x
+}
+
+/// The vertical means' levels of one output row of one plane for the first `8·⌊w/8⌋` pixels, 8
+/// at a time in one register: `out[x] = quant(k · (rows[lo][x] + rows[lo + 1][x] + … +
+/// rows[last][x]))`, `rows` holding `w`-value rows up to `last` (its length), added in that
+/// order and quantised as [`Quantiser::quantise_row`] does, so the same levels as the plain
+/// passes without writing the sums back. The common window heights (3, 5, 7 rows) are
+/// unrolled. Returns the pixels done.
+///
+/// # Safety
+/// The CPU has AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn vertical_levels_avx2(
+    rows: &[f32],
+    w: usize,
+    lo: usize,
+    k: f32,
+    quant: &Quantiser,
+    out: &mut [u16],
+) -> usize {
+    let last = rows.len() / w - 1;
+    assert!(lo <= last && rows.len() == (last + 1) * w && out.len() >= w);
+    let rows = &rows[lo * w..];
+    // SAFETY: the CPU has AVX2 (the caller's promise); `rows` holds `last − lo + 1` rows of
+    // `w` values (asserted above).
+    unsafe {
+        match last - lo + 1 {
+            3 => vertical_levels_rows::<3>(rows, w, 3, k, quant, out),
+            5 => vertical_levels_rows::<5>(rows, w, 5, k, quant, out),
+            7 => vertical_levels_rows::<7>(rows, w, 7, k, quant, out),
+            n => vertical_levels_rows::<0>(rows, w, n, k, quant, out),
+        }
+    }
+}
+
+/// [`vertical_levels_avx2`] of the `n` rows of `rows` (`ROWS` known at compile time, `0`: at
+/// run time).
+///
+/// # Safety
+/// The CPU has AVX2; `rows.len() ≥ n·w`, `out.len() ≥ w`.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[inline]
+unsafe fn vertical_levels_rows<const ROWS: usize>(
+    rows: &[f32],
+    w: usize,
+    n: usize,
+    k: f32,
+    quant: &Quantiser,
+    out: &mut [u16],
+) -> usize {
+    use std::arch::x86_64::*;
+    let n = if ROWS > 0 { ROWS } else { n };
+    let (per_unit, top) = quant.factors();
+    let (kv, unit, half, zero, topv) = (
+        _mm256_set1_ps(k),
+        _mm256_set1_ps(per_unit),
+        _mm256_set1_ps(0.5),
+        _mm256_setzero_ps(),
+        _mm256_set1_ps(top),
+    );
+    let (p, o) = (rows.as_ptr(), out.as_mut_ptr());
+    let mut x = 0;
+    while x + 8 <= w {
+        // SAFETY: `x + 8 ≤ w`, so the loads read `rows[i·w + x..][..8]` for `i < n` and the
+        // store writes `out[x..x + 8]`.
+        unsafe {
+            let mut acc = _mm256_loadu_ps(p.add(x));
+            for i in 1..n {
+                acc = _mm256_add_ps(acc, _mm256_loadu_ps(p.add(i * w + x)));
+            }
+            // [`Quantiser::level`]: `c·k_q + ½` clamped to `[0, Q]` (`max` and `min` take
+            // their second operand unless the first is greater, resp. less, as the plain
+            // comparisons do, NaN included), then truncated.
+            let v = _mm256_add_ps(_mm256_mul_ps(_mm256_mul_ps(acc, kv), unit), half);
+            let v = _mm256_min_ps(_mm256_max_ps(v, zero), topv);
+            let q = _mm256_cvttps_epi32(v);
+            // Levels are at most `Q < 2¹⁵`, so the unsigned saturation never binds.
+            let q = _mm_packus_epi32(_mm256_castsi256_si128(q), _mm256_extracti128_si256::<1>(q));
+            _mm_storeu_si128(o.add(x).cast(), q);
+        }
+        x += 8;
+    }
+    x
 }
 
 /// `dst[x·n + j] = levels[j·w + x]` for the `g` plane rows `j` of `levels` and the `w` pixels
@@ -621,6 +806,66 @@ mod tests {
                 }
                 crate::cpu::force_scalar(false);
                 assert_eq!(banded, whole, "{w}x{h}x{n} r={r} bands of {band}");
+            }
+        }
+    }
+
+    /// The AVX2 window (the fused box sums along the row, and the vertical sums quantised in
+    /// registers, [`box_row_avx2`], [`vertical_levels_avx2`]) writes the plain passes' levels bit
+    /// for bit: windows of 1 to 11 taps (the unrolled 3, 5, 7 and the rest), rows clipped at
+    /// the image's top and bottom, widths around the 8 lanes, with and without weights, and
+    /// costs above the quantiser's largest, which take the top level.
+    #[test]
+    fn avx2_window_is_the_plain_window() {
+        if !crate::cpu::avx2_enabled() {
+            eprintln!("skipped: this CPU has no AVX2");
+            return;
+        }
+        for (w, h, n, r) in [
+            (37, 9, 8, 2),
+            (8, 12, 3, 1),
+            (64, 7, 9, 3),
+            (5, 6, 2, 2),
+            (29, 14, 8, 0),
+            (41, 13, 4, 4),
+            (70, 16, 8, 5),
+            (16, 3, 5, 2),
+        ] {
+            let data: Vec<f32> = (0..w * h * n)
+                .map(|i| ((i * 2654435761) % 1009) as f32 * 0.003)
+                .collect();
+            for weighted in [false, true] {
+                let weights: Vec<f32> = if weighted {
+                    (0..w * h)
+                        .map(|i| 1.0 + ((i * 13) % 5) as f32 * 0.3)
+                        .collect()
+                } else {
+                    Vec::new()
+                };
+                // A third of the largest weighted cost: the largest means take the top level.
+                let top = largest_weighted(&data, &weights, w, h, n) / 3.0;
+                let quant = Quantiser::new(top, 0.2, 5);
+                let levels = |scalar: bool| {
+                    crate::cpu::force_scalar(scalar);
+                    let mut out = vec![0u16; data.len()];
+                    window_to_levels(
+                        &mut data.clone(),
+                        &weights,
+                        w,
+                        h,
+                        n,
+                        r,
+                        &quant,
+                        &mut out,
+                        &Monitor::noop(),
+                    )
+                    .unwrap();
+                    crate::cpu::force_scalar(false);
+                    out
+                };
+                let (plain, avx2) = (levels(true), levels(false));
+                assert!(plain.contains(&quant.levels()), "some levels at the top");
+                assert_eq!(avx2, plain, "{w}x{h}x{n} r={r} weighted {weighted}");
             }
         }
     }
