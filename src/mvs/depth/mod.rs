@@ -27,7 +27,8 @@
 //! stripe and nothing the size of the volume. Stripes of about 256 rows run in parallel, each
 //! one's paths starting 24 rows above it. Within a band, a group of 8 planes at a time is
 //! costed, windowed and written as levels ([`window::window_groups_to_levels`]), so the group's
-//! rows (410 KB at 640 pixels) stay in L2 between the three steps.
+//! rows (164 KB at 640 pixels, 4 own rows and the window's 4) stay in L2 between the three
+//! steps, and each row's claims and selection follow its aggregation at once.
 //!
 //! Memory, 8 or 4 paths: the upward paths need the whole volume of levels and of sums.
 //! [`estimate_depth`] builds each strip's `f32` costs (plane-major) a band of rows at a
@@ -872,8 +873,11 @@ fn one_pass_stripes(h: usize, stripe_rows: usize) -> Vec<Strip> {
     out
 }
 
-/// Own rows of a one-pass band: its costs and levels stay within a few MiB per stripe.
-const ONE_PASS_BAND_ROWS: usize = 16;
+/// Own rows of a one-pass band. A band's levels (221 KB per row at 640 pixels and 173 planes)
+/// are written by the window and read back by SGM, so they should stay in L2 with SGM's own
+/// rows: 4 rows were faster than 16 on hazy Aloe (docs/BENCHMARKS.md), and fault in a quarter
+/// of the pages.
+const ONE_PASS_BAND_ROWS: usize = 4;
 
 /// Steps 1–4 of the module docs with the 5 one-pass paths ([`sgm::ONE_PASS_DIRECTIONS`]): rows
 /// stream from costs to selections, a band at a time, and no volume of the strip or image is
@@ -925,7 +929,10 @@ fn one_pass_selections(
                 .clamp(1, rows.len());
             let mut band = Band::new((band_rows + 2 * r).min(h), w, n);
             let mut levels = crate::large_buffer::zeroed::<u16>(band_rows * row_len);
-            let mut sums = crate::large_buffer::zeroed::<u16>(band_rows * row_len);
+            // One row of sums: each row's claims and selection follow its aggregation at once,
+            // while its sums are in L2.
+            let mut srow = vec![0u16; row_len];
+            let mut claim_scratch = ClaimScratch::default();
             let mut pass = sgm::OnePass::new(w, n, isa);
             let mut y0 = rows.start;
             while y0 < rows.end {
@@ -933,25 +940,21 @@ fn one_pass_selections(
                 let y1 = (y0 + band_rows).min(rows.end);
                 let levels = &mut levels[..(y1 - y0) * row_len];
                 band.levels(src, 0..h, y0..y1, &quant, levels, &silent)?;
-                let sums = &mut sums[..(y1 - y0) * row_len];
-                let rows_of_band = levels
-                    .chunks_exact(row_len)
-                    .zip(sums.chunks_exact_mut(row_len));
-                for (y, (crow, srow)) in (y0..y1).zip(rows_of_band) {
-                    pass.row(crow, srow, y, &pen, Some(sgm::Guide::new(guide)));
-                }
-                let own = y0.max(core.start)..y1.min(core.end);
-                if !own.is_empty() {
-                    claim_and_select(
-                        &sums[(own.start - y0) * row_len..(own.end - y0) * row_len],
-                        own.start,
-                        w,
-                        n,
-                        &quant,
-                        params,
-                        claims,
-                        &mut selected[(own.start - core.start) * w..(own.end - core.start) * w],
-                    );
+                for (y, crow) in (y0..y1).zip(levels.chunks_exact(row_len)) {
+                    pass.row(crow, &mut srow, y, &pen, Some(sgm::Guide::new(guide)));
+                    if core.contains(&y) {
+                        let k = y - core.start;
+                        claim_and_select_row(
+                            &srow,
+                            y,
+                            n,
+                            &quant,
+                            params,
+                            claims,
+                            &mut selected[k * w..(k + 1) * w],
+                            &mut claim_scratch,
+                        );
+                    }
                 }
                 // The job's progress sink never moves backwards, so stripes may report in any
                 // order.
@@ -1186,17 +1189,31 @@ fn claim_and_select(
     if w * n == 0 {
         return;
     }
-    let eps = quant.scaled(select::CONFIDENCE_EPS_PER_PATH * params.num_paths as f32);
-    let unit = quant.unit();
     sums.par_chunks(w * n)
         .zip(selected.par_chunks_mut(w))
         .enumerate()
         .for_each_init(ClaimScratch::default, |scratch, (k, (row, sel))| {
-            for c in claims {
-                c.add_row(first_row + k, row, n, unit, scratch);
-            }
-            select::select_into(row, n, eps, sel);
+            claim_and_select_row(row, first_row + k, n, quant, params, claims, sel, scratch);
         });
+}
+
+/// [`claim_and_select`] of the one row `y` whose sums are `row`.
+#[allow(clippy::too_many_arguments)]
+fn claim_and_select_row(
+    row: &[u16],
+    y: usize,
+    n: usize,
+    quant: &Quantiser,
+    params: &SgmParams,
+    claims: &[SourceClaims],
+    selected: &mut [Selection],
+    scratch: &mut ClaimScratch,
+) {
+    let eps = quant.scaled(select::CONFIDENCE_EPS_PER_PATH * params.num_paths as f32);
+    for c in claims {
+        c.add_row(y, row, n, quant.unit(), scratch);
+    }
+    select::select_into(row, n, eps, selected);
 }
 
 /// Step 5 and the rejections: the consistency verdicts from the sources' `claims` (none when
