@@ -748,6 +748,31 @@ fn sweep_row<T: PathCost>(
     std::mem::swap(prev_min, cur_min);
 }
 
+/// `sum[i] = sum[i] ⊕ add[i]` ([`PathCost::add`]), compiled for AVX2 where `isa` has it: 16
+/// `u16` lanes per instruction instead of SSE2's 8 (the same saturating additions).
+#[inline]
+fn add_row<T: PathCost>(isa: Isa, sum: &mut [T], add: &[T]) {
+    #[inline(always)]
+    fn body<T: PathCost>(sum: &mut [T], add: &[T]) {
+        for (s, &a) in sum.iter_mut().zip(add) {
+            *s = s.add(a);
+        }
+    }
+    #[cfg(target_arch = "x86_64")]
+    {
+        #[target_feature(enable = "avx2")]
+        unsafe fn with_avx2<T: PathCost>(sum: &mut [T], add: &[T]) {
+            body(sum, add)
+        }
+        if isa.avx2 {
+            // SAFETY: `isa.avx2` is set only where the CPU has AVX2.
+            return unsafe { with_avx2(sum, add) };
+        }
+    }
+    let _ = isa;
+    body(sum, add)
+}
+
 /// Aggregation over [`ONE_PASS_DIRECTIONS`] one row at a time, top to bottom: each row's `S` is
 /// known as soon as its costs are, so a caller streams costs in and takes `S` out row by row and
 /// no volume is kept. Rows given to [`OnePass::row`] are `y₀, y₀ + 1, …`; the vertical and
@@ -815,9 +840,7 @@ impl<T: PathCost> OnePass<T> {
             || horizontal_row(crow, srow, y, w, n, &[1], pen, guide, isa, right),
             || horizontal_row(crow, left_row, y, w, n, &[-1], pen, guide, isa, left),
         );
-        for (s, &l) in srow.iter_mut().zip(left_row.iter()) {
-            *s = s.add(l);
-        }
+        add_row(isa, srow, left_row);
         sweep_row(
             crow,
             srow,
