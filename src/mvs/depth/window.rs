@@ -726,6 +726,33 @@ mod tests {
         out
     }
 
+    /// [`window_to_levels`] of the whole `(w, h, n, r)` volume `data`, with the plain loops
+    /// when `scalar`.
+    fn whole_levels(
+        data: &[f32],
+        weights: &[f32],
+        (w, h, n, r): (usize, usize, usize, usize),
+        quant: &Quantiser,
+        scalar: bool,
+    ) -> Vec<u16> {
+        crate::cpu::force_scalar(scalar);
+        let mut out = vec![0u16; data.len()];
+        window_to_levels(
+            &mut data.to_vec(),
+            weights,
+            w,
+            h,
+            n,
+            r,
+            quant,
+            &mut out,
+            &Monitor::noop(),
+        )
+        .unwrap();
+        crate::cpu::force_scalar(false);
+        out
+    }
+
     /// A volume windowed band by band, each band's costs prepared group by group and the rows
     /// both bands read kept filtered from the last band (moved to the front as [`super::Band`]
     /// does), is the whole volume windowed at once, bit for bit (AVX2 and plain code).
@@ -748,20 +775,8 @@ mod tests {
                 .collect();
             let quant = Quantiser::new(largest_weighted(&data, &weights, w, h, n), 0.3, 8);
             for scalar in [false, true] {
+                let whole = whole_levels(&data, &weights, (w, h, n, r), &quant, scalar);
                 crate::cpu::force_scalar(scalar);
-                let mut whole = vec![0u16; data.len()];
-                window_to_levels(
-                    &mut data.clone(),
-                    &weights,
-                    w,
-                    h,
-                    n,
-                    r,
-                    &quant,
-                    &mut whole,
-                    &Monitor::noop(),
-                )
-                .unwrap();
                 let mut banded = vec![u16::MAX; data.len()];
                 let stride = (band + 2 * r) * w;
                 // Anything but costs where `prepare` writes none.
@@ -845,24 +860,7 @@ mod tests {
                 // A third of the largest weighted cost: the largest means take the top level.
                 let top = largest_weighted(&data, &weights, w, h, n) / 3.0;
                 let quant = Quantiser::new(top, 0.2, 5);
-                let levels = |scalar: bool| {
-                    crate::cpu::force_scalar(scalar);
-                    let mut out = vec![0u16; data.len()];
-                    window_to_levels(
-                        &mut data.clone(),
-                        &weights,
-                        w,
-                        h,
-                        n,
-                        r,
-                        &quant,
-                        &mut out,
-                        &Monitor::noop(),
-                    )
-                    .unwrap();
-                    crate::cpu::force_scalar(false);
-                    out
-                };
+                let levels = |scalar| whole_levels(&data, &weights, (w, h, n, r), &quant, scalar);
                 let (plain, avx2) = (levels(true), levels(false));
                 assert!(plain.contains(&quant.levels()), "some levels at the top");
                 assert_eq!(avx2, plain, "{w}x{h}x{n} r={r} weighted {weighted}");
