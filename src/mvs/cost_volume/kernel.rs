@@ -338,13 +338,13 @@ fn coords_along(
 /// scalar loop below does the rest of the row, or all of it.
 #[allow(clippy::too_many_arguments)]
 #[inline]
-pub(super) fn fill_row_observation<const C: usize, const HAZE: bool>(
+pub(super) fn fill_row_observation<'a, const C: usize, const HAZE: bool>(
     out: &mut [f32],
     y: usize,
-    reference: ReferenceImages<'_>,
+    reference: ReferenceImages<'a>,
     width: usize,
     height: usize,
-    sources: &[SourcePlane<'_>],
+    sources: &[SourcePlane<'a>],
     haze: Haze,
     penalty: f32,
     scratch: &mut RowScratch,
@@ -357,23 +357,19 @@ pub(super) fn fill_row_observation<const C: usize, const HAZE: bool>(
             *r *= t_r;
         }
     };
+    let shift_row = |s: &SourcePlane<'a>, warp: &RowWarp| {
+        ShiftRow::of(s.planar, reference.planar, y, warp, width)
+    };
     scratch.inv_t.resize(width, 0.0);
     if let [s] = sources {
         let warp = s.warp.row(y as f64);
-        if let Some((du, v)) = shift::row_shift(s.planar, reference.planar, &warp, width) {
+        if let Some(row) = shift_row(s, &warp) {
             // One source whose row shifts (a rectified pair): the mean of its sums is its
             // cost, written without them.
             let ratio_row = &mut scratch.inv_t[..width];
             if HAZE {
                 ratio_of(&warp, ratio_row);
             }
-            let row = ShiftRow {
-                reference: reference.planar,
-                source: s.planar,
-                y,
-                du,
-                v,
-            };
             let target = shift::Target::Only(out);
             shift::accumulate::<C, HAZE>(target, row, ratio_row, width, height, penalty);
             return;
@@ -397,15 +393,7 @@ pub(super) fn fill_row_observation<const C: usize, const HAZE: bool>(
         if HAZE {
             ratio_of(&warp, ratio_row);
         }
-        let shift = shift::row_shift(s.planar, reference.planar, &warp, width);
-        if let Some((du, v)) = shift {
-            let row = ShiftRow {
-                reference: reference.planar,
-                source: s.planar,
-                y,
-                du,
-                v,
-            };
+        if let Some(row) = shift_row(s, &warp) {
             shift::accumulate::<C, HAZE>(
                 shift::Target::Sums {
                     sum,

@@ -74,6 +74,26 @@ pub(super) struct ShiftRow<'a> {
     pub v: f64,
 }
 
+impl<'a> ShiftRow<'a> {
+    /// Reference row `y`'s samples in the source whose channel planes are `source` (the
+    /// reference's: `reference`), where the row's warp is a shift ([`row_shift`]).
+    pub(super) fn of(
+        source: &'a [f32],
+        reference: &'a [f32],
+        y: usize,
+        warp: &RowWarp,
+        width: usize,
+    ) -> Option<Self> {
+        row_shift(source, reference, warp, width).map(|(du, v)| ShiftRow {
+            reference,
+            source,
+            y,
+            du,
+            v,
+        })
+    }
+}
+
 /// Where [`accumulate`] puts one source's costs of a row.
 pub(super) enum Target<'a> {
     /// Added to the running sums of several sources: `sum[x] += cost`, `observed[x] += 1`;
