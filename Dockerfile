@@ -10,22 +10,28 @@ WORKDIR /src
 ENV CARGO_PROFILE_RELEASE_DEBUG=0 \
     CARGO_PROFILE_RELEASE_STRIP=symbols \
     CARGO_TERM_COLOR=never
-# Dependencies first, against stub sources (one per [[bench]] in Cargo.toml, which cargo
-# insists on finding): this layer is rebuilt only when Cargo.toml, Cargo.lock, build.rs or the
-# protos change, not on every source edit.
-COPY Cargo.toml Cargo.lock build.rs ./
+# Dependencies first, against stub sources (cargo insists on finding every member's targets,
+# [[bench]] files included): this layer is rebuilt only when a manifest, Cargo.lock, build.rs or
+# the protos change, not on every source edit.
+COPY Cargo.toml Cargo.lock ./
+COPY crates/murk/Cargo.toml crates/murk/Cargo.toml
+COPY crates/murk-server/Cargo.toml crates/murk-server/build.rs crates/murk-server/
 COPY proto ./proto
-RUN mkdir -p src benches \
-    && echo 'fn main() {}' > src/main.rs \
-    && touch src/lib.rs \
-    && grep -A1 '^\[\[bench\]\]' Cargo.toml | sed -n 's/^name = "\(.*\)"/\1/p' \
-       | while read -r b; do echo 'fn main() {}' > "benches/$b.rs"; done \
-    && cargo build --release --locked --bin murk \
-    && rm -rf src target/release/murk target/release/deps/murk-* target/release/deps/libmurk-* \
-       target/release/.fingerprint/murk-*
-COPY models ./models
-COPY src ./src
-RUN cargo build --release --locked --bin murk \
+RUN for c in murk murk-server; do \
+        mkdir -p "crates/$c/src" "crates/$c/benches" \
+        && touch "crates/$c/src/lib.rs" \
+        && grep -A1 '^\[\[bench\]\]' "crates/$c/Cargo.toml" | sed -n 's/^name = "\(.*\)"/\1/p' \
+           | while read -r b; do echo 'fn main() {}' > "crates/$c/benches/$b.rs"; done; \
+    done \
+    && echo 'fn main() {}' > crates/murk-server/src/main.rs \
+    && cargo build --release --locked -p murk-server --bin murk \
+    && rm -rf crates/murk/src crates/murk-server/src target/release/murk \
+       target/release/deps/murk-* target/release/deps/libmurk-* target/release/deps/murk_server-* \
+       target/release/deps/libmurk_server-* target/release/.fingerprint/murk-*
+COPY crates/murk/models ./crates/murk/models
+COPY crates/murk/src ./crates/murk/src
+COPY crates/murk-server/src ./crates/murk-server/src
+RUN cargo build --release --locked -p murk-server --bin murk \
     && cp target/release/murk /usr/local/bin/murk \
     && /usr/local/bin/murk --version
 
@@ -40,7 +46,7 @@ COPY --from=builder /usr/local/bin/murk /usr/local/bin/murk
 USER 10001:10001
 WORKDIR /var/lib/murk
 # A container listens on all interfaces; without MURK_AUTH_TOKENS_FILE murk refuses to start
-# on them unless MURK_ALLOW_UNAUTHENTICATED is set (see README "Security and operations").
+# on them unless MURK_ALLOW_UNAUTHENTICATED is set (see docs/operations.md).
 ENV MURK_ADDR=0.0.0.0:50051 \
     MURK_METRICS_ADDR=0.0.0.0:9090 \
     MURK_LOG_FORMAT=json

@@ -37,7 +37,7 @@ class _CostVolumeKindEnumTypeWrapper(_enum_type_wrapper._EnumTypeWrapper[_CostVo
     reference and source at the plane's depth — measured in observation space,
     |(I_r - A) - (t_r/t_s)(I_s - A)|, whose sensor noise does not grow with 1/t, and without the
     [0, 1] range penalty. Measured more accurate than both ORDINARY and the published Eq. 3.7 on
-    noisy images (docs/ACCURACY.md).
+    noisy images (docs/accuracy.md).
     """
     COST_VOLUME_KIND_DEHAZING_EQ37: _CostVolumeKind.ValueType  # 3
     """Eq. 3.7 as published: L1 distance of the dehazed samples J_r, J_s, or the penalty 3 (the
@@ -58,7 +58,7 @@ COST_VOLUME_KIND_DEHAZING: CostVolumeKind.ValueType  # 2
 reference and source at the plane's depth — measured in observation space,
 |(I_r - A) - (t_r/t_s)(I_s - A)|, whose sensor noise does not grow with 1/t, and without the
 [0, 1] range penalty. Measured more accurate than both ORDINARY and the published Eq. 3.7 on
-noisy images (docs/ACCURACY.md).
+noisy images (docs/accuracy.md).
 """
 COST_VOLUME_KIND_DEHAZING_EQ37: CostVolumeKind.ValueType  # 3
 """Eq. 3.7 as published: L1 distance of the dehazed samples J_r, J_s, or the penalty 3 (the

@@ -162,7 +162,7 @@ class ScatteringParamsRequest(_message.Message):
     2. by default, when the SfM points determine them, A and beta fitted jointly to the points'
        intensities I_r - A = (I_s / g_s - A) exp(beta (z_s - z_r)) over every point, source and
        channel, with an exposure gain g_s per source and A0 as a (Cauchy) prior (see joint_fit and
-       docs/ACCURACY.md); else beta0 from the points' transmission ratios at A0 (beta_from_points);
+       docs/accuracy.md); else beta0 from the points' transmission ratios at A0 (beta_from_points);
        else beta0 = the best of beta_steps values in [beta_min, beta_max] with A = A0 (Eq. 3.10);
     3. A*, beta* = the best of a grid_steps x grid_steps grid over [A0 +- delta_airlight] x
        [beta0 +- delta_beta] (Eq. 3.8), the step-2 point (A0, beta0) included, a grid point
@@ -226,7 +226,7 @@ class ScatteringParamsRequest(_message.Message):
     reference's 0.05 per metre, made unit-free), delta_airlight = 0 (the reference uses 0.05, but
     the residual of murk's classical depth
     function is biased towards larger A, so A* = A0 and step 3 refines beta alone with
-    grid_steps values; docs/ACCURACY.md).
+    grid_steps values; docs/accuracy.md).
     """
     delta_beta: _builtins.float
     delta_px: _builtins.int

@@ -55,7 +55,7 @@ class _PsFarFieldEnumTypeWrapper(_enum_type_wrapper._EnumTypeWrapper[_PsFarField
     PS_FAR_FIELD_PER_PIXEL: _PsFarField.ValueType  # 1
     """The outside of each pixel's support as kappa_p * (sum of dA_q L_s(q) outside it), kappa_p
     the facet-area-weighted mean of K_pq there, computed once per kernel build; still one extra
-    unknown (docs/ACCURACY.md). Exact for a uniform L_s; murk's default before BLOCKS.
+    unknown (docs/accuracy.md). Exact for a uniform L_s.
     """
     PS_FAR_FIELD_CONSTANT_EPSILON: _PsFarField.ValueType  # 2
     """The reference as published: one constant C = eps * sum_q L_s(q), eps from Eq. 4.53."""
@@ -65,7 +65,7 @@ class _PsFarFieldEnumTypeWrapper(_enum_type_wrapper._EnumTypeWrapper[_PsFarField
     geometry times the block's sum of dA_q L_s(q); no extra unknown, no assumption on L_s. The
     far window of far_cell carried over the whole object at a coarser step. PER_PIXEL assumes
     a uniform L_s outside the support; near lights shade the object unevenly, and the distance
-    fit read that error as a 1-3 % longer distance (docs/ACCURACY.md).
+    fit read that error as a 1-3 % longer distance (docs/accuracy.md).
     """
 
 class PsFarField(_PsFarField, metaclass=_PsFarFieldEnumTypeWrapper): ...
@@ -74,7 +74,7 @@ PS_FAR_FIELD_UNSPECIFIED: PsFarField.ValueType  # 0
 PS_FAR_FIELD_PER_PIXEL: PsFarField.ValueType  # 1
 """The outside of each pixel's support as kappa_p * (sum of dA_q L_s(q) outside it), kappa_p
 the facet-area-weighted mean of K_pq there, computed once per kernel build; still one extra
-unknown (docs/ACCURACY.md). Exact for a uniform L_s; murk's default before BLOCKS.
+unknown (docs/accuracy.md). Exact for a uniform L_s.
 """
 PS_FAR_FIELD_CONSTANT_EPSILON: PsFarField.ValueType  # 2
 """The reference as published: one constant C = eps * sum_q L_s(q), eps from Eq. 4.53."""
@@ -84,7 +84,7 @@ on coarse blocks (about 9 x 9 px, split along the support's edge), K at each blo
 geometry times the block's sum of dA_q L_s(q); no extra unknown, no assumption on L_s. The
 far window of far_cell carried over the whole object at a coarser step. PER_PIXEL assumes
 a uniform L_s outside the support; near lights shade the object unevenly, and the distance
-fit read that error as a 1-3 % longer distance (docs/ACCURACY.md).
+fit read that error as a 1-3 % longer distance (docs/accuracy.md).
 """
 Global___PsFarField: _TypeAlias = PsFarField  # noqa: Y015
 
@@ -157,7 +157,7 @@ class PhotometricStereoRequest(_message.Message):
     """z-distance of the initial fronto-parallel plane, mm: the mean z-depth of the object's
     visible surface as well as the rig knows it, finite and >= 0. Perspective integration fixes
     the shape only up to scale; by default murk fits the scale to the lights' 1/d^2 fall-off
-    after every iteration, so this is a starting guess (20 % off is fine; see docs/ACCURACY.md).
+    after every iteration, so this is a starting guess (20 % off is fine; see docs/accuracy.md).
     0 = unknown: murk searches from a tenth to a hundred times the lights' spread before the
     first iteration. With fix_distance it sets the absolute scale of `depth_mm` and must be > 0.
     """
@@ -190,7 +190,7 @@ class PhotometricStereoRequest(_message.Message):
     linear_g: _builtins.bool
     """Keep the normals of Eq. 4.57 with Eq. 4.55's linearisation G(T, n.l) ~ G(T, 1) n.l (the
     reference's method as published) instead of refining each pixel by Gauss-Newton on the
-    exact G (murk's default; see docs/ACCURACY.md for both).
+    exact G (murk's default; see docs/accuracy.md for both).
     """
     far_cell: _builtins.int
     """Far-field cell size s of the kernel, pixels, 1 to 15: beyond near_radius_px the support is
@@ -204,7 +204,7 @@ class PhotometricStereoRequest(_message.Message):
     """Choose support_r from the object's size instead: about 0.55 x the mask's larger
     bounding-box side (odd, 3 to min(201, image side)): with the published constant far field
     (far_field = CONSTANT_EPSILON) the support must be comparable to the object
-    (docs/ACCURACY.md); the per-pixel far field needs it much less. With far_cell = 0 the cell size is chosen too (3 up to r = 81, else 5,
+    (docs/accuracy.md); the per-pixel far field needs it much less. With far_cell = 0 the cell size is chosen too (3 up to r = 81, else 5,
     coarser if the kernel memory limit demands it). support_r must then be 0.
     """
     far_field: Global___PsFarField.ValueType

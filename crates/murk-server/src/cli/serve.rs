@@ -1,0 +1,280 @@
+//! `murk serve`.
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use anyhow::Context;
+use clap::Args;
+use murk::params::airlight::AirlightEstimator;
+
+use murk_server::jobs::redis::RedisConfig;
+use murk_server::jobs::JobsConfig;
+use murk_server::server::{
+    serve, shutdown_signal, ServerConfig, TlsSettings, DEFAULT_MAX_REQUEST_BYTES,
+};
+use murk_server::service::auth::TokenStore;
+use murk_server::service::DEFAULT_MAX_UNARY_RESULT_BYTES;
+
+/// Server configuration; each flag is also an environment variable.
+#[derive(Args, Debug, Clone)]
+pub struct ServeArgs {
+    /// Address to listen on. A non-loopback address needs `--auth-tokens-file` or an explicit
+    /// `--allow-unauthenticated`.
+    #[arg(long, env = "MURK_ADDR", default_value = "127.0.0.1:50051")]
+    pub addr: String,
+    /// Bearer tokens: one `TENANT TOKEN` pair per line, `#` comments; re-read on SIGHUP.
+    /// Clients send `authorization: Bearer TOKEN`; jobs belong to the token's tenant.
+    #[arg(long, env = "MURK_AUTH_TOKENS_FILE")]
+    pub auth_tokens_file: Option<PathBuf>,
+    /// Serve a non-loopback address without authentication (anyone who can connect may submit,
+    /// read and cancel jobs).
+    #[arg(long, env = "MURK_ALLOW_UNAUTHENTICATED", value_parser = clap::builder::BoolishValueParser::new())]
+    pub allow_unauthenticated: bool,
+    /// TLS certificate chain (PEM); with `--tls-key` the server speaks TLS only.
+    #[arg(long, env = "MURK_TLS_CERT", requires = "tls_key")]
+    pub tls_cert: Option<PathBuf>,
+    /// TLS private key (PEM).
+    #[arg(long, env = "MURK_TLS_KEY", requires = "tls_cert")]
+    pub tls_key: Option<PathBuf>,
+    /// CA certificate(s) (PEM) that client certificates must chain to: mutual TLS, connections
+    /// without a valid client certificate are refused.
+    #[arg(long, env = "MURK_TLS_CLIENT_CA", requires = "tls_cert")]
+    pub tls_client_ca: Option<PathBuf>,
+    /// Serve Prometheus metrics at http://HOST:PORT/metrics.
+    #[arg(long, env = "MURK_METRICS_ADDR")]
+    pub metrics_addr: Option<String>,
+    /// Largest message a unary response may carry, bytes (default: gRPC clients' default 4 MiB
+    /// receive limit). Larger results are fetched with `Jobs.GetJobResult` in 1 MiB chunks.
+    #[arg(long, env = "MURK_MAX_UNARY_RESULT_BYTES", default_value_t = DEFAULT_MAX_UNARY_RESULT_BYTES)]
+    pub max_unary_result_bytes: usize,
+    /// Compute threads (0 = number of cores).
+    #[arg(long, env = "MURK_WORKERS", default_value_t = 0)]
+    pub workers: usize,
+    /// Jobs computed at once (each uses all compute threads for its inner loops).
+    #[arg(long, env = "MURK_CONCURRENT_JOBS", default_value_t = 1)]
+    pub concurrent_jobs: usize,
+    /// Jobs that may wait; one more gets RESOURCE_EXHAUSTED with a retry hint.
+    #[arg(long, env = "MURK_QUEUE_CAPACITY", default_value_t = 64)]
+    pub queue_capacity: usize,
+    /// In-memory result cache, bytes.
+    #[arg(long, env = "MURK_CACHE_BYTES", default_value_t = 512 << 20)]
+    pub cache_bytes: u64,
+    /// Directory where results persist across restarts (optional).
+    #[arg(long, env = "MURK_CACHE_DIR")]
+    pub cache_dir: Option<PathBuf>,
+    /// Largest total size of the result files in --cache-dir, bytes; least recently used go
+    /// first.
+    #[arg(long, env = "MURK_CACHE_DIR_BYTES", default_value_t = murk_server::jobs::DEFAULT_CACHE_DIR_BYTES)]
+    pub cache_dir_bytes: u64,
+    /// Largest request, bytes (default fits a dozen 16-bit 1-megapixel images).
+    #[arg(long, env = "MURK_MAX_REQUEST_BYTES", default_value_t = DEFAULT_MAX_REQUEST_BYTES)]
+    pub max_request_bytes: usize,
+    /// Largest image, pixels.
+    #[arg(long, env = "MURK_MAX_IMAGE_PIXELS", default_value_t = 16 << 20)]
+    pub max_image_pixels: u64,
+    /// Largest forward-scatter kernel of a photometric-stereo job, bytes (object pixels × r² ×
+    /// 4; the method's memory peak). Larger requests get INVALID_ARGUMENT naming `support_r`.
+    #[arg(long, env = "MURK_MAX_PS_KERNEL_BYTES", default_value_t = murk::ps::pipeline::DEFAULT_MAX_KERNEL_BYTES)]
+    pub max_ps_kernel_bytes: usize,
+    /// Seconds to drain jobs on SIGTERM/Ctrl-C before cancelling them.
+    #[arg(long, env = "MURK_SHUTDOWN_GRACE_SECS", default_value_t = 10.0)]
+    pub shutdown_grace_secs: f64,
+    /// Smallest back-off suggested to clients when the queue is full, milliseconds (the hint is
+    /// the estimated time until a queue slot frees when that is longer, +0–50 % jitter).
+    #[arg(long, env = "MURK_RETRY_AFTER_MS", default_value_t = 500)]
+    pub retry_after_ms: u64,
+    /// Job records kept for Get/List (results stay in the cache regardless).
+    #[arg(long, env = "MURK_MAX_JOB_RECORDS", default_value_t = 10_000)]
+    pub max_job_records: usize,
+    /// Airlight estimator for scattering-parameter requests that do not name one.
+    #[arg(long, env = "MURK_AIRLIGHT_ESTIMATOR", value_enum, default_value_t = AirlightArg::Cnn)]
+    pub airlight_estimator: AirlightArg,
+    /// Weights of the airlight CNN (a burnpack file from `murk train airlight`); default: the
+    /// weights built into murk. A missing or corrupt file stops the server from starting.
+    #[arg(long, env = "MURK_AIRLIGHT_WEIGHTS")]
+    pub airlight_weights: Option<std::path::PathBuf>,
+    /// Share jobs, the queue and results with other replicas through Redis
+    /// (`redis://[:PASSWORD@]HOST:PORT/DB`, or `rediss://` for TLS). Without it murk keeps
+    /// everything in this process and needs no external service.
+    #[arg(long, env = "MURK_REDIS_URL")]
+    pub redis_url: Option<String>,
+    /// Prefix of murk's Redis keys (several deployments may share one Redis).
+    #[arg(long, env = "MURK_REDIS_PREFIX", default_value = "murk")]
+    pub redis_prefix: String,
+    /// Lease on a running job, seconds: a replica that stops renewing it for this long (it
+    /// died or hung) loses its jobs to the other replicas.
+    #[arg(long, env = "MURK_REDIS_LEASE_SECS", default_value_t = 10.0)]
+    pub redis_lease_secs: f64,
+    /// How long results stay in Redis, seconds (its maxmemory policy may evict them sooner;
+    /// finished job records are kept as long).
+    #[arg(long, env = "MURK_REDIS_RESULT_TTL_SECS", default_value_t = 7 * 24 * 3600)]
+    pub redis_result_ttl_secs: u64,
+    /// With unusable CNN weights, log a warning and use the dark-channel estimator instead of
+    /// refusing to start.
+    #[arg(long, env = "MURK_AIRLIGHT_FALLBACK", value_parser = clap::builder::BoolishValueParser::new())]
+    pub airlight_fallback: bool,
+}
+
+/// The server's default airlight estimator.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum AirlightArg {
+    /// The CNN of the reference's Table 3.1.
+    Cnn,
+    /// The dark-channel prior's brightest-pixel rule.
+    DarkChannel,
+}
+
+impl ServeArgs {
+    /// The server configuration these flags describe.
+    pub fn config(&self) -> anyhow::Result<ServerConfig> {
+        anyhow::ensure!(
+            self.shutdown_grace_secs.is_finite() && self.shutdown_grace_secs >= 0.0,
+            "--shutdown-grace-secs must be a non-negative number"
+        );
+        anyhow::ensure!(self.queue_capacity > 0, "--queue-capacity must be positive");
+        anyhow::ensure!(
+            self.max_request_bytes >= 1024,
+            "--max-request-bytes must be at least 1024"
+        );
+        anyhow::ensure!(
+            self.max_unary_result_bytes >= 1024,
+            "--max-unary-result-bytes must be at least 1024"
+        );
+        let auth = match &self.auth_tokens_file {
+            Some(path) => {
+                let store = TokenStore::from_file(path).map_err(|e| anyhow::anyhow!("{e}"))?;
+                tracing::info!(tokens = store.len(), path = %path.display(), "bearer tokens loaded");
+                Some(store)
+            }
+            None => None,
+        };
+        let tls = match (&self.tls_cert, &self.tls_key) {
+            (Some(cert), Some(key)) => Some(TlsSettings {
+                cert_pem: read_pem(cert, "--tls-cert")?,
+                key_pem: read_pem(key, "--tls-key")?,
+                client_ca_pem: self
+                    .tls_client_ca
+                    .as_deref()
+                    .map(|p| read_pem(p, "--tls-client-ca"))
+                    .transpose()?,
+            }),
+            _ => None,
+        };
+        anyhow::ensure!(
+            self.redis_lease_secs.is_finite() && self.redis_lease_secs >= 0.5,
+            "--redis-lease-secs must be at least 0.5"
+        );
+        anyhow::ensure!(
+            self.redis_result_ttl_secs >= 1,
+            "--redis-result-ttl-secs must be at least 1"
+        );
+        let redis = self.redis_url.as_ref().map(|url| {
+            let mut r = RedisConfig::new(url.clone());
+            r.prefix = self.redis_prefix.clone();
+            r.lease = Duration::from_secs_f64(self.redis_lease_secs);
+            r.result_ttl = Duration::from_secs(self.redis_result_ttl_secs);
+            r.record_ttl = r.result_ttl;
+            r
+        });
+        Ok(ServerConfig {
+            redis,
+            jobs: JobsConfig {
+                workers: self.workers,
+                concurrent_jobs: self.concurrent_jobs.max(1),
+                queue_capacity: self.queue_capacity,
+                cache_bytes: self.cache_bytes,
+                cache_dir: self.cache_dir.clone(),
+                cache_dir_bytes: self.cache_dir_bytes,
+                retry_after: Duration::from_millis(self.retry_after_ms),
+                max_job_records: self.max_job_records.max(1),
+            },
+            max_unary_result_bytes: self.max_unary_result_bytes,
+            auth,
+            tls,
+            max_request_bytes: self.max_request_bytes,
+            max_image_pixels: self.max_image_pixels,
+            max_ps_kernel_bytes: self.max_ps_kernel_bytes,
+            shutdown_grace: Duration::from_secs_f64(self.shutdown_grace_secs),
+            airlight: match self.airlight_estimator {
+                AirlightArg::DarkChannel => AirlightEstimator::DarkChannel(Default::default()),
+                AirlightArg::Cnn => AirlightEstimator::from_config(
+                    self.airlight_weights.as_deref(),
+                    self.airlight_fallback,
+                )
+                .map_err(|e| anyhow::anyhow!("loading the airlight CNN: {e}"))?,
+            },
+        })
+    }
+}
+
+fn read_pem(path: &std::path::Path, flag: &str) -> anyhow::Result<Vec<u8>> {
+    let bytes = std::fs::read(path).with_context(|| format!("{flag} {}", path.display()))?;
+    anyhow::ensure!(
+        bytes.windows(11).any(|w| w == b"-----BEGIN "),
+        "{flag} {} is not a PEM file",
+        path.display()
+    );
+    Ok(bytes)
+}
+
+/// Refuses to expose an unauthenticated server beyond this machine unless asked to.
+fn check_exposure(addr: &std::net::SocketAddr, args: &ServeArgs) -> anyhow::Result<()> {
+    if !addr.ip().is_loopback() && args.auth_tokens_file.is_none() && !args.allow_unauthenticated {
+        anyhow::bail!(
+            "refusing to serve {addr} without authentication: give --auth-tokens-file \
+             (MURK_AUTH_TOKENS_FILE), bind a loopback address, or pass \
+             --allow-unauthenticated to let anyone who can connect use and cancel every job"
+        );
+    }
+    if !addr.ip().is_loopback() && args.tls_cert.is_none() && args.auth_tokens_file.is_some() {
+        tracing::warn!(%addr, "bearer tokens travel in clear text without --tls-cert");
+    }
+    Ok(())
+}
+
+/// Runs the server until SIGTERM or Ctrl-C; SIGHUP re-reads the token file.
+pub fn run(args: ServeArgs) -> anyhow::Result<()> {
+    let config = args.config()?;
+    let rt = tokio::runtime::Runtime::new()?;
+    rt.block_on(async move {
+        let listener = tokio::net::TcpListener::bind(&args.addr)
+            .await
+            .with_context(|| format!("binding {}", args.addr))?;
+        check_exposure(&listener.local_addr()?, &args)?;
+        let metrics = match &args.metrics_addr {
+            Some(a) => Some(
+                tokio::net::TcpListener::bind(a)
+                    .await
+                    .with_context(|| format!("binding --metrics-addr {a}"))?,
+            ),
+            None => None,
+        };
+        if let Some(store) = config.auth.clone() {
+            reload_tokens_on_sighup(store);
+        }
+        serve(config, listener, metrics, shutdown_signal()).await?;
+        Ok(())
+    })
+}
+
+#[cfg(unix)]
+fn reload_tokens_on_sighup(store: TokenStore) {
+    use tokio::signal::unix::{signal, SignalKind};
+    let Ok(mut hup) = signal(SignalKind::hangup()) else {
+        tracing::warn!("cannot listen for SIGHUP; token file changes need a restart");
+        return;
+    };
+    tokio::spawn(async move {
+        while hup.recv().await.is_some() {
+            match store.reload() {
+                Ok(n) => tracing::info!(tokens = n, "SIGHUP: bearer tokens reloaded"),
+                Err(e) => {
+                    tracing::error!(error = %e, "SIGHUP: token file unusable; keeping the tokens in force")
+                }
+            }
+        }
+    });
+}
+
+#[cfg(not(unix))]
+fn reload_tokens_on_sighup(_store: TokenStore) {}

@@ -1,0 +1,245 @@
+//! `murk tof`: a client for ToF depth in fog.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context};
+use clap::Args;
+
+use murk::camera::Intrinsics;
+use murk::io::{read_image, write_colormap_png, write_exr, DecodeLimits};
+use murk::simulate::read_tof_capture;
+use murk::ImageF32;
+use murk_server::service::convert::{image_from_proto, tof_request_to_proto, ImageLimits};
+use murk_server::service::proto::v1 as pb;
+
+use super::mvs::run_here_or_remote;
+
+/// Options of `murk tof`.
+#[derive(Args, Debug)]
+pub struct TofArgs {
+    /// Server URL; without it a server is started in this process (as `murk mvs` and
+    /// `murk ps` do).
+    #[arg(long, env = "MURK_SERVER")]
+    pub server: Option<String>,
+    /// A folder in the simulator's layout (amplitude.exr, phase.exr, optional meta.json).
+    #[arg(long, conflicts_with_all = ["amplitude", "phase"])]
+    pub frame: Option<PathBuf>,
+    /// Amplitude image (EXR, PNG 8/16-bit or TIFF).
+    #[arg(long, requires = "phase")]
+    pub amplitude: Option<PathBuf>,
+    /// Phase image in radians (EXR/float TIFF); for integer PNG/TIFF use --phase-scale.
+    #[arg(long, requires = "amplitude")]
+    pub phase: Option<PathBuf>,
+    /// Multiplier applied to the decoded phase (e.g. 6.2831853 for a 16-bit PNG of 0..2π).
+    #[arg(long, default_value_t = 1.0)]
+    pub phase_scale: f32,
+    /// Modulation frequency, Hz (overrides meta.json).
+    #[arg(long)]
+    pub frequency_hz: Option<f64>,
+    /// Intrinsics "fx,fy,cx,cy" in pixels (overrides meta.json); enables z-depth.
+    #[arg(long)]
+    pub intrinsics: Option<String>,
+    /// Light source position "x,y,z" in the camera frame, metres (overrides meta.json); with
+    /// intrinsics, range is solved exactly for the emitter's offset from the lens.
+    #[arg(long)]
+    pub light_position_m: Option<String>,
+    /// Cap on the fine IRLS iterations (default 150; the reference's is 50).
+    #[arg(long)]
+    pub fine_iterations: Option<u32>,
+    /// Coarse IRLS iterations (default: the reference's 5).
+    #[arg(long)]
+    pub coarse_iterations: Option<u32>,
+    /// Row about which the symmetry prior mirrors the image.
+    #[arg(long)]
+    pub symmetry_row: Option<f64>,
+    /// Output folder (created).
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+/// Runs `murk tof`.
+pub fn run(a: TofArgs) -> anyhow::Result<()> {
+    let limits = DecodeLimits::default();
+    let (amplitude, mut phase, meta_k, meta_f, meta_light) = if let Some(dir) = &a.frame {
+        let c = read_tof_capture(dir).with_context(|| format!("reading {}", dir.display()))?;
+        (
+            c.amplitude,
+            c.phase,
+            c.intrinsics,
+            c.modulation_frequency_hz,
+            c.light_position_m,
+        )
+    } else {
+        let (Some(ap), Some(pp)) = (&a.amplitude, &a.phase) else {
+            bail!("give --frame DIR, or --amplitude and --phase");
+        };
+        (
+            read_image(ap, &limits)?.into_mono()?,
+            read_image(pp, &limits)?.into_mono()?,
+            None,
+            None,
+            None,
+        )
+    };
+    if a.phase_scale != 1.0 {
+        for v in phase.data_mut() {
+            *v *= a.phase_scale;
+        }
+    }
+    let frequency = a
+        .frequency_hz
+        .or(meta_f)
+        .context("modulation frequency unknown: pass --frequency-hz")?;
+    let intrinsics = match &a.intrinsics {
+        Some(s) => Some(parse_intrinsics(s)?),
+        None => meta_k,
+    };
+    // The correction needs each pixel's ray: a light position without intrinsics is refused when
+    // asked for on the command line, and said to be unused when it only came with meta.json.
+    let light = match &a.light_position_m {
+        Some(_) if intrinsics.is_none() => bail!(
+            "--light-position-m needs intrinsics (--intrinsics fx,fy,cx,cy or meta.json): the \
+             range correction depends on each pixel's ray"
+        ),
+        Some(s) => Some(parse_numbers::<3>(s, "--light-position-m", "x,y,z")?),
+        None if intrinsics.is_none() && meta_light.is_some() => {
+            eprintln!(
+                "note: meta.json's light_position_m is not used without intrinsics; range is \
+                 half the light path"
+            );
+            None
+        }
+        None => meta_light,
+    };
+    let mut request =
+        tof_request_to_proto(&amplitude, &phase, intrinsics.as_ref(), frequency, light);
+    request.options = Some(pb::TofOptions {
+        coarse_iterations: a.coarse_iterations,
+        fine_iterations: a.fine_iterations,
+        symmetry_row: a.symmetry_row,
+        ..Default::default()
+    });
+    let (job, result) = run_here_or_remote(
+        a.server.as_deref(),
+        pb::JobRequest {
+            method: Some(pb::job_request::Method::TofDepth(request)),
+        },
+        "tof",
+    )?;
+    let Some(pb::job_result::Method::TofDepth(r)) = result.method else {
+        bail!("server returned a result of another method");
+    };
+    write_tof_result(&a.out, &r)?;
+    println!(
+        "job {}{}; outputs in {}",
+        &job.id[..12.min(job.id.len())],
+        if job.cached { " (cached)" } else { "" },
+        a.out.display()
+    );
+    for w in &r.warnings {
+        println!("warning: {w}");
+    }
+    Ok(())
+}
+
+fn parse_numbers<const N: usize>(s: &str, flag: &str, shape: &str) -> anyhow::Result<[f64; N]> {
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|p| p.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .with_context(|| format!("{flag} must be {shape}"))?;
+    v.try_into()
+        .map_err(|_| anyhow::anyhow!("{flag} must have {N} numbers: {shape}"))
+}
+
+fn parse_intrinsics(s: &str) -> anyhow::Result<Intrinsics> {
+    let [fx, fy, cx, cy] = parse_numbers::<4>(s, "--intrinsics", "fx,fy,cx,cy")?;
+    let k = Intrinsics::new(fx, fy, cx, cy);
+    k.validate()?;
+    Ok(k)
+}
+
+/// Decoded ToF outputs.
+pub struct TofImages {
+    /// Corrected range, metres.
+    pub range_m: ImageF32,
+    /// Raw range, metres.
+    pub raw_range_m: ImageF32,
+    /// Object mask.
+    pub mask: ImageF32,
+}
+
+/// Writes every output as EXR plus colour-mapped PNG previews; returns the main images.
+pub fn write_tof_result(dir: &Path, r: &pb::TofDepthResult) -> anyhow::Result<TofImages> {
+    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    let limits = ImageLimits {
+        max_pixels: u64::MAX,
+        max_channels: 4,
+    };
+    let dec = |name: &str, img: &Option<pb::Image>| -> anyhow::Result<Option<ImageF32>> {
+        img.as_ref()
+            .map(|i| image_from_proto(i, &limits).with_context(|| format!("decoding {name}")))
+            .transpose()
+    };
+    let mut main = None::<(ImageF32, ImageF32, ImageF32)>;
+    let fields = [
+        ("range_m", &r.range_m),
+        ("range_std_m", &r.range_std_m),
+        ("z_depth_m", &r.z_depth_m),
+        ("raw_range_m", &r.raw_range_m),
+        ("raw_z_depth_m", &r.raw_z_depth_m),
+        ("mask", &r.mask),
+        ("scatter_amplitude", &r.scatter_amplitude),
+        ("scatter_phase", &r.scatter_phase),
+        ("weight_amplitude", &r.weight_amplitude),
+        ("weight_phase", &r.weight_phase),
+        ("corrected_amplitude", &r.corrected_amplitude),
+        ("corrected_phase", &r.corrected_phase),
+    ];
+    let mut decoded = std::collections::HashMap::new();
+    for (name, img) in fields {
+        if let Some(img) = dec(name, img)? {
+            write_exr(&dir.join(format!("{name}.exr")), &img)?;
+            decoded.insert(name, img);
+        }
+    }
+    if let (Some(range), Some(raw), Some(mask)) = (
+        decoded.get("range_m"),
+        decoded.get("raw_range_m"),
+        decoded.get("mask"),
+    ) {
+        // One colour scale for raw and corrected so the previews are comparable.
+        let (lo, hi) = robust_range(range, mask);
+        write_colormap_png(&dir.join("range_m.png"), range, lo, hi, Some(mask))?;
+        write_colormap_png(&dir.join("raw_range_m.png"), raw, lo, hi, Some(mask))?;
+        write_colormap_png(&dir.join("mask.png"), mask, 0.0, 1.0, None)?;
+        main = Some((range.clone(), raw.clone(), mask.clone()));
+    }
+    let (range_m, raw_range_m, mask) = main.context("result lacks range, raw range or mask")?;
+    Ok(TofImages {
+        range_m,
+        raw_range_m,
+        mask,
+    })
+}
+
+fn robust_range(img: &ImageF32, mask: &ImageF32) -> (f32, f32) {
+    let mut v: Vec<f32> = img
+        .data()
+        .iter()
+        .zip(mask.data())
+        .filter(|(d, m)| **m > 0.5 && d.is_finite())
+        .map(|(d, _)| *d)
+        .collect();
+    if v.is_empty() {
+        return (0.0, 1.0);
+    }
+    v.sort_by(f32::total_cmp);
+    let lo = v[v.len() / 50];
+    let hi = v[v.len() * 49 / 50];
+    if hi > lo {
+        (lo, hi)
+    } else {
+        (lo, lo + 1.0)
+    }
+}

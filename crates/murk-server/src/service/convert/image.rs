@@ -1,0 +1,236 @@
+//! `murk.v1.Image` ↔ [`ImageF32`].
+
+use crate::service::proto::v1 as pb;
+use murk::error::{MurkError, Result};
+use murk::image::ImageF32;
+use murk::io::{decode_image, DecodeLimits};
+
+/// Limits applied to every image in a request.
+#[derive(Clone, Copy, Debug)]
+pub struct ImageLimits {
+    /// Largest accepted `width·height`.
+    pub max_pixels: u64,
+    /// Largest accepted channel count.
+    pub max_channels: usize,
+}
+
+impl Default for ImageLimits {
+    fn default() -> Self {
+        Self {
+            max_pixels: 16 << 20,
+            max_channels: 4,
+        }
+    }
+}
+
+/// Decodes a request image. Errors name sub-fields relative to the image (`width`,
+/// `raw_f32_le`, `encoded`, ...); callers prefix the image's own field name.
+/// [`image_from_proto`] for inputs that are single-channel by nature, under the rule of
+/// [`ImageF32::into_mono`] (3 equal channels are one): the declared `channels` may be 1 for such
+/// a file.
+pub fn mono_image_from_proto(img: &pb::Image, limits: &ImageLimits) -> Result<ImageF32> {
+    decode_proto(img, limits, true)?.into_mono()
+}
+
+/// Decodes (or unpacks) an image message, checking declared sizes and limits, and applies its
+/// value mapping.
+pub fn image_from_proto(img: &pb::Image, limits: &ImageLimits) -> Result<ImageF32> {
+    decode_proto(img, limits, false)
+}
+
+fn decode_proto(img: &pb::Image, limits: &ImageLimits, mono: bool) -> Result<ImageF32> {
+    let decoded = match &img.data {
+        None => {
+            return Err(MurkError::invalid(
+                "",
+                "no pixel data: set `encoded` or `raw_f32_le`",
+            ))
+        }
+        Some(pb::image::Data::RawF32Le(bytes)) => raw_from_proto(img, bytes, limits)?,
+        Some(pb::image::Data::Encoded(bytes)) => {
+            let dl = DecodeLimits {
+                max_pixels: limits.max_pixels,
+                max_channels: limits.max_channels,
+            };
+            let decoded = decode_image(bytes, &dl).map_err(|e| e.within("encoded"))?;
+            for (name, declared, actual) in [
+                ("width", img.width as usize, decoded.width()),
+                ("height", img.height as usize, decoded.height()),
+                ("channels", img.channels as usize, decoded.channels()),
+            ] {
+                // A mono input may declare 1 channel for a file with equal colour channels.
+                let mono_ok = mono && name == "channels" && declared == 1;
+                if declared != 0 && declared != actual && !mono_ok {
+                    return Err(MurkError::invalid(
+                        name,
+                        format!("declared {declared} but the encoded image has {actual}"),
+                    ));
+                }
+            }
+            decoded
+        }
+    };
+    let mut out = apply_value_mapping(decoded, img.value_scale, img.value_offset)?;
+    match pb::Transfer::try_from(img.transfer) {
+        Ok(pb::Transfer::Linear) => {}
+        Ok(pb::Transfer::Srgb) => murk::image::decode_srgb(&mut out),
+        Err(_) => {
+            return Err(MurkError::invalid(
+                "transfer",
+                format!(
+                    "unknown transfer function {} (0 = LINEAR, 1 = SRGB)",
+                    img.transfer
+                ),
+            ))
+        }
+    }
+    Ok(out)
+}
+
+fn raw_from_proto(img: &pb::Image, bytes: &[u8], limits: &ImageLimits) -> Result<ImageF32> {
+    let (w, h) = (img.width as u64, img.height as u64);
+    let c = if img.channels == 0 {
+        1
+    } else {
+        img.channels as usize
+    };
+    if w == 0 || h == 0 {
+        return Err(MurkError::invalid(
+            if w == 0 { "width" } else { "height" },
+            format!("raw images need positive width and height, got {w}x{h}"),
+        ));
+    }
+    if w * h > limits.max_pixels {
+        return Err(MurkError::invalid(
+            "width",
+            format!(
+                "{w}x{h} = {} pixels exceeds the limit of {} pixels",
+                w * h,
+                limits.max_pixels
+            ),
+        ));
+    }
+    if c > limits.max_channels {
+        return Err(MurkError::invalid(
+            "channels",
+            format!("{c} exceeds the limit of {}", limits.max_channels),
+        ));
+    }
+    let n = (w * h) as usize;
+    let expected = n * c * 4;
+    if bytes.len() != expected {
+        return Err(MurkError::invalid(
+            "raw_f32_le",
+            format!(
+                "expected {expected} bytes for {w}x{h}x{c} f32, got {}",
+                bytes.len()
+            ),
+        ));
+    }
+    let mut data = vec![0f32; n * c];
+    // Planar on the wire (one plane per channel), interleaved in memory.
+    for (i, chunk) in bytes.chunks_exact(4).enumerate() {
+        let v = f32::from_le_bytes([chunk[0], chunk[1], chunk[2], chunk[3]]);
+        let (ch, px) = (i / n, i % n);
+        data[px * c + ch] = v;
+    }
+    ImageF32::from_vec(w as usize, h as usize, c, data)
+}
+
+fn apply_value_mapping(mut img: ImageF32, scale: f32, offset: f32) -> Result<ImageF32> {
+    let scale = if scale == 0.0 { 1.0 } else { scale };
+    if !scale.is_finite() {
+        return Err(MurkError::invalid(
+            "value_scale",
+            format!("must be finite, got {scale}"),
+        ));
+    }
+    if !offset.is_finite() {
+        return Err(MurkError::invalid(
+            "value_offset",
+            format!("must be finite, got {offset}"),
+        ));
+    }
+    if scale != 1.0 || offset != 0.0 {
+        for v in img.data_mut() {
+            *v = offset + scale * *v;
+        }
+    }
+    Ok(img)
+}
+
+/// Encodes an image as raw planar little-endian f32.
+pub fn image_to_proto(img: &ImageF32) -> pb::Image {
+    let c = img.channels();
+    let n = img.pixel_count();
+    let mut bytes = Vec::with_capacity(n * c * 4);
+    for ch in 0..c {
+        for px in 0..n {
+            bytes.extend_from_slice(&img.data()[px * c + ch].to_le_bytes());
+        }
+    }
+    pb::Image {
+        width: img.width() as u32,
+        height: img.height() as u32,
+        channels: c as u32,
+        data: Some(pb::image::Data::RawF32Le(bytes)),
+        value_scale: 0.0,
+        value_offset: 0.0,
+        transfer: pb::Transfer::Linear as i32,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn raw_round_trip_multichannel() {
+        let img = ImageF32::from_vec(3, 2, 2, (0..12).map(|v| v as f32).collect()).unwrap();
+        let back = image_from_proto(&image_to_proto(&img), &ImageLimits::default()).unwrap();
+        assert_eq!(back, img);
+    }
+
+    #[test]
+    fn raw_errors_name_fields() {
+        let mut p = image_to_proto(&ImageF32::filled(4, 4, 1, 1.0));
+        p.height = 5;
+        let e = image_from_proto(&p, &ImageLimits::default()).unwrap_err();
+        assert!(matches!(e, MurkError::InvalidArgument { ref field, .. } if field == "raw_f32_le"));
+        p.height = 0;
+        let e = image_from_proto(&p, &ImageLimits::default()).unwrap_err();
+        assert!(matches!(e, MurkError::InvalidArgument { ref field, .. } if field == "height"));
+        let limits = ImageLimits {
+            max_pixels: 8,
+            max_channels: 4,
+        };
+        p.height = 4;
+        let e = image_from_proto(&p, &limits).unwrap_err();
+        assert!(e.to_string().contains("exceeds the limit"));
+    }
+
+    #[test]
+    fn value_mapping_applies() {
+        let mut p = image_to_proto(&ImageF32::filled(2, 2, 1, 0.5));
+        p.value_scale = 2.0;
+        p.value_offset = 1.0;
+        let img = image_from_proto(&p, &ImageLimits::default()).unwrap();
+        assert_eq!(img.data(), &[2.0; 4]);
+    }
+
+    /// An sRGB-encoded image arrives in linear light, after the affine mapping; an unknown
+    /// transfer function is refused naming the field.
+    #[test]
+    fn srgb_images_are_decoded_to_linear_light() {
+        let mut p = image_to_proto(&ImageF32::filled(2, 2, 1, 0.25));
+        p.value_scale = 2.0;
+        p.transfer = pb::Transfer::Srgb as i32;
+        let img = image_from_proto(&p, &ImageLimits::default()).unwrap();
+        for v in img.data() {
+            assert!((v - 0.21404).abs() < 1e-4, "{v}");
+        }
+        p.transfer = 7;
+        let e = image_from_proto(&p, &ImageLimits::default()).unwrap_err();
+        assert!(matches!(e, MurkError::InvalidArgument { ref field, .. } if field == "transfer"));
+    }
+}

@@ -1,0 +1,195 @@
+//! `TofDepthRequest` → ([`TofInput`], [`TofParams`]) and [`TofOutput`] → `TofDepthResult`.
+
+use super::image::{image_to_proto, mono_image_from_proto, ImageLimits};
+use crate::service::proto::v1 as pb;
+use murk::camera::Intrinsics;
+use murk::error::{MurkError, Result};
+use murk::image::ImageF32;
+use murk::tof::{
+    BilateralParams, IrlsChannelParams, PriorCoupling, ScatterChannels, TofInput, TofOutput,
+    TofParams,
+};
+
+/// Decodes and fully validates a ToF request. Field names are relative to `TofDepthRequest`.
+pub fn tof_from_proto(
+    req: &pb::TofDepthRequest,
+    limits: &ImageLimits,
+) -> Result<(TofInput, TofParams)> {
+    let amplitude = req
+        .amplitude
+        .as_ref()
+        .ok_or_else(|| MurkError::invalid("amplitude", "required"))
+        .and_then(|i| mono_image_from_proto(i, limits).map_err(|e| e.within("amplitude")))?;
+    let phase = req
+        .phase
+        .as_ref()
+        .ok_or_else(|| MurkError::invalid("phase", "required"))
+        .and_then(|i| mono_image_from_proto(i, limits).map_err(|e| e.within("phase")))?;
+    let intrinsics = req.intrinsics.as_ref().map(intrinsics_from_proto);
+    let input = TofInput {
+        amplitude,
+        phase,
+        intrinsics,
+    };
+    input.validate()?;
+    let params = params_from_proto(req)?;
+    params.validate_for(&input).map_err(|e| match e {
+        MurkError::InvalidArgument { field, reason }
+            if field != "modulation_frequency_hz" && field != "light_position_m" =>
+        {
+            MurkError::invalid(format!("options.{}", proto_field_name(&field)), reason)
+        }
+        other => other,
+    })?;
+    Ok((input, params))
+}
+
+/// Library parameter paths → proto field paths where they differ.
+fn proto_field_name(field: &str) -> String {
+    field
+        .replace("gamma[0]", "gamma_quadratic")
+        .replace("gamma[1]", "gamma_symmetry")
+        .replace("gamma[2]", "gamma_smoothness")
+}
+
+fn params_from_proto(req: &pb::TofDepthRequest) -> Result<TofParams> {
+    let mut p = TofParams {
+        modulation_frequency_hz: req.modulation_frequency_hz,
+        ..TofParams::default()
+    };
+    p.light_position_m = req.light_position_m.as_ref().map(|v| [v.x, v.y, v.z]);
+    let Some(o) = &req.options else {
+        return Ok(p);
+    };
+    if let Some(v) = o.patches_x {
+        p.patches_x = v as usize;
+    }
+    if let Some(v) = o.patches_y {
+        p.patches_y = v as usize;
+    }
+    p.symmetry_row = o.symmetry_row.or(p.symmetry_row);
+    irls_from_proto(o.amplitude.as_ref(), &mut p.amplitude);
+    irls_from_proto(o.phase.as_ref(), &mut p.phase);
+    if let Some(v) = o.coarse_iterations {
+        p.coarse_iterations = v as usize;
+    }
+    if let Some(v) = o.fine_iterations {
+        p.fine_iterations = v as usize;
+    }
+    if let Some(b) = &o.bilateral {
+        p.bilateral = if b.disabled {
+            None
+        } else {
+            let d = BilateralParams::default();
+            Some(BilateralParams {
+                radius: b.radius.map_or(d.radius, |r| r as usize),
+                sigma_space_px: b.sigma_space_px.unwrap_or(d.sigma_space_px),
+                sigma_range_rel: b.sigma_range_rel.unwrap_or(d.sigma_range_rel),
+            })
+        };
+    }
+    if let Some(t) = o.mask_threshold {
+        p.mask_threshold = t;
+    }
+    if let Some(t) = o.convergence_tolerance {
+        p.convergence_tolerance = t;
+    }
+    p.channels = match pb::TofChannels::try_from(o.channels) {
+        Ok(pb::TofChannels::Unspecified) => p.channels,
+        Ok(pb::TofChannels::Phasor) => ScatterChannels::Phasor,
+        Ok(pb::TofChannels::AmplitudePhase) => ScatterChannels::AmplitudePhase,
+        Err(_) => {
+            return Err(MurkError::invalid(
+                "options.channels",
+                format!("unknown ToF channels {}", o.channels),
+            ))
+        }
+    };
+    if o.alternating_prior {
+        p.prior_coupling = PriorCoupling::Alternating;
+    }
+    irls_from_proto(o.phasor.as_ref(), &mut p.phasor);
+    if let Some(v) = o.coarse_subdivision {
+        p.coarse_subdivision = v as usize;
+    }
+    if let Some(q) = o.coarse_quantile {
+        p.coarse_quantile = q;
+    }
+    Ok(p)
+}
+
+fn irls_from_proto(o: Option<&pb::IrlsOptions>, p: &mut IrlsChannelParams) {
+    let Some(o) = o else { return };
+    let [g_quadratic, g_symmetry, g_smoothness] = &mut p.gamma;
+    for (dst, src) in [
+        (g_quadratic, o.gamma_quadratic),
+        (g_symmetry, o.gamma_symmetry),
+        (g_smoothness, o.gamma_smoothness),
+        (&mut p.c_coarse, o.c_coarse),
+        (&mut p.c_fine, o.c_fine),
+    ] {
+        if let Some(v) = src {
+            *dst = v;
+        }
+    }
+}
+
+/// `murk.v1.CameraIntrinsics` → [`Intrinsics`] (unvalidated; callers validate).
+pub fn intrinsics_from_proto(k: &pb::CameraIntrinsics) -> Intrinsics {
+    Intrinsics {
+        fx: k.fx,
+        fy: k.fy,
+        cx: k.cx,
+        cy: k.cy,
+        skew: k.skew,
+    }
+}
+
+/// [`Intrinsics`] → `murk.v1.CameraIntrinsics`.
+pub fn intrinsics_to_proto(k: &Intrinsics) -> pb::CameraIntrinsics {
+    pb::CameraIntrinsics {
+        fx: k.fx,
+        fy: k.fy,
+        cx: k.cx,
+        cy: k.cy,
+        skew: k.skew,
+    }
+}
+
+/// A request for `input` with the reference defaults (clients: CLI, demo, tests, benchmarks).
+/// Images travel as raw f32 so nothing is lost to quantisation.
+pub fn tof_request_to_proto(
+    amplitude: &ImageF32,
+    phase_rad: &ImageF32,
+    intrinsics: Option<&Intrinsics>,
+    modulation_frequency_hz: f64,
+    light_position_m: Option<[f64; 3]>,
+) -> pb::TofDepthRequest {
+    pb::TofDepthRequest {
+        amplitude: Some(image_to_proto(amplitude)),
+        phase: Some(image_to_proto(phase_rad)),
+        modulation_frequency_hz,
+        intrinsics: intrinsics.map(intrinsics_to_proto),
+        options: None,
+        light_position_m: light_position_m.map(|[x, y, z]| pb::Vector3 { x, y, z }),
+    }
+}
+
+/// Encodes the method's output for the wire.
+pub fn tof_to_proto(out: &TofOutput) -> pb::TofDepthResult {
+    pb::TofDepthResult {
+        range_m: Some(image_to_proto(&out.range_m)),
+        z_depth_m: out.z_depth_m.as_ref().map(image_to_proto),
+        raw_range_m: Some(image_to_proto(&out.raw_range_m)),
+        raw_z_depth_m: out.raw_z_depth_m.as_ref().map(image_to_proto),
+        mask: Some(image_to_proto(&out.mask)),
+        scatter_amplitude: Some(image_to_proto(&out.scatter_amplitude)),
+        scatter_phase: Some(image_to_proto(&out.scatter_phase)),
+        weight_amplitude: Some(image_to_proto(&out.weight_amplitude)),
+        weight_phase: Some(image_to_proto(&out.weight_phase)),
+        corrected_amplitude: Some(image_to_proto(&out.corrected_amplitude)),
+        corrected_phase: Some(image_to_proto(&out.corrected_phase)),
+        range_std_m: Some(image_to_proto(&out.range_std_m)),
+        warnings: out.warnings.clone(),
+    }
+}

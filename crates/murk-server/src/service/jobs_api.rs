@@ -1,0 +1,213 @@
+//! `murk.v1.Jobs`: submit / get / watch / cancel / list, and the chunked result stream.
+//!
+//! Every call is scoped to the caller's tenant (see `auth`): other tenants' jobs are NOT_FOUND.
+
+use std::pin::Pin;
+
+use futures::Stream;
+use sha2::{Digest, Sha256};
+use tonic::{Request, Response, Status};
+
+use super::auth::Tenant;
+use super::convert::job_to_proto;
+use super::proto::v1 as pb;
+use super::status::{ended_without_result, submit_status, to_status};
+use super::submit::{submit, ServiceState};
+use crate::jobs::{JobHandle, JobState};
+
+/// Default and maximum `ListJobs` page sizes.
+const DEFAULT_PAGE: usize = 50;
+const MAX_PAGE: usize = 1000;
+
+/// Largest `GetJobResult` chunk: a quarter of gRPC's default 4 MiB receive limit.
+pub const MAX_RESULT_CHUNK_BYTES: usize = 1 << 20;
+
+/// Implementation of the `Jobs` service.
+pub struct JobsApi {
+    state: ServiceState,
+}
+
+impl JobsApi {
+    /// Wraps the shared state.
+    pub fn new(state: ServiceState) -> Self {
+        Self { state }
+    }
+
+    async fn handle(&self, tenant: &str, id: &str) -> Result<JobHandle, Status> {
+        if id.is_empty() {
+            return Err(to_status(&murk::MurkError::invalid("id", "required")));
+        }
+        self.state
+            .jobs
+            .get(tenant, id)
+            .await
+            .map_err(|e| submit_status(&e))?
+            .ok_or_else(|| Status::not_found(format!("no job with id `{id}`")))
+    }
+
+    fn job(&self, snap: &crate::jobs::JobSnapshot, omit: bool) -> Result<pb::Job, Status> {
+        job_to_proto(snap, omit, self.state.max_unary_result_bytes)
+    }
+}
+
+type JobStream = Pin<Box<dyn Stream<Item = Result<pb::Job, Status>> + Send>>;
+type ChunkStream = Pin<Box<dyn Stream<Item = Result<pb::ResultChunk, Status>> + Send>>;
+
+#[tonic::async_trait]
+impl pb::jobs_server::Jobs for JobsApi {
+    async fn submit_job(
+        &self,
+        request: Request<pb::SubmitJobRequest>,
+    ) -> Result<Response<pb::Job>, Status> {
+        let tenant = Tenant::of(&request);
+        let r = request.into_inner();
+        let Some(req) = r.request else {
+            return Err(to_status(&murk::MurkError::invalid("request", "required")));
+        };
+        let submitted = submit(&self.state, &tenant, req, Some("request")).await?;
+        submitted.handle.detach();
+        let mut job = self.job(&submitted.handle.snapshot(), r.omit_result)?;
+        job.cached |= submitted.cached;
+        Ok(Response::new(job))
+    }
+
+    async fn get_job(
+        &self,
+        request: Request<pb::GetJobRequest>,
+    ) -> Result<Response<pb::Job>, Status> {
+        let tenant = Tenant::of(&request);
+        let r = request.into_inner();
+        let h = self.handle(&tenant, &r.id).await?;
+        Ok(Response::new(self.job(&h.snapshot(), r.omit_result)?))
+    }
+
+    type WatchJobStream = JobStream;
+
+    async fn watch_job(
+        &self,
+        request: Request<pb::WatchJobRequest>,
+    ) -> Result<Response<Self::WatchJobStream>, Status> {
+        let tenant = Tenant::of(&request);
+        let r = request.into_inner();
+        let h = self.handle(&tenant, &r.id).await?;
+        let rx = h.subscribe();
+        let omit = r.omit_result;
+        let limit = self.state.max_unary_result_bytes;
+        // Yield the current snapshot at once, then one per change, ending after a terminal one.
+        let stream = futures::stream::unfold(Some((rx, true)), move |st| async move {
+            let (mut rx, first) = st?;
+            if !first && rx.changed().await.is_err() {
+                return None;
+            }
+            let snap = rx.borrow_and_update().clone();
+            let item = job_to_proto(&snap, omit, limit);
+            let next = (!snap.state.is_terminal()).then_some((rx, false));
+            Some((item, next))
+        });
+        // Holding the handle keeps the job's record alive for the stream's lifetime.
+        let keep = h.clone();
+        let stream = futures::StreamExt::map(stream, move |item| {
+            let _ = &keep;
+            item
+        });
+        Ok(Response::new(Box::pin(stream)))
+    }
+
+    async fn cancel_job(
+        &self,
+        request: Request<pb::CancelJobRequest>,
+    ) -> Result<Response<pb::Job>, Status> {
+        let tenant = Tenant::of(&request);
+        let id = request.into_inner().id;
+        self.handle(&tenant, &id).await?;
+        let snap = self
+            .state
+            .jobs
+            .cancel(&tenant, &id)
+            .await
+            .map_err(|e| submit_status(&e))?
+            .ok_or_else(|| Status::not_found(format!("no job with id `{id}`")))?;
+        Ok(Response::new(self.job(&snap, true)?))
+    }
+
+    async fn list_jobs(
+        &self,
+        request: Request<pb::ListJobsRequest>,
+    ) -> Result<Response<pb::ListJobsResponse>, Status> {
+        let tenant = Tenant::of(&request);
+        let r = request.into_inner();
+        let size = match r.page_size as usize {
+            0 => DEFAULT_PAGE,
+            n => n.min(MAX_PAGE),
+        };
+        let offset = if r.page_token.is_empty() {
+            0
+        } else {
+            r.page_token.parse::<usize>().map_err(|_| {
+                to_status(&murk::MurkError::invalid(
+                    "page_token",
+                    "not a token returned by ListJobs",
+                ))
+            })?
+        };
+        let (page, next) = self
+            .state
+            .jobs
+            .list(&tenant, offset, size)
+            .await
+            .map_err(|e| submit_status(&e))?;
+        let jobs = page
+            .iter()
+            .map(|s| self.job(s, true))
+            .collect::<Result<Vec<_>, _>>()?;
+        Ok(Response::new(pb::ListJobsResponse {
+            jobs,
+            next_page_token: next.map(|n| n.to_string()).unwrap_or_default(),
+        }))
+    }
+
+    type GetJobResultStream = ChunkStream;
+
+    async fn get_job_result(
+        &self,
+        request: Request<pb::GetJobResultRequest>,
+    ) -> Result<Response<Self::GetJobResultStream>, Status> {
+        let tenant = Tenant::of(&request);
+        let r = request.into_inner();
+        let chunk = match r.chunk_bytes as usize {
+            0 => MAX_RESULT_CHUNK_BYTES,
+            n => n.min(MAX_RESULT_CHUNK_BYTES),
+        };
+        let snap = self.handle(&tenant, &r.id).await?.snapshot();
+        let bytes = match snap.state {
+            JobState::Succeeded => snap
+                .result
+                .ok_or_else(|| Status::internal("succeeded job without result"))?,
+            JobState::Failed | JobState::Cancelled => return Err(ended_without_result(&snap)),
+            JobState::Queued | JobState::Running => {
+                return Err(Status::failed_precondition(format!(
+                    "job `{}` is not finished (watch it with WatchJob first)",
+                    r.id
+                )))
+            }
+        };
+        let total = bytes.len();
+        let sha256 = hex::encode(Sha256::digest(bytes.as_slice()));
+        // An empty result still yields one (empty) chunk, so the client sees the total and hash.
+        let starts: Vec<usize> = if total == 0 {
+            vec![0]
+        } else {
+            (0..total).step_by(chunk).collect()
+        };
+        let stream = futures::stream::iter(starts.into_iter().map(move |start| {
+            let end = (start + chunk).min(total);
+            Ok(pb::ResultChunk {
+                offset: start as u64,
+                data: bytes[start..end].to_vec(),
+                total_bytes: total as u64,
+                sha256: sha256.clone(),
+            })
+        }));
+        Ok(Response::new(Box::pin(stream)))
+    }
+}

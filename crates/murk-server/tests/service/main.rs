@@ -1,0 +1,15 @@
+//! The service end to end: the real server started in process on an ephemeral port (or the
+//! `murk` binary, or replicas behind Redis and nginx), driven over gRPC as clients would.
+//! One test binary, so the suite links the service once.
+
+mod api;
+mod bad_input;
+mod cli;
+mod common;
+mod job_backends;
+mod mvs_api;
+mod mvs_bad_input;
+mod params_api;
+mod ps_api;
+mod redis_scaleout;
+mod service_ops;

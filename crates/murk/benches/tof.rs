@@ -1,0 +1,178 @@
+//! ToF-in-fog benchmarks at the Kinect v2 size 424×512, on simulated medium-fog frames (seed 1):
+//!
+//! * `tof_pipeline_424x512/*`: the full pipeline with the defaults (the phasor's two parts with
+//!   shared weights, the joint prior, caps of 5 coarse + 150 fine IRLS iterations) on a
+//!   separated and a cluttered frame; the same with the V-cycle alone as the x-step's
+//!   preconditioner (no coarse space); the reference's configuration (amplitude and phase
+//!   separately, alternating x- and a-steps).
+//! * `tof_xstep_424x512/*`: one x-step solve (Eq. 5.12) with each solver, warm and cold start.
+//!
+//! Run: `cargo bench -p murk --bench tof` (or `-- pipeline`, `-- xstep` for one group).
+
+use criterion::{criterion_group, criterion_main, Criterion};
+
+use murk::simulate::tof::{simulate_tof, FogPreset, TofSimConfig};
+use murk::simulate::SceneLayout;
+use murk::tof::irls::{run_irls, IrlsConfig};
+use murk::tof::quadratic_prior::{PatchGrid, QuadraticPrior};
+use murk::tof::symmetry::RowMirror;
+use murk::tof::wls::{XStepState, XStepSystem};
+use murk::tof::{
+    estimate_tof_depth_with_solver, IrlsChannelParams, Preconditioner, PriorCoupling,
+    ScatterChannels, TofInput, TofParams, XStepSolver,
+};
+use murk::Monitor;
+
+const W: usize = 512;
+const H: usize = 424;
+
+fn frame() -> TofInput {
+    frame_of(SceneLayout::Separated)
+}
+
+fn frame_of(layout: SceneLayout) -> TofInput {
+    let cfg = TofSimConfig {
+        preset: FogPreset::Medium,
+        seed: 1,
+        layout,
+        ..TofSimConfig::with_size(W, H)
+    };
+    let f = simulate_tof(&cfg, &Monitor::noop()).expect("simulate");
+    TofInput {
+        amplitude: f.amplitude,
+        phase: f.phase,
+        intrinsics: Some(f.intrinsics),
+    }
+}
+
+fn bench(c: &mut Criterion) {
+    let input = frame();
+    let params = TofParams::default();
+    let monitor = Monitor::noop();
+
+    let mut g = c.benchmark_group("tof_pipeline_424x512");
+    g.sample_size(10);
+    g.bench_function("pcg_default", |b| {
+        b.iter(|| {
+            estimate_tof_depth_with_solver(&input, &params, XStepSolver::default(), &monitor)
+                .expect("pipeline")
+        })
+    });
+    let cluttered = frame_of(SceneLayout::Cluttered);
+    g.bench_function("pcg_default_cluttered", |b| {
+        b.iter(|| {
+            estimate_tof_depth_with_solver(&cluttered, &params, XStepSolver::default(), &monitor)
+                .expect("pipeline")
+        })
+    });
+    // The V-cycle alone, no coarse space, for comparison.
+    let vcycle_only = XStepSolver::Pcg {
+        rel_tol: 1e-5,
+        max_iterations: 400,
+        preconditioner: Preconditioner::MultigridOnly,
+    };
+    for (name, frame) in [
+        ("pcg_vcycle_only", &input),
+        ("pcg_vcycle_only_cluttered", &cluttered),
+    ] {
+        g.bench_function(name, |b| {
+            b.iter(|| {
+                estimate_tof_depth_with_solver(frame, &params, vcycle_only, &monitor)
+                    .expect("pipeline")
+            })
+        });
+    }
+    let reference = TofParams {
+        channels: ScatterChannels::AmplitudePhase,
+        prior_coupling: PriorCoupling::Alternating,
+        coarse_subdivision: 1,
+        coarse_quantile: 0.5,
+        ..TofParams::default()
+    };
+    g.bench_function("reference_amplitude_phase_alternating", |b| {
+        b.iter(|| {
+            estimate_tof_depth_with_solver(&input, &reference, XStepSolver::default(), &monitor)
+                .expect("pipeline")
+        })
+    });
+    g.finish();
+
+    // One x-step at the state the fine level sees: weights from a short IRLS run on the phase
+    // image (γ′ = PHASE, the stiffer system), warm start = that run's x (as inside the loop) and
+    // cold start = the observation.
+    let observed: Vec<f64> = input.phase.data().iter().map(|&v| v as f64).collect();
+    let ch = IrlsChannelParams::PHASE;
+    let sys = XStepSystem::new(W, H, ch.gamma, RowMirror::new(H, (H as f64 - 1.0) / 2.0));
+    let mut prior = QuadraticPrior::new(PatchGrid::new(W, H, 4, 4)).expect("prior");
+    let cfg = IrlsConfig {
+        channel: ch,
+        coarse_iterations: 5,
+        fine_iterations: 5,
+        solver: XStepSolver::default(),
+        weight_tolerance: 0.0,
+        mask_threshold: 0.5,
+        coarse_subdivision: 1,
+        coarse_quantile: 0.5,
+    };
+    let st = run_irls(
+        &observed,
+        &sys,
+        &mut prior,
+        &cfg,
+        "bench",
+        &monitor,
+        &|_| {},
+    )
+    .expect("irls");
+    let mut prior_img = vec![0.0; W * H];
+    prior.evaluate(&mut prior_img);
+    let mut rhs = vec![0.0; W * H];
+    sys.rhs(&st.weights, &observed, &prior_img, &mut rhs);
+
+    let mut g = c.benchmark_group("tof_xstep_424x512");
+    g.sample_size(10);
+    let mut x = st.scatter[0].clone();
+    for (name, pre) in [
+        ("mg", Preconditioner::Multigrid),
+        ("jacobi", Preconditioner::Jacobi),
+    ] {
+        let kind = XStepSolver::Pcg {
+            rel_tol: 1e-5,
+            max_iterations: 1000,
+            preconditioner: pre,
+        };
+        let mut pcg = XStepState::new(kind, &sys).expect("pcg");
+        for (start, label) in [(&st.scatter[0], "warm"), (&observed, "cold")] {
+            x.copy_from_slice(start);
+            let s = pcg
+                .solve(&sys, &st.weights, &rhs, &mut x, &monitor)
+                .expect("solve");
+            println!(
+                "x-step {name} {label}: {} CG iterations, rel. residual {:.1e}",
+                s.iterations, s.rel_residual
+            );
+            g.bench_function(format!("pcg_{name}_{label}"), |b| {
+                b.iter(|| {
+                    x.copy_from_slice(start);
+                    pcg.solve(&sys, &st.weights, &rhs, &mut x, &monitor)
+                        .expect("solve")
+                })
+            });
+        }
+    }
+    let mut chol = XStepState::new(XStepSolver::SparseCholesky, &sys).expect("cholesky");
+    g.bench_function("sparse_cholesky", |b| {
+        b.iter(|| {
+            chol.solve(&sys, &st.weights, &rhs, &mut x, &monitor)
+                .expect("solve")
+        })
+    });
+    g.finish();
+}
+
+criterion_group! {
+    name = benches;
+    config = Criterion::default().sample_size(10);
+    targets = bench
+}
+criterion_main!(benches);

@@ -1,0 +1,693 @@
+//! Algorithm 2: coarse-to-fine IRLS estimation of the scattering component and the outlier
+//! (object) weights of one image (amplitude or phase).
+//!
+//! Coarse level (Eq. 5.16): one Tukey weight per patch from the patch's residual, then the fine
+//! level (Eq. 5.11): one weight per pixel. Each level fixes its scale σ from the residuals of its
+//! first iteration (§5.3.4); the fine level re-measures σ₁ once, from its first x-step solved
+//! under pixel weights (see `run_irls`), and with a noise model measures it over the coarse
+//! level's background, floored at the sensor noise (`fine_scale_with_noise_model`). Between
+//! the levels a held-out check re-judges the coarse level's accepted blocks
+//! ([`HELD_OUT_ROUNDS`]). Every iteration alternates the x-step and the a-step of Eq. 5.12, the
+//! a-step fitting the quadratics with the IRLS weights (a deviation, see `x_and_a_step`).
+
+use rayon::prelude::*;
+
+use super::noise_model::NoiseModel;
+use super::params::IrlsChannelParams;
+use super::quadratic_prior::{PatchGrid, QuadraticPrior};
+use super::tukey::{self, mad_sigma_in_place, median_in_place, scale_floor};
+use super::wls::{XStepSolver, XStepState, XStepSystem};
+use crate::error::{MurkError, Result};
+use crate::monitor::Monitor;
+
+/// Settings of one IRLS run.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct IrlsConfig {
+    /// γ′ and Tukey constants of this image.
+    pub channel: IrlsChannelParams,
+    /// Cap on coarse (patch-wise) iterations.
+    pub coarse_iterations: usize,
+    /// Cap on fine (pixel-wise) iterations.
+    pub fine_iterations: usize,
+    /// x-step solver.
+    pub solver: XStepSolver,
+    /// Convergence test of a level ("repeat … until converged", Algorithm 2): the level stops
+    /// once, for [`CONVERGED_RUNS`] consecutive iterations, no weight moved by more than this
+    /// and no pixel (patch) crossed `mask_threshold`. 0 disables it (always run the caps).
+    pub weight_tolerance: f64,
+    /// Weight below which a pixel counts as object (see `TofParams::mask_threshold`).
+    pub mask_threshold: f64,
+    /// Coarse-level blocks per quadratic patch along each axis (1 = the patches themselves).
+    pub coarse_subdivision: usize,
+    /// Quantile of the blocks' RMS residuals taken as the coarse scale σ₂ (0.5 = the median).
+    pub coarse_quantile: f64,
+}
+
+/// Consecutive converged iterations after which a level stops.
+pub const CONVERGED_RUNS: usize = 2;
+
+/// Default of [`IrlsConfig::weight_tolerance`].
+pub const DEFAULT_WEIGHT_TOLERANCE: f64 = 1e-3;
+
+/// Tracks the convergence test of one IRLS level.
+#[derive(Default)]
+struct Convergence {
+    runs: usize,
+    /// Largest weight change of the last iteration (1 before any).
+    last_change: f64,
+}
+
+impl Convergence {
+    fn new() -> Self {
+        Self {
+            runs: 0,
+            last_change: 1.0,
+        }
+    }
+
+    /// Records an iteration's largest weight change and whether the binarised mask changed;
+    /// true when the level has converged.
+    fn update(&mut self, max_change: f64, mask_changed: bool, tol: f64) -> bool {
+        self.last_change = max_change;
+        if tol > 0.0 && max_change < tol && !mask_changed {
+            self.runs += 1;
+        } else {
+            self.runs = 0;
+        }
+        self.runs >= CONVERGED_RUNS
+    }
+
+    /// CG tolerance multiplier for the next x-step: while the weights still move by Δ, the
+    /// x-step only needs to be accurate to a fraction of the change the next reweighting will
+    /// bring, so the tolerance is relaxed by up to 100× (Δ ≥ 1) and reaches the configured one
+    /// (×1) once Δ ≤ 1 %.
+    fn tol_scale(&self) -> f64 {
+        (100.0 * self.last_change).clamp(1.0, 100.0)
+    }
+}
+
+/// Largest |a − b| and whether any pair lies on different sides of `threshold`.
+fn weight_change(old: &[f64], new: &[f64], threshold: f64) -> (f64, bool) {
+    old.par_iter()
+        .zip(new.par_iter())
+        .map(|(&a, &b)| ((a - b).abs(), (a < threshold) != (b < threshold)))
+        .reduce(|| (0.0, false), |x, y| (x.0.max(y.0), x.1 || y.1))
+}
+
+/// Result of one IRLS run.
+#[derive(Clone, Debug, PartialEq)]
+pub struct IrlsOutcome {
+    /// Estimated scattering component x, one image per component of the input (one for an
+    /// amplitude or phase image, two for a phasor's real and imaginary parts), in the input's
+    /// units.
+    pub scatter: Vec<Vec<f64>>,
+    /// Final IRLS weights in [0, 1], shared by the components; small = outlier (object).
+    pub weights: Vec<f64>,
+    /// Coarse-level scale σ₂ (RMS residual units), if the coarse level ran.
+    pub sigma_coarse: Option<f64>,
+    /// Fine-level scale σ₁ per component as finally fixed (from the second fine iteration when
+    /// it ran), if the fine level ran.
+    pub sigma_fine: Option<f64>,
+    /// Total conjugate-gradient iterations over all x-steps (0 for Cholesky).
+    pub cg_iterations: usize,
+    /// Coarse iterations actually run (≤ the cap; fewer when the level converged).
+    pub coarse_iterations_run: usize,
+    /// Fine iterations actually run.
+    pub fine_iterations_run: usize,
+    /// Coarse blocks the held-out check rejected after the coarse level (see
+    /// [`HELD_OUT_ROUNDS`]).
+    pub held_out_rejected: usize,
+    /// False when the fine level ran its cap of iterations without its weights settling (with
+    /// the convergence test on and at least one fine iteration): the mask may still be moving.
+    pub fine_converged: bool,
+}
+
+/// Rounds of the held-out check that follows the coarse level. Algorithm 2 starts from "no
+/// object" (every weight 1), so the first x-step bends over a large near object; where the bend
+/// is enough for some of its blocks to fit, the coarse level accepts them, and the fine level
+/// then keeps the object's band as background (cluttered thick seed 1 at 512×424,
+/// docs/accuracy.md). The check judges every accepted block against the estimate its
+/// neighbours imply: two x-steps in which the accepted blocks of one colour of a checkerboard
+/// have no weight. A block whose held-out RMS residual lies more than `c_coarse` robust
+/// deviations (1.4826·MAD) above the median of the accepted blocks' is rejected; the estimate
+/// is then solved again and the check repeated, until a round rejects nothing. The scale comes
+/// from the held-out residuals themselves, because they are larger than in-sample ones wherever
+/// the scatter curves; object blocks, already rejected, have no weight in either solve and so
+/// do not pull the held-out estimates.
+pub const HELD_OUT_ROUNDS: usize = 3;
+
+/// CG tolerance multiplier of the held-out check's x-steps: the loosest the levels use while
+/// their weights still move. The check compares block RMS residuals at the noise's scale, and
+/// the fine level's first x-step solves the kept estimate again anyway.
+const HELD_OUT_TOL_SCALE: f64 = 100.0;
+
+/// The accepted blocks (`patch_weight` ≥ 0.5) whose held-out residual is an outlier among the
+/// accepted blocks' ([`HELD_OUT_ROUNDS`]), and the CG iterations spent; none when fewer than 8
+/// blocks are accepted. `weights` are the coarse level's pixel weights, `x` the current
+/// estimate (warm start of the held-out solves, left unchanged).
+#[allow(clippy::too_many_arguments)]
+fn held_out_outliers(
+    sys: &XStepSystem,
+    states: &mut [XStepState],
+    priors: &[QuadraticPrior],
+    prior_img: &[Vec<f64>],
+    observed: &[&[f64]],
+    x: &[Vec<f64>],
+    weights: &[f64],
+    blocks: &PatchGrid,
+    patch_weight: &[f64],
+    g: Option<&[f64]>,
+    c_coarse: f64,
+    monitor: &Monitor,
+) -> Result<(Vec<usize>, usize)> {
+    let (n, w) = (sys.len(), sys.width());
+    let k = blocks.count();
+    let accepted: Vec<bool> = patch_weight.iter().map(|&pw| pw >= 0.5).collect();
+    if accepted.iter().filter(|&&a| a).count() < 8 {
+        return Ok((Vec::new(), 0));
+    }
+    let mut col_block = vec![0usize; w];
+    for (b, &(x0, x1)) in blocks.col_ranges().iter().enumerate() {
+        col_block[x0..x1].fill(b);
+    }
+    let pxn = blocks.patches_x();
+    let mut rhs = vec![0.0; n];
+    let (mut cv_res2, mut held_res2) = (vec![0.0; n], vec![0.0; n]);
+    let mut cg = 0;
+    for colour in 0..2 {
+        let held: Vec<f64> = (0..n)
+            .map(|i| {
+                let (bx, by) = (col_block[i % w], blocks.patch_row_of(i / w));
+                if accepted[by * pxn + bx] && (bx + by) % 2 == colour {
+                    0.0
+                } else {
+                    weights[i]
+                }
+            })
+            .collect();
+        let mut xs = x.to_vec();
+        for (c, xc) in xs.iter_mut().enumerate() {
+            let (mut prior, mut img) = (priors[c].clone(), prior_img[c].clone());
+            cg += x_and_a_step(
+                sys,
+                &mut states[c],
+                &mut prior,
+                &held,
+                observed[c],
+                &mut img,
+                &mut rhs,
+                xc,
+                HELD_OUT_TOL_SCALE,
+                monitor,
+            )?;
+        }
+        squared_residuals(&xs, observed, g, &mut cv_res2);
+        for i in 0..n {
+            if held[i] == 0.0 && weights[i] > 0.0 {
+                held_res2[i] = cv_res2[i];
+            }
+        }
+    }
+    let mut row_sums = vec![0.0; sys.height() * pxn];
+    let mut rms = vec![0.0; k];
+    patch_rms_residuals(blocks, &held_res2, &mut row_sums, &mut rms);
+    let mut acc: Vec<f64> = (0..k).filter(|&b| accepted[b]).map(|b| rms[b]).collect();
+    let med = median_in_place(&mut acc).unwrap_or(0.0);
+    let mut dev: Vec<f64> = acc.iter().map(|v| (v - med).abs()).collect();
+    let mad = 1.4826 * median_in_place(&mut dev).unwrap_or(0.0);
+    let cut = med + c_coarse * mad;
+    let out = (0..k)
+        .filter(|&b| accepted[b] && rms[b] > cut && rms[b].is_finite())
+        .collect();
+    Ok((out, cg))
+}
+
+/// Runs Algorithm 2 on `observed` (row-major, the system's size).
+///
+/// `tick(stage)` is called after every iteration with `"{stage_prefix}.coarse"` or
+/// `"{stage_prefix}.fine"`; cancellation is checked every iteration (and inside CG).
+///
+/// With zero iterations at both levels the result is the initial state of Algorithm 2: the
+/// patch-wise quadratic fits of the observation as scatter and all weights 1 (no object).
+pub fn run_irls(
+    observed: &[f64],
+    sys: &XStepSystem,
+    prior: &mut QuadraticPrior,
+    cfg: &IrlsConfig,
+    stage_prefix: &str,
+    monitor: &Monitor,
+    tick: &(dyn Fn(&str) + Sync),
+) -> Result<IrlsOutcome> {
+    run_irls_vector(
+        &[observed],
+        None,
+        sys,
+        std::slice::from_mut(prior),
+        cfg,
+        stage_prefix,
+        monitor,
+        tick,
+    )
+}
+
+/// Algorithm 2 on a vector-valued image whose components share the priors' weights, the noise
+/// scale and the outlier weights: each component has its own scatter field and quadratics, and
+/// a pixel's residual is the Euclidean norm over the components. With the real and imaginary
+/// parts of the observed phasor, an object is a pixel whose phasor departs from the scatter
+/// phasor in any direction, in amplitude or in phase; one component is [`run_irls`].
+///
+/// `observed` and `priors` have one entry per component, each the system's size.
+/// `noise`, when given, is the frame's noise model (per component, against the norm over the
+/// components): each pixel's residual is divided by the model's σ at the *scatter estimate's*
+/// brightness, relative to σ at the observation's median brightness, before the patch RMS, the
+/// MAD and the Tukey weights. The inlier hypothesis is "observation = scatter + noise", whose
+/// noise follows the scatter's brightness; an object's own brightness must not excuse its
+/// residual.
+#[allow(clippy::too_many_arguments)]
+pub fn run_irls_vector(
+    observed: &[&[f64]],
+    noise: Option<NoiseModel>,
+    sys: &XStepSystem,
+    priors: &mut [QuadraticPrior],
+    cfg: &IrlsConfig,
+    stage_prefix: &str,
+    monitor: &Monitor,
+    tick: &(dyn Fn(&str) + Sync),
+) -> Result<IrlsOutcome> {
+    let n = sys.len();
+    let w = sys.width();
+    let m = observed.len();
+    if m == 0
+        || priors.len() != m
+        || observed.iter().any(|o| o.len() != n)
+        || priors
+            .iter()
+            .any(|p| p.grid().width() != w || p.grid().height() != sys.height())
+    {
+        return Err(MurkError::Numerical(
+            "IRLS buffers do not match the image size".into(),
+        ));
+    }
+    let magnitude = observed
+        .iter()
+        .map(|o| o.par_iter().map(|v| v.abs()).reduce(|| 0.0, f64::max))
+        .fold(0.0, f64::max);
+    let floor = scale_floor(magnitude);
+    let stage_coarse = format!("{stage_prefix}.coarse");
+    let stage_fine = format!("{stage_prefix}.fine");
+
+    let mut noise_scale = noise.map(|model| {
+        let norms: Vec<f64> = (0..n)
+            .into_par_iter()
+            .map(|i| observed.iter().map(|o| o[i] * o[i]).sum::<f64>().sqrt())
+            .collect();
+        let mut sorted = norms;
+        let med = median_in_place(&mut sorted).unwrap_or(0.0);
+        NoiseScale {
+            model,
+            inv_ref: 1.0 / model.sigma(med).max(floor),
+            g: vec![1.0; n],
+        }
+    });
+    let mut weights = vec![1.0; n];
+    let mut prior_img = vec![vec![0.0; n]; m];
+    let mut rhs = vec![0.0; n];
+    let mut scratch = vec![0.0; n * m];
+    let mut res2 = vec![0.0; n];
+    // Algorithm 2's initialisation: a_k fitted to the observation; x warm-starts at x̃, which is
+    // the W = I solution up to the (small) smoothing and prior terms.
+    for (c, prior) in priors.iter_mut().enumerate() {
+        prior.fit(observed[c]);
+        prior.evaluate(&mut prior_img[c]);
+    }
+    let mut x: Vec<Vec<f64>> = observed.iter().map(|o| o.to_vec()).collect();
+    let mut states = (0..m)
+        .map(|_| XStepState::new(cfg.solver, sys))
+        .collect::<Result<Vec<_>>>()?;
+    let mut cg_iterations = 0;
+
+    // Blocks of the coarse level's weights (Eq. 5.16); see `coarse_blocks`.
+    let blocks = coarse_blocks(priors[0].grid(), cfg.coarse_subdivision);
+    let pxn = blocks.patches_x();
+    let k = blocks.count();
+    let mut row_sums = vec![0.0; sys.height() * pxn];
+    let mut patch_rms = vec![0.0; k];
+    let mut patch_weight = vec![1.0; k];
+    let mut sigma_coarse = None;
+    let mut prev_patch_weight = vec![1.0; k];
+    let mut conv = Convergence::new();
+    let mut coarse_run = 0;
+    let mut fine_run = 0;
+    let mut x_and_a_steps = |weights: &[f64],
+                             x: &mut [Vec<f64>],
+                             prior_img: &mut [Vec<f64>],
+                             priors: &mut [QuadraticPrior],
+                             tol_scale: f64|
+     -> Result<usize> {
+        let mut its = 0;
+        for c in 0..m {
+            its += x_and_a_step(
+                sys,
+                &mut states[c],
+                &mut priors[c],
+                weights,
+                observed[c],
+                &mut prior_img[c],
+                &mut rhs,
+                &mut x[c],
+                tol_scale,
+                monitor,
+            )?;
+        }
+        Ok(its)
+    };
+    for it in 0..cfg.coarse_iterations {
+        monitor.checkpoint()?;
+        cg_iterations += x_and_a_steps(&weights, &mut x, &mut prior_img, priors, conv.tol_scale())?;
+        coarse_run += 1;
+        if let Some(ns) = noise_scale.as_mut() {
+            ns.update(&x);
+        }
+        let g = noise_scale.as_ref().map(|ns| &ns.g[..]);
+        squared_residuals(&x, observed, g, &mut res2);
+        patch_rms_residuals(&blocks, &res2, &mut row_sums, &mut patch_rms);
+        if it == 0 {
+            // The patch residual is an RMS, i.e. already a per-pixel deviation about the ideal
+            // zero residual, so its median over patches is the robust scale (a "median absolute
+            // deviation" about zero): background patches sit near r = 1 and an object patch at
+            // r ≫ 1, independent of patch size (the last patches are larger). (A pixel-level
+            // MAD instead was tried: it ignores the quadratic misfit of background patches and
+            // flagged whole background patches as outliers on several simulated frames.)
+            scratch[..k].copy_from_slice(&patch_rms);
+            let med =
+                quantile_in_place(&mut scratch[..k], cfg.coarse_quantile).ok_or_else(|| {
+                    MurkError::Numerical("non-finite residual at the coarse level".into())
+                })?;
+            sigma_coarse = Some(med.max(floor));
+        }
+        let s2 = sigma_coarse.unwrap_or(floor);
+
+        for (pw, &rms) in patch_weight.iter_mut().zip(&patch_rms) {
+            *pw = tukey::weight(rms / s2, cfg.channel.c_coarse);
+        }
+        spread_patch_weights(&blocks, &patch_weight, &mut weights);
+        tick(&stage_coarse);
+        let (dw, flipped) = weight_change(&prev_patch_weight, &patch_weight, cfg.mask_threshold);
+        prev_patch_weight.copy_from_slice(&patch_weight);
+        if it > 0 && conv.update(dw, flipped, cfg.weight_tolerance) {
+            break;
+        }
+    }
+
+    let mut held_out_rejected = 0;
+    if cfg.coarse_iterations > 0 {
+        let mut cv_states = (0..m)
+            .map(|_| XStepState::new(cfg.solver, sys))
+            .collect::<Result<Vec<_>>>()?;
+        let mut cv_rhs = vec![0.0; n];
+        for _ in 0..HELD_OUT_ROUNDS {
+            monitor.checkpoint()?;
+            let (outliers, cg) = held_out_outliers(
+                sys,
+                &mut cv_states,
+                priors,
+                &prior_img,
+                observed,
+                &x,
+                &weights,
+                &blocks,
+                &patch_weight,
+                noise_scale.as_ref().map(|ns| &ns.g[..]),
+                cfg.channel.c_coarse,
+                monitor,
+            )?;
+            cg_iterations += cg;
+            if outliers.is_empty() {
+                break;
+            }
+            held_out_rejected += outliers.len();
+            for b in outliers {
+                patch_weight[b] = 0.0;
+            }
+            spread_patch_weights(&blocks, &patch_weight, &mut weights);
+            for c in 0..m {
+                cg_iterations += x_and_a_step(
+                    sys,
+                    &mut cv_states[c],
+                    &mut priors[c],
+                    &weights,
+                    observed[c],
+                    &mut prior_img[c],
+                    &mut cv_rhs,
+                    &mut x[c],
+                    HELD_OUT_TOL_SCALE,
+                    monitor,
+                )?;
+            }
+            if let Some(ns) = noise_scale.as_mut() {
+                ns.update(&x);
+            }
+        }
+    }
+
+    let mut sigma_fine = None;
+    let c_fine = cfg.channel.c_fine;
+    // The coarse level's background, where σ₁ is measured when a noise model is known.
+    let coarse_inlier: Vec<bool> = weights.iter().map(|&w| w >= 0.5).collect();
+    let mut prev_weights = vec![0.0; n];
+    let mut conv = Convergence::new();
+    let mut fine_converged = cfg.fine_iterations == 0 || cfg.weight_tolerance <= 0.0;
+    for it in 0..cfg.fine_iterations {
+        monitor.checkpoint()?;
+        cg_iterations += x_and_a_steps(&weights, &mut x, &mut prior_img, priors, conv.tol_scale())?;
+        fine_run += 1;
+        prev_weights.copy_from_slice(&weights);
+        // σ₁ is measured twice and then fixed (§5.3.4 fixes it from the level's first
+        // residuals). The first fine x-step still runs under the coarse patch weights: in every
+        // rejected patch the background residuals are the priors' misfit, not noise, and
+        // inflate σ₁ (3.5× the noise on a simulated medium-fog frame), which then keeps dim
+        // object pixels as inliers. That first estimate only seeds the first pixel weights;
+        // the residuals of the first x-step solved under pixel weights give the noise scale.
+        // With several components the residuals of all of them are pooled: one σ per component.
+        if let Some(ns) = noise_scale.as_mut() {
+            ns.update(&x);
+        }
+        let g = noise_scale.as_ref().map(|ns| &ns.g[..]);
+        if it <= 1 {
+            for c in 0..m {
+                scratch[c * n..(c + 1) * n]
+                    .par_iter_mut()
+                    .zip(x[c].par_iter().zip(observed[c].par_iter()))
+                    .enumerate()
+                    .for_each(|(i, (s, (xi, oi)))| *s = (xi - oi) / g.map_or(1.0, |g| g[i]));
+            }
+            let s = match &noise_scale {
+                Some(ns) => fine_scale_with_noise_model(&mut scratch, &coarse_inlier, ns),
+                None => mad_sigma_in_place(&mut scratch),
+            }
+            .ok_or_else(|| MurkError::Numerical("non-finite residual at the fine level".into()))?;
+            sigma_fine = Some(s.max(floor));
+        }
+        let inv_s1 = 1.0 / sigma_fine.unwrap_or(floor);
+        squared_residuals(&x, observed, g, &mut res2);
+        weights
+            .par_iter_mut()
+            .zip(res2.par_iter())
+            .for_each(|(wi, r2)| *wi = tukey::weight(r2.sqrt() * inv_s1, c_fine));
+        tick(&stage_fine);
+
+        // The first fine iteration replaces patch weights by pixel weights: not a convergence
+        // step.
+        let (dw, flipped) = weight_change(&prev_weights, &weights, cfg.mask_threshold);
+        if it > 0 && conv.update(dw, flipped, cfg.weight_tolerance) {
+            fine_converged = true;
+            break;
+        }
+    }
+
+    if cfg.coarse_iterations + cfg.fine_iterations == 0 {
+        for (xc, pc) in x.iter_mut().zip(&prior_img) {
+            xc.copy_from_slice(pc);
+        }
+    }
+    Ok(IrlsOutcome {
+        scatter: x,
+        weights,
+        sigma_coarse,
+        sigma_fine,
+        cg_iterations,
+        coarse_iterations_run: coarse_run,
+        fine_iterations_run: fine_run,
+        held_out_rejected,
+        fine_converged,
+    })
+}
+
+/// σ₁ of the fine level when the frame's noise model is known: the MAD of the residuals (`res`,
+/// `m` components of n pixels, already divided by the relative noise level) over the pixels the
+/// coarse level kept as background (`background`), but never below the sensor noise itself.
+///
+/// Both alternatives are biased. Over all pixels the objects inflate the MAD: with a quarter
+/// of the frame object the median residual sits at the inliers' 67 % quantile, σ₁ comes out
+/// 1.4× the noise, and a band of a large near object 17 σ off the true scatter passed as
+/// background on a thick-fog frame (docs/accuracy.md). Over the background alone the MAD
+/// *under*-states the noise: the x-step is a smoother that follows the observation in part,
+/// so its residuals are smaller than the noise (0.77× on a medium-fog frame), and pure-noise
+/// pixels at 3.3 σ were flagged. The noise model gives the noise directly; the background's
+/// MAD still raises σ₁ where the priors' misfit exceeds it. `None` on non-finite residuals.
+fn fine_scale_with_noise_model(
+    res: &mut [f64],
+    background: &[bool],
+    ns: &NoiseScale,
+) -> Option<f64> {
+    let n = background.len();
+    let kept = background.iter().filter(|&&b| b).count();
+    // Too little background to measure (a frame nearly filled by objects): all pixels.
+    let mad = if kept * 10 >= n {
+        let mut sel: Vec<f64> = (0..res.len())
+            .filter(|&j| background[j % n])
+            .map(|j| res[j])
+            .collect();
+        mad_sigma_in_place(&mut sel)
+    } else {
+        mad_sigma_in_place(res)
+    }?;
+    Some(mad.max(1.0 / ns.inv_ref))
+}
+
+/// Relative noise level of every pixel under the inlier hypothesis (see [`run_irls_vector`]).
+struct NoiseScale {
+    model: NoiseModel,
+    /// 1 / σ at the observation's median brightness.
+    inv_ref: f64,
+    /// σ(|x|)/σ_ref per pixel, never below 1e-3.
+    g: Vec<f64>,
+}
+
+impl NoiseScale {
+    fn update(&mut self, x: &[Vec<f64>]) {
+        let (model, inv_ref) = (self.model, self.inv_ref);
+        self.g.par_iter_mut().enumerate().for_each(|(i, g)| {
+            let norm = x.iter().map(|c| c[i] * c[i]).sum::<f64>().sqrt();
+            *g = (model.sigma(norm) * inv_ref).max(1e-3);
+        });
+    }
+}
+
+/// `out[i] = Σ_c (x_c − x̃_c)ᵢ² / gᵢ²`: each pixel's squared residual norm over the components,
+/// relative to its noise level `g` (1 without one).
+fn squared_residuals(
+    x: &[Vec<f64>],
+    observed: &[&[f64]],
+    noise_scale: Option<&[f64]>,
+    out: &mut [f64],
+) {
+    out.par_iter_mut().enumerate().for_each(|(i, o)| {
+        let ss: f64 = x
+            .iter()
+            .zip(observed)
+            .map(|(xc, oc)| (xc[i] - oc[i]) * (xc[i] - oc[i]))
+            .sum();
+        *o = match noise_scale {
+            Some(g) => ss / (g[i] * g[i]),
+            None => ss,
+        };
+    });
+}
+
+/// One alternation of Eq. 5.12: x given a_k (and W), then a_k given x. Returns CG iterations.
+///
+/// Deviation from Eq. 5.12: the a-step fits each patch's quadratic to x with the current IRLS
+/// weights ([`QuadraticPrior::fit_weighted`]) instead of uniformly. Where W ≈ 0 (objects) x has
+/// no data term: it is only what the priors made of it, so a uniform fit lets the priors confirm
+/// themselves there. The previous state persists (the alternation is a slow diffusion in those
+/// pixels) — in particular Algorithm 2's initial fit to the observation, bright objects
+/// included — and a quadratic partially fitted to the object region (the failure of the
+/// reference's Fig. 5.14/5.16) lifts x over the whole patch until the background pixels beside
+/// the object turn outliers too. Weighted, a_k follows the data-constrained pixels and the
+/// object region receives the background's quadratic. At the coarse level all pixels of a patch
+/// share one weight, so the fit is the uniform one there (see `fit_weighted`).
+#[allow(clippy::too_many_arguments)]
+fn x_and_a_step(
+    sys: &XStepSystem,
+    state: &mut XStepState,
+    prior: &mut QuadraticPrior,
+    weights: &[f64],
+    observed: &[f64],
+    prior_img: &mut [f64],
+    rhs: &mut [f64],
+    x: &mut [f64],
+    tol_scale: f64,
+    monitor: &Monitor,
+) -> Result<usize> {
+    sys.rhs(weights, observed, prior_img, rhs);
+    let stats = state.solve_inexact(sys, weights, rhs, x, tol_scale, monitor)?;
+    if sys.is_joint() {
+        // x already minimises over a: its uniform fits are the a-step's answer.
+        prior.fit(x);
+    } else {
+        prior.fit_weighted(x, weights);
+    }
+    prior.evaluate(prior_img);
+    Ok(stats.iterations)
+}
+
+/// RMS of x − x̃ over every patch (Eq. 5.16's ‖x_k − x̃_k‖ divided by √N_k), from each pixel's
+/// squared residual `res2`.
+fn patch_rms_residuals(grid: &PatchGrid, res2: &[f64], row_sums: &mut [f64], out: &mut [f64]) {
+    let w = grid.width();
+    let pxn = grid.patches_x();
+    let cols = grid.col_ranges();
+    row_sums
+        .par_chunks_mut(pxn)
+        .zip(res2.par_chunks(w))
+        .for_each(|(sums, rr)| {
+            for (s, &(x0, x1)) in sums.iter_mut().zip(cols) {
+                *s = rr[x0..x1].iter().sum();
+            }
+        });
+    for (py, &(y0, y1)) in grid.row_ranges().iter().enumerate() {
+        for (px, &(x0, x1)) in cols.iter().enumerate() {
+            let ss: f64 = (y0..y1).map(|y| row_sums[y * pxn + px]).sum();
+            out[py * pxn + px] = (ss / ((y1 - y0) * (x1 - x0)) as f64).sqrt();
+        }
+    }
+}
+
+/// The `q`-quantile (0–1) of `values` by selection, reordering them; `None` when empty or NaN.
+fn quantile_in_place(values: &mut [f64], q: f64) -> Option<f64> {
+    if values.is_empty() || values.iter().any(|v| v.is_nan()) {
+        return None;
+    }
+    let k = ((values.len() - 1) as f64 * q.clamp(0.0, 1.0)).round() as usize;
+    let (_, v, _) = values.select_nth_unstable_by(k, f64::total_cmp);
+    Some(*v)
+}
+
+/// The coarse level's blocks: each quadratic patch split `subdivision` times along each axis
+/// (never below 3 pixels a side). With 1 they are the patches, as in Eq. 5.16. The robust scale
+/// σ₂ is the median block RMS, which measures the background only while most blocks hold no
+/// object: a large near object covering parts of over half the 4 × 4 patches drives it up to the
+/// object's residuals, and a rejected patch then also discards the background beside the object.
+fn coarse_blocks(grid: &PatchGrid, subdivision: usize) -> PatchGrid {
+    let (w, h) = (grid.width(), grid.height());
+    let s = subdivision.max(1);
+    let bx = (grid.patches_x() * s).min(w / 3).max(1);
+    let by = (grid.patches_y() * s).min(h / 3).max(1);
+    PatchGrid::new(w, h, bx, by)
+}
+
+/// Every pixel of a patch shares the patch's coarse weight (Eq. 5.16).
+fn spread_patch_weights(grid: &PatchGrid, patch_weight: &[f64], weights: &mut [f64]) {
+    let pxn = grid.patches_x();
+    let cols = grid.col_ranges();
+    weights
+        .par_chunks_mut(grid.width())
+        .enumerate()
+        .for_each(|(y, row)| {
+            let py = grid.patch_row_of(y);
+            for (px, &(x0, x1)) in cols.iter().enumerate() {
+                row[x0..x1].fill(patch_weight[py * pxn + px]);
+            }
+        });
+}

@@ -1,0 +1,686 @@
+//! The full ToF-in-fog pipeline (reference Ch. 5): validate, pre-filter, run Algorithm 2 on the
+//! amplitude and phase images, intersect their object masks and subtract the scattering phasor
+//! (Eq. 5.8–5.9) to obtain the direct component's range (Eq. 5.2).
+//!
+//! Limitation: phase is assumed not to wrap inside the image (every pixel within one ambiguity
+//! interval c/(2f)); the quadratic/symmetry/smoothness priors treat phase as a smooth real field.
+
+use std::f64::consts::{PI, TAU};
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+use rayon::prelude::*;
+
+use super::bilateral::bilateral_filter;
+use super::irls::{run_irls_vector, IrlsConfig, IrlsOutcome};
+use super::noise_model::NoiseModel;
+use super::params::{
+    PriorCoupling, ScatterChannels, TofInput, TofOutput, TofParams, SPEED_OF_LIGHT_M_PER_S,
+};
+use super::quadratic_prior::{PatchGrid, QuadraticPrior};
+use super::symmetry::RowMirror;
+use super::wls::{XStepSolver, XStepSystem};
+use crate::error::{MurkError, Result};
+use crate::image::ImageF32;
+use crate::monitor::Monitor;
+
+/// Progress fractions of the pipeline's stages.
+const PREFILTER_END: f32 = 0.05;
+const IRLS_END: f32 = 0.95;
+
+/// Estimates the object mask and the fog-corrected range of a CW-ToF frame (Ch. 5, Algorithm 2,
+/// Eq. 5.2, 5.8–5.16) with the default x-step solver.
+///
+/// Errors: the `InvalidArgument` of [`TofInput::validate`] / [`TofParams::validate`] unchanged,
+/// `Cancelled` when `monitor` is cancelled (checked every IRLS iteration), `Numerical` if a solve
+/// fails. Progress stages: `tof.prefilter`, `tof.{amplitude,phase}.{coarse,fine}`, `tof.compose`.
+pub fn estimate_tof_depth(
+    input: &TofInput,
+    params: &TofParams,
+    monitor: &Monitor,
+) -> Result<TofOutput> {
+    estimate_tof_depth_with_solver(input, params, XStepSolver::default(), monitor)
+}
+
+/// [`estimate_tof_depth`] with an explicit x-step solver (benchmarks, cross-checks).
+pub fn estimate_tof_depth_with_solver(
+    input: &TofInput,
+    params: &TofParams,
+    solver: XStepSolver,
+    monitor: &Monitor,
+) -> Result<TofOutput> {
+    input.validate()?;
+    let (w, h) = input.amplitude.dims();
+    params.validate_for(input)?;
+    monitor.checkpoint()?;
+
+    let filter = |img: &[f32], out: &mut Vec<f32>| match &params.bilateral {
+        Some(b) => {
+            out.resize(w * h, 0.0);
+            bilateral_filter(img, w, h, b, out);
+        }
+        None => out.extend_from_slice(img),
+    };
+    // The raw phasor and its noise model (shot + read), which scales the IRLS residuals of the
+    // phasor channels and gives every pixel's range uncertainty.
+    let (raw_re, raw_im): (Vec<f32>, Vec<f32>) = input
+        .amplitude
+        .data()
+        .par_iter()
+        .zip(input.phase.data().par_iter())
+        .map(|(&a, &p)| {
+            let (s, c) = (p as f64).sin_cos();
+            ((a as f64 * c) as f32, (a as f64 * s) as f32)
+        })
+        .unzip();
+    let noise = NoiseModel::fit(&raw_re, &raw_im, input.amplitude.data(), w);
+    // The observation as the pipeline sees it: amplitude and phase, or the phasor's real and
+    // imaginary parts, each pre-filtered.
+    let (first, second) = match params.channels {
+        ScatterChannels::AmplitudePhase => {
+            drop((raw_re, raw_im));
+            (input.amplitude.data().to_vec(), input.phase.data().to_vec())
+        }
+        ScatterChannels::Phasor => (raw_re, raw_im),
+    };
+    let (mut f1, mut f2) = (Vec::new(), Vec::new());
+    rayon::join(|| filter(&first, &mut f1), || filter(&second, &mut f2));
+    drop((first, second));
+    monitor.progress("tof.prefilter", PREFILTER_END);
+    monitor.checkpoint()?;
+
+    let row0 = params
+        .symmetry_row
+        .or(input.intrinsics.map(|k| k.cy))
+        .unwrap_or((h as f64 - 1.0) * 0.5);
+    let mirror = RowMirror::new(h, row0);
+    let grid = PatchGrid::new(w, h, params.patches_x, params.patches_y);
+    let runs = match params.channels {
+        ScatterChannels::AmplitudePhase => 2,
+        ScatterChannels::Phasor => 1,
+    };
+    let total = runs * (params.coarse_iterations + params.fine_iterations);
+    let done = AtomicUsize::new(0);
+    let tick = |stage: &str| {
+        let d = done.fetch_add(1, Ordering::Relaxed) + 1;
+        let f = PREFILTER_END + (IRLS_END - PREFILTER_END) * d as f32 / total.max(1) as f32;
+        monitor.progress(stage, f);
+    };
+    let to_f64 = |img: &[f32]| -> Vec<f64> { img.iter().map(|&v| v as f64).collect() };
+    let run = |imgs: &[&[f64]],
+               noise: Option<NoiseModel>,
+               channel,
+               prefix: &str|
+     -> Result<IrlsOutcome> {
+        let cfg = IrlsConfig {
+            channel,
+            coarse_iterations: params.coarse_iterations,
+            fine_iterations: params.fine_iterations,
+            solver,
+            weight_tolerance: params.convergence_tolerance,
+            mask_threshold: params.mask_threshold as f64,
+            coarse_subdivision: params.coarse_subdivision,
+            coarse_quantile: params.coarse_quantile,
+        };
+        let sys = XStepSystem::new(w, h, cfg.channel.effective_gamma(w, h), mirror.clone());
+        let sys = match params.prior_coupling {
+            PriorCoupling::Joint => sys.with_joint_prior(grid.clone())?,
+            PriorCoupling::Alternating => sys,
+        };
+        let mut priors = vec![QuadraticPrior::new(grid.clone())?; imgs.len()];
+        run_irls_vector(imgs, noise, &sys, &mut priors, &cfg, prefix, monitor, &tick)
+    };
+    let (o1, o2) = (to_f64(&f1), to_f64(&f2));
+    drop((f1, f2));
+    let t = params.mask_threshold as f64;
+    let est = match params.channels {
+        ScatterChannels::AmplitudePhase => {
+            let (ra, rp) = rayon::join(
+                || run(&[&o1], None, params.amplitude, "tof.amplitude"),
+                || run(&[&o2], None, params.phase, "tof.phase"),
+            );
+            let (ra, rp) = (ra?, rp?);
+            let warnings = [("amplitude", &ra), ("phase", &rp)]
+                .into_iter()
+                .filter_map(|(name, r)| not_converged_warning(name, r))
+                .collect();
+            let mut ra_scatter = ra.scatter;
+            let mut rp_scatter = rp.scatter;
+            let (sa, sp) = (ra_scatter.swap_remove(0), rp_scatter.swap_remove(0));
+            // Object = outlier in both images (§5.3.4).
+            let object = ra
+                .weights
+                .iter()
+                .zip(&rp.weights)
+                .map(|(&a, &p)| a < t && p < t)
+                .collect();
+            // A scattering amplitude is a magnitude; a slightly negative estimate (possible in
+            // the unconstrained least squares) would flip the subtracted phasor.
+            let polar = |a: &[f64], p: &[f64], clamp: bool| -> (Vec<f64>, Vec<f64>) {
+                a.par_iter()
+                    .zip(p.par_iter())
+                    .map(|(&a, &p)| {
+                        let a = if clamp { a.max(0.0) } else { a };
+                        let (s, c) = p.sin_cos();
+                        (a * c, a * s)
+                    })
+                    .unzip()
+            };
+            let (scatter_re, scatter_im) = polar(&sa, &sp, true);
+            let (observed_re, observed_im) = polar(&o1, &o2, false);
+            ScatterEstimate {
+                object,
+                observed_re,
+                observed_im,
+                scatter_re,
+                scatter_im,
+                weight_amplitude: ra.weights,
+                weight_phase: rp.weights,
+                noise,
+                warnings,
+            }
+        }
+        ScatterChannels::Phasor => {
+            let r = run(&[&o1, &o2], noise, params.phasor, "tof.phasor")?;
+            let warnings = not_converged_warning("phasor", &r).into_iter().collect();
+            let mut sc = r.scatter;
+            let scatter_im = sc.pop().unwrap_or_default();
+            let scatter_re = sc.pop().unwrap_or_default();
+            ScatterEstimate {
+                object: r.weights.iter().map(|&v| v < t).collect(),
+                observed_re: o1,
+                observed_im: o2,
+                scatter_re,
+                scatter_im,
+                weight_amplitude: r.weights.clone(),
+                weight_phase: r.weights,
+                noise,
+                warnings,
+            }
+        }
+    };
+    monitor.checkpoint()?;
+
+    let out = compose(input, params, &est)?;
+    monitor.progress("tof.compose", 1.0);
+    Ok(out)
+}
+
+/// What the IRLS produced, as phasors: the pre-filtered observation and the scattering
+/// component per pixel, the object mask and the channels' weights.
+struct ScatterEstimate {
+    object: Vec<bool>,
+    observed_re: Vec<f64>,
+    observed_im: Vec<f64>,
+    scatter_re: Vec<f64>,
+    scatter_im: Vec<f64>,
+    weight_amplitude: Vec<f64>,
+    weight_phase: Vec<f64>,
+    /// The frame's noise model (`None` for frames too small to fit one).
+    noise: Option<NoiseModel>,
+    /// What the caller should know about the estimate (see [`TofOutput::warnings`]).
+    warnings: Vec<String>,
+}
+
+/// A sentence when the IRLS of `channel` stopped at its cap of fine iterations with the weights
+/// still moving: the mask and the scatter under it may be incomplete, and more iterations may
+/// change them (on cluttered thick seed 1 at 512×424 the level converges only after about 105
+/// iterations, 40 mm → 25 mm; docs/accuracy.md).
+fn not_converged_warning(channel: &str, r: &IrlsOutcome) -> Option<String> {
+    (!r.fine_converged).then(|| {
+        format!(
+            "{channel} IRLS: the fine level stopped at its cap of {} iterations before its \
+             weights settled; the object mask and the scatter under it may be incomplete \
+             (raise fine_iterations)",
+            r.fine_iterations_run
+        )
+    })
+}
+
+/// Range along the ray (metres) of a phase (radians): Eq. 5.2, c·φ/(4πf).
+#[inline]
+fn range_m(phase_rad: f64, frequency_hz: f64) -> f64 {
+    SPEED_OF_LIGHT_M_PER_S * phase_rad / (2.0 * TAU * frequency_hz)
+}
+
+/// Range along the unit ray `d` (metres) of a surface whose optical path light → surface →
+/// camera is `path_m`, for a light at `light` (camera frame, metres). From
+/// `path = s + |s·d − L|`: `s = (path² − |L|²) / (2·(path − d·L))`. Falls back to `path/2` where
+/// the path is shorter than the baseline (noise), which no real surface can produce.
+#[inline]
+fn range_from_path(path_m: f64, d: [f64; 3], light: [f64; 3]) -> f64 {
+    let l2 = light[0] * light[0] + light[1] * light[1] + light[2] * light[2];
+    let dl = d[0] * light[0] + d[1] * light[1] + d[2] * light[2];
+    if path_m * path_m <= l2 || path_m <= dl {
+        return 0.5 * path_m;
+    }
+    (path_m * path_m - l2) / (2.0 * (path_m - dl))
+}
+
+/// Wraps radians into [0, 2π) (`rem_euclid` can round up to exactly 2π for tiny negatives).
+#[inline]
+fn wrap_phase(p: f64) -> f64 {
+    let r = p.rem_euclid(TAU);
+    if r >= TAU {
+        0.0
+    } else {
+        r
+    }
+}
+
+fn image(w: usize, h: usize, data: Vec<f32>) -> Result<ImageF32> {
+    ImageF32::from_vec(w, h, 1, data).map_err(|e| MurkError::Numerical(e.to_string()))
+}
+
+/// Direct component (Eq. 5.8–5.9), ranges (Eq. 5.2), z-depth.
+fn compose(input: &TofInput, params: &TofParams, est: &ScatterEstimate) -> Result<TofOutput> {
+    let (w, h) = input.amplitude.dims();
+    let n = w * h;
+    let f = params.modulation_frequency_hz;
+    let mut mask = vec![0.0f32; n];
+    let mut alpha_d = vec![0.0f32; n];
+    let mut phi_d = vec![0.0f32; n];
+    let mut range = vec![0.0f32; n];
+    let mut scatter_a = vec![0.0f32; n];
+    let mut scatter_p = vec![0.0f32; n];
+    let mut range_std = vec![0.0f32; n];
+    let raw_phase = input.phase.data();
+    let raw_range: Vec<f32> = raw_phase
+        .par_iter()
+        .map(|&p| range_m(wrap_phase(p as f64), f) as f32)
+        .collect();
+    (
+        mask.par_iter_mut(),
+        alpha_d.par_iter_mut(),
+        phi_d.par_iter_mut(),
+        range.par_iter_mut(),
+        scatter_a.par_iter_mut(),
+        scatter_p.par_iter_mut(),
+        range_std.par_iter_mut(),
+    )
+        .into_par_iter()
+        .enumerate()
+        .for_each(|(i, (m, ad, pd, rg, sa, sp, sd))| {
+            *m = if est.object[i] { 1.0 } else { 0.0 };
+            let (s_re, s_im) = (est.scatter_re[i], est.scatter_im[i]);
+            let re = est.observed_re[i] - s_re;
+            let im = est.observed_im[i] - s_im;
+            let p = wrap_phase(im.atan2(re));
+            *ad = re.hypot(im) as f32;
+            *pd = p as f32;
+            *rg = range_m(p, f) as f32;
+            let a_s = s_re.hypot(s_im);
+            *sa = a_s as f32;
+            *sp = wrap_phase(s_im.atan2(s_re)) as f32;
+            // Without a noise model (tiny frames) the spread of the scatter's own brightness
+            // stands in: no uncertainty is never reported.
+            let a_o = est.observed_re[i].hypot(est.observed_im[i]);
+            let (var_o, var_s) = match est.noise {
+                Some(nm) => (nm.sigma(a_o).powi(2), nm.sigma(a_s).powi(2)),
+                None => (0.0, (1e-3 * a_s).powi(2)),
+            };
+            let sigma_phi = ((var_o + var_s).sqrt() / re.hypot(im).max(1e-300)).min(0.5 * PI);
+            *sd = range_m(sigma_phi, f) as f32;
+        });
+    let mut raw_range = raw_range;
+    if let (Some(k), Some(light)) = (input.intrinsics, params.light_position_m) {
+        // Eq. 5.2 gives half the optical path; with the light off the lens the range is not.
+        for img in [&mut range, &mut raw_range] {
+            img.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+                for (x, r) in row.iter_mut().enumerate() {
+                    let d = k.ray(x as f64, y as f64);
+                    *r = range_from_path(2.0 * *r as f64, d.into(), light) as f32;
+                }
+            });
+        }
+    }
+    // z = range · (the unit ray's z component).
+    let z_of = |range: &[f32]| {
+        input.intrinsics.map(|k| {
+            let mut z = vec![0.0f32; n];
+            z.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+                for (x, zv) in row.iter_mut().enumerate() {
+                    *zv = (range[y * w + x] as f64 * k.ray(x as f64, y as f64)[2]) as f32;
+                }
+            });
+            z
+        })
+    };
+    let z_depth = z_of(&range);
+    let raw_z_depth = z_of(&raw_range);
+    let to_f32 = |v: &[f64]| v.iter().map(|&x| x as f32).collect::<Vec<f32>>();
+    Ok(TofOutput {
+        range_m: image(w, h, range)?,
+        range_std_m: image(w, h, range_std)?,
+        z_depth_m: z_depth.map(|z| image(w, h, z)).transpose()?,
+        raw_range_m: image(w, h, raw_range)?,
+        raw_z_depth_m: raw_z_depth.map(|z| image(w, h, z)).transpose()?,
+        mask: image(w, h, mask)?,
+        scatter_amplitude: image(w, h, scatter_a)?,
+        scatter_phase: image(w, h, scatter_p)?,
+        weight_amplitude: image(w, h, to_f32(&est.weight_amplitude))?,
+        weight_phase: image(w, h, to_f32(&est.weight_phase))?,
+        corrected_amplitude: image(w, h, alpha_d)?,
+        corrected_phase: image(w, h, phi_d)?,
+        warnings: est.warnings.clone(),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::Intrinsics;
+    use crate::tof::params::{IrlsChannelParams, REFERENCE_SIZE_PX};
+
+    #[test]
+    fn range_from_path_inverts_the_offset_light_geometry() {
+        let light = [0.06, 0.01, 0.0];
+        for (d, s) in [
+            ([0.0f64, 0.0, 1.0], 1.5),
+            ([0.5f64, -0.2, 0.84], 0.8),
+            ([-0.55, 0.3, 0.78], 2.7),
+        ] {
+            let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+            let d = [d[0] / n, d[1] / n, d[2] / n];
+            let p = [d[0] * s, d[1] * s, d[2] * s];
+            let rl = ((p[0] - light[0]).powi(2) + (p[1] - light[1]).powi(2) + p[2].powi(2)).sqrt();
+            let got = range_from_path(s + rl, d, light);
+            assert!((got - s).abs() < 1e-12, "{got} vs {s}");
+        }
+        assert_eq!(range_from_path(0.01, [0.0, 0.0, 1.0], light), 0.005);
+    }
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+    use std::sync::atomic::AtomicBool;
+    use std::sync::Arc;
+
+    const W: usize = 64;
+    const H: usize = 48;
+
+    fn gauss(rng: &mut ChaCha8Rng) -> f64 {
+        let u1: f64 = 1.0 - rng.random::<f64>();
+        let u2: f64 = rng.random();
+        (-2.0 * u1.ln()).sqrt() * (TAU * u2).cos()
+    }
+
+    /// Smooth scatter symmetric about row (H−1)/2 (camera and light on a horizontal line), plus
+    /// an optional bright disc (the object) and Gaussian noise. Returns input, true scatter
+    /// amplitude and the disc mask.
+    fn scene(blob: bool, seed: u64) -> (TofInput, Vec<f32>, Vec<bool>) {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let (cy, cx) = ((H as f64 - 1.0) / 2.0, 40.0);
+        let mut amp = vec![0.0f32; W * H];
+        let mut ph = vec![0.0f32; W * H];
+        let mut sa = vec![0.0f32; W * H];
+        let mut m = vec![false; W * H];
+        for y in 0..H {
+            for x in 0..W {
+                let (dx, dy) = (x as f64 - cx, y as f64 - cy);
+                // Gentle enough that γ′₃'s boundary bias (≈ γ′₃·gradient at the Neumann border) stays
+                // within Tukey's c·σ: steeper scatter makes border pixels outliers.
+                let s_a = 100.0 - 0.003 * dx * dx - 0.006 * dy * dy;
+                let s_p = 0.2 + 0.00002 * dx * dx + 0.00004 * dy * dy;
+                let i = y * W + x;
+                sa[i] = s_a as f32;
+                let (bx, by) = (x as f64 - 22.0, y as f64 - 18.0);
+                let inside = blob && bx * bx + by * by <= 64.0;
+                m[i] = inside;
+                let (mut re, mut im) = (s_a * s_p.cos(), s_a * s_p.sin());
+                if inside {
+                    // Object 1.5 m away at 16 MHz: phase ≈ 1.0 rad.
+                    re += 150.0 * 1.0f64.cos();
+                    im += 150.0 * 1.0f64.sin();
+                }
+                re += 0.5 * gauss(&mut rng);
+                im += 0.5 * gauss(&mut rng);
+                amp[i] = re.hypot(im) as f32;
+                ph[i] = wrap_phase(im.atan2(re)) as f32;
+            }
+        }
+        let input = TofInput {
+            amplitude: ImageF32::from_vec(W, H, 1, amp).unwrap(),
+            phase: ImageF32::from_vec(W, H, 1, ph).unwrap(),
+            intrinsics: None,
+        };
+        (input, sa, m)
+    }
+
+    fn fast_params() -> TofParams {
+        // The synthetic scene's structures are sized in pixels as on a 512-wide frame (an
+        // 8-pixel-radius blob); keep the smoothing per pixel of the reference resolution by
+        // undoing the (64/512)² size scaling of γ′₃ (see `IrlsChannelParams::gamma`).
+        let s = (REFERENCE_SIZE_PX / W as f64).powi(2);
+        let mut amplitude = IrlsChannelParams::AMPLITUDE;
+        let mut phase = IrlsChannelParams::PHASE;
+        let mut phasor = IrlsChannelParams::PHASOR;
+        amplitude.gamma[2] *= s;
+        phase.gamma[2] *= s;
+        phasor.gamma[2] *= s;
+        TofParams {
+            coarse_iterations: 5,
+            fine_iterations: 20,
+            amplitude,
+            phase,
+            phasor,
+            ..TofParams::default()
+        }
+    }
+
+    /// An object whose direct return leaves the amplitude unchanged (observed = scatter·e^{jθ}):
+    /// invisible to the amplitude channel, so the reference's "outlier in both" mask misses it,
+    /// while the phasor's complex residual flags it and the corrected phase is the object's.
+    #[test]
+    fn object_invisible_in_amplitude_is_masked_by_the_phasor_residual() {
+        let (mut input, _, _) = scene(false, 13);
+        let theta = 0.6f64;
+        let mut phase = input.phase.data().to_vec();
+        for (i, p) in phase.iter_mut().enumerate() {
+            if blob_at(i) {
+                *p = wrap_phase(*p as f64 + theta) as f32;
+            }
+        }
+        input.phase = ImageF32::from_vec(W, H, 1, phase).unwrap();
+        let iou = |out: &TofOutput| {
+            let (mut inter, mut uni) = (0, 0);
+            for i in 0..W * H {
+                let m = out.mask.data()[i] > 0.5;
+                let b = blob_at(i);
+                inter += (m && b) as usize;
+                uni += (m || b) as usize;
+            }
+            inter as f64 / uni.max(1) as f64
+        };
+        let phasor = estimate_tof_depth(&input, &fast_params(), &Monitor::noop()).unwrap();
+        assert!(iou(&phasor) > 0.8, "phasor IoU {}", iou(&phasor));
+        let reference = TofParams {
+            channels: ScatterChannels::AmplitudePhase,
+            ..fast_params()
+        };
+        let ap = estimate_tof_depth(&input, &reference, &Monitor::noop()).unwrap();
+        assert!(iou(&ap) < 0.2, "amplitude/phase IoU {}", iou(&ap));
+    }
+
+    fn blob_at(i: usize) -> bool {
+        let (x, y) = ((i % W) as f64, (i / W) as f64);
+        (x - 22.0).powi(2) + (y - 18.0).powi(2) <= 64.0
+    }
+
+    #[test]
+    fn background_only_has_unit_weights_and_no_mask() {
+        let (input, _, _) = scene(false, 7);
+        let out = estimate_tof_depth(&input, &fast_params(), &Monitor::noop()).unwrap();
+        let n = (W * H) as f64;
+        let mean_w: f64 = out
+            .weight_amplitude
+            .data()
+            .iter()
+            .map(|&v| v as f64)
+            .sum::<f64>()
+            / n;
+        assert!(mean_w > 0.85, "mean amplitude weight {mean_w}");
+        let masked: f32 = out.mask.data().iter().sum();
+        assert!(
+            masked <= 0.005 * n as f32,
+            "{masked} background pixels masked"
+        );
+        assert!(out.range_m.data().iter().all(|v| v.is_finite()));
+    }
+
+    #[test]
+    fn bright_blob_is_masked_and_scatter_recovered_under_it() {
+        let (input, true_sa, blob) = scene(true, 11);
+        let out = estimate_tof_depth(&input, &fast_params(), &Monitor::noop()).unwrap();
+        let (mut inter, mut uni, mut err, mut nb) = (0, 0, 0.0, 0);
+        for i in 0..W * H {
+            let m = out.mask.data()[i] > 0.5;
+            inter += (m && blob[i]) as usize;
+            uni += (m || blob[i]) as usize;
+            if blob[i] {
+                err += (out.scatter_amplitude.data()[i] - true_sa[i]).abs() as f64;
+                // Direct phase is the object's 1.0 rad once the scatter is removed.
+                let pd = out.corrected_phase.data()[i] as f64;
+                assert!((pd - 1.0).abs() < 0.05, "direct phase {pd}");
+                nb += 1;
+            }
+        }
+        let iou = inter as f64 / uni as f64;
+        assert!(iou > 0.85, "IoU {iou}");
+        let rel = err / nb as f64 / 100.0;
+        assert!(rel < 0.02, "relative scatter error under the blob {rel}");
+        let expect_m = SPEED_OF_LIGHT_M_PER_S * 1.0 / (2.0 * TAU * 16e6);
+        let i = 18 * W + 22;
+        assert!((out.range_m.data()[i] as f64 - expect_m).abs() < 0.05);
+        assert!((out.raw_range_m.data()[i] as f64 - expect_m).abs() > 0.01);
+        assert!(out.warnings.is_empty(), "{:?}", out.warnings);
+    }
+
+    /// A fine level cut off by its cap says so; one that converges, or runs with the
+    /// convergence test off (the caller asked for exactly that many), does not.
+    #[test]
+    fn a_fine_level_stopped_at_its_cap_is_reported() {
+        let (input, _, _) = scene(true, 11);
+        let capped = TofParams {
+            fine_iterations: 2,
+            ..fast_params()
+        };
+        let out = estimate_tof_depth(&input, &capped, &Monitor::noop()).unwrap();
+        assert_eq!(out.warnings.len(), 1, "{:?}", out.warnings);
+        let w = &out.warnings[0];
+        assert!(
+            w.starts_with("phasor IRLS: the fine level stopped at its cap of 2"),
+            "{w}"
+        );
+        assert!(
+            w.contains("raise fine_iterations") && !w.contains("  "),
+            "{w}"
+        );
+
+        let both = TofParams {
+            channels: ScatterChannels::AmplitudePhase,
+            ..capped.clone()
+        };
+        let out = estimate_tof_depth(&input, &both, &Monitor::noop()).unwrap();
+        assert_eq!(out.warnings.len(), 2, "{:?}", out.warnings);
+        assert!(
+            out.warnings[1].starts_with("phase IRLS"),
+            "{:?}",
+            out.warnings
+        );
+
+        let untested = TofParams {
+            convergence_tolerance: 0.0,
+            ..capped
+        };
+        let out = estimate_tof_depth(&input, &untested, &Monitor::noop()).unwrap();
+        assert!(out.warnings.is_empty(), "{:?}", out.warnings);
+    }
+
+    #[test]
+    fn zero_iterations_and_constant_image_are_finite() {
+        let (input, _, _) = scene(true, 3);
+        let p = TofParams {
+            coarse_iterations: 0,
+            fine_iterations: 0,
+            ..TofParams::default()
+        };
+        let out = estimate_tof_depth(&input, &p, &Monitor::noop()).unwrap();
+        assert!(out.mask.data().iter().all(|&v| v == 0.0));
+        assert!(out.weight_phase.data().iter().all(|&v| v == 1.0));
+        assert!(out.range_m.data().iter().all(|v| v.is_finite()));
+
+        let c = TofInput {
+            amplitude: ImageF32::filled(W, H, 1, 5.0),
+            phase: ImageF32::filled(W, H, 1, 0.3),
+            intrinsics: Some(Intrinsics::new(50.0, 50.0, 31.5, 23.5)),
+        };
+        let out = estimate_tof_depth(&c, &fast_params(), &Monitor::noop()).unwrap();
+        for img in [&out.range_m, &out.weight_amplitude, &out.scatter_phase] {
+            assert!(img.data().iter().all(|v| v.is_finite()));
+        }
+        assert!(out.z_depth_m.unwrap().data().iter().all(|v| v.is_finite()));
+        // The raw z-depth is the raw range times the ray's z component: below the range off
+        // the optical axis, equal on it.
+        let raw_z = out.raw_z_depth_m.unwrap();
+        let k = c.intrinsics.unwrap();
+        for (i, (&z, &r)) in raw_z.data().iter().zip(out.raw_range_m.data()).enumerate() {
+            let ray = k.ray((i % W) as f64, (i / W) as f64);
+            assert!((f64::from(z) - f64::from(r) * ray[2]).abs() < 1e-5 * f64::from(r));
+        }
+        assert!(out.mask.data().iter().all(|&v| v == 0.0));
+    }
+
+    #[test]
+    fn cancellation_stops_the_job() {
+        let (input, _, _) = scene(true, 5);
+        let m = Monitor::noop();
+        m.cancel();
+        assert_eq!(
+            estimate_tof_depth(&input, &fast_params(), &m).unwrap_err(),
+            MurkError::Cancelled
+        );
+        // Cancel from the progress sink after the first IRLS iteration.
+        let flag = Arc::new(AtomicBool::new(false));
+        let f2 = flag.clone();
+        let m = Monitor::new(
+            flag,
+            Some(Arc::new(move |stage: &str, _| {
+                if stage.ends_with(".coarse") {
+                    f2.store(true, Ordering::Relaxed);
+                }
+            })),
+        );
+        assert_eq!(
+            estimate_tof_depth(&input, &fast_params(), &m).unwrap_err(),
+            MurkError::Cancelled
+        );
+    }
+
+    use crate::error::field_of as field;
+
+    #[test]
+    fn validation_errors_name_fields() {
+        let (input, _, _) = scene(false, 1);
+        let m = Monitor::noop();
+        let mut bad = input.clone();
+        bad.phase = ImageF32::filled(W - 1, H, 1, 0.1);
+        assert_eq!(
+            field(estimate_tof_depth(&bad, &fast_params(), &m).unwrap_err()),
+            "phase"
+        );
+        let mut bad = input.clone();
+        bad.amplitude.set(3, 4, 0, f32::NAN);
+        assert_eq!(
+            field(estimate_tof_depth(&bad, &fast_params(), &m).unwrap_err()),
+            "amplitude"
+        );
+        for f in [0.0, -1.0, f64::NAN] {
+            let p = TofParams {
+                modulation_frequency_hz: f,
+                ..fast_params()
+            };
+            assert_eq!(
+                field(estimate_tof_depth(&input, &p, &m).unwrap_err()),
+                "modulation_frequency_hz"
+            );
+        }
+    }
+}
