@@ -1,4 +1,4 @@
-"""The README's grpcurl sessions, run with bash exactly as written against a real server.
+"""The grpcurl sessions of docs/api.md, run with bash exactly as written against a real server.
 
 grpcurl itself is used when it is installed; otherwise tests/tools/grpcurl, a stand-in with the
 same flags and the same proto3 JSON mapping, takes its place (see its docstring)."""
@@ -17,16 +17,17 @@ import pytest
 from .conftest import REPO, MurkServer, murk_binary
 
 TOOLS = Path(__file__).resolve().parent / "tools"
+API_DOC = REPO / "docs" / "api.md"
 
 
 def sessions() -> list[str]:
-    text = (REPO / "README.md").read_text()
+    text = API_DOC.read_text()
     return re.findall(r"<!-- grpcurl-session -->\n```sh\n(.*?)```", text, flags=re.S)
 
 
-def test_readme_grpcurl_sessions_run(server: MurkServer, tmp_path: Path) -> None:
+def test_api_doc_grpcurl_sessions_run(server: MurkServer, tmp_path: Path) -> None:
     blocks = sessions()
-    assert len(blocks) == 4, "one session per method expected in the README"
+    assert len(blocks) == 4, f"one session per method expected in {API_DOC}"
     if shutil.which("jq") is None:
         pytest.skip("SKIPPED: jq not installed")
     script = "\n".join(blocks).replace("ADDR=127.0.0.1:50051", f"ADDR={server.addr}", 1)
