@@ -72,8 +72,10 @@ pub struct ServeArgs {
     /// Largest image, pixels.
     #[arg(long, env = "MURK_MAX_IMAGE_PIXELS", default_value_t = 16 << 20)]
     pub max_image_pixels: u64,
-    /// Largest forward-scatter kernel of a photometric-stereo job, bytes (object pixels × r² ×
-    /// 4; the method's memory peak). Larger requests get INVALID_ARGUMENT naming `support_r`.
+    /// Largest forward-scatter kernel of a photometric-stereo job, bytes (object pixels ×
+    /// stored entries per pixel × 4, the entries of the near block and the far cells' window:
+    /// 1 121 at r = 81 with the default cells; the method's memory peak). Larger requests
+    /// get INVALID_ARGUMENT naming `support_r`.
     #[arg(long, env = "MURK_MAX_PS_KERNEL_BYTES", default_value_t = murk::ps::pipeline::DEFAULT_MAX_KERNEL_BYTES)]
     pub max_ps_kernel_bytes: usize,
     /// Seconds to drain jobs on SIGTERM/Ctrl-C before cancelling them.

@@ -131,7 +131,7 @@ pub(super) fn estimate_falloff(samples: &[(&Samples, &[f32])]) -> f32 {
 
 /// The search of [`estimate_falloff`] without its model selection: the fall-off that minimises
 /// the objective, the objective there, and the objective at `a = 0`.
-pub(super) fn search_falloff(samples: &[(&Samples, &[f32])]) -> (f64, f64, f64) {
+fn search_falloff(samples: &[(&Samples, &[f32])]) -> (f64, f64, f64) {
     let coarse = |a: f64| objective(samples, a as f32, SEARCH_STRIDE);
     let fine = |a: f64| objective(samples, a as f32, 1);
     let m = grid_then_brent(
