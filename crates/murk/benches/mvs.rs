@@ -21,7 +21,8 @@ use murk::mvs::{
     build_cost_volume,
     depth::contrast::{apply_weights, contrast_weights, local_contrast},
     depth::presmooth::gaussian_presmooth,
-    estimate_depth, CostKind, DehazingOptions, PlaneSet, SgmParams, View,
+    estimate_depth, CostKind, DehazingOptions, DepthParams, MatchingParams, PhotometricParams,
+    PlaneSet, RejectionParams, SgmParams, View,
 };
 use murk::simulate::mvs::{simulate_mvs, MvsSimConfig};
 use murk::Monitor;
@@ -69,32 +70,35 @@ fn bench(c: &mut Criterion) {
 
     let mut g = c.benchmark_group(format!("mvs_depth_{w}x{h}x256"));
     g.sample_size(10);
-    let sigma = SgmParams::default().presmooth_sigma_px;
+    let sigma = DepthParams::default().matching.presmooth_sigma_px;
     g.bench_function("presmooth_one_view", |b| {
         b.iter(|| gaussian_presmooth(reference.image, sigma))
     });
     // Weights from the reference, applied to a 256-plane volume in place (the values only grow,
     // by at most w_max per iteration; inf costs the same as a finite value).
-    let defaults = SgmParams::default();
+    let defaults = DepthParams::default();
     let mut volume = vec![1.0f32; w * h * 256];
     g.bench_function("contrast_normalisation_256_planes", |b| {
         b.iter(|| {
             let c = local_contrast(reference.image.data(), w, h, reference.image.channels(), 2);
             let weights = contrast_weights(
                 &c,
-                defaults.contrast_percentile,
-                defaults.contrast_max_weight,
+                defaults.matching.contrast_percentile,
+                defaults.matching.contrast_max_weight,
             );
             apply_weights(&mut volume, &weights);
         })
     });
     let kind = CostKind::DehazingWith(atm, DehazingOptions::default());
-    let eight = SgmParams {
-        num_paths: 8,
-        ..SgmParams::default()
+    let eight = DepthParams {
+        sgm: SgmParams {
+            num_paths: 8,
+            ..SgmParams::default()
+        },
+        ..DepthParams::default()
     };
     for n_src in [1usize, 4] {
-        for (name, sgm) in [("default", SgmParams::default()), ("eight_paths", eight)] {
+        for (name, sgm) in [("default", DepthParams::default()), ("eight_paths", eight)] {
             g.bench_function(format!("dehazing_{name}_sgm/{n_src}src"), |b| {
                 b.iter(|| {
                     estimate_depth(&reference, &sources[..n_src], &planes, kind, &sgm, &monitor)
@@ -135,46 +139,60 @@ fn bench_stereo_pair(c: &mut Criterion) {
     let mut g = c.benchmark_group("mvs_stereo_pair_640x480x128");
     g.sample_size(10);
     for (name, sgm) in [
-        ("default", SgmParams::default()),
+        ("default", DepthParams::default()),
         (
             "no_consistency_check",
-            SgmParams {
-                consistency_check: false,
-                ..SgmParams::default()
+            DepthParams {
+                rejection: RejectionParams {
+                    consistency_check: false,
+                    ..RejectionParams::default()
+                },
+                ..DepthParams::default()
             },
         ),
         // 8 paths: the upward ones need the stored volumes, in strips under the default
         // budget or as one volume (2 × 80 MiB of `u16`).
         (
             "eight_paths",
-            SgmParams {
-                num_paths: 8,
-                ..SgmParams::default()
+            DepthParams {
+                sgm: SgmParams {
+                    num_paths: 8,
+                    ..SgmParams::default()
+                },
+                ..DepthParams::default()
             },
         ),
         (
             "eight_paths_one_volume",
-            SgmParams {
-                num_paths: 8,
-                volume_budget_mib: 1024,
-                ..SgmParams::default()
+            DepthParams {
+                sgm: SgmParams {
+                    num_paths: 8,
+                    volume_budget_mib: 1024,
+                    ..SgmParams::default()
+                },
+                ..DepthParams::default()
             },
         ),
         // The opt-in census term for cameras with different tone curves (docs/stereo-mvs.md).
         (
             "census_weight_1",
-            SgmParams {
-                census_weight: 1.0,
-                ..SgmParams::default()
+            DepthParams {
+                matching: MatchingParams {
+                    census_weight: 1.0,
+                    ..MatchingParams::default()
+                },
+                ..DepthParams::default()
             },
         ),
         // Without the exposure and fall-off estimates, to show what they cost.
         (
             "no_exposure_no_vignetting",
-            SgmParams {
-                exposure_compensation: false,
-                vignetting_compensation: false,
-                ..SgmParams::default()
+            DepthParams {
+                photometric: PhotometricParams {
+                    exposure_compensation: false,
+                    vignetting_compensation: false,
+                },
+                ..DepthParams::default()
             },
         ),
     ] {

@@ -13,7 +13,7 @@
 use criterion::{criterion_group, criterion_main, Criterion};
 
 use murk::atmosphere::AtmosphereParams;
-use murk::mvs::{estimate_depth, CostKind, DehazingOptions, PlaneSet, SgmParams};
+use murk::mvs::{estimate_depth, CostKind, DehazingOptions, DepthParams, PlaneSet};
 use murk::params::airlight::{dark_channel_airlight, DarkChannelParams};
 use murk::params::search::{plane_range_from_sparse, search_scattering, SearchParams};
 use murk::simulate::mvs::{simulate_mvs, MvsSimConfig};
@@ -120,7 +120,7 @@ fn bench(c: &mut Criterion) {
                 &sources,
                 &planes,
                 kind,
-                &SgmParams::default(),
+                &DepthParams::default(),
                 &monitor,
             )
             .expect("depth")

@@ -9,7 +9,7 @@
 //! from `--airlight-range`, β set for a median transmission of the reference drawn from
 //! `--median-transmission-range`, Gaussian sensor noise. Depth is `estimate_depth` with the true
 //! A and β, the `--sources` views nearest the reference along the trajectory, and
-//! `SgmParams::default()` except for the options given. The tables of docs/accuracy.md:
+//! `DepthParams::default()` except for the options given. The tables of docs/accuracy.md:
 //!
 //! ```sh
 //! cargo run --release -p murk --example mvs_survey -- --seeds 0-4 --cost ordinary,eq37,dehazing-hard,dehazing-noise-aware,dehazing
@@ -38,7 +38,7 @@ use murk::metrics::{depth_metrics, DepthMetrics};
 use murk::mvs::depth::vignetting::vignette;
 use murk::mvs::{
     estimate_depth, planes_for_displacement, Camera, CostKind, DehazingOptions, DehazingResidual,
-    PlaneSet, RangePenalty, SgmParams, View, MAX_PLANES,
+    DepthParams, PlaneSet, RangePenalty, View, MAX_PLANES,
 };
 use murk::params::search::plane_range_from_sparse;
 use murk::simulate::mvs::{simulate_mvs, MvsScene, MvsSimConfig};
@@ -227,17 +227,17 @@ struct Args {
 struct Variant {
     cost: Cost,
     planes: Planes,
-    sgm: SgmParams,
+    sgm: DepthParams,
     label: String,
 }
 
-/// One compared `SgmParams` field: its values, its name in the labels, and how to set it.
-type SgmAxis = (Vec<f32>, &'static str, fn(&mut SgmParams, f32));
+/// One compared `DepthParams` field: its values, its name in the labels, and how to set it.
+type SgmAxis = (Vec<f32>, &'static str, fn(&mut DepthParams, f32));
 
 /// Every combination of the listed options, labelled by the cost volume and the options that
 /// take more than one value.
 fn variants(a: &Args) -> Vec<Variant> {
-    let d = SgmParams::default();
+    let d = DepthParams::default();
     let mut out: Vec<Variant> = a
         .cost
         .iter()
@@ -256,17 +256,17 @@ fn variants(a: &Args) -> Vec<Variant> {
     );
     let or_default = |v: &[f32], x: f32| if v.is_empty() { vec![x] } else { v.to_vec() };
     let sgm_axes: [SgmAxis; 4] = [
-        (or_default(&a.p1, d.p1), "P1", |s, x| s.p1 = x),
-        (or_default(&a.p2, d.p2), "P2", |s, x| s.p2 = x),
+        (or_default(&a.p1, d.sgm.p1), "P1", |s, x| s.sgm.p1 = x),
+        (or_default(&a.p2, d.sgm.p2), "P2", |s, x| s.sgm.p2 = x),
         (
-            or_default(&a.presmooth_sigma, d.presmooth_sigma_px),
+            or_default(&a.presmooth_sigma, d.matching.presmooth_sigma_px),
             "pre-smoothing σ",
-            |s, x| s.presmooth_sigma_px = x,
+            |s, x| s.matching.presmooth_sigma_px = x,
         ),
         (
-            or_default(&a.contrast_max_weight, d.contrast_max_weight),
+            or_default(&a.contrast_max_weight, d.matching.contrast_max_weight),
             "w_max",
-            |s, x| s.contrast_max_weight = x,
+            |s, x| s.matching.contrast_max_weight = x,
         ),
     ];
     for (values, name, set) in sgm_axes {
@@ -281,13 +281,13 @@ fn variants(a: &Args) -> Vec<Variant> {
         out,
         &a.paths,
         |n| format!("{n} paths"),
-        |v, n| v.sgm.num_paths = n,
+        |v, n| v.sgm.sgm.num_paths = n,
     );
     out = expand(
         out,
         &a.census_weight,
         |x| format!("census {x}"),
-        |v, x| v.sgm.census_weight = x,
+        |v, x| v.sgm.matching.census_weight = x,
     );
     expand(
         out,
@@ -298,7 +298,7 @@ fn variants(a: &Args) -> Vec<Variant> {
                 if c == OnOff::On { "on" } else { "off" }
             )
         },
-        |v, c| v.sgm.vignetting_compensation = c == OnOff::On,
+        |v, c| v.sgm.photometric.vignetting_compensation = c == OnOff::On,
     )
 }
 

@@ -34,7 +34,7 @@ use murk::atmosphere::AtmosphereParams;
 use murk::image::ImageF32;
 use murk::metrics::depth_metrics;
 use murk::mvs::depth::vignetting::vignette;
-use murk::mvs::{estimate_depth, CostKind, DehazingOptions, PlaneSet, SgmParams, View};
+use murk::mvs::{estimate_depth, CostKind, DehazingOptions, DepthParams, PlaneSet, View};
 use murk::params::airlight::{dark_channel_airlight, AirlightEstimator, DarkChannelParams};
 use murk::params::joint_fit::{
     fit_joint, JointPriors, FALLOFF_PRIOR_SIGMA, RELATIVE_FALLOFF_PRIOR_SIGMA,
@@ -212,7 +212,7 @@ fn depth_cp(scene: &Scene, planes: &PlaneSet, airlight: f32, beta: f32) -> anyho
         &sources,
         planes,
         kind,
-        &SgmParams::default(),
+        &DepthParams::default(),
         &Monitor::noop(),
     )?;
     let truth = &scene.sim.views[scene.sim.reference].depth;

@@ -20,8 +20,8 @@ use murk::atmosphere::AtmosphereParams;
 use murk::camera::Intrinsics;
 use murk::io::{read_image, write_colormap_png, write_exr, DecodeLimits};
 use murk::mvs::{
-    estimate_depth, planes_for_displacement, Camera, CostKind, DehazingOptions, PlaneSet, Pose,
-    SgmParams, View, MAX_PLANES,
+    estimate_depth, planes_for_displacement, Camera, CostKind, DehazingOptions, DepthParams,
+    PlaneSet, Pose, View, MAX_PLANES,
 };
 use murk::Monitor;
 
@@ -128,7 +128,7 @@ fn main() -> anyhow::Result<()> {
         &[source],
         &planes,
         kind,
-        &SgmParams::default(),
+        &DepthParams::default(),
         &Monitor::noop(),
     )?;
     let seconds = started.elapsed().as_secs_f64();

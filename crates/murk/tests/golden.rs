@@ -16,7 +16,7 @@ use std::collections::BTreeMap;
 use std::path::PathBuf;
 
 use murk::metrics::{depth_metrics, mean_angular_error_deg};
-use murk::mvs::{estimate_depth, CostKind, DehazingOptions, PlaneSet, SgmParams};
+use murk::mvs::{estimate_depth, CostKind, DehazingOptions, DepthParams, PlaneSet};
 use murk::params::search::{plane_range_from_sparse, search_scattering, SearchParams};
 use murk::ps::{photometric_stereo, PsParams};
 use murk::simulate::mvs::{simulate_mvs, MvsSimConfig};
@@ -221,7 +221,7 @@ fn mvs_dehazing_room() {
         &sources,
         &planes,
         kind,
-        &SgmParams::default(),
+        &DepthParams::default(),
         &Monitor::noop(),
     )
     .unwrap();

@@ -26,7 +26,8 @@ pub use cost_volume::{
     DehazingResidual, RangePenalty, View,
 };
 pub use depth::{
-    depth_from_cost_volume, depth_from_costs, estimate_depth, DepthResult, PostFilter, SgmParams,
+    depth_from_cost_volume, depth_from_costs, estimate_depth, DepthParams, DepthResult,
+    MatchingParams, PhotometricParams, PostFilter, RejectionParams, SgmParams,
 };
 pub use plane_count::{planes_for_displacement, Camera, AUTO_PLANES_MAX, AUTO_PLANES_MIN};
 pub use plane_sweep::{PlaneSet, PlaneWarp, MAX_PLANES};

@@ -8,11 +8,14 @@
 use crate::atmosphere::AtmosphereParams;
 use crate::metrics::{depth_metrics, DepthMetrics};
 use crate::monitor::Monitor;
-use crate::mvs::{estimate_depth, CostKind, DehazingOptions, PlaneSet, SgmParams, View};
+use crate::mvs::{
+    estimate_depth, CostKind, DehazingOptions, DepthParams, MatchingParams, PhotometricParams,
+    PlaneSet, RejectionParams, SgmParams, View,
+};
 use crate::simulate::mvs::{simulate_mvs, MvsScene, MvsSimConfig};
 
 /// Metrics of the depth of `scene`'s reference view with `kind` and the default
-/// [`SgmParams`], from its `num_sources` nearest sources.
+/// [`DepthParams`], from its `num_sources` nearest sources.
 fn evaluate(
     scene: &MvsScene,
     planes: &PlaneSet,
@@ -26,7 +29,7 @@ fn evaluate(
         &sources,
         planes,
         kind,
-        &SgmParams::default(),
+        &DepthParams::default(),
         &Monitor::noop(),
     )
     .unwrap();
@@ -104,7 +107,7 @@ fn dehazing_vs_ordinary_at_reduced_size() {
 }
 
 /// The depth of `scene`'s reference from its nearest source with `sgm`, over `planes`.
-fn depth_of(scene: &MvsScene, planes: &PlaneSet, sgm: &SgmParams) -> crate::mvs::DepthResult {
+fn depth_of(scene: &MvsScene, planes: &PlaneSet, sgm: &DepthParams) -> crate::mvs::DepthResult {
     let views: Vec<View<'_>> = scene.hazy_views();
     let sources = nearest_sources(&views, scene.reference, 1);
     let kind = true_haze(scene);
@@ -137,12 +140,12 @@ fn clean_compensated_off(
     clean: &MvsScene,
     changed: &MvsScene,
     planes: &PlaneSet,
-    off: SgmParams,
+    off: DepthParams,
 ) -> [(crate::mvs::DepthResult, f64); 3] {
     let gt = &clean.views[clean.reference].depth;
     [
-        (clean, SgmParams::default()),
-        (changed, SgmParams::default()),
+        (clean, DepthParams::default()),
+        (changed, DepthParams::default()),
         (changed, off),
     ]
     .map(|(scene, sgm)| {
@@ -176,13 +179,16 @@ fn consistency_check_on_a_rectified_pair() {
     let off = depth_of(
         &scene,
         &planes,
-        &SgmParams {
-            consistency_check: false,
-            speckle_max_size_px: Some(0),
-            ..SgmParams::default()
+        &DepthParams {
+            rejection: RejectionParams {
+                consistency_check: false,
+                speckle_max_size_px: Some(0),
+                ..RejectionParams::default()
+            },
+            ..DepthParams::default()
         },
     );
-    let on = depth_of(&scene, &planes, &SgmParams::default());
+    let on = depth_of(&scene, &planes, &DepthParams::default());
     let gt = &scene.views[scene.reference].depth;
     let rejected: Vec<usize> = (0..gt.data().len())
         .filter(|&p| on.confidence.data()[p] == 0.0 && off.confidence.data()[p] > 0.0)
@@ -229,9 +235,12 @@ fn a_brighter_source_camera_is_compensated() {
         &equal,
         &brighter,
         &planes,
-        SgmParams {
-            exposure_compensation: false,
-            ..SgmParams::default()
+        DepthParams {
+            photometric: PhotometricParams {
+                exposure_compensation: false,
+                ..PhotometricParams::default()
+            },
+            ..DepthParams::default()
         },
     );
     println!(
@@ -262,16 +271,22 @@ fn strips_match_the_whole_volume() {
     // 160 px × 64 planes × 4 bytes = 40 KiB a row: 1 MiB holds 25 rows, so strips of 16 own
     // rows with 24 rows of overlap each side (8 strips).
     // Strips are where the paths run both ways (8 paths): the default one pass keeps no volume.
-    let eight = SgmParams {
-        num_paths: 8,
-        ..SgmParams::default()
+    let eight = DepthParams {
+        sgm: SgmParams {
+            num_paths: 8,
+            ..SgmParams::default()
+        },
+        ..DepthParams::default()
     };
     let whole = depth_of(&scene, &planes, &eight);
     let strips = depth_of(
         &scene,
         &planes,
-        &SgmParams {
-            volume_budget_mib: 1,
+        &DepthParams {
+            sgm: SgmParams {
+                volume_budget_mib: 1,
+                ..eight.sgm
+            },
             ..eight
         },
     );
@@ -320,12 +335,18 @@ fn census_term_survives_vignetting() {
     let (clean, vignetted, planes) = vignetted_pair(-0.3);
     let gt = &clean.views[clean.reference].depth;
     let c_p = |d: &crate::mvs::DepthResult| depth_metrics(&d.z_depth, gt, None).unwrap().c_p;
-    let plain_params = SgmParams {
-        vignetting_compensation: false,
-        ..SgmParams::default()
+    let plain_params = DepthParams {
+        photometric: PhotometricParams {
+            vignetting_compensation: false,
+            ..PhotometricParams::default()
+        },
+        ..DepthParams::default()
     };
-    let census = SgmParams {
-        census_weight: 3.0,
+    let census = DepthParams {
+        matching: MatchingParams {
+            census_weight: 3.0,
+            ..plain_params.matching
+        },
         ..plain_params
     };
     let base = c_p(&depth_of(&clean, &planes, &plain_params));
@@ -353,9 +374,12 @@ fn a_shared_lens_falloff_is_compensated() {
         &clean,
         &vignetted,
         &planes,
-        SgmParams {
-            vignetting_compensation: false,
-            ..SgmParams::default()
+        DepthParams {
+            photometric: PhotometricParams {
+                vignetting_compensation: false,
+                ..PhotometricParams::default()
+            },
+            ..DepthParams::default()
         },
     );
     println!(
@@ -394,9 +418,12 @@ fn a_source_lens_that_differs_is_compensated() {
         &clean,
         &vignetted,
         &planes,
-        SgmParams {
-            exposure_compensation: false,
-            ..SgmParams::default()
+        DepthParams {
+            photometric: PhotometricParams {
+                exposure_compensation: false,
+                ..PhotometricParams::default()
+            },
+            ..DepthParams::default()
         },
     );
     println!(
@@ -432,7 +459,7 @@ fn a_gain_at_the_search_bound_is_reported() {
     for v in brighter.views[source].hazy.data_mut() {
         *v *= 2.5;
     }
-    let d = depth_of(&brighter, &planes, &SgmParams::default());
+    let d = depth_of(&brighter, &planes, &DepthParams::default());
     println!("gains {:?}, warnings {:?}", d.source_gains, d.warnings);
     assert_eq!(d.warnings.len(), 3, "{:?}", d.warnings);
     assert!(d
@@ -442,7 +469,7 @@ fn a_gain_at_the_search_bound_is_reported() {
     for g in &d.source_gains {
         assert!((g - 2.0).abs() < 2e-3, "{:?}", d.source_gains);
     }
-    assert!(depth_of(&equal, &planes, &SgmParams::default())
+    assert!(depth_of(&equal, &planes, &DepthParams::default())
         .warnings
         .is_empty());
 }

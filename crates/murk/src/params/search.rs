@@ -50,7 +50,7 @@ use crate::camera::Intrinsics;
 use crate::error::{MurkError, Result};
 use crate::image::ImageF32;
 use crate::monitor::Monitor;
-use crate::mvs::{estimate_depth, CostKind, DehazingOptions, PlaneSet, SgmParams, View};
+use crate::mvs::{estimate_depth, CostKind, DehazingOptions, DepthParams, PlaneSet, View};
 use crate::params::joint_fit::{fit_joint_samples, Identifiability, JointFit, JointPriors};
 use crate::params::point_ratio::{beta_from_ratio_samples, blurred_ratio_samples, PointRatioFit};
 use crate::params::residual::{paired_improvement_t, sparse_residuals};
@@ -108,8 +108,8 @@ pub struct SearchParams {
     pub search_planes: usize,
     /// Dehazing cost-volume options of the depth function.
     pub cost: DehazingOptions,
-    /// Aggregation parameters of the depth function.
-    pub sgm: SgmParams,
+    /// Parameters of the depth function (the API's `sgm` options).
+    pub depth: DepthParams,
     /// Step 2 replaces `(A₀, β₀)` only by a grid point whose residual is lower by at least this
     /// many standard errors (paired t over the SfM pixels, [`paired_improvement_t`]); 0 = the
     /// plain argmin of the published algorithm. Finite, `≥ 0`.
@@ -146,7 +146,7 @@ impl Default for SearchParams {
             search_downsample: 2,
             search_planes: 64,
             cost: DehazingOptions::default(),
-            sgm: SgmParams::default(),
+            depth: DepthParams::default(),
             min_improvement_t: 3.0,
             beta_from_points: true,
             joint_fit: true,
@@ -228,7 +228,7 @@ impl SearchParams {
                 format!("must be finite and >= 0, got {}", self.min_improvement_t),
             );
         }
-        self.sgm.validate().map_err(|e| e.within("sgm"))
+        self.depth.validate().map_err(|e| e.within("sgm"))
     }
 
     /// Most depth evaluations of a search: `beta_steps + grid_steps²`, or
@@ -628,7 +628,7 @@ pub fn search_scattering(
             &source_views,
             &search_planes,
             kind,
-            &params.sgm,
+            &params.depth,
             &monitor.sub(i / total, (i + 1.0) / total),
         )?;
         let per_point = sparse_residuals(&depth.z_depth, &sparse_small, delta)?;

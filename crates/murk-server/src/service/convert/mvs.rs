@@ -16,8 +16,8 @@ use murk::image::ImageF32;
 use murk::monitor::Monitor;
 use murk::mvs::cost_volume::MAX_VOXELS;
 use murk::mvs::{
-    estimate_depth, planes_for_displacement, Camera, CostKind, DehazingOptions, DepthResult,
-    PlaneSet, Pose, SgmParams, View,
+    estimate_depth, planes_for_displacement, Camera, CostKind, DehazingOptions, DepthParams,
+    DepthResult, PlaneSet, Pose, View,
 };
 
 /// Largest number of source views per request. Every source adds a full pass over the cost
@@ -62,7 +62,7 @@ pub struct MvsInput {
     /// The wire kind it came from (UNSPECIFIED resolved), echoed in the result.
     pub wire_kind: pb::CostVolumeKind,
     /// Aggregation parameters, defaults resolved.
-    pub sgm: SgmParams,
+    pub sgm: DepthParams,
 }
 
 impl MvsInput {
@@ -148,35 +148,46 @@ pub(super) fn auto_planes(
     )
 }
 
-pub(super) fn sgm_of(o: Option<&pb::SgmOptions>) -> SgmParams {
-    let mut p = SgmParams::default();
+pub(super) fn sgm_of(o: Option<&pb::SgmOptions>) -> DepthParams {
+    let mut p = DepthParams::default();
     if let Some(o) = o {
-        p.p1 = o.p1.unwrap_or(p.p1);
-        p.p2 = o.p2.unwrap_or(p.p2);
-        p.p2_gradient_scale = o.p2_gradient_scale.unwrap_or(p.p2_gradient_scale);
-        p.num_paths = o.num_paths.map_or(p.num_paths, |v| v as usize);
-        p.cost_window_radius = o
+        p.sgm.p1 = o.p1.unwrap_or(p.sgm.p1);
+        p.sgm.p2 = o.p2.unwrap_or(p.sgm.p2);
+        p.sgm.p2_gradient_scale = o.p2_gradient_scale.unwrap_or(p.sgm.p2_gradient_scale);
+        p.sgm.num_paths = o.num_paths.map_or(p.sgm.num_paths, |v| v as usize);
+        p.matching.cost_window_radius = o
             .cost_window_radius
-            .map_or(p.cost_window_radius, |v| v as usize);
-        p.presmooth_sigma_px = o.presmooth_sigma_px.unwrap_or(p.presmooth_sigma_px);
-        p.contrast_percentile = o.contrast_percentile.unwrap_or(p.contrast_percentile);
-        p.contrast_max_weight = o.contrast_max_weight.unwrap_or(p.contrast_max_weight);
-        p.consistency_check = o.consistency_check.unwrap_or(p.consistency_check);
-        p.consistency_tolerance_planes = o
+            .map_or(p.matching.cost_window_radius, |v| v as usize);
+        p.matching.presmooth_sigma_px = o
+            .presmooth_sigma_px
+            .unwrap_or(p.matching.presmooth_sigma_px);
+        p.matching.contrast_percentile = o
+            .contrast_percentile
+            .unwrap_or(p.matching.contrast_percentile);
+        p.matching.contrast_max_weight = o
+            .contrast_max_weight
+            .unwrap_or(p.matching.contrast_max_weight);
+        p.rejection.consistency_check =
+            o.consistency_check.unwrap_or(p.rejection.consistency_check);
+        p.rejection.consistency_tolerance_planes = o
             .consistency_tolerance_planes
-            .unwrap_or(p.consistency_tolerance_planes);
+            .unwrap_or(p.rejection.consistency_tolerance_planes);
         if let Some(s) = o.speckle_max_size_px {
-            p.speckle_max_size_px = Some(s as usize);
+            p.rejection.speckle_max_size_px = Some(s as usize);
         }
-        p.speckle_range_planes = o.speckle_range_planes.unwrap_or(p.speckle_range_planes);
-        p.volume_budget_mib = o
+        p.rejection.speckle_range_planes = o
+            .speckle_range_planes
+            .unwrap_or(p.rejection.speckle_range_planes);
+        p.sgm.volume_budget_mib = o
             .volume_budget_mib
-            .map_or(p.volume_budget_mib, |v| v as usize);
-        p.exposure_compensation = o.exposure_compensation.unwrap_or(p.exposure_compensation);
-        p.census_weight = o.census_weight.unwrap_or(p.census_weight);
-        p.vignetting_compensation = o
+            .map_or(p.sgm.volume_budget_mib, |v| v as usize);
+        p.photometric.exposure_compensation = o
+            .exposure_compensation
+            .unwrap_or(p.photometric.exposure_compensation);
+        p.matching.census_weight = o.census_weight.unwrap_or(p.matching.census_weight);
+        p.photometric.vignetting_compensation = o
             .vignetting_compensation
-            .unwrap_or(p.vignetting_compensation);
+            .unwrap_or(p.photometric.vignetting_compensation);
     }
     p
 }
@@ -202,27 +213,30 @@ pub fn canonicalize_mvs_request(req: &mut pb::MvsDepthRequest) {
     let p = sgm_of(req.sgm.as_ref());
     // Written out only when every value fits its wire type (always, for u32 counts from u32s).
     if let (Ok(num_paths), Ok(radius)) = (
-        u32::try_from(p.num_paths),
-        u32::try_from(p.cost_window_radius),
+        u32::try_from(p.sgm.num_paths),
+        u32::try_from(p.matching.cost_window_radius),
     ) {
         req.sgm = Some(pb::SgmOptions {
-            p1: Some(p.p1),
-            p2: Some(p.p2),
-            p2_gradient_scale: Some(p.p2_gradient_scale),
+            p1: Some(p.sgm.p1),
+            p2: Some(p.sgm.p2),
+            p2_gradient_scale: Some(p.sgm.p2_gradient_scale),
             num_paths: Some(num_paths),
             cost_window_radius: Some(radius),
-            presmooth_sigma_px: Some(p.presmooth_sigma_px),
-            contrast_percentile: Some(p.contrast_percentile),
-            contrast_max_weight: Some(p.contrast_max_weight),
-            consistency_check: Some(p.consistency_check),
-            consistency_tolerance_planes: Some(p.consistency_tolerance_planes),
+            presmooth_sigma_px: Some(p.matching.presmooth_sigma_px),
+            contrast_percentile: Some(p.matching.contrast_percentile),
+            contrast_max_weight: Some(p.matching.contrast_max_weight),
+            consistency_check: Some(p.rejection.consistency_check),
+            consistency_tolerance_planes: Some(p.rejection.consistency_tolerance_planes),
             // Unset means "from the image size", itself deterministic in the request.
-            speckle_max_size_px: p.speckle_max_size_px.and_then(|s| u32::try_from(s).ok()),
-            speckle_range_planes: Some(p.speckle_range_planes),
-            volume_budget_mib: u32::try_from(p.volume_budget_mib).ok(),
-            exposure_compensation: Some(p.exposure_compensation),
-            census_weight: Some(p.census_weight),
-            vignetting_compensation: Some(p.vignetting_compensation),
+            speckle_max_size_px: p
+                .rejection
+                .speckle_max_size_px
+                .and_then(|s| u32::try_from(s).ok()),
+            speckle_range_planes: Some(p.rejection.speckle_range_planes),
+            volume_budget_mib: u32::try_from(p.sgm.volume_budget_mib).ok(),
+            exposure_compensation: Some(p.photometric.exposure_compensation),
+            census_weight: Some(p.matching.census_weight),
+            vignetting_compensation: Some(p.photometric.vignetting_compensation),
         });
     }
 }
@@ -525,7 +539,7 @@ mod tests {
         assert!(
             matches!(input.kind, CostKind::DehazingWith(_, o) if o == DehazingOptions::default())
         );
-        assert_eq!(input.sgm, SgmParams::default());
+        assert_eq!(input.sgm, DepthParams::default());
         assert_eq!(input.sources.len(), 1);
         assert_eq!(
             input.sources[0].pose.translation().as_slice(),
@@ -548,7 +562,7 @@ mod tests {
             // 0 = from the views in both (a fixed count is another computation).
             r.num_planes = 0;
             r.sgm = Some(pb::SgmOptions {
-                p1: Some(SgmParams::default().p1),
+                p1: Some(DepthParams::default().sgm.p1),
                 census_weight: Some(0.0),
                 ..Default::default()
             });
@@ -574,6 +588,7 @@ mod tests {
             mvs_from_proto(&census, &ImageLimits::default())
                 .unwrap()
                 .sgm
+                .matching
                 .census_weight,
             1.0
         );

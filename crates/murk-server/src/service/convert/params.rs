@@ -195,7 +195,7 @@ pub fn params_from_proto(
         search_downsample: or(req.search_downsample, d.search_downsample),
         search_planes: or(req.search_planes, d.search_planes),
         cost: DehazingOptions::default(),
-        sgm: sgm_of(req.sgm.as_ref()),
+        depth: sgm_of(req.sgm.as_ref()),
         min_improvement_t: req.min_improvement_t.unwrap_or(d.min_improvement_t),
         beta_from_points: req.beta_from_points.unwrap_or(d.beta_from_points),
         joint_fit: req.joint_fit.unwrap_or(d.joint_fit),
@@ -355,7 +355,7 @@ impl ParamsInput {
             &sources,
             &self.planes,
             kind,
-            &self.search.sgm,
+            &self.search.depth,
             &monitor.sub(0.75, 1.0),
         )?;
         let depth_seconds = t1.elapsed().as_secs_f64();

@@ -21,7 +21,7 @@ use super::consistency::{ClaimScratch, SourceClaims, SourceGeometry};
 use super::quantise::Quantiser;
 use super::select::{self, Selection};
 use super::{
-    contrast, exposure, finish_depth, presmooth, sgm, vignetting, window, DepthResult, SgmParams,
+    contrast, exposure, finish_depth, presmooth, sgm, vignetting, window, DepthParams, DepthResult,
 };
 
 /// How [`estimate_depth_in_bands`] lays out its work; the defaults are [`estimate_depth`](super::estimate_depth)'s.
@@ -43,14 +43,14 @@ pub(super) fn estimate_depth_in_bands(
     sources: &[View<'_>],
     planes: &PlaneSet,
     kind: CostKind,
-    params: &SgmParams,
+    params: &DepthParams,
     layout: Layout,
     monitor: &Monitor,
 ) -> Result<DepthResult> {
     params.validate().map_err(|e| e.within("sgm"))?;
     // Invalid images are left to `build_cost_volume` to report; smoothing keeps their sizes and
     // spreads NaN, so the field it names is unchanged.
-    let sigma = params.presmooth_sigma_px;
+    let sigma = params.matching.presmooth_sigma_px;
     let smoothed: Option<(ImageF32, Vec<ImageF32>)> = (sigma > 0.0).then(|| {
         (
             presmooth::gaussian_presmooth(reference.image, sigma),
@@ -66,7 +66,7 @@ pub(super) fn estimate_depth_in_bands(
     let channels = reference.image.channels();
     // Each source's samples are collected once for its gains and the fall-off estimate.
     let samples: Vec<exposure::Samples> =
-        if params.exposure_compensation || params.vignetting_compensation {
+        if params.photometric.exposure_compensation || params.photometric.vignetting_compensation {
             sources
                 .iter()
                 .map(|s| exposure::Samples::collect(&reference, s, planes, kind))
@@ -75,7 +75,7 @@ pub(super) fn estimate_depth_in_bands(
             Vec::new()
         };
     let gains_of = |samples: &[exposure::Samples]| -> Vec<f32> {
-        if params.exposure_compensation {
+        if params.photometric.exposure_compensation {
             samples
                 .iter()
                 .flat_map(exposure::gains_from_samples)
@@ -90,7 +90,8 @@ pub(super) fn estimate_depth_in_bands(
     // fall-off (only the right lens of the hazy Aloe pair 20 % darker at the corners: 0.10).
     let relative = |samples: &[exposure::Samples], mut gains: Vec<f32>| -> (Vec<f32>, Vec<f32>) {
         let mut deltas = vec![0.0f32; samples.len()];
-        if !(params.vignetting_compensation && params.exposure_compensation) {
+        if !(params.photometric.vignetting_compensation && params.photometric.exposure_compensation)
+        {
             return (deltas, gains);
         }
         for ((delta, gains), samples) in deltas
@@ -114,7 +115,7 @@ pub(super) fn estimate_depth_in_bands(
     // gains and its relative fall-off found without it. A source whose gain stopped at the
     // search's bound is left out: the brightness its gain did not remove would be read as a
     // fall-off (a source 2.5× brighter drove it to the bound).
-    let falloff = if params.vignetting_compensation {
+    let falloff = if params.photometric.vignetting_compensation {
         let relieved: Vec<Option<exposure::Samples>> = samples
             .iter()
             .zip(&raw_falloffs)
@@ -178,7 +179,7 @@ pub(super) fn estimate_depth_in_bands(
             None => *v,
         })
         .collect();
-    let geometry: Vec<SourceGeometry> = if params.consistency_check {
+    let geometry: Vec<SourceGeometry> = if params.rejection.consistency_check {
         sources
             .iter()
             .map(|s| SourceGeometry {
@@ -196,15 +197,16 @@ pub(super) fn estimate_depth_in_bands(
     let (w, h) = guide.dims();
     let weights = contrast_weights_of(guide, params);
     // Codes of the views as the photometric term sees them (smoothed, gains divided out).
-    let census: Option<(CensusImage, Vec<CensusImage>)> = (params.census_weight > 0.0).then(|| {
-        (
-            census::census_transform(reference.image),
-            sources
-                .iter()
-                .map(|s| census::census_transform(s.image))
-                .collect(),
-        )
-    });
+    let census: Option<(CensusImage, Vec<CensusImage>)> = (params.matching.census_weight > 0.0)
+        .then(|| {
+            (
+                census::census_transform(reference.image),
+                sources
+                    .iter()
+                    .map(|s| census::census_transform(s.image))
+                    .collect(),
+            )
+        });
     let census_sources: Vec<CensusSource<'_>> = match &census {
         Some((_, codes)) => sources
             .iter()
@@ -232,10 +234,10 @@ pub(super) fn estimate_depth_in_bands(
             .as_ref()
             .map(|(codes, _)| (codes, &census_sources[..])),
         weights: &weights,
-        census_weight: params.census_weight,
-        radius: params.cost_window_radius,
+        census_weight: params.matching.census_weight,
+        radius: params.matching.cost_window_radius,
     };
-    let selections = if params.num_paths == 5 && !layout.volumes {
+    let selections = if params.sgm.num_paths == 5 && !layout.volumes {
         one_pass_selections(&source, guide, params, layout, &claims, monitor)?
     } else {
         let bands = layout.band_rows;
@@ -414,16 +416,16 @@ impl Band {
 pub(super) fn strip_pass_selections(
     src: &LevelSource<'_>,
     guide: &ImageF32,
-    params: &SgmParams,
+    params: &DepthParams,
     band_rows: Option<usize>,
     claims: &[SourceClaims],
     monitor: &Monitor,
 ) -> Result<Vec<Selection>> {
     let (w, h, n) = (src.width(), src.height(), src.planes());
     let r = src.radius;
-    let strips = strips_of(w, h, n, params.volume_budget_mib);
+    let strips = strips_of(w, h, n, params.sgm.volume_budget_mib);
     let band_rows = band_rows
-        .unwrap_or_else(|| band_rows_of(w, n, r, params.volume_budget_mib))
+        .unwrap_or_else(|| band_rows_of(w, n, r, params.sgm.volume_budget_mib))
         .max(1);
     let mut selections = Vec::with_capacity(w * h);
     let k = strips.len() as f32;
@@ -440,10 +442,10 @@ pub(super) fn strip_pass_selections(
             cost_bound(
                 src.reference.image.channels(),
                 src.weights_of(&strip.rows),
-                params.census_weight,
+                params.matching.census_weight,
             ),
-            params.p2.max(params.p1),
-            params.num_paths,
+            params.sgm.p2.max(params.sgm.p1),
+            params.sgm.num_paths,
         );
         let m = monitor.sub(j as f32 / k, (j as f32 + 0.5) / k);
         // Bands of equal height, so that the last one is not a sliver that one worker windows.
@@ -527,7 +529,7 @@ pub(super) const ONE_PASS_BAND_ROWS: usize = 4;
 pub(super) fn one_pass_selections(
     src: &LevelSource<'_>,
     guide: &ImageF32,
-    params: &SgmParams,
+    params: &DepthParams,
     layout: Layout,
     claims: &[SourceClaims],
     monitor: &Monitor,
@@ -539,12 +541,12 @@ pub(super) fn one_pass_selections(
         cost_bound(
             src.reference.image.channels(),
             src.weights,
-            params.census_weight,
+            params.matching.census_weight,
         ),
-        params.p2.max(params.p1),
-        params.num_paths,
+        params.sgm.p2.max(params.sgm.p1),
+        params.sgm.num_paths,
     );
-    let pen = quant.penalties(&params.penalties());
+    let pen = quant.penalties(&params.sgm.penalties());
     let isa = crate::cpu::Isa::detect();
     let stripes = one_pass_stripes(h, layout.stripe_rows.unwrap_or(ONE_PASS_STRIPE_ROWS));
     let total = stripes.iter().map(|s| s.rows.len()).sum::<usize>().max(1);
@@ -724,8 +726,8 @@ pub(super) fn strips_of(w: usize, h: usize, n: usize, budget_mib: usize) -> Vec<
 
 /// Per-pixel contrast weights of the whole reference (row-major), empty when off. The
 /// percentile `c₀` is a property of the whole image, so strips share one set of weights.
-pub(super) fn contrast_weights_of(guide: &ImageF32, params: &SgmParams) -> Vec<f32> {
-    if params.contrast_max_weight <= 1.0 {
+pub(super) fn contrast_weights_of(guide: &ImageF32, params: &DepthParams) -> Vec<f32> {
+    if params.matching.contrast_max_weight <= 1.0 {
         return Vec::new();
     }
     let c = contrast::local_contrast(
@@ -733,9 +735,13 @@ pub(super) fn contrast_weights_of(guide: &ImageF32, params: &SgmParams) -> Vec<f
         guide.width(),
         guide.height(),
         guide.channels(),
-        params.cost_window_radius.max(1),
+        params.matching.cost_window_radius.max(1),
     );
-    contrast::contrast_weights(&c, params.contrast_percentile, params.contrast_max_weight)
+    contrast::contrast_weights(
+        &c,
+        params.matching.contrast_percentile,
+        params.matching.contrast_max_weight,
+    )
 }
 
 /// The largest weighted cost a strip's windowed means can reach, known before any cost is
@@ -774,7 +780,7 @@ pub(super) fn strip_selections(
     w: usize,
     planes: &PlaneSet,
     guide: &ImageF32,
-    params: &SgmParams,
+    params: &DepthParams,
     claims: &[SourceClaims],
     monitor: &Monitor,
 ) -> Result<Vec<Selection>> {
@@ -788,8 +794,8 @@ pub(super) fn strip_selections(
         w,
         rows,
         n,
-        params.num_paths,
-        &quant.penalties(&params.penalties()),
+        params.sgm.num_paths,
+        &quant.penalties(&params.sgm.penalties()),
         Some(sgm::Guide::rows(guide, strip.rows.clone())),
         &monitor.sub(0.1, 0.9),
     )?;
@@ -821,7 +827,7 @@ pub(super) fn claim_and_select(
     w: usize,
     n: usize,
     quant: &Quantiser,
-    params: &SgmParams,
+    params: &DepthParams,
     claims: &[SourceClaims],
     selected: &mut [Selection],
 ) {
@@ -843,12 +849,12 @@ pub(super) fn claim_and_select_row(
     y: usize,
     n: usize,
     quant: &Quantiser,
-    params: &SgmParams,
+    params: &DepthParams,
     claims: &[SourceClaims],
     selected: &mut [Selection],
     scratch: &mut ClaimScratch,
 ) {
-    let eps = quant.scaled(select::CONFIDENCE_EPS_PER_PATH * params.num_paths as f32);
+    let eps = quant.scaled(select::CONFIDENCE_EPS_PER_PATH * params.sgm.num_paths as f32);
     for c in claims {
         c.add_row(y, row, n, quant.unit(), scratch);
     }

@@ -36,7 +36,7 @@
 //! volume of the whole strip exists; the sum over all paths is a second `u16` volume. The
 //! levels' scale is therefore fixed before any cost is computed, from the largest cost the
 //! volume can hold ([`quantise`]). At 256×192×256: two 25 MB volumes and a 24 MB band. Larger
-//! volumes go in horizontal strips ([`SgmParams::volume_budget_mib`]). [`depth_from_costs`],
+//! volumes go in horizontal strips ([`DepthParams::volume_budget_mib`]). [`depth_from_costs`],
 //! given a whole `f32` volume, windows it at once and aggregates into its memory.
 
 pub mod consistency;
@@ -51,7 +51,7 @@ pub mod vignetting;
 pub mod window;
 
 mod bands;
-mod sgm_params;
+mod depth_params;
 
 use crate::error::{MurkError, Result};
 use crate::image::ImageF32;
@@ -64,9 +64,12 @@ use consistency::{SourceClaims, SourceWinners, Verdict};
 use quantise::Quantiser;
 
 pub use bands::STRIP_OVERLAP_ROWS;
+pub use depth_params::{
+    DepthParams, MatchingParams, PhotometricParams, PostFilter, RejectionParams, SgmParams,
+    MAX_SPECKLE_SIZE_PX, MAX_VOLUME_BUDGET_MIB,
+};
 pub use select::{select_curve, Selection};
 pub use sgm::Penalties;
-pub use sgm_params::{PostFilter, SgmParams, MAX_SPECKLE_SIZE_PX, MAX_VOLUME_BUDGET_MIB};
 
 /// Depth of the reference view.
 #[derive(Clone, Debug, PartialEq)]
@@ -106,7 +109,7 @@ pub fn estimate_depth(
     sources: &[View<'_>],
     planes: &PlaneSet,
     kind: CostKind,
-    params: &SgmParams,
+    params: &DepthParams,
     monitor: &Monitor,
 ) -> Result<DepthResult> {
     estimate_depth_in_bands(
@@ -129,7 +132,7 @@ pub(super) fn finish_depth(
     h: usize,
     planes: &PlaneSet,
     guide: &ImageF32,
-    params: &SgmParams,
+    params: &DepthParams,
     claims: Vec<SourceClaims>,
     monitor: &Monitor,
 ) -> Result<DepthResult> {
@@ -142,7 +145,12 @@ pub(super) fn finish_depth(
             .map(|s| (s.index.round().max(0.0) as u32).min(n as u32 - 1))
             .collect();
         let sources: Vec<SourceWinners> = claims.into_iter().map(SourceClaims::winners).collect();
-        verdict = consistency::check(&winner, w, &sources, params.consistency_tolerance_planes);
+        verdict = consistency::check(
+            &winner,
+            w,
+            &sources,
+            params.rejection.consistency_tolerance_planes,
+        );
     }
     let index: Vec<f32> = selections.iter().map(|s| s.index).collect();
     consistency::reject_speckles(
@@ -150,8 +158,8 @@ pub(super) fn finish_depth(
         &mut verdict,
         w,
         h,
-        params.speckle_max_size_px.unwrap_or(w * h / 3000),
-        params.speckle_range_planes,
+        params.rejection.speckle_max_size_px.unwrap_or(w * h / 3000),
+        params.rejection.speckle_range_planes,
     );
     let mut inv: Vec<f32> = index
         .iter()
@@ -202,7 +210,7 @@ pub(super) fn finish_depth(
 pub fn depth_from_cost_volume(
     volume: CostVolume,
     guide: &ImageF32,
-    params: &SgmParams,
+    params: &DepthParams,
     monitor: &Monitor,
 ) -> Result<DepthResult> {
     let (w, h) = (volume.width(), volume.height());
@@ -211,7 +219,7 @@ pub fn depth_from_cost_volume(
 }
 
 /// [`depth_from_cost_volume`] on raw costs: `data` is a `[plane][y][x]` `f32` volume of
-/// `planes.num_planes` planes of `w×h` pixels (cost units as in [`SgmParams`]). Fails naming
+/// `planes.num_planes` planes of `w×h` pixels (cost units as in [`DepthParams`]). Fails naming
 /// `costs` for a wrong length or a negative or non-finite cost (SGM aggregates unsigned integer
 /// levels of the costs, [`quantise`]), `guide` for a guide of another size.
 pub fn depth_from_costs(
@@ -220,7 +228,7 @@ pub fn depth_from_costs(
     h: usize,
     planes: &PlaneSet,
     guide: &ImageF32,
-    params: &SgmParams,
+    params: &DepthParams,
     monitor: &Monitor,
 ) -> Result<DepthResult> {
     params.validate().map_err(|e| e.within("sgm"))?;
@@ -261,8 +269,8 @@ pub fn depth_from_costs(
     // Given costs have no known bound: the exact largest weighted cost sets the levels.
     let quant = Quantiser::new(
         window::largest_weighted(&data, &weights, w, h, n),
-        params.p2.max(params.p1),
-        params.num_paths,
+        params.sgm.p2.max(params.sgm.p1),
+        params.sgm.num_paths,
     );
     let mut levels = crate::large_buffer::zeroed::<u16>(data.len());
     let mut data = data;
@@ -272,7 +280,7 @@ pub fn depth_from_costs(
         w,
         h,
         n,
-        params.cost_window_radius,
+        params.matching.cost_window_radius,
         &quant,
         &mut levels,
         monitor,

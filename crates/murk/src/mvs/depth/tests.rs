@@ -237,11 +237,17 @@ fn sub_plane_refinement_recovers_fractional_minimum() {
     for &c in &curve {
         data.extend(std::iter::repeat_n(c, w * h));
     }
-    let params = SgmParams {
-        p1: 0.0,
-        p2: 0.0,
-        cost_window_radius: 0,
-        ..SgmParams::default()
+    let params = DepthParams {
+        sgm: SgmParams {
+            p1: 0.0,
+            p2: 0.0,
+            ..SgmParams::default()
+        },
+        matching: MatchingParams {
+            cost_window_radius: 0,
+            ..MatchingParams::default()
+        },
+        ..DepthParams::default()
     };
     let guide = ImageF32::filled(w, h, 3, 0.5);
     let r = depth_from_costs(data, w, h, &planes, &guide, &params, &Monitor::noop()).unwrap();
@@ -265,30 +271,51 @@ fn sub_plane_refinement_recovers_fractional_minimum() {
 
 #[test]
 fn params_validation_names_fields() {
-    let field = |p: SgmParams| match p.validate() {
+    let field = |p: DepthParams| match p.validate() {
         Err(MurkError::InvalidArgument { field, .. }) => field,
         other => panic!("{other:?}"),
     };
-    let d = SgmParams::default();
+    let d = DepthParams::default();
     d.validate().unwrap();
-    assert_eq!(field(SgmParams { p1: -1.0, ..d }), "p1");
     assert_eq!(
-        field(SgmParams {
-            p2: d.p1 / 2.0,
+        field(DepthParams {
+            sgm: SgmParams { p1: -1.0, ..d.sgm },
+            ..d
+        }),
+        "p1"
+    );
+    assert_eq!(
+        field(DepthParams {
+            sgm: SgmParams {
+                p2: d.sgm.p1 / 2.0,
+                ..d.sgm
+            },
             ..d
         }),
         "p2"
     );
-    assert_eq!(field(SgmParams { num_paths: 6, ..d }), "num_paths");
     assert_eq!(
-        field(SgmParams {
-            cost_window_radius: 99,
+        field(DepthParams {
+            sgm: SgmParams {
+                num_paths: 6,
+                ..d.sgm
+            },
+            ..d
+        }),
+        "num_paths"
+    );
+    assert_eq!(
+        field(DepthParams {
+            matching: MatchingParams {
+                cost_window_radius: 99,
+                ..d.matching
+            },
             ..d
         }),
         "cost_window_radius"
     );
     assert_eq!(
-        field(SgmParams {
+        field(DepthParams {
             post_filter: PostFilter::WeightedMedian {
                 radius: 2,
                 sigma: 0.0
@@ -406,7 +433,7 @@ fn views_of<'a>(images: &'a [ImageF32], poses: &[Pose]) -> Vec<View<'a>> {
         .collect()
 }
 
-fn run(rig: &Rig, planes: &PlaneSet, params: &SgmParams) -> DepthResult {
+fn run(rig: &Rig, planes: &PlaneSet, params: &DepthParams) -> DepthResult {
     let views = views_of(&rig.images, &rig.poses);
     estimate_depth(
         &views[0],
@@ -442,13 +469,13 @@ fn recovers_fronto_parallel_and_slanted_planes() {
     for (z0, slope) in [(4.0, 0.0), (3.0, 0.0), (4.0, 0.4)] {
         let rig = rig(z0, slope, f64::INFINITY);
         for params in [
-            SgmParams::default(),
-            SgmParams {
+            DepthParams::default(),
+            DepthParams {
                 post_filter: PostFilter::WeightedMedian {
                     radius: 2,
                     sigma: 0.1,
                 },
-                ..SgmParams::default()
+                ..DepthParams::default()
             },
         ] {
             let r = run(&rig, &planes, &params);
@@ -472,10 +499,13 @@ fn confidence_high_on_texture_low_on_flat() {
     // Without smoothness penalties the aggregated curve is the (windowed) data term summed over
     // paths, so the confidence measures the data's evidence alone; with penalties SGM rightly
     // propagates the textured half's depth into the flat half and becomes confident there too.
-    let params = SgmParams {
-        p1: 0.0,
-        p2: 0.0,
-        ..SgmParams::default()
+    let params = DepthParams {
+        sgm: SgmParams {
+            p1: 0.0,
+            p2: 0.0,
+            ..SgmParams::default()
+        },
+        ..DepthParams::default()
     };
     let r = run(&rig, &planes, &params);
     let median = |x0: usize, x1: usize| {
@@ -523,7 +553,7 @@ fn cost_bound_holds_every_weighted_cost() {
         .collect();
     let views = views_of(&hazy, &rig.poses);
     let planes = PlaneSet::new(1.0, 10.0, 48).unwrap();
-    let params = SgmParams::default();
+    let params = DepthParams::default();
     let weights = contrast_weights_of(views[0].image, &params);
     let w_max = weights.iter().copied().fold(1.0f32, f32::max);
     assert!(w_max > 1.0, "the rig's contrast weights reach above 1");
@@ -610,11 +640,17 @@ fn bands_do_not_change_the_depth() {
             (CostKind::Dehazing(atm), 1.0, 96),
             (CostKind::Ordinary, 0.0, 1),
         ] {
-            let params = SgmParams {
-                census_weight,
-                volume_budget_mib: budget,
-                num_paths,
-                ..SgmParams::default()
+            let params = DepthParams {
+                sgm: SgmParams {
+                    volume_budget_mib: budget,
+                    num_paths,
+                    ..SgmParams::default()
+                },
+                matching: MatchingParams {
+                    census_weight,
+                    ..MatchingParams::default()
+                },
+                ..DepthParams::default()
             };
             let depth = |band_rows, stripe_rows| {
                 let layout = Layout {
@@ -644,7 +680,7 @@ fn rig_depth(
     views: &[View<'_>],
     planes: &PlaneSet,
     kind: CostKind,
-    params: &SgmParams,
+    params: &DepthParams,
     layout: Layout,
 ) -> DepthResult {
     let monitor = Monitor::noop();
@@ -678,10 +714,16 @@ fn one_pass_streams_what_the_volumes_aggregate() {
         (CostKind::Dehazing(atm), 0.0),
         (CostKind::Dehazing(atm), 1.0),
     ] {
-        let params = SgmParams {
-            census_weight,
-            num_paths: 5,
-            ..SgmParams::default()
+        let params = DepthParams {
+            sgm: SgmParams {
+                num_paths: 5,
+                ..SgmParams::default()
+            },
+            matching: MatchingParams {
+                census_weight,
+                ..MatchingParams::default()
+            },
+            ..DepthParams::default()
         };
         let depth = |volumes| {
             let layout = Layout {
@@ -753,9 +795,12 @@ fn one_pass_stripes_match_one_stripe() {
     let rig = rig(4.0, 0.3, 60.0);
     let views = views_of(&rig.images, &rig.poses);
     let planes = PlaneSet::new(2.0, 10.0, 48).unwrap();
-    let params = SgmParams {
-        num_paths: 5,
-        ..SgmParams::default()
+    let params = DepthParams {
+        sgm: SgmParams {
+            num_paths: 5,
+            ..SgmParams::default()
+        },
+        ..DepthParams::default()
     };
     let depth = |stripe_rows| {
         let layout = Layout {
