@@ -10,6 +10,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         "../../proto/murk/v1/mvs.proto",
         "../../proto/murk/v1/params.proto",
         "../../proto/murk/v1/ps.proto",
+        "../../proto/murk/v1/stereo.proto",
         "../../proto/murk/v1/jobs.proto",
     ];
     for f in &files {

@@ -8,7 +8,9 @@ model (two PINHOLE cameras, metres). Then:
 
 - OpenCV's StereoSGBM runs on the hazy pair (timed in this process);
 - `murk mvs` runs on the same files with the true A and β (timed, and its peak memory measured
-  by GNU time: the CLI starts its server in-process, so the process's peak RSS is murk's);
+  by GNU time: the CLI starts its server in-process, so the process's peak RSS is murk's), or
+  with `--method stereo`, `murk stereo` with the rig's calibration (focal length, principal
+  points, baseline) and SGBM's disparity window, as a stereo user configures it;
 - both are scored against the ground truth: C.P. (relative depth error < 10 %, §3.4.3) dense,
   where a missing pixel counts as wrong, and on SGBM's valid pixels; L1-rel; and the Middlebury
   bad-pixel rates (|disparity error| > 1 and > 2 px), which are far stricter than C.P. here
@@ -185,6 +187,12 @@ def main() -> None:
         default=0.0,
         help="rectification error: the right image moved down by this many pixels (sub-pixel allowed)",
     )
+    ap.add_argument(
+        "--method",
+        choices=["mvs", "stereo"],
+        default="mvs",
+        help="murk's input: the COLMAP model (`murk mvs`) or the rectified rig (`murk stereo`)",
+    )
     ap.add_argument("--repeats", type=int, default=3, help="timed runs of each method (best is reported)")
     ap.add_argument("--murk-args", default="", help="extra `murk mvs` flags")
     ap.add_argument(
@@ -304,7 +312,7 @@ def main() -> None:
     # murk: by default the COLMAP model's points give the plane range and the displacement the
     # plane count, as for any capture; --same-window gives it SGBM's disparity window instead.
     z_near, z_far = fb / (min_disp + num_disp + doffs), fb / (max(min_disp, 0) + doffs)
-    cmd = [
+    mvs_cmd = [
         "/usr/bin/time",
         "-f",
         "maxrss_kib=%M",
@@ -328,6 +336,36 @@ def main() -> None:
         *(["--srgb"] if a.srgb else []),
         *a.murk_args.split(),
     ]
+    # The rig as a stereo user has it: murk's pixel-centre principal points are COLMAP's minus
+    # 0.5, and the search window is SGBM's, one plane per pixel of disparity.
+    stereo_cmd = [
+        "/usr/bin/time",
+        "-f",
+        "maxrss_kib=%M",
+        a.murk,
+        "stereo",
+        "--left",
+        str(out / "images" / "left.png"),
+        "--right",
+        str(out / "images" / "right.png"),
+        "--intrinsics",
+        f"{f},{f},{cx_l - 0.5},{cy - 0.5}",
+        "--right-cx",
+        str(cx_r - 0.5),
+        "--baseline",
+        str(BASELINE_M),
+        "--disparity-range",
+        f"{min_disp},{min_disp + num_disp}",
+        "--airlight",
+        str(a.airlight),
+        "--beta",
+        str(beta),
+        "--out",
+        str(out / "murk"),
+        *(["--srgb"] if a.srgb else []),
+        *a.murk_args.split(),
+    ]
+    cmd = stereo_cmd if a.method == "stereo" else mvs_cmd
     best_murk, peak_murk_mib = np.inf, 0.0
     sgbm_times: list[float] = []
     compute_times: list[float] = []
@@ -359,6 +397,7 @@ def main() -> None:
     pair_ratios = [m / g for m, g in zip(compute_times, sgbm_times, strict=False)]
     report = {
         "pair": f"{w}x{h}",
+        "method": a.method,
         "right_gain": a.right_gain,
         "right_tint_rgb": a.right_tint,
         "vignetting": a.vignetting,

@@ -82,6 +82,47 @@ def test_mvs_depth_with_colmap_model(client: Client, mvs_scene: Path) -> None:
     assert o.cost_volume == "ordinary" and o.job_id != r.job_id
 
 
+def test_rectified_stereo_from_the_rig(client: Client, mvs_scene_rectified: Path) -> None:
+    meta = read_meta(mvs_scene_rectified)
+    model = mc.load_colmap_model(mvs_scene_rectified / "sparse")
+    left = model.view("view_00.png", mvs_scene_rectified / "images")
+    right = model.view("view_01.png", mvs_scene_rectified / "images")
+    # The rig as a camera driver gives it: the left intrinsics and the right camera's offset.
+    baseline = -float(right.pose.translation_scene_units[0])
+    r = client.rectified_stereo(
+        left.image,
+        right.image,
+        intrinsics=left.intrinsics,
+        baseline=baseline,
+        depth_range=(1.5, 15.0),
+        airlight=meta["airlight"],
+        beta=meta["beta"],
+        return_points=True,
+    )
+    gt = mc.read_image(mvs_scene_rectified / "depth" / "view_00.exr")
+    assert r.z_depth.shape == r.disparity.shape == gt.shape
+    assert r.cost_volume == "dehazing" and r.num_planes > 2
+    fx = left.intrinsics.fx  # type: ignore[union-attr]
+    np.testing.assert_allclose(r.disparity, fx * baseline / r.z_depth, rtol=1e-4)
+    valid = gt > 0
+    cp = float(np.mean(np.abs(r.z_depth[valid] - gt[valid]) / gt[valid] < 0.1))
+    assert cp > 0.5, cp
+    assert r.points is not None and r.colors is not None
+    assert r.points.shape == (int(np.sum(r.confidence > 0)), 3) and r.colors.shape == r.points.shape
+    assert np.all(r.points[:, 2] > 0)
+    # The ordinary volume without A and β; a bad rig names its field before anything is sent.
+    o = client.rectified_stereo(left.image, right.image, intrinsics=left.intrinsics, baseline=baseline)
+    assert o.cost_volume == "ordinary" and o.points is None
+    with pytest.raises(mc.ClientInputError) as e:
+        client.rectified_stereo(left.image, right.image, intrinsics=left.intrinsics, baseline=0.0)
+    assert e.value.field == "request.rectified_stereo.baseline"
+    with pytest.raises(mc.InvalidArgument) as bad:
+        client.rectified_stereo(
+            left.image, right.image, intrinsics=left.intrinsics, baseline=baseline, disparity_range_px=(5, 3)
+        )
+    assert bad.value.field == "request.rectified_stereo.max_disparity_px"
+
+
 def params_of(client: Client, scene: Path) -> mc.ScatteringParamsResult:
     meta = read_meta(scene)
     model = mc.load_colmap_model(scene / "sparse")

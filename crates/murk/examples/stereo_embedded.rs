@@ -1,6 +1,7 @@
 //! Stereo depth in haze on board, with no server: a calibrated, rectified pair (left and right
 //! images, the intrinsics and the baseline, as a ROS `CameraInfo` pair gives them) through the
-//! plane sweep with the dehazing cost volume of the reference's Ch. 3.2 (Eq. 3.7) and SGM.
+//! plane sweep with the dehazing cost volume of the reference's Ch. 3.2 (Eq. 3.7) and SGM, with
+//! [`murk::mvs::estimate_rectified`].
 //!
 //! ```sh
 //! cargo run --release -p murk --example stereo_embedded -- --left left.png --right right.png \
@@ -20,13 +21,14 @@ use murk::atmosphere::AtmosphereParams;
 use murk::camera::Intrinsics;
 use murk::io::{read_image, write_colormap_png, write_exr, DecodeLimits};
 use murk::mvs::{
-    estimate_depth, planes_for_displacement, Camera, CostKind, DehazingOptions, DepthParams,
-    PlaneSet, Pose, View, MAX_PLANES,
+    estimate_rectified, CostKind, DehazingOptions, RectifiedOptions, RectifiedRig, StereoRange,
 };
+use murk::mvs_io::{write_ply, PlyFormat};
 use murk::Monitor;
 
-/// Depth of the left view of a rectified pair; writes z_depth.exr, confidence.exr and
-/// depth.png.
+/// Depth of the left view of a rectified pair; writes depth.exr (z-depth in the baseline's
+/// unit), disparity.exr (pixels), confidence.exr, points.ply (the confident pixels in the left
+/// camera's frame) and depth.png.
 #[derive(Parser, Debug)]
 struct Args {
     /// Left (reference) image: PNG (8 or 16 bit), EXR or TIFF; grey or RGB.
@@ -43,10 +45,15 @@ struct Args {
     /// scene units (metres, say); depths and β are in the same unit.
     #[arg(long)]
     baseline: f64,
-    /// Depth range "near,far" to sweep, scene units.
+    /// The right camera's principal point x, pixels, when it differs from the left's
+    /// (Middlebury's `doffs` is the difference).
+    #[arg(long)]
+    right_cx: Option<f64>,
+    /// Depth range "near,far" to sweep, scene units; default: disparities 1 px to a quarter of
+    /// the width (at most 256 px).
     #[arg(long, value_parser = numbers::<2>)]
-    depth_range: [f64; 2],
-    /// Number of planes (uniform in inverse depth); default: one per pixel of disparity.
+    depth_range: Option<[f64; 2]>,
+    /// Number of planes (uniform in disparity); default: one per pixel of disparity.
     #[arg(long)]
     planes: Option<usize>,
     /// Airlight A of the haze, in (0, 1] (pixel values scaled to [0, 1]).
@@ -75,45 +82,12 @@ fn main() -> anyhow::Result<()> {
         );
     }
     let [fx, fy, cx, cy] = args.intrinsics;
-    let intrinsics = Intrinsics::new(fx, fy, cx, cy);
-    let [near, far] = args.depth_range;
-
-    // The left camera defines the world frame; the right one sits `baseline` along its +x axis,
-    // so its world-to-camera translation is −baseline along x.
-    let left_pose = Pose::translation_only([0.0, 0.0, 0.0])?;
-    let right_pose = Pose::translation_only([-args.baseline, 0.0, 0.0])?;
-    let reference = View {
-        image: &left,
-        intrinsics,
-        pose: left_pose,
+    let rig = RectifiedRig {
+        intrinsics: Intrinsics::new(fx, fy, cx, cy),
+        baseline: args.baseline,
+        right_cx: args.right_cx.unwrap_or(cx),
     };
-    let source = View {
-        image: &right,
-        intrinsics,
-        pose: right_pose,
-    };
-
-    let (w, h) = left.dims();
-    let num_planes = match args.planes {
-        Some(n) => n,
-        None => {
-            let camera = |pose| Camera {
-                intrinsics,
-                pose,
-                width: w,
-                height: h,
-            };
-            planes_for_displacement(
-                &camera(left_pose),
-                &[camera(right_pose)],
-                near,
-                far,
-                MAX_PLANES,
-            )
-        }
-    };
-    let planes = PlaneSet::new(near, far, num_planes)?;
-    let kind = match (args.airlight, args.beta) {
+    let cost = match (args.airlight, args.beta) {
         (Some(airlight), Some(beta)) => {
             let atmosphere = AtmosphereParams { airlight, beta };
             atmosphere.validate()?;
@@ -121,43 +95,56 @@ fn main() -> anyhow::Result<()> {
         }
         _ => CostKind::Ordinary,
     };
+    let options = RectifiedOptions {
+        range: args
+            .depth_range
+            .map(|[near, far]| StereoRange::Depth { near, far }),
+        num_planes: args.planes,
+        cost,
+        ..RectifiedOptions::default()
+    };
 
     let started = Instant::now();
-    let depth = estimate_depth(
-        &reference,
-        &[source],
-        &planes,
-        kind,
-        &DepthParams::default(),
-        &Monitor::noop(),
-    )?;
+    let out = estimate_rectified(&left, &right, &rig, &options, &Monitor::noop())?;
     let seconds = started.elapsed().as_secs_f64();
 
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating {}", args.out.display()))?;
-    write_exr(&args.out.join("z_depth.exr"), &depth.z_depth)?;
-    write_exr(&args.out.join("confidence.exr"), &depth.confidence)?;
+    write_exr(&args.out.join("depth.exr"), &out.depth.z_depth)?;
+    write_exr(&args.out.join("disparity.exr"), &out.disparity)?;
+    write_exr(&args.out.join("confidence.exr"), &out.depth.confidence)?;
+    let points = out.points(&rig, &left)?;
+    write_ply(
+        &args.out.join("points.ply"),
+        &points,
+        PlyFormat::BinaryLittleEndian,
+    )?;
+    let (near, far) = (out.planes.near, out.planes.far);
     write_colormap_png(
         &args.out.join("depth.png"),
-        &depth.z_depth,
+        &out.depth.z_depth,
         near as f32,
         far as f32,
         None,
     )?;
 
-    let confident = depth.confidence.data().iter().filter(|&&c| c > 0.0).count();
+    let (w, h) = left.dims();
     println!(
-        "{w}×{h} pair, {num_planes} planes over {near}–{far}, {} cost volume: {seconds:.2} s, \
-         {:.1} % of pixels with confidence > 0; wrote {}",
-        if kind == CostKind::Ordinary {
+        "{w}×{h} pair, {} planes over z {near:.3}–{far:.3} (disparity {:.1}–{:.1} px), {} cost \
+         volume: {seconds:.2} s, {} points with confidence > 0 ({:.1} %); wrote {}",
+        out.planes.num_planes,
+        rig.disparity_of_depth(far),
+        rig.disparity_of_depth(near),
+        if cost == CostKind::Ordinary {
             "ordinary"
         } else {
             "dehazing"
         },
-        100.0 * confident as f64 / (w * h) as f64,
+        points.len(),
+        100.0 * points.len() as f64 / (w * h) as f64,
         args.out.display()
     );
-    for warning in &depth.warnings {
+    for warning in &out.depth.warnings {
         println!("warning: {warning}");
     }
     Ok(())

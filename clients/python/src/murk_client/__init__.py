@@ -44,6 +44,7 @@ from .images import EncodedImage, read_image, srgb_to_linear, write_exr, write_p
 from .requests import (
     mvs_depth_request,
     photometric_stereo_request,
+    rectified_stereo_request,
     scattering_params_request,
     tof_depth_request,
 )
@@ -51,6 +52,7 @@ from .results import (
     AirlightConflict,
     MvsDepthResult,
     PhotometricStereoResult,
+    RectifiedStereoResult,
     ResidualSample,
     Result,
     ScatteringParamsResult,
@@ -85,6 +87,7 @@ __all__ = [
     "PhotometricStereoResult",
     "Pose",
     "ProgressCallback",
+    "RectifiedStereoResult",
     "PsCapture",
     "PsLight",
     "ResidualSample",
@@ -105,6 +108,7 @@ __all__ = [
     "pb",
     "photometric_stereo_request",
     "read_image",
+    "rectified_stereo_request",
     "scattering_params_request",
     "srgb_to_linear",
     "tof_depth_request",

@@ -25,6 +25,7 @@ from .requests import Tuning
 from .results import (
     MvsDepthResult,
     PhotometricStereoResult,
+    RectifiedStereoResult,
     Result,
     ScatteringParamsResult,
     TofDepthResult,
@@ -36,7 +37,14 @@ from .types import IntrinsicsLike, JobState, JobStatus, PsLight, View
 #: Called with every job update a watch receives (progress in [0, 1], stage, state).
 ProgressCallback = Callable[[JobStatus], None]
 T = TypeVar("T")
-R = TypeVar("R", TofDepthResult, MvsDepthResult, ScatteringParamsResult, PhotometricStereoResult)
+R = TypeVar(
+    "R",
+    TofDepthResult,
+    MvsDepthResult,
+    RectifiedStereoResult,
+    ScatteringParamsResult,
+    PhotometricStereoResult,
+)
 
 
 def _parse_target(target: str, tls: bool) -> tuple[str, bool]:
@@ -272,6 +280,43 @@ class Client:
             sgm=sgm,
         )
         return _expect(self.run(req, progress=progress, timeout_s=timeout_s), MvsDepthResult)
+
+    def rectified_stereo(
+        self,
+        left: ImageLike,
+        right: ImageLike,
+        *,
+        intrinsics: IntrinsicsLike,
+        baseline: float,
+        right_cx: float | None = None,
+        disparity_range_px: tuple[float, float] | None = None,
+        depth_range: tuple[float, float] | None = None,
+        num_planes: int | None = None,
+        cost_volume: str | None = None,
+        airlight: float | None = None,
+        beta: float | None = None,
+        sgm: Tuning | None = None,
+        return_points: bool = False,
+        progress: ProgressCallback | None = None,
+        timeout_s: float | None = None,
+    ) -> RectifiedStereoResult:
+        """Rectified stereo depth in haze; see :func:`murk_client.requests.rectified_stereo_request`."""
+        req = build.rectified_stereo_request(
+            left,
+            right,
+            intrinsics=intrinsics,
+            baseline=baseline,
+            right_cx=right_cx,
+            disparity_range_px=disparity_range_px,
+            depth_range=depth_range,
+            num_planes=num_planes,
+            cost_volume=cost_volume,
+            airlight=airlight,
+            beta=beta,
+            sgm=sgm,
+            return_points=return_points,
+        )
+        return _expect(self.run(req, progress=progress, timeout_s=timeout_s), RectifiedStereoResult)
 
     def scattering_params(
         self,

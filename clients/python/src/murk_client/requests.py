@@ -18,7 +18,7 @@ import numpy.typing as npt
 from google.protobuf import json_format
 from google.protobuf.message import Message
 
-from ._proto.murk.v1 import jobs_pb2, mvs_pb2, params_pb2, ps_pb2, tof_pb2
+from ._proto.murk.v1 import jobs_pb2, mvs_pb2, params_pb2, ps_pb2, stereo_pb2, tof_pb2
 from .errors import ClientInputError
 from .images import ImageLike, to_proto
 from .types import IntrinsicsLike, PsLight, View, intrinsics_proto, vector3_proto
@@ -168,6 +168,67 @@ def mvs_depth_request(
     if s is not None:
         req.sgm.CopyFrom(s)
     return jobs_pb2.JobRequest(mvs_depth=req)
+
+
+def rectified_stereo_request(
+    left: ImageLike,
+    right: ImageLike,
+    *,
+    intrinsics: IntrinsicsLike,
+    baseline: float,
+    right_cx: float | None = None,
+    disparity_range_px: tuple[float, float] | None = None,
+    depth_range: tuple[float, float] | None = None,
+    num_planes: int | None = None,
+    cost_volume: str | None = None,
+    airlight: float | None = None,
+    beta: float | None = None,
+    sgm: Tuning | None = None,
+    return_points: bool = False,
+) -> jobs_pb2.JobRequest:
+    """Depth of the left view of a calibrated, rectified pair in haze (Ch. 3.2 with two views).
+
+    ``intrinsics``: the left camera's rectified intrinsics (murk's pixel-centre convention, as
+    ROS and OpenCV write them, skew 0); ``baseline``: the right camera's centre along the left
+    camera's +x axis, in the unit depths come out in (``beta`` is per that unit);
+    ``right_cx``: the right principal point's x when it differs (Middlebury's ``doffs`` is the
+    difference). Search either ``disparity_range_px`` (min, max) or ``depth_range`` (near,
+    far); neither searches 1 px to a quarter of the width. ``cost_volume`` defaults to
+    ``"dehazing"`` with ``airlight`` and ``beta``, ``"ordinary"`` without.
+    """
+    field = "request.rectified_stereo"
+    kind = cost_volume or ("dehazing" if airlight is not None else "ordinary")
+    if kind not in _COST_VOLUMES:
+        raise ClientInputError(f"{field}.cost_volume", f"one of {sorted(_COST_VOLUMES)}, got {kind!r}")
+    if kind != "ordinary" and (airlight is None or beta is None):
+        raise ClientInputError(f"{field}.airlight", f"the {kind} cost volume needs airlight and beta")
+    if disparity_range_px is not None and depth_range is not None:
+        raise ClientInputError(f"{field}.near", "give disparity_range_px or depth_range, not both")
+    req = stereo_pb2.RectifiedStereoRequest(
+        left=to_proto(left, field=f"{field}.left"),
+        right=to_proto(right, field=f"{field}.right"),
+        intrinsics=intrinsics_proto(intrinsics, f"{field}.intrinsics"),
+        baseline=_finite(baseline, f"{field}.baseline", positive=True),
+        num_planes=int(num_planes or 0),
+        cost_volume=_COST_VOLUMES[kind],
+        airlight=_finite(airlight or 0.0, f"{field}.airlight", non_negative=True),
+        beta=_finite(beta or 0.0, f"{field}.beta", non_negative=True),
+        return_points=return_points,
+    )
+    if right_cx is not None:
+        req.right_cx = _finite(right_cx, f"{field}.right_cx")
+    if disparity_range_px is not None:
+        lo, hi = disparity_range_px
+        req.min_disparity_px = _finite(lo, f"{field}.min_disparity_px")
+        req.max_disparity_px = _finite(hi, f"{field}.max_disparity_px")
+    if depth_range is not None:
+        near, far = depth_range
+        req.near = _finite(near, f"{field}.near", positive=True)
+        req.far = _finite(far, f"{field}.far", positive=True)
+    s = _tuning(sgm, mvs_pb2.SgmOptions, f"{field}.sgm")
+    if s is not None:
+        req.sgm.CopyFrom(s)
+    return jobs_pb2.JobRequest(rectified_stereo=req)
 
 
 def scattering_params_request(

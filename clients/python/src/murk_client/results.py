@@ -8,9 +8,21 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ._proto.murk.v1 import jobs_pb2, mvs_pb2, params_pb2, ps_pb2, tof_pb2
+import numpy as np
+import numpy.typing as npt
+
+from ._proto.murk.v1 import jobs_pb2, mvs_pb2, params_pb2, ps_pb2, stereo_pb2, tof_pb2
 from .errors import MurkError
 from .images import FloatImage, from_proto
+
+
+def _cost_volume_name(kind: int) -> str:
+    """The client's name of a ``CostVolumeKind`` (UNSPECIFIED is the server's default, dehazing)."""
+    names: dict[int, str] = {
+        mvs_pb2.COST_VOLUME_KIND_ORDINARY: "ordinary",
+        mvs_pb2.COST_VOLUME_KIND_DEHAZING_EQ37: "eq37",
+    }
+    return names.get(int(kind), "dehazing")
 
 
 @dataclass(frozen=True)
@@ -110,10 +122,6 @@ class MvsDepthResult:
     @classmethod
     def from_proto(cls, r: mvs_pb2.MvsDepthResult, job_id: str = "") -> MvsDepthResult:
         """From the result message."""
-        kinds = {
-            mvs_pb2.COST_VOLUME_KIND_ORDINARY: "ordinary",
-            mvs_pb2.COST_VOLUME_KIND_DEHAZING_EQ37: "eq37",
-        }
         return cls(
             z_depth=from_proto(r.z_depth, field="mvs_depth.z_depth"),
             inverse_depth=from_proto(r.inverse_depth, field="mvs_depth.inverse_depth"),
@@ -121,7 +129,7 @@ class MvsDepthResult:
             near=r.near,
             far=r.far,
             num_planes=r.num_planes,
-            cost_volume=kinds.get(r.cost_volume, "dehazing"),
+            cost_volume=_cost_volume_name(r.cost_volume),
             compute_seconds=r.compute_seconds,
             source_gains=tuple(r.source_gains),
             vignetting_falloff=r.vignetting_falloff,
@@ -321,7 +329,78 @@ class PhotometricStereoResult:
         )
 
 
-Result = TofDepthResult | MvsDepthResult | ScatteringParamsResult | PhotometricStereoResult
+@dataclass(frozen=True)
+class RectifiedStereoResult:
+    """Depth of a rectified pair's left view; arrays ``(h, w)`` float32 of the left image's size."""
+
+    #: z-depth along the left camera's optical axis, in the baseline's unit.
+    z_depth: FloatImage
+    #: Disparity ``u_left - u_right``, pixels (``fx * baseline / z - doffs``).
+    disparity: FloatImage
+    #: Confidence in [0, 1] (0 where the consistency check or the speckle filter rejected the
+    #: pixel; its depth there is filled from its neighbours).
+    confidence: FloatImage
+    #: With ``return_points``: the confident pixels in the left camera's frame (x right, y down,
+    #: z forward), ``(n, 3)`` float32, and their colours, ``(n, 3)`` uint8; else ``None``.
+    points: npt.NDArray[np.float32] | None
+    colors: npt.NDArray[np.uint8] | None
+    #: The planes searched: nearest and farthest z-depth, count, and the disparity range.
+    near: float
+    far: float
+    num_planes: int
+    min_disparity_px: float
+    max_disparity_px: float
+    #: ``"dehazing"``, ``"eq37"`` or ``"ordinary"``.
+    cost_volume: str
+    compute_seconds: float
+    #: The right image's gain per channel relative to the left's (divided out).
+    right_gains: tuple[float, ...]
+    vignetting_falloff: float
+    right_falloff: float
+    warnings: tuple[str, ...]
+    job_id: str
+    proto: stereo_pb2.RectifiedStereoResult
+
+    @classmethod
+    def from_proto(cls, r: stereo_pb2.RectifiedStereoResult, job_id: str = "") -> RectifiedStereoResult:
+        """From the result message."""
+        points: npt.NDArray[np.float32] | None = None
+        colors: npt.NDArray[np.uint8] | None = None
+        if r.HasField("points"):
+            n = r.points.count
+            if len(r.points.xyz_f32_le) != 12 * n or len(r.points.rgb8) != 3 * n:
+                raise MurkError(
+                    f"rectified_stereo.points: {n} points need {12 * n} position and {3 * n} "
+                    f"colour bytes, got {len(r.points.xyz_f32_le)} and {len(r.points.rgb8)}",
+                    job_id=job_id,
+                )
+            points = np.frombuffer(r.points.xyz_f32_le, dtype="<f4").reshape(n, 3).astype(np.float32)
+            colors = np.frombuffer(r.points.rgb8, dtype=np.uint8).reshape(n, 3).copy()
+        return cls(
+            z_depth=from_proto(r.z_depth, field="rectified_stereo.z_depth"),
+            disparity=from_proto(r.disparity, field="rectified_stereo.disparity"),
+            confidence=from_proto(r.confidence, field="rectified_stereo.confidence"),
+            points=points,
+            colors=colors,
+            near=r.near,
+            far=r.far,
+            num_planes=r.num_planes,
+            min_disparity_px=r.min_disparity_px,
+            max_disparity_px=r.max_disparity_px,
+            cost_volume=_cost_volume_name(r.cost_volume),
+            compute_seconds=r.compute_seconds,
+            right_gains=tuple(r.right_gains),
+            vignetting_falloff=r.vignetting_falloff,
+            right_falloff=r.right_falloff,
+            warnings=tuple(r.warnings),
+            job_id=job_id,
+            proto=r,
+        )
+
+
+Result = (
+    TofDepthResult | MvsDepthResult | RectifiedStereoResult | ScatteringParamsResult | PhotometricStereoResult
+)
 
 
 def from_job_result(r: jobs_pb2.JobResult, job_id: str) -> Result:
@@ -331,6 +410,8 @@ def from_job_result(r: jobs_pb2.JobResult, job_id: str) -> Result:
         return TofDepthResult.from_proto(r.tof_depth, job_id)
     if which == "mvs_depth":
         return MvsDepthResult.from_proto(r.mvs_depth, job_id)
+    if which == "rectified_stereo":
+        return RectifiedStereoResult.from_proto(r.rectified_stereo, job_id)
     if which == "scattering_params":
         return ScatteringParamsResult.from_proto(r.scattering_params, job_id)
     if which == "photometric_stereo":

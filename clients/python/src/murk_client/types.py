@@ -172,7 +172,8 @@ class JobStatus:
     progress: float
     #: The algorithm stage running, e.g. ``"tof.phase.fine"``.
     stage: str
-    #: ``"tof_depth"``, ``"mvs_depth"``, ``"scattering_params"`` or ``"photometric_stereo"``.
+    #: ``"tof_depth"``, ``"mvs_depth"``, ``"rectified_stereo"``, ``"scattering_params"`` or
+    #: ``"photometric_stereo"``.
     method: str
     #: Served from the result cache without recomputation.
     cached: bool

@@ -8,6 +8,7 @@ mod params;
 mod ps;
 mod serve;
 mod simulate;
+mod stereo;
 mod tof;
 mod train;
 
@@ -87,6 +88,9 @@ enum Command {
     Tof(tof::TofArgs),
     /// MVS depth in haze: COLMAP model + images → depth, confidence and a point cloud.
     Mvs(mvs::MvsArgs),
+    /// Rectified stereo in haze: left + right images, intrinsics and baseline → depth,
+    /// disparity, confidence and a point cloud.
+    Stereo(stereo::StereoArgs),
     /// Airlight and scattering coefficient (Algorithm 1) from a COLMAP model + images, then
     /// the depth with them.
     Params(params::ParamsArgs),
@@ -125,6 +129,7 @@ pub fn run() -> anyhow::Result<()> {
         Command::Simulate(c) => simulate::run(c),
         Command::Tof(a) => tof::run(a),
         Command::Mvs(a) => mvs::run(a),
+        Command::Stereo(a) => stereo::run(a),
         Command::Params(a) => params::run(a),
         Command::Ps(a) => ps::run(a),
         Command::Demo(a) => demo::run(a),

@@ -46,6 +46,65 @@ impl CostVolumeArg {
     }
 }
 
+/// Overrides of the depth pipeline's matching and aggregation (`SgmOptions`), shared by
+/// `murk mvs` and `murk stereo`.
+#[derive(Args, Debug, Default)]
+pub struct DepthFlags {
+    /// σ of the Gaussian applied to every view before the cost volume, pixels, 0..=4
+    /// (0 = none; server default 0.8). Lower it for noise-free or already denoised images.
+    #[arg(long)]
+    pub presmooth_sigma: Option<f32>,
+    /// Largest contrast-normalisation weight of the costs, 1..=64 (1 = off; server default 4).
+    #[arg(long)]
+    pub contrast_max_weight: Option<f32>,
+    /// Skip the source–reference consistency check (on by default: pixels whose match a source
+    /// contradicts get confidence 0 and a depth filled from their neighbours).
+    #[arg(long)]
+    pub no_consistency_check: bool,
+    /// Do not estimate and compensate the sources' exposure gains relative to the reference (on by
+    /// default: a source a few percent brighter or darker than the reference otherwise ruins the
+    /// dehazing cost).
+    #[arg(long)]
+    pub no_exposure_compensation: bool,
+    /// Weight of the census term of the matching cost, 0..=3 (0 = off; server default 0).
+    #[arg(long)]
+    pub census_weight: Option<f32>,
+    /// Do not estimate and divide out the lens's radial fall-off (vignetting), shared by every
+    /// view (on by default).
+    #[arg(long)]
+    pub no_vignetting_compensation: bool,
+    /// Reject depth speckles smaller than this many pixels (0 = off; server default W·H/3000).
+    #[arg(long)]
+    pub speckle_max_size: Option<u32>,
+    /// SGM path directions: 5 (one top-to-bottom pass that keeps no volume; server default), 8
+    /// (upward paths too: two passes over a stored volume) or 4 (horizontal and vertical).
+    #[arg(long)]
+    pub paths: Option<u32>,
+    /// Memory bound of the cost volume with 8 or 4 paths, MiB: larger volumes are processed in
+    /// horizontal strips (server default 96; the peak is about 1.25 times this plus the images).
+    #[arg(long)]
+    pub volume_budget_mib: Option<u32>,
+}
+
+impl DepthFlags {
+    /// The wire overrides; `None` when every flag keeps the server's default.
+    pub fn wire(&self) -> Option<pb::SgmOptions> {
+        let o = pb::SgmOptions {
+            presmooth_sigma_px: self.presmooth_sigma,
+            contrast_max_weight: self.contrast_max_weight,
+            consistency_check: self.no_consistency_check.then_some(false),
+            exposure_compensation: self.no_exposure_compensation.then_some(false),
+            census_weight: self.census_weight,
+            vignetting_compensation: self.no_vignetting_compensation.then_some(false),
+            speckle_max_size_px: self.speckle_max_size,
+            volume_budget_mib: self.volume_budget_mib,
+            num_paths: self.paths,
+            ..Default::default()
+        };
+        (o != pb::SgmOptions::default()).then_some(o)
+    }
+}
+
 /// Options of `murk mvs`.
 #[derive(Args, Debug)]
 pub struct MvsArgs {
@@ -84,40 +143,9 @@ pub struct MvsArgs {
     /// displacement of a reference pixel in any source across the range, 16 to 256).
     #[arg(long)]
     pub planes: Option<u32>,
-    /// σ of the Gaussian applied to every view before the cost volume, pixels, 0..=4
-    /// (0 = none; server default 0.8). Lower it for noise-free or already denoised images.
-    #[arg(long)]
-    pub presmooth_sigma: Option<f32>,
-    /// Largest contrast-normalisation weight of the costs, 1..=64 (1 = off; server default 4).
-    #[arg(long)]
-    pub contrast_max_weight: Option<f32>,
-    /// Skip the source–reference consistency check (on by default: pixels whose match a source
-    /// contradicts get confidence 0 and a depth filled from their neighbours).
-    #[arg(long)]
-    pub no_consistency_check: bool,
-    /// Do not estimate and compensate the sources' exposure gains relative to the reference (on by
-    /// default: a source a few percent brighter or darker than the reference otherwise ruins the
-    /// dehazing cost).
-    #[arg(long)]
-    pub no_exposure_compensation: bool,
-    /// Weight of the census term of the matching cost, 0..=3 (0 = off; server default 0).
-    #[arg(long)]
-    pub census_weight: Option<f32>,
-    /// Do not estimate and divide out the lens's radial fall-off (vignetting), shared by every
-    /// view (on by default).
-    #[arg(long)]
-    pub no_vignetting_compensation: bool,
-    /// Reject depth speckles smaller than this many pixels (0 = off; server default W·H/3000).
-    #[arg(long)]
-    pub speckle_max_size: Option<u32>,
-    /// SGM path directions: 5 (one top-to-bottom pass that keeps no volume; server default), 8
-    /// (upward paths too: two passes over a stored volume) or 4 (horizontal and vertical).
-    #[arg(long)]
-    pub paths: Option<u32>,
-    /// Memory bound of the cost volume with 8 or 4 paths, MiB: larger volumes are processed in
-    /// horizontal strips (server default 96; the peak is about 1.25 times this plus the images).
-    #[arg(long)]
-    pub volume_budget_mib: Option<u32>,
+    /// Matching and aggregation overrides.
+    #[command(flatten)]
+    pub depth: DepthFlags,
     /// Points below this confidence are left out of points.ply (0 keeps all).
     #[arg(long, default_value_t = 0.0)]
     pub min_confidence: f32,
@@ -182,29 +210,7 @@ pub fn run(a: MvsArgs) -> anyhow::Result<()> {
     request.near = near;
     request.far = far;
     request.num_planes = a.planes.unwrap_or(0);
-    if a.presmooth_sigma.is_some()
-        || a.contrast_max_weight.is_some()
-        || a.no_consistency_check
-        || a.no_exposure_compensation
-        || a.census_weight.is_some()
-        || a.no_vignetting_compensation
-        || a.speckle_max_size.is_some()
-        || a.volume_budget_mib.is_some()
-        || a.paths.is_some()
-    {
-        request.sgm = Some(pb::SgmOptions {
-            presmooth_sigma_px: a.presmooth_sigma,
-            contrast_max_weight: a.contrast_max_weight,
-            consistency_check: a.no_consistency_check.then_some(false),
-            exposure_compensation: a.no_exposure_compensation.then_some(false),
-            census_weight: a.census_weight,
-            vignetting_compensation: a.no_vignetting_compensation.then_some(false),
-            speckle_max_size_px: a.speckle_max_size,
-            volume_budget_mib: a.volume_budget_mib,
-            num_paths: a.paths,
-            ..Default::default()
-        });
-    }
+    request.sgm = a.depth.wire();
 
     let job_request = pb::JobRequest {
         method: Some(pb::job_request::Method::MvsDepth(request)),

@@ -142,7 +142,12 @@ pub fn run(a: TofArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-fn parse_numbers<const N: usize>(s: &str, flag: &str, shape: &str) -> anyhow::Result<[f64; N]> {
+/// `N` comma-separated numbers of `flag`, whose `shape` (e.g. "x,y,z") the error names.
+pub(super) fn parse_numbers<const N: usize>(
+    s: &str,
+    flag: &str,
+    shape: &str,
+) -> anyhow::Result<[f64; N]> {
     let v: Vec<f64> = s
         .split(',')
         .map(|p| p.trim().parse::<f64>())
@@ -152,7 +157,8 @@ fn parse_numbers<const N: usize>(s: &str, flag: &str, shape: &str) -> anyhow::Re
         .map_err(|_| anyhow::anyhow!("{flag} must have {N} numbers: {shape}"))
 }
 
-fn parse_intrinsics(s: &str) -> anyhow::Result<Intrinsics> {
+/// Intrinsics "fx,fy,cx,cy" of `--intrinsics`, validated.
+pub(super) fn parse_intrinsics(s: &str) -> anyhow::Result<Intrinsics> {
     let [fx, fy, cx, cy] = parse_numbers::<4>(s, "--intrinsics", "fx,fy,cx,cy")?;
     let k = Intrinsics::new(fx, fy, cx, cy);
     k.validate()?;

@@ -128,6 +128,9 @@ impl MethodRequest for pb::ScatteringParamsRequest {
 impl MethodRequest for pb::PhotometricStereoRequest {
     type Result = pb::PhotometricStereoResult;
 }
+impl MethodRequest for pb::RectifiedStereoRequest {
+    type Result = pb::RectifiedStereoResult;
+}
 
 /// FAILED_PRECONDITION for a result the unary RPC may not send, naming the RPC that can.
 fn too_large(id: &str, size: usize, limit: usize) -> Status {
@@ -158,6 +161,22 @@ impl pb::reconstruction_server::Reconstruction for ReconstructionApi {
             R::TofDepth(r) => Some(r),
             _ => None,
         })
+        .await
+    }
+
+    async fn rectified_stereo(
+        &self,
+        request: Request<pb::RectifiedStereoRequest>,
+    ) -> Result<Response<pb::RectifiedStereoResult>, Status> {
+        use pb::job_result::Method as R;
+        self.run(
+            request,
+            pb::job_request::Method::RectifiedStereo,
+            |m| match m {
+                R::RectifiedStereo(r) => Some(r),
+                _ => None,
+            },
+        )
         .await
     }
 

@@ -9,9 +9,10 @@ use sha2::{Digest, Sha256};
 use tonic::Status;
 
 use super::convert::{
-    canonicalize_mvs_request, canonicalize_params_request, canonicalize_ps_request, mvs_from_proto,
-    mvs_to_proto, params_from_proto, ps_from_proto, ps_to_proto, tof_from_proto, tof_to_proto,
-    AirlightService, ImageLimits,
+    canonicalize_mvs_request, canonicalize_params_request, canonicalize_ps_request,
+    canonicalize_stereo_request, mvs_from_proto, mvs_to_proto, params_from_proto, ps_from_proto,
+    ps_to_proto, stereo_from_proto, stereo_to_proto, tof_from_proto, tof_to_proto, AirlightService,
+    ImageLimits,
 };
 use super::proto::v1 as pb;
 use super::status::{submit_status, to_status};
@@ -92,6 +93,7 @@ pub fn method_name(m: &pb::job_request::Method) -> &'static str {
         pb::job_request::Method::MvsDepth(_) => "mvs_depth",
         pb::job_request::Method::ScatteringParams(_) => "scattering_params",
         pb::job_request::Method::PhotometricStereo(_) => "photometric_stereo",
+        pb::job_request::Method::RectifiedStereo(_) => "rectified_stereo",
     }
 }
 
@@ -163,6 +165,7 @@ fn canonicalize(req: &mut pb::JobRequest, airlight: &AirlightService) {
         // ToF ids hash the request as sent (its options are `optional` fields whose presence is
         // kept as sent).
         Some(pb::job_request::Method::PhotometricStereo(p)) => canonicalize_ps_request(p),
+        Some(pb::job_request::Method::RectifiedStereo(s)) => canonicalize_stereo_request(s),
         Some(pb::job_request::Method::TofDepth(_)) | None => {}
     }
 }
@@ -208,6 +211,10 @@ fn check_size(req: &pb::JobRequest, max: usize) -> Result<(), MurkError> {
             }
             v
         }
+        Some(pb::job_request::Method::RectifiedStereo(s)) => vec![
+            ("left".into(), size_of(s.left.as_ref())),
+            ("right".into(), size_of(s.right.as_ref())),
+        ],
         None => Vec::new(),
     };
     // The first of equally large fields wins, so the answer is stable.
@@ -276,6 +283,20 @@ fn build_work(
                 let result = pb::JobResult {
                     method: Some(pb::job_result::Method::MvsDepth(mvs_to_proto(
                         &input, &out, seconds,
+                    ))),
+                };
+                Ok(result.encode_to_vec())
+            }))
+        }
+        Some(pb::job_request::Method::RectifiedStereo(s)) => {
+            let input = stereo_from_proto(&s, limits)?;
+            Ok(Box::new(move |monitor| {
+                let started = Instant::now();
+                let (out, points) = input.estimate(monitor)?;
+                let seconds = started.elapsed().as_secs_f64();
+                let result = pb::JobResult {
+                    method: Some(pb::job_result::Method::RectifiedStereo(stereo_to_proto(
+                        &input, &out, &points, seconds,
                     ))),
                 };
                 Ok(result.encode_to_vec())

@@ -629,3 +629,90 @@ async fn the_tof_client_follows_its_job_across_a_server_restart() {
     assert!(output.status.success(), "{stderr}");
     assert!(out.join("range_m.exr").exists(), "{stderr}");
 }
+
+#[test]
+fn simulate_a_rectified_pair_then_stereo_writes_depth_disparity_and_points() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("pair");
+    let out = dir.path().join("out");
+    succeeded(
+        &murk()
+            .args(["simulate", "mvs", "--rectified-pair", "--seed", "2"])
+            .args(["--width", "96", "--height", "64", "--out"])
+            .arg(&scene)
+            .output()
+            .unwrap(),
+    );
+    // The rig from the simulator's COLMAP model: PINHOLE fx fy cx cy (COLMAP's principal point
+    // is 0.5 px from murk's pixel-centre convention), and the right camera's translation.
+    let cameras = std::fs::read_to_string(scene.join("sparse/cameras.txt")).unwrap();
+    let k: Vec<f64> = cameras
+        .lines()
+        .find(|l| l.contains("PINHOLE"))
+        .unwrap()
+        .split_whitespace()
+        .skip(4)
+        .map(|v| v.parse().unwrap())
+        .collect();
+    let intrinsics = format!("{},{},{},{}", k[0], k[1], k[2] - 0.5, k[3] - 0.5);
+    let images = std::fs::read_to_string(scene.join("sparse/images.txt")).unwrap();
+    let tx: f64 = images
+        .lines()
+        .find(|l| l.ends_with("view_01.png"))
+        .unwrap()
+        .split_whitespace()
+        .nth(5)
+        .unwrap()
+        .parse()
+        .unwrap();
+    let meta: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(scene.join("meta.json")).unwrap()).unwrap();
+    let stereo = |baseline: f64| {
+        murk()
+            .env_remove("MURK_SERVER")
+            .arg("stereo")
+            .arg("--left")
+            .arg(scene.join("images/view_00.png"))
+            .arg("--right")
+            .arg(scene.join("images/view_01.png"))
+            .args(["--intrinsics", &intrinsics])
+            .args(["--baseline", &baseline.to_string()])
+            .args(["--depth-range", "1.5,15"])
+            .args(["--airlight", &meta["airlight"].to_string()])
+            .args(["--beta", &meta["beta"].to_string()])
+            .arg("--out")
+            .arg(&out)
+            .output()
+            .unwrap()
+    };
+    let said = succeeded(&stereo(-tx));
+    assert!(said.contains("dehazing cost volume"), "{said}");
+    for f in [
+        "depth.exr",
+        "disparity.exr",
+        "confidence.exr",
+        "points.ply",
+        "depth.png",
+    ] {
+        assert!(out.join(f).exists(), "{f} missing");
+    }
+    let limits = murk::io::DecodeLimits::default();
+    let z = murk::io::read_image(&out.join("depth.exr"), &limits).unwrap();
+    assert_eq!(z.dims(), (96, 64));
+    // The cloud's header counts the points the summary names.
+    let ply = std::fs::read(out.join("points.ply")).unwrap();
+    let header = String::from_utf8_lossy(&ply[..200.min(ply.len())]).into_owned();
+    let count: usize = header
+        .lines()
+        .find_map(|l| l.strip_prefix("element vertex "))
+        .unwrap()
+        .parse()
+        .unwrap();
+    assert!(said.contains(&format!("; {count} points")), "{said}");
+    assert!(count > 96 * 64 / 2, "{count} points");
+
+    let bad = stereo(0.0);
+    assert!(!bad.status.success());
+    let err = String::from_utf8_lossy(&bad.stderr);
+    assert!(err.contains("baseline"), "{err}");
+}

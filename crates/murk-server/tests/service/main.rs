@@ -13,3 +13,4 @@ mod params_api;
 mod ps_api;
 mod redis_scaleout;
 mod service_ops;
+mod stereo_api;

@@ -17,6 +17,7 @@ pub mod depth;
 pub mod plane_count;
 pub mod plane_sweep;
 pub mod pose;
+pub mod rectified;
 
 #[cfg(test)]
 mod tests;
@@ -32,3 +33,7 @@ pub use depth::{
 pub use plane_count::{planes_for_displacement, Camera, AUTO_PLANES_MAX, AUTO_PLANES_MIN};
 pub use plane_sweep::{PlaneSet, PlaneWarp, MAX_PLANES};
 pub use pose::Pose;
+pub use rectified::{
+    estimate_rectified, RectifiedDepth, RectifiedOptions, RectifiedRig, StereoRange,
+    DEFAULT_MAX_DISPARITY_PX,
+};

@@ -5,6 +5,7 @@ mod job;
 mod mvs;
 mod params;
 mod ps;
+mod stereo;
 mod tof;
 
 pub use image::{image_from_proto, image_to_proto, mono_image_from_proto, ImageLimits};
@@ -19,5 +20,9 @@ pub use params::{
 };
 pub use ps::{
     canonicalize_ps_request, ps_from_proto, ps_from_result, ps_request_to_proto, ps_to_proto,
+};
+pub use stereo::{
+    canonicalize_stereo_request, points_from_proto, points_to_proto, stereo_from_proto,
+    stereo_request_to_proto, stereo_to_proto, StereoInput,
 };
 pub use tof::{intrinsics_to_proto, tof_from_proto, tof_request_to_proto, tof_to_proto};

@@ -90,6 +90,44 @@ impl MvsInput {
     }
 }
 
+/// The wire kind (UNSPECIFIED resolved) and the library's cost from a request's cost volume,
+/// airlight and β. Errors name `cost_volume`, `airlight` or `beta`.
+pub(super) fn cost_of(
+    cost_volume: i32,
+    airlight: f32,
+    beta: f32,
+) -> Result<(pb::CostVolumeKind, CostKind)> {
+    let wire_kind = resolve_kind(cost_volume)?;
+    for (name, v) in [("airlight", airlight), ("beta", beta)] {
+        // Checked for every kind: ORDINARY ignores the values, but a NaN is a client bug.
+        if !v.is_finite() {
+            return Err(MurkError::invalid(name, format!("must be finite, got {v}")));
+        }
+    }
+    let atmosphere = AtmosphereParams { airlight, beta };
+    let kind = match wire_kind {
+        pb::CostVolumeKind::Ordinary => CostKind::Ordinary,
+        pb::CostVolumeKind::DehazingEq37 => CostKind::Dehazing(atmosphere),
+        pb::CostVolumeKind::Dehazing | pb::CostVolumeKind::Unspecified => {
+            CostKind::DehazingWith(atmosphere, DehazingOptions::default())
+        }
+    };
+    if kind != CostKind::Ordinary {
+        // Names `airlight` (A ∉ (0, 1], which includes an unset A = 0) or `beta`.
+        atmosphere.validate().map_err(|e| {
+            if e.field() == Some("airlight") && airlight == 0.0 {
+                MurkError::invalid(
+                    "airlight",
+                    "required (in (0, 1]) for the dehazing cost volumes; got 0 (unset)",
+                )
+            } else {
+                e
+            }
+        })?;
+    }
+    Ok((wire_kind, kind))
+}
+
 /// `planes.near` → `near`, `atmosphere.airlight` → `airlight`; other paths already match.
 fn library_field_to_proto(field: &str) -> String {
     for prefix in ["planes.", "atmosphere."] {
@@ -202,79 +240,62 @@ pub fn canonicalize_mvs_request(req: &mut pb::MvsDepthRequest) {
     let (near, far, _) = planes_of(req);
     req.near = near;
     req.far = far;
-    if let Ok(kind) = resolve_kind(req.cost_volume) {
-        req.cost_volume = kind as i32;
-        if kind == pb::CostVolumeKind::Ordinary && req.airlight.is_finite() && req.beta.is_finite()
-        {
-            req.airlight = 0.0;
-            req.beta = 0.0;
+    canonicalize_cost(&mut req.cost_volume, &mut req.airlight, &mut req.beta);
+    if let Some(sgm) = canonical_sgm(req.sgm.as_ref()) {
+        req.sgm = Some(sgm);
+    }
+}
+
+/// The canonical cost volume: UNSPECIFIED resolved, and airlight/β zeroed for ORDINARY, which
+/// ignores them (unless they are not finite, so validation still sees them).
+pub(super) fn canonicalize_cost(cost_volume: &mut i32, airlight: &mut f32, beta: &mut f32) {
+    if let Ok(kind) = resolve_kind(*cost_volume) {
+        *cost_volume = kind as i32;
+        if kind == pb::CostVolumeKind::Ordinary && airlight.is_finite() && beta.is_finite() {
+            *airlight = 0.0;
+            *beta = 0.0;
         }
     }
-    let p = sgm_of(req.sgm.as_ref());
-    // Written out only when every value fits its wire type (always, for u32 counts from u32s).
-    if let (Ok(num_paths), Ok(radius)) = (
+}
+
+/// SGM options with every default written out; `None` when a value does not fit its wire type
+/// (never, for u32 counts that came from u32s).
+pub(super) fn canonical_sgm(o: Option<&pb::SgmOptions>) -> Option<pb::SgmOptions> {
+    let p = sgm_of(o);
+    let (Ok(num_paths), Ok(radius)) = (
         u32::try_from(p.sgm.num_paths),
         u32::try_from(p.matching.cost_window_radius),
-    ) {
-        req.sgm = Some(pb::SgmOptions {
-            p1: Some(p.sgm.p1),
-            p2: Some(p.sgm.p2),
-            p2_gradient_scale: Some(p.sgm.p2_gradient_scale),
-            num_paths: Some(num_paths),
-            cost_window_radius: Some(radius),
-            presmooth_sigma_px: Some(p.matching.presmooth_sigma_px),
-            contrast_percentile: Some(p.matching.contrast_percentile),
-            contrast_max_weight: Some(p.matching.contrast_max_weight),
-            consistency_check: Some(p.rejection.consistency_check),
-            consistency_tolerance_planes: Some(p.rejection.consistency_tolerance_planes),
-            // Unset means "from the image size", itself deterministic in the request.
-            speckle_max_size_px: p
-                .rejection
-                .speckle_max_size_px
-                .and_then(|s| u32::try_from(s).ok()),
-            speckle_range_planes: Some(p.rejection.speckle_range_planes),
-            volume_budget_mib: u32::try_from(p.sgm.volume_budget_mib).ok(),
-            exposure_compensation: Some(p.photometric.exposure_compensation),
-            census_weight: Some(p.matching.census_weight),
-            vignetting_compensation: Some(p.photometric.vignetting_compensation),
-        });
-    }
+    ) else {
+        return None;
+    };
+    Some(pb::SgmOptions {
+        p1: Some(p.sgm.p1),
+        p2: Some(p.sgm.p2),
+        p2_gradient_scale: Some(p.sgm.p2_gradient_scale),
+        num_paths: Some(num_paths),
+        cost_window_radius: Some(radius),
+        presmooth_sigma_px: Some(p.matching.presmooth_sigma_px),
+        contrast_percentile: Some(p.matching.contrast_percentile),
+        contrast_max_weight: Some(p.matching.contrast_max_weight),
+        consistency_check: Some(p.rejection.consistency_check),
+        consistency_tolerance_planes: Some(p.rejection.consistency_tolerance_planes),
+        // Unset means "from the image size", itself deterministic in the request.
+        speckle_max_size_px: p
+            .rejection
+            .speckle_max_size_px
+            .and_then(|s| u32::try_from(s).ok()),
+        speckle_range_planes: Some(p.rejection.speckle_range_planes),
+        volume_budget_mib: u32::try_from(p.sgm.volume_budget_mib).ok(),
+        exposure_compensation: Some(p.photometric.exposure_compensation),
+        census_weight: Some(p.matching.census_weight),
+        vignetting_compensation: Some(p.photometric.vignetting_compensation),
+    })
 }
 
 /// Decodes and fully validates an MVS request. Field names are relative to `MvsDepthRequest`.
 /// Cheap scalar checks run before any image is decoded.
 pub fn mvs_from_proto(req: &pb::MvsDepthRequest, limits: &ImageLimits) -> Result<MvsInput> {
-    let wire_kind = resolve_kind(req.cost_volume)?;
-    for (name, v) in [("airlight", req.airlight), ("beta", req.beta)] {
-        // Checked for every kind: ORDINARY ignores the values, but a NaN is a client bug.
-        if !v.is_finite() {
-            return Err(MurkError::invalid(name, format!("must be finite, got {v}")));
-        }
-    }
-    let atmosphere = AtmosphereParams {
-        airlight: req.airlight,
-        beta: req.beta,
-    };
-    let kind = match wire_kind {
-        pb::CostVolumeKind::Ordinary => CostKind::Ordinary,
-        pb::CostVolumeKind::DehazingEq37 => CostKind::Dehazing(atmosphere),
-        pb::CostVolumeKind::Dehazing | pb::CostVolumeKind::Unspecified => {
-            CostKind::DehazingWith(atmosphere, DehazingOptions::default())
-        }
-    };
-    if kind != CostKind::Ordinary {
-        // Names `airlight` (A ∉ (0, 1], which includes an unset A = 0) or `beta`.
-        atmosphere.validate().map_err(|e| {
-            if e.field() == Some("airlight") && req.airlight == 0.0 {
-                MurkError::invalid(
-                    "airlight",
-                    "required (in (0, 1]) for the dehazing cost volumes; got 0 (unset)",
-                )
-            } else {
-                e
-            }
-        })?;
-    }
+    let (wire_kind, kind) = cost_of(req.cost_volume, req.airlight, req.beta)?;
     let (near, far, requested_planes) = planes_of(req);
     // The range is checked now, the count once the views are decoded.
     PlaneSet::new(near, far, requested_planes.unwrap_or(2))?;

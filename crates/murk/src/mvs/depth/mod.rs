@@ -36,7 +36,7 @@
 //! volume of the whole strip exists; the sum over all paths is a second `u16` volume. The
 //! levels' scale is therefore fixed before any cost is computed, from the largest cost the
 //! volume can hold ([`quantise`]). At 256×192×256: two 25 MB volumes and a 24 MB band. Larger
-//! volumes go in horizontal strips ([`DepthParams::volume_budget_mib`]). [`depth_from_costs`],
+//! volumes go in horizontal strips ([`SgmParams::volume_budget_mib`]). [`depth_from_costs`],
 //! given a whole `f32` volume, windows it at once and aggregates into its memory.
 
 pub mod consistency;

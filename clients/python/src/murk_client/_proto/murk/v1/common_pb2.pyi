@@ -192,3 +192,35 @@ class Vector3(_message.Message):
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
 Global___Vector3: _TypeAlias = Vector3  # noqa: Y015
+
+@_typing.final
+class PointCloud(_message.Message):
+    """Points in a camera's frame (x right, y down, z forward), in the unit the message's owner
+    names, each with an 8-bit colour.
+    """
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    COUNT_FIELD_NUMBER: _builtins.int
+    XYZ_F32_LE_FIELD_NUMBER: _builtins.int
+    RGB8_FIELD_NUMBER: _builtins.int
+    count: _builtins.int
+    """Number of points."""
+    xyz_f32_le: _builtins.bytes
+    """Positions, little-endian f32, interleaved x, y, z (count * 12 bytes)."""
+    rgb8: _builtins.bytes
+    """Colours, interleaved red, green, blue (count * 3 bytes)."""
+    def __init__(
+        self,
+        *,
+        count: _builtins.int = ...,
+        xyz_f32_le: _builtins.bytes = ...,
+        rgb8: _builtins.bytes = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["count", b"count", "rgb8", b"rgb8", "xyz_f32_le", b"xyz_f32_le"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___PointCloud: _TypeAlias = PointCloud  # noqa: Y015

@@ -26,10 +26,11 @@ from google.protobuf import timestamp_pb2 as google_dot_protobuf_dot_timestamp__
 from murk_client._proto.murk.v1 import mvs_pb2 as murk_dot_v1_dot_mvs__pb2
 from murk_client._proto.murk.v1 import params_pb2 as murk_dot_v1_dot_params__pb2
 from murk_client._proto.murk.v1 import ps_pb2 as murk_dot_v1_dot_ps__pb2
+from murk_client._proto.murk.v1 import stereo_pb2 as murk_dot_v1_dot_stereo__pb2
 from murk_client._proto.murk.v1 import tof_pb2 as murk_dot_v1_dot_tof__pb2
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x12murk/v1/jobs.proto\x12\x07murk.v1\x1a\x1fgoogle/protobuf/timestamp.proto\x1a\x11murk/v1/mvs.proto\x1a\x14murk/v1/params.proto\x1a\x10murk/v1/ps.proto\x1a\x11murk/v1/tof.proto\"\xf4\x01\n\nJobRequest\x12-\n\ttof_depth\x18\x01 \x01(\x0b\x32\x18.murk.v1.TofDepthRequestH\x00\x12-\n\tmvs_depth\x18\x02 \x01(\x0b\x32\x18.murk.v1.MvsDepthRequestH\x00\x12=\n\x11scattering_params\x18\x03 \x01(\x0b\x32 .murk.v1.ScatteringParamsRequestH\x00\x12?\n\x12photometric_stereo\x18\x04 \x01(\x0b\x32!.murk.v1.PhotometricStereoRequestH\x00\x42\x08\n\x06method\"\xef\x01\n\tJobResult\x12,\n\ttof_depth\x18\x01 \x01(\x0b\x32\x17.murk.v1.TofDepthResultH\x00\x12,\n\tmvs_depth\x18\x02 \x01(\x0b\x32\x17.murk.v1.MvsDepthResultH\x00\x12<\n\x11scattering_params\x18\x03 \x01(\x0b\x32\x1f.murk.v1.ScatteringParamsResultH\x00\x12>\n\x12photometric_stereo\x18\x04 \x01(\x0b\x32 .murk.v1.PhotometricStereoResultH\x00\x42\x08\n\x06method\"8\n\x08JobError\x12\x0c\n\x04\x63ode\x18\x01 \x01(\x05\x12\x0f\n\x07message\x18\x02 \x01(\t\x12\r\n\x05\x66ield\x18\x03 \x01(\t\"\x8b\x03\n\x03Job\x12\n\n\x02id\x18\x01 \x01(\t\x12 \n\x05state\x18\x02 \x01(\x0e\x32\x11.murk.v1.JobState\x12\x10\n\x08progress\x18\x03 \x01(\x02\x12\r\n\x05stage\x18\x04 \x01(\t\x12/\n\x0b\x63reate_time\x18\x05 \x01(\x0b\x32\x1a.google.protobuf.Timestamp\x12.\n\nstart_time\x18\x06 \x01(\x0b\x32\x1a.google.protobuf.Timestamp\x12,\n\x08\x65nd_time\x18\x07 \x01(\x0b\x32\x1a.google.protobuf.Timestamp\x12\x0e\n\x06\x63\x61\x63hed\x18\x08 \x01(\x08\x12\x0e\n\x06method\x18\t \x01(\t\x12$\n\x06result\x18\n \x01(\x0b\x32\x12.murk.v1.JobResultH\x00\x12\"\n\x05\x65rror\x18\x0b \x01(\x0b\x32\x11.murk.v1.JobErrorH\x00\x12\x19\n\x11result_size_bytes\x18\x0c \x01(\x04\x12\x16\n\x0eresult_omitted\x18\r \x01(\x08\x42\t\n\x07outcome\"M\n\x10SubmitJobRequest\x12$\n\x07request\x18\x01 \x01(\x0b\x32\x13.murk.v1.JobRequest\x12\x13\n\x0bomit_result\x18\x02 \x01(\x08\"0\n\rGetJobRequest\x12\n\n\x02id\x18\x01 \x01(\t\x12\x13\n\x0bomit_result\x18\x02 \x01(\x08\"2\n\x0fWatchJobRequest\x12\n\n\x02id\x18\x01 \x01(\t\x12\x13\n\x0bomit_result\x18\x02 \x01(\x08\"\x1e\n\x10\x43\x61ncelJobRequest\x12\n\n\x02id\x18\x01 \x01(\t\"8\n\x0fListJobsRequest\x12\x11\n\tpage_size\x18\x01 \x01(\r\x12\x12\n\npage_token\x18\x02 \x01(\t\"G\n\x10ListJobsResponse\x12\x1a\n\x04jobs\x18\x01 \x03(\x0b\x32\x0c.murk.v1.Job\x12\x17\n\x0fnext_page_token\x18\x02 \x01(\t\"6\n\x13GetJobResultRequest\x12\n\n\x02id\x18\x01 \x01(\t\x12\x13\n\x0b\x63hunk_bytes\x18\x02 \x01(\r\"P\n\x0bResultChunk\x12\x0e\n\x06offset\x18\x01 \x01(\x04\x12\x0c\n\x04\x64\x61ta\x18\x02 \x01(\x0c\x12\x13\n\x0btotal_bytes\x18\x03 \x01(\x04\x12\x0e\n\x06sha256\x18\x04 \x01(\t*\x9a\x01\n\x08JobState\x12\x19\n\x15JOB_STATE_UNSPECIFIED\x10\x00\x12\x14\n\x10JOB_STATE_QUEUED\x10\x01\x12\x15\n\x11JOB_STATE_RUNNING\x10\x02\x12\x17\n\x13JOB_STATE_SUCCEEDED\x10\x03\x12\x14\n\x10JOB_STATE_FAILED\x10\x04\x12\x17\n\x13JOB_STATE_CANCELLED\x10\x05\x32\xdf\x02\n\x04Jobs\x12\x34\n\tSubmitJob\x12\x19.murk.v1.SubmitJobRequest\x1a\x0c.murk.v1.Job\x12.\n\x06GetJob\x12\x16.murk.v1.GetJobRequest\x1a\x0c.murk.v1.Job\x12\x34\n\x08WatchJob\x12\x18.murk.v1.WatchJobRequest\x1a\x0c.murk.v1.Job0\x01\x12\x34\n\tCancelJob\x12\x19.murk.v1.CancelJobRequest\x1a\x0c.murk.v1.Job\x12?\n\x08ListJobs\x12\x18.murk.v1.ListJobsRequest\x1a\x19.murk.v1.ListJobsResponse\x12\x44\n\x0cGetJobResult\x12\x1c.murk.v1.GetJobResultRequest\x1a\x14.murk.v1.ResultChunk0\x01\x32\xbf\x02\n\x0eReconstruction\x12=\n\x08TofDepth\x12\x18.murk.v1.TofDepthRequest\x1a\x17.murk.v1.TofDepthResult\x12=\n\x08MvsDepth\x12\x18.murk.v1.MvsDepthRequest\x1a\x17.murk.v1.MvsDepthResult\x12U\n\x10ScatteringParams\x12 .murk.v1.ScatteringParamsRequest\x1a\x1f.murk.v1.ScatteringParamsResult\x12X\n\x11PhotometricStereo\x12!.murk.v1.PhotometricStereoRequest\x1a .murk.v1.PhotometricStereoResultB\x1e\n\nio.murk.v1P\x01Z\x0emurk/v1;murkv1b\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x12murk/v1/jobs.proto\x12\x07murk.v1\x1a\x1fgoogle/protobuf/timestamp.proto\x1a\x11murk/v1/mvs.proto\x1a\x14murk/v1/params.proto\x1a\x10murk/v1/ps.proto\x1a\x14murk/v1/stereo.proto\x1a\x11murk/v1/tof.proto\"\xb1\x02\n\nJobRequest\x12-\n\ttof_depth\x18\x01 \x01(\x0b\x32\x18.murk.v1.TofDepthRequestH\x00\x12-\n\tmvs_depth\x18\x02 \x01(\x0b\x32\x18.murk.v1.MvsDepthRequestH\x00\x12=\n\x11scattering_params\x18\x03 \x01(\x0b\x32 .murk.v1.ScatteringParamsRequestH\x00\x12?\n\x12photometric_stereo\x18\x04 \x01(\x0b\x32!.murk.v1.PhotometricStereoRequestH\x00\x12;\n\x10rectified_stereo\x18\x05 \x01(\x0b\x32\x1f.murk.v1.RectifiedStereoRequestH\x00\x42\x08\n\x06method\"\xab\x02\n\tJobResult\x12,\n\ttof_depth\x18\x01 \x01(\x0b\x32\x17.murk.v1.TofDepthResultH\x00\x12,\n\tmvs_depth\x18\x02 \x01(\x0b\x32\x17.murk.v1.MvsDepthResultH\x00\x12<\n\x11scattering_params\x18\x03 \x01(\x0b\x32\x1f.murk.v1.ScatteringParamsResultH\x00\x12>\n\x12photometric_stereo\x18\x04 \x01(\x0b\x32 .murk.v1.PhotometricStereoResultH\x00\x12:\n\x10rectified_stereo\x18\x05 \x01(\x0b\x32\x1e.murk.v1.RectifiedStereoResultH\x00\x42\x08\n\x06method\"8\n\x08JobError\x12\x0c\n\x04\x63ode\x18\x01 \x01(\x05\x12\x0f\n\x07message\x18\x02 \x01(\t\x12\r\n\x05\x66ield\x18\x03 \x01(\t\"\x8b\x03\n\x03Job\x12\n\n\x02id\x18\x01 \x01(\t\x12 \n\x05state\x18\x02 \x01(\x0e\x32\x11.murk.v1.JobState\x12\x10\n\x08progress\x18\x03 \x01(\x02\x12\r\n\x05stage\x18\x04 \x01(\t\x12/\n\x0b\x63reate_time\x18\x05 \x01(\x0b\x32\x1a.google.protobuf.Timestamp\x12.\n\nstart_time\x18\x06 \x01(\x0b\x32\x1a.google.protobuf.Timestamp\x12,\n\x08\x65nd_time\x18\x07 \x01(\x0b\x32\x1a.google.protobuf.Timestamp\x12\x0e\n\x06\x63\x61\x63hed\x18\x08 \x01(\x08\x12\x0e\n\x06method\x18\t \x01(\t\x12$\n\x06result\x18\n \x01(\x0b\x32\x12.murk.v1.JobResultH\x00\x12\"\n\x05\x65rror\x18\x0b \x01(\x0b\x32\x11.murk.v1.JobErrorH\x00\x12\x19\n\x11result_size_bytes\x18\x0c \x01(\x04\x12\x16\n\x0eresult_omitted\x18\r \x01(\x08\x42\t\n\x07outcome\"M\n\x10SubmitJobRequest\x12$\n\x07request\x18\x01 \x01(\x0b\x32\x13.murk.v1.JobRequest\x12\x13\n\x0bomit_result\x18\x02 \x01(\x08\"0\n\rGetJobRequest\x12\n\n\x02id\x18\x01 \x01(\t\x12\x13\n\x0bomit_result\x18\x02 \x01(\x08\"2\n\x0fWatchJobRequest\x12\n\n\x02id\x18\x01 \x01(\t\x12\x13\n\x0bomit_result\x18\x02 \x01(\x08\"\x1e\n\x10\x43\x61ncelJobRequest\x12\n\n\x02id\x18\x01 \x01(\t\"8\n\x0fListJobsRequest\x12\x11\n\tpage_size\x18\x01 \x01(\r\x12\x12\n\npage_token\x18\x02 \x01(\t\"G\n\x10ListJobsResponse\x12\x1a\n\x04jobs\x18\x01 \x03(\x0b\x32\x0c.murk.v1.Job\x12\x17\n\x0fnext_page_token\x18\x02 \x01(\t\"6\n\x13GetJobResultRequest\x12\n\n\x02id\x18\x01 \x01(\t\x12\x13\n\x0b\x63hunk_bytes\x18\x02 \x01(\r\"P\n\x0bResultChunk\x12\x0e\n\x06offset\x18\x01 \x01(\x04\x12\x0c\n\x04\x64\x61ta\x18\x02 \x01(\x0c\x12\x13\n\x0btotal_bytes\x18\x03 \x01(\x04\x12\x0e\n\x06sha256\x18\x04 \x01(\t*\x9a\x01\n\x08JobState\x12\x19\n\x15JOB_STATE_UNSPECIFIED\x10\x00\x12\x14\n\x10JOB_STATE_QUEUED\x10\x01\x12\x15\n\x11JOB_STATE_RUNNING\x10\x02\x12\x17\n\x13JOB_STATE_SUCCEEDED\x10\x03\x12\x14\n\x10JOB_STATE_FAILED\x10\x04\x12\x17\n\x13JOB_STATE_CANCELLED\x10\x05\x32\xdf\x02\n\x04Jobs\x12\x34\n\tSubmitJob\x12\x19.murk.v1.SubmitJobRequest\x1a\x0c.murk.v1.Job\x12.\n\x06GetJob\x12\x16.murk.v1.GetJobRequest\x1a\x0c.murk.v1.Job\x12\x34\n\x08WatchJob\x12\x18.murk.v1.WatchJobRequest\x1a\x0c.murk.v1.Job0\x01\x12\x34\n\tCancelJob\x12\x19.murk.v1.CancelJobRequest\x1a\x0c.murk.v1.Job\x12?\n\x08ListJobs\x12\x18.murk.v1.ListJobsRequest\x1a\x19.murk.v1.ListJobsResponse\x12\x44\n\x0cGetJobResult\x12\x1c.murk.v1.GetJobResultRequest\x1a\x14.murk.v1.ResultChunk0\x01\x32\x93\x03\n\x0eReconstruction\x12=\n\x08TofDepth\x12\x18.murk.v1.TofDepthRequest\x1a\x17.murk.v1.TofDepthResult\x12=\n\x08MvsDepth\x12\x18.murk.v1.MvsDepthRequest\x1a\x17.murk.v1.MvsDepthResult\x12U\n\x10ScatteringParams\x12 .murk.v1.ScatteringParamsRequest\x1a\x1f.murk.v1.ScatteringParamsResult\x12X\n\x11PhotometricStereo\x12!.murk.v1.PhotometricStereoRequest\x1a .murk.v1.PhotometricStereoResult\x12R\n\x0fRectifiedStereo\x12\x1f.murk.v1.RectifiedStereoRequest\x1a\x1e.murk.v1.RectifiedStereoResultB\x1e\n\nio.murk.v1P\x01Z\x0emurk/v1;murkv1b\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -37,34 +38,34 @@ _builder.BuildTopDescriptorsAndMessages(DESCRIPTOR, 'murk_client._proto.murk.v1.
 if not _descriptor._USE_C_DESCRIPTORS:
   _globals['DESCRIPTOR']._loaded_options = None
   _globals['DESCRIPTOR']._serialized_options = b'\n\nio.murk.v1P\001Z\016murk/v1;murkv1'
-  _globals['_JOBSTATE']._serialized_start=1570
-  _globals['_JOBSTATE']._serialized_end=1724
-  _globals['_JOBREQUEST']._serialized_start=143
-  _globals['_JOBREQUEST']._serialized_end=387
-  _globals['_JOBRESULT']._serialized_start=390
-  _globals['_JOBRESULT']._serialized_end=629
-  _globals['_JOBERROR']._serialized_start=631
-  _globals['_JOBERROR']._serialized_end=687
-  _globals['_JOB']._serialized_start=690
-  _globals['_JOB']._serialized_end=1085
-  _globals['_SUBMITJOBREQUEST']._serialized_start=1087
-  _globals['_SUBMITJOBREQUEST']._serialized_end=1164
-  _globals['_GETJOBREQUEST']._serialized_start=1166
-  _globals['_GETJOBREQUEST']._serialized_end=1214
-  _globals['_WATCHJOBREQUEST']._serialized_start=1216
-  _globals['_WATCHJOBREQUEST']._serialized_end=1266
-  _globals['_CANCELJOBREQUEST']._serialized_start=1268
-  _globals['_CANCELJOBREQUEST']._serialized_end=1298
-  _globals['_LISTJOBSREQUEST']._serialized_start=1300
-  _globals['_LISTJOBSREQUEST']._serialized_end=1356
-  _globals['_LISTJOBSRESPONSE']._serialized_start=1358
-  _globals['_LISTJOBSRESPONSE']._serialized_end=1429
-  _globals['_GETJOBRESULTREQUEST']._serialized_start=1431
-  _globals['_GETJOBRESULTREQUEST']._serialized_end=1485
-  _globals['_RESULTCHUNK']._serialized_start=1487
-  _globals['_RESULTCHUNK']._serialized_end=1567
-  _globals['_JOBS']._serialized_start=1727
-  _globals['_JOBS']._serialized_end=2078
-  _globals['_RECONSTRUCTION']._serialized_start=2081
-  _globals['_RECONSTRUCTION']._serialized_end=2400
+  _globals['_JOBSTATE']._serialized_start=1713
+  _globals['_JOBSTATE']._serialized_end=1867
+  _globals['_JOBREQUEST']._serialized_start=165
+  _globals['_JOBREQUEST']._serialized_end=470
+  _globals['_JOBRESULT']._serialized_start=473
+  _globals['_JOBRESULT']._serialized_end=772
+  _globals['_JOBERROR']._serialized_start=774
+  _globals['_JOBERROR']._serialized_end=830
+  _globals['_JOB']._serialized_start=833
+  _globals['_JOB']._serialized_end=1228
+  _globals['_SUBMITJOBREQUEST']._serialized_start=1230
+  _globals['_SUBMITJOBREQUEST']._serialized_end=1307
+  _globals['_GETJOBREQUEST']._serialized_start=1309
+  _globals['_GETJOBREQUEST']._serialized_end=1357
+  _globals['_WATCHJOBREQUEST']._serialized_start=1359
+  _globals['_WATCHJOBREQUEST']._serialized_end=1409
+  _globals['_CANCELJOBREQUEST']._serialized_start=1411
+  _globals['_CANCELJOBREQUEST']._serialized_end=1441
+  _globals['_LISTJOBSREQUEST']._serialized_start=1443
+  _globals['_LISTJOBSREQUEST']._serialized_end=1499
+  _globals['_LISTJOBSRESPONSE']._serialized_start=1501
+  _globals['_LISTJOBSRESPONSE']._serialized_end=1572
+  _globals['_GETJOBRESULTREQUEST']._serialized_start=1574
+  _globals['_GETJOBRESULTREQUEST']._serialized_end=1628
+  _globals['_RESULTCHUNK']._serialized_start=1630
+  _globals['_RESULTCHUNK']._serialized_end=1710
+  _globals['_JOBS']._serialized_start=1870
+  _globals['_JOBS']._serialized_end=2221
+  _globals['_RECONSTRUCTION']._serialized_start=2224
+  _globals['_RECONSTRUCTION']._serialized_end=2627
 # @@protoc_insertion_point(module_scope)

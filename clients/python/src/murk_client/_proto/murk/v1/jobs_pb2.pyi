@@ -12,6 +12,7 @@ from google.protobuf.internal import enum_type_wrapper as _enum_type_wrapper
 from murk_client._proto.murk.v1 import mvs_pb2 as _mvs_pb2
 from murk_client._proto.murk.v1 import params_pb2 as _params_pb2
 from murk_client._proto.murk.v1 import ps_pb2 as _ps_pb2
+from murk_client._proto.murk.v1 import stereo_pb2 as _stereo_pb2
 from murk_client._proto.murk.v1 import tof_pb2 as _tof_pb2
 import builtins as _builtins
 import sys
@@ -57,6 +58,7 @@ class JobRequest(_message.Message):
     MVS_DEPTH_FIELD_NUMBER: _builtins.int
     SCATTERING_PARAMS_FIELD_NUMBER: _builtins.int
     PHOTOMETRIC_STEREO_FIELD_NUMBER: _builtins.int
+    RECTIFIED_STEREO_FIELD_NUMBER: _builtins.int
     @_builtins.property
     def tof_depth(self) -> _tof_pb2.TofDepthRequest: ...
     @_builtins.property
@@ -65,6 +67,8 @@ class JobRequest(_message.Message):
     def scattering_params(self) -> _params_pb2.ScatteringParamsRequest: ...
     @_builtins.property
     def photometric_stereo(self) -> _ps_pb2.PhotometricStereoRequest: ...
+    @_builtins.property
+    def rectified_stereo(self) -> _stereo_pb2.RectifiedStereoRequest: ...
     def __init__(
         self,
         *,
@@ -72,12 +76,13 @@ class JobRequest(_message.Message):
         mvs_depth: _mvs_pb2.MvsDepthRequest | None = ...,
         scattering_params: _params_pb2.ScatteringParamsRequest | None = ...,
         photometric_stereo: _ps_pb2.PhotometricStereoRequest | None = ...,
+        rectified_stereo: _stereo_pb2.RectifiedStereoRequest | None = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _typing.Literal["method", b"method", "mvs_depth", b"mvs_depth", "photometric_stereo", b"photometric_stereo", "scattering_params", b"scattering_params", "tof_depth", b"tof_depth"]  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["method", b"method", "mvs_depth", b"mvs_depth", "photometric_stereo", b"photometric_stereo", "rectified_stereo", b"rectified_stereo", "scattering_params", b"scattering_params", "tof_depth", b"tof_depth"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["method", b"method", "mvs_depth", b"mvs_depth", "photometric_stereo", b"photometric_stereo", "scattering_params", b"scattering_params", "tof_depth", b"tof_depth"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["method", b"method", "mvs_depth", b"mvs_depth", "photometric_stereo", b"photometric_stereo", "rectified_stereo", b"rectified_stereo", "scattering_params", b"scattering_params", "tof_depth", b"tof_depth"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
-    _WhichOneofReturnType_method: _TypeAlias = _typing.Literal["tof_depth", "mvs_depth", "scattering_params", "photometric_stereo"]  # noqa: Y015
+    _WhichOneofReturnType_method: _TypeAlias = _typing.Literal["tof_depth", "mvs_depth", "scattering_params", "photometric_stereo", "rectified_stereo"]  # noqa: Y015
     _WhichOneofArgType_method: _TypeAlias = _typing.Literal["method", b"method"]  # noqa: Y015
     def WhichOneof(self, oneof_group: _WhichOneofArgType_method) -> _WhichOneofReturnType_method | None: ...
 
@@ -91,6 +96,7 @@ class JobResult(_message.Message):
     MVS_DEPTH_FIELD_NUMBER: _builtins.int
     SCATTERING_PARAMS_FIELD_NUMBER: _builtins.int
     PHOTOMETRIC_STEREO_FIELD_NUMBER: _builtins.int
+    RECTIFIED_STEREO_FIELD_NUMBER: _builtins.int
     @_builtins.property
     def tof_depth(self) -> _tof_pb2.TofDepthResult: ...
     @_builtins.property
@@ -99,6 +105,8 @@ class JobResult(_message.Message):
     def scattering_params(self) -> _params_pb2.ScatteringParamsResult: ...
     @_builtins.property
     def photometric_stereo(self) -> _ps_pb2.PhotometricStereoResult: ...
+    @_builtins.property
+    def rectified_stereo(self) -> _stereo_pb2.RectifiedStereoResult: ...
     def __init__(
         self,
         *,
@@ -106,12 +114,13 @@ class JobResult(_message.Message):
         mvs_depth: _mvs_pb2.MvsDepthResult | None = ...,
         scattering_params: _params_pb2.ScatteringParamsResult | None = ...,
         photometric_stereo: _ps_pb2.PhotometricStereoResult | None = ...,
+        rectified_stereo: _stereo_pb2.RectifiedStereoResult | None = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _typing.Literal["method", b"method", "mvs_depth", b"mvs_depth", "photometric_stereo", b"photometric_stereo", "scattering_params", b"scattering_params", "tof_depth", b"tof_depth"]  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["method", b"method", "mvs_depth", b"mvs_depth", "photometric_stereo", b"photometric_stereo", "rectified_stereo", b"rectified_stereo", "scattering_params", b"scattering_params", "tof_depth", b"tof_depth"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["method", b"method", "mvs_depth", b"mvs_depth", "photometric_stereo", b"photometric_stereo", "scattering_params", b"scattering_params", "tof_depth", b"tof_depth"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["method", b"method", "mvs_depth", b"mvs_depth", "photometric_stereo", b"photometric_stereo", "rectified_stereo", b"rectified_stereo", "scattering_params", b"scattering_params", "tof_depth", b"tof_depth"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
-    _WhichOneofReturnType_method: _TypeAlias = _typing.Literal["tof_depth", "mvs_depth", "scattering_params", "photometric_stereo"]  # noqa: Y015
+    _WhichOneofReturnType_method: _TypeAlias = _typing.Literal["tof_depth", "mvs_depth", "scattering_params", "photometric_stereo", "rectified_stereo"]  # noqa: Y015
     _WhichOneofArgType_method: _TypeAlias = _typing.Literal["method", b"method"]  # noqa: Y015
     def WhichOneof(self, oneof_group: _WhichOneofArgType_method) -> _WhichOneofReturnType_method | None: ...
 
@@ -174,7 +183,7 @@ class Job(_message.Message):
     """True when this response was served from the result cache without recomputation."""
     method: _builtins.str
     """Which method the job runs ("tof_depth", "mvs_depth", "scattering_params",
-    "photometric_stereo").
+    "photometric_stereo", "rectified_stereo").
     """
     result_size_bytes: _builtins.int
     """Size of the encoded JobResult in bytes, once SUCCEEDED."""

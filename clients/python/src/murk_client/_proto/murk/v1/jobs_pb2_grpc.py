@@ -7,6 +7,7 @@ from murk_client._proto.murk.v1 import jobs_pb2 as murk_dot_v1_dot_jobs__pb2
 from murk_client._proto.murk.v1 import mvs_pb2 as murk_dot_v1_dot_mvs__pb2
 from murk_client._proto.murk.v1 import params_pb2 as murk_dot_v1_dot_params__pb2
 from murk_client._proto.murk.v1 import ps_pb2 as murk_dot_v1_dot_ps__pb2
+from murk_client._proto.murk.v1 import stereo_pb2 as murk_dot_v1_dot_stereo__pb2
 from murk_client._proto.murk.v1 import tof_pb2 as murk_dot_v1_dot_tof__pb2
 
 GRPC_GENERATED_VERSION = '1.78.0'
@@ -413,6 +414,11 @@ class ReconstructionStub(object):
                 request_serializer=murk_dot_v1_dot_ps__pb2.PhotometricStereoRequest.SerializeToString,
                 response_deserializer=murk_dot_v1_dot_ps__pb2.PhotometricStereoResult.FromString,
                 _registered_method=True)
+        self.RectifiedStereo = channel.unary_unary(
+                '/murk.v1.Reconstruction/RectifiedStereo',
+                request_serializer=murk_dot_v1_dot_stereo__pb2.RectifiedStereoRequest.SerializeToString,
+                response_deserializer=murk_dot_v1_dot_stereo__pb2.RectifiedStereoResult.FromString,
+                _registered_method=True)
 
 
 class ReconstructionServicer(object):
@@ -456,6 +462,14 @@ class ReconstructionServicer(object):
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def RectifiedStereo(self, request, context):
+        """Depth of a calibrated, rectified stereo pair in haze (Ch. 3.2 with two views). Job method
+        "rectified_stereo".
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
 
 def add_ReconstructionServicer_to_server(servicer, server):
     rpc_method_handlers = {
@@ -478,6 +492,11 @@ def add_ReconstructionServicer_to_server(servicer, server):
                     servicer.PhotometricStereo,
                     request_deserializer=murk_dot_v1_dot_ps__pb2.PhotometricStereoRequest.FromString,
                     response_serializer=murk_dot_v1_dot_ps__pb2.PhotometricStereoResult.SerializeToString,
+            ),
+            'RectifiedStereo': grpc.unary_unary_rpc_method_handler(
+                    servicer.RectifiedStereo,
+                    request_deserializer=murk_dot_v1_dot_stereo__pb2.RectifiedStereoRequest.FromString,
+                    response_serializer=murk_dot_v1_dot_stereo__pb2.RectifiedStereoResult.SerializeToString,
             ),
     }
     generic_handler = grpc.method_handlers_generic_handler(
@@ -597,6 +616,33 @@ class Reconstruction(object):
             '/murk.v1.Reconstruction/PhotometricStereo',
             murk_dot_v1_dot_ps__pb2.PhotometricStereoRequest.SerializeToString,
             murk_dot_v1_dot_ps__pb2.PhotometricStereoResult.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def RectifiedStereo(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/murk.v1.Reconstruction/RectifiedStereo',
+            murk_dot_v1_dot_stereo__pb2.RectifiedStereoRequest.SerializeToString,
+            murk_dot_v1_dot_stereo__pb2.RectifiedStereoResult.FromString,
             options,
             channel_credentials,
             insecure,

@@ -9,6 +9,7 @@ from murk_client._proto.murk.v1 import jobs_pb2 as _jobs_pb2
 from murk_client._proto.murk.v1 import mvs_pb2 as _mvs_pb2
 from murk_client._proto.murk.v1 import params_pb2 as _params_pb2
 from murk_client._proto.murk.v1 import ps_pb2 as _ps_pb2
+from murk_client._proto.murk.v1 import stereo_pb2 as _stereo_pb2
 from murk_client._proto.murk.v1 import tof_pb2 as _tof_pb2
 import abc as _abc_1
 import grpc as _grpc
@@ -216,6 +217,10 @@ class ReconstructionStub:
     """
     PhotometricStereo: _grpc.UnaryUnaryMultiCallable[_ps_pb2.PhotometricStereoRequest, _ps_pb2.PhotometricStereoResult]
     """Photometric stereo in turbid media (Ch. 4). Job method "photometric_stereo"."""
+    RectifiedStereo: _grpc.UnaryUnaryMultiCallable[_stereo_pb2.RectifiedStereoRequest, _stereo_pb2.RectifiedStereoResult]
+    """Depth of a calibrated, rectified stereo pair in haze (Ch. 3.2 with two views). Job method
+    "rectified_stereo".
+    """
 
 @_typing.type_check_only
 class ReconstructionAsyncStub(ReconstructionStub):
@@ -241,6 +246,10 @@ class ReconstructionAsyncStub(ReconstructionStub):
     """
     PhotometricStereo: _aio.UnaryUnaryMultiCallable[_ps_pb2.PhotometricStereoRequest, _ps_pb2.PhotometricStereoResult]  # type: ignore[assignment]
     """Photometric stereo in turbid media (Ch. 4). Job method "photometric_stereo"."""
+    RectifiedStereo: _aio.UnaryUnaryMultiCallable[_stereo_pb2.RectifiedStereoRequest, _stereo_pb2.RectifiedStereoResult]  # type: ignore[assignment]
+    """Depth of a calibrated, rectified stereo pair in haze (Ch. 3.2 with two views). Job method
+    "rectified_stereo".
+    """
 
 class ReconstructionServicer(metaclass=_abc_1.ABCMeta):
     """One-shot convenience RPCs: submit and wait, honouring the client's deadline.
@@ -287,5 +296,15 @@ class ReconstructionServicer(metaclass=_abc_1.ABCMeta):
         context: _ServicerContext,
     ) -> _typing.Union[_ps_pb2.PhotometricStereoResult, _abc.Awaitable[_ps_pb2.PhotometricStereoResult]]:
         """Photometric stereo in turbid media (Ch. 4). Job method "photometric_stereo"."""
+
+    @_abc_1.abstractmethod
+    def RectifiedStereo(
+        self,
+        request: _stereo_pb2.RectifiedStereoRequest,
+        context: _ServicerContext,
+    ) -> _typing.Union[_stereo_pb2.RectifiedStereoResult, _abc.Awaitable[_stereo_pb2.RectifiedStereoResult]]:
+        """Depth of a calibrated, rectified stereo pair in haze (Ch. 3.2 with two views). Job method
+        "rectified_stereo".
+        """
 
 def add_ReconstructionServicer_to_server(servicer: ReconstructionServicer, server: _typing.Union[_grpc.Server, _aio.Server]) -> None: ...

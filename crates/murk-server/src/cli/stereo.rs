@@ -1,0 +1,227 @@
+//! `murk stereo`: depth of a calibrated, rectified stereo pair in haze.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context};
+use clap::Args;
+
+use murk::io::{sniff_format, write_colormap_png, write_exr};
+use murk::mvs_io::{write_ply, PlyFormat};
+use murk::ImageF32;
+use murk_server::service::convert::{image_from_proto, points_from_proto, ImageLimits};
+use murk_server::service::proto::v1 as pb;
+
+use super::mvs::{kind_name, run_here_or_remote, CostVolumeArg, DepthFlags};
+use super::tof::{parse_intrinsics, parse_numbers};
+
+/// Options of `murk stereo`.
+#[derive(Args, Debug)]
+pub struct StereoArgs {
+    /// Left (reference) image: PNG (8 or 16 bit), EXR or TIFF; grey or RGB.
+    #[arg(long)]
+    pub left: PathBuf,
+    /// Right image: the left's size and channels.
+    #[arg(long)]
+    pub right: PathBuf,
+    /// Rectified intrinsics of the left camera "fx,fy,cx,cy", pixels, with the origin at the
+    /// centre of the top-left pixel (a ROS/OpenCV principal point as it is; COLMAP's minus 0.5).
+    #[arg(long)]
+    pub intrinsics: String,
+    /// Distance of the right camera's centre along the left camera's +x axis; depths and points
+    /// come out in its unit, and --beta is per that unit.
+    #[arg(long)]
+    pub baseline: f64,
+    /// The right camera's principal point x, pixels, when it differs from the left's
+    /// (Middlebury's calib.txt: cx of cam1; doffs is the difference).
+    #[arg(long)]
+    pub right_cx: Option<f64>,
+    /// Depth range "near,far" to search, in the baseline's unit.
+    #[arg(long, conflicts_with = "disparity_range")]
+    pub depth_range: Option<String>,
+    /// Disparity range "min,max" to search, pixels (default: 1 to a quarter of the image width,
+    /// at most 256).
+    #[arg(long)]
+    pub disparity_range: Option<String>,
+    /// Number of planes, uniform in disparity (default: one per pixel of disparity).
+    #[arg(long)]
+    pub planes: Option<u32>,
+    /// Airlight A of the haze in (0, 1] (linear units with --srgb).
+    #[arg(long, requires = "beta")]
+    pub airlight: Option<f32>,
+    /// Scattering coefficient β per unit of the baseline (with --airlight).
+    #[arg(long, requires = "airlight")]
+    pub beta: Option<f32>,
+    /// Cost volume (default: dehazing with --airlight and --beta, ordinary without).
+    #[arg(long, value_enum)]
+    pub cost_volume: Option<CostVolumeArg>,
+    /// Matching and aggregation overrides.
+    #[command(flatten)]
+    pub depth: DepthFlags,
+    /// The images are sRGB-encoded (what most cameras write to 8-bit PNG and JPEG): decode them
+    /// to linear light first, as the haze model needs.
+    #[arg(long)]
+    pub srgb: bool,
+    /// Output folder (created): depth.exr, disparity.exr, confidence.exr, points.ply, depth.png.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Server URL; without it a server is started in this process.
+    #[arg(long, env = "MURK_SERVER")]
+    pub server: Option<String>,
+}
+
+/// Runs `murk stereo`.
+pub fn run(a: StereoArgs) -> anyhow::Result<()> {
+    let request = build_request(&a)?;
+    let job_request = pb::JobRequest {
+        method: Some(pb::job_request::Method::RectifiedStereo(request)),
+    };
+    let (job, result) = run_here_or_remote(a.server.as_deref(), job_request, "stereo")?;
+    let Some(pb::job_result::Method::RectifiedStereo(r)) = result.method else {
+        bail!("server returned a result of another method");
+    };
+    let limits = ImageLimits {
+        max_pixels: u64::MAX,
+        max_channels: 4,
+    };
+    let decode = |name: &str, img: &Option<pb::Image>| -> anyhow::Result<ImageF32> {
+        let img = img
+            .as_ref()
+            .with_context(|| format!("result lacks {name}"))?;
+        image_from_proto(img, &limits).with_context(|| format!("decoding {name}"))
+    };
+    let z = decode("z_depth", &r.z_depth)?;
+    let disparity = decode("disparity", &r.disparity)?;
+    let confidence = decode("confidence", &r.confidence)?;
+    let points = points_from_proto(r.points.as_ref().context("result lacks points")?)?;
+    std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
+    write_outputs(&a.out, &z, &disparity, &confidence, r.near, r.far)?;
+    write_ply(
+        &a.out.join("points.ply"),
+        &points,
+        PlyFormat::BinaryLittleEndian,
+    )?;
+    let (w, h) = z.dims();
+    println!(
+        "job {}{}: {w}×{h} pair, {} cost volume, {} planes over z {:.4}..{:.4} (disparity \
+         {:.1}..{:.1} px), {:.2} s; {} points ({:.1} % of pixels); outputs in {}",
+        &job.id[..12.min(job.id.len())],
+        if job.cached { " (cached)" } else { "" },
+        kind_name(r.cost_volume),
+        r.num_planes,
+        r.near,
+        r.far,
+        r.min_disparity_px,
+        r.max_disparity_px,
+        r.compute_seconds,
+        points.len(),
+        100.0 * points.len() as f64 / (w * h).max(1) as f64,
+        a.out.display()
+    );
+    for w in &r.warnings {
+        println!("warning: {w}");
+    }
+    if r.right_gains.iter().any(|&g| g != 1.0) {
+        let g: Vec<String> = r.right_gains.iter().map(|v| format!("{v:.4}")).collect();
+        println!(
+            "right camera's exposure per channel relative to the left (divided out): [{}]",
+            g.join(" ")
+        );
+    }
+    Ok(())
+}
+
+/// The request: the image files as they are (the server decodes them), the rig and the range.
+fn build_request(a: &StereoArgs) -> anyhow::Result<pb::RectifiedStereoRequest> {
+    let k = parse_intrinsics(&a.intrinsics)?;
+    let image = |path: &Path, flag: &str| -> anyhow::Result<pb::Image> {
+        let bytes = std::fs::read(path).with_context(|| format!("{flag} {}", path.display()))?;
+        if sniff_format(&bytes).is_none() {
+            bail!("{flag} {}: not a PNG, TIFF or OpenEXR file", path.display());
+        }
+        Ok(pb::Image {
+            data: Some(pb::image::Data::Encoded(bytes)),
+            transfer: if a.srgb {
+                pb::Transfer::Srgb
+            } else {
+                pb::Transfer::Linear
+            } as i32,
+            ..Default::default()
+        })
+    };
+    let (near, far) = match &a.depth_range {
+        Some(s) => {
+            let [near, far] = parse_numbers::<2>(s, "--depth-range", "near,far")?;
+            (near, far)
+        }
+        None => (0.0, 0.0),
+    };
+    let (min_disparity_px, max_disparity_px) = match &a.disparity_range {
+        Some(s) => {
+            let [lo, hi] = parse_numbers::<2>(s, "--disparity-range", "min,max")?;
+            (Some(lo as f32), Some(hi as f32))
+        }
+        None => (None, None),
+    };
+    let hazy = a.airlight.is_some();
+    let cost = a.cost_volume.unwrap_or(if hazy {
+        CostVolumeArg::Dehazing
+    } else {
+        CostVolumeArg::Ordinary
+    });
+    if cost != CostVolumeArg::Ordinary && !hazy {
+        bail!("the {cost:?} cost volume needs the haze: pass --airlight and --beta");
+    }
+    Ok(pb::RectifiedStereoRequest {
+        left: Some(image(&a.left, "--left")?),
+        right: Some(image(&a.right, "--right")?),
+        intrinsics: Some(pb::CameraIntrinsics {
+            fx: k.fx,
+            fy: k.fy,
+            cx: k.cx,
+            cy: k.cy,
+            skew: 0.0,
+        }),
+        baseline: a.baseline,
+        right_cx: a.right_cx,
+        near,
+        far,
+        min_disparity_px,
+        max_disparity_px,
+        num_planes: a.planes.unwrap_or(0),
+        airlight: a.airlight.unwrap_or(0.0),
+        beta: a.beta.unwrap_or(0.0),
+        cost_volume: cost.wire() as i32,
+        sgm: a.depth.wire(),
+        return_points: true,
+    })
+}
+
+/// depth.exr, disparity.exr and confidence.exr, written in parallel (each compresses on its own
+/// core), and the depth preview.
+fn write_outputs(
+    dir: &Path,
+    z: &ImageF32,
+    disparity: &ImageF32,
+    confidence: &ImageF32,
+    near: f64,
+    far: f64,
+) -> anyhow::Result<()> {
+    use rayon::prelude::*;
+    [
+        ("depth.exr", z),
+        ("disparity.exr", disparity),
+        ("confidence.exr", confidence),
+    ]
+    .par_iter()
+    .try_for_each(|(name, img)| {
+        write_exr(&dir.join(name), img).with_context(|| format!("writing {name}"))
+    })?;
+    write_colormap_png(
+        &dir.join("depth.png"),
+        z,
+        near as f32,
+        far as f32,
+        Some(confidence),
+    )?;
+    Ok(())
+}

@@ -1,0 +1,453 @@
+//! `RectifiedStereoRequest` → [`StereoInput`] and [`RectifiedDepth`] → `RectifiedStereoResult`.
+//!
+//! As for `MvsDepthRequest`, everything the library would reject is checked at submission, with
+//! field names relative to `RectifiedStereoRequest` (`left`, `right`, `intrinsics.fx`,
+//! `baseline`, `max_disparity_px`, `sgm.p2`, ...).
+
+use super::image::{image_from_proto, image_to_proto, ImageLimits};
+use super::mvs::{canonical_sgm, canonicalize_cost, cost_of, sgm_of};
+use super::tof::{intrinsics_from_proto, intrinsics_to_proto};
+use crate::service::proto::v1 as pb;
+use murk::atmosphere::AtmosphereParams;
+use murk::error::{MurkError, Result};
+use murk::image::ImageF32;
+use murk::monitor::Monitor;
+use murk::mvs::cost_volume::MAX_VOXELS;
+use murk::mvs::{estimate_rectified, RectifiedDepth, RectifiedOptions, RectifiedRig, StereoRange};
+use murk::mvs_io::ColoredPoint;
+
+/// A decoded and fully validated `RectifiedStereoRequest`, owning its images.
+#[derive(Clone, Debug, PartialEq)]
+pub struct StereoInput {
+    /// Left (reference) image.
+    pub left: ImageF32,
+    /// Right image, the left's shape.
+    pub right: ImageF32,
+    /// The rig.
+    pub rig: RectifiedRig,
+    /// Range, plane count (resolved), cost and aggregation parameters.
+    pub options: RectifiedOptions,
+    /// The wire kind (UNSPECIFIED resolved), echoed in the result.
+    pub wire_kind: pb::CostVolumeKind,
+    /// Whether the result carries the point cloud.
+    pub return_points: bool,
+}
+
+impl StereoInput {
+    /// Runs [`estimate_rectified`]; with `return_points`, also the point cloud.
+    pub fn estimate(&self, monitor: &Monitor) -> Result<(RectifiedDepth, Vec<ColoredPoint>)> {
+        let out = estimate_rectified(&self.left, &self.right, &self.rig, &self.options, monitor)
+            .map_err(|e| match e {
+                // The library names the aggregation parameters `depth.…`; the wire `sgm.…`.
+                MurkError::InvalidArgument { field, reason } => MurkError::invalid(
+                    field
+                        .strip_prefix("depth.")
+                        .map_or(field.clone(), |f| format!("sgm.{f}")),
+                    reason,
+                ),
+                other => other,
+            })?;
+        let points = if self.return_points {
+            out.points(&self.rig, &self.left)?
+        } else {
+            Vec::new()
+        };
+        Ok((out, points))
+    }
+}
+
+/// The search range a request asks for: the depth range, the disparity range, or `None` for the
+/// default. Errors name `near`, `far` or `min_disparity_px` when the request mixes or halves
+/// them.
+fn range_of(req: &pb::RectifiedStereoRequest, width: usize) -> Result<Option<StereoRange>> {
+    let by_depth = req.near != 0.0 || req.far != 0.0;
+    let by_disparity = req.min_disparity_px.is_some() || req.max_disparity_px.is_some();
+    match (by_depth, by_disparity) {
+        (true, true) => Err(MurkError::invalid(
+            "near",
+            "give the depth range (near, far) or the disparity range, not both",
+        )),
+        (true, false) => {
+            if req.near == 0.0 || req.far == 0.0 {
+                return Err(MurkError::invalid(
+                    if req.near == 0.0 { "near" } else { "far" },
+                    "the depth range needs both near and far",
+                ));
+            }
+            Ok(Some(StereoRange::Depth {
+                near: req.near,
+                far: req.far,
+            }))
+        }
+        (false, true) => {
+            let StereoRange::Disparity { min_px, max_px } = StereoRange::default_for_width(width)
+            else {
+                unreachable!("the default range is a disparity range")
+            };
+            Ok(Some(StereoRange::Disparity {
+                min_px: req.min_disparity_px.map_or(min_px, f64::from),
+                max_px: req.max_disparity_px.map_or(max_px, f64::from),
+            }))
+        }
+        (false, false) => Ok(None),
+    }
+}
+
+/// Rewrites `req` into its canonical form before it is hashed into a job id: the cost volume
+/// resolved (airlight and β zeroed for ORDINARY), the SGM defaults written out and an unset
+/// `right_cx` written as `intrinsics.cx`.
+pub fn canonicalize_stereo_request(req: &mut pb::RectifiedStereoRequest) {
+    canonicalize_cost(&mut req.cost_volume, &mut req.airlight, &mut req.beta);
+    if let Some(sgm) = canonical_sgm(req.sgm.as_ref()) {
+        req.sgm = Some(sgm);
+    }
+    if req.right_cx.is_none() {
+        req.right_cx = req.intrinsics.as_ref().map(|k| k.cx);
+    }
+}
+
+/// Decodes and fully validates a rectified-stereo request. Cheap scalar checks run before any
+/// image is decoded.
+pub fn stereo_from_proto(
+    req: &pb::RectifiedStereoRequest,
+    limits: &ImageLimits,
+) -> Result<StereoInput> {
+    let (wire_kind, cost) = cost_of(req.cost_volume, req.airlight, req.beta)?;
+    let k = req
+        .intrinsics
+        .as_ref()
+        .ok_or_else(|| MurkError::invalid("intrinsics", "required"))?;
+    let intrinsics = intrinsics_from_proto(k);
+    let rig = RectifiedRig {
+        intrinsics,
+        baseline: req.baseline,
+        right_cx: req.right_cx.unwrap_or(intrinsics.cx),
+    };
+    rig.validate()?;
+    let depth = sgm_of(req.sgm.as_ref());
+    depth.validate().map_err(|e| e.within("sgm"))?;
+    if req.num_planes == 1 {
+        return Err(MurkError::invalid(
+            "num_planes",
+            "need at least 2 planes (0 = one per pixel of disparity)",
+        ));
+    }
+    let image = |name: &str, i: Option<&pb::Image>| {
+        i.ok_or_else(|| MurkError::invalid(name, "required"))
+            .and_then(|i| image_from_proto(i, limits).map_err(|e| e.within(name)))
+    };
+    let left = image("left", req.left.as_ref())?;
+    let right = image("right", req.right.as_ref())?;
+    let (w, h) = left.dims();
+    let range = range_of(req, w)?;
+    let requested = (req.num_planes != 0).then_some(req.num_planes as usize);
+    let planes = rig.planes(
+        range.unwrap_or_else(|| StereoRange::default_for_width(w)),
+        requested,
+    )?;
+    let voxel_bound = MAX_VOXELS / (w * h).max(1);
+    let num_planes = match requested {
+        Some(n) if n > voxel_bound => {
+            return Err(MurkError::invalid(
+                "num_planes",
+                format!(
+                    "{w}x{h} pixels x {n} planes exceeds the cost-volume limit of {MAX_VOXELS} \
+                     voxels; use fewer planes or smaller images"
+                ),
+            ))
+        }
+        Some(n) => n,
+        None => planes.num_planes.min(voxel_bound.max(2)),
+    };
+    let input = StereoInput {
+        left,
+        right,
+        rig,
+        options: RectifiedOptions {
+            range,
+            num_planes: Some(num_planes),
+            cost,
+            depth,
+        },
+        wire_kind,
+        return_points: req.return_points,
+    };
+    // The images' own checks (shape, channels, finite samples), before the job is queued.
+    let (reference, source) = rig.views(&input.left, &input.right)?;
+    reference.validate(None).map_err(|e| e.within("left"))?;
+    source
+        .validate(Some((w, h, input.left.channels())))
+        .map_err(|e| e.within("right"))?;
+    Ok(input)
+}
+
+/// A request for a pair (clients: CLI, tests). Images travel as raw f32; `atmosphere` `None`
+/// selects the ordinary cost volume.
+pub fn stereo_request_to_proto(
+    left: &ImageF32,
+    right: &ImageF32,
+    rig: &RectifiedRig,
+    range: Option<StereoRange>,
+    atmosphere: Option<AtmosphereParams>,
+) -> pb::RectifiedStereoRequest {
+    let (near, far, min_disparity_px, max_disparity_px) = match range {
+        Some(StereoRange::Depth { near, far }) => (near, far, None, None),
+        Some(StereoRange::Disparity { min_px, max_px }) => {
+            (0.0, 0.0, Some(min_px as f32), Some(max_px as f32))
+        }
+        None => (0.0, 0.0, None, None),
+    };
+    pb::RectifiedStereoRequest {
+        left: Some(image_to_proto(left)),
+        right: Some(image_to_proto(right)),
+        intrinsics: Some(intrinsics_to_proto(&rig.intrinsics)),
+        baseline: rig.baseline,
+        right_cx: (rig.right_cx != rig.intrinsics.cx).then_some(rig.right_cx),
+        near,
+        far,
+        min_disparity_px,
+        max_disparity_px,
+        airlight: atmosphere.map_or(0.0, |a| a.airlight),
+        beta: atmosphere.map_or(0.0, |a| a.beta),
+        cost_volume: if atmosphere.is_some() {
+            pb::CostVolumeKind::Dehazing
+        } else {
+            pb::CostVolumeKind::Ordinary
+        } as i32,
+        ..Default::default()
+    }
+}
+
+/// Encodes the method's output for the wire, echoing the plane set and cost volume used.
+pub fn stereo_to_proto(
+    input: &StereoInput,
+    out: &RectifiedDepth,
+    points: &[ColoredPoint],
+    compute_seconds: f64,
+) -> pb::RectifiedStereoResult {
+    let planes = out.planes;
+    pb::RectifiedStereoResult {
+        z_depth: Some(image_to_proto(&out.depth.z_depth)),
+        disparity: Some(image_to_proto(&out.disparity)),
+        confidence: Some(image_to_proto(&out.depth.confidence)),
+        points: input.return_points.then(|| points_to_proto(points)),
+        near: planes.near,
+        far: planes.far,
+        num_planes: u32::try_from(planes.num_planes).unwrap_or(u32::MAX),
+        min_disparity_px: input.rig.disparity_of_depth(planes.far) as f32,
+        max_disparity_px: input.rig.disparity_of_depth(planes.near) as f32,
+        cost_volume: input.wire_kind as i32,
+        compute_seconds,
+        right_gains: out.depth.source_gains.clone(),
+        vignetting_falloff: out.depth.vignetting_falloff,
+        right_falloff: out.depth.source_falloffs.first().copied().unwrap_or(0.0),
+        warnings: out.depth.warnings.clone(),
+    }
+}
+
+/// Points for the wire: interleaved little-endian f32 positions and 8-bit colours.
+pub fn points_to_proto(points: &[ColoredPoint]) -> pb::PointCloud {
+    let mut xyz = Vec::with_capacity(points.len() * 12);
+    let mut rgb = Vec::with_capacity(points.len() * 3);
+    for p in points {
+        for v in p.xyz {
+            xyz.extend_from_slice(&(v as f32).to_le_bytes());
+        }
+        rgb.extend_from_slice(&p.rgb);
+    }
+    pb::PointCloud {
+        count: u32::try_from(points.len()).unwrap_or(u32::MAX),
+        xyz_f32_le: xyz,
+        rgb8: rgb,
+    }
+}
+
+/// The wire's points, checked: `count` positions and colours.
+pub fn points_from_proto(cloud: &pb::PointCloud) -> Result<Vec<ColoredPoint>> {
+    let n = cloud.count as usize;
+    if cloud.xyz_f32_le.len() != n * 12 || cloud.rgb8.len() != n * 3 {
+        return Err(MurkError::invalid(
+            "points",
+            format!(
+                "{n} points need {} position bytes and {} colour bytes, got {} and {}",
+                n * 12,
+                n * 3,
+                cloud.xyz_f32_le.len(),
+                cloud.rgb8.len()
+            ),
+        ));
+    }
+    Ok(cloud
+        .xyz_f32_le
+        .chunks_exact(12)
+        .zip(cloud.rgb8.chunks_exact(3))
+        .map(|(p, c)| ColoredPoint {
+            xyz: [0, 4, 8]
+                .map(|o| f64::from(f32::from_le_bytes([p[o], p[o + 1], p[o + 2], p[o + 3]]))),
+            rgb: [c[0], c[1], c[2]],
+        })
+        .collect())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use murk::camera::Intrinsics;
+    use murk::mvs::CostKind;
+
+    fn field_of(e: MurkError) -> String {
+        e.field()
+            .unwrap_or_else(|| panic!("expected InvalidArgument, got {e:?}"))
+            .to_string()
+    }
+
+    fn pair() -> (ImageF32, ImageF32, RectifiedRig) {
+        let texture = |x: f64, y: f64| (0.5 + 0.3 * (x * 0.8).sin() * (y * 0.6).cos()) as f32;
+        let left = ImageF32::from_fn(48, 32, |x, y| texture(x as f64, y as f64));
+        let right = ImageF32::from_fn(48, 32, |x, y| texture(x as f64 + 6.0, y as f64));
+        let rig = RectifiedRig::new(Intrinsics::new(60.0, 60.0, 23.5, 15.5), 0.1);
+        (left, right, rig)
+    }
+
+    fn request() -> pb::RectifiedStereoRequest {
+        let (l, r, rig) = pair();
+        stereo_request_to_proto(
+            &l,
+            &r,
+            &rig,
+            Some(StereoRange::Disparity {
+                min_px: 1.0,
+                max_px: 12.0,
+            }),
+            None,
+        )
+    }
+
+    fn err(req: &pb::RectifiedStereoRequest) -> String {
+        field_of(stereo_from_proto(req, &ImageLimits::default()).unwrap_err())
+    }
+
+    #[test]
+    fn round_trips_and_estimates_a_shifted_texture() {
+        let mut req = request();
+        req.return_points = true;
+        let input = stereo_from_proto(&req, &ImageLimits::default()).unwrap();
+        assert_eq!(input.options.cost, CostKind::Ordinary);
+        assert_eq!(input.options.num_planes, Some(12));
+        let (out, points) = input.estimate(&Monitor::noop()).unwrap();
+        let wire = stereo_to_proto(&input, &out, &points, 0.1);
+        assert_eq!(wire.num_planes, 12);
+        assert!((wire.min_disparity_px - 1.0).abs() < 1e-4);
+        assert!((wire.max_disparity_px - 12.0).abs() < 1e-4);
+        assert_eq!(wire.cost_volume, pb::CostVolumeKind::Ordinary as i32);
+        let cloud = wire.points.unwrap();
+        assert_eq!(points_from_proto(&cloud).unwrap(), points_round(&points));
+        // The disparity at the centre is the shift.
+        let d = out.disparity.get(24, 16, 0);
+        assert!((d - 6.0).abs() < 0.3, "disparity {d}");
+        let mut bad = cloud.clone();
+        bad.rgb8.pop();
+        assert_eq!(field_of(points_from_proto(&bad).unwrap_err()), "points");
+    }
+
+    /// Positions travel as f32.
+    fn points_round(points: &[ColoredPoint]) -> Vec<ColoredPoint> {
+        points
+            .iter()
+            .map(|p| ColoredPoint {
+                xyz: p.xyz.map(|v| f64::from(v as f32)),
+                rgb: p.rgb,
+            })
+            .collect()
+    }
+
+    #[test]
+    fn canonical_form_merges_equivalent_requests() {
+        let mut a = request();
+        let mut b = request();
+        b.right_cx = Some(23.5);
+        b.airlight = 0.7; // ignored by ORDINARY
+        b.sgm = Some(pb::SgmOptions {
+            p1: Some(murk::mvs::DepthParams::default().sgm.p1),
+            ..Default::default()
+        });
+        canonicalize_stereo_request(&mut a);
+        canonicalize_stereo_request(&mut b);
+        assert_eq!(a, b);
+        let mut c = request();
+        c.right_cx = Some(25.0);
+        canonicalize_stereo_request(&mut c);
+        assert_ne!(a, c);
+    }
+
+    #[test]
+    fn errors_name_proto_fields() {
+        let good = request();
+        let mut r = good.clone();
+        r.left = None;
+        assert_eq!(err(&r), "left");
+        let mut r = good.clone();
+        r.right.as_mut().unwrap().width = 47;
+        assert!(err(&r).starts_with("right"));
+        let (l, _, _) = pair();
+        let mut r = good.clone();
+        r.right = Some(image_to_proto(&ImageF32::filled(
+            l.width(),
+            l.height() - 1,
+            1,
+            0.5,
+        )));
+        assert_eq!(err(&r), "right.image");
+        let mut r = good.clone();
+        r.intrinsics = None;
+        assert_eq!(err(&r), "intrinsics");
+        let mut r = good.clone();
+        r.intrinsics.as_mut().unwrap().skew = 1.0;
+        assert_eq!(err(&r), "intrinsics.skew");
+        let mut r = good.clone();
+        r.baseline = -0.1;
+        assert_eq!(err(&r), "baseline");
+        let mut r = good.clone();
+        r.right_cx = Some(f64::NAN);
+        assert_eq!(err(&r), "right_cx");
+        let mut r = good.clone();
+        r.near = 1.0;
+        assert_eq!(err(&r), "near");
+        let mut r = good.clone();
+        r.min_disparity_px = None;
+        r.max_disparity_px = None;
+        r.far = 3.0;
+        assert_eq!(err(&r), "near");
+        let mut r = good.clone();
+        r.max_disparity_px = Some(0.5);
+        assert_eq!(err(&r), "max_disparity_px");
+        let mut r = good.clone();
+        r.min_disparity_px = Some(0.0);
+        assert_eq!(err(&r), "min_disparity_px");
+        let mut r = good.clone();
+        r.num_planes = 1;
+        assert_eq!(err(&r), "num_planes");
+        let mut r = good.clone();
+        r.num_planes = 2000;
+        assert_eq!(err(&r), "num_planes");
+        let mut r = good.clone();
+        r.cost_volume = pb::CostVolumeKind::Dehazing as i32;
+        assert_eq!(err(&r), "airlight");
+        r.airlight = 0.8;
+        r.beta = f32::NAN;
+        assert_eq!(err(&r), "beta");
+        let mut r = good.clone();
+        r.sgm = Some(pb::SgmOptions {
+            num_paths: Some(3),
+            ..Default::default()
+        });
+        assert_eq!(err(&r), "sgm.num_paths");
+        // Neither range: the default disparities.
+        let mut r = good.clone();
+        r.min_disparity_px = None;
+        r.max_disparity_px = None;
+        let input = stereo_from_proto(&r, &ImageLimits::default()).unwrap();
+        assert_eq!(input.options.range, None);
+        assert_eq!(input.options.num_planes, Some(12)); // 1 to 48/4 = 12 px
+    }
+}
