@@ -12,6 +12,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         "../../proto/murk/v1/ps.proto",
         "../../proto/murk/v1/stereo.proto",
         "../../proto/murk/v1/jobs.proto",
+        "../../proto/murk/v1/sessions.proto",
     ];
     for f in &files {
         println!("cargo:rerun-if-changed={f}");

@@ -24,11 +24,13 @@ use crate::service::convert::{AirlightService, ImageLimits};
 use crate::service::grpc_metrics::MetricsLayer;
 use crate::service::proto::v1::jobs_server::JobsServer;
 use crate::service::proto::v1::reconstruction_server::ReconstructionServer;
+use crate::service::proto::v1::sessions_server::SessionsServer;
 use crate::service::proto::FILE_DESCRIPTOR_SET;
 use crate::service::request_id::RequestIdLayer;
 use crate::service::{
     JobsApi, ReconstructionApi, RequestLimits, ServiceState, DEFAULT_MAX_UNARY_RESULT_BYTES,
 };
+use crate::service::{SessionLimits, SessionsApi};
 use crate::telemetry::{serve_metrics, Telemetry};
 use murk::params::airlight::AirlightEstimator;
 
@@ -62,6 +64,8 @@ pub struct ServerConfig {
     /// Share jobs, queue and results with other replicas through Redis; `None` keeps them in
     /// this process (the embedded default).
     pub redis: Option<RedisConfig>,
+    /// Sensor sessions per replica and per tenant.
+    pub sessions: SessionLimits,
 }
 
 /// PEM material for TLS.
@@ -99,6 +103,7 @@ impl Default for ServerConfig {
             auth: None,
             tls: None,
             redis: None,
+            sessions: SessionLimits::default(),
         }
     }
 }
@@ -206,6 +211,21 @@ async fn serve_with_manager(
         .accept_compressed(CompressionEncoding::Zstd)
         .send_compressed(CompressionEncoding::Zstd)
         .send_compressed(CompressionEncoding::Gzip);
+    // Sessions end (UNAVAILABLE) when shutdown starts, so their streams do not hold it up.
+    let (sessions_stop_tx, sessions_stop_rx) = watch::channel(false);
+    let sessions = SessionsServer::new(SessionsApi::new(
+        config.sessions,
+        state.limits.images,
+        manager.clone(),
+        telemetry.sessions().clone(),
+        sessions_stop_rx,
+    ))
+    .max_decoding_message_size(transport_limit)
+    .max_encoding_message_size(usize::MAX)
+    .accept_compressed(CompressionEncoding::Gzip)
+    .accept_compressed(CompressionEncoding::Zstd)
+    .send_compressed(CompressionEncoding::Zstd)
+    .send_compressed(CompressionEncoding::Gzip);
     let recon = ReconstructionServer::new(ReconstructionApi::new(state))
         .max_decoding_message_size(transport_limit)
         .max_encoding_message_size(usize::MAX)
@@ -218,6 +238,9 @@ async fn serve_with_manager(
     health_reporter.set_serving::<JobsServer<JobsApi>>().await;
     health_reporter
         .set_serving::<ReconstructionServer<ReconstructionApi>>()
+        .await;
+    health_reporter
+        .set_serving::<SessionsServer<SessionsApi>>()
         .await;
     let reflection_v1 = tonic_reflection::server::Builder::configure()
         .register_encoded_file_descriptor_set(FILE_DESCRIPTOR_SET)
@@ -259,6 +282,10 @@ async fn serve_with_manager(
         health_reporter
             .set_not_serving::<ReconstructionServer<ReconstructionApi>>()
             .await;
+        health_reporter
+            .set_not_serving::<SessionsServer<SessionsApi>>()
+            .await;
+        let _ = sessions_stop_tx.send(true);
         drain.shutdown(grace).await;
     };
     let mut builder = Server::builder();
@@ -280,6 +307,7 @@ async fn serve_with_manager(
         .add_service(reflection_v1alpha)
         .add_service(jobs)
         .add_service(recon)
+        .add_service(sessions)
         .serve_with_incoming_shutdown(
             // Without TCP_NODELAY small responses wait on delayed ACKs (~15 ms per call).
             TcpIncoming::from(listener)

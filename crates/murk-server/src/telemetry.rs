@@ -22,6 +22,7 @@ use tokio::net::TcpListener;
 
 use crate::jobs::JobBackend;
 use crate::service::grpc_metrics::GrpcMetrics;
+use crate::service::sessions::SessionMetrics;
 
 /// OpenMetrics text, which Prometheus scrapes natively.
 pub const CONTENT_TYPE: &str = "application/openmetrics-text; version=1.0.0; charset=utf-8";
@@ -31,6 +32,7 @@ pub const CONTENT_TYPE: &str = "application/openmetrics-text; version=1.0.0; cha
 pub struct Telemetry {
     registry: Registry,
     grpc: GrpcMetrics,
+    sessions: SessionMetrics,
 }
 
 impl Telemetry {
@@ -40,13 +42,24 @@ impl Telemetry {
         jobs.local().metrics().register(&mut registry);
         let grpc = GrpcMetrics::default();
         grpc.register(&mut registry);
+        let sessions = SessionMetrics::default();
+        sessions.register(&mut registry);
         registry.register_collector(Box::new(JobGauges { jobs }));
-        Arc::new(Self { registry, grpc })
+        Arc::new(Self {
+            registry,
+            grpc,
+            sessions,
+        })
     }
 
     /// The RPC families (for the request-metrics layer).
     pub fn grpc(&self) -> &GrpcMetrics {
         &self.grpc
+    }
+
+    /// The session families (for the `Sessions` service).
+    pub fn sessions(&self) -> &SessionMetrics {
+        &self.sessions
     }
 
     /// The current values in OpenMetrics text.

@@ -59,6 +59,7 @@ from .results import (
     TofDepthResult,
 )
 from .retry import RetryPolicy
+from .sessions import FrameOutcome, stereo_frame, stereo_session_config, tof_frame, tof_session_config
 from .types import Intrinsics, JobState, JobStatus, Pose, PsLight, View
 
 __version__ = "0.1.0"
@@ -74,6 +75,7 @@ __all__ = [
     "EncodedImage",
     "FailedPrecondition",
     "FieldViolation",
+    "FrameOutcome",
     "Internal",
     "Intrinsics",
     "InvalidArgument",
@@ -111,7 +113,11 @@ __all__ = [
     "rectified_stereo_request",
     "scattering_params_request",
     "srgb_to_linear",
+    "stereo_frame",
+    "stereo_session_config",
     "tof_depth_request",
+    "tof_frame",
+    "tof_session_config",
     "write_exr",
     "write_png16",
 ]

@@ -4,14 +4,14 @@ from __future__ import annotations
 
 import hashlib
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from typing import Any, TypeVar
 
 import grpc
 import numpy.typing as npt
 
 from . import requests as build
-from ._proto.murk.v1 import jobs_pb2, jobs_pb2_grpc
+from ._proto.murk.v1 import jobs_pb2, jobs_pb2_grpc, sessions_pb2
 from .errors import (
     DeadlineExceeded,
     JobCancelled,
@@ -32,6 +32,7 @@ from .results import (
     from_job_result,
 )
 from .retry import RetryPolicy
+from .sessions import FrameOutcome, run_session
 from .types import IntrinsicsLike, JobState, JobStatus, PsLight, View
 
 #: Called with every job update a watch receives (progress in [0, 1], stage, state).
@@ -382,6 +383,22 @@ class Client:
             options=options,
         )
         return _expect(self.run(req, progress=progress, timeout_s=timeout_s), PhotometricStereoResult)
+
+    # -- sensor sessions -----------------------------------------------------------------------
+
+    def session(
+        self, config: sessions_pb2.SessionConfig, frames: Iterable[sessions_pb2.SessionFrame]
+    ) -> Iterator[FrameOutcome]:
+        """Streams ``frames`` through a sensor session and yields each one's outcome, in order.
+
+        ``config`` from :func:`murk_client.tof_session_config` or
+        :func:`murk_client.stereo_session_config`; frames from :func:`murk_client.tof_frame` or
+        :func:`murk_client.stereo_frame` (their ``sequence`` is numbered here). ``frames`` is
+        read as the server takes them, so a generator over a live sensor works. On UNAVAILABLE
+        the session is opened again (cold) and the unanswered frames are sent again, under the
+        client's :class:`RetryPolicy`; a bad configuration raises :class:`InvalidArgument`.
+        """
+        return run_session(self._channel, self._metadata, config, frames, self.retry)
 
     # -- plumbing ------------------------------------------------------------------------------
 

@@ -40,17 +40,23 @@ pub type Client = JobsClient<InterceptedService<Channel, BearerToken>>;
 /// certificate and key in `MURK_TLS_CLIENT_CERT` / `MURK_TLS_CLIENT_KEY`).
 pub async fn connect(url: &str) -> anyhow::Result<Client> {
     let channel = channel(url).await?;
-    let token = match std::env::var("MURK_TOKEN") {
+    // Requests (megapixel image sets) may be large; responses stay within the default limit.
+    Ok(
+        JobsClient::with_interceptor(channel, bearer_token()?)
+            .max_encoding_message_size(usize::MAX),
+    )
+}
+
+/// The bearer token of `MURK_TOKEN`, when set.
+pub fn bearer_token() -> anyhow::Result<BearerToken> {
+    Ok(BearerToken(match std::env::var("MURK_TOKEN") {
         Ok(t) if !t.is_empty() => Some(
             format!("Bearer {t}")
                 .parse()
                 .context("MURK_TOKEN is not a valid header value")?,
         ),
         _ => None,
-    };
-    // Requests (megapixel image sets) may be large; responses stay within the default limit.
-    Ok(JobsClient::with_interceptor(channel, BearerToken(token))
-        .max_encoding_message_size(usize::MAX))
+    }))
 }
 
 /// A channel to `url` (TLS for `https://`, see [`connect`]).

@@ -7,6 +7,7 @@ mod mvs;
 mod params;
 mod ps;
 mod serve;
+mod session;
 mod simulate;
 mod stereo;
 mod tof;

@@ -13,7 +13,7 @@ use murk_server::server::{
     serve, shutdown_signal, ServerConfig, TlsSettings, DEFAULT_MAX_REQUEST_BYTES,
 };
 use murk_server::service::auth::TokenStore;
-use murk_server::service::DEFAULT_MAX_UNARY_RESULT_BYTES;
+use murk_server::service::{SessionLimits, DEFAULT_MAX_UNARY_RESULT_BYTES};
 
 /// Server configuration; each flag is also an environment variable.
 #[derive(Args, Debug, Clone)]
@@ -78,6 +78,17 @@ pub struct ServeArgs {
     /// get INVALID_ARGUMENT naming `support_r`.
     #[arg(long, env = "MURK_MAX_PS_KERNEL_BYTES", default_value_t = murk::ps::pipeline::DEFAULT_MAX_KERNEL_BYTES)]
     pub max_ps_kernel_bytes: usize,
+    /// Sensor sessions (the Sessions stream) open at once on this replica; more are refused
+    /// with RESOURCE_EXHAUSTED. Each holds its frame queue and one frame in computation.
+    #[arg(long, env = "MURK_MAX_SESSIONS", default_value_t = 32)]
+    pub max_sessions: usize,
+    /// Sensor sessions open at once for one tenant on this replica.
+    #[arg(long, env = "MURK_MAX_SESSIONS_PER_TENANT", default_value_t = 8)]
+    pub max_sessions_per_tenant: usize,
+    /// Seconds a new session stream may take to send its configuration before it is ended
+    /// (DEADLINE_EXCEEDED): an idle stream must not hold a session slot.
+    #[arg(long, env = "MURK_SESSION_CONFIG_TIMEOUT_SECS", default_value_t = 10.0)]
+    pub session_config_timeout_secs: f64,
     /// Seconds to drain jobs on SIGTERM/Ctrl-C before cancelling them.
     #[arg(long, env = "MURK_SHUTDOWN_GRACE_SECS", default_value_t = 10.0)]
     pub shutdown_grace_secs: f64,
@@ -134,6 +145,16 @@ impl ServeArgs {
             "--shutdown-grace-secs must be a non-negative number"
         );
         anyhow::ensure!(self.queue_capacity > 0, "--queue-capacity must be positive");
+        anyhow::ensure!(
+            self.max_sessions > 0 && self.max_sessions_per_tenant > 0,
+            "--max-sessions and --max-sessions-per-tenant must be positive (sessions cannot be \
+             turned off; a client that never opens one costs nothing)"
+        );
+        anyhow::ensure!(
+            self.session_config_timeout_secs.is_finite()
+                && (0.1..=3600.0).contains(&self.session_config_timeout_secs),
+            "--session-config-timeout-secs must be between 0.1 and 3600"
+        );
         anyhow::ensure!(
             self.max_request_bytes >= 1024,
             "--max-request-bytes must be at least 1024"
@@ -197,6 +218,11 @@ impl ServeArgs {
             max_image_pixels: self.max_image_pixels,
             max_ps_kernel_bytes: self.max_ps_kernel_bytes,
             shutdown_grace: Duration::from_secs_f64(self.shutdown_grace_secs),
+            sessions: SessionLimits {
+                max_sessions: self.max_sessions,
+                max_sessions_per_tenant: self.max_sessions_per_tenant,
+                config_timeout: Duration::from_secs_f64(self.session_config_timeout_secs),
+            },
             airlight: match self.airlight_estimator {
                 AirlightArg::DarkChannel => AirlightEstimator::DarkChannel(Default::default()),
                 AirlightArg::Cnn => AirlightEstimator::from_config(

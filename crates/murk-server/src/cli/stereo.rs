@@ -1,28 +1,31 @@
-//! `murk stereo`: depth of a calibrated, rectified stereo pair in haze.
+//! `murk stereo`: depth of a calibrated, rectified stereo pair in haze, one pair or a streamed
+//! sequence.
 
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context};
 use clap::Args;
 
-use murk::io::{sniff_format, write_colormap_png, write_exr};
+use murk::io::{read_image, sniff_format, write_colormap_png, write_exr, DecodeLimits};
 use murk::mvs_io::{write_ply, PlyFormat};
 use murk::ImageF32;
 use murk_server::service::convert::{image_from_proto, points_from_proto, ImageLimits};
 use murk_server::service::proto::v1 as pb;
 
 use super::mvs::{kind_name, run_here_or_remote, CostVolumeArg, DepthFlags};
+use super::session::{frame_dirs, stream_sequence, LoadFrame, SequenceFlags, WriteResult};
 use super::tof::{parse_intrinsics, parse_numbers};
+use std::sync::Arc;
 
 /// Options of `murk stereo`.
 #[derive(Args, Debug)]
 pub struct StereoArgs {
     /// Left (reference) image: PNG (8 or 16 bit), EXR or TIFF; grey or RGB.
-    #[arg(long)]
-    pub left: PathBuf,
+    #[arg(long, required_unless_present = "sequence", requires = "right")]
+    pub left: Option<PathBuf>,
     /// Right image: the left's size and channels.
-    #[arg(long)]
-    pub right: PathBuf,
+    #[arg(long, requires = "left")]
+    pub right: Option<PathBuf>,
     /// Rectified intrinsics of the left camera "fx,fy,cx,cy", pixels, with the origin at the
     /// centre of the top-left pixel (a ROS/OpenCV principal point as it is; COLMAP's minus 0.5).
     #[arg(long)]
@@ -67,11 +70,20 @@ pub struct StereoArgs {
     /// Server URL; without it a server is started in this process.
     #[arg(long, env = "MURK_SERVER")]
     pub server: Option<String>,
+    /// Streaming a sequence of pairs: one folder per frame holding `left.*` and `right.*`.
+    #[command(flatten)]
+    pub stream: SequenceFlags,
 }
 
 /// Runs `murk stereo`.
 pub fn run(a: StereoArgs) -> anyhow::Result<()> {
-    let request = build_request(&a)?;
+    if let Some(dir) = a.stream.sequence.clone() {
+        return run_sequence(&a, &dir);
+    }
+    let (Some(left), Some(right)) = (&a.left, &a.right) else {
+        bail!("give --left and --right, or --sequence DIR");
+    };
+    let request = build_request(&a, left, right)?;
     let job_request = pb::JobRequest {
         method: Some(pb::job_request::Method::RectifiedStereo(request)),
     };
@@ -79,27 +91,7 @@ pub fn run(a: StereoArgs) -> anyhow::Result<()> {
     let Some(pb::job_result::Method::RectifiedStereo(r)) = result.method else {
         bail!("server returned a result of another method");
     };
-    let limits = ImageLimits {
-        max_pixels: u64::MAX,
-        max_channels: 4,
-    };
-    let decode = |name: &str, img: &Option<pb::Image>| -> anyhow::Result<ImageF32> {
-        let img = img
-            .as_ref()
-            .with_context(|| format!("result lacks {name}"))?;
-        image_from_proto(img, &limits).with_context(|| format!("decoding {name}"))
-    };
-    let z = decode("z_depth", &r.z_depth)?;
-    let disparity = decode("disparity", &r.disparity)?;
-    let confidence = decode("confidence", &r.confidence)?;
-    let points = points_from_proto(r.points.as_ref().context("result lacks points")?)?;
-    std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
-    write_outputs(&a.out, &z, &disparity, &confidence, r.near, r.far)?;
-    write_ply(
-        &a.out.join("points.ply"),
-        &points,
-        PlyFormat::BinaryLittleEndian,
-    )?;
+    let (z, points) = write_result(&a.out, &r)?;
     let (w, h) = z.dims();
     println!(
         "job {}{}: {w}×{h} pair, {} cost volume, {} planes over z {:.4}..{:.4} (disparity \
@@ -130,24 +122,117 @@ pub fn run(a: StereoArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// The request: the image files as they are (the server decodes them), the rig and the range.
-fn build_request(a: &StereoArgs) -> anyhow::Result<pb::RectifiedStereoRequest> {
-    let k = parse_intrinsics(&a.intrinsics)?;
-    let image = |path: &Path, flag: &str| -> anyhow::Result<pb::Image> {
-        let bytes = std::fs::read(path).with_context(|| format!("{flag} {}", path.display()))?;
-        if sniff_format(&bytes).is_none() {
-            bail!("{flag} {}: not a PNG, TIFF or OpenEXR file", path.display());
-        }
-        Ok(pb::Image {
-            data: Some(pb::image::Data::Encoded(bytes)),
-            transfer: if a.srgb {
-                pb::Transfer::Srgb
-            } else {
-                pb::Transfer::Linear
-            } as i32,
+/// `murk stereo --sequence DIR`: every frame folder's pair through one sensor session; each
+/// result in OUT/<frame>/.
+fn run_sequence(a: &StereoArgs, dir: &Path) -> anyhow::Result<()> {
+    let frames = frame_dirs(dir)?;
+    let (left, right) = pair_in(&frames[0].1)?;
+    let dims = read_image(&left, &DecodeLimits::default())
+        .with_context(|| format!("reading {}", left.display()))?
+        .dims();
+    let mut template = build_request(a, &left, &right)?;
+    template.left = None;
+    template.right = None;
+    let mut config = pb::SessionConfig {
+        width: dims.0 as u32,
+        height: dims.1 as u32,
+        method: Some(pb::session_config::Method::Stereo(template)),
+        ..Default::default()
+    };
+    a.stream.apply(&mut config);
+    let srgb = a.srgb;
+    let load: LoadFrame = Arc::new(move |dir: &Path| {
+        let (left, right) = pair_in(dir)?;
+        Ok(pb::SessionFrame {
+            left: Some(encoded_image(&left, "left", srgb)?),
+            right: Some(encoded_image(&right, "right", srgb)?),
             ..Default::default()
         })
+    });
+    let out = a.out.clone();
+    let write: WriteResult = Arc::new(move |name: &str, r: &pb::FrameResult| {
+        let Some(pb::frame_result::Outcome::Stereo(s)) = &r.outcome else {
+            bail!("frame {name}: not a stereo result");
+        };
+        write_result(&out.join(name), s).map(|_| ())
+    });
+    let report = stream_sequence(a.server.as_deref(), config, frames, &a.stream, load, write)?;
+    println!("{}; outputs in {}", report.summary(), a.out.display());
+    Ok(())
+}
+
+/// The `left.*` and `right.*` files of a frame folder.
+fn pair_in(dir: &Path) -> anyhow::Result<(PathBuf, PathBuf)> {
+    let find = |stem: &str| -> anyhow::Result<PathBuf> {
+        let mut found = Vec::new();
+        for entry in std::fs::read_dir(dir).with_context(|| format!("reading {}", dir.display()))? {
+            let path = entry?.path();
+            if path.file_stem().is_some_and(|s| s == stem) && path.is_file() {
+                found.push(path);
+            }
+        }
+        match found.len() {
+            1 => Ok(found.remove(0)),
+            0 => bail!("{} has no {stem}.* image", dir.display()),
+            _ => bail!("{} has several {stem}.* images", dir.display()),
+        }
     };
+    Ok((find("left")?, find("right")?))
+}
+
+/// A file's bytes as an encoded image (the server decodes it), sRGB-tagged when `srgb`.
+fn encoded_image(path: &Path, what: &str, srgb: bool) -> anyhow::Result<pb::Image> {
+    let bytes = std::fs::read(path).with_context(|| format!("{what} {}", path.display()))?;
+    if sniff_format(&bytes).is_none() {
+        bail!("{what} {}: not a PNG, TIFF or OpenEXR file", path.display());
+    }
+    Ok(pb::Image {
+        data: Some(pb::image::Data::Encoded(bytes)),
+        transfer: if srgb {
+            pb::Transfer::Srgb
+        } else {
+            pb::Transfer::Linear
+        } as i32,
+        ..Default::default()
+    })
+}
+
+/// Writes a result's files into `dir`; returns the depth and the points.
+fn write_result(
+    dir: &Path,
+    r: &pb::RectifiedStereoResult,
+) -> anyhow::Result<(ImageF32, Vec<murk::mvs_io::ColoredPoint>)> {
+    let limits = ImageLimits {
+        max_pixels: u64::MAX,
+        max_channels: 4,
+    };
+    let decode = |name: &str, img: &Option<pb::Image>| -> anyhow::Result<ImageF32> {
+        let img = img
+            .as_ref()
+            .with_context(|| format!("result lacks {name}"))?;
+        image_from_proto(img, &limits).with_context(|| format!("decoding {name}"))
+    };
+    let z = decode("z_depth", &r.z_depth)?;
+    let disparity = decode("disparity", &r.disparity)?;
+    let confidence = decode("confidence", &r.confidence)?;
+    let points = points_from_proto(r.points.as_ref().context("result lacks points")?)?;
+    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    write_outputs(dir, &z, &disparity, &confidence, r.near, r.far)?;
+    write_ply(
+        &dir.join("points.ply"),
+        &points,
+        PlyFormat::BinaryLittleEndian,
+    )?;
+    Ok((z, points))
+}
+
+/// The request: the image files as they are (the server decodes them), the rig and the range.
+fn build_request(
+    a: &StereoArgs,
+    left: &Path,
+    right: &Path,
+) -> anyhow::Result<pb::RectifiedStereoRequest> {
+    let k = parse_intrinsics(&a.intrinsics)?;
     let (near, far) = match &a.depth_range {
         Some(s) => {
             let [near, far] = parse_numbers::<2>(s, "--depth-range", "near,far")?;
@@ -172,8 +257,8 @@ fn build_request(a: &StereoArgs) -> anyhow::Result<pb::RectifiedStereoRequest> {
         bail!("the {cost:?} cost volume needs the haze: pass --airlight and --beta");
     }
     Ok(pb::RectifiedStereoRequest {
-        left: Some(image(&a.left, "--left")?),
-        right: Some(image(&a.right, "--right")?),
+        left: Some(encoded_image(left, "--left", a.srgb)?),
+        right: Some(encoded_image(right, "--right", a.srgb)?),
         intrinsics: Some(pb::CameraIntrinsics {
             fx: k.fx,
             fy: k.fy,

@@ -1,4 +1,4 @@
-//! `murk tof`: a client for ToF depth in fog.
+//! `murk tof`: a client for ToF depth in fog, one frame or a streamed sequence.
 
 use std::path::{Path, PathBuf};
 
@@ -7,12 +7,16 @@ use clap::Args;
 
 use murk::camera::Intrinsics;
 use murk::io::{read_image, write_colormap_png, write_exr, DecodeLimits};
-use murk::simulate::read_tof_capture;
+use murk::simulate::{read_tof_capture, TofCapture};
 use murk::ImageF32;
-use murk_server::service::convert::{image_from_proto, tof_request_to_proto, ImageLimits};
+use murk_server::service::convert::{
+    image_from_proto, image_to_proto, tof_request_to_proto, ImageLimits,
+};
 use murk_server::service::proto::v1 as pb;
 
 use super::mvs::run_here_or_remote;
+use super::session::{frame_dirs, stream_sequence, LoadFrame, SequenceFlags, WriteResult};
+use std::sync::Arc;
 
 /// Options of `murk tof`.
 #[derive(Args, Debug)]
@@ -22,10 +26,10 @@ pub struct TofArgs {
     #[arg(long, env = "MURK_SERVER")]
     pub server: Option<String>,
     /// A folder in the simulator's layout (amplitude.exr, phase.exr, optional meta.json).
-    #[arg(long, conflicts_with_all = ["amplitude", "phase"])]
+    #[arg(long, conflicts_with_all = ["amplitude", "phase", "sequence"])]
     pub frame: Option<PathBuf>,
     /// Amplitude image (EXR, PNG 8/16-bit or TIFF).
-    #[arg(long, requires = "phase")]
+    #[arg(long, requires = "phase", conflicts_with = "sequence")]
     pub amplitude: Option<PathBuf>,
     /// Phase image in radians (EXR/float TIFF); for integer PNG/TIFF use --phase-scale.
     #[arg(long, requires = "amplitude")]
@@ -55,37 +59,112 @@ pub struct TofArgs {
     /// Output folder (created).
     #[arg(long)]
     pub out: PathBuf,
+    /// Streaming a sequence of frames.
+    #[command(flatten)]
+    pub stream: SequenceFlags,
 }
 
 /// Runs `murk tof`.
 pub fn run(a: TofArgs) -> anyhow::Result<()> {
+    if let Some(dir) = a.stream.sequence.clone() {
+        return run_sequence(&a, &dir);
+    }
     let limits = DecodeLimits::default();
-    let (amplitude, mut phase, meta_k, meta_f, meta_light) = if let Some(dir) = &a.frame {
-        let c = read_tof_capture(dir).with_context(|| format!("reading {}", dir.display()))?;
-        (
-            c.amplitude,
-            c.phase,
-            c.intrinsics,
-            c.modulation_frequency_hz,
-            c.light_position_m,
-        )
+    let capture = if let Some(dir) = &a.frame {
+        read_tof_capture(dir).with_context(|| format!("reading {}", dir.display()))?
     } else {
         let (Some(ap), Some(pp)) = (&a.amplitude, &a.phase) else {
-            bail!("give --frame DIR, or --amplitude and --phase");
+            bail!("give --frame DIR, or --amplitude and --phase, or --sequence DIR");
         };
-        (
-            read_image(ap, &limits)?.into_mono()?,
-            read_image(pp, &limits)?.into_mono()?,
-            None,
-            None,
-            None,
-        )
+        TofCapture {
+            amplitude: read_image(ap, &limits)?.into_mono()?,
+            phase: read_image(pp, &limits)?.into_mono()?,
+            intrinsics: None,
+            modulation_frequency_hz: None,
+            light_position_m: None,
+        }
     };
-    if a.phase_scale != 1.0 {
+    let request = request_for(&a, capture)?;
+    let (job, result) = run_here_or_remote(
+        a.server.as_deref(),
+        pb::JobRequest {
+            method: Some(pb::job_request::Method::TofDepth(request)),
+        },
+        "tof",
+    )?;
+    let Some(pb::job_result::Method::TofDepth(r)) = result.method else {
+        bail!("server returned a result of another method");
+    };
+    write_tof_result(&a.out, &r)?;
+    println!(
+        "job {}{}; outputs in {}",
+        &job.id[..12.min(job.id.len())],
+        if job.cached { " (cached)" } else { "" },
+        a.out.display()
+    );
+    for w in &r.warnings {
+        println!("warning: {w}");
+    }
+    Ok(())
+}
+
+/// `murk tof --sequence DIR`: every frame folder through one sensor session, configured from
+/// the first frame (its meta.json and the flags); each result in OUT/<frame>/.
+fn run_sequence(a: &TofArgs, dir: &Path) -> anyhow::Result<()> {
+    let frames = frame_dirs(dir)?;
+    let first = read_tof_capture(&frames[0].1)
+        .with_context(|| format!("reading {}", frames[0].1.display()))?;
+    let (width, height) = first.amplitude.dims();
+    let mut template = request_for(a, first)?;
+    template.amplitude = None;
+    template.phase = None;
+    let mut config = pb::SessionConfig {
+        width: width as u32,
+        height: height as u32,
+        method: Some(pb::session_config::Method::Tof(template)),
+        ..Default::default()
+    };
+    a.stream.apply(&mut config);
+    let phase_scale = a.phase_scale;
+    let load: LoadFrame = Arc::new(move |dir: &Path| {
+        let mut c = read_tof_capture(dir)?;
+        scale_phase(&mut c.phase, phase_scale);
+        Ok(pb::SessionFrame {
+            amplitude: Some(image_to_proto(&c.amplitude)),
+            phase: Some(image_to_proto(&c.phase)),
+            ..Default::default()
+        })
+    });
+    let out = a.out.clone();
+    let write: WriteResult = Arc::new(move |name: &str, r: &pb::FrameResult| {
+        let Some(pb::frame_result::Outcome::Tof(t)) = &r.outcome else {
+            bail!("frame {name}: not a ToF result");
+        };
+        write_tof_result(&out.join(name), t).map(|_| ())
+    });
+    let report = stream_sequence(a.server.as_deref(), config, frames, &a.stream, load, write)?;
+    println!("{}; outputs in {}", report.summary(), a.out.display());
+    Ok(())
+}
+
+fn scale_phase(phase: &mut ImageF32, scale: f32) {
+    if scale != 1.0 {
         for v in phase.data_mut() {
-            *v *= a.phase_scale;
+            *v *= scale;
         }
     }
+}
+
+/// The one-shot request for a capture and the flags (which override its meta.json).
+fn request_for(a: &TofArgs, capture: TofCapture) -> anyhow::Result<pb::TofDepthRequest> {
+    let TofCapture {
+        amplitude,
+        mut phase,
+        intrinsics: meta_k,
+        modulation_frequency_hz: meta_f,
+        light_position_m: meta_light,
+    } = capture;
+    scale_phase(&mut phase, a.phase_scale);
     let frequency = a
         .frequency_hz
         .or(meta_f)
@@ -119,27 +198,7 @@ pub fn run(a: TofArgs) -> anyhow::Result<()> {
         symmetry_row: a.symmetry_row,
         ..Default::default()
     });
-    let (job, result) = run_here_or_remote(
-        a.server.as_deref(),
-        pb::JobRequest {
-            method: Some(pb::job_request::Method::TofDepth(request)),
-        },
-        "tof",
-    )?;
-    let Some(pb::job_result::Method::TofDepth(r)) = result.method else {
-        bail!("server returned a result of another method");
-    };
-    write_tof_result(&a.out, &r)?;
-    println!(
-        "job {}{}; outputs in {}",
-        &job.id[..12.min(job.id.len())],
-        if job.cached { " (cached)" } else { "" },
-        a.out.display()
-    );
-    for w in &r.warnings {
-        println!("warning: {w}");
-    }
-    Ok(())
+    Ok(request)
 }
 
 /// `N` comma-separated numbers of `flag`, whose `shape` (e.g. "x,y,z") the error names.

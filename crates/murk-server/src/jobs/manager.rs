@@ -107,6 +107,12 @@ impl JobManager {
         self.inner.pool.current_num_threads()
     }
 
+    /// Runs `f` on the compute pool (blocking the calling thread), where its parallel loops
+    /// share the cores with the jobs: the sessions' frames run here.
+    pub fn install<R: Send>(&self, f: impl FnOnce() -> R + Send) -> R {
+        self.inner.pool.install(f)
+    }
+
     /// Number of computations started since creation (cache hits do not count).
     pub fn executed(&self) -> u64 {
         self.inner.executed.load(Ordering::SeqCst)

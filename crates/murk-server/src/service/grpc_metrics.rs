@@ -52,6 +52,7 @@ const METHODS: &[&str] = &[
     "murk.v1.Reconstruction/ScatteringParams",
     "murk.v1.Reconstruction/PhotometricStereo",
     "murk.v1.Reconstruction/RectifiedStereo",
+    "murk.v1.Sessions/Stream",
     "grpc.health.v1.Health/Check",
     "grpc.health.v1.Health/Watch",
     "grpc.reflection.v1.ServerReflection/ServerReflectionInfo",

@@ -1,5 +1,5 @@
-//! gRPC service layer: protobuf ↔ domain conversion, error mapping, and the `Jobs` and
-//! `Reconstruction` services. The algorithms never see any of this.
+//! gRPC service layer: protobuf ↔ domain conversion, error mapping, and the `Jobs`,
+//! `Reconstruction` and `Sessions` services. The algorithms never see any of this.
 
 pub mod auth;
 pub mod codec;
@@ -9,11 +9,13 @@ mod jobs_api;
 pub mod proto;
 mod reconstruction_api;
 pub mod request_id;
+pub mod sessions;
 pub mod status;
 mod submit;
 
 pub use jobs_api::JobsApi;
 pub use reconstruction_api::{grpc_timeout, ReconstructionApi, JOB_ID_HEADER};
+pub use sessions::{SessionLimits, SessionsApi};
 pub use submit::{
     job_id, method_name, rebuild_work, RequestLimits, ServiceState, ALGORITHM_VERSION,
     DEFAULT_MAX_UNARY_RESULT_BYTES,

@@ -13,4 +13,5 @@ mod params_api;
 mod ps_api;
 mod redis_scaleout;
 mod service_ops;
+mod sessions_api;
 mod stereo_api;

@@ -106,79 +106,144 @@ pub fn canonicalize_stereo_request(req: &mut pb::RectifiedStereoRequest) {
     }
 }
 
-/// Decodes and fully validates a rectified-stereo request. Cheap scalar checks run before any
-/// image is decoded.
-pub fn stereo_from_proto(
-    req: &pb::RectifiedStereoRequest,
-    limits: &ImageLimits,
-) -> Result<StereoInput> {
-    let (wire_kind, cost) = cost_of(req.cost_volume, req.airlight, req.beta)?;
-    let k = req
-        .intrinsics
-        .as_ref()
-        .ok_or_else(|| MurkError::invalid("intrinsics", "required"))?;
-    let intrinsics = intrinsics_from_proto(k);
-    let rig = RectifiedRig {
-        intrinsics,
-        baseline: req.baseline,
-        right_cx: req.right_cx.unwrap_or(intrinsics.cx),
-    };
-    rig.validate()?;
-    let depth = sgm_of(req.sgm.as_ref());
-    depth.validate().map_err(|e| e.within("sgm"))?;
-    if req.num_planes == 1 {
-        return Err(MurkError::invalid(
-            "num_planes",
-            "need at least 2 planes (0 = one per pixel of disparity)",
-        ));
+/// A rectified-stereo request's settings, validated for frames of one size: everything but the
+/// images (the one-shot request's, or a session's for every frame).
+#[derive(Clone, Debug, PartialEq)]
+pub struct StereoConfig {
+    /// The frame size the settings were checked for, pixels.
+    pub dims: (usize, usize),
+    /// The rig.
+    pub rig: RectifiedRig,
+    /// Range, plane count (resolved), cost and aggregation parameters.
+    pub options: RectifiedOptions,
+    /// The wire kind (UNSPECIFIED resolved).
+    pub wire_kind: pb::CostVolumeKind,
+    /// Whether results carry the point cloud.
+    pub return_points: bool,
+}
+
+impl StereoConfig {
+    /// Validates `req`'s settings (its images are ignored) for `width × height` pairs. Errors
+    /// name `intrinsics.…`, `baseline`, `right_cx`, the range's fields, `num_planes`,
+    /// `cost_volume`, `airlight`, `beta` or `sgm.…`.
+    pub fn from_proto(
+        req: &pb::RectifiedStereoRequest,
+        width: usize,
+        height: usize,
+    ) -> Result<Self> {
+        let (wire_kind, cost) = cost_of(req.cost_volume, req.airlight, req.beta)?;
+        let k = req
+            .intrinsics
+            .as_ref()
+            .ok_or_else(|| MurkError::invalid("intrinsics", "required"))?;
+        let intrinsics = intrinsics_from_proto(k);
+        let rig = RectifiedRig {
+            intrinsics,
+            baseline: req.baseline,
+            right_cx: req.right_cx.unwrap_or(intrinsics.cx),
+        };
+        rig.validate()?;
+        let depth = sgm_of(req.sgm.as_ref());
+        depth.validate().map_err(|e| e.within("sgm"))?;
+        if req.num_planes == 1 {
+            return Err(MurkError::invalid(
+                "num_planes",
+                "need at least 2 planes (0 = one per pixel of disparity)",
+            ));
+        }
+        let range = range_of(req, width)?;
+        let requested = (req.num_planes != 0).then_some(req.num_planes as usize);
+        let planes = rig.planes(
+            range.unwrap_or_else(|| StereoRange::default_for_width(width)),
+            requested,
+        )?;
+        let voxel_bound = MAX_VOXELS / (width * height).max(1);
+        let num_planes = match requested {
+            Some(n) if n > voxel_bound => {
+                return Err(MurkError::invalid(
+                    "num_planes",
+                    format!(
+                        "{width}x{height} pixels x {n} planes exceeds the cost-volume limit of \
+                         {MAX_VOXELS} voxels; use fewer planes or smaller images"
+                    ),
+                ))
+            }
+            Some(n) => n,
+            None => planes.num_planes.min(voxel_bound.max(2)),
+        };
+        Ok(Self {
+            dims: (width, height),
+            rig,
+            options: RectifiedOptions {
+                range,
+                num_planes: Some(num_planes),
+                cost,
+                depth,
+            },
+            wire_kind,
+            return_points: req.return_points,
+        })
     }
+
+    /// The input of one pair, checked against these settings: the left image of the configured
+    /// size, 1 or 3 channels, finite; the right of the left's shape. Errors name `left…` or
+    /// `right…`.
+    pub fn with_images(&self, left: ImageF32, right: ImageF32) -> Result<StereoInput> {
+        let (w, h) = self.dims;
+        if left.dims() != (w, h) {
+            return Err(MurkError::invalid(
+                "left",
+                format!(
+                    "the pair is {}x{}, the settings are for {w}x{h}",
+                    left.width(),
+                    left.height()
+                ),
+            ));
+        }
+        let (reference, source) = self.rig.views(&left, &right)?;
+        reference.validate(None).map_err(|e| e.within("left"))?;
+        source
+            .validate(Some((w, h, left.channels())))
+            .map_err(|e| e.within("right"))?;
+        Ok(StereoInput {
+            left,
+            right,
+            rig: self.rig,
+            options: self.options,
+            wire_kind: self.wire_kind,
+            return_points: self.return_points,
+        })
+    }
+}
+
+/// Decodes the left and right images of a request or a frame; errors name `left…` or
+/// `right…`.
+pub fn stereo_images_from_proto(
+    left: Option<&pb::Image>,
+    right: Option<&pb::Image>,
+    limits: &ImageLimits,
+) -> Result<(ImageF32, ImageF32)> {
     let image = |name: &str, i: Option<&pb::Image>| {
         i.ok_or_else(|| MurkError::invalid(name, "required"))
             .and_then(|i| image_from_proto(i, limits).map_err(|e| e.within(name)))
     };
-    let left = image("left", req.left.as_ref())?;
-    let right = image("right", req.right.as_ref())?;
+    Ok((image("left", left)?, image("right", right)?))
+}
+
+/// Decodes and fully validates a rectified-stereo request. The settings are checked before the
+/// images are decoded where they can be (everything but what depends on the image size).
+pub fn stereo_from_proto(
+    req: &pb::RectifiedStereoRequest,
+    limits: &ImageLimits,
+) -> Result<StereoInput> {
+    // The settings' size-free checks first (a bad baseline is reported before any decoding).
+    let declared = req.left.as_ref().map_or((2, 2), |i| {
+        ((i.width as usize).max(2), (i.height as usize).max(2))
+    });
+    StereoConfig::from_proto(req, declared.0, declared.1)?;
+    let (left, right) = stereo_images_from_proto(req.left.as_ref(), req.right.as_ref(), limits)?;
     let (w, h) = left.dims();
-    let range = range_of(req, w)?;
-    let requested = (req.num_planes != 0).then_some(req.num_planes as usize);
-    let planes = rig.planes(
-        range.unwrap_or_else(|| StereoRange::default_for_width(w)),
-        requested,
-    )?;
-    let voxel_bound = MAX_VOXELS / (w * h).max(1);
-    let num_planes = match requested {
-        Some(n) if n > voxel_bound => {
-            return Err(MurkError::invalid(
-                "num_planes",
-                format!(
-                    "{w}x{h} pixels x {n} planes exceeds the cost-volume limit of {MAX_VOXELS} \
-                     voxels; use fewer planes or smaller images"
-                ),
-            ))
-        }
-        Some(n) => n,
-        None => planes.num_planes.min(voxel_bound.max(2)),
-    };
-    let input = StereoInput {
-        left,
-        right,
-        rig,
-        options: RectifiedOptions {
-            range,
-            num_planes: Some(num_planes),
-            cost,
-            depth,
-        },
-        wire_kind,
-        return_points: req.return_points,
-    };
-    // The images' own checks (shape, channels, finite samples), before the job is queued.
-    let (reference, source) = rig.views(&input.left, &input.right)?;
-    reference.validate(None).map_err(|e| e.within("left"))?;
-    source
-        .validate(Some((w, h, input.left.channels())))
-        .map_err(|e| e.within("right"))?;
-    Ok(input)
+    StereoConfig::from_proto(req, w, h)?.with_images(left, right)
 }
 
 /// A request for a pair (clients: CLI, tests). Images travel as raw f32; `atmosphere` `None`

@@ -1,0 +1,216 @@
+//! A session's configuration, validated once (`SessionConfig` → [`SessionPlan`]), and the
+//! computation of one frame under it.
+
+use std::time::Duration;
+
+use crate::service::convert::{
+    stereo_images_from_proto, stereo_to_proto, tof_from_proto, tof_to_proto, ImageLimits,
+    StereoConfig,
+};
+use crate::service::proto::v1 as pb;
+use murk::error::{MurkError, Result};
+use murk::monitor::Monitor;
+use murk::tof::estimate_tof_depth;
+
+/// Most frames a session may queue.
+pub const MAX_QUEUED_FRAMES: u32 = 64;
+/// Longest accepted frame id, bytes.
+pub const MAX_FRAME_ID_BYTES: usize = 256;
+
+/// What a session computes.
+#[derive(Clone, Debug)]
+pub enum SessionMethod {
+    /// ToF: the one-shot request without images; each frame's amplitude and phase go into a
+    /// copy of it.
+    Tof(Box<pb::TofDepthRequest>),
+    /// Rectified stereo, its settings validated for the session's frame size.
+    Stereo(Box<StereoConfig>),
+}
+
+impl SessionMethod {
+    /// The method's name in metrics and logs (the one-shot job method's).
+    pub fn name(&self) -> &'static str {
+        match self {
+            SessionMethod::Tof(_) => "tof_depth",
+            SessionMethod::Stereo(_) => "rectified_stereo",
+        }
+    }
+}
+
+/// A validated session configuration.
+#[derive(Clone, Debug)]
+pub struct SessionPlan {
+    /// Frame width and height, pixels.
+    pub dims: (usize, usize),
+    /// The method and its settings.
+    pub method: SessionMethod,
+    /// The queue policy (UNSPECIFIED resolved to LATEST).
+    pub policy: pb::QueuePolicy,
+    /// Frames that may wait while one is computed.
+    pub capacity: usize,
+    /// Longest a frame may wait before its computation starts.
+    pub deadline: Option<Duration>,
+}
+
+impl SessionPlan {
+    /// Validates a configuration. Errors name fields relative to `SessionConfig`
+    /// (`width`, `tof.modulation_frequency_hz`, `stereo.baseline`, `max_queued_frames`, ...).
+    pub fn from_proto(c: &pb::SessionConfig, limits: &ImageLimits) -> Result<Self> {
+        let (w, h) = (c.width as usize, c.height as usize);
+        if w < 2 || h < 2 {
+            return Err(MurkError::invalid(
+                if w < 2 { "width" } else { "height" },
+                format!("frames need at least 2x2 pixels, got {w}x{h}"),
+            ));
+        }
+        if (w as u64) * (h as u64) > limits.max_pixels {
+            return Err(MurkError::invalid(
+                "width",
+                format!(
+                    "{w}x{h} frames exceed the server's limit of {} pixels per image",
+                    limits.max_pixels
+                ),
+            ));
+        }
+        let method = match &c.method {
+            None => {
+                return Err(MurkError::invalid(
+                    "method",
+                    "one method (tof or stereo) must be set",
+                ))
+            }
+            Some(pb::session_config::Method::Tof(t)) => {
+                if t.amplitude.is_some() || t.phase.is_some() {
+                    return Err(MurkError::invalid(
+                        "tof.amplitude",
+                        "the images come with each frame; leave them unset in the configuration",
+                    ));
+                }
+                check_tof_settings(t, w, h).map_err(|e| e.within("tof"))?;
+                SessionMethod::Tof(Box::new(t.clone()))
+            }
+            Some(pb::session_config::Method::Stereo(s)) => {
+                if s.left.is_some() || s.right.is_some() {
+                    return Err(MurkError::invalid(
+                        "stereo.left",
+                        "the images come with each frame; leave them unset in the configuration",
+                    ));
+                }
+                let config = StereoConfig::from_proto(s, w, h).map_err(|e| e.within("stereo"))?;
+                SessionMethod::Stereo(Box::new(config))
+            }
+        };
+        let policy = match pb::QueuePolicy::try_from(c.queue_policy) {
+            Ok(pb::QueuePolicy::Unspecified) => pb::QueuePolicy::Latest,
+            Ok(p) => p,
+            Err(_) => {
+                return Err(MurkError::invalid(
+                    "queue_policy",
+                    format!("unknown queue policy {}", c.queue_policy),
+                ))
+            }
+        };
+        let capacity = match c.max_queued_frames {
+            0 if policy == pb::QueuePolicy::Fifo => 4,
+            0 => 1,
+            n if n > MAX_QUEUED_FRAMES => {
+                return Err(MurkError::invalid(
+                    "max_queued_frames",
+                    format!("at most {MAX_QUEUED_FRAMES}, got {n}"),
+                ))
+            }
+            n => n as usize,
+        };
+        let d = c.frame_deadline_seconds;
+        if !(d.is_finite() && (0.0..=3600.0).contains(&d)) {
+            return Err(MurkError::invalid(
+                "frame_deadline_seconds",
+                format!("must be finite, in [0, 3600] seconds (0 = none), got {d}"),
+            ));
+        }
+        Ok(Self {
+            dims: (w, h),
+            method,
+            policy,
+            capacity,
+            deadline: (d > 0.0).then(|| Duration::from_secs_f64(d)),
+        })
+    }
+
+    /// Decodes and computes one frame. Errors name fields relative to `SessionFrame`
+    /// (`amplitude`, `left.…`); the caller adds `frame.`.
+    pub fn compute(
+        &self,
+        frame: &pb::SessionFrame,
+        limits: &ImageLimits,
+        monitor: &Monitor,
+    ) -> Result<pb::frame_result::Outcome> {
+        if frame.frame_id.len() > MAX_FRAME_ID_BYTES {
+            return Err(MurkError::invalid(
+                "frame_id",
+                format!(
+                    "at most {MAX_FRAME_ID_BYTES} bytes, got {}",
+                    frame.frame_id.len()
+                ),
+            ));
+        }
+        match &self.method {
+            SessionMethod::Tof(template) => {
+                let mut req = (**template).clone();
+                req.amplitude = frame.amplitude.clone();
+                req.phase = frame.phase.clone();
+                let (input, params) = tof_from_proto(&req, limits)?;
+                if input.amplitude.dims() != self.dims {
+                    let (w, h) = self.dims;
+                    return Err(MurkError::invalid(
+                        "amplitude",
+                        format!(
+                            "the frame is {}x{}, the session's frames are {w}x{h}",
+                            input.amplitude.width(),
+                            input.amplitude.height()
+                        ),
+                    ));
+                }
+                let out = estimate_tof_depth(&input, &params, monitor)?;
+                Ok(pb::frame_result::Outcome::Tof(tof_to_proto(&out)))
+            }
+            SessionMethod::Stereo(config) => {
+                let (left, right) =
+                    stereo_images_from_proto(frame.left.as_ref(), frame.right.as_ref(), limits)?;
+                let input = config.with_images(left, right)?;
+                let started = std::time::Instant::now();
+                let (out, points) = input.estimate(monitor)?;
+                let seconds = started.elapsed().as_secs_f64();
+                Ok(pb::frame_result::Outcome::Stereo(stereo_to_proto(
+                    &input, &out, &points, seconds,
+                )))
+            }
+        }
+    }
+}
+
+/// The size-dependent checks of a ToF template, run once per session: the parameters against
+/// the frame size, and the light position's need for intrinsics.
+fn check_tof_settings(t: &pb::TofDepthRequest, w: usize, h: usize) -> Result<()> {
+    // The one-shot conversion is the single definition of the checks: run it on a blank frame
+    // of the session's size (a constant phase in range, a unit amplitude).
+    let blank = |v: f32| pb::Image {
+        width: w as u32,
+        height: h as u32,
+        channels: 1,
+        data: Some(pb::image::Data::RawF32Le(
+            std::iter::repeat_n(v.to_le_bytes(), w * h)
+                .flatten()
+                .collect(),
+        )),
+        ..Default::default()
+    };
+    let mut req = t.clone();
+    req.amplitude = Some(blank(1.0));
+    req.phase = Some(blank(1.0));
+    let limits = ImageLimits {
+        max_pixels: (w * h) as u64,
+        max_channels: 1,
+    };
+    tof_from_proto(&req, &limits).map(|_| ())
+}

@@ -1,0 +1,262 @@
+//! One session's life once configured: a reader task moves frames from the stream into the
+//! queue (reporting the frames the LATEST policy pushes out), and the session's own task
+//! computes them one at a time, in order, on the job system's compute pool, where they share
+//! the cores with one-shot jobs and the other sessions (one frame in flight per session, so
+//! sessions get an even share).
+//!
+//! The session ends when the client half-closes the stream (after the queued frames), when it
+//! cancels or disconnects (the frame being computed is cancelled), or when the server shuts
+//! down (UNAVAILABLE: reconnect elsewhere).
+
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::Instant;
+
+use tokio::sync::{mpsc, watch};
+use tonic::{Status, Streaming};
+
+use super::metrics::SessionMetrics;
+use super::plan::SessionPlan;
+use super::queue::{FrameQueue, Queued};
+use crate::jobs::JobManager;
+use crate::service::convert::ImageLimits;
+use crate::service::proto::v1 as pb;
+use crate::service::status::job_error;
+use murk::error::MurkError;
+use murk::monitor::Monitor;
+
+/// The events a session sends; an `Err` ends the stream.
+pub(super) type Events = mpsc::Sender<Result<pb::SessionEvent, Status>>;
+
+/// What a configured session runs with.
+pub(super) struct SessionContext {
+    /// Its id (logs, `SessionStarted`).
+    pub id: String,
+    /// The validated configuration.
+    pub plan: Arc<SessionPlan>,
+    /// Per-image limits for the frames.
+    pub limits: ImageLimits,
+    /// The compute pool's owner.
+    pub jobs: JobManager,
+    /// Frame and session metrics.
+    pub metrics: SessionMetrics,
+    /// Turns true when the server shuts down.
+    pub stop: watch::Receiver<bool>,
+}
+
+/// Counts the session as open for its life.
+struct OpenGauge(SessionMetrics, &'static str);
+
+impl Drop for OpenGauge {
+    fn drop(&mut self) {
+        self.0.open(self.1, -1);
+    }
+}
+
+fn event(e: pb::session_event::Event) -> pb::SessionEvent {
+    pb::SessionEvent { event: Some(e) }
+}
+
+fn dropped(frame: &pb::SessionFrame, reason: pb::DropReason) -> pb::SessionEvent {
+    event(pb::session_event::Event::Dropped(pb::FrameDropped {
+        sequence: frame.sequence,
+        frame_id: frame.frame_id.clone(),
+        stamp: frame.stamp,
+        reason: reason as i32,
+    }))
+}
+
+/// Resolves once the server starts shutting down (or is gone).
+async fn stopped(stop: &mut watch::Receiver<bool>) {
+    // The borrowed value is dropped here: it must not live across the caller's awaits.
+    let _ = stop.wait_for(|s| *s).await.map(|_| ());
+}
+
+/// Runs a configured session to its end.
+pub(super) async fn run(
+    ctx: SessionContext,
+    inbound: Streaming<pb::SessionRequest>,
+    events: Events,
+) {
+    let method = ctx.plan.method.name();
+    ctx.metrics.open(method, 1);
+    let _open = OpenGauge(ctx.metrics.clone(), method);
+    let started = pb::SessionStarted {
+        session_id: ctx.id.clone(),
+        queue_policy: ctx.plan.policy as i32,
+        max_queued_frames: ctx.plan.capacity as u32,
+    };
+    if events
+        .send(Ok(event(pb::session_event::Event::Started(started))))
+        .await
+        .is_err()
+    {
+        return;
+    }
+    tracing::info!(session = %ctx.id, method, width = ctx.plan.dims.0, height = ctx.plan.dims.1, "session started");
+    let queue = Arc::new(FrameQueue::new(ctx.plan.capacity, ctx.plan.policy));
+    let reader = tokio::spawn(read_frames(
+        inbound,
+        queue.clone(),
+        events.clone(),
+        ctx.metrics.clone(),
+        method,
+    ));
+    let (computed, why) = compute_frames(&ctx, &queue, &events, method).await;
+    reader.abort();
+    tracing::info!(session = %ctx.id, method, computed, why, "session ended");
+}
+
+/// The worker: frames in order until the queue closes, the client goes away or the server
+/// stops. Returns the number of frames computed and why it stopped.
+async fn compute_frames(
+    ctx: &SessionContext,
+    queue: &FrameQueue,
+    events: &Events,
+    method: &'static str,
+) -> (u64, &'static str) {
+    let mut stop = ctx.stop.clone();
+    let mut computed = 0;
+    let shutting_down = || {
+        Err(Status::unavailable(
+            "the server is shutting down; open a new session (it starts cold)",
+        ))
+    };
+    loop {
+        let next = tokio::select! {
+            q = queue.pop() => q,
+            _ = events.closed() => return (computed, "client gone"),
+            _ = stopped(&mut stop) => {
+                let _ = events.send(shutting_down()).await;
+                return (computed, "server shutdown");
+            }
+        };
+        let Some(Queued { frame, arrived }) = next else {
+            return (computed, "stream closed by the client");
+        };
+        let queue_seconds = arrived.elapsed();
+        if ctx.plan.deadline.is_some_and(|d| queue_seconds > d) {
+            ctx.metrics.frame(method, "deadline");
+            if events
+                .send(Ok(dropped(&frame, pb::DropReason::Deadline)))
+                .await
+                .is_err()
+            {
+                return (computed, "client gone");
+            }
+            continue;
+        }
+        let cancelled = Arc::new(AtomicBool::new(false));
+        let monitor = Monitor::new(cancelled.clone(), None);
+        let (plan, jobs, limits) = (ctx.plan.clone(), ctx.jobs.clone(), ctx.limits);
+        let meta = (frame.sequence, frame.frame_id.clone(), frame.stamp);
+        let begun = Instant::now();
+        let work = tokio::task::spawn_blocking(move || {
+            jobs.install(|| plan.compute(&frame, &limits, &monitor))
+        });
+        let outcome = tokio::select! {
+            r = work => r,
+            _ = events.closed() => {
+                cancelled.store(true, Ordering::Relaxed);
+                return (computed, "client gone");
+            }
+            _ = stopped(&mut stop) => {
+                cancelled.store(true, Ordering::Relaxed);
+                let _ = events.send(shutting_down()).await;
+                return (computed, "server shutdown");
+            }
+        };
+        let compute_seconds = begun.elapsed().as_secs_f64();
+        let outcome = match outcome {
+            Ok(Ok(o)) => {
+                ctx.metrics.frame(method, "computed");
+                o
+            }
+            Ok(Err(e)) => {
+                ctx.metrics.frame(method, "failed");
+                if !matches!(e, MurkError::InvalidArgument { .. }) {
+                    tracing::warn!(session = %ctx.id, sequence = meta.0, error = %e, "frame failed");
+                }
+                pb::frame_result::Outcome::Error(job_error(&e.within("frame")))
+            }
+            Err(join) => {
+                ctx.metrics.frame(method, "failed");
+                tracing::error!(session = %ctx.id, sequence = meta.0, error = %join, "frame computation panicked");
+                pb::frame_result::Outcome::Error(job_error(&MurkError::Internal(format!(
+                    "the frame's computation failed: {join}"
+                ))))
+            }
+        };
+        computed += 1;
+        ctx.metrics.latency(method, arrived.elapsed().as_secs_f64());
+        let result = pb::FrameResult {
+            sequence: meta.0,
+            frame_id: meta.1,
+            stamp: meta.2,
+            queue_seconds: queue_seconds.as_secs_f64(),
+            compute_seconds,
+            outcome: Some(outcome),
+        };
+        if events
+            .send(Ok(event(pb::session_event::Event::Result(result))))
+            .await
+            .is_err()
+        {
+            return (computed, "client gone");
+        }
+    }
+}
+
+/// The reader: frames into the queue until the client half-closes, fails or goes away.
+async fn read_frames(
+    mut inbound: Streaming<pb::SessionRequest>,
+    queue: Arc<FrameQueue>,
+    events: Events,
+    metrics: SessionMetrics,
+    method: &'static str,
+) {
+    use pb::session_request::Message;
+    loop {
+        let message = tokio::select! {
+            m = inbound.message() => m,
+            _ = events.closed() => break,
+        };
+        let refused = match message {
+            Ok(Some(pb::SessionRequest {
+                message: Some(Message::Frame(frame)),
+            })) => {
+                metrics.frame(method, "received");
+                let arrived = Instant::now();
+                if let Some(old) = queue.push(Queued { frame, arrived }).await {
+                    metrics.frame(method, "superseded");
+                    if events
+                        .send(Ok(dropped(&old.frame, pb::DropReason::Superseded)))
+                        .await
+                        .is_err()
+                    {
+                        break;
+                    }
+                }
+                continue;
+            }
+            Ok(Some(pb::SessionRequest {
+                message: Some(Message::Config(_)),
+            })) => MurkError::invalid(
+                "config",
+                "a session's configuration cannot change; end this session and open a new one",
+            ),
+            Ok(Some(pb::SessionRequest { message: None })) => {
+                MurkError::invalid("message", "empty: set config or frame")
+            }
+            // Half-closed: the queued frames are still computed.
+            Ok(None) => break,
+            // The client cancelled, or its stream broke.
+            Err(_) => break,
+        };
+        let e = event(pb::session_event::Event::Refused(job_error(&refused)));
+        if events.send(Ok(e)).await.is_err() {
+            break;
+        }
+    }
+    queue.close();
+}
