@@ -141,6 +141,55 @@ def scores(
     }
 
 
+def stream(
+    a: argparse.Namespace,
+    out: Path,
+    stereo_cmd: list[str],
+    gt_depth: np.ndarray,
+    gt_ok: np.ndarray,
+    fb: float,
+    doffs: float,
+    sgbm_valid: np.ndarray,
+) -> dict[str, object]:
+    """The pair `a.stream_frames` times through one sensor session: a static rig, so every frame
+    after the first searches the band around the previous frame's disparities."""
+    seq = out / "sequence"
+    for k in range(a.stream_frames):
+        d = seq / f"frame_{k:03d}"
+        d.mkdir(parents=True, exist_ok=True)
+        for side in ("left", "right"):
+            link = d / f"{side}.png"
+            if not link.exists():
+                link.symlink_to((out / "images" / f"{side}.png").resolve())
+    # The one-shot command's rig flags, with the sequence in place of the pair.
+    cmd = [c for c in stereo_cmd]
+    i = cmd.index("--left")
+    del cmd[i : i + 4]
+    cmd[cmd.index("--out") + 1] = str(out / "stream")
+    cmd += ["--sequence", str(seq), "--queue-policy", "fifo"]
+    run = subprocess.run(cmd, check=True, capture_output=True, text=True)
+    line = run.stdout.strip().splitlines()[-1]
+    fps = re.search(r"([0-9.]+) frames/s", line)
+    compute = re.search(r"compute mean ([0-9.]+) ms", line)
+    p50 = re.search(r"p50 ([0-9.]+) ms", line)
+
+    def score(name: str) -> dict[str, float]:
+        depth = cv2.imread(str(out / "stream" / name / "depth.exr"), cv2.IMREAD_UNCHANGED).astype(np.float64)
+        valid = np.isfinite(depth) & (depth > 0)
+        return scores(depth, valid, gt_depth, gt_ok, fb, doffs, sgbm_valid)
+
+    last = f"frame_{a.stream_frames - 1:03d}"
+    return {
+        "frames": a.stream_frames,
+        "frames_per_second": float(fps.group(1)) if fps else None,
+        "compute_ms_mean": float(compute.group(1)) if compute else None,
+        "latency_ms_p50": float(p50.group(1)) if p50 else None,
+        "first_frame": score("frame_000"),
+        "last_frame": score(last),
+        "summary": line,
+    }
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=DATA, help="folder with aloeL.jpg, aloeR.jpg, aloeGT.png")
@@ -192,6 +241,13 @@ def main() -> None:
         choices=["mvs", "stereo"],
         default="mvs",
         help="murk's input: the COLMAP model (`murk mvs`) or the rectified rig (`murk stereo`)",
+    )
+    ap.add_argument(
+        "--stream-frames",
+        type=int,
+        default=0,
+        help="also stream the pair this many times through a sensor session (`murk stereo --sequence`, "
+        "the rig's flags): frames/s, per-frame compute and the first and last frames' scores",
     )
     ap.add_argument("--repeats", type=int, default=3, help="timed runs of each method (best is reported)")
     ap.add_argument("--murk-args", default="", help="extra `murk mvs` flags")
@@ -434,6 +490,8 @@ def main() -> None:
         },
         "murk_cmd": " ".join(cmd),
     }
+    if a.stream_frames > 0:
+        report["stream"] = stream(a, out, stereo_cmd, gt_depth, gt_ok, fb, doffs, sgbm_valid)
     (out / "report.json").write_text(json.dumps(report, indent=2))
     print(json.dumps(report, indent=2))
     cv2.imwrite(str(out / "sgbm_disparity.png"), np.clip(d_sgbm * 2, 0, 255).astype(np.uint8))

@@ -193,6 +193,8 @@ class FrameOutcome:
     error: MurkError | None
     queue_s: float = 0.0
     compute_s: float = 0.0
+    #: What to know about this frame (e.g. a stereo frame searched over the whole range again).
+    warnings: tuple[str, ...] = ()
 
 
 def run_session(
@@ -291,4 +293,5 @@ def _outcome_of_result(
         error=error,
         queue_s=r.queue_seconds,
         compute_s=r.compute_seconds,
+        warnings=tuple(r.warnings),
     )

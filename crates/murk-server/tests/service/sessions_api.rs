@@ -508,3 +508,86 @@ async fn a_session_streams_through_the_shipped_nginx_config() {
     a.stop().await.unwrap();
     b.stop().await.unwrap();
 }
+
+/// A stereo session searches the second pair of a steady scene in a band around the first's
+/// disparities: fewer planes, the same depth quality.
+#[tokio::test]
+async fn a_stereo_session_narrows_its_search_to_the_previous_frames_band() {
+    use murk::image::ImageF32;
+    use murk::monitor::Monitor;
+    use murk::mvs::RectifiedRig;
+    use murk::simulate::mvs::{simulate_mvs, MvsSimConfig};
+    use murk_server::service::convert::{image_from_proto, stereo_request_to_proto, ImageLimits};
+
+    let scene = simulate_mvs(
+        &MvsSimConfig {
+            seed: 2,
+            rectified_pair: true,
+            num_views: 2,
+            ..MvsSimConfig::with_size(128, 96)
+        },
+        &Monitor::noop(),
+    )
+    .unwrap();
+    let rig = RectifiedRig::new(
+        scene.views[0].intrinsics,
+        -scene.views[1].pose.translation()[0],
+    );
+    let mut template = stereo_request_to_proto(
+        &scene.views[0].hazy,
+        &scene.views[1].hazy,
+        &rig,
+        None,
+        Some(murk::atmosphere::AtmosphereParams {
+            airlight: scene.airlight,
+            beta: scene.beta,
+        }),
+    );
+    let frame = pb::SessionFrame {
+        left: template.left.take(),
+        right: template.right.take(),
+        ..Default::default()
+    };
+    let session = pb::SessionConfig {
+        width: 128,
+        height: 96,
+        method: Some(pb::session_config::Method::Stereo(template)),
+        queue_policy: pb::QueuePolicy::Fifo as i32,
+        ..Default::default()
+    };
+    let server = start(config(4)).await;
+    let mut s = open(&server, config_message(session), None).await.unwrap();
+    started(s.event().await);
+    s.send_frame(numbered(&frame, 1)).await;
+    s.send_frame(numbered(&frame, 2)).await;
+    let mut results = Vec::new();
+    while results.len() < 2 {
+        match s.event().await {
+            Event::Result(r) => match r.outcome {
+                Some(pb::frame_result::Outcome::Stereo(st)) => results.push(st),
+                other => panic!("expected a stereo result, got {other:?}"),
+            },
+            other => panic!("unexpected {other:?}"),
+        }
+    }
+    let c_p = |r: &pb::RectifiedStereoResult| {
+        let z: ImageF32 =
+            image_from_proto(r.z_depth.as_ref().unwrap(), &ImageLimits::default()).unwrap();
+        murk::metrics::depth_metrics(&z, &scene.views[0].depth, None)
+            .unwrap()
+            .c_p
+    };
+    let (cold, warm) = (&results[0], &results[1]);
+    // The default range: 1 px to a quarter of the width, one plane per pixel.
+    assert_eq!(cold.num_planes, 32);
+    assert!(
+        warm.num_planes < cold.num_planes,
+        "{} planes after {}",
+        warm.num_planes,
+        cold.num_planes
+    );
+    assert!(warm.min_disparity_px > cold.min_disparity_px || warm.max_disparity_px < 32.0);
+    let (cp_cold, cp_warm) = (c_p(cold), c_p(warm));
+    assert!(cp_warm >= cp_cold - 0.02, "C.P. {cp_warm} after {cp_cold}");
+    server.stop().await.unwrap();
+}

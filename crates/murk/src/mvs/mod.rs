@@ -18,6 +18,7 @@ pub mod plane_count;
 pub mod plane_sweep;
 pub mod pose;
 pub mod rectified;
+pub mod stereo_tracker;
 
 #[cfg(test)]
 mod tests;
@@ -37,3 +38,4 @@ pub use rectified::{
     estimate_rectified, RectifiedDepth, RectifiedOptions, RectifiedRig, StereoRange,
     DEFAULT_MAX_DISPARITY_PX,
 };
+pub use stereo_tracker::{Search, StereoTracker, TrackedDepth};

@@ -523,6 +523,20 @@ mod tests {
             zs[zs.len() / 2]
         };
         assert!((f64::from(zmed) - z).abs() < 0.1, "median depth {zmed}");
+        // Without the photometric compensation too (no samples are collected then).
+        let mut plain = RectifiedOptions {
+            range: Some(StereoRange::Disparity {
+                min_px: 2.0,
+                max_px: 20.0,
+            }),
+            ..Default::default()
+        };
+        plain.depth.photometric.exposure_compensation = false;
+        plain.depth.photometric.vignetting_compensation = false;
+        let bare = estimate_rectified(&left, &right, &r, &plain, &Monitor::noop()).unwrap();
+        assert_eq!(bare.depth.source_gains, vec![1.0]);
+        assert_eq!(bare.depth.source_falloffs, vec![0.0]);
+        assert!((f64::from(bare.disparity.get(w / 2, h / 2, 0)) - d).abs() < 0.5);
         let points = out.points(&r, &left).unwrap();
         let confident = out
             .depth

@@ -10,6 +10,7 @@ use crate::service::convert::{
 use crate::service::proto::v1 as pb;
 use murk::error::{MurkError, Result};
 use murk::monitor::Monitor;
+use murk::mvs::{Search, StereoTracker};
 use murk::tof::estimate_tof_depth;
 
 /// Most frames a session may queue.
@@ -35,6 +36,15 @@ impl SessionMethod {
             SessionMethod::Stereo(_) => "rectified_stereo",
         }
     }
+}
+
+/// What a session carries from one frame to the next.
+#[derive(Debug)]
+pub enum SessionState {
+    /// ToF frames are computed from scratch.
+    Tof,
+    /// Stereo frames search a band around the previous frame's disparities.
+    Stereo(Box<StereoTracker>),
 }
 
 /// A validated session configuration.
@@ -137,14 +147,26 @@ impl SessionPlan {
         })
     }
 
-    /// Decodes and computes one frame. Errors name fields relative to `SessionFrame`
-    /// (`amplitude`, `left.…`); the caller adds `frame.`.
+    /// The state a new session starts with.
+    pub fn initial_state(&self) -> Result<SessionState> {
+        Ok(match &self.method {
+            SessionMethod::Tof(_) => SessionState::Tof,
+            SessionMethod::Stereo(c) => {
+                SessionState::Stereo(Box::new(StereoTracker::new(c.rig, c.options)?))
+            }
+        })
+    }
+
+    /// Decodes and computes one frame, with and into the session's `state`; returns the outcome
+    /// and the frame's warnings. Errors name fields relative to `SessionFrame` (`amplitude`,
+    /// `left.…`); the caller adds `frame.`.
     pub fn compute(
         &self,
         frame: &pb::SessionFrame,
         limits: &ImageLimits,
         monitor: &Monitor,
-    ) -> Result<pb::frame_result::Outcome> {
+        state: &mut SessionState,
+    ) -> Result<(pb::frame_result::Outcome, Vec<String>)> {
         if frame.frame_id.len() > MAX_FRAME_ID_BYTES {
             return Err(MurkError::invalid(
                 "frame_id",
@@ -172,18 +194,45 @@ impl SessionPlan {
                     ));
                 }
                 let out = estimate_tof_depth(&input, &params, monitor)?;
-                Ok(pb::frame_result::Outcome::Tof(tof_to_proto(&out)))
+                Ok((
+                    pb::frame_result::Outcome::Tof(tof_to_proto(&out)),
+                    Vec::new(),
+                ))
             }
             SessionMethod::Stereo(config) => {
+                let SessionState::Stereo(tracker) = state else {
+                    return Err(MurkError::Internal(
+                        "stereo session without its tracker".into(),
+                    ));
+                };
                 let (left, right) =
                     stereo_images_from_proto(frame.left.as_ref(), frame.right.as_ref(), limits)?;
                 let input = config.with_images(left, right)?;
                 let started = std::time::Instant::now();
-                let (out, points) = input.estimate(monitor)?;
+                let tracked = tracker.estimate(&input.left, &input.right, monitor)?;
+                let points = if input.return_points {
+                    tracked.depth.points(&input.rig, &input.left)?
+                } else {
+                    Vec::new()
+                };
                 let seconds = started.elapsed().as_secs_f64();
-                Ok(pb::frame_result::Outcome::Stereo(stereo_to_proto(
-                    &input, &out, &points, seconds,
-                )))
+                let warnings = match tracked.search {
+                    Search::Restarted => vec![
+                        "the scene left the previous frame's disparity band; the whole range was \
+                         searched again"
+                            .to_string(),
+                    ],
+                    Search::Full | Search::Band => Vec::new(),
+                };
+                Ok((
+                    pb::frame_result::Outcome::Stereo(stereo_to_proto(
+                        &input,
+                        &tracked.depth,
+                        &points,
+                        seconds,
+                    )),
+                    warnings,
+                ))
             }
         }
     }

@@ -21,7 +21,7 @@ use super::queue::{FrameQueue, Queued};
 use crate::jobs::JobManager;
 use crate::service::convert::ImageLimits;
 use crate::service::proto::v1 as pb;
-use crate::service::status::job_error;
+use crate::service::status::{job_error, to_status};
 use murk::error::MurkError;
 use murk::monitor::Monitor;
 
@@ -117,6 +117,14 @@ async fn compute_frames(
 ) -> (u64, &'static str) {
     let mut stop = ctx.stop.clone();
     let mut computed = 0;
+    // Moved into each frame's computation and back.
+    let mut state = match ctx.plan.initial_state() {
+        Ok(s) => Some(s),
+        Err(e) => {
+            let _ = events.send(Err(to_status(&e.within("config")))).await;
+            return (0, "bad configuration");
+        }
+    };
     let shutting_down = || {
         Err(Status::unavailable(
             "the server is shutting down; open a new session (it starts cold)",
@@ -151,8 +159,13 @@ async fn compute_frames(
         let (plan, jobs, limits) = (ctx.plan.clone(), ctx.jobs.clone(), ctx.limits);
         let meta = (frame.sequence, frame.frame_id.clone(), frame.stamp);
         let begun = Instant::now();
+        let mut frame_state = state.take();
         let work = tokio::task::spawn_blocking(move || {
-            jobs.install(|| plan.compute(&frame, &limits, &monitor))
+            let out = jobs.install(|| match frame_state.as_mut() {
+                Some(s) => plan.compute(&frame, &limits, &monitor, s),
+                None => Err(MurkError::Internal("session state lost".into())),
+            });
+            (out, frame_state)
         });
         let outcome = tokio::select! {
             r = work => r,
@@ -167,9 +180,18 @@ async fn compute_frames(
             }
         };
         let compute_seconds = begun.elapsed().as_secs_f64();
+        let mut warnings = Vec::new();
         let outcome = match outcome {
-            Ok(Ok(o)) => {
+            Ok((result, back)) => {
+                state = back;
+                Ok(result)
+            }
+            Err(join) => Err(join),
+        };
+        let outcome = match outcome {
+            Ok(Ok((o, w))) => {
                 ctx.metrics.frame(method, "computed");
+                warnings = w;
                 o
             }
             Ok(Err(e)) => {
@@ -180,6 +202,8 @@ async fn compute_frames(
                 pb::frame_result::Outcome::Error(job_error(&e.within("frame")))
             }
             Err(join) => {
+                // The state went down with the computation: the next frame starts cold.
+                state = ctx.plan.initial_state().ok();
                 ctx.metrics.frame(method, "failed");
                 tracing::error!(session = %ctx.id, sequence = meta.0, error = %join, "frame computation panicked");
                 pb::frame_result::Outcome::Error(job_error(&MurkError::Internal(format!(
@@ -196,6 +220,7 @@ async fn compute_frames(
             queue_seconds: queue_seconds.as_secs_f64(),
             compute_seconds,
             outcome: Some(outcome),
+            warnings,
         };
         if events
             .send(Ok(event(pb::session_event::Event::Result(result))))

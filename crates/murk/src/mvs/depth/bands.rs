@@ -89,7 +89,8 @@ pub(super) fn estimate_depth_in_bands(
     // estimated with the gains and only where they are. Left in, it would be read as a shared
     // fall-off (only the right lens of the hazy Aloe pair 20 % darker at the corners: 0.10).
     let relative = |samples: &[exposure::Samples], mut gains: Vec<f32>| -> (Vec<f32>, Vec<f32>) {
-        let mut deltas = vec![0.0f32; samples.len()];
+        // One per source, also when no samples were collected (both compensations off).
+        let mut deltas = vec![0.0f32; sources.len()];
         if !(params.photometric.vignetting_compensation && params.photometric.exposure_compensation)
         {
             return (deltas, gains);

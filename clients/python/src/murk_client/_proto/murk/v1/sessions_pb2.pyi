@@ -3,9 +3,11 @@
 isort:skip_file
 """
 
+from collections import abc as _abc
 from google.protobuf import descriptor as _descriptor
 from google.protobuf import message as _message
 from google.protobuf import timestamp_pb2 as _timestamp_pb2
+from google.protobuf.internal import containers as _containers
 from google.protobuf.internal import enum_type_wrapper as _enum_type_wrapper
 from murk_client._proto.murk.v1 import common_pb2 as _common_pb2
 from murk_client._proto.murk.v1 import jobs_pb2 as _jobs_pb2
@@ -294,6 +296,7 @@ class FrameResult(_message.Message):
     TOF_FIELD_NUMBER: _builtins.int
     STEREO_FIELD_NUMBER: _builtins.int
     ERROR_FIELD_NUMBER: _builtins.int
+    WARNINGS_FIELD_NUMBER: _builtins.int
     sequence: _builtins.int
     """The frame's sequence number, id and stamp, echoed."""
     frame_id: _builtins.str
@@ -313,6 +316,12 @@ class FrameResult(_message.Message):
         (`frame.amplitude`, ...) for a bad frame. The session goes on.
         """
 
+    @_builtins.property
+    def warnings(self) -> _containers.RepeatedScalarFieldContainer[_builtins.str]:
+        """What the caller should know about this frame, one sentence each: e.g. that a stereo frame
+        left the previous frame's disparity band and was searched over the whole range again.
+        """
+
     def __init__(
         self,
         *,
@@ -324,10 +333,11 @@ class FrameResult(_message.Message):
         tof: _tof_pb2.TofDepthResult | None = ...,
         stereo: _stereo_pb2.RectifiedStereoResult | None = ...,
         error: _jobs_pb2.JobError | None = ...,
+        warnings: _abc.Iterable[_builtins.str] | None = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["error", b"error", "outcome", b"outcome", "stamp", b"stamp", "stereo", b"stereo", "tof", b"tof"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["compute_seconds", b"compute_seconds", "error", b"error", "frame_id", b"frame_id", "outcome", b"outcome", "queue_seconds", b"queue_seconds", "sequence", b"sequence", "stamp", b"stamp", "stereo", b"stereo", "tof", b"tof"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["compute_seconds", b"compute_seconds", "error", b"error", "frame_id", b"frame_id", "outcome", b"outcome", "queue_seconds", b"queue_seconds", "sequence", b"sequence", "stamp", b"stamp", "stereo", b"stereo", "tof", b"tof", "warnings", b"warnings"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     _WhichOneofReturnType_outcome: _TypeAlias = _typing.Literal["tof", "stereo", "error"]  # noqa: Y015
     _WhichOneofArgType_outcome: _TypeAlias = _typing.Literal["outcome", b"outcome"]  # noqa: Y015
