@@ -8,7 +8,10 @@
 //!   consistency check), and the pre-smoothing of one view and the contrast normalisation alone;
 //! - `mvs_stereo_pair_640x480x128`: a rectified 640×480 pair, the whole depth with the defaults
 //!   and with one option changed each;
-//! - `mvs_sgm_u16_640x160x173`: SGM alone on one strip of that pair's size as `u16` levels.
+//! - `mvs_sgm_u16_640x160x173`: SGM alone on one strip of that pair's size as `u16` levels;
+//! - `mvs_stereo_tracker_640x480`: that pair over the default disparity range (1 px to a
+//!   quarter of the width) from cold, against a stream's next pair, which searches the band
+//!   around the previous pair's disparities (`StereoTracker`).
 //!
 //! Run: `cargo bench -p murk --bench mvs` (a group: `-- mvs_stereo_pair`).
 
@@ -21,8 +24,9 @@ use murk::mvs::{
     build_cost_volume,
     depth::contrast::{apply_weights, contrast_weights, local_contrast},
     depth::presmooth::gaussian_presmooth,
-    estimate_depth, CostKind, DehazingOptions, DepthParams, MatchingParams, PhotometricParams,
-    PlaneSet, RejectionParams, SgmParams, View,
+    estimate_depth, estimate_rectified, CostKind, DehazingOptions, DepthParams, MatchingParams,
+    PhotometricParams, PlaneSet, RectifiedOptions, RectifiedRig, RejectionParams, Search,
+    SgmParams, StereoTracker, View,
 };
 use murk::simulate::mvs::{simulate_mvs, MvsSimConfig};
 use murk::Monitor;
@@ -245,5 +249,69 @@ fn bench_sgm(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, bench, bench_stereo_pair, bench_sgm);
+/// A stream's steady state against a cold start: the simulator's rectified 640×480 pair over the
+/// default range (1 to 160 px of disparity, 160 planes), and the same pair as a tracker's next
+/// frame after one pair, which searches only the band around that pair's disparities.
+fn bench_stereo_tracker(c: &mut Criterion) {
+    let cfg = MvsSimConfig {
+        num_views: 2,
+        rectified_pair: true,
+        ..MvsSimConfig::with_size(640, 480)
+    };
+    let scene = simulate_mvs(&cfg, &Monitor::noop()).expect("simulate");
+    let (left, right) = (&scene.views[0].hazy, &scene.views[1].hazy);
+    let rig = RectifiedRig::new(
+        scene.views[0].intrinsics,
+        -scene.views[1].pose.translation()[0],
+    );
+    let options = RectifiedOptions {
+        cost: CostKind::DehazingWith(
+            AtmosphereParams {
+                airlight: scene.airlight,
+                beta: scene.beta,
+            },
+            DehazingOptions::default(),
+        ),
+        ..RectifiedOptions::default()
+    };
+    let noop = Monitor::noop();
+    let mut primed = StereoTracker::new(rig, options).expect("rig");
+    let cold = primed.estimate(left, right, &noop).expect("first pair");
+    let warm = primed
+        .clone()
+        .estimate(left, right, &noop)
+        .expect("next pair");
+    assert_eq!(
+        warm.search,
+        Search::Band,
+        "the band must hold a repeated pair"
+    );
+    eprintln!(
+        "full range: {} planes; band: {} planes ({:.1}..{:.1} px)",
+        cold.depth.planes.num_planes,
+        warm.depth.planes.num_planes,
+        rig.disparity_of_depth(warm.depth.planes.far),
+        rig.disparity_of_depth(warm.depth.planes.near),
+    );
+    let mut g = c.benchmark_group("mvs_stereo_tracker_640x480");
+    g.sample_size(10);
+    g.bench_function("full_range", |b| {
+        b.iter(|| estimate_rectified(left, right, &rig, &options, &noop).expect("depth"))
+    });
+    g.bench_function("band_after_a_pair", |b| {
+        b.iter(|| {
+            let mut t = primed.clone();
+            t.estimate(left, right, &noop).expect("depth")
+        })
+    });
+    g.finish();
+}
+
+criterion_group!(
+    benches,
+    bench,
+    bench_stereo_pair,
+    bench_sgm,
+    bench_stereo_tracker
+);
 criterion_main!(benches);
