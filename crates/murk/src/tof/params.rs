@@ -366,8 +366,14 @@ impl TofParams {
     /// [`TofParams::validate`] plus the checks that need the input (image size, intrinsics).
     pub fn validate_for(&self, input: &TofInput) -> Result<()> {
         let (w, h) = input.amplitude.dims();
-        self.validate(w, h)?;
-        if self.light_position_m.is_some() && input.intrinsics.is_none() {
+        self.validate_for_frames(w, h, input.intrinsics.is_some())
+    }
+
+    /// [`TofParams::validate_for`] before any frame exists: for frames of `width × height`,
+    /// with or without intrinsics (a stream's settings, checked once).
+    pub fn validate_for_frames(&self, width: usize, height: usize, intrinsics: bool) -> Result<()> {
+        self.validate(width, height)?;
+        if self.light_position_m.is_some() && !intrinsics {
             return Err(MurkError::invalid(
                 "light_position_m",
                 "needs intrinsics: the range correction depends on each pixel's ray",

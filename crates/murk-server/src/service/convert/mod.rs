@@ -25,4 +25,7 @@ pub use stereo::{
     canonicalize_stereo_request, points_from_proto, points_to_proto, stereo_from_proto,
     stereo_images_from_proto, stereo_request_to_proto, stereo_to_proto, StereoConfig, StereoInput,
 };
-pub use tof::{intrinsics_to_proto, tof_from_proto, tof_request_to_proto, tof_to_proto};
+pub use tof::{
+    intrinsics_from_proto, intrinsics_to_proto, tof_from_proto, tof_images_from_proto,
+    tof_params_from_proto, tof_request_to_proto, tof_to_proto,
+};

@@ -15,16 +15,8 @@ pub fn tof_from_proto(
     req: &pb::TofDepthRequest,
     limits: &ImageLimits,
 ) -> Result<(TofInput, TofParams)> {
-    let amplitude = req
-        .amplitude
-        .as_ref()
-        .ok_or_else(|| MurkError::invalid("amplitude", "required"))
-        .and_then(|i| mono_image_from_proto(i, limits).map_err(|e| e.within("amplitude")))?;
-    let phase = req
-        .phase
-        .as_ref()
-        .ok_or_else(|| MurkError::invalid("phase", "required"))
-        .and_then(|i| mono_image_from_proto(i, limits).map_err(|e| e.within("phase")))?;
+    let (amplitude, phase) =
+        tof_images_from_proto(req.amplitude.as_ref(), req.phase.as_ref(), limits)?;
     let intrinsics = req.intrinsics.as_ref().map(intrinsics_from_proto);
     let input = TofInput {
         amplitude,
@@ -32,16 +24,50 @@ pub fn tof_from_proto(
         intrinsics,
     };
     input.validate()?;
-    let params = params_from_proto(req)?;
-    params.validate_for(&input).map_err(|e| match e {
-        MurkError::InvalidArgument { field, reason }
-            if field != "modulation_frequency_hz" && field != "light_position_m" =>
-        {
-            MurkError::invalid(format!("options.{}", proto_field_name(&field)), reason)
-        }
-        other => other,
-    })?;
+    let (w, h) = input.amplitude.dims();
+    let params = tof_params_from_proto(req, w, h)?;
     Ok((input, params))
+}
+
+/// Decodes the amplitude and phase images of a request or a frame (one channel each); errors
+/// name `amplitude…` or `phase…`.
+pub fn tof_images_from_proto(
+    amplitude: Option<&pb::Image>,
+    phase: Option<&pb::Image>,
+    limits: &ImageLimits,
+) -> Result<(ImageF32, ImageF32)> {
+    let image = |name: &str, i: Option<&pb::Image>| {
+        i.ok_or_else(|| MurkError::invalid(name, "required"))
+            .and_then(|i| mono_image_from_proto(i, limits).map_err(|e| e.within(name)))
+    };
+    Ok((image("amplitude", amplitude)?, image("phase", phase)?))
+}
+
+/// A request's parameters (its images aside), validated for `width × height` frames: what a
+/// sensor session checks once for all its frames. Errors name `intrinsics.…`,
+/// `modulation_frequency_hz`, `light_position_m` or `options.…`.
+pub fn tof_params_from_proto(
+    req: &pb::TofDepthRequest,
+    width: usize,
+    height: usize,
+) -> Result<TofParams> {
+    if let Some(k) = &req.intrinsics {
+        intrinsics_from_proto(k)
+            .validate()
+            .map_err(|e| e.within("intrinsics"))?;
+    }
+    let params = params_from_proto(req)?;
+    params
+        .validate_for_frames(width, height, req.intrinsics.is_some())
+        .map_err(|e| match e {
+            MurkError::InvalidArgument { field, reason }
+                if field != "modulation_frequency_hz" && field != "light_position_m" =>
+            {
+                MurkError::invalid(format!("options.{}", proto_field_name(&field)), reason)
+            }
+            other => other,
+        })?;
+    Ok(params)
 }
 
 /// Library parameter paths → proto field paths where they differ.

@@ -4,14 +4,15 @@
 use std::time::Duration;
 
 use crate::service::convert::{
-    stereo_images_from_proto, stereo_to_proto, tof_from_proto, tof_to_proto, ImageLimits,
-    StereoConfig,
+    intrinsics_from_proto, stereo_images_from_proto, stereo_to_proto, tof_images_from_proto,
+    tof_params_from_proto, tof_to_proto, ImageLimits, StereoConfig,
 };
 use crate::service::proto::v1 as pb;
+use murk::camera::Intrinsics;
 use murk::error::{MurkError, Result};
 use murk::monitor::Monitor;
 use murk::mvs::{Search, StereoTracker};
-use murk::tof::estimate_tof_depth;
+use murk::tof::{estimate_tof_depth, TofInput, TofParams};
 
 /// Most frames a session may queue.
 pub const MAX_QUEUED_FRAMES: u32 = 64;
@@ -21,9 +22,9 @@ pub const MAX_FRAME_ID_BYTES: usize = 256;
 /// What a session computes.
 #[derive(Clone, Debug)]
 pub enum SessionMethod {
-    /// ToF: the one-shot request without images; each frame's amplitude and phase go into a
-    /// copy of it.
-    Tof(Box<pb::TofDepthRequest>),
+    /// ToF: the parameters and intrinsics, validated for the session's frame size; each frame
+    /// brings amplitude and phase.
+    Tof(Box<(TofParams, Option<Intrinsics>)>),
     /// Rectified stereo, its settings validated for the session's frame size.
     Stereo(Box<StereoConfig>),
 }
@@ -96,8 +97,9 @@ impl SessionPlan {
                         "the images come with each frame; leave them unset in the configuration",
                     ));
                 }
-                check_tof_settings(t, w, h).map_err(|e| e.within("tof"))?;
-                SessionMethod::Tof(Box::new(t.clone()))
+                let params = tof_params_from_proto(t, w, h).map_err(|e| e.within("tof"))?;
+                let intrinsics = t.intrinsics.as_ref().map(intrinsics_from_proto);
+                SessionMethod::Tof(Box::new((params, intrinsics)))
             }
             Some(pb::session_config::Method::Stereo(s)) => {
                 if s.left.is_some() || s.right.is_some() {
@@ -177,23 +179,28 @@ impl SessionPlan {
             ));
         }
         match &self.method {
-            SessionMethod::Tof(template) => {
-                let mut req = (**template).clone();
-                req.amplitude = frame.amplitude.clone();
-                req.phase = frame.phase.clone();
-                let (input, params) = tof_from_proto(&req, limits)?;
-                if input.amplitude.dims() != self.dims {
+            SessionMethod::Tof(settings) => {
+                let (params, intrinsics) = &**settings;
+                let (amplitude, phase) =
+                    tof_images_from_proto(frame.amplitude.as_ref(), frame.phase.as_ref(), limits)?;
+                if amplitude.dims() != self.dims {
                     let (w, h) = self.dims;
                     return Err(MurkError::invalid(
                         "amplitude",
                         format!(
                             "the frame is {}x{}, the session's frames are {w}x{h}",
-                            input.amplitude.width(),
-                            input.amplitude.height()
+                            amplitude.width(),
+                            amplitude.height()
                         ),
                     ));
                 }
-                let out = estimate_tof_depth(&input, &params, monitor)?;
+                let input = TofInput {
+                    amplitude,
+                    phase,
+                    intrinsics: *intrinsics,
+                };
+                input.validate()?;
+                let out = estimate_tof_depth(&input, params, monitor)?;
                 Ok((
                     pb::frame_result::Outcome::Tof(tof_to_proto(&out)),
                     Vec::new(),
@@ -236,30 +243,4 @@ impl SessionPlan {
             }
         }
     }
-}
-
-/// The size-dependent checks of a ToF template, run once per session: the parameters against
-/// the frame size, and the light position's need for intrinsics.
-fn check_tof_settings(t: &pb::TofDepthRequest, w: usize, h: usize) -> Result<()> {
-    // The one-shot conversion is the single definition of the checks: run it on a blank frame
-    // of the session's size (a constant phase in range, a unit amplitude).
-    let blank = |v: f32| pb::Image {
-        width: w as u32,
-        height: h as u32,
-        channels: 1,
-        data: Some(pb::image::Data::RawF32Le(
-            std::iter::repeat_n(v.to_le_bytes(), w * h)
-                .flatten()
-                .collect(),
-        )),
-        ..Default::default()
-    };
-    let mut req = t.clone();
-    req.amplitude = Some(blank(1.0));
-    req.phase = Some(blank(1.0));
-    let limits = ImageLimits {
-        max_pixels: (w * h) as u64,
-        max_channels: 1,
-    };
-    tof_from_proto(&req, &limits).map(|_| ())
 }
