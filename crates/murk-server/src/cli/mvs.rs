@@ -530,24 +530,37 @@ fn decode_mvs_result(r: &pb::MvsDepthResult) -> anyhow::Result<MvsImages> {
 /// The files of [`write_mvs_result`], written in parallel: each compresses on its own core
 /// (the three EXRs' deflate was most of the client's time after the job).
 fn write_mvs_images(dir: &Path, images: &MvsImages) -> anyhow::Result<()> {
+    write_depth_images(
+        dir,
+        &[
+            ("depth.exr", &images.z_depth),
+            ("inverse_depth.exr", &images.inverse_depth),
+            ("confidence.exr", &images.confidence),
+        ],
+        &images.inverse_depth,
+    )
+}
+
+/// Writes `exrs` into `dir` (created), each compressing on its own core, and `depth.png`, a
+/// preview of `inverse_depth` (or anything proportional to it, such as a rectified pair's
+/// disparity) coloured near red, far blue over its 2nd..98th percentile, so a few outliers do
+/// not flatten it.
+pub(super) fn write_depth_images(
+    dir: &Path,
+    exrs: &[(&str, &ImageF32)],
+    inverse_depth: &ImageF32,
+) -> anyhow::Result<()> {
     use rayon::prelude::*;
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-    let exrs = [
-        ("depth.exr", &images.z_depth),
-        ("inverse_depth.exr", &images.inverse_depth),
-        ("confidence.exr", &images.confidence),
-    ];
     let (written, png) = rayon::join(
         || {
-            exrs.par_iter()
-                .try_for_each(|(name, img)| write_exr(&dir.join(name), img))
+            exrs.par_iter().try_for_each(|(name, img)| {
+                write_exr(&dir.join(name), img).with_context(|| format!("writing {name}"))
+            })
         },
         || {
-            // Coloured by inverse depth (near red, far blue), which spreads near detail the way
-            // the planes do, over its 2nd..98th percentile so a few outliers do not flatten the
-            // preview.
-            let (lo, hi) = robust_range(&images.inverse_depth);
-            write_colormap_png(&dir.join("depth.png"), &images.inverse_depth, lo, hi, None)
+            let (lo, hi) = robust_range(inverse_depth);
+            write_colormap_png(&dir.join("depth.png"), inverse_depth, lo, hi, None)
         },
     );
     written?;

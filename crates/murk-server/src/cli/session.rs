@@ -271,7 +271,7 @@ async fn run(
                     }
                 }
                 let write = write.clone();
-                writes.spawn_blocking(move || write(&r.frame_id.clone(), &r));
+                writes.spawn_blocking(move || write(&r.frame_id, &r));
             }
             Some(Event::Dropped(d)) => {
                 report.dropped += 1;

@@ -6,13 +6,13 @@ use std::path::{Path, PathBuf};
 use anyhow::{bail, Context};
 use clap::Args;
 
-use murk::io::{read_image, sniff_format, write_colormap_png, write_exr, DecodeLimits};
+use murk::io::{read_image, sniff_format, DecodeLimits};
 use murk::mvs_io::{write_ply, PlyFormat};
 use murk::ImageF32;
 use murk_server::service::convert::{image_from_proto, points_from_proto, ImageLimits};
 use murk_server::service::proto::v1 as pb;
 
-use super::mvs::{kind_name, run_here_or_remote, CostVolumeArg, DepthFlags};
+use super::mvs::{kind_name, run_here_or_remote, write_depth_images, CostVolumeArg, DepthFlags};
 use super::session::{frame_dirs, stream_sequence, LoadFrame, SequenceFlags, WriteResult};
 use super::tof::{parse_intrinsics, parse_numbers};
 use std::sync::Arc;
@@ -216,8 +216,15 @@ fn write_result(
     let disparity = decode("disparity", &r.disparity)?;
     let confidence = decode("confidence", &r.confidence)?;
     let points = points_from_proto(r.points.as_ref().context("result lacks points")?)?;
-    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-    write_outputs(dir, &z, &disparity, &confidence, r.near, r.far)?;
+    write_depth_images(
+        dir,
+        &[
+            ("depth.exr", &z),
+            ("disparity.exr", &disparity),
+            ("confidence.exr", &confidence),
+        ],
+        &disparity,
+    )?;
     write_ply(
         &dir.join("points.ply"),
         &points,
@@ -279,34 +286,4 @@ fn build_request(
         sgm: a.depth.wire(),
         return_points: true,
     })
-}
-
-/// depth.exr, disparity.exr and confidence.exr, written in parallel (each compresses on its own
-/// core), and the depth preview.
-fn write_outputs(
-    dir: &Path,
-    z: &ImageF32,
-    disparity: &ImageF32,
-    confidence: &ImageF32,
-    near: f64,
-    far: f64,
-) -> anyhow::Result<()> {
-    use rayon::prelude::*;
-    [
-        ("depth.exr", z),
-        ("disparity.exr", disparity),
-        ("confidence.exr", confidence),
-    ]
-    .par_iter()
-    .try_for_each(|(name, img)| {
-        write_exr(&dir.join(name), img).with_context(|| format!("writing {name}"))
-    })?;
-    write_colormap_png(
-        &dir.join("depth.png"),
-        z,
-        near as f32,
-        far as f32,
-        Some(confidence),
-    )?;
-    Ok(())
 }
