@@ -162,7 +162,7 @@ def stream(
             if not link.exists():
                 link.symlink_to((out / "images" / f"{side}.png").resolve())
     # The one-shot command's rig flags, with the sequence in place of the pair.
-    cmd = [c for c in stereo_cmd]
+    cmd = list(stereo_cmd)
     i = cmd.index("--left")
     del cmd[i : i + 4]
     cmd[cmd.index("--out") + 1] = str(out / "stream")

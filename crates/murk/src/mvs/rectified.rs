@@ -204,11 +204,16 @@ impl StereoRange {
     /// width, at most [`DEFAULT_MAX_DISPARITY_PX`] (and at least 2 pixels more than the start).
     /// Give the range when the scene is known: every plane costs a pass over the image.
     pub fn default_for_width(width: usize) -> Self {
-        let max_px = (width as f64 / 4.0).clamp(3.0, DEFAULT_MAX_DISPARITY_PX);
-        StereoRange::Disparity {
-            min_px: 1.0,
-            max_px,
-        }
+        let (min_px, max_px) = Self::default_disparities(width);
+        StereoRange::Disparity { min_px, max_px }
+    }
+
+    /// The ends of [`StereoRange::default_for_width`], `(min, max)` pixels.
+    pub fn default_disparities(width: usize) -> (f64, f64) {
+        (
+            1.0,
+            (width as f64 / 4.0).clamp(3.0, DEFAULT_MAX_DISPARITY_PX),
+        )
     }
 }
 

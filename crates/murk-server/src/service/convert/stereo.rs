@@ -80,10 +80,7 @@ fn range_of(req: &pb::RectifiedStereoRequest, width: usize) -> Result<Option<Ste
             }))
         }
         (false, true) => {
-            let StereoRange::Disparity { min_px, max_px } = StereoRange::default_for_width(width)
-            else {
-                unreachable!("the default range is a disparity range")
-            };
+            let (min_px, max_px) = StereoRange::default_disparities(width);
             Ok(Some(StereoRange::Disparity {
                 min_px: req.min_disparity_px.map_or(min_px, f64::from),
                 max_px: req.max_disparity_px.map_or(max_px, f64::from),

@@ -67,11 +67,6 @@ impl SessionsApi {
             next_id: Arc::default(),
         }
     }
-
-    /// Sessions open now.
-    pub fn open_sessions(&self) -> usize {
-        self.registry.open_sessions()
-    }
 }
 
 /// RESOURCE_EXHAUSTED with a retry hint for a refused session.

@@ -180,35 +180,30 @@ async fn compute_frames(
             }
         };
         let compute_seconds = begun.elapsed().as_secs_f64();
-        let mut warnings = Vec::new();
-        let outcome = match outcome {
-            Ok((result, back)) => {
+        let (outcome, warnings) = match outcome {
+            Ok((Ok((o, warnings)), back)) => {
                 state = back;
-                Ok(result)
-            }
-            Err(join) => Err(join),
-        };
-        let outcome = match outcome {
-            Ok(Ok((o, w))) => {
                 ctx.metrics.frame(method, "computed");
-                warnings = w;
-                o
+                (o, warnings)
             }
-            Ok(Err(e)) => {
+            Ok((Err(e), back)) => {
+                state = back;
                 ctx.metrics.frame(method, "failed");
                 if !matches!(e, MurkError::InvalidArgument { .. }) {
                     tracing::warn!(session = %ctx.id, sequence = meta.0, error = %e, "frame failed");
                 }
-                pb::frame_result::Outcome::Error(job_error(&e.within("frame")))
+                let error = job_error(&e.within("frame"));
+                (pb::frame_result::Outcome::Error(error), Vec::new())
             }
             Err(join) => {
                 // The state went down with the computation: the next frame starts cold.
                 state = ctx.plan.initial_state().ok();
                 ctx.metrics.frame(method, "failed");
                 tracing::error!(session = %ctx.id, sequence = meta.0, error = %join, "frame computation panicked");
-                pb::frame_result::Outcome::Error(job_error(&MurkError::Internal(format!(
+                let error = job_error(&MurkError::Internal(format!(
                     "the frame's computation failed: {join}"
-                ))))
+                )));
+                (pb::frame_result::Outcome::Error(error), Vec::new())
             }
         };
         computed += 1;
