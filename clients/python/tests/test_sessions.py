@@ -47,10 +47,47 @@ def test_a_tof_session_answers_every_frame_in_order(client: Client, tof_scene: P
         intrinsics=frame.intrinsics,
         light_position_m=frame.light_position_m,
     )
+    assert one_shot.z_depth_m is not None and one_shot.range_std_m is not None
+    # No measurement where the reported spread is at its cap (the direct return below the noise).
+    measured = one_shot.range_std_m < one_shot.range_std_m.max()
     for o in (outcomes[0], outcomes[1], outcomes[3]):
         assert isinstance(o.result, mc.TofDepthResult) and o.error is None and o.dropped is None
-        np.testing.assert_array_equal(o.result.range_m, one_shot.range_m)
+        # A session's default result is compact: the z-depth in whole millimetres (0 where
+        # nothing was measured), the mask and the spread; nothing else.
+        r = o.result
+        assert r.z_depth_m is not None and r.mask is not None and r.range_std_m is not None
+        assert r.range_m is None and r.raw_range_m is None and r.weight_phase is None
+        np.testing.assert_allclose(r.z_depth_m[measured], one_shot.z_depth_m[measured], atol=5.1e-4)
+        assert np.all(r.z_depth_m[~measured] == 0)
+        np.testing.assert_array_equal(r.mask, one_shot.mask)
         assert o.compute_s > 0
+
+
+def test_a_session_returns_the_images_and_encoding_it_asks_for(client: Client, tof_scene: Path) -> None:
+    frame = mc.load_tof_frame(tof_scene)
+    h, w = frame.amplitude.shape
+    kwargs = {
+        "modulation_frequency_hz": frame.modulation_frequency_hz,
+        "intrinsics": frame.intrinsics,
+        "light_position_m": frame.light_position_m,
+    }
+    exact = client.tof_depth(frame.amplitude, frame.phase, **kwargs, outputs=["range_m", "corrected_phase"])
+    assert exact.z_depth_m is None and exact.mask is None
+    assert exact.range_m is not None and exact.corrected_phase is not None
+    config = mc.tof_session_config(
+        width=w, height=h, **kwargs, outputs=["range_m", "corrected_phase"], encoding="f16"
+    )
+    (o,) = client.session(config, [mc.tof_frame(frame.amplitude, frame.phase)])
+    assert isinstance(o.result, mc.TofDepthResult)
+    assert o.result.range_m is not None and o.result.corrected_phase is not None
+    assert o.result.mask is None and o.result.z_depth_m is None
+    assert o.result.proto.range_m.WhichOneof("data") == "raw_f16_le"
+    # Half-precision floats: 11 significant bits.
+    np.testing.assert_allclose(o.result.range_m, exact.range_m, rtol=2.0**-11)
+    np.testing.assert_allclose(o.result.corrected_phase, exact.corrected_phase, rtol=2.0**-11)
+    with pytest.raises(mc.ClientInputError) as e:
+        mc.tof_session_config(width=w, height=h, **kwargs, encoding="jpeg")
+    assert e.value.field == "config.tof.outputs.encoding"
 
 
 def test_latest_drops_frames_it_cannot_keep_up_with(client: Client, tof_scene: Path) -> None:

@@ -239,6 +239,8 @@ class Client:
         intrinsics: IntrinsicsLike | None = None,
         light_position_m: Sequence[float] | None = None,
         options: Tuning | None = None,
+        outputs: Sequence[str] | None = None,
+        encoding: str | None = None,
         progress: ProgressCallback | None = None,
         timeout_s: float | None = None,
     ) -> TofDepthResult:
@@ -250,6 +252,8 @@ class Client:
             intrinsics=intrinsics,
             light_position_m=light_position_m,
             options=options,
+            outputs=outputs,
+            encoding=encoding,
         )
         return _expect(self.run(req, progress=progress, timeout_s=timeout_s), TofDepthResult)
 
@@ -298,6 +302,8 @@ class Client:
         beta: float | None = None,
         sgm: Tuning | None = None,
         return_points: bool = False,
+        outputs: Sequence[str] | None = None,
+        encoding: str | None = None,
         progress: ProgressCallback | None = None,
         timeout_s: float | None = None,
     ) -> RectifiedStereoResult:
@@ -316,6 +322,8 @@ class Client:
             beta=beta,
             sgm=sgm,
             return_points=return_points,
+            outputs=outputs,
+            encoding=encoding,
         )
         return _expect(self.run(req, progress=progress, timeout_s=timeout_s), RectifiedStereoResult)
 

@@ -93,19 +93,22 @@ def srgb_to_linear(image: npt.ArrayLike) -> FloatImage:
 def from_proto(image: common_pb2.Image, *, field: str = "image") -> FloatImage:
     """Decodes a result image: ``(h, w)`` for one channel, ``(h, w, c)`` otherwise.
 
-    The server sends results as raw f32; an encoded image (which it never sends) is decoded
-    with the same rules as the files :func:`read_image` reads.
+    Raw f32 and f16 are unpacked; an encoded image (the 16-bit PNG of a compact result) is
+    decoded with the same rules as the files :func:`read_image` reads, then mapped by
+    ``value_scale``/``value_offset``.
     """
     which = image.WhichOneof("data")
-    if which == "raw_f32_le":
+    if which in ("raw_f32_le", "raw_f16_le"):
+        data: bytes = getattr(image, which)
+        size, dtype = (4, "<f4") if which == "raw_f32_le" else (2, "<f2")
         h, w, c = image.height, image.width, max(image.channels, 1)
-        expected = h * w * c * 4
-        if len(image.raw_f32_le) != expected:
+        expected = h * w * c * size
+        if len(data) != expected:
             raise ClientInputError(
                 field,
-                f"{w}x{h}x{c} raw f32 needs {expected} bytes, got {len(image.raw_f32_le)}",
+                f"{w}x{h}x{c} {which} needs {expected} bytes, got {len(data)}",
             )
-        planar = np.frombuffer(image.raw_f32_le, dtype="<f4").reshape(c, h, w)
+        planar = np.frombuffer(data, dtype=dtype).reshape(c, h, w)
         arr: FloatImage = np.ascontiguousarray(np.moveaxis(planar, 0, 2), dtype=np.float32)
     elif which == "encoded":
         arr = _decode_bytes(image.encoded, field)

@@ -18,7 +18,7 @@ import numpy.typing as npt
 from google.protobuf import json_format
 from google.protobuf.message import Message
 
-from ._proto.murk.v1 import jobs_pb2, mvs_pb2, params_pb2, ps_pb2, stereo_pb2, tof_pb2
+from ._proto.murk.v1 import common_pb2, jobs_pb2, mvs_pb2, params_pb2, ps_pb2, stereo_pb2, tof_pb2
 from .errors import ClientInputError
 from .images import ImageLike, to_proto
 from .types import IntrinsicsLike, PsLight, View, intrinsics_proto, vector3_proto
@@ -40,7 +40,30 @@ _AIRLIGHT_SOURCES = {
 #: The modulation frequencies the server accepts, Hz.
 MIN_MODULATION_HZ = 1e5
 MAX_MODULATION_HZ = 1e10
+_ENCODINGS = {
+    "f32": common_pb2.IMAGE_ENCODING_F32,
+    "f16": common_pb2.IMAGE_ENCODING_F16,
+    "png": common_pb2.IMAGE_ENCODING_PNG,
+}
 _PS_MODES = {"full": ps_pb2.PS_MODE_FULL, "backscatter_only": ps_pb2.PS_MODE_BACKSCATTER_ONLY}
+
+
+def _outputs(
+    outputs: Sequence[str] | None, encoding: str | None, field: str
+) -> common_pb2.OutputOptions | None:
+    """The ``outputs`` message of a request: which result images to return and their encoding
+    (``"f32"`` exact, ``"f16"``, or ``"png"``: a lossless 16-bit PNG of metres in 1 mm steps
+    and [0, 1] images in steps of 1/65535). ``None`` for both keeps the server's default."""
+    if outputs is None and encoding is None:
+        return None
+    if isinstance(outputs, str):
+        raise ClientInputError(f"{field}.fields", "expected a list of names, got one string")
+    msg = common_pb2.OutputOptions(fields=list(outputs or ()))
+    if encoding is not None:
+        if encoding not in _ENCODINGS:
+            raise ClientInputError(f"{field}.encoding", f"one of {sorted(_ENCODINGS)}, got {encoding!r}")
+        msg.encoding = _ENCODINGS[encoding]
+    return msg
 
 
 def _tuning(value: Tuning | None, cls: type[M], field: str) -> M | None:
@@ -87,12 +110,16 @@ def tof_depth_request(
     intrinsics: IntrinsicsLike | None = None,
     light_position_m: Sequence[float] | None = None,
     options: Tuning | None = None,
+    outputs: Sequence[str] | None = None,
+    encoding: str | None = None,
 ) -> jobs_pb2.JobRequest:
     """ToF depth in fog (Ch. 5).
 
     ``amplitude`` linear sensor units and ``phase`` in **radians** [0, 2π), one channel each, same
     size. ``modulation_frequency_hz`` in Hz (e.g. ``16e6``). ``intrinsics`` (pixels) enable the
-    z-depth output; ``light_position_m`` (camera frame, metres) needs them.
+    z-depth output; ``light_position_m`` (camera frame, metres) needs them. ``outputs`` names the
+    result images to return (e.g. ``["z_depth_m", "mask"]``; default all) and ``encoding`` how
+    (``"f32"``, default; ``"f16"``; ``"png"``); the others come back as ``None``.
     """
     f = _finite(modulation_frequency_hz, "request.tof_depth.modulation_frequency_hz", positive=True)
     if not MIN_MODULATION_HZ <= f <= MAX_MODULATION_HZ:
@@ -122,6 +149,9 @@ def tof_depth_request(
     opts = _tuning(options, tof_pb2.TofOptions, "request.tof_depth.options")
     if opts is not None:
         req.options.CopyFrom(opts)
+    out = _outputs(outputs, encoding, "request.tof_depth.outputs")
+    if out is not None:
+        req.outputs.CopyFrom(out)
     return jobs_pb2.JobRequest(tof_depth=req)
 
 
@@ -185,6 +215,8 @@ def rectified_stereo_request(
     beta: float | None = None,
     sgm: Tuning | None = None,
     return_points: bool = False,
+    outputs: Sequence[str] | None = None,
+    encoding: str | None = None,
 ) -> jobs_pb2.JobRequest:
     """Depth of the left view of a calibrated, rectified pair in haze (Ch. 3.2 with two views).
 
@@ -194,7 +226,9 @@ def rectified_stereo_request(
     ``right_cx``: the right principal point's x when it differs (Middlebury's ``doffs`` is the
     difference). Search either ``disparity_range_px`` (min, max) or ``depth_range`` (near,
     far); neither searches 1 px to a quarter of the width. ``cost_volume`` defaults to
-    ``"dehazing"`` with ``airlight`` and ``beta``, ``"ordinary"`` without.
+    ``"dehazing"`` with ``airlight`` and ``beta``, ``"ordinary"`` without. ``outputs``
+    (``"z_depth"``, ``"disparity"``, ``"confidence"``) and ``encoding`` as for
+    :func:`tof_depth_request`.
     """
     field = "request.rectified_stereo"
     kind = cost_volume or ("dehazing" if airlight is not None else "ordinary")
@@ -228,6 +262,9 @@ def rectified_stereo_request(
     s = _tuning(sgm, mvs_pb2.SgmOptions, f"{field}.sgm")
     if s is not None:
         req.sgm.CopyFrom(s)
+    out = _outputs(outputs, encoding, f"{field}.outputs")
+    if out is not None:
+        req.outputs.CopyFrom(out)
     return jobs_pb2.JobRequest(rectified_stereo=req)
 
 

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
+from google.protobuf.message import Message
 
 from ._proto.murk.v1 import jobs_pb2, mvs_pb2, params_pb2, ps_pb2, stereo_pb2, tof_pb2
 from .errors import MurkError
@@ -25,34 +26,42 @@ def _cost_volume_name(kind: int) -> str:
     return names.get(int(kind), "dehazing")
 
 
+def _optional_image(result: Message, name: str, method: str) -> FloatImage | None:
+    """The result image ``name``, decoded, or None where the request did not ask for it."""
+    return from_proto(getattr(result, name), field=f"{method}.{name}") if result.HasField(name) else None
+
+
 @dataclass(frozen=True)
 class TofDepthResult:
-    """ToF depth in fog; every array is ``(h, w)`` float32 of the input size."""
+    """ToF depth in fog; every array is ``(h, w)`` float32 of the input size.
+
+    An image the request did not ask for (``outputs``) is ``None``; a sensor session returns only
+    the z-depth (the range without intrinsics), the mask and ``range_std_m`` unless told otherwise.
+    """
 
     #: Corrected range along the viewing ray, metres.
-    range_m: FloatImage
+    range_m: FloatImage | None
     #: Corrected z-depth, metres (None without intrinsics).
     z_depth_m: FloatImage | None
     #: Range from the raw (foggy) phase, metres.
-    raw_range_m: FloatImage
+    raw_range_m: FloatImage | None
     #: z-depth from the raw phase, metres (None without intrinsics).
     raw_z_depth_m: FloatImage | None
-    #: Standard deviation of range_m, metres (None from servers older than murk-algorithms-4).
+    #: Standard deviation of range_m, metres.
     range_std_m: FloatImage | None
     #: Object mask: 1 = object, 0 = background.
-    mask: FloatImage
+    mask: FloatImage | None
     #: Estimated scattering component: amplitude (sensor units) and phase (radians).
-    scatter_amplitude: FloatImage
-    scatter_phase: FloatImage
+    scatter_amplitude: FloatImage | None
+    scatter_phase: FloatImage | None
     #: Final IRLS weights in [0, 1].
-    weight_amplitude: FloatImage
-    weight_phase: FloatImage
+    weight_amplitude: FloatImage | None
+    weight_phase: FloatImage | None
     #: Direct component: amplitude and phase (radians).
-    corrected_amplitude: FloatImage
-    corrected_phase: FloatImage
+    corrected_amplitude: FloatImage | None
+    corrected_phase: FloatImage | None
     #: What the caller should know about the estimate, one sentence each (e.g. an IRLS that
-    #: stopped at its iteration cap before converging); empty from servers before
-    #: murk-algorithms-16.
+    #: stopped at its iteration cap before converging).
     warnings: tuple[str, ...]
     job_id: str
     proto: tof_pb2.TofDepthResult
@@ -60,26 +69,23 @@ class TofDepthResult:
     @classmethod
     def from_proto(cls, r: tof_pb2.TofDepthResult, job_id: str = "") -> TofDepthResult:
         """From the result message."""
-        f = "tof_depth"
+
+        def image(name: str) -> FloatImage | None:
+            return _optional_image(r, name, "tof_depth")
+
         return cls(
-            range_m=from_proto(r.range_m, field=f"{f}.range_m"),
-            z_depth_m=from_proto(r.z_depth_m, field=f"{f}.z_depth_m") if r.HasField("z_depth_m") else None,
-            raw_range_m=from_proto(r.raw_range_m, field=f"{f}.raw_range_m"),
-            raw_z_depth_m=(
-                from_proto(r.raw_z_depth_m, field=f"{f}.raw_z_depth_m")
-                if r.HasField("raw_z_depth_m")
-                else None
-            ),
-            range_std_m=(
-                from_proto(r.range_std_m, field=f"{f}.range_std_m") if r.HasField("range_std_m") else None
-            ),
-            mask=from_proto(r.mask, field=f"{f}.mask"),
-            scatter_amplitude=from_proto(r.scatter_amplitude, field=f"{f}.scatter_amplitude"),
-            scatter_phase=from_proto(r.scatter_phase, field=f"{f}.scatter_phase"),
-            weight_amplitude=from_proto(r.weight_amplitude, field=f"{f}.weight_amplitude"),
-            weight_phase=from_proto(r.weight_phase, field=f"{f}.weight_phase"),
-            corrected_amplitude=from_proto(r.corrected_amplitude, field=f"{f}.corrected_amplitude"),
-            corrected_phase=from_proto(r.corrected_phase, field=f"{f}.corrected_phase"),
+            range_m=image("range_m"),
+            z_depth_m=image("z_depth_m"),
+            raw_range_m=image("raw_range_m"),
+            raw_z_depth_m=image("raw_z_depth_m"),
+            range_std_m=image("range_std_m"),
+            mask=image("mask"),
+            scatter_amplitude=image("scatter_amplitude"),
+            scatter_phase=image("scatter_phase"),
+            weight_amplitude=image("weight_amplitude"),
+            weight_phase=image("weight_phase"),
+            corrected_amplitude=image("corrected_amplitude"),
+            corrected_phase=image("corrected_phase"),
             warnings=tuple(r.warnings),
             job_id=job_id,
             proto=r,
@@ -331,15 +337,19 @@ class PhotometricStereoResult:
 
 @dataclass(frozen=True)
 class RectifiedStereoResult:
-    """Depth of a rectified pair's left view; arrays ``(h, w)`` float32 of the left image's size."""
+    """Depth of a rectified pair's left view; arrays ``(h, w)`` float32 of the left image's size.
+
+    An image the request did not ask for (``outputs``) is ``None``; a sensor session returns only
+    the z-depth and the confidence unless told otherwise.
+    """
 
     #: z-depth along the left camera's optical axis, in the baseline's unit.
-    z_depth: FloatImage
+    z_depth: FloatImage | None
     #: Disparity ``u_left - u_right``, pixels (``fx * baseline / z - doffs``).
-    disparity: FloatImage
+    disparity: FloatImage | None
     #: Confidence in [0, 1] (0 where the consistency check or the speckle filter rejected the
     #: pixel; its depth there is filled from its neighbours).
-    confidence: FloatImage
+    confidence: FloatImage | None
     #: With ``return_points``: the confident pixels in the left camera's frame (x right, y down,
     #: z forward), ``(n, 3)`` float32, and their colours, ``(n, 3)`` uint8; else ``None``.
     points: npt.NDArray[np.float32] | None
@@ -376,10 +386,14 @@ class RectifiedStereoResult:
                 )
             points = np.frombuffer(r.points.xyz_f32_le, dtype="<f4").reshape(n, 3).astype(np.float32)
             colors = np.frombuffer(r.points.rgb8, dtype=np.uint8).reshape(n, 3).copy()
+
+        def image(name: str) -> FloatImage | None:
+            return _optional_image(r, name, "rectified_stereo")
+
         return cls(
-            z_depth=from_proto(r.z_depth, field="rectified_stereo.z_depth"),
-            disparity=from_proto(r.disparity, field="rectified_stereo.disparity"),
-            confidence=from_proto(r.confidence, field="rectified_stereo.confidence"),
+            z_depth=image("z_depth"),
+            disparity=image("disparity"),
+            confidence=image("confidence"),
             points=points,
             colors=colors,
             near=r.near,

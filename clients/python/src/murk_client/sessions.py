@@ -4,7 +4,7 @@
 >>> config = mc.tof_session_config(width=512, height=424, modulation_frequency_hz=16e6)
 >>> for out in murk.session(config, frames):
 ...     if out.result is not None:
-...         use(out.frame_id, out.result.range_m)
+...         use(out.frame_id, out.result.range_m)  # compact by default: range, mask, std
 
 Results come in frame order. A frame the server drops (``queue_policy="latest"`` when the robot
 falls behind, or past ``frame_deadline_s``) comes back with ``dropped`` set; a bad frame with
@@ -82,11 +82,17 @@ def tof_session_config(
     intrinsics: IntrinsicsLike | None = None,
     light_position_m: Sequence[float] | None = None,
     options: Tuning | None = None,
+    outputs: Sequence[str] | None = None,
+    encoding: str | None = None,
     queue_policy: str = "fifo",
     max_queued_frames: int = 0,
     frame_deadline_s: float = 0.0,
 ) -> sessions_pb2.SessionConfig:
     """A ToF session of ``width × height`` frames; arguments as for ``tof_depth_request``.
+
+    A session's results are compact unless ``outputs``/``encoding`` say otherwise: the z-depth
+    (the range without intrinsics), the mask and ``range_std_m``, as lossless 16-bit PNGs
+    (metres in 1 mm steps); the client decodes them to float32 arrays like any other result.
 
     ``queue_policy``: ``"fifo"`` (every frame computed; the server pushes back) or ``"latest"``
     (a full queue drops its oldest frame). ``max_queued_frames`` 0 = the server's default.
@@ -101,6 +107,8 @@ def tof_session_config(
             intrinsics=intrinsics,
             light_position_m=light_position_m,
             options=options,
+            outputs=outputs,
+            encoding=encoding,
         )
     return _config(req, width, height, queue_policy, max_queued_frames, frame_deadline_s)
 
@@ -120,12 +128,15 @@ def stereo_session_config(
     beta: float | None = None,
     sgm: Tuning | None = None,
     return_points: bool = False,
+    outputs: Sequence[str] | None = None,
+    encoding: str | None = None,
     queue_policy: str = "fifo",
     max_queued_frames: int = 0,
     frame_deadline_s: float = 0.0,
 ) -> sessions_pb2.SessionConfig:
     """A rectified-stereo session of ``width × height`` pairs; arguments as for
-    ``rectified_stereo_request``, queue as for :func:`tof_session_config`."""
+    ``rectified_stereo_request``, queue as for :func:`tof_session_config`. The default results
+    are compact: the z-depth and the confidence as 16-bit PNGs."""
     blank = np.zeros((2, 2), np.float32)
     with _as_config("request.rectified_stereo", "config.stereo"):
         req = rectified_stereo_request(
@@ -142,6 +153,8 @@ def stereo_session_config(
             beta=beta,
             sgm=sgm,
             return_points=return_points,
+            outputs=outputs,
+            encoding=encoding,
         )
     return _config(req, width, height, queue_policy, max_queued_frames, frame_deadline_s)
 

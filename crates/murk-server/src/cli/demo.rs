@@ -120,7 +120,8 @@ pub fn run(a: DemoArgs) -> anyhow::Result<()> {
             let Some(pb::job_result::Method::TofDepth(r)) = result.method else {
                 bail!("unexpected result kind");
             };
-            let out = write_tof_result(&dir.join("output"), &r)?;
+            let out = write_tof_result(&dir.join("output"), &r)?
+                .context("the result lacks the range, the raw range or the mask")?;
             let gt_mask = Some(&frame.gt_mask);
             rows.push(Row {
                 preset,

@@ -4,6 +4,7 @@ mod client;
 mod demo;
 mod health;
 mod mvs;
+mod outputs;
 mod params;
 mod ps;
 mod serve;

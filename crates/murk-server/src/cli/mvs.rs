@@ -537,18 +537,18 @@ fn write_mvs_images(dir: &Path, images: &MvsImages) -> anyhow::Result<()> {
             ("inverse_depth.exr", &images.inverse_depth),
             ("confidence.exr", &images.confidence),
         ],
-        &images.inverse_depth,
+        Some(&images.inverse_depth),
     )
 }
 
-/// Writes `exrs` into `dir` (created), each compressing on its own core, and `depth.png`, a
-/// preview of `inverse_depth` (or anything proportional to it, such as a rectified pair's
-/// disparity) coloured near red, far blue over its 2nd..98th percentile, so a few outliers do
-/// not flatten it.
+/// Writes `exrs` into `dir` (created), each compressing on its own core, and, given
+/// `inverse_depth` (or anything proportional to it, such as a rectified pair's disparity),
+/// `depth.png`, its preview coloured near red, far blue over its 2nd..98th percentile, so a few
+/// outliers do not flatten it.
 pub(super) fn write_depth_images(
     dir: &Path,
     exrs: &[(&str, &ImageF32)],
-    inverse_depth: &ImageF32,
+    inverse_depth: Option<&ImageF32>,
 ) -> anyhow::Result<()> {
     use rayon::prelude::*;
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
@@ -559,8 +559,10 @@ pub(super) fn write_depth_images(
             })
         },
         || {
-            let (lo, hi) = robust_range(inverse_depth);
-            write_colormap_png(&dir.join("depth.png"), inverse_depth, lo, hi, None)
+            inverse_depth.map_or(Ok(()), |inverse_depth| {
+                let (lo, hi) = robust_range(inverse_depth);
+                write_colormap_png(&dir.join("depth.png"), inverse_depth, lo, hi, None)
+            })
         },
     );
     written?;

@@ -9,10 +9,13 @@ use clap::Args;
 use murk::io::{read_image, sniff_format, DecodeLimits};
 use murk::mvs_io::{write_ply, PlyFormat};
 use murk::ImageF32;
-use murk_server::service::convert::{image_from_proto, points_from_proto, ImageLimits};
+use murk_server::service::convert::{
+    image_from_proto, points_from_proto, ImageLimits, STEREO_OUTPUTS,
+};
 use murk_server::service::proto::v1 as pb;
 
 use super::mvs::{kind_name, run_here_or_remote, write_depth_images, CostVolumeArg, DepthFlags};
+use super::outputs::OutputFlags;
 use super::session::{frame_dirs, stream_sequence, LoadFrame, SequenceFlags, WriteResult};
 use super::tof::{parse_intrinsics, parse_numbers};
 use std::sync::Arc;
@@ -64,9 +67,13 @@ pub struct StereoArgs {
     /// to linear light first, as the haze model needs.
     #[arg(long)]
     pub srgb: bool,
-    /// Output folder (created): depth.exr, disparity.exr, confidence.exr, points.ply, depth.png.
+    /// Output folder (created): depth.exr, disparity.exr, confidence.exr (those fetched, see
+    /// --outputs), points.ply, depth.png.
     #[arg(long)]
     pub out: PathBuf,
+    /// Which result images to fetch (z_depth, disparity, confidence), and their encoding.
+    #[command(flatten)]
+    pub outputs: OutputFlags,
     /// Server URL; without it a server is started in this process.
     #[arg(long, env = "MURK_SERVER")]
     pub server: Option<String>,
@@ -91,8 +98,7 @@ pub fn run(a: StereoArgs) -> anyhow::Result<()> {
     let Some(pb::job_result::Method::RectifiedStereo(r)) = result.method else {
         bail!("server returned a result of another method");
     };
-    let (z, points) = write_result(&a.out, &r)?;
-    let (w, h) = z.dims();
+    let ((w, h), points) = write_result(&a.out, &r)?;
     println!(
         "job {}{}: {w}×{h} pair, {} cost volume, {} planes over z {:.4}..{:.4} (disparity \
          {:.1}..{:.1} px), {:.2} s; {} points ({:.1} % of pixels); outputs in {}",
@@ -105,8 +111,8 @@ pub fn run(a: StereoArgs) -> anyhow::Result<()> {
         r.min_disparity_px,
         r.max_disparity_px,
         r.compute_seconds,
-        points.len(),
-        100.0 * points.len() as f64 / (w * h).max(1) as f64,
+        points,
+        100.0 * points as f64 / (w * h).max(1) as f64,
         a.out.display()
     );
     for w in &r.warnings {
@@ -197,40 +203,62 @@ fn encoded_image(path: &Path, what: &str, srgb: bool) -> anyhow::Result<pb::Imag
     })
 }
 
-/// Writes a result's files into `dir`; returns the depth and the points.
+/// Writes the images a result carries (`depth.exr`, `disparity.exr`, `confidence.exr`, a
+/// `depth.png` preview) and its points (`points.ply`) into `dir`; returns the image size and
+/// the number of points.
 fn write_result(
     dir: &Path,
     r: &pb::RectifiedStereoResult,
-) -> anyhow::Result<(ImageF32, Vec<murk::mvs_io::ColoredPoint>)> {
+) -> anyhow::Result<((usize, usize), usize)> {
     let limits = ImageLimits {
         max_pixels: u64::MAX,
         max_channels: 4,
     };
-    let decode = |name: &str, img: &Option<pb::Image>| -> anyhow::Result<ImageF32> {
-        let img = img
-            .as_ref()
-            .with_context(|| format!("result lacks {name}"))?;
-        image_from_proto(img, &limits).with_context(|| format!("decoding {name}"))
+    let decode = |name: &str, img: &Option<pb::Image>| -> anyhow::Result<Option<ImageF32>> {
+        img.as_ref()
+            .map(|img| image_from_proto(img, &limits).with_context(|| format!("decoding {name}")))
+            .transpose()
     };
     let z = decode("z_depth", &r.z_depth)?;
     let disparity = decode("disparity", &r.disparity)?;
     let confidence = decode("confidence", &r.confidence)?;
-    let points = points_from_proto(r.points.as_ref().context("result lacks points")?)?;
-    write_depth_images(
-        dir,
-        &[
-            ("depth.exr", &z),
-            ("disparity.exr", &disparity),
-            ("confidence.exr", &confidence),
-        ],
-        &disparity,
-    )?;
-    write_ply(
-        &dir.join("points.ply"),
-        &points,
-        PlyFormat::BinaryLittleEndian,
-    )?;
-    Ok((z, points))
+    let mut exrs = Vec::new();
+    for (file, img) in [
+        ("depth.exr", &z),
+        ("disparity.exr", &disparity),
+        ("confidence.exr", &confidence),
+    ] {
+        if let Some(img) = img {
+            exrs.push((file, img));
+        }
+    }
+    let dims = exrs
+        .first()
+        .map(|(_, img)| img.dims())
+        .context("the result carries no image")?;
+    // The preview shows inverse depth: the disparity, or 1/z when only the depth was fetched.
+    let inverse = match (&disparity, &z) {
+        (Some(_), _) => None,
+        (None, Some(z)) => Some(ImageF32::from_vec(
+            z.width(),
+            z.height(),
+            1,
+            z.data().iter().map(|v| 1.0 / v).collect(),
+        )?),
+        (None, None) => None,
+    };
+    write_depth_images(dir, &exrs, disparity.as_ref().or(inverse.as_ref()))?;
+    let mut count = 0;
+    if let Some(cloud) = &r.points {
+        let points = points_from_proto(cloud)?;
+        write_ply(
+            &dir.join("points.ply"),
+            &points,
+            PlyFormat::BinaryLittleEndian,
+        )?;
+        count = points.len();
+    }
+    Ok((dims, count))
 }
 
 /// The request: the image files as they are (the server decodes them), the rig and the range.
@@ -285,5 +313,6 @@ fn build_request(
         cost_volume: cost.wire() as i32,
         sgm: a.depth.wire(),
         return_points: true,
+        outputs: Some(a.outputs.wire(STEREO_OUTPUTS)),
     })
 }

@@ -10,11 +10,12 @@ use murk::io::{read_image, write_colormap_png, write_exr, DecodeLimits};
 use murk::simulate::{read_tof_capture, TofCapture};
 use murk::ImageF32;
 use murk_server::service::convert::{
-    image_from_proto, image_to_proto, tof_request_to_proto, ImageLimits,
+    image_from_proto, image_to_proto, tof_request_to_proto, ImageLimits, TOF_OUTPUTS,
 };
 use murk_server::service::proto::v1 as pb;
 
 use super::mvs::run_here_or_remote;
+use super::outputs::OutputFlags;
 use super::session::{frame_dirs, stream_sequence, LoadFrame, SequenceFlags, WriteResult};
 use std::sync::Arc;
 
@@ -56,9 +57,13 @@ pub struct TofArgs {
     /// Row about which the symmetry prior mirrors the image.
     #[arg(long)]
     pub symmetry_row: Option<f64>,
-    /// Output folder (created).
+    /// Output folder (created): one EXR per result image fetched, and colour-mapped PNG
+    /// previews of the range.
     #[arg(long)]
     pub out: PathBuf,
+    /// Which result images to fetch, and their encoding.
+    #[command(flatten)]
+    pub outputs: OutputFlags,
     /// Streaming a sequence of frames.
     #[command(flatten)]
     pub stream: SequenceFlags,
@@ -192,6 +197,7 @@ fn request_for(a: &TofArgs, capture: TofCapture) -> anyhow::Result<pb::TofDepthR
     };
     let mut request =
         tof_request_to_proto(&amplitude, &phase, intrinsics.as_ref(), frequency, light);
+    request.outputs = Some(a.outputs.wire(TOF_OUTPUTS));
     request.options = Some(pb::TofOptions {
         coarse_iterations: a.coarse_iterations,
         fine_iterations: a.fine_iterations,
@@ -234,19 +240,15 @@ pub struct TofImages {
     pub mask: ImageF32,
 }
 
-/// Writes every output as EXR plus colour-mapped PNG previews; returns the main images.
-pub fn write_tof_result(dir: &Path, r: &pb::TofDepthResult) -> anyhow::Result<TofImages> {
+/// Writes every image the result carries as `<field>.exr` into `dir`, with colour-mapped PNG
+/// previews of the corrected and raw range and the mask where the result has them; returns
+/// the main images when it carries all three.
+pub fn write_tof_result(dir: &Path, r: &pb::TofDepthResult) -> anyhow::Result<Option<TofImages>> {
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     let limits = ImageLimits {
         max_pixels: u64::MAX,
         max_channels: 4,
     };
-    let dec = |name: &str, img: &Option<pb::Image>| -> anyhow::Result<Option<ImageF32>> {
-        img.as_ref()
-            .map(|i| image_from_proto(i, &limits).with_context(|| format!("decoding {name}")))
-            .transpose()
-    };
-    let mut main = None::<(ImageF32, ImageF32, ImageF32)>;
     let fields = [
         ("range_m", &r.range_m),
         ("range_std_m", &r.range_std_m),
@@ -263,28 +265,43 @@ pub fn write_tof_result(dir: &Path, r: &pb::TofDepthResult) -> anyhow::Result<To
     ];
     let mut decoded = std::collections::HashMap::new();
     for (name, img) in fields {
-        if let Some(img) = dec(name, img)? {
+        if let Some(img) = img {
+            let img = image_from_proto(img, &limits).with_context(|| format!("decoding {name}"))?;
             write_exr(&dir.join(format!("{name}.exr")), &img)?;
             decoded.insert(name, img);
         }
     }
-    if let (Some(range), Some(raw), Some(mask)) = (
-        decoded.get("range_m"),
-        decoded.get("raw_range_m"),
-        decoded.get("mask"),
-    ) {
-        // One colour scale for raw and corrected so the previews are comparable.
-        let (lo, hi) = robust_range(range, mask);
-        write_colormap_png(&dir.join("range_m.png"), range, lo, hi, Some(mask))?;
-        write_colormap_png(&dir.join("raw_range_m.png"), raw, lo, hi, Some(mask))?;
-        write_colormap_png(&dir.join("mask.png"), mask, 0.0, 1.0, None)?;
-        main = Some((range.clone(), raw.clone(), mask.clone()));
+    let mask = decoded.get("mask");
+    // The corrected range (the z-depth when only that was fetched) sets one colour scale for
+    // raw and corrected, so the previews are comparable.
+    let (main, raw) = match decoded.get("range_m") {
+        Some(range) => (Some(("range_m", range)), decoded.get("raw_range_m")),
+        None => (
+            decoded.get("z_depth_m").map(|z| ("z_depth_m", z)),
+            decoded.get("raw_z_depth_m"),
+        ),
+    };
+    if let Some((name, img)) = main {
+        let (lo, hi) = match mask {
+            Some(mask) => robust_range(img, mask),
+            None => robust_range(img, &ImageF32::filled(img.width(), img.height(), 1, 1.0)),
+        };
+        write_colormap_png(&dir.join(format!("{name}.png")), img, lo, hi, mask)?;
+        if let Some(raw) = raw {
+            write_colormap_png(&dir.join(format!("raw_{name}.png")), raw, lo, hi, mask)?;
+        }
     }
-    let (range_m, raw_range_m, mask) = main.context("result lacks range, raw range or mask")?;
-    Ok(TofImages {
-        range_m,
-        raw_range_m,
-        mask,
+    if let Some(mask) = mask {
+        write_colormap_png(&dir.join("mask.png"), mask, 0.0, 1.0, None)?;
+    }
+    let take = |name: &str| decoded.get(name).cloned();
+    Ok(match (take("range_m"), take("raw_range_m"), take("mask")) {
+        (Some(range_m), Some(raw_range_m), Some(mask)) => Some(TofImages {
+            range_m,
+            raw_range_m,
+            mask,
+        }),
+        _ => None,
     })
 }
 

@@ -263,11 +263,13 @@ fn build_work(
     let limits = &request_limits.images;
     match req.method {
         Some(pb::job_request::Method::TofDepth(t)) => {
-            let (input, params) = tof_from_proto(&t, limits)?;
+            let (input, params, outputs) = tof_from_proto(&t, limits)?;
             Ok(Box::new(move |monitor| {
                 let out = estimate_tof_depth(&input, &params, monitor)?;
                 let result = pb::JobResult {
-                    method: Some(pb::job_result::Method::TofDepth(tof_to_proto(&out))),
+                    method: Some(pb::job_result::Method::TofDepth(tof_to_proto(
+                        &out, &params, &outputs,
+                    )?)),
                 };
                 Ok(result.encode_to_vec())
             }))
@@ -297,7 +299,7 @@ fn build_work(
                 let result = pb::JobResult {
                     method: Some(pb::job_result::Method::RectifiedStereo(stereo_to_proto(
                         &input, &out, &points, seconds,
-                    ))),
+                    )?)),
                 };
                 Ok(result.encode_to_vec())
             }))

@@ -68,6 +68,52 @@ async fn simulate_then_tof_client_writes_outputs() {
     }
     assert_eq!(server.manager().executed(), 1);
 
+    // Only the images asked for, compact on the wire: the same files, quantised.
+    let (url, frame2) = (server.url(), frame.clone());
+    let compact = dir.path().join("compact");
+    let out3 = compact.clone();
+    let output = tokio::task::spawn_blocking(move || {
+        murk()
+            .args(["tof", "--server", &url, "--frame"])
+            .arg(&frame2)
+            .args(["--outputs", "z_depth_m,mask", "--encoding", "png", "--out"])
+            .arg(&out3)
+            .output()
+            .unwrap()
+    })
+    .await
+    .unwrap();
+    succeeded(&output);
+    let mut written: Vec<String> = std::fs::read_dir(&compact)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    written.sort();
+    assert_eq!(
+        written,
+        ["mask.exr", "mask.png", "z_depth_m.exr", "z_depth_m.png"]
+    );
+    let read = |p: &std::path::Path| murk::io::read_image(p, &Default::default()).unwrap();
+    assert_eq!(read(&compact.join("mask.exr")), read(&out.join("mask.exr")));
+    let (url, frame2) = (server.url(), frame.clone());
+    let bad_output = tokio::task::spawn_blocking(move || {
+        murk()
+            .args(["tof", "--server", &url, "--frame"])
+            .arg(&frame2)
+            .args(["--outputs", "depth", "--out"])
+            .arg(&compact)
+            .output()
+            .unwrap()
+    })
+    .await
+    .unwrap();
+    assert!(!bad_output.status.success());
+    assert!(
+        String::from_utf8_lossy(&bad_output.stderr).contains("outputs.fields[0]"),
+        "{}",
+        String::from_utf8_lossy(&bad_output.stderr)
+    );
+
     // Bad flags fail with a message, not a panic.
     let bad = murk()
         .args(["tof", "--server", &server.url(), "--out"])

@@ -145,7 +145,14 @@ async fn frames_come_back_in_order_with_their_metadata_and_a_bad_frame_leaves_th
         .await
         .expect("one-shot")
         .into_inner();
-    let (config, frame) = tof_session(one_shot, pb::QueuePolicy::Fifo, 2);
+    let (mut config, frame) = tof_session(one_shot, pb::QueuePolicy::Fifo, 2);
+    // Exact images, to compare with the one-shot result bit for bit.
+    if let Some(pb::session_config::Method::Tof(t)) = &mut config.method {
+        t.outputs = Some(pb::OutputOptions {
+            fields: vec!["range_m".into(), "mask".into()],
+            encoding: pb::ImageEncoding::F32 as i32,
+        });
+    }
     let mut s = open(&server, config_message(config.clone()), None)
         .await
         .expect("session opens");
@@ -338,6 +345,21 @@ async fn bad_configurations_end_the_stream_naming_the_field() {
                 ..config.clone()
             }),
             "config.stereo.baseline",
+        ),
+        (
+            config_message(pb::SessionConfig {
+                method: Some(pb::session_config::Method::Tof(pb::TofDepthRequest {
+                    outputs: Some(pb::OutputOptions {
+                        fields: vec!["mask".into(), "depth".into()],
+                        encoding: 0,
+                    }),
+                    amplitude: None,
+                    phase: None,
+                    ..tof_request(64, 53, 3)
+                })),
+                ..config.clone()
+            }),
+            "config.tof.outputs.fields[1]",
         ),
     ];
     for (first, field) in cases {
@@ -589,5 +611,86 @@ async fn a_stereo_session_narrows_its_search_to_the_previous_frames_band() {
     assert!(warm.min_disparity_px > cold.min_disparity_px || warm.max_disparity_px < 32.0);
     let (cp_cold, cp_warm) = (c_p(cold), c_p(warm));
     assert!(cp_warm >= cp_cold - 0.02, "C.P. {cp_warm} after {cp_cold}");
+    server.stop().await.unwrap();
+}
+
+/// The stream's default result: the z-depth, the mask and range_std_m as PNGs, within half a
+/// millimetre of the one-shot float images (the depth 0 where there is no measurement) and, for a
+/// 512x424 frame, within 0.6 MB.
+#[tokio::test]
+async fn a_sessions_default_results_are_compact() {
+    use murk::image::ImageF32;
+    use murk_server::service::convert::{image_from_proto, ImageLimits};
+    use prost::Message;
+
+    let server = start(config(2)).await;
+    let mut one_shot = tof_request(512, 424, 11);
+    // The session's images, exact, for comparison.
+    one_shot.outputs = Some(pb::OutputOptions {
+        fields: vec!["z_depth_m".into(), "mask".into(), "range_std_m".into()],
+        encoding: pb::ImageEncoding::F32 as i32,
+    });
+    let exact = recon(&server)
+        .tof_depth(one_shot.clone())
+        .await
+        .expect("one-shot")
+        .into_inner();
+    assert!(exact.range_m.is_none() && exact.scatter_amplitude.is_none());
+    one_shot.outputs = None;
+    let (config, frame) = tof_session(one_shot, pb::QueuePolicy::Fifo, 1);
+    let mut s = open(&server, config_message(config), None).await.unwrap();
+    started(s.event().await);
+    s.send_frame(numbered(&frame, 1)).await;
+    let result = match s.event().await {
+        Event::Result(r) => r,
+        other => panic!("unexpected {other:?}"),
+    };
+    let Some(pb::frame_result::Outcome::Tof(t)) = &result.outcome else {
+        panic!("expected a ToF result, got {:?}", result.outcome);
+    };
+    let bytes = result.encoded_len();
+    assert!(
+        bytes <= 600_000,
+        "a 512x424 frame's default result is {bytes} bytes"
+    );
+    assert!(t.range_m.is_none() && t.raw_range_m.is_none() && t.weight_phase.is_none());
+    let decode = |img: &Option<pb::Image>| -> ImageF32 {
+        image_from_proto(img.as_ref().expect("image"), &ImageLimits::default()).unwrap()
+    };
+    let unmeasured = murk::tof::unmeasured_range_std_m(16e6);
+    let exact_std = decode(&exact.range_std_m);
+    let mut blanked = 0;
+    for (name, compact, exact, tolerance) in [
+        ("z_depth_m", &t.z_depth_m, &exact.z_depth_m, 0.000_5),
+        ("range_std_m", &t.range_std_m, &exact.range_std_m, 0.000_5),
+        ("mask", &t.mask, &exact.mask, 0.0),
+    ] {
+        assert!(
+            matches!(
+                compact.as_ref().unwrap().data,
+                Some(pb::image::Data::Encoded(_))
+            ),
+            "{name} is not a PNG"
+        );
+        let (c, e) = (decode(compact), decode(exact));
+        for ((a, b), s) in c.data().iter().zip(e.data()).zip(exact_std.data()) {
+            if name == "z_depth_m" && *s >= unmeasured {
+                // No measurement: 0, as in a ROS depth image.
+                assert_eq!(*a, 0.0);
+                blanked += 1;
+            } else {
+                // Half a step, plus the f32 rounding of the affine decode.
+                assert!((a - b).abs() <= tolerance + 1e-5, "{name}: {a} for {b}");
+            }
+        }
+    }
+    // The simulated frame's objects cover a fraction of it; much of the fog behind has no
+    // return above the noise.
+    let n = exact_std.data().len();
+    assert!(
+        blanked > 0 && blanked < n * 3 / 4,
+        "{blanked} of {n} pixels without a measurement"
+    );
+    drop(s.tx);
     server.stop().await.unwrap();
 }

@@ -12,7 +12,9 @@ mod png;
 pub use colormap::{colorize, turbo, write_colormap_png, MASKED_RGB};
 pub use decode::{decode_image, read_image, sniff_format, DecodeLimits, ImageFormat};
 pub use exr::{encode_exr, write_exr};
-pub use png::{encode_png16, encode_png_rgb8, write_png16, write_png_rgb8};
+pub use png::{
+    encode_png16, encode_png_grey, encode_png_rgb8, write_png16, write_png_rgb8, PngEffort,
+};
 
 use crate::error::MurkError;
 use std::path::Path;

@@ -20,5 +20,5 @@ pub mod tukey;
 pub mod wls;
 
 pub use params::*;
-pub use pipeline::{estimate_tof_depth, estimate_tof_depth_with_solver};
+pub use pipeline::{estimate_tof_depth, estimate_tof_depth_with_solver, unmeasured_range_std_m};
 pub use wls::{Preconditioner, XStepSolver};

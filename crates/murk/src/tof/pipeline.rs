@@ -236,6 +236,14 @@ fn not_converged_warning(channel: &str, r: &IrlsOutcome) -> Option<String> {
     })
 }
 
+/// The `range_std_m` of a pixel without a measurement: the cap of the reported standard
+/// deviation, a quarter of the ambiguity interval (σ_φ = π/2 through Eq. 5.2), which a pixel
+/// reaches where its direct return is no stronger than the noise, so that its corrected range
+/// is a guess.
+pub fn unmeasured_range_std_m(modulation_frequency_hz: f64) -> f32 {
+    range_m(0.5 * PI, modulation_frequency_hz) as f32
+}
+
 /// Range along the ray (metres) of a phase (radians): Eq. 5.2, c·φ/(4πf).
 #[inline]
 fn range_m(phase_rad: f64, frequency_hz: f64) -> f64 {
@@ -523,6 +531,16 @@ mod tests {
             "{masked} background pixels masked"
         );
         assert!(out.range_m.data().iter().all(|v| v.is_finite()));
+        // Fog alone returns no direct signal: where the scatter estimate leaves less than the
+        // noise, a pixel reports the cap (a third of them here); none reports more.
+        let cap = unmeasured_range_std_m(16e6);
+        let std = out.range_std_m.data();
+        assert!(std.iter().all(|&s| s <= cap));
+        let unmeasured = std.iter().filter(|&&s| s == cap).count();
+        assert!(
+            unmeasured as f64 > 0.25 * n,
+            "{unmeasured} of {n} pixels without a measurement"
+        );
     }
 
     #[test]

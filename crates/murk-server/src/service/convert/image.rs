@@ -43,10 +43,11 @@ fn decode_proto(img: &pb::Image, limits: &ImageLimits, mono: bool) -> Result<Ima
         None => {
             return Err(MurkError::invalid(
                 "",
-                "no pixel data: set `encoded` or `raw_f32_le`",
+                "no pixel data: set `encoded`, `raw_f32_le` or `raw_f16_le`",
             ))
         }
-        Some(pb::image::Data::RawF32Le(bytes)) => raw_from_proto(img, bytes, limits)?,
+        Some(pb::image::Data::RawF32Le(bytes)) => raw_from_proto(img, bytes, Raw::F32, limits)?,
+        Some(pb::image::Data::RawF16Le(bytes)) => raw_from_proto(img, bytes, Raw::F16, limits)?,
         Some(pb::image::Data::Encoded(bytes)) => {
             let dl = DecodeLimits {
                 max_pixels: limits.max_pixels,
@@ -87,7 +88,42 @@ fn decode_proto(img: &pb::Image, limits: &ImageLimits, mono: bool) -> Result<Ima
     Ok(out)
 }
 
-fn raw_from_proto(img: &pb::Image, bytes: &[u8], limits: &ImageLimits) -> Result<ImageF32> {
+/// The sample type of a raw image.
+#[derive(Clone, Copy)]
+enum Raw {
+    F32,
+    F16,
+}
+
+impl Raw {
+    fn field(self) -> &'static str {
+        match self {
+            Raw::F32 => "raw_f32_le",
+            Raw::F16 => "raw_f16_le",
+        }
+    }
+
+    fn bytes(self) -> usize {
+        match self {
+            Raw::F32 => 4,
+            Raw::F16 => 2,
+        }
+    }
+
+    fn sample(self, b: &[u8]) -> f32 {
+        match self {
+            Raw::F32 => f32::from_le_bytes([b[0], b[1], b[2], b[3]]),
+            Raw::F16 => half::f16::from_le_bytes([b[0], b[1]]).to_f32(),
+        }
+    }
+}
+
+fn raw_from_proto(
+    img: &pb::Image,
+    bytes: &[u8],
+    raw: Raw,
+    limits: &ImageLimits,
+) -> Result<ImageF32> {
     let (w, h) = (img.width as u64, img.height as u64);
     let c = if img.channels == 0 {
         1
@@ -117,22 +153,22 @@ fn raw_from_proto(img: &pb::Image, bytes: &[u8], limits: &ImageLimits) -> Result
         ));
     }
     let n = (w * h) as usize;
-    let expected = n * c * 4;
+    let expected = n * c * raw.bytes();
     if bytes.len() != expected {
         return Err(MurkError::invalid(
-            "raw_f32_le",
+            raw.field(),
             format!(
-                "expected {expected} bytes for {w}x{h}x{c} f32, got {}",
+                "expected {expected} bytes for {w}x{h}x{c} samples of {} bytes, got {}",
+                raw.bytes(),
                 bytes.len()
             ),
         ));
     }
     let mut data = vec![0f32; n * c];
     // Planar on the wire (one plane per channel), interleaved in memory.
-    for (i, chunk) in bytes.chunks_exact(4).enumerate() {
-        let v = f32::from_le_bytes([chunk[0], chunk[1], chunk[2], chunk[3]]);
+    for (i, chunk) in bytes.chunks_exact(raw.bytes()).enumerate() {
         let (ch, px) = (i / n, i % n);
-        data[px * c + ch] = v;
+        data[px * c + ch] = raw.sample(chunk);
     }
     ImageF32::from_vec(w as usize, h as usize, c, data)
 }

@@ -3,6 +3,7 @@
 mod image;
 mod job;
 mod mvs;
+mod outputs;
 mod params;
 mod ps;
 mod stereo;
@@ -14,6 +15,7 @@ pub use mvs::{
     canonicalize_mvs_request, mvs_from_proto, mvs_request_to_proto, mvs_to_proto, pose_from_proto,
     pose_to_proto, MvsInput, MvsViewInput, MAX_SOURCE_VIEWS,
 };
+pub use outputs::{encode_image, Delivery, Encoding, OutputField, OutputSelection, Quantity};
 pub use params::{
     canonicalize_params_request, params_from_proto, params_request_to_proto, AirlightService,
     ParamsInput, MAX_SPARSE_POINTS,
@@ -23,9 +25,10 @@ pub use ps::{
 };
 pub use stereo::{
     canonicalize_stereo_request, points_from_proto, points_to_proto, stereo_from_proto,
-    stereo_images_from_proto, stereo_request_to_proto, stereo_to_proto, StereoConfig, StereoInput,
+    stereo_images_from_proto, stereo_outputs_from_proto, stereo_request_to_proto, stereo_to_proto,
+    StereoConfig, StereoInput, STEREO_OUTPUTS,
 };
 pub use tof::{
     intrinsics_from_proto, intrinsics_to_proto, tof_from_proto, tof_images_from_proto,
-    tof_params_from_proto, tof_request_to_proto, tof_to_proto,
+    tof_outputs_from_proto, tof_params_from_proto, tof_request_to_proto, tof_to_proto, TOF_OUTPUTS,
 };

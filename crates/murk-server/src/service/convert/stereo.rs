@@ -6,6 +6,7 @@
 
 use super::image::{image_from_proto, image_to_proto, ImageLimits};
 use super::mvs::{canonical_sgm, canonicalize_cost, cost_of, sgm_of};
+use super::outputs::{Delivery, OutputField, OutputSelection, Quantity};
 use super::tof::{intrinsics_from_proto, intrinsics_to_proto};
 use crate::service::proto::v1 as pb;
 use murk::atmosphere::AtmosphereParams;
@@ -31,6 +32,40 @@ pub struct StereoInput {
     pub wire_kind: pb::CostVolumeKind,
     /// Whether the result carries the point cloud.
     pub return_points: bool,
+    /// The result images asked for, and their encoding.
+    pub outputs: OutputSelection,
+}
+
+/// The image fields of `RectifiedStereoResult`, in message order.
+pub const STEREO_OUTPUTS: &[OutputField] = &[
+    // In the baseline's unit, which the server does not know: quantised on its own range.
+    OutputField {
+        name: "z_depth",
+        quantity: Quantity::Unbounded,
+    },
+    OutputField {
+        name: "disparity",
+        quantity: Quantity::Unbounded,
+    },
+    OutputField {
+        name: "confidence",
+        quantity: Quantity::UnitInterval,
+    },
+];
+
+/// The result images and encoding a rectified-stereo request asks for; errors name `fields[i]`
+/// or `encoding` (callers prefix `outputs`). A session's compact default is the z-depth and the
+/// confidence.
+pub fn stereo_outputs_from_proto(
+    outputs: Option<&pb::OutputOptions>,
+    delivery: Delivery,
+) -> Result<OutputSelection> {
+    OutputSelection::from_proto(
+        outputs,
+        STEREO_OUTPUTS,
+        &["z_depth", "confidence"],
+        delivery,
+    )
 }
 
 impl StereoInput {
@@ -101,6 +136,10 @@ pub fn canonicalize_stereo_request(req: &mut pb::RectifiedStereoRequest) {
     if req.right_cx.is_none() {
         req.right_cx = req.intrinsics.as_ref().map(|k| k.cx);
     }
+    // An invalid selection is left as sent, for validation to reject.
+    if let Ok(sel) = stereo_outputs_from_proto(req.outputs.as_ref(), Delivery::OneShot) {
+        req.outputs = Some(sel.to_proto());
+    }
 }
 
 /// A rectified-stereo request's settings, validated for frames of one size: everything but the
@@ -117,16 +156,19 @@ pub struct StereoConfig {
     pub wire_kind: pb::CostVolumeKind,
     /// Whether results carry the point cloud.
     pub return_points: bool,
+    /// The result images asked for, and their encoding (`delivery`'s defaults resolved).
+    pub outputs: OutputSelection,
 }
 
 impl StereoConfig {
-    /// Validates `req`'s settings (its images are ignored) for `width × height` pairs. Errors
-    /// name `intrinsics.…`, `baseline`, `right_cx`, the range's fields, `num_planes`,
-    /// `cost_volume`, `airlight`, `beta` or `sgm.…`.
+    /// Validates `req`'s settings (its images are ignored) for `width × height` pairs delivered
+    /// to `delivery`. Errors name `intrinsics.…`, `baseline`, `right_cx`, the range's fields,
+    /// `num_planes`, `cost_volume`, `airlight`, `beta`, `sgm.…` or `outputs.…`.
     pub fn from_proto(
         req: &pb::RectifiedStereoRequest,
         width: usize,
         height: usize,
+        delivery: Delivery,
     ) -> Result<Self> {
         let (wire_kind, cost) = cost_of(req.cost_volume, req.airlight, req.beta)?;
         let k = req
@@ -179,6 +221,8 @@ impl StereoConfig {
             },
             wire_kind,
             return_points: req.return_points,
+            outputs: stereo_outputs_from_proto(req.outputs.as_ref(), delivery)
+                .map_err(|e| e.within("outputs"))?,
         })
     }
 
@@ -209,6 +253,7 @@ impl StereoConfig {
             options: self.options,
             wire_kind: self.wire_kind,
             return_points: self.return_points,
+            outputs: self.outputs.clone(),
         })
     }
 }
@@ -237,10 +282,10 @@ pub fn stereo_from_proto(
     let declared = req.left.as_ref().map_or((2, 2), |i| {
         ((i.width as usize).max(2), (i.height as usize).max(2))
     });
-    StereoConfig::from_proto(req, declared.0, declared.1)?;
+    StereoConfig::from_proto(req, declared.0, declared.1, Delivery::OneShot)?;
     let (left, right) = stereo_images_from_proto(req.left.as_ref(), req.right.as_ref(), limits)?;
     let (w, h) = left.dims();
-    StereoConfig::from_proto(req, w, h)?.with_images(left, right)
+    StereoConfig::from_proto(req, w, h, Delivery::OneShot)?.with_images(left, right)
 }
 
 /// A request for a pair (clients: CLI, tests). Images travel as raw f32; `atmosphere` `None`
@@ -286,12 +331,13 @@ pub fn stereo_to_proto(
     out: &RectifiedDepth,
     points: &[ColoredPoint],
     compute_seconds: f64,
-) -> pb::RectifiedStereoResult {
+) -> Result<pb::RectifiedStereoResult> {
     let planes = out.planes;
-    pb::RectifiedStereoResult {
-        z_depth: Some(image_to_proto(&out.depth.z_depth)),
-        disparity: Some(image_to_proto(&out.disparity)),
-        confidence: Some(image_to_proto(&out.depth.confidence)),
+    let outputs = &input.outputs;
+    Ok(pb::RectifiedStereoResult {
+        z_depth: outputs.encode("z_depth", &out.depth.z_depth)?,
+        disparity: outputs.encode("disparity", &out.disparity)?,
+        confidence: outputs.encode("confidence", &out.depth.confidence)?,
         points: input.return_points.then(|| points_to_proto(points)),
         near: planes.near,
         far: planes.far,
@@ -304,7 +350,7 @@ pub fn stereo_to_proto(
         vignetting_falloff: out.depth.vignetting_falloff,
         right_falloff: out.depth.source_falloffs.first().copied().unwrap_or(0.0),
         warnings: out.depth.warnings.clone(),
-    }
+    })
 }
 
 /// Points for the wire: interleaved little-endian f32 positions and 8-bit colours.
@@ -397,7 +443,7 @@ mod tests {
         assert_eq!(input.options.cost, CostKind::Ordinary);
         assert_eq!(input.options.num_planes, Some(12));
         let (out, points) = input.estimate(&Monitor::noop()).unwrap();
-        let wire = stereo_to_proto(&input, &out, &points, 0.1);
+        let wire = stereo_to_proto(&input, &out, &points, 0.1).unwrap();
         assert_eq!(wire.num_planes, 12);
         assert!((wire.min_disparity_px - 1.0).abs() < 1e-4);
         assert!((wire.max_disparity_px - 12.0).abs() < 1e-4);

@@ -1,20 +1,94 @@
 //! `TofDepthRequest` → ([`TofInput`], [`TofParams`]) and [`TofOutput`] → `TofDepthResult`.
 
 use super::image::{image_to_proto, mono_image_from_proto, ImageLimits};
+use super::outputs::{Delivery, Encoding, OutputField, OutputSelection, Quantity};
 use crate::service::proto::v1 as pb;
 use murk::camera::Intrinsics;
 use murk::error::{MurkError, Result};
 use murk::image::ImageF32;
 use murk::tof::{
-    BilateralParams, IrlsChannelParams, PriorCoupling, ScatterChannels, TofInput, TofOutput,
-    TofParams,
+    unmeasured_range_std_m, BilateralParams, IrlsChannelParams, PriorCoupling, ScatterChannels,
+    TofInput, TofOutput, TofParams,
 };
 
-/// Decodes and fully validates a ToF request. Field names are relative to `TofDepthRequest`.
+/// The image fields of `TofDepthResult`, in message order.
+pub const TOF_OUTPUTS: &[OutputField] = &[
+    OutputField {
+        name: "range_m",
+        quantity: Quantity::Metres,
+    },
+    OutputField {
+        name: "z_depth_m",
+        quantity: Quantity::Metres,
+    },
+    OutputField {
+        name: "raw_range_m",
+        quantity: Quantity::Metres,
+    },
+    OutputField {
+        name: "mask",
+        quantity: Quantity::UnitInterval,
+    },
+    OutputField {
+        name: "scatter_amplitude",
+        quantity: Quantity::Unbounded,
+    },
+    OutputField {
+        name: "scatter_phase",
+        quantity: Quantity::Radians,
+    },
+    OutputField {
+        name: "weight_amplitude",
+        quantity: Quantity::UnitInterval,
+    },
+    OutputField {
+        name: "weight_phase",
+        quantity: Quantity::UnitInterval,
+    },
+    OutputField {
+        name: "corrected_amplitude",
+        quantity: Quantity::Unbounded,
+    },
+    OutputField {
+        name: "corrected_phase",
+        quantity: Quantity::Radians,
+    },
+    OutputField {
+        name: "raw_z_depth_m",
+        quantity: Quantity::Metres,
+    },
+    OutputField {
+        name: "range_std_m",
+        quantity: Quantity::Metres,
+    },
+];
+
+/// The result images and encoding a ToF request asks for; errors name `outputs.…`. A session's
+/// compact default is the z-depth (the range without intrinsics), the mask and `range_std_m`.
+pub fn tof_outputs_from_proto(
+    req: &pb::TofDepthRequest,
+    delivery: Delivery,
+) -> Result<OutputSelection> {
+    let depth = if req.intrinsics.is_some() {
+        "z_depth_m"
+    } else {
+        "range_m"
+    };
+    OutputSelection::from_proto(
+        req.outputs.as_ref(),
+        TOF_OUTPUTS,
+        &[depth, "mask", "range_std_m"],
+        delivery,
+    )
+    .map_err(|e| e.within("outputs"))
+}
+
+/// Decodes and fully validates a one-shot ToF request: the input, the parameters and the
+/// outputs asked for. Field names are relative to `TofDepthRequest`.
 pub fn tof_from_proto(
     req: &pb::TofDepthRequest,
     limits: &ImageLimits,
-) -> Result<(TofInput, TofParams)> {
+) -> Result<(TofInput, TofParams, OutputSelection)> {
     let (amplitude, phase) =
         tof_images_from_proto(req.amplitude.as_ref(), req.phase.as_ref(), limits)?;
     let intrinsics = req.intrinsics.as_ref().map(intrinsics_from_proto);
@@ -26,7 +100,8 @@ pub fn tof_from_proto(
     input.validate()?;
     let (w, h) = input.amplitude.dims();
     let params = tof_params_from_proto(req, w, h)?;
-    Ok((input, params))
+    let outputs = tof_outputs_from_proto(req, Delivery::OneShot)?;
+    Ok((input, params, outputs))
 }
 
 /// Decodes the amplitude and phase images of a request or a frame (one channel each); errors
@@ -198,24 +273,57 @@ pub fn tof_request_to_proto(
         intrinsics: intrinsics.map(intrinsics_to_proto),
         options: None,
         light_position_m: light_position_m.map(|[x, y, z]| pb::Vector3 { x, y, z }),
+        outputs: None,
     }
 }
 
-/// Encodes the method's output for the wire.
-pub fn tof_to_proto(out: &TofOutput) -> pb::TofDepthResult {
-    pb::TofDepthResult {
-        range_m: Some(image_to_proto(&out.range_m)),
-        z_depth_m: out.z_depth_m.as_ref().map(image_to_proto),
-        raw_range_m: Some(image_to_proto(&out.raw_range_m)),
-        raw_z_depth_m: out.raw_z_depth_m.as_ref().map(image_to_proto),
-        mask: Some(image_to_proto(&out.mask)),
-        scatter_amplitude: Some(image_to_proto(&out.scatter_amplitude)),
-        scatter_phase: Some(image_to_proto(&out.scatter_phase)),
-        weight_amplitude: Some(image_to_proto(&out.weight_amplitude)),
-        weight_phase: Some(image_to_proto(&out.weight_phase)),
-        corrected_amplitude: Some(image_to_proto(&out.corrected_amplitude)),
-        corrected_phase: Some(image_to_proto(&out.corrected_phase)),
-        range_std_m: Some(image_to_proto(&out.range_std_m)),
-        warnings: out.warnings.clone(),
+/// `depth` with 0 ("no measurement") where `range_std_m` is at its cap `unmeasured`.
+fn without_unmeasured(depth: &ImageF32, range_std_m: &ImageF32, unmeasured: f32) -> ImageF32 {
+    let mut out = depth.clone();
+    for (d, &s) in out.data_mut().iter_mut().zip(range_std_m.data()) {
+        if s >= unmeasured {
+            *d = 0.0;
+        }
     }
+    out
+}
+
+/// Encodes the images of the method's output (computed with `params`) that `outputs` selects.
+/// In PNG, as in a ROS depth image, the corrected range and z-depth are 0 where the pixel has no
+/// measurement (see `ImageEncoding` in common.proto).
+pub fn tof_to_proto(
+    out: &TofOutput,
+    params: &TofParams,
+    outputs: &OutputSelection,
+) -> Result<pb::TofDepthResult> {
+    let image = |name: &str, img: &ImageF32| outputs.encode(name, img);
+    let depth = |name: &str, img: &ImageF32| {
+        if outputs.encoding() == Encoding::Png && outputs.wants(name) {
+            let unmeasured = unmeasured_range_std_m(params.modulation_frequency_hz);
+            outputs.encode(name, &without_unmeasured(img, &out.range_std_m, unmeasured))
+        } else {
+            outputs.encode(name, img)
+        }
+    };
+    Ok(pb::TofDepthResult {
+        range_m: depth("range_m", &out.range_m)?,
+        z_depth_m: out
+            .z_depth_m
+            .as_ref()
+            .map_or(Ok(None), |z| depth("z_depth_m", z))?,
+        raw_range_m: image("raw_range_m", &out.raw_range_m)?,
+        raw_z_depth_m: out
+            .raw_z_depth_m
+            .as_ref()
+            .map_or(Ok(None), |z| image("raw_z_depth_m", z))?,
+        mask: image("mask", &out.mask)?,
+        scatter_amplitude: image("scatter_amplitude", &out.scatter_amplitude)?,
+        scatter_phase: image("scatter_phase", &out.scatter_phase)?,
+        weight_amplitude: image("weight_amplitude", &out.weight_amplitude)?,
+        weight_phase: image("weight_phase", &out.weight_phase)?,
+        corrected_amplitude: image("corrected_amplitude", &out.corrected_amplitude)?,
+        corrected_phase: image("corrected_phase", &out.corrected_phase)?,
+        range_std_m: image("range_std_m", &out.range_std_m)?,
+        warnings: out.warnings.clone(),
+    })
 }

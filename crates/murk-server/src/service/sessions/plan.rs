@@ -5,7 +5,8 @@ use std::time::Duration;
 
 use crate::service::convert::{
     intrinsics_from_proto, stereo_images_from_proto, stereo_to_proto, tof_images_from_proto,
-    tof_params_from_proto, tof_to_proto, ImageLimits, StereoConfig,
+    tof_outputs_from_proto, tof_params_from_proto, tof_to_proto, Delivery, ImageLimits,
+    OutputSelection, StereoConfig,
 };
 use crate::service::proto::v1 as pb;
 use murk::camera::Intrinsics;
@@ -19,12 +20,23 @@ pub const MAX_QUEUED_FRAMES: u32 = 64;
 /// Longest accepted frame id, bytes.
 pub const MAX_FRAME_ID_BYTES: usize = 256;
 
+/// A ToF session's settings, validated for its frame size; each frame brings amplitude and
+/// phase.
+#[derive(Clone, Debug)]
+pub struct TofSettings {
+    /// The method's parameters.
+    pub params: TofParams,
+    /// The camera's intrinsics, when given.
+    pub intrinsics: Option<Intrinsics>,
+    /// The result images each frame returns, and their encoding.
+    pub outputs: OutputSelection,
+}
+
 /// What a session computes.
 #[derive(Clone, Debug)]
 pub enum SessionMethod {
-    /// ToF: the parameters and intrinsics, validated for the session's frame size; each frame
-    /// brings amplitude and phase.
-    Tof(Box<(TofParams, Option<Intrinsics>)>),
+    /// ToF depth in fog.
+    Tof(Box<TofSettings>),
     /// Rectified stereo, its settings validated for the session's frame size.
     Stereo(Box<StereoConfig>),
 }
@@ -98,8 +110,14 @@ impl SessionPlan {
                     ));
                 }
                 let params = tof_params_from_proto(t, w, h).map_err(|e| e.within("tof"))?;
+                let outputs =
+                    tof_outputs_from_proto(t, Delivery::Session).map_err(|e| e.within("tof"))?;
                 let intrinsics = t.intrinsics.as_ref().map(intrinsics_from_proto);
-                SessionMethod::Tof(Box::new((params, intrinsics)))
+                SessionMethod::Tof(Box::new(TofSettings {
+                    params,
+                    intrinsics,
+                    outputs,
+                }))
             }
             Some(pb::session_config::Method::Stereo(s)) => {
                 if s.left.is_some() || s.right.is_some() {
@@ -108,7 +126,8 @@ impl SessionPlan {
                         "the images come with each frame; leave them unset in the configuration",
                     ));
                 }
-                let config = StereoConfig::from_proto(s, w, h).map_err(|e| e.within("stereo"))?;
+                let config = StereoConfig::from_proto(s, w, h, Delivery::Session)
+                    .map_err(|e| e.within("stereo"))?;
                 SessionMethod::Stereo(Box::new(config))
             }
         };
@@ -180,7 +199,6 @@ impl SessionPlan {
         }
         match &self.method {
             SessionMethod::Tof(settings) => {
-                let (params, intrinsics) = &**settings;
                 let (amplitude, phase) =
                     tof_images_from_proto(frame.amplitude.as_ref(), frame.phase.as_ref(), limits)?;
                 if amplitude.dims() != self.dims {
@@ -197,12 +215,16 @@ impl SessionPlan {
                 let input = TofInput {
                     amplitude,
                     phase,
-                    intrinsics: *intrinsics,
+                    intrinsics: settings.intrinsics,
                 };
                 input.validate()?;
-                let out = estimate_tof_depth(&input, params, monitor)?;
+                let out = estimate_tof_depth(&input, &settings.params, monitor)?;
                 Ok((
-                    pb::frame_result::Outcome::Tof(tof_to_proto(&out)),
+                    pb::frame_result::Outcome::Tof(tof_to_proto(
+                        &out,
+                        &settings.params,
+                        &settings.outputs,
+                    )?),
                     Vec::new(),
                 ))
             }
@@ -237,7 +259,7 @@ impl SessionPlan {
                         &tracked.depth,
                         &points,
                         seconds,
-                    )),
+                    )?),
                     warnings,
                 ))
             }

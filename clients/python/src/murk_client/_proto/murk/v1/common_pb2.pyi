@@ -19,6 +19,61 @@ else:
 
 DESCRIPTOR: _descriptor.FileDescriptor
 
+class _ImageEncoding:
+    ValueType = _typing.NewType("ValueType", _builtins.int)
+    V: _TypeAlias = ValueType  # noqa: Y015
+
+class _ImageEncodingEnumTypeWrapper(_enum_type_wrapper._EnumTypeWrapper[_ImageEncoding.ValueType], _builtins.type):
+    DESCRIPTOR: _descriptor.EnumDescriptor
+    IMAGE_ENCODING_UNSPECIFIED: _ImageEncoding.ValueType  # 0
+    IMAGE_ENCODING_F32: _ImageEncoding.ValueType  # 1
+    """raw_f32_le: exact, 4 bytes a sample."""
+    IMAGE_ENCODING_F16: _ImageEncoding.ValueType  # 2
+    """raw_f16_le: 2 bytes a sample, relative error at most 2^-11 (a range of 5 m to within
+    2.5 mm).
+    """
+    IMAGE_ENCODING_PNG: _ImageEncoding.ValueType  # 3
+    """encoded: a lossless greyscale PNG of the quantised values, decoded by the rules above
+    (value_offset + value_scale * v / (2^bits - 1)). The steps:
+    - metres: 16-bit whole millimetres (value_scale 65.535), the u16-millimetre convention of
+      ROS depth images (REP 118), while the image fits in [0, 65.535] m;
+    - masks, IRLS weights and confidences: 8-bit on [0, 1] (steps of 1/255; masks exact);
+    - phases: 16-bit on [0, 2*pi];
+    - anything else (and a metre image that does not fit): 16-bit over the image's own
+      [min, max].
+    The error is at most half a step. As in a ROS depth image, 0 m means "no measurement": a
+    ToF pixel whose range_std_m is at its cap (the direct return no stronger than the noise,
+    so the corrected range there is a guess) has range_m and z_depth_m 0.
+    """
+
+class ImageEncoding(_ImageEncoding, metaclass=_ImageEncodingEnumTypeWrapper):
+    """How a result image is encoded. Every encoding is an ordinary Image that decodes with the
+    rules above, so a client needs no setting to read it. An image the chosen encoding cannot
+    carry (a non-finite sample for PNG, a magnitude beyond 65504 for F16) is sent as F32.
+    """
+
+IMAGE_ENCODING_UNSPECIFIED: ImageEncoding.ValueType  # 0
+IMAGE_ENCODING_F32: ImageEncoding.ValueType  # 1
+"""raw_f32_le: exact, 4 bytes a sample."""
+IMAGE_ENCODING_F16: ImageEncoding.ValueType  # 2
+"""raw_f16_le: 2 bytes a sample, relative error at most 2^-11 (a range of 5 m to within
+2.5 mm).
+"""
+IMAGE_ENCODING_PNG: ImageEncoding.ValueType  # 3
+"""encoded: a lossless greyscale PNG of the quantised values, decoded by the rules above
+(value_offset + value_scale * v / (2^bits - 1)). The steps:
+- metres: 16-bit whole millimetres (value_scale 65.535), the u16-millimetre convention of
+  ROS depth images (REP 118), while the image fits in [0, 65.535] m;
+- masks, IRLS weights and confidences: 8-bit on [0, 1] (steps of 1/255; masks exact);
+- phases: 16-bit on [0, 2*pi];
+- anything else (and a metre image that does not fit): 16-bit over the image's own
+  [min, max].
+The error is at most half a step. As in a ROS depth image, 0 m means "no measurement": a
+ToF pixel whose range_std_m is at its cap (the direct return no stronger than the noise,
+so the corrected range there is a guess) has range_m and z_depth_m 0.
+"""
+Global___ImageEncoding: _TypeAlias = ImageEncoding  # noqa: Y015
+
 class _Transfer:
     ValueType = _typing.NewType("ValueType", _builtins.int)
     V: _TypeAlias = ValueType  # noqa: Y015
@@ -37,10 +92,10 @@ Global___Transfer: _TypeAlias = Transfer  # noqa: Y015
 
 @_typing.final
 class Image(_message.Message):
-    """An image. Exactly one of `encoded` / `raw_f32_le` carries the pixels.
+    """An image. Exactly one of `encoded` / `raw_f32_le` / `raw_f16_le` carries the pixels.
 
     Sample values: integer formats (PNG 8/16-bit, integer TIFF) decode to [0, 1]
-    (v / 255 or v / 65535); EXR and float TIFF decode as stored; raw f32 as sent.
+    (v / 255 or v / 65535); EXR and float TIFF decode as stored; raw f32 and f16 as sent.
     The decoded value is then mapped to `value_offset + value_scale * v`, so a client
     can send e.g. a 16-bit PNG phase image with value_scale = 2*pi (radians).
     """
@@ -52,6 +107,7 @@ class Image(_message.Message):
     CHANNELS_FIELD_NUMBER: _builtins.int
     ENCODED_FIELD_NUMBER: _builtins.int
     RAW_F32_LE_FIELD_NUMBER: _builtins.int
+    RAW_F16_LE_FIELD_NUMBER: _builtins.int
     VALUE_SCALE_FIELD_NUMBER: _builtins.int
     VALUE_OFFSET_FIELD_NUMBER: _builtins.int
     TRANSFER_FIELD_NUMBER: _builtins.int
@@ -68,6 +124,10 @@ class Image(_message.Message):
     raw_f32_le: _builtins.bytes
     """Raw little-endian IEEE-754 f32 samples, planar: all of channel 0 row-major,
     then channel 1, ... (width * height * channels * 4 bytes).
+    """
+    raw_f16_le: _builtins.bytes
+    """Raw little-endian IEEE-754 binary16 (half) samples, planar as raw_f32_le
+    (width * height * channels * 2 bytes).
     """
     value_scale: _builtins.float
     """Affine mapping applied after decoding; 0 means 1."""
@@ -87,19 +147,56 @@ class Image(_message.Message):
         channels: _builtins.int = ...,
         encoded: _builtins.bytes = ...,
         raw_f32_le: _builtins.bytes = ...,
+        raw_f16_le: _builtins.bytes = ...,
         value_scale: _builtins.float = ...,
         value_offset: _builtins.float = ...,
         transfer: Global___Transfer.ValueType = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _typing.Literal["data", b"data", "encoded", b"encoded", "raw_f32_le", b"raw_f32_le"]  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["data", b"data", "encoded", b"encoded", "raw_f16_le", b"raw_f16_le", "raw_f32_le", b"raw_f32_le"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["channels", b"channels", "data", b"data", "encoded", b"encoded", "height", b"height", "raw_f32_le", b"raw_f32_le", "transfer", b"transfer", "value_offset", b"value_offset", "value_scale", b"value_scale", "width", b"width"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["channels", b"channels", "data", b"data", "encoded", b"encoded", "height", b"height", "raw_f16_le", b"raw_f16_le", "raw_f32_le", b"raw_f32_le", "transfer", b"transfer", "value_offset", b"value_offset", "value_scale", b"value_scale", "width", b"width"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
-    _WhichOneofReturnType_data: _TypeAlias = _typing.Literal["encoded", "raw_f32_le"]  # noqa: Y015
+    _WhichOneofReturnType_data: _TypeAlias = _typing.Literal["encoded", "raw_f32_le", "raw_f16_le"]  # noqa: Y015
     _WhichOneofArgType_data: _TypeAlias = _typing.Literal["data", b"data"]  # noqa: Y015
     def WhichOneof(self, oneof_group: _WhichOneofArgType_data) -> _WhichOneofReturnType_data | None: ...
 
 Global___Image: _TypeAlias = Image  # noqa: Y015
+
+@_typing.final
+class OutputOptions(_message.Message):
+    """Which images a result carries and how they are encoded."""
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    FIELDS_FIELD_NUMBER: _builtins.int
+    ENCODING_FIELD_NUMBER: _builtins.int
+    encoding: Global___ImageEncoding.ValueType
+    """How the returned images are encoded. UNSPECIFIED = F32 in one-shot results, PNG in sensor
+    sessions.
+    """
+    @_builtins.property
+    def fields(self) -> _containers.RepeatedScalarFieldContainer[_builtins.str]:
+        """The result's image fields to return, by their names in the result message (e.g.
+        "z_depth_m", "mask", "range_std_m" of TofDepthResult); each at most once. An unknown name is
+        INVALID_ARGUMENT naming `outputs.fields[i]`. A field the method does not produce for this
+        request (z_depth_m without intrinsics) is left unset. Empty = the default set: every image
+        in one-shot results, the compact set in sensor sessions (the depth or range, the mask and
+        the confidence or range_std_m).
+        """
+
+    def __init__(
+        self,
+        *,
+        fields: _abc.Iterable[_builtins.str] | None = ...,
+        encoding: Global___ImageEncoding.ValueType = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["encoding", b"encoding", "fields", b"fields"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___OutputOptions: _TypeAlias = OutputOptions  # noqa: Y015
 
 @_typing.final
 class CameraIntrinsics(_message.Message):

@@ -136,12 +136,14 @@ class SessionConfig(_message.Message):
     """
     @_builtins.property
     def tof(self) -> _tof_pb2.TofDepthRequest:
-        """ToF depth in fog: modulation_frequency_hz, intrinsics, light_position_m, options."""
+        """ToF depth in fog: modulation_frequency_hz, intrinsics, light_position_m, options,
+        outputs (default: z_depth_m, or range_m without intrinsics, mask and range_std_m).
+        """
 
     @_builtins.property
     def stereo(self) -> _stereo_pb2.RectifiedStereoRequest:
         """Rectified stereo in haze: intrinsics, baseline, right_cx, the search range, airlight,
-        beta, cost_volume, sgm, return_points.
+        beta, cost_volume, sgm, return_points, outputs (default: z_depth and confidence).
         """
 
     def __init__(

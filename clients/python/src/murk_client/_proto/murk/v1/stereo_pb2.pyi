@@ -53,6 +53,7 @@ class RectifiedStereoRequest(_message.Message):
     COST_VOLUME_FIELD_NUMBER: _builtins.int
     SGM_FIELD_NUMBER: _builtins.int
     RETURN_POINTS_FIELD_NUMBER: _builtins.int
+    OUTPUTS_FIELD_NUMBER: _builtins.int
     baseline: _builtins.float
     """Distance of the right camera's centre along the left camera's +x axis, finite and > 0
     (ROS: -P[3] / P[0] of the right CameraInfo's projection matrix). Required.
@@ -103,6 +104,13 @@ class RectifiedStereoRequest(_message.Message):
     def sgm(self) -> _mvs_pb2.SgmOptions:
         """Optional overrides of the aggregation parameters; unset fields keep murk's defaults."""
 
+    @_builtins.property
+    def outputs(self) -> _common_pb2.OutputOptions:
+        """Optional: which images the result carries ("z_depth", "disparity", "confidence") and their
+        encoding (default: all three, F32; in a sensor session: z_depth and confidence as PNG).
+        The point cloud is governed by return_points alone.
+        """
+
     def __init__(
         self,
         *,
@@ -121,10 +129,11 @@ class RectifiedStereoRequest(_message.Message):
         cost_volume: _mvs_pb2.CostVolumeKind.ValueType = ...,
         sgm: _mvs_pb2.SgmOptions | None = ...,
         return_points: _builtins.bool = ...,
+        outputs: _common_pb2.OutputOptions | None = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _typing.Literal["_max_disparity_px", b"_max_disparity_px", "_min_disparity_px", b"_min_disparity_px", "_right_cx", b"_right_cx", "intrinsics", b"intrinsics", "left", b"left", "max_disparity_px", b"max_disparity_px", "min_disparity_px", b"min_disparity_px", "right", b"right", "right_cx", b"right_cx", "sgm", b"sgm"]  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["_max_disparity_px", b"_max_disparity_px", "_min_disparity_px", b"_min_disparity_px", "_right_cx", b"_right_cx", "intrinsics", b"intrinsics", "left", b"left", "max_disparity_px", b"max_disparity_px", "min_disparity_px", b"min_disparity_px", "outputs", b"outputs", "right", b"right", "right_cx", b"right_cx", "sgm", b"sgm"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["_max_disparity_px", b"_max_disparity_px", "_min_disparity_px", b"_min_disparity_px", "_right_cx", b"_right_cx", "airlight", b"airlight", "baseline", b"baseline", "beta", b"beta", "cost_volume", b"cost_volume", "far", b"far", "intrinsics", b"intrinsics", "left", b"left", "max_disparity_px", b"max_disparity_px", "min_disparity_px", b"min_disparity_px", "near", b"near", "num_planes", b"num_planes", "return_points", b"return_points", "right", b"right", "right_cx", b"right_cx", "sgm", b"sgm"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["_max_disparity_px", b"_max_disparity_px", "_min_disparity_px", b"_min_disparity_px", "_right_cx", b"_right_cx", "airlight", b"airlight", "baseline", b"baseline", "beta", b"beta", "cost_volume", b"cost_volume", "far", b"far", "intrinsics", b"intrinsics", "left", b"left", "max_disparity_px", b"max_disparity_px", "min_disparity_px", b"min_disparity_px", "near", b"near", "num_planes", b"num_planes", "outputs", b"outputs", "return_points", b"return_points", "right", b"right", "right_cx", b"right_cx", "sgm", b"sgm"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     _WhichOneofReturnType__max_disparity_px: _TypeAlias = _typing.Literal["max_disparity_px"]  # noqa: Y015
     _WhichOneofArgType__max_disparity_px: _TypeAlias = _typing.Literal["_max_disparity_px", b"_max_disparity_px"]  # noqa: Y015
@@ -143,7 +152,9 @@ Global___RectifiedStereoRequest: _TypeAlias = RectifiedStereoRequest  # noqa: Y0
 
 @_typing.final
 class RectifiedStereoResult(_message.Message):
-    """Outputs are one-channel raw f32 images of the left image's size."""
+    """Outputs are one-channel images of the left image's size, raw f32 unless the request's
+    `outputs` chose other images or another encoding (an image not chosen is unset).
+    """
 
     DESCRIPTOR: _descriptor.Descriptor
 

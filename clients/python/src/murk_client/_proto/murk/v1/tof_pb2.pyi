@@ -57,6 +57,7 @@ class TofDepthRequest(_message.Message):
     INTRINSICS_FIELD_NUMBER: _builtins.int
     OPTIONS_FIELD_NUMBER: _builtins.int
     LIGHT_POSITION_M_FIELD_NUMBER: _builtins.int
+    OUTPUTS_FIELD_NUMBER: _builtins.int
     modulation_frequency_hz: _builtins.float
     """Modulation frequency in Hz (> 0), e.g. 16e6."""
     @_builtins.property
@@ -83,6 +84,13 @@ class TofDepthRequest(_message.Message):
         up to half the baseline). Requires intrinsics.
         """
 
+    @_builtins.property
+    def outputs(self) -> _common_pb2.OutputOptions:
+        """Optional: which images the result carries and their encoding (default: every image, F32;
+        in a sensor session: z_depth_m (range_m without intrinsics), mask and range_std_m as
+        PNG).
+        """
+
     def __init__(
         self,
         *,
@@ -92,10 +100,11 @@ class TofDepthRequest(_message.Message):
         intrinsics: _common_pb2.CameraIntrinsics | None = ...,
         options: Global___TofOptions | None = ...,
         light_position_m: _common_pb2.Vector3 | None = ...,
+        outputs: _common_pb2.OutputOptions | None = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _typing.Literal["amplitude", b"amplitude", "intrinsics", b"intrinsics", "light_position_m", b"light_position_m", "options", b"options", "phase", b"phase"]  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["amplitude", b"amplitude", "intrinsics", b"intrinsics", "light_position_m", b"light_position_m", "options", b"options", "outputs", b"outputs", "phase", b"phase"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["amplitude", b"amplitude", "intrinsics", b"intrinsics", "light_position_m", b"light_position_m", "modulation_frequency_hz", b"modulation_frequency_hz", "options", b"options", "phase", b"phase"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["amplitude", b"amplitude", "intrinsics", b"intrinsics", "light_position_m", b"light_position_m", "modulation_frequency_hz", b"modulation_frequency_hz", "options", b"options", "outputs", b"outputs", "phase", b"phase"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
@@ -322,7 +331,9 @@ Global___BilateralOptions: _TypeAlias = BilateralOptions  # noqa: Y015
 
 @_typing.final
 class TofDepthResult(_message.Message):
-    """Outputs are one-channel raw f32 images of the input size."""
+    """Outputs are one-channel images of the input size, raw f32 unless the request's `outputs`
+    chose other images or another encoding (an image not chosen is unset).
+    """
 
     DESCRIPTOR: _descriptor.Descriptor
 
