@@ -8,13 +8,14 @@ use clap::{Args, Subcommand};
 use murk::simulate::mvs::{simulate_mvs, write_mvs_scene, MvsSimConfig};
 use murk::simulate::ps::{simulate_ps, write_ps_capture, PsShape, PsSimConfig};
 use murk::simulate::tof::{simulate_tof, FogPreset, TofSimConfig};
-use murk::simulate::write_tof_frame;
+use murk::simulate::{simulate_tof_sequence_frame, write_tof_frame, TofMotion};
 use murk::Monitor;
 
 /// What to simulate.
 #[derive(Subcommand, Debug)]
 pub enum SimulateCommand {
-    /// A foggy CW-ToF frame with ground truth (amplitude, phase, GT range, mask, scatter).
+    /// A foggy CW-ToF frame with ground truth (amplitude, phase, GT range, mask, scatter), or
+    /// with --frames a sequence of them while objects move and the fog drifts.
     Tof(SimTofArgs),
     /// A hazy multi-view scene with ground truth (hazy + clear images, GT depth, COLMAP model).
     Mvs(SimMvsArgs),
@@ -144,6 +145,67 @@ pub struct SimTofArgs {
     /// large near sphere occluding a panel, plus 1–2 objects).
     #[arg(long, default_value = "separated")]
     pub layout: String,
+    /// Render a sequence of this many frames into OUT/frame_0000, OUT/frame_0001, ... (each in
+    /// the one-frame layout, with its ground truth): objects move, the fog drifts, and with
+    /// --cut-every the scene changes. `murk tof --sequence OUT` streams it.
+    #[arg(long)]
+    pub frames: Option<usize>,
+    /// Frames per second of the sequence.
+    #[arg(long, default_value_t = 10.0, requires = "frames")]
+    pub fps: f64,
+    /// Fastest an object moves, metres per second (each draws its speed between a third of this
+    /// and this).
+    #[arg(long, default_value_t = 0.3, requires = "frames")]
+    pub max_speed_m_per_s: f64,
+    /// Relative amplitude of the fog's drift in beta (a 10 s sine), in [0, 0.9].
+    #[arg(long, default_value_t = 0.1, requires = "frames")]
+    pub fog_drift: f64,
+    /// A new scene (the next seed's layout) every this many frames.
+    #[arg(long, requires = "frames")]
+    pub cut_every: Option<usize>,
+}
+
+/// `murk simulate tof --frames N`: the sequence's frames, rendered in turn.
+fn simulate_tof_sequence(a: &SimTofArgs, cfg: &TofSimConfig, frames: usize) -> anyhow::Result<()> {
+    if frames == 0 {
+        anyhow::bail!("--frames must be at least 1");
+    }
+    let motion = TofMotion {
+        frame_rate_hz: a.fps,
+        max_speed_m_per_s: a.max_speed_m_per_s,
+        fog_drift: a.fog_drift,
+        cut_every: a.cut_every,
+        ..TofMotion::default()
+    };
+    motion.validate()?;
+    let mut cuts = Vec::new();
+    for index in 0..frames {
+        let frame = simulate_tof_sequence_frame(cfg, &motion, index, &Monitor::noop())?;
+        let dir = a.out.join(format!("frame_{index:04}"));
+        write_tof_frame(&dir, &frame).with_context(|| format!("writing {}", dir.display()))?;
+        if motion.is_cut(index) {
+            cuts.push(index);
+        }
+    }
+    println!(
+        "wrote {frames} frames into {} ({}x{}, {} fps, beta {:.2e}/mm drifting by {:.0} %, \
+         objects up to {} m/s, {} layout, seed {}{})",
+        a.out.display(),
+        a.width,
+        a.height,
+        a.fps,
+        cfg.effective_beta_per_mm(),
+        100.0 * a.fog_drift,
+        a.max_speed_m_per_s,
+        cfg.layout,
+        a.seed,
+        if cuts.is_empty() {
+            String::new()
+        } else {
+            format!("; scene cuts before frames {cuts:?}")
+        }
+    );
+    Ok(())
 }
 
 /// Runs a simulate subcommand.
@@ -158,6 +220,9 @@ pub fn run(cmd: SimulateCommand) -> anyhow::Result<()> {
                 layout: a.layout.parse()?,
                 ..TofSimConfig::with_size(a.width, a.height)
             };
+            if let Some(frames) = a.frames {
+                return simulate_tof_sequence(&a, &cfg, frames);
+            }
             let frame = simulate_tof(&cfg, &Monitor::noop())?;
             write_tof_frame(&a.out, &frame)
                 .with_context(|| format!("writing {}", a.out.display()))?;

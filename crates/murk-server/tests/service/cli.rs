@@ -762,3 +762,57 @@ fn simulate_a_rectified_pair_then_stereo_writes_depth_disparity_and_points() {
     let err = String::from_utf8_lossy(&bad.stderr);
     assert!(err.contains("baseline"), "{err}");
 }
+
+#[test]
+fn a_simulated_tof_sequence_streams_through_a_session() {
+    let dir = tempfile::tempdir().unwrap();
+    let seq = dir.path().join("seq");
+    let out = dir.path().join("out");
+    let said = succeeded(
+        &murk()
+            .args(["simulate", "tof", "--frames", "3", "--cut-every", "2"])
+            .args([
+                "--fog-drift",
+                "0.5",
+                "--width",
+                "64",
+                "--height",
+                "53",
+                "--out",
+            ])
+            .arg(&seq)
+            .output()
+            .unwrap(),
+    );
+    assert!(said.contains("scene cuts before frames [2]"), "{said}");
+    let meta = |k: usize| -> serde_json::Value {
+        let path = seq.join(format!("frame_{k:04}/meta.json"));
+        serde_json::from_slice(&std::fs::read(path).unwrap()).unwrap()
+    };
+    // The fog drifts from frame to frame; after the cut the next seed's scene.
+    assert_ne!(meta(0)["beta_per_mm"], meta(1)["beta_per_mm"]);
+    assert_eq!(meta(0)["config"]["seed"], meta(1)["config"]["seed"]);
+    assert_ne!(meta(1)["config"]["seed"], meta(2)["config"]["seed"]);
+    assert_ne!(meta(0)["scene"], meta(1)["scene"]);
+
+    let said = succeeded(
+        &murk()
+            .env_remove("MURK_SERVER")
+            .args(["tof", "--sequence"])
+            .arg(&seq)
+            .args(["--outputs", "z_depth_m,mask", "--encoding", "png", "--out"])
+            .arg(&out)
+            .output()
+            .unwrap(),
+    );
+    assert!(
+        said.contains("3 frames sent, 3 computed, 0 failed, 0 dropped"),
+        "{said}"
+    );
+    for k in 0..3 {
+        for f in ["z_depth_m.exr", "mask.exr"] {
+            assert!(out.join(format!("frame_{k:04}/{f}")).exists(), "{k}: {f}");
+        }
+        assert!(!out.join(format!("frame_{k:04}/range_m.exr")).exists());
+    }
+}

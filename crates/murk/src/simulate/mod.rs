@@ -31,6 +31,7 @@ pub mod mvs;
 pub mod ps;
 pub mod scene;
 pub mod tof;
+pub mod tof_sequence;
 
 use std::path::Path;
 
@@ -41,6 +42,7 @@ pub use tof::{
     scatter_along_ray, simulate_tof, wrap_phase, FogPreset, Phasor, TofSimConfig, TofSimFrame,
     MAX_SIM_PIXELS, MAX_SIM_SIDE,
 };
+pub use tof_sequence::{simulate_tof_sequence_frame, TofMotion};
 
 use crate::camera::Intrinsics;
 use crate::error::{MurkError, Result};

@@ -589,12 +589,25 @@ fn gaussian_pair(rng: &mut ChaCha8Rng) -> (f64, f64) {
 /// The scene is drawn from `cfg.seed`; the same configuration always gives the identical frame.
 pub fn simulate_tof(cfg: &TofSimConfig, monitor: &Monitor) -> Result<TofSimFrame> {
     cfg.validate()?;
-    monitor.checkpoint()?;
-    let (w, h) = (cfg.width, cfg.height);
     let k = cfg.intrinsics();
     // Stream 0 of the seed lays out the scene; rows' noise uses streams 1 + y.
     let mut scene_rng = ChaCha8Rng::seed_from_u64(cfg.seed);
-    let scene = Scene::generate_layout(cfg.layout, &mut scene_rng, &k, w, h);
+    let scene = Scene::generate_layout(cfg.layout, &mut scene_rng, &k, cfg.width, cfg.height);
+    render_tof(cfg, scene, 0, monitor)
+}
+
+/// Renders `scene` as `cfg`'s camera sees it in `cfg`'s fog; row `y`'s noise comes from stream
+/// `noise_streams + 1 + y` of `cfg.seed`.
+pub(crate) fn render_tof(
+    cfg: &TofSimConfig,
+    scene: Scene,
+    noise_streams: u64,
+    monitor: &Monitor,
+) -> Result<TofSimFrame> {
+    cfg.validate()?;
+    monitor.checkpoint()?;
+    let (w, h) = (cfg.width, cfg.height);
+    let k = cfg.intrinsics();
     let beta_mm = cfg.effective_beta_per_mm();
     let model = Model::new(cfg, &scene, beta_mm);
 
@@ -608,7 +621,7 @@ pub fn simulate_tof(cfg: &TofSimConfig, monitor: &Monitor) -> Result<TofSimFrame
             return;
         }
         let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed);
-        rng.set_stream(1 + y as u64);
+        rng.set_stream(noise_streams.wrapping_add(1 + y as u64));
         for (x, px) in row.iter_mut().enumerate() {
             let d = k.ray(x as f64, y as f64);
             *px = render_pixel(&model, cfg, d, &mut rng);
