@@ -3,14 +3,16 @@
 //! and tests: a stream's results can be scored frame by frame against the truth, and against
 //! one-shot processing of the same frames.
 //!
-//! Frame `k` is a [`simulate_tof`]-style frame at time `t = k / frame_rate_hz`:
+//! Frame `k` is a [`simulate_tof`](super::tof::simulate_tof)-style frame at time
+//! `t = k / frame_rate_hz`:
 //! - the scene is the configured seed's layout, a new one (seed + 1, + 2, ...) after each cut;
 //! - each object moves at its own constant velocity (drawn from the scene's seed, up to
 //!   `max_speed_m_per_s`, mostly across the view) since the scene's first frame;
 //! - β drifts as `β₀·(1 + fog_drift·sin(2π·t / fog_period_s))`;
 //! - the noise is drawn afresh per frame.
 //!
-//! Frame 0 is exactly [`simulate_tof`]'s frame of the same configuration.
+//! Frame 0 is exactly [`simulate_tof`](super::tof::simulate_tof)'s frame of the same
+//! configuration.
 
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
