@@ -694,3 +694,71 @@ async fn a_sessions_default_results_are_compact() {
     drop(s.tx);
     server.stop().await.unwrap();
 }
+
+/// A ToF session starts each frame from the previous frame's answer: a repeated frame gives the
+/// one-shot answer, and a frame of another scene still does, to within the IRLS's convergence
+/// (computed again from scratch, with a warning, when too much of the mask changed).
+#[tokio::test]
+async fn a_tof_session_carries_each_frames_answer_to_the_next() {
+    use murk::image::ImageF32;
+    use murk_server::service::convert::{image_from_proto, ImageLimits};
+
+    let server = start(config(2)).await;
+    let exact = pb::OutputOptions {
+        fields: vec!["range_m".into(), "mask".into()],
+        encoding: pb::ImageEncoding::F32 as i32,
+    };
+    let scenes = [tof_request(96, 80, 3), tof_request(96, 80, 9)];
+    let mut one_shot = Vec::new();
+    for scene in &scenes {
+        let mut req = scene.clone();
+        req.outputs = Some(exact.clone());
+        one_shot.push(recon(&server).tof_depth(req).await.unwrap().into_inner());
+    }
+    let mut template = scenes[0].clone();
+    template.outputs = Some(exact);
+    let (config, first) = tof_session(template, pb::QueuePolicy::Fifo, 4);
+    let (_, second) = tof_session(scenes[1].clone(), pb::QueuePolicy::Fifo, 4);
+    let mut s = open(&server, config_message(config), None).await.unwrap();
+    started(s.event().await);
+    for (k, frame) in [&first, &first, &second].into_iter().enumerate() {
+        s.send_frame(numbered(frame, k as u64 + 1)).await;
+    }
+    let mut results = Vec::new();
+    while results.len() < 3 {
+        match s.event().await {
+            Event::Result(r) => results.push(r),
+            other => panic!("unexpected {other:?}"),
+        }
+    }
+    let mask = |r: &pb::FrameResult| -> ImageF32 {
+        let Some(pb::frame_result::Outcome::Tof(t)) = &r.outcome else {
+            panic!("expected a ToF result, got {:?}", r.outcome);
+        };
+        image_from_proto(t.mask.as_ref().unwrap(), &ImageLimits::default()).unwrap()
+    };
+    let decode = |t: &pb::TofDepthResult| {
+        image_from_proto(t.mask.as_ref().unwrap(), &ImageLimits::default()).unwrap()
+    };
+    for (r, truth) in results
+        .iter()
+        .zip([&one_shot[0], &one_shot[0], &one_shot[1]])
+    {
+        let (got, want) = (mask(r), decode(truth));
+        let differ = got
+            .data()
+            .iter()
+            .zip(want.data())
+            .filter(|(a, b)| a != b)
+            .count();
+        assert!(
+            differ * 100 <= got.data().len(),
+            "frame {}: {differ} mask pixels differ from one-shot",
+            r.sequence
+        );
+    }
+    // The repeated frame starts from its own answer: nothing to warn about.
+    assert!(results[1].warnings.is_empty(), "{:?}", results[1].warnings);
+    drop(s.tx);
+    server.stop().await.unwrap();
+}

@@ -122,6 +122,29 @@ pub struct IrlsOutcome {
     pub fine_converged: bool,
 }
 
+/// Where an IRLS run starts when the previous frame of a stream is a good guess for this one:
+/// its scatter estimate and its final weights. Fog changes slowly and objects move little
+/// between frames, so the coarse level (whose job is to find the objects from "no object") is
+/// skipped and the fine level starts from the previous frame's answer, converging in a few
+/// iterations where a cold start needs tens.
+#[derive(Clone, Debug, PartialEq)]
+pub struct IrlsStart {
+    /// The previous frame's scatter estimate, one image per component.
+    pub scatter: Vec<Vec<f64>>,
+    /// The previous frame's final weights.
+    pub weights: Vec<f64>,
+}
+
+impl IrlsStart {
+    /// The start a finished run leaves for the next frame.
+    pub fn from_outcome(outcome: &IrlsOutcome) -> Self {
+        Self {
+            scatter: outcome.scatter.clone(),
+            weights: outcome.weights.clone(),
+        }
+    }
+}
+
 /// Rounds of the held-out check that follows the coarse level. Algorithm 2 starts from "no
 /// object" (every weight 1), so the first x-step bends over a large near object; where the bend
 /// is enough for some of its blocks to fit, the coarse level accepts them, and the fine level
@@ -274,6 +297,34 @@ pub fn run_irls_vector(
     monitor: &Monitor,
     tick: &(dyn Fn(&str) + Sync),
 ) -> Result<IrlsOutcome> {
+    run_irls_vector_from(
+        observed,
+        noise,
+        sys,
+        priors,
+        cfg,
+        None,
+        stage_prefix,
+        monitor,
+        tick,
+    )
+}
+
+/// [`run_irls_vector`] from `start`, when given: the previous frame's scatter and weights
+/// ([`IrlsStart`]) instead of Algorithm 2's initialisation, with no coarse level and no
+/// held-out check; the fine level measures its scale σ₁ afresh and iterates to convergence.
+#[allow(clippy::too_many_arguments)]
+pub fn run_irls_vector_from(
+    observed: &[&[f64]],
+    noise: Option<NoiseModel>,
+    sys: &XStepSystem,
+    priors: &mut [QuadraticPrior],
+    cfg: &IrlsConfig,
+    start: Option<&IrlsStart>,
+    stage_prefix: &str,
+    monitor: &Monitor,
+    tick: &(dyn Fn(&str) + Sync),
+) -> Result<IrlsOutcome> {
     let n = sys.len();
     let w = sys.width();
     let m = observed.len();
@@ -283,6 +334,9 @@ pub fn run_irls_vector(
         || priors
             .iter()
             .any(|p| p.grid().width() != w || p.grid().height() != sys.height())
+        || start.is_some_and(|s| {
+            s.weights.len() != n || s.scatter.len() != m || s.scatter.iter().any(|x| x.len() != n)
+        })
     {
         return Err(MurkError::Numerical(
             "IRLS buffers do not match the image size".into(),
@@ -309,7 +363,7 @@ pub fn run_irls_vector(
             g: vec![1.0; n],
         }
     });
-    let mut weights = vec![1.0; n];
+    let mut weights = start.map_or_else(|| vec![1.0; n], |s| s.weights.clone());
     let mut prior_img = vec![vec![0.0; n]; m];
     let mut rhs = vec![0.0; n];
     let mut scratch = vec![0.0; n * m];
@@ -320,7 +374,16 @@ pub fn run_irls_vector(
         prior.fit(observed[c]);
         prior.evaluate(&mut prior_img[c]);
     }
-    let mut x: Vec<Vec<f64>> = observed.iter().map(|o| o.to_vec()).collect();
+    let mut x: Vec<Vec<f64>> = match start {
+        Some(s) => s.scatter.clone(),
+        None => observed.iter().map(|o| o.to_vec()).collect(),
+    };
+    // From the previous frame's answer the objects are already found: no coarse level.
+    let coarse_iterations = if start.is_some() {
+        0
+    } else {
+        cfg.coarse_iterations
+    };
     let mut states = (0..m)
         .map(|_| XStepState::new(cfg.solver, sys))
         .collect::<Result<Vec<_>>>()?;
@@ -361,7 +424,7 @@ pub fn run_irls_vector(
         }
         Ok(its)
     };
-    for it in 0..cfg.coarse_iterations {
+    for it in 0..coarse_iterations {
         monitor.checkpoint()?;
         cg_iterations += x_and_a_steps(&weights, &mut x, &mut prior_img, priors, conv.tol_scale())?;
         coarse_run += 1;
@@ -400,7 +463,7 @@ pub fn run_irls_vector(
     }
 
     let mut held_out_rejected = 0;
-    if cfg.coarse_iterations > 0 {
+    if coarse_iterations > 0 {
         let mut cv_states = (0..m)
             .map(|_| XStepState::new(cfg.solver, sys))
             .collect::<Result<Vec<_>>>()?;

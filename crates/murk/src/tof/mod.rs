@@ -16,9 +16,15 @@ mod params;
 pub mod pipeline;
 pub mod quadratic_prior;
 pub mod symmetry;
+mod tracker;
 pub mod tukey;
 pub mod wls;
 
+pub use irls::IrlsStart;
 pub use params::*;
-pub use pipeline::{estimate_tof_depth, estimate_tof_depth_with_solver, unmeasured_range_std_m};
+pub use pipeline::{
+    estimate_tof_depth, estimate_tof_depth_from, estimate_tof_depth_with_solver,
+    unmeasured_range_std_m,
+};
+pub use tracker::{TofStart, TofTracker, TrackedTof};
 pub use wls::{Preconditioner, XStepSolver};

@@ -11,7 +11,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use rayon::prelude::*;
 
 use super::bilateral::bilateral_filter;
-use super::irls::{run_irls_vector, IrlsConfig, IrlsOutcome};
+use super::irls::{run_irls_vector_from, IrlsConfig, IrlsOutcome, IrlsStart};
 use super::noise_model::NoiseModel;
 use super::params::{
     PriorCoupling, ScatterChannels, TofInput, TofOutput, TofParams, SPEED_OF_LIGHT_M_PER_S,
@@ -48,6 +48,30 @@ pub fn estimate_tof_depth_with_solver(
     solver: XStepSolver,
     monitor: &Monitor,
 ) -> Result<TofOutput> {
+    estimate(input, params, solver, None, monitor).map(|(out, _)| out)
+}
+
+/// [`estimate_tof_depth`] of a stream's next frame: from `start`, the previous frame's scatter
+/// and weights, when given (the fine level only; see [`IrlsStart`]). Returns the estimate and
+/// the start it leaves for the frame after, which exists for the default phasor channels only
+/// (with `ScatterChannels::AmplitudePhase` every frame starts cold and the start is `None`).
+/// [`TofTracker`](super::TofTracker) decides when a start is still good.
+pub fn estimate_tof_depth_from(
+    input: &TofInput,
+    params: &TofParams,
+    start: Option<&IrlsStart>,
+    monitor: &Monitor,
+) -> Result<(TofOutput, Option<IrlsStart>)> {
+    estimate(input, params, XStepSolver::default(), start, monitor)
+}
+
+fn estimate(
+    input: &TofInput,
+    params: &TofParams,
+    solver: XStepSolver,
+    start: Option<&IrlsStart>,
+    monitor: &Monitor,
+) -> Result<(TofOutput, Option<IrlsStart>)> {
     input.validate()?;
     let (w, h) = input.amplitude.dims();
     params.validate_for(input)?;
@@ -109,6 +133,7 @@ pub fn estimate_tof_depth_with_solver(
     let run = |imgs: &[&[f64]],
                noise: Option<NoiseModel>,
                channel,
+               start: Option<&IrlsStart>,
                prefix: &str|
      -> Result<IrlsOutcome> {
         let cfg = IrlsConfig {
@@ -127,16 +152,27 @@ pub fn estimate_tof_depth_with_solver(
             PriorCoupling::Alternating => sys,
         };
         let mut priors = vec![QuadraticPrior::new(grid.clone())?; imgs.len()];
-        run_irls_vector(imgs, noise, &sys, &mut priors, &cfg, prefix, monitor, &tick)
+        run_irls_vector_from(
+            imgs,
+            noise,
+            &sys,
+            &mut priors,
+            &cfg,
+            start,
+            prefix,
+            monitor,
+            &tick,
+        )
     };
     let (o1, o2) = (to_f64(&f1), to_f64(&f2));
     drop((f1, f2));
     let t = params.mask_threshold as f64;
+    let mut next = None;
     let est = match params.channels {
         ScatterChannels::AmplitudePhase => {
             let (ra, rp) = rayon::join(
-                || run(&[&o1], None, params.amplitude, "tof.amplitude"),
-                || run(&[&o2], None, params.phase, "tof.phase"),
+                || run(&[&o1], None, params.amplitude, None, "tof.amplitude"),
+                || run(&[&o2], None, params.phase, None, "tof.phase"),
             );
             let (ra, rp) = (ra?, rp?);
             let warnings = [("amplitude", &ra), ("phase", &rp)]
@@ -180,7 +216,8 @@ pub fn estimate_tof_depth_with_solver(
             }
         }
         ScatterChannels::Phasor => {
-            let r = run(&[&o1, &o2], noise, params.phasor, "tof.phasor")?;
+            let r = run(&[&o1, &o2], noise, params.phasor, start, "tof.phasor")?;
+            next = Some(IrlsStart::from_outcome(&r));
             let warnings = not_converged_warning("phasor", &r).into_iter().collect();
             let mut sc = r.scatter;
             let scatter_im = sc.pop().unwrap_or_default();
@@ -202,7 +239,7 @@ pub fn estimate_tof_depth_with_solver(
 
     let out = compose(input, params, &est)?;
     monitor.progress("tof.compose", 1.0);
-    Ok(out)
+    Ok((out, next))
 }
 
 /// What the IRLS produced, as phasors: the pre-filtered observation and the scattering

@@ -13,7 +13,7 @@ use murk::camera::Intrinsics;
 use murk::error::{MurkError, Result};
 use murk::monitor::Monitor;
 use murk::mvs::{Search, StereoTracker};
-use murk::tof::{estimate_tof_depth, TofInput, TofParams};
+use murk::tof::{TofInput, TofParams, TofStart, TofTracker};
 
 /// Most frames a session may queue.
 pub const MAX_QUEUED_FRAMES: u32 = 64;
@@ -54,8 +54,8 @@ impl SessionMethod {
 /// What a session carries from one frame to the next.
 #[derive(Debug)]
 pub enum SessionState {
-    /// ToF frames are computed from scratch.
-    Tof,
+    /// ToF frames start from the previous frame's scatter and weights.
+    Tof(Box<TofTracker>),
     /// Stereo frames search a band around the previous frame's disparities.
     Stereo(Box<StereoTracker>),
 }
@@ -171,7 +171,9 @@ impl SessionPlan {
     /// The state a new session starts with.
     pub fn initial_state(&self) -> Result<SessionState> {
         Ok(match &self.method {
-            SessionMethod::Tof(_) => SessionState::Tof,
+            SessionMethod::Tof(settings) => {
+                SessionState::Tof(Box::new(TofTracker::new(settings.params.clone())))
+            }
             SessionMethod::Stereo(c) => {
                 SessionState::Stereo(Box::new(StereoTracker::new(c.rig, c.options)?))
             }
@@ -218,14 +220,27 @@ impl SessionPlan {
                     intrinsics: settings.intrinsics,
                 };
                 input.validate()?;
-                let out = estimate_tof_depth(&input, &settings.params, monitor)?;
+                let SessionState::Tof(tracker) = state else {
+                    return Err(MurkError::Internal(
+                        "ToF session without its tracker".into(),
+                    ));
+                };
+                let tracked = tracker.estimate(&input, monitor)?;
+                let warnings = match tracked.start {
+                    TofStart::Restarted => vec![
+                        "the scene or the fog changed too much for the previous frame's answer; \
+                         the frame was computed from scratch"
+                            .to_string(),
+                    ],
+                    TofStart::Cold | TofStart::Warm => Vec::new(),
+                };
                 Ok((
                     pb::frame_result::Outcome::Tof(tof_to_proto(
-                        &out,
+                        &tracked.output,
                         &settings.params,
                         &settings.outputs,
                     )?),
-                    Vec::new(),
+                    warnings,
                 ))
             }
             SessionMethod::Stereo(config) => {

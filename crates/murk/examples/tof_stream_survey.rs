@@ -1,0 +1,139 @@
+//! A ToF stream computed frame by frame from scratch against the same stream through
+//! [`TofTracker`] (each frame from the previous one's answer): time per frame and the mean range
+//! error on the lit object pixels, frame by frame, on a simulated sequence with moving objects,
+//! drifting fog and scene cuts.
+//!
+//! ```sh
+//! cargo run --release -p murk --example tof_stream_survey -- --frames 30 --cut-every 15
+//! ```
+
+mod common;
+
+use std::time::Instant;
+
+use clap::Parser;
+
+use common::{mean, Table};
+use murk::simulate::{simulate_tof_sequence_frame, SceneLayout, TofMotion, TofSimConfig};
+use murk::tof::{estimate_tof_depth, TofInput, TofOutput, TofParams, TofStart, TofTracker};
+use murk::Monitor;
+
+/// Cold against warm-started frames of one simulated stream.
+#[derive(Parser, Debug)]
+struct Args {
+    /// Frames in the stream.
+    #[arg(long, default_value_t = 30)]
+    frames: usize,
+    /// Seed of the first scene.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// A scene cut every this many frames.
+    #[arg(long)]
+    cut_every: Option<usize>,
+    /// Frame width.
+    #[arg(long, default_value_t = 512)]
+    width: usize,
+    /// Frame height.
+    #[arg(long, default_value_t = 424)]
+    height: usize,
+    /// Object placement: separated or cluttered.
+    #[arg(long, default_value = "separated")]
+    layout: String,
+    /// Camera frame rate, Hz (how far things move between frames).
+    #[arg(long, default_value_t = 10.0)]
+    fps: f64,
+}
+
+/// Mean |range − truth| on the lit object pixels, millimetres.
+fn error_mm(out: &TofOutput, truth: &murk::ImageF32, mask: &murk::ImageF32) -> f64 {
+    let (mut sum, mut n) = (0.0, 0usize);
+    for ((&r, &t), &m) in out.range_m.data().iter().zip(truth.data()).zip(mask.data()) {
+        if m > 0.5 {
+            sum += (f64::from(r) - f64::from(t)).abs();
+            n += 1;
+        }
+    }
+    1e3 * sum / n.max(1) as f64
+}
+
+fn main() -> anyhow::Result<()> {
+    let a = Args::parse();
+    let layout: SceneLayout = a.layout.parse()?;
+    let cfg = TofSimConfig {
+        seed: a.seed,
+        layout,
+        ..TofSimConfig::with_size(a.width, a.height)
+    };
+    let motion = TofMotion {
+        frame_rate_hz: a.fps,
+        cut_every: a.cut_every,
+        ..TofMotion::default()
+    };
+    let params = TofParams {
+        light_position_m: Some(cfg.light_position_m()),
+        ..TofParams::default()
+    };
+    let monitor = Monitor::noop();
+    let mut tracker = TofTracker::new(params.clone());
+    let mut table = Table::new(&[
+        "frame",
+        "start",
+        "cold s",
+        "stream s",
+        "cold mm",
+        "stream mm",
+        "ratio",
+    ]);
+    let (mut cold_s, mut warm_s, mut ratios) = (Vec::new(), Vec::new(), Vec::new());
+    for k in 0..a.frames {
+        let f = simulate_tof_sequence_frame(&cfg, &motion, k, &monitor)?;
+        let input = TofInput {
+            amplitude: f.amplitude.clone(),
+            phase: f.phase.clone(),
+            intrinsics: Some(f.intrinsics),
+        };
+        let t = Instant::now();
+        let cold = estimate_tof_depth(&input, &params, &monitor)?;
+        let tc = t.elapsed().as_secs_f64();
+        let t = Instant::now();
+        let tracked = tracker.estimate(&input, &monitor)?;
+        let tw = t.elapsed().as_secs_f64();
+        let (ec, ew) = (
+            error_mm(&cold, &f.gt_range_m, &f.gt_mask),
+            error_mm(&tracked.output, &f.gt_range_m, &f.gt_mask),
+        );
+        cold_s.push(tc);
+        warm_s.push(tw);
+        ratios.push(ew / ec.max(1e-9));
+        let start = match tracked.start {
+            TofStart::Cold => "cold",
+            TofStart::Warm => "warm",
+            TofStart::Restarted => "restarted",
+        };
+        let cut = if motion.is_cut(k) { " (cut)" } else { "" };
+        table.row(&[
+            format!("{k}{cut}"),
+            start.to_string(),
+            format!("{tc:.3}"),
+            format!("{tw:.3}"),
+            format!("{ec:.1}"),
+            format!("{ew:.1}"),
+            format!("{:.3}", ew / ec.max(1e-9)),
+        ]);
+    }
+    table.print();
+    let worst = ratios.iter().copied().fold(0.0, f64::max);
+    println!(
+        "\n{} frames {}x{}: from scratch {:.3} s a frame, streamed {:.3} s ({:.2}x); stream \
+         error / from-scratch error: mean {:.3}, worst {:.3}",
+        a.frames,
+        a.width,
+        a.height,
+        mean(&cold_s),
+        mean(&warm_s),
+        mean(&cold_s) / mean(&warm_s),
+        mean(&ratios),
+        worst
+    );
+    Ok(())
+}

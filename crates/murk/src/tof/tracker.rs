@@ -1,0 +1,186 @@
+//! ToF in a stream: each frame starts from the previous frame's answer (the temporal prior of a
+//! sensor session), and from scratch when that answer no longer fits.
+//!
+//! What is carried from frame to frame: the scatter estimate (the phasor's two parts) and the
+//! final IRLS weights of the previous frame, 24 bytes a pixel (5.2 MB at 512×424). The next
+//! frame skips Algorithm 2's coarse level, whose work is to find the objects from "no object",
+//! and runs the fine level from that start to convergence ([`IrlsStart`]). What is dropped, and
+//! when:
+//! - a frame of another size, a failed frame, or the amplitude/phase channels
+//!   (`ScatterChannels::AmplitudePhase`), which always start cold;
+//! - a frame whose object mask, computed from the start, differs from the start's in more than
+//!   [`MAX_CHANGED_FRACTION`] of the pixels: the scene changed (a cut, a sudden change of fog),
+//!   and the frame is computed again from scratch ([`TofStart::Restarted`]).
+
+use super::irls::IrlsStart;
+use super::params::{TofInput, TofOutput, TofParams};
+use super::pipeline::estimate_tof_depth_from;
+use crate::error::Result;
+use crate::monitor::Monitor;
+
+/// Largest fraction of pixels whose object/background class may change from the start to the
+/// answer before the frame is computed again from scratch.
+pub const MAX_CHANGED_FRACTION: f64 = 0.2;
+
+/// How a frame was computed.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum TofStart {
+    /// From scratch: the first frame, or after a dropped start.
+    Cold,
+    /// From the previous frame's answer.
+    Warm,
+    /// From the previous frame's answer first, then again from scratch because too much of the
+    /// mask changed (a scene cut, or the fog changed suddenly).
+    Restarted,
+}
+
+/// A frame's estimate and how it was computed.
+#[derive(Clone, Debug)]
+pub struct TrackedTof {
+    /// The estimate.
+    pub output: TofOutput,
+    /// How it started.
+    pub start: TofStart,
+}
+
+/// Computes a stream's frames, each from the previous one's answer where that still fits.
+#[derive(Debug)]
+pub struct TofTracker {
+    params: TofParams,
+    /// The previous frame's size and answer.
+    start: Option<((usize, usize), IrlsStart)>,
+}
+
+impl TofTracker {
+    /// A tracker for frames computed with `params`.
+    pub fn new(params: TofParams) -> Self {
+        Self {
+            params,
+            start: None,
+        }
+    }
+
+    /// The parameters every frame is computed with.
+    pub fn params(&self) -> &TofParams {
+        &self.params
+    }
+
+    /// Forgets the previous frame: the next one starts cold.
+    pub fn reset(&mut self) {
+        self.start = None;
+    }
+
+    /// Estimates `input`, from the previous frame's answer when there is one of this size; see
+    /// the module docs. An error leaves the tracker as it was.
+    pub fn estimate(&mut self, input: &TofInput, monitor: &Monitor) -> Result<TrackedTof> {
+        let dims = input.amplitude.dims();
+        let start = self
+            .start
+            .as_ref()
+            .filter(|(d, _)| *d == dims)
+            .map(|(_, s)| s);
+        let Some(start) = start else {
+            let (output, next) = estimate_tof_depth_from(input, &self.params, None, monitor)?;
+            self.start = next.map(|n| (dims, n));
+            return Ok(TrackedTof {
+                output,
+                start: TofStart::Cold,
+            });
+        };
+        let (output, next) = estimate_tof_depth_from(input, &self.params, Some(start), monitor)?;
+        let changed = next.as_ref().map_or(1.0, |n| {
+            changed_fraction(start, n, self.params.mask_threshold)
+        });
+        if changed <= MAX_CHANGED_FRACTION {
+            self.start = next.map(|n| (dims, n));
+            return Ok(TrackedTof {
+                output,
+                start: TofStart::Warm,
+            });
+        }
+        let (output, next) = estimate_tof_depth_from(input, &self.params, None, monitor)?;
+        self.start = next.map(|n| (dims, n));
+        Ok(TrackedTof {
+            output,
+            start: TofStart::Restarted,
+        })
+    }
+}
+
+/// Fraction of pixels whose class (object: weight below `threshold`) differs between two runs.
+fn changed_fraction(a: &IrlsStart, b: &IrlsStart, threshold: f32) -> f64 {
+    let t = f64::from(threshold);
+    let changed = a
+        .weights
+        .iter()
+        .zip(&b.weights)
+        .filter(|(x, y)| (**x < t) != (**y < t))
+        .count();
+    changed as f64 / a.weights.len().max(1) as f64
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::simulate::{simulate_tof_sequence_frame, TofMotion, TofSimConfig};
+    use crate::tof::estimate_tof_depth;
+
+    fn frame(cfg: &TofSimConfig, motion: &TofMotion, k: usize) -> (TofInput, crate::ImageF32) {
+        let f = simulate_tof_sequence_frame(cfg, motion, k, &Monitor::noop()).unwrap();
+        (
+            TofInput {
+                amplitude: f.amplitude,
+                phase: f.phase,
+                intrinsics: Some(f.intrinsics),
+            },
+            f.gt_range_m,
+        )
+    }
+
+    #[test]
+    fn a_stream_starts_cold_then_warm_and_restarts_after_a_cut() {
+        let cfg = TofSimConfig {
+            seed: 5,
+            ..TofSimConfig::with_size(96, 80)
+        };
+        let motion = TofMotion {
+            cut_every: Some(3),
+            ..TofMotion::default()
+        };
+        let mut tracker = TofTracker::new(TofParams::default());
+        let mut starts = Vec::new();
+        for k in 0..4 {
+            let (input, _) = frame(&cfg, &motion, k);
+            let tracked = tracker.estimate(&input, &Monitor::noop()).unwrap();
+            // The same answer as from scratch, to within the IRLS's convergence.
+            let cold = estimate_tof_depth(&input, tracker.params(), &Monitor::noop()).unwrap();
+            let diff = tracked
+                .output
+                .mask
+                .data()
+                .iter()
+                .zip(cold.mask.data())
+                .filter(|(a, b)| a != b)
+                .count();
+            assert!(
+                diff * 50 <= input.amplitude.pixel_count(),
+                "frame {k}: {diff} px"
+            );
+            starts.push(tracked.start);
+        }
+        assert_eq!(starts[0], TofStart::Cold);
+        assert_eq!(&starts[1..3], &[TofStart::Warm, TofStart::Warm]);
+        assert!(starts[3] != TofStart::Cold, "{starts:?}");
+    }
+
+    #[test]
+    fn a_frame_of_another_size_starts_cold() {
+        let motion = TofMotion::default();
+        let mut tracker = TofTracker::new(TofParams::default());
+        let (a, _) = frame(&TofSimConfig::with_size(64, 53), &motion, 0);
+        let (b, _) = frame(&TofSimConfig::with_size(48, 40), &motion, 1);
+        tracker.estimate(&a, &Monitor::noop()).unwrap();
+        let t = tracker.estimate(&b, &Monitor::noop()).unwrap();
+        assert_eq!(t.start, TofStart::Cold);
+    }
+}
