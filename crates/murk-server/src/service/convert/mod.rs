@@ -15,7 +15,7 @@ pub use mvs::{
     canonicalize_mvs_request, mvs_from_proto, mvs_request_to_proto, mvs_to_proto, pose_from_proto,
     pose_to_proto, MvsInput, MvsViewInput, MAX_SOURCE_VIEWS,
 };
-pub use outputs::{encode_image, Delivery, Encoding, OutputField, OutputSelection, Quantity};
+pub use outputs::{Delivery, Encoding, OutputField, OutputSelection, Quantity};
 pub use params::{
     canonicalize_params_request, params_from_proto, params_request_to_proto, AirlightService,
     ParamsInput, MAX_SPARSE_POINTS,

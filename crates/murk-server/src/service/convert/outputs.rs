@@ -93,14 +93,6 @@ pub struct OutputSelection {
 const F16_MAX: f32 = 65504.0;
 
 impl OutputSelection {
-    /// Every field of `catalog`, raw f32: what a result carried before callers could choose.
-    pub fn all(catalog: &[OutputField]) -> Self {
-        Self {
-            fields: catalog.to_vec(),
-            encoding: Encoding::F32,
-        }
-    }
-
     /// Validates `opts` against the result's `catalog`; unset fields take `delivery`'s defaults,
     /// with `compact` the session's default set (names in `catalog`). Errors name `fields[i]` or
     /// `encoding`; callers prefix `outputs`.
@@ -197,7 +189,7 @@ impl OutputSelection {
 
 /// Encodes `img` with `encoding`, falling back to raw f32 where the encoding cannot carry it (see
 /// `ImageEncoding` in common.proto).
-pub fn encode_image(img: &ImageF32, encoding: Encoding, quantity: Quantity) -> Result<pb::Image> {
+fn encode_image(img: &ImageF32, encoding: Encoding, quantity: Quantity) -> Result<pb::Image> {
     match encoding {
         Encoding::F32 => Ok(image_to_proto(img)),
         Encoding::F16 => Ok(f16_image(img).unwrap_or_else(|| image_to_proto(img))),
@@ -335,7 +327,8 @@ mod tests {
     fn defaults_depend_on_the_delivery() {
         let one_shot =
             OutputSelection::from_proto(None, CATALOG, &["mask"], Delivery::OneShot).unwrap();
-        assert_eq!(one_shot, OutputSelection::all(CATALOG));
+        assert_eq!(one_shot.to_proto().fields, ["depth_m", "mask", "amplitude"]);
+        assert_eq!(one_shot.encoding(), Encoding::F32);
         let session =
             OutputSelection::from_proto(None, CATALOG, &["mask"], Delivery::Session).unwrap();
         assert!(session.wants("mask") && !session.wants("depth_m"));
