@@ -75,52 +75,42 @@ impl TofTracker {
         &self.params
     }
 
-    /// Forgets the previous frame: the next one starts cold.
-    pub fn reset(&mut self) {
-        self.start = None;
-    }
-
     /// Estimates `input`, from the previous frame's answer when there is one of this size; see
     /// the module docs. An error leaves the tracker as it was.
     pub fn estimate(&mut self, input: &TofInput, monitor: &Monitor) -> Result<TrackedTof> {
         let dims = input.amplitude.dims();
+        let threshold = self.params.mask_threshold;
         let start = self
             .start
             .as_ref()
             .filter(|(d, _)| *d == dims)
             .map(|(_, s)| s);
-        let Some(start) = start else {
-            let (output, next) = estimate_tof_depth_from(input, &self.params, None, monitor)?;
-            self.start = next.map(|n| (dims, n));
-            return Ok(TrackedTof {
-                output,
-                start: TofStart::Cold,
-            });
+        let kind = match start {
+            None => TofStart::Cold,
+            Some(start) if scatter_change(input, start, threshold) > MAX_SCATTER_CHANGE => {
+                TofStart::Restarted
+            }
+            Some(start) => {
+                let (output, next) =
+                    estimate_tof_depth_from(input, &self.params, Some(start), monitor)?;
+                let changed = next
+                    .as_ref()
+                    .map_or(1.0, |n| changed_fraction(start, n, threshold));
+                if changed <= MAX_CHANGED_FRACTION {
+                    self.start = next.map(|n| (dims, n));
+                    return Ok(TrackedTof {
+                        output,
+                        start: TofStart::Warm,
+                    });
+                }
+                TofStart::Restarted
+            }
         };
-        if scatter_change(input, start, self.params.mask_threshold) > MAX_SCATTER_CHANGE {
-            let (output, next) = estimate_tof_depth_from(input, &self.params, None, monitor)?;
-            self.start = next.map(|n| (dims, n));
-            return Ok(TrackedTof {
-                output,
-                start: TofStart::Restarted,
-            });
-        }
-        let (output, next) = estimate_tof_depth_from(input, &self.params, Some(start), monitor)?;
-        let changed = next.as_ref().map_or(1.0, |n| {
-            changed_fraction(start, n, self.params.mask_threshold)
-        });
-        if changed <= MAX_CHANGED_FRACTION {
-            self.start = next.map(|n| (dims, n));
-            return Ok(TrackedTof {
-                output,
-                start: TofStart::Warm,
-            });
-        }
         let (output, next) = estimate_tof_depth_from(input, &self.params, None, monitor)?;
         self.start = next.map(|n| (dims, n));
         Ok(TrackedTof {
             output,
-            start: TofStart::Restarted,
+            start: kind,
         })
     }
 }
@@ -169,16 +159,26 @@ mod tests {
     use crate::simulate::{simulate_tof_sequence_frame, TofMotion, TofSimConfig};
     use crate::tof::estimate_tof_depth;
 
-    fn frame(cfg: &TofSimConfig, motion: &TofMotion, k: usize) -> (TofInput, crate::ImageF32) {
+    fn frame(cfg: &TofSimConfig, motion: &TofMotion, k: usize) -> TofInput {
         let f = simulate_tof_sequence_frame(cfg, motion, k, &Monitor::noop()).unwrap();
-        (
-            TofInput {
-                amplitude: f.amplitude,
-                phase: f.phase,
-                intrinsics: Some(f.intrinsics),
-            },
-            f.gt_range_m,
-        )
+        TofInput {
+            amplitude: f.amplitude,
+            phase: f.phase,
+            intrinsics: Some(f.intrinsics),
+        }
+    }
+
+    /// Pixels whose mask differs between the tracked answer and a cold start's.
+    fn differs_from_cold(tracked: &TrackedTof, input: &TofInput, params: &TofParams) -> usize {
+        let cold = estimate_tof_depth(input, params, &Monitor::noop()).unwrap();
+        tracked
+            .output
+            .mask
+            .data()
+            .iter()
+            .zip(cold.mask.data())
+            .filter(|(a, b)| a != b)
+            .count()
     }
 
     #[test]
@@ -194,18 +194,10 @@ mod tests {
         let mut tracker = TofTracker::new(TofParams::default());
         let mut starts = Vec::new();
         for k in 0..4 {
-            let (input, _) = frame(&cfg, &motion, k);
+            let input = frame(&cfg, &motion, k);
             let tracked = tracker.estimate(&input, &Monitor::noop()).unwrap();
             // The same answer as from scratch, to within the IRLS's convergence.
-            let cold = estimate_tof_depth(&input, tracker.params(), &Monitor::noop()).unwrap();
-            let diff = tracked
-                .output
-                .mask
-                .data()
-                .iter()
-                .zip(cold.mask.data())
-                .filter(|(a, b)| a != b)
-                .count();
+            let diff = differs_from_cold(&tracked, &input, tracker.params());
             assert!(
                 diff * 50 <= input.amplitude.pixel_count(),
                 "frame {k}: {diff} px"
@@ -236,19 +228,11 @@ mod tests {
             ..TofMotion::default()
         };
         let mut tracker = TofTracker::new(TofParams::default());
-        let (a, _) = frame(&thin, &still, 0);
-        let (b, _) = frame(&thick, &still, 1);
+        let a = frame(&thin, &still, 0);
+        let b = frame(&thick, &still, 1);
         tracker.estimate(&a, &Monitor::noop()).unwrap();
         let tracked = tracker.estimate(&b, &Monitor::noop()).unwrap();
-        let cold = estimate_tof_depth(&b, tracker.params(), &Monitor::noop()).unwrap();
-        let diff = tracked
-            .output
-            .mask
-            .data()
-            .iter()
-            .zip(cold.mask.data())
-            .filter(|(x, y)| x != y)
-            .count();
+        let diff = differs_from_cold(&tracked, &b, tracker.params());
         assert!(
             diff * 50 <= b.amplitude.pixel_count(),
             "{diff} px differ ({:?})",
@@ -261,8 +245,8 @@ mod tests {
     fn a_frame_of_another_size_starts_cold() {
         let motion = TofMotion::default();
         let mut tracker = TofTracker::new(TofParams::default());
-        let (a, _) = frame(&TofSimConfig::with_size(64, 53), &motion, 0);
-        let (b, _) = frame(&TofSimConfig::with_size(48, 40), &motion, 1);
+        let a = frame(&TofSimConfig::with_size(64, 53), &motion, 0);
+        let b = frame(&TofSimConfig::with_size(48, 40), &motion, 1);
         tracker.estimate(&a, &Monitor::noop()).unwrap();
         let t = tracker.estimate(&b, &Monitor::noop()).unwrap();
         assert_eq!(t.start, TofStart::Cold);
