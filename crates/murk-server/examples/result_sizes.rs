@@ -93,40 +93,35 @@ impl Tally {
     }
 }
 
-/// The variants: a name, whose default image set (one-shot: every image; session: the compact
-/// set), and the encoding.
-const VARIANTS: &[(&str, Delivery, pb::ImageEncoding)] = &[
-    (
-        "every image, F32",
-        Delivery::OneShot,
+/// The variants, each image set (one-shot default: every image; session default: the compact
+/// set) in each encoding, as (delivery, encoding).
+fn variants() -> Vec<(Delivery, pb::ImageEncoding)> {
+    let encodings = [
         pb::ImageEncoding::F32,
-    ),
-    (
-        "every image, F16",
-        Delivery::OneShot,
         pb::ImageEncoding::F16,
-    ),
-    (
-        "every image, PNG",
-        Delivery::OneShot,
         pb::ImageEncoding::Png,
-    ),
-    (
-        "default set, F32",
-        Delivery::Session,
-        pb::ImageEncoding::F32,
-    ),
-    (
-        "default set, F16",
-        Delivery::Session,
-        pb::ImageEncoding::F16,
-    ),
-    (
-        "default set, PNG (a session's default)",
-        Delivery::Session,
-        pb::ImageEncoding::Png,
-    ),
-];
+    ];
+    [Delivery::OneShot, Delivery::Session]
+        .into_iter()
+        .flat_map(|d| encodings.map(|e| (d, e)))
+        .collect()
+}
+
+fn variant_name(delivery: Delivery, encoding: pb::ImageEncoding) -> String {
+    let set = match delivery {
+        Delivery::OneShot => "every image",
+        Delivery::Session => "default set",
+    };
+    let default = match (delivery, encoding) {
+        (Delivery::OneShot, pb::ImageEncoding::F32) => " (one-shot default)",
+        (Delivery::Session, pb::ImageEncoding::Png) => " (session default)",
+        _ => "",
+    };
+    format!(
+        "{set}, {}{default}",
+        encoding.as_str_name().trim_start_matches("IMAGE_ENCODING_")
+    )
+}
 
 fn options(encoding: pb::ImageEncoding) -> pb::OutputOptions {
     pb::OutputOptions {
@@ -139,8 +134,8 @@ fn table(what: &str, tallies: &[Tally]) {
     println!("\n{what}\n");
     println!("| result | MB (mean) | MB (max) | gzip MB | zstd MB | encode ms |");
     println!("| --- | --- | --- | --- | --- | --- |");
-    for ((name, ..), t) in VARIANTS.iter().zip(tallies) {
-        t.row(name);
+    for ((delivery, encoding), t) in variants().into_iter().zip(tallies) {
+        t.row(&variant_name(delivery, encoding));
     }
 }
 
@@ -151,7 +146,7 @@ fn main() -> anyhow::Result<()> {
     let limits = ImageLimits::default();
 
     let (w, h) = parse_size(&a.tof_size)?;
-    let mut tallies: Vec<Tally> = VARIANTS.iter().map(|_| Tally::default()).collect();
+    let mut tallies: Vec<Tally> = variants().iter().map(|_| Tally::default()).collect();
     for &seed in &seeds {
         let cfg = TofSimConfig {
             seed,
@@ -167,9 +162,9 @@ fn main() -> anyhow::Result<()> {
         );
         let (input, params, _) = tof_from_proto(&req, &limits)?;
         let out = estimate_tof_depth(&input, &params, &monitor)?;
-        for ((_, delivery, encoding), tally) in VARIANTS.iter().zip(&mut tallies) {
-            req.outputs = Some(options(*encoding));
-            let outputs = tof_outputs_from_proto(&req, *delivery)?;
+        for ((delivery, encoding), tally) in variants().into_iter().zip(&mut tallies) {
+            req.outputs = Some(options(encoding));
+            let outputs = tof_outputs_from_proto(&req, delivery)?;
             let started = Instant::now();
             let message = tof_to_proto(&out, &params, &outputs)?.encode_to_vec();
             tally.add(&message, started.elapsed().as_secs_f64())?;
@@ -184,7 +179,7 @@ fn main() -> anyhow::Result<()> {
     );
 
     let (w, h) = parse_size(&a.stereo_size)?;
-    let mut tallies: Vec<Tally> = VARIANTS.iter().map(|_| Tally::default()).collect();
+    let mut tallies: Vec<Tally> = variants().iter().map(|_| Tally::default()).collect();
     for &seed in &seeds {
         let scene = simulate_mvs(
             &MvsSimConfig {
@@ -211,8 +206,8 @@ fn main() -> anyhow::Result<()> {
         );
         let mut input = stereo_from_proto(&req, &limits)?;
         let (out, points) = input.estimate(&monitor)?;
-        for ((_, delivery, encoding), tally) in VARIANTS.iter().zip(&mut tallies) {
-            input.outputs = stereo_outputs_from_proto(Some(&options(*encoding)), *delivery)?;
+        for ((delivery, encoding), tally) in variants().into_iter().zip(&mut tallies) {
+            input.outputs = stereo_outputs_from_proto(Some(&options(encoding)), delivery)?;
             let started = Instant::now();
             let message = stereo_to_proto(&input, &out, &points, 0.0)?.encode_to_vec();
             tally.add(&message, started.elapsed().as_secs_f64())?;
