@@ -1,5 +1,6 @@
 //! Command-line interface. Every flag that configures the server is also an environment variable.
 
+mod bag;
 mod client;
 mod demo;
 mod health;
@@ -96,6 +97,9 @@ enum Command {
     /// Airlight and scattering coefficient (Algorithm 1) from a COLMAP model + images, then
     /// the depth with them.
     Params(params::ParamsArgs),
+    /// A ROS 2 bag (MCAP) of stereo pairs or ToF frames through a sensor session; the results
+    /// (depth, confidence or mask, disparity, point clouds, CameraInfo) to a new MCAP file.
+    Bag(bag::BagArgs),
     /// Photometric stereo in turbid water: per-light images with and without the object →
     /// normals, albedo, depth and a mesh.
     Ps(ps::PsArgs),
@@ -133,6 +137,7 @@ pub fn run() -> anyhow::Result<()> {
         Command::Mvs(a) => mvs::run(a),
         Command::Stereo(a) => stereo::run(a),
         Command::Params(a) => params::run(a),
+        Command::Bag(a) => bag::run(a),
         Command::Ps(a) => ps::run(a),
         Command::Demo(a) => demo::run(a),
         Command::Train(c) => train::run(c),

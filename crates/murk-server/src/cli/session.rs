@@ -60,6 +60,28 @@ impl SequenceFlags {
         config.max_queued_frames = self.max_queued_frames.unwrap_or(0);
         config.frame_deadline_seconds = self.frame_deadline_secs.unwrap_or(0.0);
     }
+
+    /// Streams frame folders (`--sequence`) at `--rate-hz`, each result written by `write` into
+    /// `out`, and prints the run's summary.
+    pub fn stream_folders(
+        &self,
+        url: Option<&str>,
+        config: pb::SessionConfig,
+        frames: Vec<(String, PathBuf)>,
+        load: LoadFrame,
+        write: WriteResult,
+        out: &std::path::Path,
+    ) -> anyhow::Result<()> {
+        let report = stream_sequence(
+            url,
+            config,
+            folder_frames(frames, load),
+            self.rate_hz,
+            ResultSink { write, parallel: 2 },
+        )?;
+        println!("{}; outputs in {}", report.summary(), out.display());
+        Ok(())
+    }
 }
 
 /// The sub-folders of `dir`, sorted by name, as (name, path).
@@ -84,6 +106,18 @@ pub fn frame_dirs(dir: &std::path::Path) -> anyhow::Result<Vec<(String, PathBuf)
 /// Loads one frame's images (blocking).
 pub type LoadFrame =
     Arc<dyn Fn(&std::path::Path) -> anyhow::Result<pb::SessionFrame> + Send + Sync>;
+/// The frames of a stream, read on a blocking thread one at a time. A frame without a
+/// sequence number gets its position (from 1); one without a stamp gets the time it is sent.
+pub type FrameSource = Box<dyn Iterator<Item = anyhow::Result<pb::SessionFrame>> + Send>;
+
+/// The frames of folders (see [`frame_dirs`]), each loaded by `load` and named by its folder.
+pub fn folder_frames(frames: Vec<(String, PathBuf)>, load: LoadFrame) -> FrameSource {
+    Box::new(frames.into_iter().map(move |(name, dir)| {
+        let mut frame = load(&dir).with_context(|| format!("reading frame {name}"))?;
+        frame.frame_id = name;
+        Ok(frame)
+    }))
+}
 /// Writes one frame's result under its name (blocking).
 pub type WriteResult = Arc<dyn Fn(&str, &pb::FrameResult) -> anyhow::Result<()> + Send + Sync>;
 
@@ -134,27 +168,35 @@ impl SequenceReport {
     }
 }
 
+/// How results are written: by up to `parallel` blocking tasks at once (1 keeps them in order).
+#[derive(Clone)]
+pub struct ResultSink {
+    /// Writes one result.
+    pub write: WriteResult,
+    /// Results written at once.
+    pub parallel: usize,
+}
+
 /// Streams `frames` through a session configured by `config`, on `url` or on a server started
-/// in this process.
+/// in this process, sending at `rate_hz` when given.
 pub fn stream_sequence(
     url: Option<&str>,
     config: pb::SessionConfig,
-    frames: Vec<(String, PathBuf)>,
-    flags: &SequenceFlags,
-    load: LoadFrame,
-    write: WriteResult,
+    frames: FrameSource,
+    rate_hz: Option<f64>,
+    sink: ResultSink,
 ) -> anyhow::Result<SequenceReport> {
     let rt = tokio::runtime::Runtime::new()?;
     rt.block_on(async {
         match url {
-            Some(url) => run(url, config, frames, flags, load, write).await,
+            Some(url) => run(url, config, frames, rate_hz, sink).await,
             None => {
                 let server = InProcessServer::start(ServerConfig {
                     max_request_bytes: 1 << 30,
                     ..ServerConfig::default()
                 })
                 .await?;
-                let out = run(&server.url(), config, frames, flags, load, write).await;
+                let out = run(&server.url(), config, frames, rate_hz, sink).await;
                 server.stop().await?;
                 out
             }
@@ -165,10 +207,9 @@ pub fn stream_sequence(
 async fn run(
     url: &str,
     config: pb::SessionConfig,
-    frames: Vec<(String, PathBuf)>,
-    flags: &SequenceFlags,
-    load: LoadFrame,
-    write: WriteResult,
+    frames: FrameSource,
+    rate_hz: Option<f64>,
+    sink: ResultSink,
 ) -> anyhow::Result<SequenceReport> {
     let channel = channel(url).await?;
     let mut client = SessionsClient::with_interceptor(channel, bearer_token()?)
@@ -194,33 +235,40 @@ async fn run(
         Err(s) => bail!("the session was refused: {:?}: {}", s.code(), s.message()),
     }
 
-    let names: Vec<String> = frames.iter().map(|(n, _)| n.clone()).collect();
     let sent_at: Arc<Mutex<HashMap<u64, Instant>>> = Arc::default();
     let started = Instant::now();
     let sender = {
         let sent_at = sent_at.clone();
-        let period = flags
-            .rate_hz
+        let period = rate_hz
             .filter(|r| *r > 0.0)
             .map(|r| Duration::from_secs_f64(1.0 / r));
         tokio::spawn(async move {
             let mut ticks = period.map(tokio::time::interval);
-            for (k, (name, dir)) in frames.into_iter().enumerate() {
-                let load = load.clone();
-                let mut frame = tokio::task::spawn_blocking(move || load(&dir))
-                    .await?
-                    .with_context(|| format!("reading frame {name}"))?;
+            let mut frames = frames;
+            let mut sent = 0usize;
+            loop {
+                let (rest, next) = tokio::task::spawn_blocking(move || {
+                    let next = frames.next();
+                    (frames, next)
+                })
+                .await?;
+                frames = rest;
+                let Some(frame) = next else { break };
+                let mut frame = frame?;
                 if let Some(t) = ticks.as_mut() {
                     t.tick().await;
                 }
-                let sequence = k as u64 + 1;
-                frame.sequence = sequence;
-                frame.frame_id = name;
-                frame.stamp = Some(prost_types::Timestamp::from(SystemTime::now()));
+                sent += 1;
+                if frame.sequence == 0 {
+                    frame.sequence = sent as u64;
+                }
+                if frame.stamp.is_none() {
+                    frame.stamp = Some(prost_types::Timestamp::from(SystemTime::now()));
+                }
                 sent_at
                     .lock()
                     .unwrap_or_else(|p| p.into_inner())
-                    .insert(sequence, Instant::now());
+                    .insert(frame.sequence, Instant::now());
                 if tx
                     .send(pb::SessionRequest {
                         message: Some(pb::session_request::Message::Frame(frame)),
@@ -232,15 +280,12 @@ async fn run(
                 }
             }
             // Dropping `tx` half-closes the stream: the session answers what it holds, then ends.
-            anyhow::Ok(())
+            anyhow::Ok(sent)
         })
     };
 
-    let mut report = SequenceReport {
-        sent: names.len(),
-        ..SequenceReport::default()
-    };
-    // Results are written off the receiving task, at most two frames at a time.
+    let mut report = SequenceReport::default();
+    // Results are written off the receiving task.
     let mut writes = tokio::task::JoinSet::new();
     loop {
         let event = match events.message().await {
@@ -265,12 +310,12 @@ async fn run(
                 }
                 report.computed += 1;
                 report.compute.push(r.compute_seconds);
-                while writes.len() >= 2 {
+                while writes.len() >= sink.parallel.max(1) {
                     if let Some(done) = writes.join_next().await {
                         done??;
                     }
                 }
-                let write = write.clone();
+                let write = sink.write.clone();
                 writes.spawn_blocking(move || write(&r.frame_id, &r));
             }
             Some(Event::Dropped(d)) => {
@@ -290,7 +335,7 @@ async fn run(
         }
     }
     report.seconds = started.elapsed().as_secs_f64();
-    sender.await??;
+    report.sent = sender.await??;
     while let Some(done) = writes.join_next().await {
         done??;
     }

@@ -16,7 +16,7 @@ use murk_server::service::proto::v1 as pb;
 
 use super::mvs::{kind_name, run_here_or_remote, write_depth_images, CostVolumeArg, DepthFlags};
 use super::outputs::OutputFlags;
-use super::session::{frame_dirs, stream_sequence, LoadFrame, SequenceFlags, WriteResult};
+use super::session::{frame_dirs, LoadFrame, SequenceFlags, WriteResult};
 use super::tof::{parse_intrinsics, parse_numbers};
 use std::sync::Arc;
 
@@ -41,6 +41,27 @@ pub struct StereoArgs {
     /// (Middlebury's calib.txt: cx of cam1; doffs is the difference).
     #[arg(long)]
     pub right_cx: Option<f64>,
+    /// What to search and how.
+    #[command(flatten)]
+    pub method: StereoMethodFlags,
+    /// Output folder (created): depth.exr, disparity.exr, confidence.exr (those fetched, see
+    /// --outputs), points.ply, depth.png.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Which result images to fetch (z_depth, disparity, confidence), and their encoding.
+    #[command(flatten)]
+    pub outputs: OutputFlags,
+    /// Server URL; without it a server is started in this process.
+    #[arg(long, env = "MURK_SERVER")]
+    pub server: Option<String>,
+    /// Streaming a sequence of pairs: one folder per frame holding `left.*` and `right.*`.
+    #[command(flatten)]
+    pub stream: SequenceFlags,
+}
+
+/// The search and the haze of a rectified pair, shared by `murk stereo` and `murk bag`.
+#[derive(Args, Debug)]
+pub struct StereoMethodFlags {
     /// Depth range "near,far" to search, in the baseline's unit.
     #[arg(long, conflicts_with = "disparity_range")]
     pub depth_range: Option<String>,
@@ -67,19 +88,59 @@ pub struct StereoArgs {
     /// to linear light first, as the haze model needs.
     #[arg(long)]
     pub srgb: bool,
-    /// Output folder (created): depth.exr, disparity.exr, confidence.exr (those fetched, see
-    /// --outputs), points.ply, depth.png.
-    #[arg(long)]
-    pub out: PathBuf,
-    /// Which result images to fetch (z_depth, disparity, confidence), and their encoding.
-    #[command(flatten)]
-    pub outputs: OutputFlags,
-    /// Server URL; without it a server is started in this process.
-    #[arg(long, env = "MURK_SERVER")]
-    pub server: Option<String>,
-    /// Streaming a sequence of pairs: one folder per frame holding `left.*` and `right.*`.
-    #[command(flatten)]
-    pub stream: SequenceFlags,
+}
+
+impl StereoMethodFlags {
+    /// A request for a rig (left intrinsics, baseline, the right principal point's x), without
+    /// its images.
+    pub fn request(
+        &self,
+        k: pb::CameraIntrinsics,
+        baseline: f64,
+        right_cx: Option<f64>,
+    ) -> anyhow::Result<pb::RectifiedStereoRequest> {
+        let (near, far) = match &self.depth_range {
+            Some(s) => {
+                let [near, far] = parse_numbers::<2>(s, "--depth-range", "near,far")?;
+                (near, far)
+            }
+            None => (0.0, 0.0),
+        };
+        let (min_disparity_px, max_disparity_px) = match &self.disparity_range {
+            Some(s) => {
+                let [lo, hi] = parse_numbers::<2>(s, "--disparity-range", "min,max")?;
+                (Some(lo as f32), Some(hi as f32))
+            }
+            None => (None, None),
+        };
+        let hazy = self.airlight.is_some();
+        let cost = self.cost_volume.unwrap_or(if hazy {
+            CostVolumeArg::Dehazing
+        } else {
+            CostVolumeArg::Ordinary
+        });
+        if cost != CostVolumeArg::Ordinary && !hazy {
+            bail!("the {cost:?} cost volume needs the haze: pass --airlight and --beta");
+        }
+        Ok(pb::RectifiedStereoRequest {
+            left: None,
+            right: None,
+            intrinsics: Some(k),
+            baseline,
+            right_cx,
+            near,
+            far,
+            min_disparity_px,
+            max_disparity_px,
+            num_planes: self.planes.unwrap_or(0),
+            airlight: self.airlight.unwrap_or(0.0),
+            beta: self.beta.unwrap_or(0.0),
+            cost_volume: cost.wire() as i32,
+            sgm: self.depth.wire(),
+            return_points: true,
+            outputs: None,
+        })
+    }
 }
 
 /// Runs `murk stereo`.
@@ -146,7 +207,7 @@ fn run_sequence(a: &StereoArgs, dir: &Path) -> anyhow::Result<()> {
         ..Default::default()
     };
     a.stream.apply(&mut config);
-    let srgb = a.srgb;
+    let srgb = a.method.srgb;
     let load: LoadFrame = Arc::new(move |dir: &Path| {
         let (left, right) = pair_in(dir)?;
         Ok(pb::SessionFrame {
@@ -162,9 +223,8 @@ fn run_sequence(a: &StereoArgs, dir: &Path) -> anyhow::Result<()> {
         };
         write_result(&out.join(name), s).map(|_| ())
     });
-    let report = stream_sequence(a.server.as_deref(), config, frames, &a.stream, load, write)?;
-    println!("{}; outputs in {}", report.summary(), a.out.display());
-    Ok(())
+    a.stream
+        .stream_folders(a.server.as_deref(), config, frames, load, write, &a.out)
 }
 
 /// The `left.*` and `right.*` files of a frame folder.
@@ -268,51 +328,19 @@ fn build_request(
     right: &Path,
 ) -> anyhow::Result<pb::RectifiedStereoRequest> {
     let k = parse_intrinsics(&a.intrinsics)?;
-    let (near, far) = match &a.depth_range {
-        Some(s) => {
-            let [near, far] = parse_numbers::<2>(s, "--depth-range", "near,far")?;
-            (near, far)
-        }
-        None => (0.0, 0.0),
-    };
-    let (min_disparity_px, max_disparity_px) = match &a.disparity_range {
-        Some(s) => {
-            let [lo, hi] = parse_numbers::<2>(s, "--disparity-range", "min,max")?;
-            (Some(lo as f32), Some(hi as f32))
-        }
-        None => (None, None),
-    };
-    let hazy = a.airlight.is_some();
-    let cost = a.cost_volume.unwrap_or(if hazy {
-        CostVolumeArg::Dehazing
-    } else {
-        CostVolumeArg::Ordinary
-    });
-    if cost != CostVolumeArg::Ordinary && !hazy {
-        bail!("the {cost:?} cost volume needs the haze: pass --airlight and --beta");
-    }
-    Ok(pb::RectifiedStereoRequest {
-        left: Some(encoded_image(left, "--left", a.srgb)?),
-        right: Some(encoded_image(right, "--right", a.srgb)?),
-        intrinsics: Some(pb::CameraIntrinsics {
+    let mut request = a.method.request(
+        pb::CameraIntrinsics {
             fx: k.fx,
             fy: k.fy,
             cx: k.cx,
             cy: k.cy,
             skew: 0.0,
-        }),
-        baseline: a.baseline,
-        right_cx: a.right_cx,
-        near,
-        far,
-        min_disparity_px,
-        max_disparity_px,
-        num_planes: a.planes.unwrap_or(0),
-        airlight: a.airlight.unwrap_or(0.0),
-        beta: a.beta.unwrap_or(0.0),
-        cost_volume: cost.wire() as i32,
-        sgm: a.depth.wire(),
-        return_points: true,
-        outputs: Some(a.outputs.wire(STEREO_OUTPUTS)),
-    })
+        },
+        a.baseline,
+        a.right_cx,
+    )?;
+    request.left = Some(encoded_image(left, "--left", a.method.srgb)?);
+    request.right = Some(encoded_image(right, "--right", a.method.srgb)?);
+    request.outputs = Some(a.outputs.wire(STEREO_OUTPUTS));
+    Ok(request)
 }

@@ -16,7 +16,7 @@ use murk_server::service::proto::v1 as pb;
 
 use super::mvs::run_here_or_remote;
 use super::outputs::OutputFlags;
-use super::session::{frame_dirs, stream_sequence, LoadFrame, SequenceFlags, WriteResult};
+use super::session::{frame_dirs, LoadFrame, SequenceFlags, WriteResult};
 use std::sync::Arc;
 
 /// Options of `murk tof`.
@@ -147,9 +147,8 @@ fn run_sequence(a: &TofArgs, dir: &Path) -> anyhow::Result<()> {
         };
         write_tof_result(&out.join(name), t).map(|_| ())
     });
-    let report = stream_sequence(a.server.as_deref(), config, frames, &a.stream, load, write)?;
-    println!("{}; outputs in {}", report.summary(), a.out.display());
-    Ok(())
+    a.stream
+        .stream_folders(a.server.as_deref(), config, frames, load, write, &a.out)
 }
 
 fn scale_phase(phase: &mut ImageF32, scale: f32) {
