@@ -49,6 +49,35 @@ def test_tof_depth_beats_the_raw_range(client: Client, tof_scene: Path) -> None:
     assert r.job_id == seen[-1].id
 
 
+def test_tof_points_are_the_measured_pixels(client: Client, tof_scene: Path) -> None:
+    frame = mc.load_tof_frame(tof_scene)
+    k = frame.intrinsics
+    assert k is not None
+    r = client.tof_depth(
+        frame.amplitude,
+        frame.phase,
+        modulation_frequency_hz=frame.modulation_frequency_hz,
+        intrinsics=k,
+        light_position_m=frame.light_position_m,
+        return_points=True,
+    )
+    assert r.points is not None and r.colors is not None and r.range_std_m is not None
+    assert r.z_depth_m is not None
+    measured = r.range_std_m < 0.1
+    assert len(r.points) == int(measured.sum()) and r.colors.shape == r.points.shape
+    # Each point lies on its pixel's ray at the pixel's z-depth (row-major order).
+    v, u = np.nonzero(measured)
+    z = r.z_depth_m[measured]
+    np.testing.assert_allclose(r.points[:, 2], z, rtol=1e-6)
+    np.testing.assert_allclose(r.points[:, 0], (u - k.cx) / k.fx * z, rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(r.points[:, 1], (v - k.cy) / k.fy * z, rtol=1e-4, atol=1e-5)
+    with pytest.raises(mc.ClientInputError) as e:
+        client.tof_depth(
+            frame.amplitude, frame.phase, modulation_frequency_hz=frame.modulation_frequency_hz, return_points=True
+        )
+    assert e.value.field == "request.tof_depth.return_points"
+
+
 def test_mvs_depth_with_colmap_model(client: Client, mvs_scene: Path) -> None:
     meta = read_meta(mvs_scene)
     model = mc.load_colmap_model(mvs_scene / "sparse")

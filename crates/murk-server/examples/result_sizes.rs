@@ -160,13 +160,13 @@ fn main() -> anyhow::Result<()> {
             cfg.modulation_frequency_hz,
             Some(cfg.light_position_m()),
         );
-        let (input, params, _) = tof_from_proto(&req, &limits)?;
+        let (input, params, _, _) = tof_from_proto(&req, &limits)?;
         let out = estimate_tof_depth(&input, &params, &monitor)?;
         for ((delivery, encoding), tally) in variants().into_iter().zip(&mut tallies) {
             req.outputs = Some(options(encoding));
             let outputs = tof_outputs_from_proto(&req, delivery)?;
             let started = Instant::now();
-            let message = tof_to_proto(&out, &params, &outputs)?.encode_to_vec();
+            let message = tof_to_proto(&out, &params, &outputs, None)?.encode_to_vec();
             tally.add(&message, started.elapsed().as_secs_f64())?;
         }
     }

@@ -241,6 +241,8 @@ class Client:
         options: Tuning | None = None,
         outputs: Sequence[str] | None = None,
         encoding: str | None = None,
+        return_points: bool = False,
+        max_point_range_std_m: float | None = None,
         progress: ProgressCallback | None = None,
         timeout_s: float | None = None,
     ) -> TofDepthResult:
@@ -254,6 +256,8 @@ class Client:
             options=options,
             outputs=outputs,
             encoding=encoding,
+            return_points=return_points,
+            max_point_range_std_m=max_point_range_std_m,
         )
         return _expect(self.run(req, progress=progress, timeout_s=timeout_s), TofDepthResult)
 

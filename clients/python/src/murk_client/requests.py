@@ -112,6 +112,8 @@ def tof_depth_request(
     options: Tuning | None = None,
     outputs: Sequence[str] | None = None,
     encoding: str | None = None,
+    return_points: bool = False,
+    max_point_range_std_m: float | None = None,
 ) -> jobs_pb2.JobRequest:
     """ToF depth in fog (Ch. 5).
 
@@ -120,6 +122,8 @@ def tof_depth_request(
     z-depth output; ``light_position_m`` (camera frame, metres) needs them. ``outputs`` names the
     result images to return (e.g. ``["z_depth_m", "mask"]``; default all) and ``encoding`` how
     (``"f32"``, default; ``"f16"``; ``"png"``); the others come back as ``None``.
+    ``return_points`` (needs ``intrinsics``) also returns the pixels whose ``range_std_m`` is
+    below ``max_point_range_std_m`` (metres; default 0.1) as points in the camera frame.
     """
     f = _finite(modulation_frequency_hz, "request.tof_depth.modulation_frequency_hz", positive=True)
     if not MIN_MODULATION_HZ <= f <= MAX_MODULATION_HZ:
@@ -137,11 +141,18 @@ def tof_depth_request(
             )
     if light_position_m is not None and intrinsics is None:
         raise ClientInputError("request.tof_depth.light_position_m", "needs intrinsics (each pixel's ray)")
+    if return_points and intrinsics is None:
+        raise ClientInputError("request.tof_depth.return_points", "needs intrinsics (each pixel's ray)")
     req = tof_pb2.TofDepthRequest(
         amplitude=to_proto(amplitude, field="request.tof_depth.amplitude", channels=1),
         phase=to_proto(phase, field="request.tof_depth.phase", channels=1),
         modulation_frequency_hz=f,
+        return_points=return_points,
     )
+    if max_point_range_std_m is not None:
+        req.max_point_range_std_m = _finite(
+            max_point_range_std_m, "request.tof_depth.max_point_range_std_m", positive=True
+        )
     if intrinsics is not None:
         req.intrinsics.CopyFrom(intrinsics_proto(intrinsics, "request.tof_depth.intrinsics"))
     if light_position_m is not None:

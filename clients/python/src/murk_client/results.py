@@ -65,10 +65,16 @@ class TofDepthResult:
     warnings: tuple[str, ...]
     job_id: str
     proto: tof_pb2.TofDepthResult
+    #: With ``return_points``: the measured pixels in the camera frame (x right, y down, z
+    #: forward, metres), ``(n, 3)`` float32, grey from the direct amplitude, ``(n, 3)`` uint8;
+    #: else ``None``.
+    points: npt.NDArray[np.float32] | None = None
+    colors: npt.NDArray[np.uint8] | None = None
 
     @classmethod
     def from_proto(cls, r: tof_pb2.TofDepthResult, job_id: str = "") -> TofDepthResult:
         """From the result message."""
+        points, colors = _points(r, "tof_depth", job_id)
 
         def image(name: str) -> FloatImage | None:
             return _optional_image(r, name, "tof_depth")
@@ -89,6 +95,8 @@ class TofDepthResult:
             warnings=tuple(r.warnings),
             job_id=job_id,
             proto=r,
+            points=points,
+            colors=colors,
         )
 
 
@@ -374,18 +382,7 @@ class RectifiedStereoResult:
     @classmethod
     def from_proto(cls, r: stereo_pb2.RectifiedStereoResult, job_id: str = "") -> RectifiedStereoResult:
         """From the result message."""
-        points: npt.NDArray[np.float32] | None = None
-        colors: npt.NDArray[np.uint8] | None = None
-        if r.HasField("points"):
-            n = r.points.count
-            if len(r.points.xyz_f32_le) != 12 * n or len(r.points.rgb8) != 3 * n:
-                raise MurkError(
-                    f"rectified_stereo.points: {n} points need {12 * n} position and {3 * n} "
-                    f"colour bytes, got {len(r.points.xyz_f32_le)} and {len(r.points.rgb8)}",
-                    job_id=job_id,
-                )
-            points = np.frombuffer(r.points.xyz_f32_le, dtype="<f4").reshape(n, 3).astype(np.float32)
-            colors = np.frombuffer(r.points.rgb8, dtype=np.uint8).reshape(n, 3).copy()
+        points, colors = _points(r, "rectified_stereo", job_id)
 
         def image(name: str) -> FloatImage | None:
             return _optional_image(r, name, "rectified_stereo")
@@ -431,3 +428,21 @@ def from_job_result(r: jobs_pb2.JobResult, job_id: str) -> Result:
     if which == "photometric_stereo":
         return PhotometricStereoResult.from_proto(r.photometric_stereo, job_id)
     raise MurkError(f"job {job_id}: result of an unknown method (a newer server?)", job_id=job_id)
+
+
+def _points(
+    r: tof_pb2.TofDepthResult | stereo_pb2.RectifiedStereoResult, method: str, job_id: str
+) -> tuple[npt.NDArray[np.float32] | None, npt.NDArray[np.uint8] | None]:
+    """A result's ``points`` as ``(n, 3)`` positions and colours, or ``(None, None)``."""
+    if not r.HasField("points"):
+        return None, None
+    n = r.points.count
+    if len(r.points.xyz_f32_le) != 12 * n or len(r.points.rgb8) != 3 * n:
+        raise MurkError(
+            f"{method}.points: {n} points need {12 * n} position and {3 * n} "
+            f"colour bytes, got {len(r.points.xyz_f32_le)} and {len(r.points.rgb8)}",
+            job_id=job_id,
+        )
+    points = np.frombuffer(r.points.xyz_f32_le, dtype="<f4").reshape(n, 3).astype(np.float32)
+    colors = np.frombuffer(r.points.rgb8, dtype=np.uint8).reshape(n, 3).copy()
+    return points, colors

@@ -84,6 +84,8 @@ def tof_session_config(
     options: Tuning | None = None,
     outputs: Sequence[str] | None = None,
     encoding: str | None = None,
+    return_points: bool = False,
+    max_point_range_std_m: float | None = None,
     queue_policy: str = "fifo",
     max_queued_frames: int = 0,
     frame_deadline_s: float = 0.0,
@@ -109,6 +111,8 @@ def tof_session_config(
             options=options,
             outputs=outputs,
             encoding=encoding,
+            return_points=return_points,
+            max_point_range_std_m=max_point_range_std_m,
         )
     return _config(req, width, height, queue_policy, max_queued_frames, frame_deadline_s)
 

@@ -7,10 +7,12 @@ use clap::Args;
 
 use murk::camera::Intrinsics;
 use murk::io::{read_image, write_colormap_png, write_exr, DecodeLimits};
+use murk::mvs_io::{write_ply, PlyFormat};
 use murk::simulate::{read_tof_capture, TofCapture};
 use murk::ImageF32;
 use murk_server::service::convert::{
-    image_from_proto, image_to_proto, tof_request_to_proto, ImageLimits, TOF_OUTPUTS,
+    image_from_proto, image_to_proto, points_from_proto, tof_request_to_proto, ImageLimits,
+    TOF_OUTPUTS,
 };
 use murk_server::service::proto::v1 as pb;
 
@@ -57,8 +59,8 @@ pub struct TofArgs {
     /// Row about which the symmetry prior mirrors the image.
     #[arg(long)]
     pub symmetry_row: Option<f64>,
-    /// Output folder (created): one EXR per result image fetched, and colour-mapped PNG
-    /// previews of the range.
+    /// Output folder (created): one EXR per result image fetched, colour-mapped PNG previews of
+    /// the range, and with intrinsics the measured pixels as points.ply.
     #[arg(long)]
     pub out: PathBuf,
     /// Which result images to fetch, and their encoding.
@@ -197,6 +199,8 @@ fn request_for(a: &TofArgs, capture: TofCapture) -> anyhow::Result<pb::TofDepthR
     let mut request =
         tof_request_to_proto(&amplitude, &phase, intrinsics.as_ref(), frequency, light);
     request.outputs = Some(a.outputs.wire(TOF_OUTPUTS));
+    // With intrinsics the measured pixels come back as points too (points.ply).
+    request.return_points = request.intrinsics.is_some();
     request.options = Some(pb::TofOptions {
         coarse_iterations: a.coarse_iterations,
         fine_iterations: a.fine_iterations,
@@ -240,7 +244,8 @@ pub struct TofImages {
 }
 
 /// Writes every image the result carries as `<field>.exr` into `dir`, with colour-mapped PNG
-/// previews of the corrected and raw range and the mask where the result has them; returns
+/// previews of the corrected and raw range and the mask where the result has them, and its
+/// points as `points.ply`; returns
 /// the main images when it carries all three.
 pub fn write_tof_result(dir: &Path, r: &pb::TofDepthResult) -> anyhow::Result<Option<TofImages>> {
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
@@ -292,6 +297,13 @@ pub fn write_tof_result(dir: &Path, r: &pb::TofDepthResult) -> anyhow::Result<Op
     }
     if let Some(mask) = mask {
         write_colormap_png(&dir.join("mask.png"), mask, 0.0, 1.0, None)?;
+    }
+    if let Some(cloud) = &r.points {
+        write_ply(
+            &dir.join("points.ply"),
+            &points_from_proto(cloud)?,
+            PlyFormat::BinaryLittleEndian,
+        )?;
     }
     let take = |name: &str| decoded.get(name).cloned();
     Ok(match (take("range_m"), take("raw_range_m"), take("mask")) {

@@ -263,12 +263,15 @@ fn build_work(
     let limits = &request_limits.images;
     match req.method {
         Some(pb::job_request::Method::TofDepth(t)) => {
-            let (input, params, outputs) = tof_from_proto(&t, limits)?;
+            let (input, params, outputs, points) = tof_from_proto(&t, limits)?;
             Ok(Box::new(move |monitor| {
                 let out = estimate_tof_depth(&input, &params, monitor)?;
                 let result = pb::JobResult {
                     method: Some(pb::job_result::Method::TofDepth(tof_to_proto(
-                        &out, &params, &outputs,
+                        &out,
+                        &params,
+                        &outputs,
+                        points.as_ref(),
                     )?)),
                 };
                 Ok(result.encode_to_vec())

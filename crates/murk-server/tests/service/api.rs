@@ -152,6 +152,50 @@ async fn submit_watch_result_then_identical_resubmit_is_a_cache_hit() {
 }
 
 #[tokio::test]
+async fn tof_points_are_the_measured_pixels_and_need_intrinsics() {
+    let server = start(config(4)).await;
+    let mut req = tof_request(64, 53, 3);
+    req.return_points = true;
+    let r = recon(&server)
+        .tof_depth(req.clone())
+        .await
+        .unwrap()
+        .into_inner();
+    let cloud = r.points.expect("points were asked for");
+    let Some(pb::image::Data::RawF32Le(bytes)) = &r.range_std_m.as_ref().unwrap().data else {
+        panic!("a one-shot result is raw f32");
+    };
+    let std: Vec<f32> = bytes
+        .chunks_exact(4)
+        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+        .collect();
+    let measured = std.iter().filter(|s| **s < 0.1).count();
+    assert_eq!(cloud.count as usize, measured);
+    assert!(measured > 0 && measured < std.len());
+    assert_eq!(cloud.xyz_f32_le.len(), measured * 12);
+    // A tighter limit keeps fewer; without intrinsics there is no ray to put a point on.
+    req.max_point_range_std_m = 0.01;
+    let tight = recon(&server)
+        .tof_depth(req.clone())
+        .await
+        .unwrap()
+        .into_inner();
+    assert!(tight.points.unwrap().count < cloud.count);
+    req.intrinsics = None;
+    let e = recon(&server).tof_depth(req.clone()).await.unwrap_err();
+    assert_eq!(e.code(), Code::InvalidArgument);
+    assert!(e.message().contains("return_points"), "{}", e.message());
+    req.max_point_range_std_m = f32::NAN;
+    let e = recon(&server).tof_depth(req).await.unwrap_err();
+    assert!(
+        e.message().contains("max_point_range_std_m"),
+        "{}",
+        e.message()
+    );
+    server.stop().await.unwrap();
+}
+
+#[tokio::test]
 async fn cancelling_a_long_job_ends_it_within_one_second() {
     let server = start(config(4)).await;
     let mut c = jobs(&server);

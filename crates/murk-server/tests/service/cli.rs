@@ -63,6 +63,7 @@ async fn simulate_then_tof_client_writes_outputs() {
         "range_m.png",
         "raw_range_m.png",
         "mask.png",
+        "points.ply",
     ] {
         assert!(out.join(f).exists(), "{f} missing");
     }

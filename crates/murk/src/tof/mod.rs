@@ -14,6 +14,7 @@ pub mod multigrid;
 pub mod noise_model;
 mod params;
 pub mod pipeline;
+mod points;
 pub mod quadratic_prior;
 pub mod symmetry;
 mod tracker;
@@ -26,5 +27,6 @@ pub use pipeline::{
     estimate_tof_depth, estimate_tof_depth_from, estimate_tof_depth_with_solver,
     unmeasured_range_std_m,
 };
+pub use points::{measured_points, DEFAULT_MAX_POINT_RANGE_STD_M};
 pub use tracker::{TofStart, TofTracker, TrackedTof};
 pub use wls::{Preconditioner, XStepSolver};

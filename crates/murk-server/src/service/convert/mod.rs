@@ -30,5 +30,6 @@ pub use stereo::{
 };
 pub use tof::{
     intrinsics_from_proto, intrinsics_to_proto, tof_from_proto, tof_images_from_proto,
-    tof_outputs_from_proto, tof_params_from_proto, tof_request_to_proto, tof_to_proto, TOF_OUTPUTS,
+    tof_outputs_from_proto, tof_params_from_proto, tof_points_from_proto, tof_request_to_proto,
+    tof_to_proto, TofPoints, TOF_OUTPUTS,
 };

@@ -7,9 +7,49 @@ use murk::camera::Intrinsics;
 use murk::error::{MurkError, Result};
 use murk::image::ImageF32;
 use murk::tof::{
-    unmeasured_range_std_m, BilateralParams, IrlsChannelParams, PriorCoupling, ScatterChannels,
-    TofInput, TofOutput, TofParams,
+    measured_points, unmeasured_range_std_m, BilateralParams, IrlsChannelParams, PriorCoupling,
+    ScatterChannels, TofInput, TofOutput, TofParams, DEFAULT_MAX_POINT_RANGE_STD_M,
 };
+
+use super::stereo::points_to_proto;
+
+/// A request's point cloud: through which camera, keeping which pixels.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TofPoints {
+    /// The camera's intrinsics.
+    pub intrinsics: Intrinsics,
+    /// The largest `range_std_m` of a point, metres.
+    pub max_range_std_m: f32,
+}
+
+/// The request's `return_points` and `max_point_range_std_m`: `None` when no points were asked
+/// for. Errors name `return_points` (no intrinsics) or `max_point_range_std_m`.
+pub fn tof_points_from_proto(req: &pb::TofDepthRequest) -> Result<Option<TofPoints>> {
+    let max = req.max_point_range_std_m;
+    if !max.is_finite() || max < 0.0 {
+        return Err(MurkError::invalid(
+            "max_point_range_std_m",
+            format!("must be finite and ≥ 0 (0 = {DEFAULT_MAX_POINT_RANGE_STD_M} m), got {max}"),
+        ));
+    }
+    if !req.return_points {
+        return Ok(None);
+    }
+    let k = req.intrinsics.as_ref().ok_or_else(|| {
+        MurkError::invalid(
+            "return_points",
+            "points need the camera's intrinsics: set intrinsics",
+        )
+    })?;
+    Ok(Some(TofPoints {
+        intrinsics: intrinsics_from_proto(k),
+        max_range_std_m: if max == 0.0 {
+            DEFAULT_MAX_POINT_RANGE_STD_M
+        } else {
+            max
+        },
+    }))
+}
 
 /// The image fields of `TofDepthResult`, in message order.
 pub const TOF_OUTPUTS: &[OutputField] = &[
@@ -88,7 +128,7 @@ pub fn tof_outputs_from_proto(
 pub fn tof_from_proto(
     req: &pb::TofDepthRequest,
     limits: &ImageLimits,
-) -> Result<(TofInput, TofParams, OutputSelection)> {
+) -> Result<(TofInput, TofParams, OutputSelection, Option<TofPoints>)> {
     let (amplitude, phase) =
         tof_images_from_proto(req.amplitude.as_ref(), req.phase.as_ref(), limits)?;
     let intrinsics = req.intrinsics.as_ref().map(intrinsics_from_proto);
@@ -101,7 +141,8 @@ pub fn tof_from_proto(
     let (w, h) = input.amplitude.dims();
     let params = tof_params_from_proto(req, w, h)?;
     let outputs = tof_outputs_from_proto(req, Delivery::OneShot)?;
-    Ok((input, params, outputs))
+    let points = tof_points_from_proto(req)?;
+    Ok((input, params, outputs, points))
 }
 
 /// Decodes the amplitude and phase images of a request or a frame (one channel each); errors
@@ -274,6 +315,8 @@ pub fn tof_request_to_proto(
         options: None,
         light_position_m: light_position_m.map(|[x, y, z]| pb::Vector3 { x, y, z }),
         outputs: None,
+        return_points: false,
+        max_point_range_std_m: 0.0,
     }
 }
 
@@ -288,13 +331,15 @@ fn without_unmeasured(depth: &ImageF32, range_std_m: &ImageF32, unmeasured: f32)
     out
 }
 
-/// Encodes the images of the method's output (computed with `params`) that `outputs` selects.
-/// In PNG, as in a ROS depth image, the corrected range and z-depth are 0 where the pixel has no
-/// measurement (see `ImageEncoding` in common.proto).
+/// Encodes the images of the method's output (computed with `params`) that `outputs` selects,
+/// and its measured pixels as points when `points` asks for them. In PNG, as in a ROS depth
+/// image, the corrected range and z-depth are 0 where the pixel has no measurement (see
+/// `ImageEncoding` in common.proto).
 pub fn tof_to_proto(
     out: &TofOutput,
     params: &TofParams,
     outputs: &OutputSelection,
+    points: Option<&TofPoints>,
 ) -> Result<pb::TofDepthResult> {
     let image = |name: &str, img: &ImageF32| outputs.encode(name, img);
     let depth = |name: &str, img: &ImageF32| {
@@ -325,5 +370,16 @@ pub fn tof_to_proto(
         corrected_phase: image("corrected_phase", &out.corrected_phase)?,
         range_std_m: image("range_std_m", &out.range_std_m)?,
         warnings: out.warnings.clone(),
+        points: points
+            .map(|p| {
+                measured_points(
+                    out,
+                    &p.intrinsics,
+                    params.modulation_frequency_hz,
+                    p.max_range_std_m,
+                )
+            })
+            .transpose()?
+            .map(|p| points_to_proto(&p)),
     })
 }

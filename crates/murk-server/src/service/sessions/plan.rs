@@ -5,8 +5,8 @@ use std::time::Duration;
 
 use crate::service::convert::{
     intrinsics_from_proto, stereo_images_from_proto, stereo_to_proto, tof_images_from_proto,
-    tof_outputs_from_proto, tof_params_from_proto, tof_to_proto, Delivery, ImageLimits,
-    OutputSelection, StereoConfig,
+    tof_outputs_from_proto, tof_params_from_proto, tof_points_from_proto, tof_to_proto, Delivery,
+    ImageLimits, OutputSelection, StereoConfig, TofPoints,
 };
 use crate::service::proto::v1 as pb;
 use murk::camera::Intrinsics;
@@ -30,6 +30,8 @@ pub struct TofSettings {
     pub intrinsics: Option<Intrinsics>,
     /// The result images each frame returns, and their encoding.
     pub outputs: OutputSelection,
+    /// Each frame's point cloud, when asked for.
+    pub points: Option<TofPoints>,
 }
 
 /// What a session computes.
@@ -113,10 +115,12 @@ impl SessionPlan {
                 let outputs =
                     tof_outputs_from_proto(t, Delivery::Session).map_err(|e| e.within("tof"))?;
                 let intrinsics = t.intrinsics.as_ref().map(intrinsics_from_proto);
+                let points = tof_points_from_proto(t).map_err(|e| e.within("tof"))?;
                 SessionMethod::Tof(Box::new(TofSettings {
                     params,
                     intrinsics,
                     outputs,
+                    points,
                 }))
             }
             Some(pb::session_config::Method::Stereo(s)) => {
@@ -239,6 +243,7 @@ impl SessionPlan {
                         &tracked.output,
                         &settings.params,
                         &settings.outputs,
+                        settings.points.as_ref(),
                     )?),
                     warnings,
                 ))

@@ -58,8 +58,18 @@ class TofDepthRequest(_message.Message):
     OPTIONS_FIELD_NUMBER: _builtins.int
     LIGHT_POSITION_M_FIELD_NUMBER: _builtins.int
     OUTPUTS_FIELD_NUMBER: _builtins.int
+    RETURN_POINTS_FIELD_NUMBER: _builtins.int
+    MAX_POINT_RANGE_STD_M_FIELD_NUMBER: _builtins.int
     modulation_frequency_hz: _builtins.float
     """Modulation frequency in Hz (> 0), e.g. 16e6."""
+    return_points: _builtins.bool
+    """Optional: also return the measured pixels as a point cloud (`points`), in the camera frame
+    (x right, y down, z forward, metres), grey from the direct amplitude. Requires intrinsics.
+    A pixel is measured when its range_std_m is below max_point_range_std_m; fog-only pixels,
+    whose direct return is buried in the scatter, carry spreads of metres.
+    """
+    max_point_range_std_m: _builtins.float
+    """The largest range_std_m of a point, metres; 0 = 0.1 m."""
     @_builtins.property
     def amplitude(self) -> _common_pb2.Image:
         """Amplitude image of the CW-ToF camera, one channel, linear units."""
@@ -101,10 +111,12 @@ class TofDepthRequest(_message.Message):
         options: Global___TofOptions | None = ...,
         light_position_m: _common_pb2.Vector3 | None = ...,
         outputs: _common_pb2.OutputOptions | None = ...,
+        return_points: _builtins.bool = ...,
+        max_point_range_std_m: _builtins.float = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["amplitude", b"amplitude", "intrinsics", b"intrinsics", "light_position_m", b"light_position_m", "options", b"options", "outputs", b"outputs", "phase", b"phase"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["amplitude", b"amplitude", "intrinsics", b"intrinsics", "light_position_m", b"light_position_m", "modulation_frequency_hz", b"modulation_frequency_hz", "options", b"options", "outputs", b"outputs", "phase", b"phase"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["amplitude", b"amplitude", "intrinsics", b"intrinsics", "light_position_m", b"light_position_m", "max_point_range_std_m", b"max_point_range_std_m", "modulation_frequency_hz", b"modulation_frequency_hz", "options", b"options", "outputs", b"outputs", "phase", b"phase", "return_points", b"return_points"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
@@ -350,6 +362,7 @@ class TofDepthResult(_message.Message):
     RAW_Z_DEPTH_M_FIELD_NUMBER: _builtins.int
     RANGE_STD_M_FIELD_NUMBER: _builtins.int
     WARNINGS_FIELD_NUMBER: _builtins.int
+    POINTS_FIELD_NUMBER: _builtins.int
     @_builtins.property
     def range_m(self) -> _common_pb2.Image:
         """Corrected range along the viewing ray, metres."""
@@ -404,6 +417,10 @@ class TofDepthResult(_message.Message):
         its weights settled (the mask may be incomplete; raise fine_iterations). Empty when none.
         """
 
+    @_builtins.property
+    def points(self) -> _common_pb2.PointCloud:
+        """The measured pixels as points, when the request set return_points."""
+
     def __init__(
         self,
         *,
@@ -420,10 +437,11 @@ class TofDepthResult(_message.Message):
         raw_z_depth_m: _common_pb2.Image | None = ...,
         range_std_m: _common_pb2.Image | None = ...,
         warnings: _abc.Iterable[_builtins.str] | None = ...,
+        points: _common_pb2.PointCloud | None = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _typing.Literal["corrected_amplitude", b"corrected_amplitude", "corrected_phase", b"corrected_phase", "mask", b"mask", "range_m", b"range_m", "range_std_m", b"range_std_m", "raw_range_m", b"raw_range_m", "raw_z_depth_m", b"raw_z_depth_m", "scatter_amplitude", b"scatter_amplitude", "scatter_phase", b"scatter_phase", "weight_amplitude", b"weight_amplitude", "weight_phase", b"weight_phase", "z_depth_m", b"z_depth_m"]  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["corrected_amplitude", b"corrected_amplitude", "corrected_phase", b"corrected_phase", "mask", b"mask", "points", b"points", "range_m", b"range_m", "range_std_m", b"range_std_m", "raw_range_m", b"raw_range_m", "raw_z_depth_m", b"raw_z_depth_m", "scatter_amplitude", b"scatter_amplitude", "scatter_phase", b"scatter_phase", "weight_amplitude", b"weight_amplitude", "weight_phase", b"weight_phase", "z_depth_m", b"z_depth_m"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["corrected_amplitude", b"corrected_amplitude", "corrected_phase", b"corrected_phase", "mask", b"mask", "range_m", b"range_m", "range_std_m", b"range_std_m", "raw_range_m", b"raw_range_m", "raw_z_depth_m", b"raw_z_depth_m", "scatter_amplitude", b"scatter_amplitude", "scatter_phase", b"scatter_phase", "warnings", b"warnings", "weight_amplitude", b"weight_amplitude", "weight_phase", b"weight_phase", "z_depth_m", b"z_depth_m"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["corrected_amplitude", b"corrected_amplitude", "corrected_phase", b"corrected_phase", "mask", b"mask", "points", b"points", "range_m", b"range_m", "range_std_m", b"range_std_m", "raw_range_m", b"raw_range_m", "raw_z_depth_m", b"raw_z_depth_m", "scatter_amplitude", b"scatter_amplitude", "scatter_phase", b"scatter_phase", "warnings", b"warnings", "weight_amplitude", b"weight_amplitude", "weight_phase", b"weight_phase", "z_depth_m", b"z_depth_m"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
