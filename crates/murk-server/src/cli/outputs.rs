@@ -22,7 +22,7 @@ pub enum EncodingArg {
 #[derive(Args, Debug, Clone)]
 pub struct OutputFlags {
     /// Result images to fetch and write, comma-separated, by their names in the result
-    /// (e.g. z_depth_m,mask,range_std_m); default: all of them.
+    /// (e.g. z_depth_m,mask,range_std_m), and `points` for points.ply; default: all of them.
     #[arg(long, value_delimiter = ',')]
     pub outputs: Vec<String>,
     /// How the result images travel from the server.
@@ -31,6 +31,29 @@ pub struct OutputFlags {
 }
 
 impl OutputFlags {
+    /// Whether points are wanted (`points` named, or nothing named), and the request's
+    /// `outputs` for the images.
+    pub fn split_points(
+        &self,
+        catalog: &[OutputField],
+    ) -> anyhow::Result<(bool, pb::OutputOptions)> {
+        let images: Vec<String> = self
+            .outputs
+            .iter()
+            .filter(|f| *f != "points")
+            .cloned()
+            .collect();
+        if images.is_empty() && !self.outputs.is_empty() {
+            anyhow::bail!("--outputs names no image besides points: name at least one");
+        }
+        let wants_points = self.outputs.is_empty() || images.len() < self.outputs.len();
+        let flags = OutputFlags {
+            outputs: images,
+            encoding: self.encoding,
+        };
+        Ok((wants_points, flags.wire(catalog)))
+    }
+
     /// The request's `outputs`, every field of `catalog` written out when none was named (a
     /// session's unset selection would mean its compact default).
     pub fn wire(&self, catalog: &[OutputField]) -> pb::OutputOptions {

@@ -7,8 +7,11 @@ use clap::{Args, Subcommand};
 
 use murk::simulate::mvs::{simulate_mvs, write_mvs_scene, MvsSimConfig};
 use murk::simulate::ps::{simulate_ps, write_ps_capture, PsShape, PsSimConfig};
+use murk::simulate::stereo_sequence::write_stereo_frame;
 use murk::simulate::tof::{simulate_tof, FogPreset, TofSimConfig};
-use murk::simulate::{simulate_tof_sequence_frame, write_tof_frame, TofMotion};
+use murk::simulate::{
+    simulate_tof_sequence_frame, write_tof_frame, StereoMotion, StereoSequence, TofMotion,
+};
 use murk::Monitor;
 
 /// What to simulate.
@@ -22,6 +25,39 @@ pub enum SimulateCommand {
     /// A photometric-stereo capture in turbid water with ground truth (per light an image with
     /// and without the object, GT normals, depth, albedo, mask).
     Ps(SimPsArgs),
+    /// A rectified stereo rig moving through a hazy room: one folder per pair (left.png,
+    /// right.png, the left view's GT depth.exr, meta.json), the layout `murk stereo --sequence`
+    /// streams.
+    Stereo(SimStereoArgs),
+}
+
+/// Options of `murk simulate stereo`.
+#[derive(Args, Debug)]
+pub struct SimStereoArgs {
+    /// Output folder (created): OUT/frame_0000, OUT/frame_0001, ...
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Scene seed: the room, the airlight and the haze.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Image width (the focal length scales with it, so the field of view is kept).
+    #[arg(long, default_value_t = 256)]
+    pub width: usize,
+    /// Image height.
+    #[arg(long, default_value_t = 192)]
+    pub height: usize,
+    /// Number of pairs.
+    #[arg(long, default_value_t = 10)]
+    pub frames: usize,
+    /// Frames per second of the rig.
+    #[arg(long, default_value_t = 10.0)]
+    pub fps: f64,
+    /// Speed along the optical axis, scene units per second.
+    #[arg(long, default_value_t = 0.5)]
+    pub forward_per_s: f64,
+    /// Speed to the right, scene units per second.
+    #[arg(long, default_value_t = 0.0)]
+    pub sideways_per_s: f64,
 }
 
 /// The object of `murk simulate ps`.
@@ -239,7 +275,60 @@ pub fn run(cmd: SimulateCommand) -> anyhow::Result<()> {
         }
         SimulateCommand::Mvs(a) => simulate_mvs_scene(&a),
         SimulateCommand::Ps(a) => simulate_ps_capture(&a),
+        SimulateCommand::Stereo(a) => simulate_stereo_sequence(&a),
     }
+}
+
+fn simulate_stereo_sequence(a: &SimStereoArgs) -> anyhow::Result<()> {
+    if a.frames == 0 {
+        anyhow::bail!("--frames must be at least 1");
+    }
+    let seq = StereoSequence::new(
+        &MvsSimConfig {
+            seed: a.seed,
+            ..MvsSimConfig::with_size(a.width, a.height)
+        },
+        &StereoMotion {
+            frame_rate_hz: a.fps,
+            forward_m_per_s: a.forward_per_s,
+            sideways_m_per_s: a.sideways_per_s,
+        },
+    )?;
+    let progress = indicatif::ProgressBar::new(a.frames as u64);
+    for k in 0..a.frames {
+        let frame = seq.frame(k, &Monitor::noop())?;
+        let dir = a.out.join(format!("frame_{k:04}"));
+        write_stereo_frame(&dir, &seq, &frame)
+            .with_context(|| format!("writing {}", dir.display()))?;
+        progress.inc(1);
+    }
+    progress.finish_and_clear();
+    let k = seq.intrinsics();
+    println!(
+        "wrote {} ({} pairs of {}x{} at {} Hz, A {:.3}, beta {:.4} per unit, baseline {}, seed {})",
+        a.out.display(),
+        a.frames,
+        a.width,
+        a.height,
+        a.fps,
+        seq.airlight,
+        seq.beta,
+        seq.baseline(),
+        a.seed
+    );
+    println!(
+        "next: murk stereo --sequence {0} --out {0}/result --intrinsics {1},{2},{3},{4} \
+         --baseline {5} --airlight {6} --beta {7}",
+        a.out.display(),
+        k.fx,
+        k.fy,
+        k.cx,
+        k.cy,
+        seq.baseline(),
+        seq.airlight,
+        seq.beta
+    );
+    Ok(())
 }
 
 fn simulate_ps_capture(a: &SimPsArgs) -> anyhow::Result<()> {

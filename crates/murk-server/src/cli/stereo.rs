@@ -341,6 +341,8 @@ fn build_request(
     )?;
     request.left = Some(encoded_image(left, "--left", a.method.srgb)?);
     request.right = Some(encoded_image(right, "--right", a.method.srgb)?);
-    request.outputs = Some(a.outputs.wire(STEREO_OUTPUTS));
+    let (wants_points, outputs) = a.outputs.split_points(STEREO_OUTPUTS)?;
+    request.outputs = Some(outputs);
+    request.return_points = wants_points;
     Ok(request)
 }

@@ -198,9 +198,10 @@ fn request_for(a: &TofArgs, capture: TofCapture) -> anyhow::Result<pb::TofDepthR
     };
     let mut request =
         tof_request_to_proto(&amplitude, &phase, intrinsics.as_ref(), frequency, light);
-    request.outputs = Some(a.outputs.wire(TOF_OUTPUTS));
-    // With intrinsics the measured pixels come back as points too (points.ply).
-    request.return_points = request.intrinsics.is_some();
+    let (wants_points, outputs) = a.outputs.split_points(TOF_OUTPUTS)?;
+    request.outputs = Some(outputs);
+    // With intrinsics the measured pixels can come back as points (points.ply).
+    request.return_points = wants_points && request.intrinsics.is_some();
     request.options = Some(pb::TofOptions {
         coarse_iterations: a.coarse_iterations,
         fine_iterations: a.fine_iterations,

@@ -182,6 +182,7 @@ async fn tof_points_are_the_measured_pixels_and_need_intrinsics() {
         .into_inner();
     assert!(tight.points.unwrap().count < cloud.count);
     req.intrinsics = None;
+    req.light_position_m = None;
     let e = recon(&server).tof_depth(req.clone()).await.unwrap_err();
     assert_eq!(e.code(), Code::InvalidArgument);
     assert!(e.message().contains("return_points"), "{}", e.message());

@@ -817,3 +817,57 @@ fn a_simulated_tof_sequence_streams_through_a_session() {
         assert!(!out.join(format!("frame_{k:04}/range_m.exr")).exists());
     }
 }
+
+#[test]
+fn a_simulated_stereo_sequence_streams_through_a_session() {
+    let dir = tempfile::tempdir().unwrap();
+    let seq = dir.path().join("seq");
+    let said = succeeded(
+        &murk()
+            .args(["simulate", "stereo", "--frames", "3", "--width", "96"])
+            .args(["--height", "72", "--seed", "2", "--out"])
+            .arg(&seq)
+            .output()
+            .unwrap(),
+    );
+    // The printed next step is the command that streams the sequence.
+    let next = said
+        .lines()
+        .find_map(|l| l.strip_prefix("next: murk "))
+        .unwrap_or_else(|| panic!("{said}"));
+    let meta = |k: usize| -> serde_json::Value {
+        let path = seq.join(format!("frame_{k:04}/meta.json"));
+        serde_json::from_slice(&std::fs::read(path).unwrap()).unwrap()
+    };
+    // One rig and one haze; the rig moves, so the scene's depths change.
+    assert_eq!(meta(0)["beta"], meta(2)["beta"]);
+    assert_eq!(meta(0)["baseline"], meta(2)["baseline"]);
+    assert_eq!(meta(2)["time_s"], 0.2);
+    let depth = |k: usize| {
+        murk::io::read_image(
+            &seq.join(format!("frame_{k:04}/depth.exr")),
+            &murk::io::DecodeLimits::default(),
+        )
+        .unwrap()
+    };
+    assert_ne!(depth(0).data(), depth(2).data());
+    let said = succeeded(
+        &murk()
+            .env_remove("MURK_SERVER")
+            .args(next.split_whitespace())
+            .output()
+            .unwrap(),
+    );
+    assert!(
+        said.contains("3 frames sent, 3 computed, 0 failed, 0 dropped"),
+        "{said}"
+    );
+    for k in 0..3 {
+        for f in ["depth.exr", "points.ply"] {
+            assert!(
+                seq.join(format!("result/frame_{k:04}/{f}")).exists(),
+                "{k}: {f}"
+            );
+        }
+    }
+}

@@ -30,6 +30,7 @@
 pub mod mvs;
 pub mod ps;
 pub mod scene;
+pub mod stereo_sequence;
 pub mod tof;
 pub mod tof_sequence;
 
@@ -38,6 +39,7 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 
 pub use scene::{Scene, SceneLayout, SceneObject, Shape};
+pub use stereo_sequence::{StereoFrame, StereoMotion, StereoSequence};
 pub use tof::{
     scatter_along_ray, simulate_tof, wrap_phase, FogPreset, Phasor, TofSimConfig, TofSimFrame,
     MAX_SIM_PIXELS, MAX_SIM_SIDE,

@@ -490,7 +490,7 @@ impl Material {
 // ---------------------------------------------------------------------------------------------
 // Scene geometry
 
-struct World {
+pub(super) struct World {
     back_z: f64,
     /// Materials of the six room faces: −x, +x, −y (ceiling), +y (floor), −z (behind), +z (back).
     room: [Material; 6],
@@ -506,7 +506,7 @@ struct SurfaceHit {
 const LIGHT: [f64; 3] = [-0.27, -0.87, -0.41];
 
 impl World {
-    fn random(cfg: &MvsSimConfig, rng: &mut ChaCha8Rng) -> Self {
+    pub(super) fn random(cfg: &MvsSimConfig, rng: &mut ChaCha8Rng) -> Self {
         let back_z = rng.random_range(10.0..12.0);
         let mut room = [0; 6].map(|_| Material::random(rng, false));
         room[2] = Material::random(rng, true);
@@ -662,7 +662,11 @@ pub(crate) fn gaussian(rng: &mut ChaCha8Rng) -> f64 {
 }
 
 /// Renders clear RGB and z-depth of one view.
-fn render_view(world: &World, cfg: &MvsSimConfig, pose: &Pose) -> Result<(ImageF32, ImageF32)> {
+pub(super) fn render_view(
+    world: &World,
+    cfg: &MvsSimConfig,
+    pose: &Pose,
+) -> Result<(ImageF32, ImageF32)> {
     let (w, h, s) = (cfg.width, cfg.height, cfg.supersample);
     let k = cfg.intrinsics();
     let c2w = pose.inverse();
@@ -701,7 +705,7 @@ fn render_view(world: &World, cfg: &MvsSimConfig, pose: &Pose) -> Result<(ImageF
 }
 
 /// Adds Gaussian noise of `sigma` and clips to `[0, 1]`; one ChaCha8 stream per row.
-fn add_noise(img: &mut ImageF32, sigma: f32, seed: u64) {
+pub(super) fn add_noise(img: &mut ImageF32, sigma: f32, seed: u64) {
     let row_len = img.width() * img.channels();
     img.data_mut()
         .par_chunks_mut(row_len)
@@ -720,7 +724,7 @@ fn add_noise(img: &mut ImageF32, sigma: f32, seed: u64) {
         });
 }
 
-fn median(v: &[f32]) -> f64 {
+pub(super) fn median(v: &[f32]) -> f64 {
     let mut s: Vec<f32> = v.to_vec();
     let mid = s.len() / 2;
     let (_, m, _) = s.select_nth_unstable_by(mid, f32::total_cmp);
@@ -942,7 +946,7 @@ struct MvsMeta {
     units: Option<serde_json::Value>,
 }
 
-fn encode_rgb16(img: &ImageF32) -> Result<Vec<u8>> {
+pub(super) fn encode_rgb16(img: &ImageF32) -> Result<Vec<u8>> {
     use image::{ExtendedColorType, ImageEncoder};
     let mut buf = Vec::with_capacity(img.data().len() * 2);
     for &v in img.data() {
