@@ -7,6 +7,7 @@ a clear error, a nonzero exit and no output file."""
 from __future__ import annotations
 
 import subprocess
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -84,47 +85,34 @@ def camera_info_msg(
 @dataclass
 class StereoBag:
     path: Path
-    gt_depth: np.ndarray
+    gt_depth: list[np.ndarray]
     airlight: float
     beta: float
-    frames: int
 
 
 @pytest.fixture(scope="module")
 def stereo_bag(tmp_path_factory: pytest.TempPathFactory) -> StereoBag:
-    """A static rectified rig at 10 Hz for three frames: the simulated pair, each frame with its
-    own sensor noise; left and right CameraInfo on every frame (the right one's P carries
-    Tx = -fx*B)."""
+    """A rectified rig moving forward through a hazy room at 10 Hz for three frames, as
+    `murk simulate stereo` renders it; left and right CameraInfo on every frame (the right
+    one's P carries Tx = -fx*B)."""
     work = tmp_path_factory.mktemp("stereo_bag")
-    scene = simulate(
-        "mvs", work / "scene", "--width", "96", "--height", "72", "--seed", "2", "--rectified-pair"
-    )
-    meta = read_meta(scene)
-    model = mc.load_colmap_model(scene / "sparse")
-    left = model.view("view_00.png", scene / "images")
-    right = model.view("view_01.png", scene / "images")
-    k = left.intrinsics
-    assert k is not None
-    baseline = -float(right.pose.translation_scene_units[0])
-    rng = np.random.default_rng(7)
+    seq = simulate("stereo", work / "seq", "--width", "96", "--height", "72", "--seed", "2", "--frames", "3")
+    frames = sorted(p for p in seq.iterdir() if p.is_dir())
+    meta = read_meta(frames[0])
+    k = meta["intrinsics"]
+    baseline = float(meta["baseline"])
     path = work / "stereo.mcap"
-    n = 3
     with open(path, "wb") as f:
         w = Writer(f)
         image_schema = w.register_msgdef("sensor_msgs/msg/Image", IMAGE)
         info_schema = w.register_msgdef("sensor_msgs/msg/CameraInfo", CAMERA_INFO)
-        for i in range(n):
+        for i, frame in enumerate(frames):
             t = T0_NS + i * PERIOD_NS
-            for side, view, tx in (("left", left, 0.0), ("right", right, -k.fx * baseline)):
-                noisy = np.clip(view.image + rng.normal(0, 0.002, view.image.shape), 0, 1)
-                rgb8 = np.round(noisy * 255).astype(np.uint8)
+            for side, tx in (("left", 0.0), ("right", -k["fx"] * baseline)):
+                rgb8 = np.round(mc.read_image(frame / f"{side}.png") * 255).astype(np.uint8)
                 h, wd = rgb8.shape[:2]
-                w.write_message(
-                    f"/stereo/{side}/camera_info",
-                    info_schema,
-                    camera_info_msg(i, f"stereo_{side}", wd, h, k.fx, k.fy, k.cx, k.cy, tx),
-                    log_time=t,
-                )
+                info = camera_info_msg(i, f"stereo_{side}", wd, h, k["fx"], k["fy"], k["cx"], k["cy"], tx)
+                w.write_message(f"/stereo/{side}/camera_info", info_schema, info, log_time=t)
                 w.write_message(
                     f"/stereo/{side}/image_rect",
                     image_schema,
@@ -134,10 +122,9 @@ def stereo_bag(tmp_path_factory: pytest.TempPathFactory) -> StereoBag:
         w.finish()
     return StereoBag(
         path=path,
-        gt_depth=mc.read_image(scene / "depth" / "view_00.exr"),
+        gt_depth=[mc.read_image(f / "depth.exr") for f in frames],
         airlight=float(meta["airlight"]),
         beta=float(meta["beta"]),
-        frames=n,
     )
 
 
@@ -191,14 +178,14 @@ def test_a_stereo_bag_from_another_writer(stereo_bag: StereoBag, tmp_path: Path)
         "--copy-inputs",
     )
     assert r.returncode == 0, r.stderr
-    assert f"{stereo_bag.frames} frames read, {stereo_bag.frames} processed, 0 failed" in r.stdout
+    n = len(stereo_bag.gt_depth)
+    assert f"{n} frames read, {n} processed, 0 failed" in r.stdout
     topics = read_back(out)
     for t in ("depth", "confidence", "disparity", "points", "camera_info"):
-        assert len(topics[f"/murk/{t}"]) == stereo_bag.frames, t
+        assert len(topics[f"/murk/{t}"]) == n, t
     # The inputs came through, byte for byte as decoded.
-    assert len(topics["/stereo/left/image_rect"]) == stereo_bag.frames
-    gt = stereo_bag.gt_depth
-    for k in range(stereo_bag.frames):
+    assert len(topics["/stereo/left/image_rect"]) == n
+    for k, gt in enumerate(stereo_bag.gt_depth):
         want = header(k, "stereo_left")
         for t in ("depth", "confidence", "disparity", "points", "camera_info"):
             h = topics[f"/murk/{t}"][k].header
@@ -216,6 +203,20 @@ def test_a_stereo_bag_from_another_writer(stereo_bag: StereoBag, tmp_path: Path)
         np.testing.assert_allclose(d[valid], disparity.f * disparity.t / depth[valid], rtol=1e-3)
         xyz = cloud_xyz(topics["/murk/points"][k])
         assert len(xyz) > 0 and np.all(xyz[:, 2] > 0)
+    # The preview example draws a frame: the input, the depth, the confidence side by side.
+    png = tmp_path / "preview.png"
+    example = Path(__file__).resolve().parent.parent / "examples" / "bag_preview.py"
+    done = subprocess.run(
+        [sys.executable, str(example), str(out), "--frame", "1", "--out", str(png)]
+        + ["--image-topic", "/stereo/left/image_rect"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert done.returncode == 0, done.stderr
+    assert "% measured" in done.stdout
+    h, w = stereo_bag.gt_depth[1].shape
+    assert mc.read_image(png).shape == (h, 3 * w, 3)
 
 
 @pytest.fixture(scope="module")

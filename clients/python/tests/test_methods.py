@@ -73,7 +73,10 @@ def test_tof_points_are_the_measured_pixels(client: Client, tof_scene: Path) -> 
     np.testing.assert_allclose(r.points[:, 1], (v - k.cy) / k.fy * z, rtol=1e-4, atol=1e-5)
     with pytest.raises(mc.ClientInputError) as e:
         client.tof_depth(
-            frame.amplitude, frame.phase, modulation_frequency_hz=frame.modulation_frequency_hz, return_points=True
+            frame.amplitude,
+            frame.phase,
+            modulation_frequency_hz=frame.modulation_frequency_hz,
+            return_points=True,
         )
     assert e.value.field == "request.tof_depth.return_points"
 

@@ -1,7 +1,7 @@
-//! Whether `murk bag` keeps up with a stereo rig: writes a bag of a rectified pair in haze
-//! recorded at `--rate-hz` (a static rig: the simulated pair, each frame with its own sensor
-//! noise; `rgb8` images and both CameraInfo on every frame), runs `murk bag` over it with the
-//! haze given, and prints the frames per second against the recording's rate.
+//! Whether `murk bag` keeps up with a stereo rig: writes a bag of a rectified rig moving through
+//! a hazy room (`murk::simulate::StereoSequence`, forward at 0.5 units a second) recorded at
+//! `--rate-hz`, `rgb8` images and both CameraInfo on every frame; runs `murk bag` over it with
+//! the haze given, and prints the frames per second against the recording's rate.
 //!
 //! ```sh
 //! cargo build --release -p murk-server
@@ -14,11 +14,10 @@ use std::time::Instant;
 
 use anyhow::{bail, Context};
 use clap::Parser;
-use rand::rngs::StdRng;
-use rand::{Rng, SeedableRng};
 
 use murk::monitor::Monitor;
-use murk::simulate::mvs::{simulate_mvs, MvsSimConfig};
+use murk::simulate::mvs::MvsSimConfig;
+use murk::simulate::{StereoMotion, StereoSequence};
 use murk::ImageF32;
 use murk_server::bag::msgs::{CameraInfo, Header, Image, MessageType, Time};
 use murk_server::bag::writer::BagWriter;
@@ -46,12 +45,11 @@ struct Args {
     work: PathBuf,
 }
 
-/// 8-bit RGB of `img` (interleaved, as murk stores it) with uniform sensor
-/// noise of ±`noise` (σ = noise/√3).
-fn rgb8(img: &ImageF32, noise: f32, rng: &mut StdRng) -> Vec<u8> {
+/// 8-bit RGB of `img` (interleaved, as murk stores it).
+fn rgb8(img: &ImageF32) -> Vec<u8> {
     img.data()
         .iter()
-        .map(|v| ((v + rng.random_range(-noise..=noise)).clamp(0.0, 1.0) * 255.0).round() as u8)
+        .map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
         .collect()
 }
 
@@ -62,35 +60,36 @@ fn main() -> anyhow::Result<()> {
         .split_once('x')
         .and_then(|(w, h)| Some((w.parse::<usize>().ok()?, h.parse::<usize>().ok()?)))
         .context("--size is WxH")?;
-    let scene = simulate_mvs(
+    let seq = StereoSequence::new(
         &MvsSimConfig {
             seed: a.seed,
-            rectified_pair: true,
-            num_views: 2,
             ..MvsSimConfig::with_size(w, h)
         },
-        &Monitor::noop(),
+        &StereoMotion {
+            frame_rate_hz: a.rate_hz,
+            ..StereoMotion::default()
+        },
     )?;
-    let (left, right) = (&scene.views[0], &scene.views[1]);
-    let k = left.intrinsics;
-    let baseline = -right.pose.translation()[0];
-    let depth = {
-        let mut z: Vec<f32> = left
-            .depth
+    let k = seq.intrinsics();
+    let baseline = seq.baseline();
+    std::fs::create_dir_all(&a.work)?;
+    let bag = a.work.join(format!("stereo_{w}x{h}.mcap"));
+    let mut writer = BagWriter::create(&bag)?;
+    let t0: u64 = 1_700_000_000_000_000_000;
+    // The depths the whole recording spans, for the search range.
+    let (mut near, mut far) = (f32::INFINITY, 0.0f32);
+    for f in 0..a.frames {
+        let pair = seq.frame(f, &Monitor::noop())?;
+        let mut z: Vec<f32> = pair
+            .left_depth
             .data()
             .iter()
             .copied()
             .filter(|z| *z > 0.0)
             .collect();
         z.sort_by(f32::total_cmp);
-        (z[z.len() / 100], z[z.len() * 99 / 100])
-    };
-    std::fs::create_dir_all(&a.work)?;
-    let bag = a.work.join(format!("stereo_{w}x{h}.mcap"));
-    let mut writer = BagWriter::create(&bag)?;
-    let mut rng = StdRng::seed_from_u64(a.seed);
-    let t0: u64 = 1_700_000_000_000_000_000;
-    for f in 0..a.frames {
+        near = near.min(z[z.len() / 100]);
+        far = far.max(z[z.len() * 99 / 100]);
         let t = t0 + (f as f64 * 1e9 / a.rate_hz) as u64;
         let header = |frame_id: &str| Header {
             stamp: Time {
@@ -99,7 +98,10 @@ fn main() -> anyhow::Result<()> {
             },
             frame_id: frame_id.into(),
         };
-        for (side, view, tx) in [("left", left, 0.0), ("right", right, -k.fx * baseline)] {
+        for (side, view, tx) in [
+            ("left", &pair.left, 0.0),
+            ("right", &pair.right, -k.fx * baseline),
+        ] {
             let info = CameraInfo {
                 header: header(side),
                 height: h as u32,
@@ -126,7 +128,7 @@ fn main() -> anyhow::Result<()> {
                 encoding: "rgb8".into(),
                 is_bigendian: 0,
                 step: (w * 3) as u32,
-                data: rgb8(&view.hazy, 0.0035, &mut rng),
+                data: rgb8(view),
             };
             writer.write(
                 &format!("/stereo/{side}/image_rect"),
@@ -139,10 +141,10 @@ fn main() -> anyhow::Result<()> {
     writer.finish()?;
     let recorded_s = a.frames as f64 / a.rate_hz;
     println!(
-        "{w}×{h} rectified pair in haze (A {:.3}, β {:.4} per scene unit), {} frames at {} Hz \
-         ({recorded_s:.1} s recorded), bag {:.1} MB",
-        scene.airlight,
-        scene.beta,
+        "{w}×{h} rectified rig moving through haze (A {:.3}, β {:.4} per scene unit), {} frames \
+         at {} Hz ({recorded_s:.1} s recorded), bag {:.1} MB",
+        seq.airlight,
+        seq.beta,
         a.frames,
         a.rate_hz,
         std::fs::metadata(&bag)?.len() as f64 / 1e6
@@ -156,9 +158,9 @@ fn main() -> anyhow::Result<()> {
         .arg(&out)
         .args(["--left", "/stereo/left/image_rect"])
         .args(["--right", "/stereo/right/image_rect"])
-        .args(["--airlight", &scene.airlight.to_string()])
-        .args(["--beta", &scene.beta.to_string()])
-        .args(["--depth-range", &format!("{},{}", depth.0, depth.1)])
+        .args(["--airlight", &seq.airlight.to_string()])
+        .args(["--beta", &seq.beta.to_string()])
+        .args(["--depth-range", &format!("{near},{far}")])
         .output()
         .with_context(|| format!("running {}", a.murk.display()))?;
     let seconds = started.elapsed().as_secs_f64();
