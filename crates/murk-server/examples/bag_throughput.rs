@@ -20,7 +20,7 @@ use murk::simulate::mvs::MvsSimConfig;
 use murk::simulate::{StereoMotion, StereoSequence};
 use murk::ImageF32;
 use murk_server::bag::msgs::{CameraInfo, Header, Image, MessageType, Time};
-use murk_server::bag::writer::BagWriter;
+use murk_server::bag::writer::{BagWriter, ChunkCompression};
 
 /// Throughput of `murk bag` on a simulated stereo recording.
 #[derive(Parser, Debug)]
@@ -40,6 +40,9 @@ struct Args {
     /// The `murk` binary.
     #[arg(long, default_value = "target/release/murk")]
     murk: PathBuf,
+    /// `--compression` of `murk bag`'s output: lz4, zstd or none.
+    #[arg(long, default_value = "zstd")]
+    compression: String,
     /// Working folder (the bags are written here).
     #[arg(long, default_value = "target/bag-throughput")]
     work: PathBuf,
@@ -74,7 +77,7 @@ fn main() -> anyhow::Result<()> {
     let baseline = seq.baseline();
     std::fs::create_dir_all(&a.work)?;
     let bag = a.work.join(format!("stereo_{w}x{h}.mcap"));
-    let mut writer = BagWriter::create(&bag)?;
+    let mut writer = BagWriter::create(&bag, ChunkCompression::Lz4)?;
     let t0: u64 = 1_700_000_000_000_000_000;
     // The depths the whole recording spans, for the search range.
     let (mut near, mut far) = (f32::INFINITY, 0.0f32);
@@ -161,6 +164,7 @@ fn main() -> anyhow::Result<()> {
         .args(["--airlight", &seq.airlight.to_string()])
         .args(["--beta", &seq.beta.to_string()])
         .args(["--depth-range", &format!("{near},{far}")])
+        .args(["--compression", &a.compression])
         .output()
         .with_context(|| format!("running {}", a.murk.display()))?;
     let seconds = started.elapsed().as_secs_f64();

@@ -19,7 +19,7 @@ use murk_server::bag::images::{float_image, mono8_image, to_api_image, SampleMap
 use murk_server::bag::msgs::{CameraInfo, DisparityImage, Header, MessageType, RegionOfInterest};
 use murk_server::bag::pointcloud::{backproject_with_intensity, intensity_cloud, rgb_cloud};
 use murk_server::bag::reader::{BagMessage, BagReader};
-use murk_server::bag::writer::BagWriter;
+use murk_server::bag::writer::{BagWriter, ChunkCompression};
 use murk_server::service::convert::{image_from_proto, points_from_proto, ImageLimits};
 use murk_server::service::proto::v1 as pb;
 
@@ -86,6 +86,9 @@ pub struct BagArgs {
     /// Topic prefix of the results.
     #[arg(long, default_value = "/murk")]
     pub prefix: String,
+    /// Compression of the output's chunks: zstd (level 1), lz4 or none.
+    #[arg(long, value_enum, default_value_t = CompressionArg::Zstd)]
+    pub compression: CompressionArg,
     /// Copy the input topics murk reads into the output, so one file shows both.
     #[arg(long)]
     pub copy_inputs: bool,
@@ -101,6 +104,17 @@ pub struct BagArgs {
     /// Server URL; without it a server is started in this process.
     #[arg(long, env = "MURK_SERVER")]
     pub server: Option<String>,
+}
+
+/// `--compression`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum CompressionArg {
+    /// zstd chunks, level 1.
+    Zstd,
+    /// LZ4 chunks.
+    Lz4,
+    /// Uncompressed chunks.
+    None,
 }
 
 /// The method a bag is read for.
@@ -205,7 +219,14 @@ pub fn run(a: BagArgs) -> anyhow::Result<()> {
         }
     };
     let (config, rig) = session_config(&a, kind, &first)?;
-    let writer = BagWriter::create(&a.out)?;
+    let writer = BagWriter::create(
+        &a.out,
+        match a.compression {
+            CompressionArg::Lz4 => ChunkCompression::Lz4,
+            CompressionArg::Zstd => ChunkCompression::Zstd,
+            CompressionArg::None => ChunkCompression::None,
+        },
+    )?;
 
     let progress = ProgressBar::new(frames.progress().1).with_style(
         ProgressStyle::with_template("{bar:40} {bytes}/{total_bytes} {msg}")
