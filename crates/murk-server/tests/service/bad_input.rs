@@ -49,6 +49,19 @@ async fn bad_tof_requests_name_the_field_and_the_server_keeps_serving() {
     r.amplitude = Some(raw(48, 40, &v));
     assert_eq!(submit_err(&server, r).await, "request.tof_depth.amplitude");
 
+    // Finite, but beyond what the solver computes with: INVALID_ARGUMENT, not INTERNAL.
+    let mut r = good.clone();
+    r.amplitude.as_mut().unwrap().value_scale = 1e20;
+    assert_eq!(submit_err(&server, r).await, "request.tof_depth.amplitude");
+    let mut r = good.clone();
+    let mut v = vec![1.0f32; 48 * 40];
+    v[100] = 1e33;
+    r.amplitude = Some(raw(48, 40, &v));
+    assert_eq!(submit_err(&server, r).await, "request.tof_depth.amplitude");
+    let mut r = good.clone();
+    r.amplitude = Some(raw(48, 40, &vec![1e-45; 48 * 40]));
+    assert_eq!(submit_err(&server, r).await, "request.tof_depth.amplitude");
+
     let mut r = good.clone();
     r.amplitude = Some(raw(0, 40, &[]));
     assert_eq!(

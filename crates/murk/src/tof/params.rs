@@ -386,6 +386,13 @@ impl TofParams {
 /// How far outside [0, 2π) a phase sample may lie (radians): rounding and calibration offsets.
 pub const PHASE_TOLERANCE_RAD: f32 = 0.01;
 
+/// The range of the brightest amplitude the method computes with, sensor units. Its solves
+/// square and sum amplitudes in f32: on the simulated frames a brightest pixel near 1e23 (the
+/// frame scaled by 1e20, or one pixel with a flipped exponent bit) broke the x-step, and one
+/// near 1e-12 changed the mask, though the method is otherwise indifferent to the scale.
+/// Cameras report 16-bit counts or normalised floats, far inside.
+pub const AMPLITUDE_RANGE: (f32, f32) = (1e-6, 1e15);
+
 /// One CW-ToF frame: amplitude (arbitrary linear units) and phase (radians, wrapped to [0, 2π)).
 #[derive(Clone, Debug)]
 pub struct TofInput {
@@ -425,6 +432,27 @@ impl TofInput {
                     "must be radians in [0, 2pi), got values in [{lo}, {hi}]{}",
                     if hi > 7.0 {
                         " (degrees? scale by pi/180, e.g. with Image.value_scale)"
+                    } else {
+                        ""
+                    }
+                ),
+            ));
+        }
+        let brightest = self
+            .amplitude
+            .data()
+            .iter()
+            .fold(0.0f32, |m, v| m.max(v.abs()));
+        let (lo, hi) = AMPLITUDE_RANGE;
+        if !(lo..=hi).contains(&brightest) {
+            return Err(MurkError::invalid(
+                "amplitude",
+                format!(
+                    "the brightest pixel is {brightest:e}, outside the {lo:e} to {hi:e} sensor \
+                     units the method computes with: rescale the amplitudes (e.g. with \
+                     Image.value_scale){}",
+                    if brightest == 0.0 {
+                        "; an all-zero frame has no return to measure"
                     } else {
                         ""
                     }
@@ -520,5 +548,29 @@ mod tests {
         // The ends of [0, 2π) and a rounding step past them are fine.
         assert!(input(0.0).validate().is_ok());
         assert!(input(std::f32::consts::TAU + 0.005).validate().is_ok());
+    }
+
+    /// Finite amplitudes the solver cannot represent are the caller's field, not a numerical
+    /// failure: a frame scaled by 1e20, one pixel with a flipped exponent bit, subnormals, zero.
+    #[test]
+    fn amplitudes_outside_the_computable_range_name_the_field() {
+        let scaled = |s: f32| {
+            let mut i = input(1.0);
+            for v in i.amplitude.data_mut() {
+                *v *= s;
+            }
+            i.validate()
+        };
+        for s in [1e20, 1e-45, 1e-40, 0.0] {
+            let err = scaled(s).unwrap_err();
+            assert_eq!(err.field(), Some("amplitude"), "{s:e}: {err}");
+            assert!(err.to_string().contains("value_scale"), "{err}");
+        }
+        for s in [1e-8, 1.0, 1e12] {
+            assert!(scaled(s).is_ok(), "{s:e}");
+        }
+        let mut flipped = input(1.0);
+        flipped.amplitude.data_mut()[7] = 1e33;
+        assert_eq!(flipped.validate().unwrap_err().field(), Some("amplitude"));
     }
 }
