@@ -8,11 +8,11 @@ use std::future::Future;
 use std::net::SocketAddr;
 use std::time::Duration;
 
+use crate::connections::ConnectionLimits;
 use thiserror::Error;
 use tokio::net::TcpListener;
 use tokio::sync::{oneshot, watch};
 use tonic::codec::CompressionEncoding;
-use tonic::transport::server::TcpIncoming;
 use tonic::transport::{Certificate, Identity, Server, ServerTlsConfig};
 
 use std::sync::Arc;
@@ -66,6 +66,8 @@ pub struct ServerConfig {
     pub redis: Option<RedisConfig>,
     /// Sensor sessions per replica and per tenant.
     pub sessions: SessionLimits,
+    /// Connections before any request: how many, how fast they must speak, keepalive.
+    pub connections: ConnectionLimits,
 }
 
 /// PEM material for TLS.
@@ -104,6 +106,7 @@ impl Default for ServerConfig {
             tls: None,
             redis: None,
             sessions: SessionLimits::default(),
+            connections: ConnectionLimits::default(),
         }
     }
 }
@@ -288,7 +291,7 @@ async fn serve_with_manager(
         let _ = sessions_stop_tx.send(true);
         drain.shutdown(grace).await;
     };
-    let mut builder = Server::builder();
+    let mut builder = config.connections.apply(Server::builder());
     if let Some(tls) = &config.tls {
         let mut tls_config =
             ServerTlsConfig::new().identity(Identity::from_pem(&tls.cert_pem, &tls.key_pem));
@@ -308,13 +311,7 @@ async fn serve_with_manager(
         .add_service(jobs)
         .add_service(recon)
         .add_service(sessions)
-        .serve_with_incoming_shutdown(
-            // Without TCP_NODELAY small responses wait on delayed ACKs (~15 ms per call).
-            TcpIncoming::from(listener)
-                .with_nodelay(Some(true))
-                .with_keepalive(Some(Duration::from_secs(60))),
-            stop,
-        )
+        .serve_with_incoming_shutdown(config.connections.incoming(listener), stop)
         .await;
     let _ = stopped_tx.send(true);
     served?;

@@ -7,6 +7,7 @@ use anyhow::Context;
 use clap::Args;
 use murk::params::airlight::AirlightEstimator;
 
+use murk_server::connections::ConnectionLimits;
 use murk_server::jobs::redis::RedisConfig;
 use murk_server::jobs::JobsConfig;
 use murk_server::server::{
@@ -89,6 +90,24 @@ pub struct ServeArgs {
     /// (DEADLINE_EXCEEDED): an idle stream must not hold a session slot.
     #[arg(long, env = "MURK_SESSION_CONFIG_TIMEOUT_SECS", default_value_t = 10.0)]
     pub session_config_timeout_secs: f64,
+    /// Connections open at once; one more is accepted and closed at once. Each holds a file
+    /// descriptor: keep it below the process's limit (`ulimit -n`).
+    #[arg(long, env = "MURK_MAX_CONNECTIONS", default_value_t = 1024)]
+    pub max_connections: usize,
+    /// Seconds a new connection may take to send its opening bytes (the HTTP/2 preface or a
+    /// TLS hello) before it is closed: an idle socket must not hold a slot.
+    #[arg(long, env = "MURK_HANDSHAKE_TIMEOUT_SECS", default_value_t = 10.0)]
+    pub handshake_timeout_secs: f64,
+    /// HTTP/2 streams one connection may have open at once (calls, watches, sessions).
+    #[arg(long, env = "MURK_MAX_CONCURRENT_STREAMS", default_value_t = 256)]
+    pub max_concurrent_streams: u32,
+    /// Seconds between the server's HTTP/2 pings; a connection whose ping goes unanswered for
+    /// --keepalive-timeout-secs is closed.
+    #[arg(long, env = "MURK_KEEPALIVE_INTERVAL_SECS", default_value_t = 30.0)]
+    pub keepalive_interval_secs: f64,
+    /// Seconds a ping may go unanswered.
+    #[arg(long, env = "MURK_KEEPALIVE_TIMEOUT_SECS", default_value_t = 20.0)]
+    pub keepalive_timeout_secs: f64,
     /// Seconds to drain jobs on SIGTERM/Ctrl-C before cancelling them.
     #[arg(long, env = "MURK_SHUTDOWN_GRACE_SECS", default_value_t = 10.0)]
     pub shutdown_grace_secs: f64,
@@ -156,6 +175,20 @@ impl ServeArgs {
             "--session-config-timeout-secs must be between 0.1 and 3600"
         );
         anyhow::ensure!(
+            self.max_connections > 0 && self.max_concurrent_streams > 0,
+            "--max-connections and --max-concurrent-streams must be positive"
+        );
+        for (flag, v) in [
+            ("--handshake-timeout-secs", self.handshake_timeout_secs),
+            ("--keepalive-interval-secs", self.keepalive_interval_secs),
+            ("--keepalive-timeout-secs", self.keepalive_timeout_secs),
+        ] {
+            anyhow::ensure!(
+                v.is_finite() && (0.1..=3600.0).contains(&v),
+                "{flag} must be between 0.1 and 3600"
+            );
+        }
+        anyhow::ensure!(
             self.max_request_bytes >= 1024,
             "--max-request-bytes must be at least 1024"
         );
@@ -218,6 +251,13 @@ impl ServeArgs {
             max_image_pixels: self.max_image_pixels,
             max_ps_kernel_bytes: self.max_ps_kernel_bytes,
             shutdown_grace: Duration::from_secs_f64(self.shutdown_grace_secs),
+            connections: ConnectionLimits {
+                max_connections: self.max_connections,
+                handshake_timeout: Duration::from_secs_f64(self.handshake_timeout_secs),
+                max_concurrent_streams: self.max_concurrent_streams,
+                keepalive_interval: Duration::from_secs_f64(self.keepalive_interval_secs),
+                keepalive_timeout: Duration::from_secs_f64(self.keepalive_timeout_secs),
+            },
             sessions: SessionLimits {
                 max_sessions: self.max_sessions,
                 max_sessions_per_tenant: self.max_sessions_per_tenant,
@@ -263,6 +303,7 @@ fn check_exposure(addr: &std::net::SocketAddr, args: &ServeArgs) -> anyhow::Resu
 /// Runs the server until SIGTERM or Ctrl-C; SIGHUP re-reads the token file.
 pub fn run(args: ServeArgs) -> anyhow::Result<()> {
     let config = args.config()?;
+    check_descriptor_limit(args.max_connections);
     let rt = tokio::runtime::Runtime::new()?;
     rt.block_on(async move {
         let listener = tokio::net::TcpListener::bind(&args.addr)
@@ -306,3 +347,32 @@ fn reload_tokens_on_sighup(store: TokenStore) {
 
 #[cfg(not(unix))]
 fn reload_tokens_on_sighup(_store: TokenStore) {}
+
+/// Descriptors beyond the connections: the listeners, the cache and journal files, Redis,
+/// the runtime's own.
+const DESCRIPTOR_MARGIN: u64 = 64;
+
+/// Warns when the process's open-file limit cannot hold `max_connections` (Linux: read from
+/// /proc/self/limits; elsewhere nothing is said). At the limit, new connections fail to be
+/// accepted until one closes.
+fn check_descriptor_limit(max_connections: usize) {
+    let Ok(limits) = std::fs::read_to_string("/proc/self/limits") else {
+        return;
+    };
+    let soft = limits
+        .lines()
+        .find(|l| l.starts_with("Max open files"))
+        .and_then(|l| l.split_whitespace().nth(3))
+        .and_then(|v| v.parse::<u64>().ok());
+    let need = max_connections as u64 + DESCRIPTOR_MARGIN;
+    match soft {
+        Some(soft) if soft < need => tracing::warn!(
+            limit = soft,
+            max_connections,
+            "the open-file limit ({soft}) is below --max-connections + {DESCRIPTOR_MARGIN} \
+             ({need}): raise it (ulimit -n {need}) or lower --max-connections"
+        ),
+        Some(soft) => tracing::info!(limit = soft, max_connections, "open-file limit"),
+        None => {}
+    }
+}

@@ -6,6 +6,7 @@ mod api;
 mod bad_input;
 mod cli;
 mod common;
+mod connections;
 mod job_backends;
 mod mvs_api;
 mod mvs_bad_input;
