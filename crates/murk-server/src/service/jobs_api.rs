@@ -34,9 +34,7 @@ impl JobsApi {
     }
 
     async fn handle(&self, tenant: &str, id: &str) -> Result<JobHandle, Status> {
-        if id.is_empty() {
-            return Err(to_status(&murk::MurkError::invalid("id", "required")));
-        }
+        check_job_id(id)?;
         self.state
             .jobs
             .get(tenant, id)
@@ -48,6 +46,28 @@ impl JobsApi {
     fn job(&self, snap: &crate::jobs::JobSnapshot, omit: bool) -> Result<pb::Job, Status> {
         job_to_proto(snap, omit, self.state.max_unary_result_bytes)
     }
+}
+
+/// A job id is the hex SHA-256 of its request: 64 lowercase hex digits. Anything else is
+/// INVALID_ARGUMENT naming `id`, and the error quotes at most its length, never the id: an id of
+/// megabytes must not come back whole.
+fn check_job_id(id: &str) -> Result<(), Status> {
+    let reason = if id.is_empty() {
+        "required".to_string()
+    } else if id.len() != 64 {
+        format!(
+            "a job id is 64 hex digits (the SHA-256 of its request), got {} bytes",
+            id.len()
+        )
+    } else if !id
+        .bytes()
+        .all(|b| b.is_ascii_digit() || (b'a'..=b'f').contains(&b))
+    {
+        "a job id is 64 lowercase hex digits (the SHA-256 of its request)".to_string()
+    } else {
+        return Ok(());
+    };
+    Err(to_status(&murk::MurkError::invalid("id", reason)))
 }
 
 type JobStream = Pin<Box<dyn Stream<Item = Result<pb::Job, Status>> + Send>>;

@@ -338,11 +338,25 @@ async fn unknown_ids_are_not_found() {
         .await
         .unwrap_err();
     assert_eq!(e.code(), Code::NotFound);
-    let e = c
-        .cancel_job(pb::CancelJobRequest { id: "nope".into() })
-        .await
-        .unwrap_err();
-    assert_eq!(e.code(), Code::NotFound);
+    // An id that is not a SHA-256 in hex is the caller's error, named, and never echoed: a
+    // 15,000-character id comes back as INVALID_ARGUMENT with a short message.
+    for id in ["nope".to_string(), "x".repeat(15_000), "AB".repeat(32)] {
+        let e = c
+            .cancel_job(pb::CancelJobRequest { id: id.clone() })
+            .await
+            .unwrap_err();
+        assert_eq!(e.code(), Code::InvalidArgument, "{}", id.len());
+        assert_eq!(bad_field(&e), "id");
+        assert!(e.message().len() < 200, "{}", e.message());
+        let e = c
+            .watch_job(pb::WatchJobRequest {
+                id,
+                omit_result: true,
+            })
+            .await
+            .unwrap_err();
+        assert_eq!(e.code(), Code::InvalidArgument);
+    }
     let e = c
         .list_jobs(pb::ListJobsRequest {
             page_size: 1,
