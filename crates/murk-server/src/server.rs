@@ -300,8 +300,15 @@ async fn serve_with_manager(
         }
         builder = builder.tls_config(tls_config)?;
     }
+    // After the drain, open connections get a GOAWAY and a moment to finish; a peer that
+    // neither reads nor closes must not hold the shutdown until keepalive gives up on it.
+    let (drained_tx, drained_rx) = oneshot::channel::<()>();
+    let stop = async move {
+        stop.await;
+        let _ = drained_tx.send(());
+    };
     // Outermost first: every request is counted (refused ones too) and carries a request id.
-    let served = builder
+    let serving = builder
         .layer(MetricsLayer::new(telemetry.grpc().clone()))
         .layer(RequestIdLayer)
         .layer(AuthLayer::new(config.auth.clone()))
@@ -311,13 +318,31 @@ async fn serve_with_manager(
         .add_service(jobs)
         .add_service(recon)
         .add_service(sessions)
-        .serve_with_incoming_shutdown(config.connections.incoming(listener), stop)
-        .await;
+        .serve_with_incoming_shutdown(config.connections.incoming(listener), stop);
+    let served = tokio::select! {
+        served = serving => served,
+        () = async {
+            if drained_rx.await.is_ok() {
+                tokio::time::sleep(CONNECTION_CLOSE_GRACE).await;
+            } else {
+                std::future::pending::<()>().await;
+            }
+        } => {
+            tracing::warn!(
+                "connections still open {CONNECTION_CLOSE_GRACE:?} after the drain: closing them"
+            );
+            Ok(())
+        }
+    };
     let _ = stopped_tx.send(true);
     served?;
     tracing::info!("murk stopped");
     Ok(())
 }
+
+/// How long connections may take to close after the drain (GOAWAY sent, in-flight calls
+/// answered) before the server stops regardless.
+const CONNECTION_CLOSE_GRACE: Duration = Duration::from_secs(1);
 
 /// A server running inside this process (tests, `murk demo`, benchmarks).
 pub struct InProcessServer {

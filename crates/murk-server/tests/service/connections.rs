@@ -91,6 +91,31 @@ async fn a_peer_that_opens_http2_then_goes_silent_is_closed_by_keepalive() {
 }
 
 #[tokio::test]
+async fn a_silent_peer_does_not_hold_the_shutdown() {
+    let server = start(limits(16, Duration::from_secs(30))).await;
+    let mut sock = TcpStream::connect(server.addr()).await.unwrap();
+    // A peer that opens HTTP/2, then neither reads nor answers: only keepalive (30 s + 20 s by
+    // default) would close it.
+    let mut opening = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n".to_vec();
+    opening.extend_from_slice(&[0, 0, 0, 4, 0, 0, 0, 0, 0]);
+    tokio::io::AsyncWriteExt::write_all(&mut sock, &opening)
+        .await
+        .unwrap();
+    health_ok(&server).await;
+    let started = Instant::now();
+    tokio::time::timeout(Duration::from_secs(10), server.stop())
+        .await
+        .expect("stop waited 10 s on a silent connection")
+        .unwrap();
+    assert!(
+        started.elapsed() < Duration::from_secs(5),
+        "{:?}",
+        started.elapsed()
+    );
+    drop(sock);
+}
+
+#[tokio::test]
 async fn connections_beyond_the_cap_are_closed_and_slots_free_when_sockets_go() {
     let server = start(limits(2, Duration::from_secs(30))).await;
     let idle: Vec<TcpStream> =
