@@ -24,6 +24,18 @@ fn limits(max_connections: usize, handshake: Duration) -> ServerConfig {
     }
 }
 
+/// A socket that sends the HTTP/2 preface and an empty SETTINGS frame, then nothing: it
+/// neither reads nor answers pings.
+async fn open_http2_then_go_silent(server: &murk_server::server::InProcessServer) -> TcpStream {
+    let mut sock = TcpStream::connect(server.addr()).await.unwrap();
+    let mut opening = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n".to_vec();
+    opening.extend_from_slice(&[0, 0, 0, 4, 0, 0, 0, 0, 0]);
+    tokio::io::AsyncWriteExt::write_all(&mut sock, &opening)
+        .await
+        .unwrap();
+    sock
+}
+
 /// Reads until the server closes the socket (EOF or reset); the time it took, or `None` if it
 /// stayed open for `within`.
 async fn closed_within(sock: &mut TcpStream, within: Duration) -> Option<Duration> {
@@ -76,13 +88,7 @@ async fn a_peer_that_opens_http2_then_goes_silent_is_closed_by_keepalive() {
     cfg.connections.keepalive_timeout = Duration::from_millis(200);
     let server = start(cfg).await;
     let connected = Instant::now();
-    let mut sock = TcpStream::connect(server.addr()).await.unwrap();
-    // The preface and an empty SETTINGS frame; then it answers nothing, pings included.
-    let mut opening = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n".to_vec();
-    opening.extend_from_slice(&[0, 0, 0, 4, 0, 0, 0, 0, 0]);
-    tokio::io::AsyncWriteExt::write_all(&mut sock, &opening)
-        .await
-        .unwrap();
+    let mut sock = open_http2_then_go_silent(&server).await;
     closed_within(&mut sock, Duration::from_secs(10))
         .await
         .expect("a silent HTTP/2 peer stayed open 10 s");
@@ -93,14 +99,8 @@ async fn a_peer_that_opens_http2_then_goes_silent_is_closed_by_keepalive() {
 #[tokio::test]
 async fn a_silent_peer_does_not_hold_the_shutdown() {
     let server = start(limits(16, Duration::from_secs(30))).await;
-    let mut sock = TcpStream::connect(server.addr()).await.unwrap();
-    // A peer that opens HTTP/2, then neither reads nor answers: only keepalive (30 s + 20 s by
-    // default) would close it.
-    let mut opening = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n".to_vec();
-    opening.extend_from_slice(&[0, 0, 0, 4, 0, 0, 0, 0, 0]);
-    tokio::io::AsyncWriteExt::write_all(&mut sock, &opening)
-        .await
-        .unwrap();
+    // Only keepalive (30 s + 20 s by default) would close this peer.
+    let sock = open_http2_then_go_silent(&server).await;
     health_ok(&server).await;
     let started = Instant::now();
     tokio::time::timeout(Duration::from_secs(10), server.stop())
