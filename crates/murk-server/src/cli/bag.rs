@@ -17,7 +17,7 @@ use murk::ImageF32;
 use murk_server::bag::frames::{BagFrame, BagFrames, FramePlan};
 use murk_server::bag::images::{float_image, mono8_image, to_api_image, SampleMapping};
 use murk_server::bag::msgs::{CameraInfo, DisparityImage, Header, MessageType, RegionOfInterest};
-use murk_server::bag::pointcloud::{backproject_with_intensity, intensity_cloud, rgb_cloud};
+use murk_server::bag::pointcloud::rgb_cloud;
 use murk_server::bag::reader::{BagMessage, BagReader};
 use murk_server::bag::writer::{BagWriter, ChunkCompression};
 use murk_server::service::convert::{image_from_proto, points_from_proto, ImageLimits};
@@ -73,13 +73,10 @@ pub struct BagArgs {
     #[arg(long, requires = "amplitude")]
     pub fine_iterations: Option<u32>,
     /// ToF: pixels whose range_std_m exceeds this are no measurement: NaN in the depth image and
-    /// left out of the points. Fog-only pixels, whose direct return is buried in the scatter,
-    /// carry spreads of metres.
+    /// left out of the points (the request's max_point_range_std_m). Fog-only pixels, whose
+    /// direct return is buried in the scatter, carry spreads of metres.
     #[arg(long, default_value_t = 0.1)]
     pub max_range_std_m: f64,
-    /// ToF: the point cloud keeps only the object mask's pixels.
-    #[arg(long, requires = "amplitude")]
-    pub object_points_only: bool,
     /// Stereo: the search and the haze (β per metre: CameraInfo gives metres).
     #[command(flatten)]
     pub stereo: StereoMethodFlags,
@@ -146,8 +143,6 @@ struct FrameMeta {
     log_time: u64,
     info: CameraInfo,
     inputs: Vec<BagMessage>,
-    /// ToF: the amplitude, as the points' intensity.
-    intensity: Vec<f32>,
 }
 
 type Metas = Arc<Mutex<HashMap<u64, FrameMeta>>>;
@@ -294,7 +289,6 @@ pub fn run(a: BagArgs) -> anyhow::Result<()> {
             prefix: a.prefix.trim_end_matches('/').to_string(),
             kind,
             rig,
-            object_points_only: a.object_points_only,
             max_range_std_m: a.max_range_std_m as f32,
         };
         Arc::new(move |_name: &str, r: &pb::FrameResult| {
@@ -424,6 +418,8 @@ fn session_config(
                     fine_iterations: a.fine_iterations,
                     ..Default::default()
                 }),
+                return_points: true,
+                max_point_range_std_m: a.max_range_std_m as f32,
                 outputs: Some(pb::OutputOptions {
                     fields: ["z_depth_m", "mask", "range_std_m"]
                         .map(String::from)
@@ -532,18 +528,6 @@ fn to_session_frame(
         }
         images.push(api.image);
     }
-    let intensity = match kind {
-        Kind::Tof => image_from_proto(
-            &images[0],
-            &ImageLimits {
-                max_pixels: u64::MAX,
-                max_channels: 4,
-            },
-        )
-        .map(|img| img.data().to_vec())
-        .unwrap_or_default(),
-        Kind::Stereo => Vec::new(),
-    };
     let [first, second]: [pb::Image; 2] = images.try_into().expect("two images");
     let stamp = prost_types::Timestamp {
         seconds: i64::from(frame.header.stamp.sec),
@@ -573,7 +557,6 @@ fn to_session_frame(
             log_time: frame.log_time,
             info,
             inputs: frame.inputs,
-            intensity,
         },
     );
     Ok(out)
@@ -584,7 +567,6 @@ struct OutputWriter {
     prefix: String,
     kind: Kind,
     rig: Rig,
-    object_points_only: bool,
     max_range_std_m: f32,
 }
 
@@ -688,14 +670,14 @@ impl OutputWriter {
                     t,
                     &float_image(h, &std, |_| false),
                 )?;
-                let points = backproject_with_intensity(&z, &meta.intensity, &self.rig.k, |i| {
-                    !unmeasured(i) && (!self.object_points_only || mask.data()[i] > 0.5)
-                });
+                // The server's points (murk::tof::measured_points) keep the same pixels.
+                let points =
+                    points_from_proto(o.points.as_ref().context("the result has no points")?)?;
                 w.write(
                     &topic("points"),
                     MessageType::PointCloud2,
                     t,
-                    &intensity_cloud(h, &points),
+                    &rgb_cloud(h, &points),
                 )?;
             }
             _ => bail!("frame {}: a result of another method", r.frame_id),
