@@ -6,14 +6,15 @@ use std::pin::Pin;
 
 use futures::Stream;
 use sha2::{Digest, Sha256};
-use tonic::{Request, Response, Status};
+use tonic::{Code, Request, Response, Status};
+use tonic_types::{ErrorDetails, StatusExt};
 
 use super::auth::Tenant;
 use super::convert::job_to_proto;
 use super::proto::v1 as pb;
 use super::status::{ended_without_result, submit_status, to_status};
 use super::submit::{submit, ServiceState};
-use crate::jobs::{JobHandle, JobState};
+use crate::jobs::{JobHandle, JobSnapshot, JobState};
 
 /// Default and maximum `ListJobs` page sizes.
 const DEFAULT_PAGE: usize = 50;
@@ -21,6 +22,11 @@ const MAX_PAGE: usize = 1000;
 
 /// Largest `GetJobResult` chunk: a quarter of gRPC's default 4 MiB receive limit.
 pub const MAX_RESULT_CHUNK_BYTES: usize = 1 << 20;
+
+/// Smallest `GetJobResult` chunk a client may ask for. Each chunk costs a message header, a
+/// frame and a wake-up on both sides; at one byte per chunk a 650 KB result took 650,000
+/// messages, 50 MB on the wire and seconds of server CPU.
+pub const MIN_RESULT_CHUNK_BYTES: usize = 16 << 10;
 
 /// Implementation of the `Jobs` service.
 pub struct JobsApi {
@@ -43,9 +49,52 @@ impl JobsApi {
             .ok_or_else(|| Status::not_found(format!("no job with id `{id}`")))
     }
 
-    fn job(&self, snap: &crate::jobs::JobSnapshot, omit: bool) -> Result<pb::Job, Status> {
-        job_to_proto(snap, omit, self.state.max_unary_result_bytes)
+    fn job(&self, snap: &JobSnapshot, omit: bool) -> Result<pb::Job, Status> {
+        visible_job(snap, omit, self.state.max_unary_result_bytes)
     }
+}
+
+/// True for a job the server stopped because it is shutting down. Such a job is not over: the
+/// journal (or the shared queue) runs it again after the restart. Its internal FAILED state
+/// only ends this process's record, so the API never shows it as terminal.
+fn interrupted(snap: &JobSnapshot) -> bool {
+    snap.state == JobState::Failed && matches!(snap.error, Some(murk::MurkError::ShuttingDown))
+}
+
+/// The answer to a Get, Watch or Cancel of an interrupted job: retryable UNAVAILABLE with
+/// RetryInfo, never a terminal `Job`, so a client told "terminal" never sees the state change
+/// when the job resumes.
+fn interrupted_status(id: &str) -> Status {
+    Status::with_error_details(
+        Code::Unavailable,
+        format!(
+            "server shutting down: job `{id}` was interrupted, not finished; watch it again \
+             after the restart (with a journal or a shared queue it resumes), or resubmit it"
+        ),
+        ErrorDetails::with_retry_info(Some(std::time::Duration::from_secs(1))),
+    )
+}
+
+/// `job_to_proto`, except that an interrupted job is UNAVAILABLE.
+fn visible_job(snap: &JobSnapshot, omit: bool, limit: usize) -> Result<pb::Job, Status> {
+    if interrupted(snap) {
+        return Err(interrupted_status(&snap.id));
+    }
+    job_to_proto(snap, omit, limit)
+}
+
+/// A job for `ListJobs`, which cannot answer one entry with a status: an interrupted job is
+/// listed as queued, which it is for the restart that will run it.
+fn listed_job(snap: &JobSnapshot, limit: usize) -> Result<pb::Job, Status> {
+    if !interrupted(snap) {
+        return job_to_proto(snap, true, limit);
+    }
+    let mut queued = snap.clone();
+    queued.state = JobState::Queued;
+    queued.error = None;
+    queued.end_time = None;
+    queued.stage = "interrupted by shutdown".into();
+    job_to_proto(&queued, true, limit)
 }
 
 /// A job id is the hex SHA-256 of its request: 64 lowercase hex digits. Anything else is
@@ -120,7 +169,8 @@ impl pb::jobs_server::Jobs for JobsApi {
                 return None;
             }
             let snap = rx.borrow_and_update().clone();
-            let item = job_to_proto(&snap, omit, limit);
+            // An interrupted job ends the stream with UNAVAILABLE, without a terminal message.
+            let item = visible_job(&snap, omit, limit);
             let next = (!snap.state.is_terminal()).then_some((rx, false));
             Some((item, next))
         });
@@ -178,7 +228,7 @@ impl pb::jobs_server::Jobs for JobsApi {
             .map_err(|e| submit_status(&e))?;
         let jobs = page
             .iter()
-            .map(|s| self.job(s, true))
+            .map(|s| listed_job(s, self.state.max_unary_result_bytes))
             .collect::<Result<Vec<_>, _>>()?;
         Ok(Response::new(pb::ListJobsResponse {
             jobs,
@@ -196,9 +246,21 @@ impl pb::jobs_server::Jobs for JobsApi {
         let r = request.into_inner();
         let chunk = match r.chunk_bytes as usize {
             0 => MAX_RESULT_CHUNK_BYTES,
+            n if n < MIN_RESULT_CHUNK_BYTES => {
+                return Err(to_status(&murk::MurkError::invalid(
+                    "chunk_bytes",
+                    format!(
+                        "{n} is below the smallest chunk, {MIN_RESULT_CHUNK_BYTES} bytes \
+                         (0 asks for the largest, {MAX_RESULT_CHUNK_BYTES})"
+                    ),
+                )))
+            }
             n => n.min(MAX_RESULT_CHUNK_BYTES),
         };
         let snap = self.handle(&tenant, &r.id).await?.snapshot();
+        if interrupted(&snap) {
+            return Err(interrupted_status(&r.id));
+        }
         let bytes = match snap.state {
             JobState::Succeeded => snap
                 .result
@@ -229,5 +291,57 @@ impl pb::jobs_server::Jobs for JobsApi {
             })
         }));
         Ok(Response::new(Box::pin(stream)))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn ended(state: JobState, error: Option<murk::MurkError>) -> JobSnapshot {
+        let mut s = JobSnapshot::queued(&"a".repeat(64), "tof_depth");
+        s.state = state;
+        s.error = error;
+        s.end_time = Some(std::time::SystemTime::now());
+        s
+    }
+
+    #[test]
+    fn an_interrupted_job_is_unavailable_to_get_and_listed_as_queued() {
+        let snap = ended(JobState::Failed, Some(murk::MurkError::ShuttingDown));
+        let err = visible_job(&snap, true, usize::MAX).unwrap_err();
+        assert_eq!(err.code(), Code::Unavailable);
+        assert!(err.get_details_retry_info().is_some());
+        let listed = listed_job(&snap, usize::MAX).unwrap();
+        assert_eq!(listed.state, pb::JobState::Queued as i32);
+        assert!(listed.outcome.is_none() && listed.end_time.is_none());
+        // A job that really failed or was cancelled stays terminal everywhere.
+        for snap in [
+            ended(
+                JobState::Failed,
+                Some(murk::MurkError::Numerical("x".into())),
+            ),
+            ended(JobState::Cancelled, Some(murk::MurkError::Cancelled)),
+        ] {
+            let got = visible_job(&snap, true, usize::MAX).unwrap();
+            assert_eq!(got, listed_job(&snap, usize::MAX).unwrap());
+            assert_ne!(got.state, pb::JobState::Queued as i32);
+        }
+    }
+
+    #[test]
+    fn job_ids_must_be_64_lowercase_hex_digits() {
+        assert!(check_job_id(&"0f".repeat(32)).is_ok());
+        for bad in [
+            "",
+            "abc",
+            &"0F".repeat(32),
+            &"g".repeat(64),
+            &"a".repeat(15_000),
+        ] {
+            let err = check_job_id(bad).unwrap_err();
+            assert_eq!(err.code(), Code::InvalidArgument);
+            assert!(err.message().len() < 200, "{}", err.message());
+        }
     }
 }

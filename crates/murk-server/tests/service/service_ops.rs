@@ -21,6 +21,7 @@ use tonic::Code;
 use tonic_health::pb::health_check_response::ServingStatus;
 use tonic_health::pb::health_client::HealthClient;
 use tonic_health::pb::HealthCheckRequest;
+use tonic_types::StatusExt;
 
 const ALPHA: &str = "alpha-token-0123456789";
 const BETA: &str = "beta-token-9876543210";
@@ -467,20 +468,113 @@ async fn draining_turns_overall_health_not_serving_and_aborted_jobs_say_resubmit
         status = health(&server, "").await;
     }
     assert_eq!(status, ServingStatus::NotServing, "\"\" while draining");
-    // The job outlives the grace period and is stopped by the server: not CANCELLED, but a
-    // retryable UNAVAILABLE that tells the client to resubmit.
-    let mut last = None;
-    while let Some(j) = watch.message().await.unwrap() {
-        last = Some(j);
-    }
-    let last = last.expect("terminal update");
-    assert_eq!(last.state, pb::JobState::Failed as i32, "{last:?}");
-    let Some(pb::job::Outcome::Error(e)) = last.outcome else {
-        panic!("an error outcome");
+    // The job outlives the grace period and is stopped by the server. It is not over (a
+    // restart with a journal resumes it), so the watcher never gets a terminal message: the
+    // stream ends with a retryable UNAVAILABLE that says to watch again or resubmit.
+    let end = loop {
+        match watch.message().await {
+            Ok(Some(j)) => assert!(
+                j.state == pb::JobState::Running as i32,
+                "an interrupted job is never shown as ended: {j:?}"
+            ),
+            Ok(None) => panic!("the stream ended without saying the job was interrupted"),
+            Err(status) => break status,
+        }
     };
-    assert_eq!(e.code, Code::Unavailable as i32);
-    assert!(e.message.contains("resubmit"), "{}", e.message);
+    assert_eq!(end.code(), Code::Unavailable, "{end:?}");
+    assert!(end.message().contains("interrupted"), "{end:?}");
+    assert!(end.message().contains("resubmit"), "{end:?}");
+    assert!(
+        end.get_details_retry_info().is_some(),
+        "UNAVAILABLE with RetryInfo: {end:?}"
+    );
     server.stop().await.unwrap();
+}
+
+#[tokio::test]
+async fn a_job_interrupted_by_shutdown_resumes_after_the_restart_and_was_never_shown_ended() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = config(4);
+    cfg.jobs.cache_dir = Some(dir.path().to_path_buf());
+    cfg.shutdown_grace = Duration::ZERO;
+    // Long enough to be running when the shutdown comes, short enough to finish after it.
+    let req = job(long_tof_request(40));
+
+    let mut a = start(cfg.clone()).await;
+    let mut c = jobs(&a);
+    let id = c.submit_job(req).await.unwrap().into_inner().id;
+    let mut stream = watch(&mut c, &id).await;
+    while let Some(j) = stream.message().await.unwrap() {
+        if j.state == pb::JobState::Running as i32 {
+            break;
+        }
+    }
+    a.begin_shutdown();
+    let end = loop {
+        match stream.message().await {
+            Ok(Some(j)) => assert!(!is_terminal(&j), "shown as ended: {j:?}"),
+            Ok(None) => panic!("the stream ended without a status"),
+            Err(status) => break status,
+        }
+    };
+    assert_eq!(end.code(), Code::Unavailable, "{end:?}");
+    a.stop().await.unwrap();
+
+    // The journal runs it again; watching it anew shows it succeed.
+    let b = start(cfg).await;
+    let mut c = jobs(&b);
+    let seen = watch_to_end(&mut c, &id).await;
+    assert_eq!(state(seen.last().unwrap()), pb::JobState::Succeeded);
+    assert_eq!(b.manager().executed(), 1);
+    b.stop().await.unwrap();
+}
+
+#[tokio::test]
+async fn result_chunks_below_16_kib_are_refused_naming_chunk_bytes() {
+    let server = start(config(4)).await;
+    let mut c = jobs(&server);
+    let id = c
+        .submit_job(job(tof_request(96, 80, 3)))
+        .await
+        .unwrap()
+        .into_inner()
+        .id;
+    watch_to_end(&mut c, &id).await;
+    let fetch = |chunk_bytes| {
+        let mut c = c.clone();
+        let id = id.clone();
+        async move {
+            let mut stream = c
+                .get_job_result(pb::GetJobResultRequest { id, chunk_bytes })
+                .await?
+                .into_inner();
+            let mut sizes = Vec::new();
+            while let Some(chunk) = stream.message().await? {
+                sizes.push(chunk.data.len());
+            }
+            Ok::<_, tonic::Status>(sizes)
+        }
+    };
+    for tiny in [1, 4096, 16383] {
+        let err = fetch(tiny).await.unwrap_err();
+        assert_eq!(err.code(), Code::InvalidArgument, "{err:?}");
+        assert_eq!(bad_field(&err), "chunk_bytes");
+    }
+    let sizes = fetch(16 << 10).await.unwrap();
+    assert!(sizes.len() > 1, "{sizes:?}");
+    assert!(sizes.iter().all(|&n| n <= 16 << 10), "{sizes:?}");
+    let whole: usize = fetch(0).await.unwrap().iter().sum();
+    assert_eq!(whole, sizes.iter().sum::<usize>());
+    server.stop().await.unwrap();
+}
+
+fn is_terminal(j: &pb::Job) -> bool {
+    [
+        pb::JobState::Succeeded as i32,
+        pb::JobState::Failed as i32,
+        pb::JobState::Cancelled as i32,
+    ]
+    .contains(&j.state)
 }
 
 /// Codec that sends raw bytes, to put something that is not protobuf on the wire.

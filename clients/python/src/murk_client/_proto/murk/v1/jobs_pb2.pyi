@@ -377,7 +377,7 @@ class GetJobResultRequest(_message.Message):
     CHUNK_BYTES_FIELD_NUMBER: _builtins.int
     id: _builtins.str
     chunk_bytes: _builtins.int
-    """Bytes per chunk; 0 means 1 MiB, the maximum."""
+    """Bytes per chunk; 0 means 1 MiB, the maximum. At least 16384: smaller is INVALID_ARGUMENT."""
     def __init__(
         self,
         *,

@@ -62,7 +62,10 @@ class JobsStub:
     GetJob: _grpc.UnaryUnaryMultiCallable[_jobs_pb2.GetJobRequest, _jobs_pb2.Job]
     """The job's current state (and result once SUCCEEDED). NOT_FOUND for unknown ids."""
     WatchJob: _grpc.UnaryStreamMultiCallable[_jobs_pb2.WatchJobRequest, _jobs_pb2.Job]
-    """Streams the job on every change until it is terminal (the last message is terminal)."""
+    """Streams the job on every change until it is terminal (the last message is terminal).
+    A job interrupted by the server's shutdown is not terminal: its stream ends with
+    UNAVAILABLE instead; watch it again after the restart, or resubmit it.
+    """
     CancelJob: _grpc.UnaryUnaryMultiCallable[_jobs_pb2.CancelJobRequest, _jobs_pb2.Job]
     """Requests cancellation; returns the job (state CANCELLED once the worker has stopped)."""
     ListJobs: _grpc.UnaryUnaryMultiCallable[_jobs_pb2.ListJobsRequest, _jobs_pb2.ListJobsResponse]
@@ -103,7 +106,10 @@ class JobsAsyncStub(JobsStub):
     GetJob: _aio.UnaryUnaryMultiCallable[_jobs_pb2.GetJobRequest, _jobs_pb2.Job]  # type: ignore[assignment]
     """The job's current state (and result once SUCCEEDED). NOT_FOUND for unknown ids."""
     WatchJob: _aio.UnaryStreamMultiCallable[_jobs_pb2.WatchJobRequest, _jobs_pb2.Job]  # type: ignore[assignment]
-    """Streams the job on every change until it is terminal (the last message is terminal)."""
+    """Streams the job on every change until it is terminal (the last message is terminal).
+    A job interrupted by the server's shutdown is not terminal: its stream ends with
+    UNAVAILABLE instead; watch it again after the restart, or resubmit it.
+    """
     CancelJob: _aio.UnaryUnaryMultiCallable[_jobs_pb2.CancelJobRequest, _jobs_pb2.Job]  # type: ignore[assignment]
     """Requests cancellation; returns the job (state CANCELLED once the worker has stopped)."""
     ListJobs: _aio.UnaryUnaryMultiCallable[_jobs_pb2.ListJobsRequest, _jobs_pb2.ListJobsResponse]  # type: ignore[assignment]
@@ -159,7 +165,10 @@ class JobsServicer(metaclass=_abc_1.ABCMeta):
         request: _jobs_pb2.WatchJobRequest,
         context: _ServicerContext,
     ) -> _typing.Union[_abc.Iterator[_jobs_pb2.Job], _abc.AsyncIterator[_jobs_pb2.Job]]:
-        """Streams the job on every change until it is terminal (the last message is terminal)."""
+        """Streams the job on every change until it is terminal (the last message is terminal).
+        A job interrupted by the server's shutdown is not terminal: its stream ends with
+        UNAVAILABLE instead; watch it again after the restart, or resubmit it.
+        """
 
     @_abc_1.abstractmethod
     def CancelJob(
