@@ -27,6 +27,10 @@ pub enum MurkError {
     /// A bug or an unexpected condition inside murk (e.g. a worker panicked).
     #[error("internal error: {0}")]
     Internal(String),
+    /// A job's stored input was lost (e.g. its journal entry was damaged on disk), so it can
+    /// neither run nor be rebuilt; resubmitting it runs it again.
+    #[error("data lost: {0}; resubmit the job")]
+    DataLoss(String),
     /// Reading or writing a file failed.
     #[error("i/o error on {path}: {reason}")]
     Io {

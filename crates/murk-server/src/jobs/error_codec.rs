@@ -12,6 +12,7 @@ pub(crate) fn encode_error(e: &MurkError) -> (&'static str, String, String) {
         MurkError::Numerical(m) => ("numerical", m.clone(), String::new()),
         MurkError::Internal(m) => ("internal", m.clone(), String::new()),
         MurkError::Io { path, reason } => ("io", path.clone(), reason.clone()),
+        MurkError::DataLoss(m) => ("data_loss", m.clone(), String::new()),
     }
 }
 
@@ -22,6 +23,7 @@ pub(crate) fn decode_error(kind: &str, a: &str, b: &str) -> MurkError {
         "cancelled" | "" => MurkError::Cancelled,
         "shutting_down" => MurkError::ShuttingDown,
         "numerical" => MurkError::Numerical(a.to_string()),
+        "data_loss" => MurkError::DataLoss(a.to_string()),
         "io" => MurkError::Io {
             path: a.to_string(),
             reason: b.to_string(),
@@ -41,6 +43,7 @@ mod tests {
             MurkError::Cancelled,
             MurkError::ShuttingDown,
             MurkError::Numerical("diverged".into()),
+            MurkError::DataLoss("journal entry corrupted".into()),
             MurkError::Internal("panic".into()),
             MurkError::Io {
                 path: "/x".into(),

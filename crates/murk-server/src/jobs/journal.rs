@@ -6,8 +6,9 @@
 //! nothing of protobuf.
 //!
 //! File `<id>.<hex tenant>.job`: magic, then length-prefixed tenant, id, method and request,
-//! then the SHA-256 of everything before it. A file that fails the check is removed with a
-//! warning (its job cannot be rebuilt).
+//! then the SHA-256 of everything before it. A file that fails the check cannot be rebuilt, but
+//! its name still says whose job it was: [`Journal::load`] reports it as [`Damaged`], so the
+//! manager can record the job as lost before the file goes.
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -28,6 +29,25 @@ pub struct JournalEntry {
     pub method: String,
     /// The request, as the service layer encoded it.
     pub request: Vec<u8>,
+}
+
+/// A journal file whose contents fail the check, named by the job it held.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Damaged {
+    /// Owning tenant, from the file name.
+    pub tenant: String,
+    /// Job id, from the file name.
+    pub id: String,
+}
+
+/// What [`Journal::load`] found.
+#[derive(Debug, Default)]
+pub struct Loaded {
+    /// Intact entries, oldest first (by file time).
+    pub entries: Vec<JournalEntry>,
+    /// Files that fail the check but whose names identify the job; still on disk (remove them
+    /// with [`Journal::remove`] once the loss is recorded).
+    pub damaged: Vec<Damaged>,
 }
 
 /// A directory of journal files.
@@ -78,10 +98,12 @@ impl Journal {
         }
     }
 
-    /// Every intact entry, oldest first (by file time); corrupt files are removed.
-    pub fn load(&self) -> Vec<JournalEntry> {
+    /// Every intact entry, oldest first (by file time), and the damaged files that name their
+    /// job. A damaged file whose name identifies no job is removed here, with a warning.
+    pub fn load(&self) -> Loaded {
+        let mut loaded = Loaded::default();
         let Ok(read) = std::fs::read_dir(&self.dir) else {
-            return Vec::new();
+            return loaded;
         };
         let mut found = Vec::new();
         for e in read.filter_map(|e| e.ok()) {
@@ -97,15 +119,41 @@ impl Journal {
                         .unwrap_or(std::time::UNIX_EPOCH);
                     found.push((t, entry));
                 }
-                None => {
-                    tracing::warn!(path = %path.display(), "corrupt journal file removed");
-                    let _ = std::fs::remove_file(&path);
-                }
+                None => match name_of(&path) {
+                    Some(d) => {
+                        tracing::warn!(path = %path.display(), id = %d.id, "corrupt journal file: its job is recorded as lost");
+                        loaded.damaged.push(d);
+                    }
+                    None => {
+                        tracing::warn!(path = %path.display(), "corrupt journal file with a foreign name removed");
+                        let _ = std::fs::remove_file(&path);
+                    }
+                },
             }
         }
         found.sort_by_key(|(t, _)| *t);
-        found.into_iter().map(|(_, e)| e).collect()
+        loaded.entries = found.into_iter().map(|(_, e)| e).collect();
+        loaded
     }
+}
+
+/// The job a journal file is named after (`<id>.<hex tenant>.job`), if the name is one this
+/// journal writes: a 64-hex-digit id and a tenant that decodes to UTF-8.
+fn name_of(path: &Path) -> Option<Damaged> {
+    let stem = path.file_stem()?.to_str()?;
+    let (id, tenant) = stem.split_once('.')?;
+    let is_id = id.len() == 64
+        && id
+            .bytes()
+            .all(|b| b.is_ascii_digit() || (b'a'..=b'f').contains(&b));
+    if !is_id {
+        return None;
+    }
+    let tenant = String::from_utf8(hex::decode(tenant).ok()?).ok()?;
+    Some(Damaged {
+        tenant,
+        id: id.to_string(),
+    })
 }
 
 fn encode(e: &JournalEntry) -> Vec<u8> {
@@ -168,24 +216,41 @@ mod tests {
     }
 
     #[test]
-    fn entries_round_trip_and_corruption_is_dropped() {
+    fn entries_round_trip_and_corruption_names_the_lost_job() {
         let dir = tempfile::tempdir().unwrap();
         let j = Journal::open(dir.path()).unwrap();
-        j.record(&entry("", "aa")).unwrap();
-        j.record(&entry("fleet-a", "aa")).unwrap();
-        let mut got = j.load();
-        got.sort_by(|a, b| a.tenant.cmp(&b.tenant));
-        assert_eq!(got, vec![entry("", "aa"), entry("fleet-a", "aa")]);
-        j.remove("", "aa");
-        assert_eq!(j.load(), vec![entry("fleet-a", "aa")]);
-        // Flip one byte: the file fails its checksum and is removed.
-        let path = j.path("fleet-a", "aa");
-        let mut b = std::fs::read(&path).unwrap();
-        b[12] ^= 1;
-        std::fs::write(&path, b).unwrap();
-        assert!(j.load().is_empty());
-        assert!(!path.exists());
-        assert_eq!(decode(&encode(&entry("t", "bb"))), Some(entry("t", "bb")));
+        let (a, b) = ("a".repeat(64), "b".repeat(64));
+        j.record(&entry("", &a)).unwrap();
+        j.record(&entry("fleet-a", &a)).unwrap();
+        let mut got = j.load().entries;
+        got.sort_by(|x, y| x.tenant.cmp(&y.tenant));
+        assert_eq!(got, vec![entry("", &a), entry("fleet-a", &a)]);
+        j.remove("", &a);
+        assert_eq!(j.load().entries, vec![entry("fleet-a", &a)]);
+        // Flip one byte: the file fails its checksum; its name still says whose job it was,
+        // and it stays until the loss is recorded.
+        let path = j.path("fleet-a", &a);
+        let mut bytes = std::fs::read(&path).unwrap();
+        bytes[12] ^= 1;
+        std::fs::write(&path, bytes).unwrap();
+        let loaded = j.load();
+        assert!(loaded.entries.is_empty());
+        assert_eq!(
+            loaded.damaged,
+            vec![Damaged {
+                tenant: "fleet-a".into(),
+                id: a.clone()
+            }]
+        );
+        assert!(path.exists());
+        j.remove("fleet-a", &a);
+        // A damaged file under a name this journal never writes has no job to report.
+        let foreign = dir.path().join(format!("{b}.zz.job"));
+        std::fs::write(&foreign, b"junk").unwrap();
+        let loaded = j.load();
+        assert!(loaded.entries.is_empty() && loaded.damaged.is_empty());
+        assert!(!foreign.exists());
+        assert_eq!(decode(&encode(&entry("t", &b))), Some(entry("t", &b)));
         assert_eq!(decode(b"MURKJOB1"), None);
     }
 }

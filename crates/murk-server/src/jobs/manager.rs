@@ -345,6 +345,24 @@ impl JobManager {
             }
         }
         log.rewrite(&records)?;
+        // Jobs `recover` found lost: durable in the log first, then their journal entries go.
+        let lost: Vec<Arc<JobEntry>> = self
+            .inner
+            .registry()
+            .jobs
+            .values()
+            .filter(|e| e.state().is_terminal() && e.journaled.load(Ordering::SeqCst))
+            .cloned()
+            .collect();
+        for e in lost {
+            let snap = e.snapshot();
+            if let Some(r) = LoggedRecord::ended(&e.tenant, &snap, snap.state, snap.error.as_ref())
+            {
+                log.append(&r, true)?;
+            }
+            self.forget_journal(&e.tenant, &e.id);
+            e.journaled.store(false, Ordering::SeqCst);
+        }
         let _ = self.inner.record_log.set(log);
         if restored > 0 {
             tracing::info!(restored, "restored finished job records");
@@ -360,15 +378,27 @@ impl JobManager {
 
     /// Re-queues the jobs the journal holds (accepted before a crash or a shutdown, not
     /// finished), rebuilding each job's work from its request bytes with `rebuild(method,
-    /// bytes)`. Jobs whose result is cached meanwhile, or that cannot be rebuilt, are dropped
-    /// from the journal. The queue bound does not apply: these jobs were accepted already.
+    /// bytes)`. Jobs whose result is cached meanwhile are dropped from the journal. A job whose
+    /// entry is damaged or cannot be rebuilt was accepted and is lost: it gets a FAILED record
+    /// with a DATA_LOSS error that says to resubmit, which [`JobManager::restore_records`] makes
+    /// durable before the entry is removed, so a client polling it learns what happened instead
+    /// of NOT_FOUND. The queue bound does not apply: these jobs were accepted already.
     /// Returns the number re-queued.
     pub fn recover(&self, rebuild: impl Fn(&str, &[u8]) -> Result<Work, MurkError>) -> usize {
         let Some(journal) = &self.inner.journal else {
             return 0;
         };
+        let loaded = journal.load();
+        for d in &loaded.damaged {
+            self.record_lost(
+                &d.tenant,
+                &d.id,
+                "",
+                "its journal entry was corrupted on disk",
+            );
+        }
         let mut requeued = 0;
-        for e in journal.load() {
+        for e in loaded.entries {
             if self.inner.cache.get(&e.id).is_some() {
                 journal.remove(&e.tenant, &e.id);
                 continue;
@@ -376,8 +406,13 @@ impl JobManager {
             let work = match rebuild(&e.method, &e.request) {
                 Ok(w) => w,
                 Err(err) => {
-                    tracing::warn!(id = %e.id, error = %err, "journalled job cannot be rebuilt; dropped");
-                    journal.remove(&e.tenant, &e.id);
+                    tracing::warn!(id = %e.id, error = %err, "journalled job cannot be rebuilt; recorded as lost");
+                    self.record_lost(
+                        &e.tenant,
+                        &e.id,
+                        &e.method,
+                        &format!("its journal entry cannot be rebuilt ({err})"),
+                    );
                     continue;
                 }
             };
@@ -398,6 +433,22 @@ impl JobManager {
             self.inner.queue_cv.notify_all();
         }
         requeued
+    }
+
+    /// A FAILED record for an accepted job whose journal entry is unusable. It keeps the
+    /// `journaled` flag: the entry is removed once the record is in the record log.
+    fn record_lost(&self, tenant: &str, id: &str, method: &str, why: &str) {
+        let mut snap = JobSnapshot::queued(id, method);
+        snap.state = JobState::Failed;
+        snap.stage = "failed".into();
+        snap.end_time = Some(std::time::SystemTime::now());
+        snap.error = Some(MurkError::DataLoss(why.to_string()));
+        let entry = JobEntry::new(tenant, snap, None);
+        entry.journaled.store(true, Ordering::SeqCst);
+        let mut reg = self.inner.registry();
+        if !reg.jobs.contains_key(&entry.key()) {
+            reg.insert(entry, self.inner.cfg.max_job_records);
+        }
     }
 
     /// The back-off to suggest when the queue is full: the estimated time until a slot frees,

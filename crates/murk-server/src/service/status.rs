@@ -25,6 +25,8 @@ pub fn to_status(e: &MurkError) -> Status {
             e.to_string(),
             ErrorDetails::with_retry_info(Some(Duration::from_secs(1))),
         ),
+        // Not retryable as such: the job must be submitted again.
+        MurkError::DataLoss(_) => Status::data_loss(e.to_string()),
         MurkError::Numerical(_) | MurkError::Internal(_) | MurkError::Io { .. } => {
             Status::internal(e.to_string())
         }

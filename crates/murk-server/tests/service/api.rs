@@ -327,6 +327,65 @@ async fn results_survive_a_restart_through_the_cache_directory() {
 }
 
 #[tokio::test]
+async fn an_accepted_job_whose_journal_entry_is_corrupted_fails_with_data_loss_not_not_found() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = config(4);
+    cfg.jobs.cache_dir = Some(dir.path().to_path_buf());
+    cfg.shutdown_grace = Duration::ZERO;
+
+    // Accepted and interrupted: its journal entry stays for the restart.
+    let a = start(cfg.clone()).await;
+    let mut c = jobs(&a);
+    let id = c
+        .submit_job(job(long_tof_request(10_000)))
+        .await
+        .unwrap()
+        .into_inner()
+        .id;
+    wait_running(&mut c, &id).await;
+    a.stop().await.unwrap();
+    let entries: Vec<_> = std::fs::read_dir(dir.path().join("journal"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .collect();
+    assert_eq!(entries.len(), 1, "{entries:?}");
+    let mut bytes = std::fs::read(&entries[0]).unwrap();
+    let n = bytes.len();
+    bytes[n / 2] ^= 0x10;
+    std::fs::write(&entries[0], bytes).unwrap();
+
+    // The job is reported lost, durably: across a second restart too.
+    for round in 0..2 {
+        let b = start(cfg.clone()).await;
+        let mut c = jobs(&b);
+        let got = c
+            .get_job(pb::GetJobRequest {
+                id: id.clone(),
+                omit_result: true,
+            })
+            .await
+            .unwrap_or_else(|e| panic!("round {round}: {e:?}"))
+            .into_inner();
+        assert_eq!(state(&got), pb::JobState::Failed, "round {round}");
+        let Some(pb::job::Outcome::Error(e)) = &got.outcome else {
+            panic!("round {round}: an error outcome, got {got:?}");
+        };
+        assert_eq!(e.code, Code::DataLoss as i32, "round {round}: {e:?}");
+        assert!(e.message.contains("resubmit"), "{}", e.message);
+        assert!(e.message.contains("journal entry"), "{}", e.message);
+        assert_eq!(b.manager().executed(), 0);
+        b.stop().await.unwrap();
+    }
+    assert_eq!(
+        std::fs::read_dir(dir.path().join("journal"))
+            .unwrap()
+            .count(),
+        0,
+        "the damaged entry is removed once the loss is recorded"
+    );
+}
+
+#[tokio::test]
 async fn unknown_ids_are_not_found() {
     let server = start(config(4)).await;
     let mut c = jobs(&server);
