@@ -22,6 +22,7 @@ use crate::jobs::{JobBackend, JobManager, JobsConfig};
 use crate::service::auth::{AuthLayer, TokenStore};
 use crate::service::convert::{AirlightService, ImageLimits};
 use crate::service::grpc_metrics::MetricsLayer;
+use crate::service::oversize::OversizeLayer;
 use crate::service::proto::v1::jobs_server::JobsServer;
 use crate::service::proto::v1::reconstruction_server::ReconstructionServer;
 use crate::service::proto::v1::sessions_server::SessionsServer;
@@ -42,8 +43,8 @@ pub const DEFAULT_MAX_REQUEST_BYTES: usize = 32 << 20;
 pub struct ServerConfig {
     /// Job system sizing.
     pub jobs: JobsConfig,
-    /// Largest request accepted, bytes; larger → INVALID_ARGUMENT naming the largest field
-    /// (above twice this the transport refuses it with OUT_OF_RANGE before decoding).
+    /// Largest request message accepted, bytes, as it arrives (after decompression), unknown
+    /// fields included; larger → RESOURCE_EXHAUSTED before anything is decoded.
     pub max_request_bytes: usize,
     /// Largest image accepted, pixels.
     pub max_image_pixels: u64,
@@ -148,7 +149,6 @@ async fn serve_with_manager(
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> Result<(), ServerError> {
     let limits = RequestLimits {
-        max_request_bytes: config.max_request_bytes,
         images: ImageLimits {
             max_pixels: config.max_image_pixels,
             max_channels: 4,
@@ -203,9 +203,8 @@ async fn serve_with_manager(
     if requeued > 0 {
         tracing::info!(requeued, "jobs from the journal re-queued");
     }
-    // The transport's hard ceiling; between 1× and 2× the handlers answer INVALID_ARGUMENT with
-    // the field named, which is more useful to a client than a bare OUT_OF_RANGE.
-    let transport_limit = config.max_request_bytes.saturating_mul(2);
+    // The one request limit, on the wire: every byte counts, unknown fields too.
+    let transport_limit = config.max_request_bytes;
     // Responses are compressed only for clients that advertise the encoding.
     let jobs = JobsServer::new(JobsApi::new(state.clone()))
         .max_decoding_message_size(transport_limit)
@@ -312,6 +311,7 @@ async fn serve_with_manager(
         .layer(MetricsLayer::new(telemetry.grpc().clone()))
         .layer(RequestIdLayer)
         .layer(AuthLayer::new(config.auth.clone()))
+        .layer(OversizeLayer)
         .add_service(health)
         .add_service(reflection_v1)
         .add_service(reflection_v1alpha)

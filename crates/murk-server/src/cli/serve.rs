@@ -67,7 +67,9 @@ pub struct ServeArgs {
     /// first.
     #[arg(long, env = "MURK_CACHE_DIR_BYTES", default_value_t = murk_server::jobs::DEFAULT_CACHE_DIR_BYTES)]
     pub cache_dir_bytes: u64,
-    /// Largest request, bytes (default fits a dozen 16-bit 1-megapixel images).
+    /// Largest request message, bytes, as it arrives (after decompression, every field
+    /// counted); larger ones get RESOURCE_EXHAUSTED. The default fits a dozen 16-bit
+    /// 1-megapixel images.
     #[arg(long, env = "MURK_MAX_REQUEST_BYTES", default_value_t = DEFAULT_MAX_REQUEST_BYTES)]
     pub max_request_bytes: usize,
     /// Largest image, pixels.

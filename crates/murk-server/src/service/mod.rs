@@ -6,6 +6,7 @@ pub mod codec;
 pub mod convert;
 pub mod grpc_metrics;
 mod jobs_api;
+pub mod oversize;
 pub mod proto;
 mod reconstruction_api;
 pub mod request_id;

@@ -24,11 +24,10 @@ use murk::tof::estimate_tof_depth;
 /// older code are never served for new submissions.
 pub const ALGORITHM_VERSION: &str = "murk-algorithms-20";
 
-/// Limits enforced per request.
+/// Limits enforced per request. (The request size itself is the transport's: see
+/// `service::oversize`.)
 #[derive(Clone, Copy, Debug)]
 pub struct RequestLimits {
-    /// Largest accepted encoded request, bytes.
-    pub max_request_bytes: usize,
     /// Per-image limits.
     pub images: ImageLimits,
     /// Largest forward-scatter kernel a photometric-stereo job may store, bytes.
@@ -117,7 +116,6 @@ pub async fn submit(
         Some(p) => e.within(&format!("{p}.{name}")),
         None => e,
     };
-    check_size(&req, state.limits.max_request_bytes).map_err(|e| to_status(&named(e)))?;
     // One encoding serves the content hash and, with a journal, the copy kept on disk until the
     // job ends.
     let encoded = req.encode_to_vec();
@@ -168,78 +166,6 @@ fn canonicalize(req: &mut pb::JobRequest, airlight: &AirlightService) {
         Some(pb::job_request::Method::RectifiedStereo(s)) => canonicalize_stereo_request(s),
         Some(pb::job_request::Method::TofDepth(_)) | None => {}
     }
-}
-
-/// Rejects requests above the configured size, naming the largest image field (relative to the
-/// method's request, e.g. `phase` or `sources[2].image`) so the client knows what to shrink.
-/// (The transport refuses anything above twice the limit outright.)
-fn check_size(req: &pb::JobRequest, max: usize) -> Result<(), MurkError> {
-    let len = req.encoded_len();
-    if len <= max {
-        return Ok(());
-    }
-    let size_of = |i: Option<&pb::Image>| i.map_or(0, |i| i.encoded_len());
-    let images: Vec<(String, usize)> = match &req.method {
-        Some(pb::job_request::Method::TofDepth(t)) => vec![
-            ("amplitude".into(), size_of(t.amplitude.as_ref())),
-            ("phase".into(), size_of(t.phase.as_ref())),
-        ],
-        Some(pb::job_request::Method::MvsDepth(m)) => view_sizes(m.reference.as_ref(), &m.sources),
-        Some(pb::job_request::Method::ScatteringParams(p)) => {
-            let mut v = view_sizes(p.reference.as_ref(), &p.sources);
-            v.push((
-                "sparse_points".into(),
-                p.sparse_points.iter().map(|q| q.encoded_len()).sum(),
-            ));
-            v.push((
-                "sparse_point_sources".into(),
-                p.sparse_point_sources
-                    .iter()
-                    .map(|&m| prost::encoding::encoded_len_varint(u64::from(m)))
-                    .sum(),
-            ));
-            v
-        }
-        Some(pb::job_request::Method::PhotometricStereo(p)) => {
-            let mut v = vec![("mask".to_string(), size_of(p.mask.as_ref()))];
-            for (k, l) in p.lights.iter().enumerate() {
-                v.push((format!("lights[{k}].image"), size_of(l.image.as_ref())));
-                v.push((
-                    format!("lights[{k}].background"),
-                    size_of(l.background.as_ref()),
-                ));
-            }
-            v
-        }
-        Some(pb::job_request::Method::RectifiedStereo(s)) => vec![
-            ("left".into(), size_of(s.left.as_ref())),
-            ("right".into(), size_of(s.right.as_ref())),
-        ],
-        None => Vec::new(),
-    };
-    // The first of equally large fields wins, so the answer is stable.
-    let (field, size) = images
-        .into_iter()
-        .rev()
-        .max_by_key(|(_, s)| *s)
-        .unwrap_or_else(|| (String::new(), len));
-    Err(MurkError::invalid(
-        field,
-        format!("request is {len} bytes, over the limit of {max} bytes (this field: {size} bytes)"),
-    ))
-}
-
-/// Encoded sizes of a reference view's and source views' images, named by field.
-fn view_sizes(reference: Option<&pb::MvsView>, sources: &[pb::MvsView]) -> Vec<(String, usize)> {
-    let view = |v: &pb::MvsView| v.image.as_ref().map_or(0, |i| i.encoded_len());
-    std::iter::once(("reference.image".to_string(), reference.map_or(0, view)))
-        .chain(
-            sources
-                .iter()
-                .enumerate()
-                .map(|(k, s)| (format!("sources[{k}].image"), view(s))),
-        )
-        .collect()
 }
 
 /// The work of a request from its canonical encoding: for `JobManager::recover` after a restart,

@@ -4,6 +4,9 @@ use crate::common;
 
 use common::*;
 use murk_server::service::proto::v1 as pb;
+use prost::Message;
+use tonic::Code;
+use tonic_types::StatusExt;
 
 fn raw(width: u32, height: u32, values: &[f32]) -> pb::Image {
     pb::Image {
@@ -212,23 +215,65 @@ async fn bad_tof_requests_name_the_field_and_the_server_keeps_serving() {
 }
 
 #[tokio::test]
-async fn oversized_requests_are_refused_naming_the_largest_field() {
+async fn every_request_over_the_limit_gets_resource_exhausted_unknown_fields_included() {
+    const LIMIT: usize = 256 * 1024;
     let mut cfg = config(4);
-    cfg.max_request_bytes = 256 * 1024;
+    cfg.max_request_bytes = LIMIT;
     let server = start(cfg).await;
-    // 200×200 f32 = 160 KB per image: amplitude + phase ≈ 320 KB > 256 KiB.
-    let mut r = tof_request(48, 40, 2);
-    r.amplitude = Some(raw(200, 200, &vec![1.0; 200 * 200]));
-    r.phase = Some(raw(200, 200, &vec![1.0; 200 * 200]));
-    let field = submit_err(&server, r).await;
-    assert!(
-        field == "request.tof_depth.amplitude" || field == "request.tof_depth.phase",
-        "{field}"
-    );
-    // Far above the limit the transport refuses before decoding; still an error, no crash.
+    let over = |s: &tonic::Status| {
+        assert_eq!(s.code(), Code::ResourceExhausted, "{s:?}");
+        assert!(s.message().contains(&format!("{LIMIT} bytes")), "{s:?}");
+        assert!(s.message().contains("--max-request-bytes"), "{s:?}");
+        assert!(
+            s.get_details_retry_info().is_none(),
+            "the same request cannot succeed later: {s:?}"
+        );
+    };
+    // Just over (≈ 320 KB of known fields) and far over (≈ 1.3 MB): one answer, whichever RPC.
+    for side in [200, 400] {
+        let mut r = tof_request(48, 40, 2);
+        r.amplitude = Some(raw(side, side, &vec![1.0; (side * side) as usize]));
+        r.phase = Some(raw(side, side, &vec![1.0; (side * side) as usize]));
+        over(&jobs(&server).submit_job(job(r.clone())).await.unwrap_err());
+        over(&recon(&server).tof_depth(r).await.unwrap_err());
+    }
+
+    // A small request padded with an unknown field counts every byte: over the limit it is
+    // refused like any other, under it the padding is ignored.
+    let mut grpc = tonic::client::Grpc::new(channel(&server));
+    let padded = |pad: usize| {
+        let mut bytes = tof_request(48, 40, 2).encode_to_vec();
+        // Field 1000, wire type 2 (length-delimited): unknown to the server.
+        prost::encoding::encode_key(1000, prost::encoding::WireType::LengthDelimited, &mut bytes);
+        prost::encoding::encode_varint(pad as u64, &mut bytes);
+        bytes.resize(bytes.len() + pad, 0xAB);
+        bytes
+    };
+    for (pad, refused) in [(LIMIT, true), (LIMIT / 4, false)] {
+        grpc.ready().await.unwrap();
+        let got = grpc
+            .unary(
+                tonic::Request::new(padded(pad)),
+                http::uri::PathAndQuery::from_static("/murk.v1.Reconstruction/TofDepth"),
+                RawCodec,
+            )
+            .await;
+        match (got, refused) {
+            (Err(s), true) => over(&s),
+            (Ok(_), false) => {}
+            (got, _) => panic!("padding {pad}: {got:?}"),
+        }
+    }
+
+    // Compressed on the wire, over the limit once decompressed: the same answer.
     let mut r = tof_request(48, 40, 2);
     r.amplitude = Some(raw(400, 400, &vec![1.0; 400 * 400]));
-    assert!(jobs(&server).submit_job(job(r)).await.is_err());
+    let s = recon(&server)
+        .send_compressed(tonic::codec::CompressionEncoding::Gzip)
+        .tof_depth(r)
+        .await
+        .unwrap_err();
+    over(&s);
 
     let ok = recon(&server)
         .tof_depth(tof_request(48, 40, 2))

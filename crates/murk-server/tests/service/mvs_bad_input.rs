@@ -217,21 +217,3 @@ async fn bad_mvs_requests_name_the_field_and_the_server_keeps_serving() {
     assert_eq!(ok.z_depth.unwrap().width, W as u32);
     server.stop().await.unwrap();
 }
-
-#[tokio::test]
-async fn oversized_mvs_requests_name_the_largest_image() {
-    let mut cfg = config(4);
-    cfg.max_request_bytes = 128 * 1024;
-    let server = start(cfg).await;
-    // 5 views of 32×24×3 raw f32 ≈ 46 KB, plus one 100×100×3 (120 KB) source: over 128 KiB,
-    // under the transport's 256 KiB ceiling, so the handler answers naming the field.
-    let mut r = good();
-    r.sources[2].image = Some(image_to_proto(&ImageF32::filled(100, 100, 3, 0.5)));
-    assert_eq!(
-        submit_err(&server, r).await,
-        "request.mvs_depth.sources[2].image"
-    );
-    let ok = recon(&server).mvs_depth(good()).await.unwrap().into_inner();
-    assert!(ok.confidence.is_some());
-    server.stop().await.unwrap();
-}

@@ -762,3 +762,34 @@ async fn a_tof_session_carries_each_frames_answer_to_the_next() {
     drop(s.tx);
     server.stop().await.unwrap();
 }
+
+#[tokio::test]
+async fn a_frame_over_the_request_limit_ends_the_session_with_resource_exhausted() {
+    let mut cfg = config(4);
+    cfg.max_request_bytes = 64 * 1024;
+    let server = start(cfg).await;
+    let (config, frame) = tof_session(tof_request(32, 26, 3), pb::QueuePolicy::Fifo, 2);
+    let mut s = open(&server, config_message(config), None)
+        .await
+        .expect("session opens");
+    started(s.event().await);
+    s.send_frame(numbered(&frame, 1)).await;
+    // 200×200 raw f32 amplitude: 160 KB, over the 64 KiB limit.
+    let mut big = numbered(&frame, 2);
+    if let Some(a) = big.amplitude.as_mut() {
+        a.width = 200;
+        a.height = 200;
+        a.data = Some(pb::image::Data::RawF32Le(vec![0; 200 * 200 * 4]));
+    }
+    s.send_frame(big).await;
+    let status = loop {
+        match s.next().await {
+            Some(Ok(Event::Result(r))) => assert_eq!(r.sequence, 1),
+            Some(Err(status)) => break status,
+            other => panic!("expected frame 1's result or the end, got {other:?}"),
+        }
+    };
+    assert_eq!(status.code(), Code::ResourceExhausted, "{status:?}");
+    assert!(status.message().contains("65536 bytes"), "{status:?}");
+    server.stop().await.unwrap();
+}

@@ -29,6 +29,7 @@ use tonic_types::{ErrorDetails, StatusExt};
 use crate::jobs::JobManager;
 use crate::service::auth::Tenant;
 use crate::service::convert::ImageLimits;
+use crate::service::oversize::oversize_request;
 use crate::service::proto::v1 as pb;
 use crate::service::status::to_status;
 use murk::error::MurkError;
@@ -124,8 +125,15 @@ impl pb::sessions_server::Sessions for SessionsApi {
                         .await;
                     return;
                 }
-                // The client went away or broke the stream before configuring.
-                Ok(Err(_)) | Ok(Ok(None)) => return,
+                // A configuration over the request limit: the stream cannot go on after it.
+                Ok(Err(status)) => {
+                    if let Some(s) = oversize_request(&status) {
+                        let _ = events.send(Err(s)).await;
+                    }
+                    return;
+                }
+                // The client went away before configuring.
+                Ok(Ok(None)) => return,
                 Ok(Ok(Some(pb::SessionRequest {
                     message: Some(pb::session_request::Message::Config(c)),
                 }))) => c,

@@ -20,6 +20,7 @@ use super::plan::SessionPlan;
 use super::queue::{FrameQueue, Queued};
 use crate::jobs::JobManager;
 use crate::service::convert::ImageLimits;
+use crate::service::oversize::oversize_request;
 use crate::service::proto::v1 as pb;
 use crate::service::status::{job_error, to_status};
 use murk::error::MurkError;
@@ -270,8 +271,16 @@ async fn read_frames(
             }
             // Half-closed: the queued frames are still computed.
             Ok(None) => break,
-            // The client cancelled, or its stream broke.
-            Err(_) => break,
+            // A frame over the request limit ends the session (the transport cannot find the
+            // next message after it): RESOURCE_EXHAUSTED, as for any oversize request. Frames
+            // queued before it are dropped with the stream.
+            Err(status) => {
+                if let Some(s) = oversize_request(&status) {
+                    let _ = events.send(Err(s)).await;
+                }
+                // Otherwise the client cancelled, or its stream broke.
+                break;
+            }
         };
         let e = event(pb::session_event::Event::Refused(job_error(&refused)));
         if events.send(Ok(e)).await.is_err() {
