@@ -29,7 +29,8 @@ use crate::service::proto::v1::sessions_server::SessionsServer;
 use crate::service::proto::FILE_DESCRIPTOR_SET;
 use crate::service::request_id::RequestIdLayer;
 use crate::service::{
-    JobsApi, ReconstructionApi, RequestLimits, ServiceState, DEFAULT_MAX_UNARY_RESULT_BYTES,
+    CacheScope, JobsApi, ReconstructionApi, RequestLimits, ServiceState,
+    DEFAULT_MAX_UNARY_RESULT_BYTES,
 };
 use crate::service::{SessionLimits, SessionsApi};
 use crate::telemetry::{serve_metrics, Telemetry};
@@ -60,6 +61,9 @@ pub struct ServerConfig {
     pub max_unary_result_bytes: usize,
     /// Bearer tokens and their tenants; `None` serves everyone as the default tenant.
     pub auth: Option<TokenStore>,
+    /// Whose identical requests share results; `None`: per tenant with `auth`, else global
+    /// ([`CacheScope::default_for`]).
+    pub cache_scope: Option<CacheScope>,
     /// TLS (optionally mutual); `None` serves plain HTTP/2.
     pub tls: Option<TlsSettings>,
     /// Share jobs, queue and results with other replicas through Redis; `None` keeps them in
@@ -104,6 +108,7 @@ impl Default for ServerConfig {
                 .unwrap_or(AirlightEstimator::DarkChannel(Default::default())),
             max_unary_result_bytes: DEFAULT_MAX_UNARY_RESULT_BYTES,
             auth: None,
+            cache_scope: None,
             tls: None,
             redis: None,
             sessions: SessionLimits::default(),
@@ -175,11 +180,15 @@ async fn serve_with_manager(
             let _ = rx.wait_for(|s| *s).await;
         }));
     }
+    let cache_scope = config
+        .cache_scope
+        .unwrap_or_else(|| CacheScope::default_for(config.auth.is_some()));
     let state = ServiceState {
         jobs: backend.clone(),
         limits,
         airlight,
         max_unary_result_bytes: config.max_unary_result_bytes,
+        cache_scope,
     };
     // Jobs accepted before a crash (or stopped by a shutdown) run again; decoding their images
     // is CPU work, so off the runtime's threads. (With Redis the shared queue keeps them.)
@@ -265,6 +274,7 @@ async fn serve_with_manager(
         backend = backend.kind(),
         max_request_bytes = config.max_request_bytes,
         auth = config.auth.is_some(),
+        ?cache_scope,
         tls = config.tls.is_some(),
         mutual_tls = config.tls.as_ref().is_some_and(|t| t.client_ca_pem.is_some()),
         "murk serving"

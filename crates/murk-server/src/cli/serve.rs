@@ -14,7 +14,7 @@ use murk_server::server::{
     serve, shutdown_signal, ServerConfig, TlsSettings, DEFAULT_MAX_REQUEST_BYTES,
 };
 use murk_server::service::auth::TokenStore;
-use murk_server::service::{SessionLimits, DEFAULT_MAX_UNARY_RESULT_BYTES};
+use murk_server::service::{CacheScope, SessionLimits, DEFAULT_MAX_UNARY_RESULT_BYTES};
 
 /// Server configuration; each flag is also an environment variable.
 #[derive(Args, Debug, Clone)]
@@ -60,6 +60,11 @@ pub struct ServeArgs {
     /// In-memory result cache, bytes.
     #[arg(long, env = "MURK_CACHE_BYTES", default_value_t = 512 << 20)]
     pub cache_bytes: u64,
+    /// Whose identical requests share results: `tenant` (each tenant's own; the default with
+    /// --auth-tokens-file) or `global` (shared between tenants, which lets a tenant learn that
+    /// another ran the same input; the default without authentication).
+    #[arg(long, env = "MURK_CACHE_SCOPE", value_enum)]
+    pub cache_scope: Option<CacheScope>,
     /// Directory where results persist across restarts (optional).
     #[arg(long, env = "MURK_CACHE_DIR")]
     pub cache_dir: Option<PathBuf>,
@@ -248,6 +253,7 @@ impl ServeArgs {
             },
             max_unary_result_bytes: self.max_unary_result_bytes,
             auth,
+            cache_scope: self.cache_scope,
             tls,
             max_request_bytes: self.max_request_bytes,
             max_image_pixels: self.max_image_pixels,

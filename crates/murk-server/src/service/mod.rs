@@ -18,7 +18,7 @@ pub use jobs_api::JobsApi;
 pub use reconstruction_api::{grpc_timeout, ReconstructionApi, JOB_ID_HEADER};
 pub use sessions::{SessionLimits, SessionsApi};
 pub use submit::{
-    job_id, method_name, rebuild_work, RequestLimits, ServiceState, ALGORITHM_VERSION,
+    job_id, method_name, rebuild_work, CacheScope, RequestLimits, ServiceState, ALGORITHM_VERSION,
     DEFAULT_MAX_UNARY_RESULT_BYTES,
 };
 

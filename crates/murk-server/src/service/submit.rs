@@ -50,24 +50,61 @@ pub struct ServiceState {
     pub max_unary_result_bytes: usize,
     /// The airlight estimators (scattering-parameter requests).
     pub airlight: AirlightService,
+    /// Whose identical requests share results.
+    pub cache_scope: CacheScope,
+}
+
+/// Whose identical requests share a job and its cached result.
+///
+/// With `Global`, tenant B's request identical to tenant A's finished one is answered from the
+/// cache at once (`cached = true`), which tells B that somebody ran that exact input: a side
+/// channel between tenants, traded for compute. With `Tenant`, each tenant's requests have job
+/// ids of their own (the id's hash covers the tenant), so nothing is shared and nothing is
+/// learned. The default tenant (no authentication) is the same under both.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum CacheScope {
+    /// Results are shared only within a tenant.
+    Tenant,
+    /// Results are shared between tenants.
+    Global,
+}
+
+impl CacheScope {
+    /// The scope a server uses unless configured: per tenant when it authenticates clients
+    /// (tenants exist to be kept apart), global otherwise (there is only one tenant).
+    pub fn default_for(authenticated: bool) -> Self {
+        if authenticated {
+            CacheScope::Tenant
+        } else {
+            CacheScope::Global
+        }
+    }
 }
 
 /// Hex SHA-256 over the algorithm version, `model` (the identity of any learned model the
 /// request uses, empty otherwise) and the request's protobuf encoding. prost encodes fields in
 /// tag order and murk's messages have no maps, so equal requests hash equally; the model part
 /// keeps results computed with other weights (another replica's, or before a redeploy) from
-/// being served from a shared cache.
-pub fn job_id(req: &pb::JobRequest, model: &str) -> String {
-    job_id_of_encoded(&req.encode_to_vec(), model)
+/// being served from a shared cache. Under [`CacheScope::Tenant`] an authenticated `tenant` is
+/// hashed too, so its ids (and cached results) are its own; the default tenant's ids are the
+/// same under both scopes.
+pub fn job_id(req: &pb::JobRequest, model: &str, tenant: &str, scope: CacheScope) -> String {
+    job_id_of_encoded(&req.encode_to_vec(), model, tenant, scope)
 }
 
 /// [`job_id`] of a request already encoded (the submit path keeps the bytes for the journal).
-fn job_id_of_encoded(encoded: &[u8], model: &str) -> String {
+fn job_id_of_encoded(encoded: &[u8], model: &str, tenant: &str, scope: CacheScope) -> String {
     let mut h = Sha256::new();
     h.update(ALGORITHM_VERSION.as_bytes());
     h.update([0u8]);
     h.update(model.as_bytes());
     h.update([0u8]);
+    if scope == CacheScope::Tenant && !tenant.is_empty() {
+        // Length-prefixed, so no tenant name can collide with another's plus request bytes.
+        h.update(b"tenant");
+        h.update((tenant.len() as u64).to_le_bytes());
+        h.update(tenant.as_bytes());
+    }
     h.update(encoded);
     hex::encode(h.finalize())
 }
@@ -119,7 +156,12 @@ pub async fn submit(
     // One encoding serves the content hash and, with a journal, the copy kept on disk until the
     // job ends.
     let encoded = req.encode_to_vec();
-    let id = job_id_of_encoded(&encoded, &model_of(&req, &state.airlight));
+    let id = job_id_of_encoded(
+        &encoded,
+        &model_of(&req, &state.airlight),
+        tenant,
+        state.cache_scope,
+    );
     if let Some(found) = state
         .jobs
         .find(tenant, &id, name)

@@ -272,7 +272,13 @@ async fn a_result_computed_on_one_replica_is_a_cache_hit_on_another() {
         "alpha alpha-token-0123456789\nbeta beta-token-9876543210\n",
     )
     .unwrap();
-    let auth = ["--auth-tokens-file", tokens.path().to_str().unwrap()];
+    // Results shared between tenants, so the hit below can only come from the shared cache.
+    let auth = [
+        "--auth-tokens-file",
+        tokens.path().to_str().unwrap(),
+        "--cache-scope",
+        "global",
+    ];
     let a = Replica::start(&redis, &auth);
     let with = |token: &str, req: pb::SubmitJobRequest| {
         let mut r = tonic::Request::new(req);

@@ -12,7 +12,7 @@ use common::*;
 use murk_server::server::{InProcessServer, ServerConfig, TlsSettings};
 use murk_server::service::auth::TokenStore;
 use murk_server::service::proto::v1 as pb;
-use murk_server::service::JOB_ID_HEADER;
+use murk_server::service::{CacheScope, JOB_ID_HEADER};
 use pb::jobs_client::JobsClient;
 use pb::reconstruction_client::ReconstructionClient;
 use tonic::metadata::MetadataValue;
@@ -114,8 +114,12 @@ async fn tokens_are_required_except_for_health_and_reflection() {
 }
 
 #[tokio::test]
-async fn jobs_are_invisible_to_other_tenants_but_results_are_shared() {
-    let server = start(authed_config(4)).await;
+async fn jobs_are_invisible_to_other_tenants_and_a_global_cache_shares_results() {
+    let server = start(ServerConfig {
+        cache_scope: Some(CacheScope::Global),
+        ..authed_config(4)
+    })
+    .await;
     let mut c = jobs(&server);
     let submitted = c
         .submit_job(with_token(job(tof_request(48, 36, 2)), ALPHA))
@@ -199,6 +203,63 @@ async fn jobs_are_invisible_to_other_tenants_but_results_are_shared() {
     assert!(again.cached);
     assert_eq!(listed(BETA).await.len(), 1);
     assert_eq!(server.manager().executed(), 1);
+}
+
+#[tokio::test]
+async fn with_authentication_a_tenant_cannot_learn_that_another_ran_the_same_input() {
+    // The default cache scope with tokens: per tenant.
+    let server = start(authed_config(4)).await;
+    let mut c = jobs(&server);
+    let client = c.clone();
+    let submit = |token| {
+        let mut c = client.clone();
+        async move {
+            let j = c
+                .submit_job(with_token(job(tof_request(48, 36, 2)), token))
+                .await
+                .unwrap()
+                .into_inner();
+            (j.id.clone(), j.cached, j.state)
+        }
+    };
+    let (alpha_id, cached, _) = submit(ALPHA).await;
+    assert!(!cached);
+    let mut watch = c
+        .watch_job(with_token(
+            pb::WatchJobRequest {
+                id: alpha_id.clone(),
+                omit_result: true,
+            },
+            ALPHA,
+        ))
+        .await
+        .unwrap()
+        .into_inner();
+    while watch.message().await.unwrap().is_some() {}
+    // Alpha's own repeat is a cache hit.
+    let (again, cached, _) = submit(ALPHA).await;
+    assert_eq!(again, alpha_id);
+    assert!(cached);
+    // Beta's identical request is a job of beta's own: another id, queued, computed afresh,
+    // exactly as for an input nobody ran.
+    let (beta_id, cached, state) = submit(BETA).await;
+    assert_ne!(beta_id, alpha_id);
+    assert!(!cached);
+    assert_ne!(state, pb::JobState::Succeeded as i32);
+    let mut watch = c
+        .watch_job(with_token(
+            pb::WatchJobRequest {
+                id: beta_id.clone(),
+                omit_result: true,
+            },
+            BETA,
+        ))
+        .await
+        .unwrap()
+        .into_inner();
+    while watch.message().await.unwrap().is_some() {}
+    assert_eq!(server.manager().executed(), 2);
+    server.stop().await.unwrap();
 }
 
 /// A throw-away CA, a server certificate for `localhost` and a client certificate.
