@@ -5,6 +5,14 @@ use nalgebra::{Matrix3, Point3, Vector3};
 
 use crate::error::{MurkError, Result};
 
+/// Range of a focal length, pixels. Below 1e-3 px a pixel would span more than the whole field
+/// of view; above 1e7 px (a 10 m lens on 1 µm pixels) rays lose precision in f32 images and the
+/// values are unit slips (focal lengths in metres, or in micrometres) rather than cameras.
+pub const FOCAL_LENGTH_RANGE_PX: (f64, f64) = (1e-3, 1e7);
+
+/// Largest |cx|, |cy| and |skew|, pixels: far beyond any image murk accepts.
+pub const MAX_PRINCIPAL_OFFSET_PX: f64 = 1e7;
+
 /// Pinhole intrinsics in pixels: `u = fx·x/z + skew·y/z + cx`, `v = fy·y/z + cy`.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Intrinsics {
@@ -32,8 +40,10 @@ impl Intrinsics {
         }
     }
 
-    /// Fails unless focal lengths are finite and positive and the other entries are finite.
+    /// Fails unless the focal lengths lie in [`FOCAL_LENGTH_RANGE_PX`] and the other entries
+    /// are finite and within [`MAX_PRINCIPAL_OFFSET_PX`].
     pub fn validate(&self) -> Result<()> {
+        let (lo, hi) = FOCAL_LENGTH_RANGE_PX;
         for (name, v) in [("fx", self.fx), ("fy", self.fy)] {
             if !v.is_finite() || v <= 0.0 {
                 return Err(MurkError::invalid(
@@ -41,10 +51,22 @@ impl Intrinsics {
                     format!("focal length must be finite and > 0, got {v}"),
                 ));
             }
+            if !(lo..=hi).contains(&v) {
+                return Err(MurkError::invalid(
+                    name,
+                    format!("focal length {v} px is outside [{lo:e}, {hi:e}] px (in pixels)"),
+                ));
+            }
         }
         for (name, v) in [("cx", self.cx), ("cy", self.cy), ("skew", self.skew)] {
             if !v.is_finite() {
                 return Err(MurkError::invalid(name, format!("must be finite, got {v}")));
+            }
+            if v.abs() > MAX_PRINCIPAL_OFFSET_PX {
+                return Err(MurkError::invalid(
+                    name,
+                    format!("{v} px is beyond ±{MAX_PRINCIPAL_OFFSET_PX:e} px"),
+                ));
             }
         }
         Ok(())

@@ -54,7 +54,8 @@ impl RectifiedRig {
         }
     }
 
-    /// Checks intrinsics (no skew), baseline (finite, `> 0`) and `right_cx` (finite). Errors name
+    /// Checks intrinsics (no skew), baseline (finite, `> 0`) and `right_cx` (finite, within
+    /// `camera::MAX_PRINCIPAL_OFFSET_PX`). Errors name
     /// `intrinsics.…`, `baseline` or `right_cx`.
     pub fn validate(&self) -> Result<()> {
         self.intrinsics
@@ -83,6 +84,16 @@ impl RectifiedRig {
             return Err(MurkError::invalid(
                 "right_cx",
                 format!("must be finite, got {}", self.right_cx),
+            ));
+        }
+        if self.right_cx.abs() > crate::camera::MAX_PRINCIPAL_OFFSET_PX {
+            return Err(MurkError::invalid(
+                "right_cx",
+                format!(
+                    "{} px is beyond ±{:e} px",
+                    self.right_cx,
+                    crate::camera::MAX_PRINCIPAL_OFFSET_PX
+                ),
             ));
         }
         Ok(())

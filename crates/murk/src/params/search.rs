@@ -156,6 +156,10 @@ impl Default for SearchParams {
     }
 }
 
+/// Largest β end a search accepts, per scene unit: beyond it transmission vanishes within 1e-6
+/// units, whatever the scene's scale, and the search's geometric grid loses f32 precision.
+pub const MAX_BETA_PER_UNIT: f32 = 1e6;
+
 impl SearchParams {
     /// Fails naming the first bad field.
     pub fn validate(&self) -> Result<()> {
@@ -168,6 +172,15 @@ impl SearchParams {
         if let Some(hi) = self.beta_max {
             if !hi.is_finite() || hi <= 0.0 {
                 return bad("beta_max", format!("must be finite and > 0, got {hi}"));
+            }
+            if hi > MAX_BETA_PER_UNIT {
+                return bad(
+                    "beta_max",
+                    format!(
+                        "{hi} per scene unit is above {MAX_BETA_PER_UNIT:e}: the medium would be \
+                         opaque within a millionth of a unit"
+                    ),
+                );
             }
             if let Some(lo) = self.beta_min.filter(|&lo| hi <= lo) {
                 return bad(

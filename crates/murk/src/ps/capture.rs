@@ -14,6 +14,19 @@ pub const MAX_LIGHTS: usize = 64;
 /// object* gives 0; any practical rig (lights around the camera, object in front) is ≫ 1e-3.
 pub const MIN_LIGHT_SPREAD: f64 = 1e-3;
 
+/// Farthest a light may be from the camera along any axis, mm (1 km). Photometric stereo needs
+/// near lights; a larger value is a unit slip or garbage, and would overflow `1/d²` terms.
+pub const MAX_LIGHT_COORDINATE_MM: f64 = 1e6;
+
+/// Range of a light's radiant intensity `I0`, image units × mm². `I0/d²` must stay a normal
+/// f32 in image units for every distance murk accepts; the reference's rigs sit near 1e5.
+pub const LIGHT_INTENSITY_RANGE: (f64, f64) = (1e-15, 1e20);
+
+/// Largest |sample| of a capture's images, image units. The pipeline sums squared samples over
+/// every pixel and light; an image offset to 3e38 overflowed its right-hand side. Cameras give
+/// 16-bit counts or normalised floats, far inside.
+pub const MAX_SAMPLE_MAGNITUDE: f32 = 1e20;
+
 /// An isotropic near point light (Eq. 4.31: irradiance `I0/d²` before attenuation).
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct PointLight {
@@ -93,6 +106,16 @@ impl PsCapture {
                 }
                 img.ensure_channels(1).map_err(|e| e.within(&field))?;
                 img.ensure_finite().map_err(|e| e.within(&field))?;
+                let largest = img.data().iter().fold(0.0f32, |m, v| m.max(v.abs()));
+                if largest > MAX_SAMPLE_MAGNITUDE {
+                    return Err(MurkError::invalid(
+                        field,
+                        format!(
+                            "a sample of magnitude {largest:e} is above {MAX_SAMPLE_MAGNITUDE:e}: \
+                             rescale the images (e.g. with Image.value_scale)"
+                        ),
+                    ));
+                }
             }
         }
         if self.mask.len() != w * h {
@@ -115,10 +138,33 @@ impl PsCapture {
                     "must be finite",
                 ));
             }
+            if l.position_mm
+                .iter()
+                .any(|v| v.abs() > MAX_LIGHT_COORDINATE_MM)
+            {
+                return Err(MurkError::invalid(
+                    format!("lights[{i}].position_mm"),
+                    format!(
+                        "{:?} mm is more than {MAX_LIGHT_COORDINATE_MM:e} mm from the camera: \
+                         photometric stereo needs near lights, in millimetres",
+                        l.position_mm
+                    ),
+                ));
+            }
             if !l.intensity.is_finite() || l.intensity <= 0.0 {
                 return Err(MurkError::invalid(
                     format!("lights[{i}].intensity"),
                     format!("must be finite and > 0, got {}", l.intensity),
+                ));
+            }
+            let (lo, hi) = LIGHT_INTENSITY_RANGE;
+            if !(lo..=hi).contains(&l.intensity) {
+                return Err(MurkError::invalid(
+                    format!("lights[{i}].intensity"),
+                    format!(
+                        "{} is outside [{lo:e}, {hi:e}] (image units × mm²)",
+                        l.intensity
+                    ),
                 ));
             }
         }

@@ -24,6 +24,10 @@ use crate::ps::physics::{
 pub const MAX_SUPPORT_R: usize = 201;
 /// Largest iteration cap accepted.
 pub const MAX_ITERATIONS: usize = 100;
+
+/// Farthest initial object distance, mm (1 km), the same bound as the lights' coordinates
+/// (`capture::MAX_LIGHT_COORDINATE_MM`): beyond it the value is a unit slip.
+pub const MAX_OBJECT_DISTANCE_MM: f64 = 1e6;
 /// Default bound on the stored kernel K̂ (`object pixels × r² × 4` bytes), the method's memory
 /// peak: 4 GiB, four times what the exact r×r window needs at 300×300 with r = 81 (1.0 GiB).
 pub const DEFAULT_MAX_KERNEL_BYTES: usize = 4 << 30;
@@ -200,10 +204,15 @@ impl PsParams {
         let d = self.initial_distance_mm;
         let needs_distance =
             self.distance == DistanceMode::Fixed && self.initial_depth_mm.is_none();
-        if !d.is_finite() || d < 0.0 || (d == 0.0 && needs_distance) {
+        if !d.is_finite() || d < 0.0 || (d == 0.0 && needs_distance) || d > MAX_OBJECT_DISTANCE_MM {
             return Err(MurkError::invalid(
                 "initial_distance_mm",
-                if needs_distance {
+                if d > MAX_OBJECT_DISTANCE_MM {
+                    format!(
+                        "{d} mm is beyond {MAX_OBJECT_DISTANCE_MM:e} mm: photometric stereo \
+                         sees objects near its lights (distances are in millimetres)"
+                    )
+                } else if needs_distance {
                     format!("must be finite and > 0 when the distance is fixed, got {d}")
                 } else {
                     format!("must be finite and > 0 (or 0: unknown, estimated), got {d}")

@@ -309,10 +309,12 @@ impl TofParams {
                 ("bilateral.sigma_space_px", b.sigma_space_px),
                 ("bilateral.sigma_range_rel", b.sigma_range_rel),
             ] {
-                if !v.is_finite() || v <= 0.0 || v > 1e3 {
+                // Below 1e-3 the Gaussian weights' 2σ² underflows towards 0 and the filter
+                // divides 0 by 0; it would be the identity long before.
+                if !v.is_finite() || !(1e-3..=1e3).contains(&v) {
                     return Err(MurkError::invalid(
                         name,
-                        format!("must be finite and in (0, 1e3], got {v}"),
+                        format!("must be in [1e-3, 1e3], got {v}"),
                     ));
                 }
             }

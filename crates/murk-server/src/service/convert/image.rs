@@ -187,10 +187,35 @@ fn apply_value_mapping(mut img: ImageF32, scale: f32, offset: f32) -> Result<Ima
             format!("must be finite, got {offset}"),
         ));
     }
-    if scale != 1.0 || offset != 0.0 {
-        for v in img.data_mut() {
-            *v = offset + scale * *v;
+    let mapped = scale != 1.0 || offset != 0.0;
+    let mut overflow = None;
+    for v in img.data_mut() {
+        if mapped {
+            let m = offset + scale * *v;
+            if v.is_finite() && !m.is_finite() && overflow.is_none() {
+                overflow = Some(*v);
+            }
+            *v = m;
         }
+        // Subnormal samples (below 1.2e-38) become 0: no sensor resolves them, arithmetic on
+        // them is slow, and their reciprocals overflow (a ToF phase scaled by 1e-45 broke the
+        // method's solver, where a phase of exactly 0 is merely a range of 0).
+        if v.is_subnormal() {
+            *v = 0.0;
+        }
+    }
+    if let Some(v) = overflow {
+        return Err(MurkError::invalid(
+            if scale != 1.0 {
+                "value_scale"
+            } else {
+                "value_offset"
+            },
+            format!(
+                "{offset} + {scale}·{v} is not a finite f32: the mapping overflows; rescale the \
+                 samples or the mapping"
+            ),
+        ));
     }
     Ok(img)
 }

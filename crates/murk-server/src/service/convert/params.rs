@@ -341,7 +341,15 @@ impl ParamsInput {
             &self.planes,
             &self.search,
             &monitor.sub(0.0, 0.75),
-        )?;
+        )
+        // The library names its settings `params.…`; on the wire they are top-level fields.
+        .map_err(|e| match e {
+            MurkError::InvalidArgument { field, reason } => MurkError::invalid(
+                field.strip_prefix("params.").unwrap_or(&field).to_string(),
+                reason,
+            ),
+            other => other,
+        })?;
         let t1 = Instant::now();
         let kind = CostKind::DehazingWith(
             AtmosphereParams {

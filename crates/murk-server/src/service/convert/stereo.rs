@@ -73,13 +73,9 @@ impl StereoInput {
     pub fn estimate(&self, monitor: &Monitor) -> Result<(RectifiedDepth, Vec<ColoredPoint>)> {
         let out = estimate_rectified(&self.left, &self.right, &self.rig, &self.options, monitor)
             .map_err(|e| match e {
-                // The library names the aggregation parameters `depth.…`; the wire `sgm.…`.
-                MurkError::InvalidArgument { field, reason } => MurkError::invalid(
-                    field
-                        .strip_prefix("depth.")
-                        .map_or(field.clone(), |f| format!("sgm.{f}")),
-                    reason,
-                ),
+                MurkError::InvalidArgument { field, reason } => {
+                    MurkError::invalid(wire_field(&field), reason)
+                }
                 other => other,
             })?;
         let points = if self.return_points {
@@ -89,6 +85,22 @@ impl StereoInput {
         };
         Ok((out, points))
     }
+}
+
+/// A library field of the rectified estimate as the request names it: the aggregation
+/// parameters `depth.…` are `sgm.…`, and the pair, which the library treats as a reference
+/// view and one source view, is `left` and `right`.
+fn wire_field(field: &str) -> String {
+    for (library, wire) in [
+        ("depth.", "sgm."),
+        ("reference.image", "left"),
+        ("sources[0].image", "right"),
+    ] {
+        if let Some(rest) = field.strip_prefix(library) {
+            return format!("{wire}{rest}");
+        }
+    }
+    field.to_string()
 }
 
 /// The search range a request asks for: the depth range, the disparity range, or `None` for the
@@ -407,6 +419,14 @@ mod tests {
         e.field()
             .unwrap_or_else(|| panic!("expected InvalidArgument, got {e:?}"))
             .to_string()
+    }
+
+    #[test]
+    fn library_fields_are_named_as_the_request_names_them() {
+        assert_eq!(wire_field("depth.p1"), "sgm.p1");
+        assert_eq!(wire_field("reference.image"), "left");
+        assert_eq!(wire_field("sources[0].image.width"), "right.width");
+        assert_eq!(wire_field("baseline"), "baseline");
     }
 
     fn pair() -> (ImageF32, ImageF32, RectifiedRig) {

@@ -25,7 +25,11 @@ use crate::image::ImageF32;
 /// volume matches.
 pub const MAX_PRESMOOTH_SIGMA_PX: f32 = 4.0;
 
-/// Normalised 1-D Gaussian taps for `sigma_px > 0`, radius `⌈3σ⌉`.
+/// Below this σ the blur is the identity in f32 (the side taps are below e^-50 ≈ 2e-22), and
+/// `2σ²` underflows for σ near 1e-20, turning the taps into NaN: such a σ returns a copy.
+pub const MIN_EFFECTIVE_SIGMA_PX: f32 = 0.1;
+
+/// Normalised 1-D Gaussian taps for `sigma_px ≥` [`MIN_EFFECTIVE_SIGMA_PX`], radius `⌈3σ⌉`.
 fn taps(sigma_px: f32) -> Vec<f32> {
     let r = (3.0 * sigma_px).ceil() as i64;
     let k: Vec<f32> = (-r..=r)
@@ -65,10 +69,10 @@ fn horizontal(row: &[f32], out: &mut [f32], padded: &mut [f32], k: &[f32], w: us
 }
 
 /// Separable Gaussian blur of every channel with standard deviation `sigma_px` (pixels);
-/// borders are clamped (replicated). `sigma_px ≤ 0` returns a copy.
+/// borders are clamped (replicated). `sigma_px` below [`MIN_EFFECTIVE_SIGMA_PX`] returns a copy.
 pub fn gaussian_presmooth(img: &ImageF32, sigma_px: f32) -> ImageF32 {
     let (w, h, c) = (img.width(), img.height(), img.channels());
-    if sigma_px <= 0.0 || !sigma_px.is_finite() || w * h * c == 0 {
+    if sigma_px < MIN_EFFECTIVE_SIGMA_PX || !sigma_px.is_finite() || w * h * c == 0 {
         return img.clone();
     }
     let k = taps(sigma_px);
