@@ -16,13 +16,10 @@ use common::*;
 use murk::atmosphere::AtmosphereParams;
 use murk::monitor::Monitor;
 use murk::mvs::{PlaneSet, RectifiedRig, StereoRange};
-use murk::params::sparse::{selected_points, PointSelection};
 use murk::ps::PsParams;
 use murk::simulate::mvs::{simulate_mvs, MvsSimConfig};
 use murk::simulate::ps::{simulate_ps, PsSimConfig};
-use murk_server::service::convert::{
-    params_request_to_proto, ps_request_to_proto, stereo_request_to_proto,
-};
+use murk_server::service::convert::{ps_request_to_proto, stereo_request_to_proto};
 use murk_server::service::proto::v1 as pb;
 use murk_server::service::proto::FILE_DESCRIPTOR_SET;
 use prost::Message;
@@ -288,26 +285,8 @@ fn mvs() -> pb::MvsDepthRequest {
 }
 
 fn params() -> pb::ScatteringParamsRequest {
-    let cfg = MvsSimConfig {
-        seed: 5,
-        beta_range: Some([0.4, 0.8]),
-        ..MvsSimConfig::with_size(48, 36)
-    };
-    let scene = simulate_mvs(&cfg, &Monitor::noop()).expect("simulate");
-    let (reference, sources) = scene.reference_and_sources();
-    let points = selected_points(
-        &scene.sparse,
-        &scene.views[scene.reference].name,
-        PointSelection::ObservedInReference,
-    )
-    .unwrap();
-    params_request_to_proto(
-        &reference,
-        &sources,
-        &points,
-        pb::AirlightSource::DarkChannel,
-        0.0,
-    )
+    let scene = crate::params_api::scene(48, 36, 5);
+    crate::params_api::request(&scene, pb::AirlightSource::DarkChannel, 0.0)
 }
 
 fn stereo() -> pb::RectifiedStereoRequest {

@@ -10,7 +10,7 @@ use murk::Monitor;
 use murk_server::service::convert::{params_request_to_proto, MAX_SPARSE_POINTS};
 use murk_server::service::proto::v1 as pb;
 
-fn scene(w: usize, h: usize, seed: u64) -> MvsScene {
+pub(crate) fn scene(w: usize, h: usize, seed: u64) -> MvsScene {
     let cfg = MvsSimConfig {
         seed,
         beta_range: Some([0.4, 0.8]),
@@ -19,7 +19,7 @@ fn scene(w: usize, h: usize, seed: u64) -> MvsScene {
     simulate_mvs(&cfg, &Monitor::noop()).expect("simulate")
 }
 
-fn request(
+pub(crate) fn request(
     scene: &MvsScene,
     source: pb::AirlightSource,
     airlight: f32,
