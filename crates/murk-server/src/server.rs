@@ -28,6 +28,7 @@ use crate::service::proto::v1::reconstruction_server::ReconstructionServer;
 use crate::service::proto::v1::sessions_server::SessionsServer;
 use crate::service::proto::FILE_DESCRIPTOR_SET;
 use crate::service::request_id::RequestIdLayer;
+use crate::service::watchers::WatchLimits;
 use crate::service::{
     CacheScope, JobsApi, ReconstructionApi, RequestLimits, ServiceState,
     DEFAULT_MAX_UNARY_RESULT_BYTES,
@@ -73,6 +74,8 @@ pub struct ServerConfig {
     pub sessions: SessionLimits,
     /// Connections before any request: how many, how fast they must speak, keepalive.
     pub connections: ConnectionLimits,
+    /// Watch streams per job and per tenant, and the result bytes they may hold.
+    pub watchers: WatchLimits,
 }
 
 /// PEM material for TLS.
@@ -113,6 +116,7 @@ impl Default for ServerConfig {
             redis: None,
             sessions: SessionLimits::default(),
             connections: ConnectionLimits::default(),
+            watchers: WatchLimits::default(),
         }
     }
 }
@@ -215,7 +219,7 @@ async fn serve_with_manager(
     // The one request limit, on the wire: every byte counts, unknown fields too.
     let transport_limit = config.max_request_bytes;
     // Responses are compressed only for clients that advertise the encoding.
-    let jobs = JobsServer::new(JobsApi::new(state.clone()))
+    let jobs = JobsServer::new(JobsApi::new(state.clone(), config.watchers))
         .max_decoding_message_size(transport_limit)
         .max_encoding_message_size(usize::MAX)
         .accept_compressed(CompressionEncoding::Gzip)

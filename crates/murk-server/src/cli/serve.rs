@@ -14,6 +14,7 @@ use murk_server::server::{
     serve, shutdown_signal, ServerConfig, TlsSettings, DEFAULT_MAX_REQUEST_BYTES,
 };
 use murk_server::service::auth::TokenStore;
+use murk_server::service::watchers::WatchLimits;
 use murk_server::service::{CacheScope, SessionLimits, DEFAULT_MAX_UNARY_RESULT_BYTES};
 
 /// Server configuration; each flag is also an environment variable.
@@ -115,6 +116,16 @@ pub struct ServeArgs {
     /// Seconds a ping may go unanswered.
     #[arg(long, env = "MURK_KEEPALIVE_TIMEOUT_SECS", default_value_t = 20.0)]
     pub keepalive_timeout_secs: f64,
+    /// WatchJob streams of one job at once; one more gets RESOURCE_EXHAUSTED.
+    #[arg(long, env = "MURK_MAX_WATCHERS_PER_JOB", default_value_t = WatchLimits::default().max_per_job)]
+    pub max_watchers_per_job: usize,
+    /// WatchJob streams of one tenant at once, over all its jobs.
+    #[arg(long, env = "MURK_MAX_WATCHERS_PER_TENANT", default_value_t = WatchLimits::default().max_per_tenant)]
+    pub max_watchers_per_tenant: usize,
+    /// Result bytes that WatchJob messages may hold at once, over all streams; beyond it a
+    /// result goes out omitted (`result_omitted`) and the client fetches it with GetJobResult.
+    #[arg(long, env = "MURK_WATCH_RESULT_BUDGET_BYTES", default_value_t = WatchLimits::default().result_budget_bytes)]
+    pub watch_result_budget_bytes: u64,
     /// Seconds to drain jobs on SIGTERM/Ctrl-C before cancelling them.
     #[arg(long, env = "MURK_SHUTDOWN_GRACE_SECS", default_value_t = 10.0)]
     pub shutdown_grace_secs: f64,
@@ -196,6 +207,10 @@ impl ServeArgs {
             );
         }
         anyhow::ensure!(
+            self.max_watchers_per_job > 0 && self.max_watchers_per_tenant > 0,
+            "--max-watchers-per-job and --max-watchers-per-tenant must be at least 1"
+        );
+        anyhow::ensure!(
             self.max_request_bytes >= 1024,
             "--max-request-bytes must be at least 1024"
         );
@@ -259,6 +274,11 @@ impl ServeArgs {
             max_image_pixels: self.max_image_pixels,
             max_ps_kernel_bytes: self.max_ps_kernel_bytes,
             shutdown_grace: Duration::from_secs_f64(self.shutdown_grace_secs),
+            watchers: WatchLimits {
+                max_per_job: self.max_watchers_per_job,
+                max_per_tenant: self.max_watchers_per_tenant,
+                result_budget_bytes: self.watch_result_budget_bytes,
+            },
             connections: ConnectionLimits {
                 max_connections: self.max_connections,
                 handshake_timeout: Duration::from_secs_f64(self.handshake_timeout_secs),

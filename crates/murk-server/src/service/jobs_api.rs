@@ -14,7 +14,10 @@ use super::convert::job_to_proto;
 use super::proto::v1 as pb;
 use super::status::{ended_without_result, submit_status, to_status};
 use super::submit::{submit, ServiceState};
+use super::watchers::{WatchLimits, WatchRefusal, Watchers};
 use crate::jobs::{JobHandle, JobSnapshot, JobState};
+use std::sync::{Arc, Mutex};
+use tokio::sync::OwnedSemaphorePermit;
 
 /// Default and maximum `ListJobs` page sizes.
 const DEFAULT_PAGE: usize = 50;
@@ -31,12 +34,16 @@ pub const MIN_RESULT_CHUNK_BYTES: usize = 16 << 10;
 /// Implementation of the `Jobs` service.
 pub struct JobsApi {
     state: ServiceState,
+    watchers: Watchers,
 }
 
 impl JobsApi {
-    /// Wraps the shared state.
-    pub fn new(state: ServiceState) -> Self {
-        Self { state }
+    /// Wraps the shared state; watch streams are bounded by `watch`.
+    pub fn new(state: ServiceState, watch: WatchLimits) -> Self {
+        Self {
+            state,
+            watchers: Watchers::new(watch),
+        }
     }
 
     async fn handle(&self, tenant: &str, id: &str) -> Result<JobHandle, Status> {
@@ -71,6 +78,25 @@ fn interrupted_status(id: &str) -> Status {
             "server shutting down: job `{id}` was interrupted, not finished; watch it again \
              after the restart (with a journal or a shared queue it resumes), or resubmit it"
         ),
+        ErrorDetails::with_retry_info(Some(std::time::Duration::from_secs(1))),
+    )
+}
+
+/// RESOURCE_EXHAUSTED with a retry hint for a watch stream over a limit.
+fn watch_refusal_status(r: &WatchRefusal) -> Status {
+    let message = match r {
+        WatchRefusal::Job(n) => format!(
+            "this job has its maximum of {n} watch streams (--max-watchers-per-job); share one \
+             stream, or poll it with GetJob"
+        ),
+        WatchRefusal::Tenant(n) => format!(
+            "this tenant has its maximum of {n} watch streams on this replica \
+             (--max-watchers-per-tenant); end some first"
+        ),
+    };
+    Status::with_error_details(
+        Code::ResourceExhausted,
+        message,
         ErrorDetails::with_retry_info(Some(std::time::Duration::from_secs(1))),
     )
 }
@@ -159,23 +185,51 @@ impl pb::jobs_server::Jobs for JobsApi {
         let tenant = Tenant::of(&request);
         let r = request.into_inner();
         let h = self.handle(&tenant, &r.id).await?;
+        let slot = self
+            .watchers
+            .open(&tenant, &r.id)
+            .map_err(|refusal| watch_refusal_status(&refusal))?;
         let rx = h.subscribe();
         let omit = r.omit_result;
         let limit = self.state.max_unary_result_bytes;
+        let watchers = self.watchers.clone();
+        // The budget share of the result this stream sent: it lives as long as the stream
+        // (until the message is sent and the stream dropped, or the client cancels).
+        let held: Arc<Mutex<Option<OwnedSemaphorePermit>>> = Arc::default();
+        let holder = held.clone();
         // Yield the current snapshot at once, then one per change, ending after a terminal one.
-        let stream = futures::stream::unfold(Some((rx, true)), move |st| async move {
-            let (mut rx, first) = st?;
-            if !first && rx.changed().await.is_err() {
-                return None;
+        let stream = futures::stream::unfold(Some((rx, true)), move |st| {
+            let watchers = watchers.clone();
+            let held = held.clone();
+            async move {
+                let (mut rx, first) = st?;
+                if !first && rx.changed().await.is_err() {
+                    return None;
+                }
+                let snap = rx.borrow_and_update().clone();
+                // A result goes out inline only with a share of the budget; without one the
+                // client fetches it with GetJobResult, as for a result over the unary limit.
+                let inline = !omit
+                    && snap.result.as_ref().is_some_and(|bytes| {
+                        // (A result over the unary limit is left out anyway.)
+                        bytes.len() <= limit
+                            && match watchers.reserve(bytes.len()) {
+                                Some(permit) => {
+                                    *held.lock().unwrap_or_else(|p| p.into_inner()) = Some(permit);
+                                    true
+                                }
+                                None => false,
+                            }
+                    });
+                // An interrupted job ends the stream with UNAVAILABLE, without a terminal message.
+                let item = visible_job(&snap, omit || !inline, limit);
+                let next = (!snap.state.is_terminal()).then_some((rx, false));
+                Some((item, next))
             }
-            let snap = rx.borrow_and_update().clone();
-            // An interrupted job ends the stream with UNAVAILABLE, without a terminal message.
-            let item = visible_job(&snap, omit, limit);
-            let next = (!snap.state.is_terminal()).then_some((rx, false));
-            Some((item, next))
         });
-        // Holding the handle keeps the job's record alive for the stream's lifetime.
-        let keep = h.clone();
+        // Holding the handle keeps the job's record alive for the stream's lifetime; the slot
+        // and the budget share go when the stream does.
+        let keep = (h.clone(), slot, holder);
         let stream = futures::StreamExt::map(stream, move |item| {
             let _ = &keep;
             item

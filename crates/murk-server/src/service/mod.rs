@@ -13,6 +13,7 @@ pub mod request_id;
 pub mod sessions;
 pub mod status;
 mod submit;
+pub mod watchers;
 
 pub use jobs_api::JobsApi;
 pub use reconstruction_api::{grpc_timeout, ReconstructionApi, JOB_ID_HEADER};

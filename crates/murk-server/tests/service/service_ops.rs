@@ -824,3 +824,100 @@ async fn compressed_requests_and_responses_round_trip() {
     }
     server.stop().await.unwrap();
 }
+
+#[tokio::test]
+async fn watch_streams_are_bounded_per_job_and_a_spent_budget_omits_the_result() {
+    use murk_server::service::watchers::WatchLimits;
+    let server = start(ServerConfig {
+        watchers: WatchLimits {
+            max_per_job: 2,
+            max_per_tenant: 8,
+            // Less than one 96×80 ToF result.
+            result_budget_bytes: 16 * 1024,
+        },
+        ..config(4)
+    })
+    .await;
+    let mut c = jobs(&server);
+    // Not waited for through a watch stream, so no earlier stream can still count.
+    let long = c
+        .submit_job(job(long_tof_request(10_000)))
+        .await
+        .unwrap()
+        .into_inner()
+        .id;
+    let first = watch(&mut c, &long).await;
+    let _second = watch(&mut c, &long).await;
+    let third = c
+        .watch_job(pb::WatchJobRequest {
+            id: long.clone(),
+            omit_result: true,
+        })
+        .await
+        .unwrap_err();
+    assert_eq!(third.code(), Code::ResourceExhausted, "{third:?}");
+    assert!(
+        third.message().contains("--max-watchers-per-job"),
+        "{third:?}"
+    );
+    assert!(third.get_details_retry_info().is_some());
+    // A stream the client drops frees its slot (once the server has seen it go).
+    drop(first);
+    let deadline = Instant::now() + Duration::from_secs(10);
+    let reopened = loop {
+        match c
+            .watch_job(pb::WatchJobRequest {
+                id: long.clone(),
+                omit_result: true,
+            })
+            .await
+        {
+            Ok(s) => break s,
+            Err(e) if e.code() == Code::ResourceExhausted && Instant::now() < deadline => {
+                tokio::task::yield_now().await
+            }
+            Err(e) => panic!("the dropped stream's slot was not freed: {e:?}"),
+        }
+    };
+    drop(reopened);
+    c.cancel_job(pb::CancelJobRequest { id: long })
+        .await
+        .unwrap();
+
+    // A finished result larger than the whole budget goes out omitted; GetJobResult has it.
+    let id = c
+        .submit_job(job(tof_request(96, 80, 3)))
+        .await
+        .unwrap()
+        .into_inner()
+        .id;
+    let mut stream = c
+        .watch_job(pb::WatchJobRequest {
+            id: id.clone(),
+            omit_result: false,
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    let mut last = None;
+    while let Some(j) = stream.message().await.unwrap() {
+        last = Some(j);
+    }
+    let last = last.unwrap();
+    assert_eq!(state(&last), pb::JobState::Succeeded);
+    assert!(
+        last.result_omitted && last.result_size_bytes > 16 * 1024,
+        "{last:?}"
+    );
+    let mut chunks = c
+        .get_job_result(pb::GetJobResultRequest { id, chunk_bytes: 0 })
+        .await
+        .unwrap()
+        .into_inner();
+    let mut total = 0;
+    while let Some(chunk) = chunks.message().await.unwrap() {
+        total += chunk.data.len() as u64;
+    }
+    assert_eq!(total, last.result_size_bytes);
+    server.stop().await.unwrap();
+}

@@ -189,8 +189,8 @@ class Job(_message.Message):
     """Size of the encoded JobResult in bytes, once SUCCEEDED."""
     result_omitted: _builtins.bool
     """True when a SUCCEEDED job's result is not in this message, because the request asked
-    to omit it or because it would exceed the unary result limit. Fetch it with
-    GetJobResult.
+    to omit it, because it would exceed the unary result limit, or (WatchJob) because the
+    server's budget for results held by watch streams is spent. Fetch it with GetJobResult.
     """
     @_builtins.property
     def create_time(self) -> _timestamp_pb2.Timestamp: ...

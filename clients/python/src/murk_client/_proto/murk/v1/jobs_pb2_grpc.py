@@ -125,7 +125,8 @@ class JobsServicer(object):
     def WatchJob(self, request, context):
         """Streams the job on every change until it is terminal (the last message is terminal).
         A job interrupted by the server's shutdown is not terminal: its stream ends with
-        UNAVAILABLE instead; watch it again after the restart, or resubmit it.
+        UNAVAILABLE instead; watch it again after the restart, or resubmit it. A job has a
+        bounded number of watchers (RESOURCE_EXHAUSTED beyond it).
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')

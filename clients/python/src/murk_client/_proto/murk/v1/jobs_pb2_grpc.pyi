@@ -64,7 +64,8 @@ class JobsStub:
     WatchJob: _grpc.UnaryStreamMultiCallable[_jobs_pb2.WatchJobRequest, _jobs_pb2.Job]
     """Streams the job on every change until it is terminal (the last message is terminal).
     A job interrupted by the server's shutdown is not terminal: its stream ends with
-    UNAVAILABLE instead; watch it again after the restart, or resubmit it.
+    UNAVAILABLE instead; watch it again after the restart, or resubmit it. A job has a
+    bounded number of watchers (RESOURCE_EXHAUSTED beyond it).
     """
     CancelJob: _grpc.UnaryUnaryMultiCallable[_jobs_pb2.CancelJobRequest, _jobs_pb2.Job]
     """Requests cancellation; returns the job (state CANCELLED once the worker has stopped)."""
@@ -108,7 +109,8 @@ class JobsAsyncStub(JobsStub):
     WatchJob: _aio.UnaryStreamMultiCallable[_jobs_pb2.WatchJobRequest, _jobs_pb2.Job]  # type: ignore[assignment]
     """Streams the job on every change until it is terminal (the last message is terminal).
     A job interrupted by the server's shutdown is not terminal: its stream ends with
-    UNAVAILABLE instead; watch it again after the restart, or resubmit it.
+    UNAVAILABLE instead; watch it again after the restart, or resubmit it. A job has a
+    bounded number of watchers (RESOURCE_EXHAUSTED beyond it).
     """
     CancelJob: _aio.UnaryUnaryMultiCallable[_jobs_pb2.CancelJobRequest, _jobs_pb2.Job]  # type: ignore[assignment]
     """Requests cancellation; returns the job (state CANCELLED once the worker has stopped)."""
@@ -167,7 +169,8 @@ class JobsServicer(metaclass=_abc_1.ABCMeta):
     ) -> _typing.Union[_abc.Iterator[_jobs_pb2.Job], _abc.AsyncIterator[_jobs_pb2.Job]]:
         """Streams the job on every change until it is terminal (the last message is terminal).
         A job interrupted by the server's shutdown is not terminal: its stream ends with
-        UNAVAILABLE instead; watch it again after the restart, or resubmit it.
+        UNAVAILABLE instead; watch it again after the restart, or resubmit it. A job has a
+        bounded number of watchers (RESOURCE_EXHAUSTED beyond it).
         """
 
     @_abc_1.abstractmethod
