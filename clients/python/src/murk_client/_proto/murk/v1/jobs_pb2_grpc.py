@@ -140,7 +140,8 @@ class JobsServicer(object):
         raise NotImplementedError('Method not implemented!')
 
     def ListJobs(self, request, context):
-        """Jobs known to this replica, newest first, paged.
+        """The caller's jobs, newest first, paged: this server's records, or, when replicas share
+        Redis, every replica's.
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')

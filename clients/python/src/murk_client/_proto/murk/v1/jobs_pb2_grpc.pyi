@@ -70,7 +70,9 @@ class JobsStub:
     CancelJob: _grpc.UnaryUnaryMultiCallable[_jobs_pb2.CancelJobRequest, _jobs_pb2.Job]
     """Requests cancellation; returns the job (state CANCELLED once the worker has stopped)."""
     ListJobs: _grpc.UnaryUnaryMultiCallable[_jobs_pb2.ListJobsRequest, _jobs_pb2.ListJobsResponse]
-    """Jobs known to this replica, newest first, paged."""
+    """The caller's jobs, newest first, paged: this server's records, or, when replicas share
+    Redis, every replica's.
+    """
     GetJobResult: _grpc.UnaryStreamMultiCallable[_jobs_pb2.GetJobResultRequest, _jobs_pb2.ResultChunk]
     """Streams a SUCCEEDED job's result: the encoded JobResult message, split into chunks of
     at most 1 MiB (concatenate `data` in order and decode it as JobResult). NOT_FOUND for
@@ -115,7 +117,9 @@ class JobsAsyncStub(JobsStub):
     CancelJob: _aio.UnaryUnaryMultiCallable[_jobs_pb2.CancelJobRequest, _jobs_pb2.Job]  # type: ignore[assignment]
     """Requests cancellation; returns the job (state CANCELLED once the worker has stopped)."""
     ListJobs: _aio.UnaryUnaryMultiCallable[_jobs_pb2.ListJobsRequest, _jobs_pb2.ListJobsResponse]  # type: ignore[assignment]
-    """Jobs known to this replica, newest first, paged."""
+    """The caller's jobs, newest first, paged: this server's records, or, when replicas share
+    Redis, every replica's.
+    """
     GetJobResult: _aio.UnaryStreamMultiCallable[_jobs_pb2.GetJobResultRequest, _jobs_pb2.ResultChunk]  # type: ignore[assignment]
     """Streams a SUCCEEDED job's result: the encoded JobResult message, split into chunks of
     at most 1 MiB (concatenate `data` in order and decode it as JobResult). NOT_FOUND for
@@ -187,7 +191,9 @@ class JobsServicer(metaclass=_abc_1.ABCMeta):
         request: _jobs_pb2.ListJobsRequest,
         context: _ServicerContext,
     ) -> _typing.Union[_jobs_pb2.ListJobsResponse, _abc.Awaitable[_jobs_pb2.ListJobsResponse]]:
-        """Jobs known to this replica, newest first, paged."""
+        """The caller's jobs, newest first, paged: this server's records, or, when replicas share
+        Redis, every replica's.
+        """
 
     @_abc_1.abstractmethod
     def GetJobResult(
