@@ -22,7 +22,7 @@ use crate::jobs::{JobBackend, JobManager, JobsConfig};
 use crate::service::auth::{AuthLayer, TokenStore};
 use crate::service::convert::{AirlightService, ImageLimits};
 use crate::service::grpc_metrics::MetricsLayer;
-use crate::service::oversize::OversizeLayer;
+use crate::service::oversize::oversize_layer;
 use crate::service::proto::v1::jobs_server::JobsServer;
 use crate::service::proto::v1::reconstruction_server::ReconstructionServer;
 use crate::service::proto::v1::sessions_server::SessionsServer;
@@ -325,7 +325,7 @@ async fn serve_with_manager(
         .layer(MetricsLayer::new(telemetry.grpc().clone()))
         .layer(RequestIdLayer)
         .layer(AuthLayer::new(config.auth.clone()))
-        .layer(OversizeLayer)
+        .layer(oversize_layer())
         .add_service(health)
         .add_service(reflection_v1)
         .add_service(reflection_v1alpha)

@@ -8,11 +8,9 @@
 //! with a message that states the size and the setting. There is no RetryInfo: sending the
 //! same request again cannot succeed.
 
-use std::task::{Context, Poll};
-
 use tonic::body::Body;
 use tonic::{Code, Status};
-use tower::{Layer, Service};
+use tower::util::MapResponseLayer;
 
 /// tonic's wording for a length prefix over the limit (`codec/decode.rs`).
 const LENGTH_OVER: &str = "Error, decoded message length too large: found ";
@@ -49,59 +47,49 @@ pub fn oversize_request(s: &Status) -> Option<Status> {
     )))
 }
 
-/// Installs [`OversizeService`].
-#[derive(Clone, Copy, Debug, Default)]
-pub struct OversizeLayer;
+/// The layer that applies [`rewrite_oversize`] to every response.
+pub type OversizeLayer = MapResponseLayer<fn(http::Response<Body>) -> http::Response<Body>>;
 
-impl<S> Layer<S> for OversizeLayer {
-    type Service = OversizeService<S>;
-    fn layer(&self, inner: S) -> Self::Service {
-        OversizeService { inner }
-    }
+/// [`OversizeLayer`], ready for `Server::layer`.
+pub fn oversize_layer() -> OversizeLayer {
+    MapResponseLayer::new(rewrite_oversize as fn(_) -> _)
 }
 
-/// See [`OversizeLayer`]. A request message is decoded before the handler runs, so tonic's
-/// refusal is always a trailers-only response: its status is in the headers.
-#[derive(Clone, Debug)]
-pub struct OversizeService<S> {
-    inner: S,
-}
-
-impl<S> Service<http::Request<Body>> for OversizeService<S>
-where
-    S: Service<http::Request<Body>, Response = http::Response<Body>> + Clone + Send + 'static,
-    S::Future: Send + 'static,
-{
-    type Response = http::Response<Body>;
-    type Error = S::Error;
-    type Future = super::BoxFuture<Self::Response, Self::Error>;
-
-    fn poll_ready(&mut self, cx: &mut Context<'_>) -> Poll<Result<(), Self::Error>> {
-        self.inner.poll_ready(cx)
+/// Replaces tonic's refusal of an oversize request message with [`oversize_request`]'s status.
+/// A request message is decoded before the handler runs, so that refusal is always a
+/// trailers-only response: its status is in the headers. Other responses pass untouched.
+pub fn rewrite_oversize(mut response: http::Response<Body>) -> http::Response<Body> {
+    let replaced = Status::from_header_map(response.headers()).and_then(|s| oversize_request(&s));
+    if let Some(status) = replaced {
+        let headers = response.headers_mut();
+        headers.remove("grpc-status-details-bin");
+        // Sets grpc-status and grpc-message, replacing tonic's.
+        if status.add_header(headers).is_err() {
+            tracing::warn!("could not rewrite an oversize-request status");
+        }
     }
-
-    fn call(&mut self, req: http::Request<Body>) -> Self::Future {
-        let mut inner = super::take_ready(&mut self.inner);
-        Box::pin(async move {
-            let mut response = inner.call(req).await?;
-            let replaced =
-                Status::from_header_map(response.headers()).and_then(|s| oversize_request(&s));
-            if let Some(status) = replaced {
-                let headers = response.headers_mut();
-                headers.remove("grpc-status-details-bin");
-                // Sets grpc-status and grpc-message, replacing tonic's.
-                if status.add_header(headers).is_err() {
-                    tracing::warn!("could not rewrite an oversize-request status");
-                }
-            }
-            Ok(response)
-        })
-    }
+    response
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_trailers_only_refusal_is_rewritten_and_other_responses_pass() {
+        let refusal = Status::out_of_range(
+            "Error, decoded message length too large: found 9 bytes, the limit is: 4 bytes",
+        )
+        .into_http::<Body>();
+        let got = Status::from_header_map(rewrite_oversize(refusal).headers()).unwrap();
+        assert_eq!(got.code(), Code::ResourceExhausted);
+        assert!(got.message().contains("9 bytes"), "{}", got.message());
+        let other = Status::not_found("no job").into_http::<Body>();
+        let got = Status::from_header_map(rewrite_oversize(other).headers()).unwrap();
+        assert_eq!((got.code(), got.message()), (Code::NotFound, "no job"));
+        let ok = http::Response::new(Body::empty());
+        assert!(rewrite_oversize(ok).headers().is_empty());
+    }
 
     #[test]
     fn tonic_refusals_become_resource_exhausted_and_others_pass() {
