@@ -73,11 +73,6 @@ impl Watchers {
         }
     }
 
-    /// The configured limits.
-    pub fn limits(&self) -> WatchLimits {
-        self.limits
-    }
-
     /// Counts a new stream of `tenant`'s job `id`, or refuses it; the slot ends the count when
     /// dropped.
     pub fn open(&self, tenant: &str, id: &str) -> Result<WatchSlot, WatchRefusal> {
@@ -108,7 +103,8 @@ impl Watchers {
     }
 
     /// Streams open now: `(for this job, for this tenant)`.
-    pub fn open_count(&self, tenant: &str, id: &str) -> (usize, usize) {
+    #[cfg(test)]
+    fn open_count(&self, tenant: &str, id: &str) -> (usize, usize) {
         let c = self.counts.lock().unwrap_or_else(|p| p.into_inner());
         (
             c.per_job
