@@ -17,8 +17,7 @@
 //! cargo run --release -p murk-server --example watch_memory -- --serve-arg=--max-watchers-per-job=300
 //! ```
 
-use std::io::BufRead;
-use std::process::{Child, Command, Stdio};
+use std::process::{Child, Command};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -30,6 +29,10 @@ use murk_server::service::convert::tof_request_to_proto;
 use murk_server::service::proto::v1 as pb;
 use pb::jobs_client::JobsClient;
 use tonic::transport::{Channel, Endpoint};
+
+/// The test suite's helper that starts `murk serve` and reads its address from the log.
+#[path = "../tests/service/common/serve.rs"]
+mod serve_child;
 
 struct Args {
     murk: String,
@@ -79,36 +82,15 @@ fn rss_bytes(pid: u32) -> u64 {
 
 /// Starts `murk serve` on a free loopback port; returns it and its URL.
 fn serve(a: &Args) -> anyhow::Result<(Child, String)> {
-    let mut child = Command::new(&a.murk)
-        .args(["serve", "--addr", "127.0.0.1:0", "--workers", "2"])
-        .args(&a.serve_args)
-        .env("MURK_LOG", "info")
-        .stderr(Stdio::piped())
-        .spawn()
-        .with_context(|| format!("starting {} (cargo build --release first)", a.murk))?;
-    let stderr = child.stderr.take().context("piped stderr")?;
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        let mut sent = false;
-        for line in std::io::BufReader::new(stderr)
-            .lines()
-            .map_while(Result::ok)
-        {
-            if !sent && line.contains("murk serving") {
-                let addr = line
-                    .split_whitespace()
-                    .find_map(|w| w.strip_prefix("addr="))
-                    .map(str::to_string);
-                let _ = tx.send(addr);
-                sent = true;
-            }
-        }
-    });
-    let addr = rx
-        .recv_timeout(Duration::from_secs(60))
-        .context("server start")?
-        .context("address in the log")?;
-    Ok((child, format!("http://{addr}")))
+    anyhow::ensure!(
+        std::path::Path::new(&a.murk).exists(),
+        "{} not found (cargo build --release -p murk-server first)",
+        a.murk
+    );
+    let mut cmd = Command::new(&a.murk);
+    cmd.args(["serve", "--addr", "127.0.0.1:0", "--workers", "2"])
+        .args(&a.serve_args);
+    Ok(serve_child::spawn_serve(cmd))
 }
 
 /// Samples the RSS of `pid` until `stop`, keeping the peak.

@@ -7,6 +7,8 @@ pub mod nginx;
 pub mod pki;
 pub mod redis_server;
 
+mod serve;
+
 use std::time::Duration;
 
 use murk::atmosphere::AtmosphereParams;
@@ -21,6 +23,8 @@ use murk_server::service::proto::v1 as pb;
 use pb::jobs_client::JobsClient;
 use pb::reconstruction_client::ReconstructionClient;
 use tonic::transport::{Channel, Endpoint};
+
+pub use serve::spawn_serve;
 
 /// A small server: 2 workers, one job at a time.
 pub fn config(queue: usize) -> ServerConfig {
@@ -210,45 +214,6 @@ pub async fn submit_running_long_job(client: &mut JobsClient<Channel>) -> String
         .into_inner();
     wait_running(client, &j.id).await;
     j.id
-}
-
-/// Starts `murk serve` (a command already carrying its flags, `--addr 127.0.0.1:0` among them)
-/// as a separate process and returns it with its URL, read from the bound address in its log.
-/// With `MURK_TEST_SERVER_LOGS` set, the server's log lines are echoed to the test's stderr.
-pub fn spawn_serve(mut cmd: std::process::Command) -> (std::process::Child, String) {
-    use std::io::BufRead;
-    let mut child = cmd
-        .env("MURK_LOG", "info")
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .expect("murk serve starts");
-    let stderr = child.stderr.take().expect("piped stderr");
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        let echo = std::env::var_os("MURK_TEST_SERVER_LOGS").is_some();
-        let mut sent = false;
-        for line in std::io::BufReader::new(stderr)
-            .lines()
-            .map_while(Result::ok)
-        {
-            if !sent && line.contains("murk serving") {
-                let addr = line
-                    .split_whitespace()
-                    .find_map(|w| w.strip_prefix("addr="))
-                    .map(str::to_string);
-                let _ = tx.send(addr);
-                sent = true;
-            }
-            if echo {
-                eprintln!("[server] {line}");
-            }
-        }
-    });
-    let addr = rx
-        .recv_timeout(Duration::from_secs(60))
-        .expect("server started")
-        .expect("address in the log");
-    (child, format!("http://{addr}"))
 }
 
 /// `GET /metrics` over a raw HTTP/1.1 connection to a metrics endpoint.
