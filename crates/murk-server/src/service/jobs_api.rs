@@ -208,19 +208,16 @@ impl pb::jobs_server::Jobs for JobsApi {
                 }
                 let snap = rx.borrow_and_update().clone();
                 // A result goes out inline only with a share of the budget; without one the
-                // client fetches it with GetJobResult, as for a result over the unary limit.
-                let inline = !omit
-                    && snap.result.as_ref().is_some_and(|bytes| {
-                        // (A result over the unary limit is left out anyway.)
-                        bytes.len() <= limit
-                            && match watchers.reserve(bytes.len()) {
-                                Some(permit) => {
-                                    *held.lock().unwrap_or_else(|p| p.into_inner()) = Some(permit);
-                                    true
-                                }
-                                None => false,
-                            }
-                    });
+                // client fetches it with GetJobResult, as for a result over the unary limit
+                // (which is left out anyway, so it takes no share).
+                let share = match &snap.result {
+                    Some(bytes) if !omit && bytes.len() <= limit => watchers.reserve(bytes.len()),
+                    _ => None,
+                };
+                let inline = share.is_some();
+                if inline {
+                    *held.lock().unwrap_or_else(|p| p.into_inner()) = share;
+                }
                 // An interrupted job ends the stream with UNAVAILABLE, without a terminal message.
                 let item = visible_job(&snap, omit || !inline, limit);
                 let next = (!snap.state.is_terminal()).then_some((rx, false));
