@@ -32,12 +32,20 @@ def murk_binary() -> Path:
     return path
 
 
+def _message(line: str) -> str | None:
+    try:
+        return str(json.loads(line).get("fields", {}).get("message"))
+    except ValueError:
+        return None
+
+
 class MurkServer:
     """``murk serve`` on an ephemeral loopback port; stderr (JSON logs) kept for diagnostics."""
 
     def __init__(self, args: list[str], cwd: Path, addr: str = "127.0.0.1:0") -> None:
         self.args = args
         self.log: list[str] = []
+        self._logged = threading.Condition()
         cmd = [str(murk_binary()), "serve", "--addr", addr, "--log-format", "json", *args]
         self.proc = subprocess.Popen(
             cmd, cwd=cwd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True
@@ -63,7 +71,22 @@ class MurkServer:
     def _pump(self) -> None:
         assert self.proc.stderr is not None
         for line in self.proc.stderr:
-            self.log.append(line)
+            with self._logged:
+                self.log.append(line)
+                self._logged.notify_all()
+
+    def wait_for_log(self, message: str, timeout_s: float) -> dict | None:  # type: ignore[type-arg]
+        """The fields of the first line logged with ``message``, waiting up to ``timeout_s`` for
+        it (woken by each new line, not polling); None when none came."""
+
+        def first() -> dict | None:  # type: ignore[type-arg]
+            for line in self.log:
+                if _message(line) == message:
+                    return dict(json.loads(line)["fields"])
+            return None
+
+        with self._logged:
+            return self._logged.wait_for(first, timeout=timeout_s)
 
     @property
     def url(self) -> str:

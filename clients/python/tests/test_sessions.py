@@ -14,6 +14,9 @@ import murk_client as mc
 from murk_client import Client
 from murk_client._proto.murk.v1 import sessions_pb2
 
+from .balancer import Nginx
+from .conftest import MurkServer
+
 
 def test_a_tof_session_answers_every_frame_in_order(client: Client, tof_scene: Path) -> None:
     frame = mc.load_tof_frame(tof_scene)
@@ -120,3 +123,56 @@ def test_a_bad_configuration_names_its_field(client: Client) -> None:
     with pytest.raises(mc.InvalidArgument) as remote:
         list(client.session(config, []))
     assert remote.value.field == "config.width"
+
+
+def test_a_session_survives_its_replica_dying_behind_nginx(
+    workdir: Path, tmp_path: Path, tof_scene: Path
+) -> None:
+    """Two replicas behind the shipped ``deploy/nginx.conf``: the replica serving a stream is
+    killed (SIGKILL, no drain) mid-stream; the client opens a new session through the balancer,
+    which reaches the other replica, sends the unanswered frames again, and every frame is
+    answered once, in order."""
+    replicas = [MurkServer([], workdir), MurkServer([], workdir)]
+    balancer = Nginx([r.addr for r in replicas], tmp_path)
+    try:
+        frame = mc.load_tof_frame(tof_scene)
+        h, w = frame.amplitude.shape
+        config = mc.tof_session_config(
+            width=w,
+            height=h,
+            modulation_frequency_hz=frame.modulation_frequency_hz,
+            intrinsics=frame.intrinsics,
+            # Frames slow enough that some are still unanswered when the replica dies.
+            options={"fine_iterations": 200, "convergence_tolerance": 0.0},
+        )
+        frames = (mc.tof_frame(frame.amplitude, frame.phase, frame_id=f"f{k}") for k in range(10))
+        policy = mc.RetryPolicy(max_attempts=5, initial_backoff_s=0.05, max_backoff_s=0.5)
+        outcomes = []
+        killed: list[MurkServer] = []
+        with Client(balancer.url, retry=policy) as c:
+            for o in c.session(config, frames):
+                outcomes.append(o)
+                if len(outcomes) == 3:
+                    serving = _serving_replica(replicas)
+                    serving.kill()
+                    killed.append(serving)
+        assert [o.frame_id for o in outcomes] == [f"f{k}" for k in range(10)]
+        assert all(isinstance(o.result, mc.TofDepthResult) and o.error is None for o in outcomes)
+        (survivor,) = [r for r in replicas if r is not killed[0]]
+        # The survivor computed the frames the dead replica left unanswered.
+        ended = survivor.wait_for_log("session ended", timeout_s=10)
+        assert ended is not None, "the new session did not reach the other replica"
+        assert 1 <= int(ended["computed"]) <= 7, ended
+    finally:
+        balancer.stop()
+        for r in replicas:
+            r.stop()
+
+
+def _serving_replica(replicas: list[MurkServer]) -> MurkServer:
+    """The replica that logged the session's start (its log line may still be in the pipe)."""
+    for _ in range(100):
+        for r in replicas:
+            if r.wait_for_log("session started", timeout_s=0.05) is not None:
+                return r
+    raise AssertionError("no replica logged the session")
