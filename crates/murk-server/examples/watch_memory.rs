@@ -34,6 +34,10 @@ use tonic::transport::{Channel, Endpoint};
 #[path = "../tests/service/common/serve.rs"]
 mod serve_child;
 
+#[path = "common/rss.rs"]
+mod rss;
+use rss::rss_bytes;
+
 struct Args {
     murk: String,
     watchers: usize,
@@ -66,18 +70,6 @@ fn args() -> anyhow::Result<Args> {
         "counts must be positive"
     );
     Ok(a)
-}
-
-/// Resident set size of `pid`, bytes.
-fn rss_bytes(pid: u32) -> u64 {
-    std::fs::read_to_string(format!("/proc/{pid}/status"))
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .find_map(|l| l.strip_prefix("VmRSS:"))
-                .and_then(|v| v.split_whitespace().next()?.parse::<u64>().ok())
-        })
-        .map_or(0, |kib| kib * 1024)
 }
 
 /// Starts `murk serve` on a free loopback port; returns it and its URL.
