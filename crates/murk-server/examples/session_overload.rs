@@ -87,8 +87,14 @@ fn args() -> anyhow::Result<Args> {
         }
     }
     ensure!(a.distinct > 0, "--distinct must be positive");
-    ensure!(a.calibration_frames >= 2, "--calibration-frames must be at least 2");
-    ensure!(a.load > 0.0 && a.load <= 100.0, "--load must be in (0, 100]");
+    ensure!(
+        a.calibration_frames >= 2,
+        "--calibration-frames must be at least 2"
+    );
+    ensure!(
+        a.load > 0.0 && a.load <= 100.0,
+        "--load must be in (0, 100]"
+    );
     ensure!(
         a.seconds > 0.0 && a.seconds <= 3600.0,
         "--seconds must be in (0, 3600]"

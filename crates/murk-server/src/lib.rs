@@ -10,6 +10,7 @@
 #![allow(rustdoc::private_intra_doc_links)]
 
 pub mod bag;
+pub mod cgroup;
 pub mod connections;
 pub mod jobs;
 pub mod server;

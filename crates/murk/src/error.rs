@@ -14,6 +14,16 @@ pub enum MurkError {
         /// Human-readable explanation, including the offending value where helpful.
         reason: String,
     },
+    /// The request is valid, but doing it would exceed a bound the caller configured on this
+    /// process (memory, above all); `field` names the request field that sets the size
+    /// (e.g. `support_r`). A smaller request, or a server with a larger bound, does it.
+    #[error("over the limit `{field}`: {reason}")]
+    OverLimit {
+        /// Dotted path of the request field that makes the work too large.
+        field: String,
+        /// What the work needs against the bound, and how to fit within it.
+        reason: String,
+    },
     /// The job was cancelled cooperatively (cancel RPC, shutdown, or the caller went away).
     #[error("cancelled")]
     Cancelled,
@@ -50,24 +60,41 @@ impl MurkError {
         }
     }
 
-    /// The field an `InvalidArgument` names; `None` for other errors.
+    /// Shorthand for [`MurkError::OverLimit`].
+    pub fn over_limit(field: impl Into<String>, reason: impl Into<String>) -> Self {
+        MurkError::OverLimit {
+            field: field.into(),
+            reason: reason.into(),
+        }
+    }
+
+    /// The field an `InvalidArgument` or `OverLimit` names; `None` for other errors.
     pub fn field(&self) -> Option<&str> {
         match self {
-            MurkError::InvalidArgument { field, .. } => Some(field),
+            MurkError::InvalidArgument { field, .. } | MurkError::OverLimit { field, .. } => {
+                Some(field)
+            }
             _ => None,
         }
     }
 
-    /// Prefixes the field of an `InvalidArgument` with `prefix.` so nested validators can name
-    /// fields relative to themselves and callers add the outer path.
+    /// Prefixes the field of an `InvalidArgument` or `OverLimit` with `prefix.` so nested
+    /// validators can name fields relative to themselves and callers add the outer path.
     pub fn within(self, prefix: &str) -> Self {
+        let nest = |field: String| {
+            if field.is_empty() {
+                prefix.to_string()
+            } else {
+                format!("{prefix}.{field}")
+            }
+        };
         match self {
             MurkError::InvalidArgument { field, reason } => MurkError::InvalidArgument {
-                field: if field.is_empty() {
-                    prefix.to_string()
-                } else {
-                    format!("{prefix}.{field}")
-                },
+                field: nest(field),
+                reason,
+            },
+            MurkError::OverLimit { field, reason } => MurkError::OverLimit {
+                field: nest(field),
                 reason,
             },
             other => other,

@@ -83,10 +83,12 @@ pub struct ServeArgs {
     pub max_image_pixels: u64,
     /// Largest forward-scatter kernel of a photometric-stereo job, bytes (object pixels ×
     /// stored entries per pixel × 4, the entries of the near block and the far cells' window:
-    /// 1 121 at r = 81 with the default cells; the method's memory peak). Larger requests
-    /// get INVALID_ARGUMENT naming `support_r`.
-    #[arg(long, env = "MURK_MAX_PS_KERNEL_BYTES", default_value_t = murk::ps::pipeline::DEFAULT_MAX_KERNEL_BYTES)]
-    pub max_ps_kernel_bytes: usize,
+    /// 1 121 at r = 81 with the default cells; the method's memory peak). Larger requests are
+    /// refused before they are queued, RESOURCE_EXHAUSTED naming `support_r`. Default: half
+    /// the container's memory limit (cgroup) per concurrent job, at most 4 GiB; 4 GiB without
+    /// a limit.
+    #[arg(long, env = "MURK_MAX_PS_KERNEL_BYTES")]
+    pub max_ps_kernel_bytes: Option<usize>,
     /// Sensor sessions (the Sessions stream) open at once on this replica; more are refused
     /// with RESOURCE_EXHAUSTED. Each holds its frame queue and one frame in computation.
     #[arg(long, env = "MURK_MAX_SESSIONS", default_value_t = 32)]
@@ -272,7 +274,11 @@ impl ServeArgs {
             tls,
             max_request_bytes: self.max_request_bytes,
             max_image_pixels: self.max_image_pixels,
-            max_ps_kernel_bytes: self.max_ps_kernel_bytes,
+            max_ps_kernel_bytes: ps_kernel_bound(
+                self.max_ps_kernel_bytes,
+                murk_server::cgroup::memory_limit_bytes(),
+                self.concurrent_jobs.max(1),
+            ),
             shutdown_grace: Duration::from_secs_f64(self.shutdown_grace_secs),
             watchers: WatchLimits {
                 max_per_job: self.max_watchers_per_job,
@@ -301,6 +307,31 @@ impl ServeArgs {
             },
         })
     }
+}
+
+/// The photometric-stereo kernel bound: `explicit` when given; otherwise half the container's
+/// memory limit shared by the jobs that may run at once, at most the library's default (the
+/// kernel is the job's memory peak; the other half holds the server, the images and results).
+fn ps_kernel_bound(explicit: Option<usize>, memory_limit: Option<u64>, jobs: usize) -> usize {
+    let default = murk::ps::pipeline::DEFAULT_MAX_KERNEL_BYTES;
+    let bound = explicit.unwrap_or_else(|| match memory_limit {
+        Some(limit) => {
+            usize::try_from(limit / 2 / jobs.max(1) as u64).map_or(default, |b| b.min(default))
+        }
+        None => default,
+    });
+    let source = match (explicit, memory_limit) {
+        (Some(_), _) => "--max-ps-kernel-bytes",
+        (None, Some(_)) => "half the cgroup memory limit per concurrent job",
+        (None, None) => "default (no cgroup memory limit)",
+    };
+    tracing::info!(
+        bytes = bound,
+        memory_limit = memory_limit.unwrap_or(0),
+        source,
+        "photometric-stereo kernel bound"
+    );
+    bound
 }
 
 fn read_pem(path: &std::path::Path, flag: &str) -> anyhow::Result<Vec<u8>> {
@@ -402,5 +433,26 @@ fn check_descriptor_limit(max_connections: usize) {
         ),
         Some(soft) => tracing::info!(limit = soft, max_connections, "open-file limit"),
         None => {}
+    }
+}
+
+#[cfg(test)]
+mod kernel_bound_tests {
+    use super::ps_kernel_bound;
+    use murk::ps::pipeline::DEFAULT_MAX_KERNEL_BYTES;
+
+    #[test]
+    fn an_explicit_bound_wins_and_the_default_follows_the_container() {
+        assert_eq!(ps_kernel_bound(Some(123), Some(1 << 30), 1), 123);
+        // A 3 GiB pod running one job at a time: 1.5 GiB for the kernel.
+        assert_eq!(ps_kernel_bound(None, Some(3 << 30), 1), 3 << 29);
+        // Two concurrent jobs share it.
+        assert_eq!(ps_kernel_bound(None, Some(3 << 30), 2), 3 << 28);
+        // Never above the library's default, nor without a limit.
+        assert_eq!(
+            ps_kernel_bound(None, Some(64 << 30), 1),
+            DEFAULT_MAX_KERNEL_BYTES
+        );
+        assert_eq!(ps_kernel_bound(None, None, 1), DEFAULT_MAX_KERNEL_BYTES);
     }
 }

@@ -7,6 +7,7 @@ use murk::error::MurkError;
 pub(crate) fn encode_error(e: &MurkError) -> (&'static str, String, String) {
     match e {
         MurkError::InvalidArgument { field, reason } => ("invalid", field.clone(), reason.clone()),
+        MurkError::OverLimit { field, reason } => ("over_limit", field.clone(), reason.clone()),
         MurkError::Cancelled => ("cancelled", String::new(), String::new()),
         MurkError::ShuttingDown => ("shutting_down", String::new(), String::new()),
         MurkError::Numerical(m) => ("numerical", m.clone(), String::new()),
@@ -20,6 +21,7 @@ pub(crate) fn encode_error(e: &MurkError) -> (&'static str, String, String) {
 pub(crate) fn decode_error(kind: &str, a: &str, b: &str) -> MurkError {
     match kind {
         "invalid" => MurkError::invalid(a, b),
+        "over_limit" => MurkError::over_limit(a, b),
         "cancelled" | "" => MurkError::Cancelled,
         "shutting_down" => MurkError::ShuttingDown,
         "numerical" => MurkError::Numerical(a.to_string()),
@@ -40,6 +42,7 @@ mod tests {
     fn every_error_survives_the_record() {
         for e in [
             MurkError::invalid("phase", "must be finite"),
+            MurkError::over_limit("support_r", "needs 5 GB"),
             MurkError::Cancelled,
             MurkError::ShuttingDown,
             MurkError::Numerical("diverged".into()),

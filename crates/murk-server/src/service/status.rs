@@ -10,11 +10,17 @@ use crate::jobs::JobsError;
 use murk::error::MurkError;
 
 /// Maps a library error to a status. `InvalidArgument` carries a google.rpc.BadRequest field
-/// violation so clients in any language can find the field programmatically.
+/// violation so clients in any language can find the field programmatically; so does
+/// `OverLimit` (RESOURCE_EXHAUSTED without RetryInfo: the same request will not fit later).
 pub fn to_status(e: &MurkError) -> Status {
     match e {
         MurkError::InvalidArgument { field, reason } => Status::with_error_details(
             Code::InvalidArgument,
+            e.to_string(),
+            ErrorDetails::with_bad_request_violation(field.clone(), reason.clone()),
+        ),
+        MurkError::OverLimit { field, reason } => Status::with_error_details(
+            Code::ResourceExhausted,
             e.to_string(),
             ErrorDetails::with_bad_request_violation(field.clone(), reason.clone()),
         ),
@@ -71,10 +77,7 @@ pub fn job_error(e: &MurkError) -> pb::JobError {
     pb::JobError {
         code: code_of(e) as i32,
         message: e.to_string(),
-        field: match e {
-            MurkError::InvalidArgument { field, .. } => field.clone(),
-            _ => String::new(),
-        },
+        field: e.field().unwrap_or_default().to_string(),
     }
 }
 

@@ -148,11 +148,10 @@ fn apply(bytes: &mut Vec<u8>, m: &Mutation) {
 fn check(bytes: &[u8], airlight: &AirlightService) -> Result<(), TestCaseError> {
     match rebuild_work(bytes, &limits(), airlight) {
         Ok(_) => Ok(()),
-        Err(MurkError::InvalidArgument { field, reason }) => {
-            prop_assert!(
-                !field.is_empty(),
-                "INVALID_ARGUMENT without a field: {reason}"
-            );
+        Err(
+            MurkError::InvalidArgument { field, reason } | MurkError::OverLimit { field, reason },
+        ) => {
+            prop_assert!(!field.is_empty(), "an error without a field: {reason}");
             prop_assert!(field.len() < 200, "a field name of {} bytes", field.len());
             Ok(())
         }

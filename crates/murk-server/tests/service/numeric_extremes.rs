@@ -246,18 +246,22 @@ async fn survey(
             }
             let problem = match answer {
                 Ok(_) => None,
-                Err(s) if s.code() == Code::InvalidArgument => match s.get_details_bad_request() {
-                    Some(b) if b.field_violations.len() == 1 => {
-                        let named = &b.field_violations[0].field;
-                        (!names_a_field(&desc, named)).then(|| {
-                            format!("names `{named}`, not a request field: {}", s.message())
-                        })
+                // RESOURCE_EXHAUSTED: a valid request over a memory bound, naming the field.
+                Err(s) if matches!(s.code(), Code::InvalidArgument | Code::ResourceExhausted) => {
+                    match s.get_details_bad_request() {
+                        Some(b) if b.field_violations.len() == 1 => {
+                            let named = &b.field_violations[0].field;
+                            (!names_a_field(&desc, named)).then(|| {
+                                format!("names `{named}`, not a request field: {}", s.message())
+                            })
+                        }
+                        _ => Some(format!(
+                            "{:?} without one named field: {}",
+                            s.code(),
+                            s.message()
+                        )),
                     }
-                    _ => Some(format!(
-                        "INVALID_ARGUMENT without one named field: {}",
-                        s.message()
-                    )),
-                },
+                }
                 Err(s) => Some(format!("{:?}: {}", s.code(), s.message())),
             };
             if let Some(answer) = problem {

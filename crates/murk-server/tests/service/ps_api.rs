@@ -225,20 +225,55 @@ async fn bad_requests_name_the_field_and_nothing_is_queued() {
     server.stop().await.unwrap();
 }
 
+/// The kernel bound is the server's memory, not a property of the request: a kernel over it is
+/// RESOURCE_EXHAUSTED naming the field that sizes it, without RetryInfo (the same request will
+/// not fit later), and refused before a job exists.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_kernel_over_the_memory_limit_is_refused_naming_the_support() {
+async fn a_kernel_over_the_memory_limit_is_refused_before_any_work_naming_the_support() {
+    use tonic_types::StatusExt;
     let sim = capture();
     let mut cfg = config(4);
-    cfg.max_ps_kernel_bytes = 1 << 20;
+    cfg.max_ps_kernel_bytes = 64 << 10;
     let server = start(cfg).await;
     let mut r = request(&sim);
     r.support_r = 41;
+    let refused = |e: &tonic::Status, field: &str| {
+        assert_eq!(e.code(), tonic::Code::ResourceExhausted, "{e:?}");
+        assert!(e.message().contains("bytes"), "{}", e.message());
+        let details = e.get_error_details();
+        let violation = details
+            .bad_request()
+            .and_then(|b| b.field_violations.first());
+        assert_eq!(violation.map(|v| v.field.as_str()), Some(field));
+        assert!(details.retry_info().is_none(), "not retryable: {e:?}");
+    };
     let e = recon(&server)
         .photometric_stereo(r.clone())
         .await
         .unwrap_err();
-    assert_eq!(bad_field(&e), "support_r");
-    assert!(e.message().contains("bytes"), "{}", e.message());
+    refused(&e, "support_r");
+    let e = jobs(&server)
+        .submit_job(pb::SubmitJobRequest {
+            request: Some(pb::JobRequest {
+                method: Some(pb::job_request::Method::PhotometricStereo(r.clone())),
+            }),
+            omit_result: true,
+        })
+        .await
+        .unwrap_err();
+    refused(&e, "request.photometric_stereo.support_r");
+    // The automatic support cannot fit either.
+    let mut auto = r.clone();
+    (auto.support_r, auto.auto_support) = (0, true);
+    let e = recon(&server).photometric_stereo(auto).await.unwrap_err();
+    refused(&e, "support_r");
+    assert_eq!(server.manager().executed(), 0, "no work started");
+    let listed = jobs(&server)
+        .list_jobs(pb::ListJobsRequest::default())
+        .await
+        .unwrap()
+        .into_inner();
+    assert!(listed.jobs.is_empty(), "no job was accepted: {listed:?}");
     // The baseline stores no kernel, so the same request in that mode is fine.
     r.mode = pb::PsMode::BackscatterOnly as i32;
     let ok = recon(&server)

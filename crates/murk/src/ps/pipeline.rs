@@ -180,7 +180,7 @@ pub fn validate_request(capture: &PsCapture, params: &PsParams) -> Result<()> {
     let object_pixels = capture.mask.iter().filter(|&&b| b).count();
     let bytes = params.kernel_layout()?.entry_bytes(object_pixels);
     if params.mode == PsMode::Full && bytes > params.max_kernel_bytes {
-        return Err(MurkError::invalid(
+        return Err(MurkError::over_limit(
             "support_r",
             format!(
                 "the kernel for {object_pixels} object pixels at r = {} (far cell {}) needs \

@@ -39,8 +39,8 @@ pub struct SupportChoice {
 /// 3…min([`MAX_SUPPORT_R`], image side)). The far cell is the smallest that keeps the kernel
 /// of the mask's pixels within `max_kernel_bytes`, given `near_radius_px`.
 ///
-/// Errors name `mask` (empty or the wrong length) or `support_r` (no cell size fits the
-/// memory limit).
+/// Errors name `mask` (empty or the wrong length); no cell size that fits the memory limit is
+/// [`MurkError::OverLimit`] naming `support_r`.
 pub fn choose_support(
     mask: &[bool],
     width: usize,
@@ -89,7 +89,7 @@ pub fn choose_support(
             });
         }
     }
-    Err(MurkError::invalid(
+    Err(MurkError::over_limit(
         "support_r",
         format!(
             "the automatic support r = {r} for an object {extent} px across does not fit the \

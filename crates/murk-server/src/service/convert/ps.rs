@@ -155,8 +155,9 @@ pub fn ps_from_proto(
 
 /// Library field paths → request field paths where they differ.
 fn rename_fields(e: MurkError) -> MurkError {
+    let over_limit = matches!(e, MurkError::OverLimit { .. });
     match e {
-        MurkError::InvalidArgument { field, reason } => {
+        MurkError::InvalidArgument { field, reason } | MurkError::OverLimit { field, reason } => {
             let field = if let Some(rest) = field.strip_prefix("medium.") {
                 rest.to_string()
             } else if let Some(rest) = field.strip_prefix("images[") {
@@ -172,7 +173,11 @@ fn rename_fields(e: MurkError) -> MurkError {
                     _ => field,
                 }
             };
-            MurkError::InvalidArgument { field, reason }
+            if over_limit {
+                MurkError::OverLimit { field, reason }
+            } else {
+                MurkError::InvalidArgument { field, reason }
+            }
         }
         other => other,
     }
