@@ -146,10 +146,22 @@ pub struct ServeArgs {
     #[arg(long, env = "MURK_AIRLIGHT_WEIGHTS")]
     pub airlight_weights: Option<std::path::PathBuf>,
     /// Share jobs, the queue and results with other replicas through Redis
-    /// (`redis://[:PASSWORD@]HOST:PORT/DB`, or `rediss://` for TLS). Without it murk keeps
-    /// everything in this process and needs no external service.
+    /// (`redis://[[USER]:PASSWORD@]HOST:PORT/DB`, or `rediss://` for TLS, verified against the
+    /// system's trust store or --redis-ca-file). Without it murk keeps everything in this
+    /// process and needs no external service.
     #[arg(long, env = "MURK_REDIS_URL")]
     pub redis_url: Option<String>,
+    /// PEM CA certificate that signed Redis's TLS certificate (with a `rediss://` URL), instead
+    /// of the system's trust store.
+    #[arg(long, env = "MURK_REDIS_CA_FILE", requires = "redis_url")]
+    pub redis_ca_file: Option<std::path::PathBuf>,
+    /// PEM client certificate for a Redis that authenticates TLS clients (with
+    /// --redis-client-key).
+    #[arg(long, env = "MURK_REDIS_CLIENT_CERT", requires_all = ["redis_url", "redis_client_key"])]
+    pub redis_client_cert: Option<std::path::PathBuf>,
+    /// PEM key of --redis-client-cert.
+    #[arg(long, env = "MURK_REDIS_CLIENT_KEY", requires = "redis_client_cert")]
+    pub redis_client_key: Option<std::path::PathBuf>,
     /// Prefix of murk's Redis keys (several deployments may share one Redis).
     #[arg(long, env = "MURK_REDIS_PREFIX", default_value = "murk")]
     pub redis_prefix: String,
@@ -248,14 +260,32 @@ impl ServeArgs {
             self.redis_result_ttl_secs >= 1,
             "--redis-result-ttl-secs must be at least 1"
         );
-        let redis = self.redis_url.as_ref().map(|url| {
-            let mut r = RedisConfig::new(url.clone());
-            r.prefix = self.redis_prefix.clone();
-            r.lease = Duration::from_secs_f64(self.redis_lease_secs);
-            r.result_ttl = Duration::from_secs(self.redis_result_ttl_secs);
-            r.record_ttl = r.result_ttl;
-            r
-        });
+        let redis = match &self.redis_url {
+            None => None,
+            Some(url) => {
+                let mut r = RedisConfig::new(url.clone());
+                r.prefix = self.redis_prefix.clone();
+                r.lease = Duration::from_secs_f64(self.redis_lease_secs);
+                r.result_ttl = Duration::from_secs(self.redis_result_ttl_secs);
+                r.record_ttl = r.result_ttl;
+                r.tls.ca_pem = self
+                    .redis_ca_file
+                    .as_deref()
+                    .map(|p| read_pem(p, "--redis-ca-file"))
+                    .transpose()?;
+                if let (Some(cert), Some(key)) = (&self.redis_client_cert, &self.redis_client_key) {
+                    r.tls.client_cert_and_key_pem = Some((
+                        read_pem(cert, "--redis-client-cert")?,
+                        read_pem(key, "--redis-client-key")?,
+                    ));
+                }
+                anyhow::ensure!(
+                    !r.tls.is_set() || url.starts_with("rediss://"),
+                    "--redis-ca-file and --redis-client-cert need a rediss:// --redis-url"
+                );
+                Some(r)
+            }
+        };
         Ok(ServerConfig {
             redis,
             jobs: JobsConfig {

@@ -590,3 +590,99 @@ async fn two_replicas_behind_nginx_both_receive_work() {
     let pids: std::collections::BTreeSet<u32> = replicas.iter().map(Replica::pid).collect();
     assert_eq!(owners, pids, "jobs were computed by {owners:?}");
 }
+
+/// Writes the test PKI's files for the replicas' `--redis-…` flags.
+fn redis_tls_files(pki: &common::pki::Pki) -> (tempfile::TempDir, [String; 3]) {
+    let dir = tempfile::tempdir().unwrap();
+    let files = [
+        ("ca.pem", &pki.ca_pem),
+        ("client.pem", &pki.client_cert),
+        ("client.key", &pki.client_key),
+    ]
+    .map(|(name, pem)| {
+        let path = dir.path().join(name);
+        std::fs::write(&path, pem).unwrap();
+        path.display().to_string()
+    });
+    (dir, files)
+}
+
+/// A replica that cannot use Redis answers UNAVAILABLE with a retry hint (and keeps trying).
+async fn refused_by_redis(replica: &Replica) {
+    let err = replica
+        .jobs()
+        .submit_job(job(tof_request(32, 24, 1)))
+        .await
+        .unwrap_err();
+    assert_eq!(err.code(), Code::Unavailable, "{err:?}");
+    assert!(err.get_details_retry_info().is_some(), "{err:?}");
+}
+
+/// Redis over TLS only, with a password: replicas that trust its CA (`--redis-ca-file`) and use
+/// a `rediss://:PASSWORD@…` URL share a job through it; a wrong password, or a plaintext URL,
+/// is UNAVAILABLE.
+#[tokio::test]
+async fn replicas_share_work_through_redis_over_tls_with_a_password() {
+    let pki = common::pki::pki();
+    let Some(redis) = RedisServer::start_tls(&pki, "pw-3f9a1c", false) else {
+        return;
+    };
+    let (_dir, [ca, _, _]) = redis_tls_files(&pki);
+    let a = Replica::start(&redis, &["--redis-ca-file", &ca]);
+    let b = Replica::start(&redis, &["--redis-ca-file", &ca]);
+    let submitted = submit(&mut a.jobs(), tof_request(48, 40, 2)).await;
+    let done = wait_until(
+        &mut b.jobs(),
+        &submitted.id,
+        Duration::from_secs(60),
+        terminal,
+    )
+    .await;
+    assert_eq!(done.state(), pb::JobState::Succeeded, "{done:?}");
+    assert_eq!(
+        redis.record_field(&submitted.id, "state").as_deref(),
+        Some("succeeded"),
+        "the record went through the TLS connection"
+    );
+    let wrong = Replica::start_url(
+        &redis.url().replace("pw-3f9a1c", "not-the-password"),
+        &["--redis-ca-file", &ca],
+    );
+    refused_by_redis(&wrong).await;
+    let plaintext = Replica::start_url(
+        &redis
+            .url()
+            .replace("rediss://", "redis://")
+            .replace("localhost", "127.0.0.1"),
+        &[],
+    );
+    refused_by_redis(&plaintext).await;
+}
+
+/// A Redis that authenticates TLS clients: a replica with `--redis-client-cert` and
+/// `--redis-client-key` is let in; one without a client certificate is not.
+#[tokio::test]
+async fn a_redis_that_demands_client_certificates_admits_replicas_that_have_one() {
+    let pki = common::pki::pki();
+    let Some(redis) = RedisServer::start_tls(&pki, "pw-77d0", true) else {
+        return;
+    };
+    let (_dir, [ca, cert, key]) = redis_tls_files(&pki);
+    let with_cert = Replica::start(
+        &redis,
+        &[
+            "--redis-ca-file",
+            &ca,
+            "--redis-client-cert",
+            &cert,
+            "--redis-client-key",
+            &key,
+        ],
+    );
+    let mut c = with_cert.jobs();
+    let submitted = submit(&mut c, tof_request(32, 24, 1)).await;
+    let done = wait_until(&mut c, &submitted.id, Duration::from_secs(60), terminal).await;
+    assert_eq!(done.state(), pb::JobState::Succeeded, "{done:?}");
+    let without = Replica::start(&redis, &["--redis-ca-file", &ca]);
+    refused_by_redis(&without).await;
+}

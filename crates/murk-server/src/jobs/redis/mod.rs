@@ -68,6 +68,26 @@ pub struct RedisConfig {
     pub result_ttl: Duration,
     /// Starts of one job (each ended by its replica dying) before it is failed as poison.
     pub max_attempts: u32,
+    /// Certificates for a `rediss://` URL; without them the system's trust store verifies the
+    /// server and no client certificate is sent.
+    pub tls: RedisTls,
+}
+
+/// PEM certificates for TLS to Redis.
+#[derive(Clone, Default)]
+pub struct RedisTls {
+    /// The CA that signed Redis's certificate, instead of the system's trust store.
+    pub ca_pem: Option<Vec<u8>>,
+    /// A client certificate and its key, for a Redis that authenticates clients
+    /// (`tls-auth-clients yes`).
+    pub client_cert_and_key_pem: Option<(Vec<u8>, Vec<u8>)>,
+}
+
+impl RedisTls {
+    /// Whether anything is set (a plain `redis::Client::open` otherwise).
+    pub fn is_set(&self) -> bool {
+        self.ca_pem.is_some() || self.client_cert_and_key_pem.is_some()
+    }
 }
 
 impl RedisConfig {
@@ -81,6 +101,7 @@ impl RedisConfig {
             record_ttl: Duration::from_secs(7 * 24 * 3600),
             result_ttl: Duration::from_secs(7 * 24 * 3600),
             max_attempts: 3,
+            tls: RedisTls::default(),
         }
     }
 }
@@ -99,6 +120,11 @@ impl std::fmt::Debug for RedisConfig {
             .field("url", &url)
             .field("prefix", &self.prefix)
             .field("lease", &self.lease)
+            .field("tls_ca", &self.tls.ca_pem.is_some())
+            .field(
+                "tls_client_cert",
+                &self.tls.client_cert_and_key_pem.is_some(),
+            )
             .finish_non_exhaustive()
     }
 }

@@ -129,6 +129,33 @@ fn hostname() -> String {
         .unwrap_or_else(|| "murk".into())
 }
 
+/// The Redis client for `cfg`'s URL, with its certificates when any are given.
+fn client_of(cfg: &RedisConfig) -> Result<redis::Client, MurkError> {
+    let client = if cfg.tls.is_set() {
+        if !cfg.url.starts_with("rediss://") {
+            return Err(MurkError::invalid(
+                "redis_url",
+                "TLS certificates are given but the URL is not rediss://",
+            ));
+        }
+        redis::Client::build_with_tls(
+            cfg.url.as_str(),
+            redis::TlsCertificates {
+                client_tls: cfg.tls.client_cert_and_key_pem.as_ref().map(|(cert, key)| {
+                    redis::ClientTlsConfig {
+                        client_cert: cert.clone(),
+                        client_key: key.clone(),
+                    }
+                }),
+                root_cert: cfg.tls.ca_pem.clone(),
+            },
+        )
+    } else {
+        redis::Client::open(cfg.url.as_str())
+    };
+    client.map_err(|e| MurkError::invalid("redis_url", e.to_string()))
+}
+
 impl Shared {
     /// Connects lazily (an unreachable Redis at start is retried in the background) under a
     /// fresh consumer name for this replica.
@@ -137,8 +164,7 @@ impl Shared {
         cfg: RedisConfig,
         rebuild: Rebuild,
     ) -> Result<Self, MurkError> {
-        let client = redis::Client::open(cfg.url.as_str())
-            .map_err(|e| MurkError::invalid("redis_url", e.to_string()))?;
+        let client = client_of(&cfg)?;
         let conn = ConnectionManager::new_lazy_with_config(client.clone(), conn_config(None))
             .map_err(|e| MurkError::invalid("redis_url", e.to_string()))?;
         let concurrent = local.config().concurrent_jobs.max(1);
