@@ -324,7 +324,10 @@ async fn serve_with_manager(
     let serving = builder
         .layer(MetricsLayer::new(telemetry.grpc().clone()))
         .layer(RequestIdLayer)
-        .layer(AuthLayer::new(config.auth.clone()))
+        .layer(AuthLayer::new(
+            config.auth.clone(),
+            telemetry.grpc().clone(),
+        ))
         .layer(oversize_layer())
         .add_service(health)
         .add_service(reflection_v1)

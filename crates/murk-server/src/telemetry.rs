@@ -118,7 +118,14 @@ impl Collector for JobGauges {
                 cache.disk_bytes as i64,
             ),
         ];
-        for (name, help, value) in gauges {
+        let redis = self.jobs.store_up().map(|up| {
+            (
+                "redis_up",
+                "1 while this replica's periodic Redis query (every second) is answered, else 0",
+                i64::from(up),
+            )
+        });
+        for (name, help, value) in gauges.into_iter().chain(redis) {
             let g = ConstGauge::new(value);
             g.encode(encoder.encode_descriptor(name, help, None, g.metric_type())?)?;
         }

@@ -30,6 +30,12 @@ pub trait JobBackend: Send + Sync + 'static {
     /// Jobs waiting to start (across all replicas for a shared backend; for the metrics gauge).
     fn queue_depth(&self) -> usize;
 
+    /// For a backend on an external store: whether its last periodic check reached it and was
+    /// answered (the `murk_redis_up` gauge); `None` for the in-process backend.
+    fn store_up(&self) -> Option<bool> {
+        None
+    }
+
     /// `tenant`'s live or succeeded job with this id, or a cached result recorded as a
     /// succeeded job; `None` when the request must be (re)computed.
     async fn find(

@@ -21,6 +21,8 @@ use thiserror::Error;
 use tonic::body::Body;
 use tower::{Layer, Service};
 
+use super::grpc_metrics::GrpcMetrics;
+
 /// The authenticated caller, in the request extensions. Without authentication every caller is
 /// the default tenant `""`.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -207,16 +209,19 @@ fn bearer(req: &http::Request<Body>) -> Option<&[u8]> {
         .then(|| token.trim_ascii())
 }
 
-/// Installs [`AuthService`]; with no store every request passes as the default tenant.
+/// Installs [`AuthService`]; with no store every request passes as the default tenant. Each
+/// request that passes (health checks and reflection aside) is counted per tenant in
+/// `murk_tenant_requests_total`.
 #[derive(Clone, Debug, Default)]
 pub struct AuthLayer {
     store: Option<TokenStore>,
+    metrics: GrpcMetrics,
 }
 
 impl AuthLayer {
-    /// Authentication with `store`, or none.
-    pub fn new(store: Option<TokenStore>) -> Self {
-        Self { store }
+    /// Authentication with `store`, or none, counting requests into `metrics`.
+    pub fn new(store: Option<TokenStore>, metrics: GrpcMetrics) -> Self {
+        Self { store, metrics }
     }
 }
 
@@ -226,6 +231,7 @@ impl<S> Layer<S> for AuthLayer {
         AuthService {
             inner,
             store: self.store.clone(),
+            metrics: self.metrics.clone(),
         }
     }
 }
@@ -235,6 +241,7 @@ impl<S> Layer<S> for AuthLayer {
 pub struct AuthService<S> {
     inner: S,
     store: Option<TokenStore>,
+    metrics: GrpcMetrics,
 }
 
 impl<S> Service<http::Request<Body>> for AuthService<S>
@@ -252,11 +259,16 @@ where
 
     fn call(&mut self, mut req: http::Request<Body>) -> Self::Future {
         let mut inner = super::take_ready(&mut self.inner);
+        let open = is_open(req.uri().path());
+        if self.store.is_none() && !open {
+            self.metrics.tenant_request("");
+        }
         if let Some(store) = &self.store {
-            if !is_open(req.uri().path()) {
+            if !open {
                 let tenant = bearer(&req).and_then(|t| store.authenticate(t));
                 match tenant {
                     Some(t) => {
+                        self.metrics.tenant_request(&t);
                         req.extensions_mut().insert(Tenant(t));
                     }
                     None => {

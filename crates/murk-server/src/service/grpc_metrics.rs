@@ -1,5 +1,6 @@
 //! Per-RPC metrics as a tower layer: `murk_grpc_requests_total{method,code}` and
-//! `murk_grpc_request_duration_seconds{method}`.
+//! `murk_grpc_request_duration_seconds{method}`; and `murk_tenant_requests_total{tenant}`,
+//! counted by the authentication layer, which knows the tenant.
 //!
 //! The status code of a gRPC response is in its headers when the handler failed at once
 //! (a trailers-only response) and in its trailers otherwise, after the last message; the layer
@@ -36,6 +37,18 @@ pub struct RpcMethod {
     /// `package.Service/Method`, or `other`.
     pub method: &'static str,
 }
+
+/// Labels of `murk_tenant_requests_total`.
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+pub struct TenantLabel {
+    /// The authenticated tenant, or [`NO_TENANT`] without authentication. Tenants come from the
+    /// operator's token file, so the label set is bounded by it.
+    pub tenant: String,
+}
+
+/// The tenant label of requests served without authentication (not a valid tenant name, so it
+/// cannot collide with one).
+pub const NO_TENANT: &str = "(none)";
 
 /// Every RPC the server serves. Paths outside this list are counted as `other`: the layer sits
 /// in front of authentication, so a label per arbitrary path would let anyone grow the metric
@@ -79,6 +92,7 @@ fn latency_histogram() -> Histogram {
 pub struct GrpcMetrics {
     requests: Family<RpcCode, Counter>,
     duration: Family<RpcMethod, Histogram, fn() -> Histogram>,
+    tenants: Family<TenantLabel, Counter>,
 }
 
 impl Default for GrpcMetrics {
@@ -86,6 +100,7 @@ impl Default for GrpcMetrics {
         Self {
             requests: Family::default(),
             duration: Family::new_with_constructor(latency_histogram),
+            tenants: Family::default(),
         }
     }
 }
@@ -103,6 +118,22 @@ impl GrpcMetrics {
             "Time from request headers to the status, by method (streams: until the stream ends)",
             self.duration.clone(),
         );
+        registry.register(
+            "tenant_requests",
+            "RPCs that passed authentication, by tenant ((none) without authentication; health \
+             checks and reflection are not counted)",
+            self.tenants.clone(),
+        );
+    }
+
+    /// Counts one authenticated request of `tenant` (`""`: no authentication).
+    pub fn tenant_request(&self, tenant: &str) {
+        let tenant = if tenant.is_empty() { NO_TENANT } else { tenant };
+        self.tenants
+            .get_or_create(&TenantLabel {
+                tenant: tenant.to_string(),
+            })
+            .inc();
     }
 
     fn record(&self, method: &'static str, code: Code, started: Instant) {
@@ -285,5 +316,25 @@ mod tests {
         );
         assert_eq!(method_label("/murk.v1.Jobs/Nope"), "other");
         assert_eq!(method_label("/x/y/z"), "other");
+    }
+
+    #[test]
+    fn requests_are_counted_per_tenant_and_the_default_tenant_has_its_own_label() {
+        let m = GrpcMetrics::default();
+        let mut registry = Registry::with_prefix("murk");
+        m.register(&mut registry);
+        m.tenant_request("fleet-a");
+        m.tenant_request("fleet-a");
+        m.tenant_request("");
+        let mut text = String::new();
+        prometheus_client::encoding::text::encode(&mut text, &registry).unwrap();
+        assert!(
+            text.contains("murk_tenant_requests_total{tenant=\"fleet-a\"} 2"),
+            "{text}"
+        );
+        assert!(
+            text.contains("murk_tenant_requests_total{tenant=\"(none)\"} 1"),
+            "{text}"
+        );
     }
 }

@@ -175,6 +175,10 @@ impl JobBackend for RedisJobs {
         self.shared.queue_depth.load(Ordering::Relaxed) as usize
     }
 
+    fn store_up(&self) -> Option<bool> {
+        Some(self.shared.answered.load(Ordering::Relaxed))
+    }
+
     async fn find(
         &self,
         tenant: &str,

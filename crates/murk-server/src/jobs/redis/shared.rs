@@ -102,6 +102,9 @@ pub(super) struct Shared {
     pub(super) queue_depth: AtomicU64,
     /// Whether the last Redis call succeeded (for logs that say so once, not per call).
     reachable: AtomicBool,
+    /// Whether the last periodic queue-depth query succeeded (connected, authenticated and
+    /// answered), for the `murk_redis_up` gauge.
+    pub(super) answered: AtomicBool,
 }
 
 /// A Redis error as the job system's refusal: the call may succeed later.
@@ -191,6 +194,7 @@ impl Shared {
             stopping: AtomicBool::new(false),
             queue_depth: AtomicU64::new(0),
             reachable: AtomicBool::new(true),
+            answered: AtomicBool::new(false),
         })
     }
 

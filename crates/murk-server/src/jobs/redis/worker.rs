@@ -2,6 +2,7 @@
 //! on the local pool, keep their lease and progress current, store the result, acknowledge;
 //! and take over the entries of replicas that stopped renewing their lease.
 
+use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -85,7 +86,8 @@ pub(super) async fn claim_loop(shared: Arc<Shared>) {
 /// Keeps the global queue depth gauge current.
 pub(super) async fn depth_loop(shared: Arc<Shared>) {
     while !shared.is_stopping() {
-        let _ = shared.global_queue_depth().await;
+        let answered = shared.global_queue_depth().await.is_ok();
+        shared.answered.store(answered, Ordering::Relaxed);
         tokio::time::sleep(Duration::from_secs(1)).await;
     }
 }
