@@ -40,6 +40,11 @@ LABEL org.opencontainers.image.title="murk" \
       org.opencontainers.image.description="gRPC service reconstructing depth and shape through fog, smoke and turbid water" \
       org.opencontainers.image.licenses="Apache-2.0" \
       org.opencontainers.image.source="https://github.com/murk/murk"
+# CA certificates: `rediss://` verifies Redis against the system's trust store unless
+# MURK_REDIS_CA_FILE names a private CA.
+RUN apt-get update \
+    && apt-get install -y --no-install-recommends ca-certificates \
+    && rm -rf /var/lib/apt/lists/*
 RUN groupadd --system --gid 10001 murk \
     && useradd --system --uid 10001 --gid murk --home-dir /var/lib/murk --create-home --shell /usr/sbin/nologin murk
 COPY --from=builder /usr/local/bin/murk /usr/local/bin/murk
