@@ -43,7 +43,8 @@ def test_srgb_files_are_marked_and_arrays_decoded() -> None:
     e = images.to_proto(mc.EncodedImage(b"png", srgb=True), field="reference")
     assert e.transfer == common_pb2.TRANSFER_SRGB
     plain = images.to_proto(mc.EncodedImage(b"png"), field="reference")
-    assert plain.transfer == common_pb2.TRANSFER_LINEAR
+    # Linear images go out unset (0), which every server version reads as linear.
+    assert plain.transfer == common_pb2.TRANSFER_UNSPECIFIED
     lin = mc.srgb_to_linear(np.array([0.0, 0.5, 1.0]))
     assert lin.dtype == np.float32
     assert np.allclose(lin, [0.0, 0.21404, 1.0], atol=1e-4)

@@ -64,7 +64,7 @@ def to_proto(image: ImageLike, *, field: str, channels: int | None = None) -> co
             encoded=image.data,
             value_scale=0.0 if image.value_scale == 1.0 else image.value_scale,
             value_offset=image.value_offset,
-            transfer=common_pb2.TRANSFER_SRGB if image.srgb else common_pb2.TRANSFER_LINEAR,
+            transfer=common_pb2.TRANSFER_SRGB if image.srgb else common_pb2.TRANSFER_UNSPECIFIED,
         )
     arr = np.asarray(image)
     if arr.dtype.kind not in "fiub":

@@ -75,7 +75,7 @@ pub fn to_api_image(img: &RosImage, mapping: SampleMapping) -> Result<ApiImage, 
             transfer: if mapping.srgb && eight_bit {
                 pb::Transfer::Srgb
             } else {
-                pb::Transfer::Linear
+                pb::Transfer::Unspecified
             } as i32,
         },
         dims: (w, h),

@@ -257,7 +257,7 @@ fn encoded_image(path: &Path, what: &str, srgb: bool) -> anyhow::Result<pb::Imag
         transfer: if srgb {
             pb::Transfer::Srgb
         } else {
-            pb::Transfer::Linear
+            pb::Transfer::Unspecified
         } as i32,
         ..Default::default()
     })

@@ -13,6 +13,7 @@ mod mvs_api;
 mod mvs_bad_input;
 mod numeric_extremes;
 mod params_api;
+mod proto_lint;
 mod ps_api;
 mod redis_scaleout;
 mod service_ops;

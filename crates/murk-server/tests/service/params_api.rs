@@ -163,7 +163,7 @@ async fn default_request_fits_a_and_beta_to_the_points_and_reports_the_fit() {
     assert!(se_a > 0.0 && se_b > 0.0 && se_b < 0.15 * f64::from(out.beta));
     let joint = out.joint_fit.expect("joint fit reported");
     assert_eq!(joint.source_gains.len(), s.views.len() - 1);
-    assert!(out.beta_range_from_points && out.beta_bound == pb::BetaBound::None as i32);
+    assert!(out.beta_range_from_points && out.beta_bound == pb::BetaBound::Unspecified as i32);
     assert!(out.airlight_conflict.is_none() && out.warnings.is_empty());
 
     // A₀ given 0.2 off, far beyond its stated error (the prior's scale): the points still place

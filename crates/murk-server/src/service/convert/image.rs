@@ -73,7 +73,7 @@ fn decode_proto(img: &pb::Image, limits: &ImageLimits, mono: bool) -> Result<Ima
     };
     let mut out = apply_value_mapping(decoded, img.value_scale, img.value_offset)?;
     match pb::Transfer::try_from(img.transfer) {
-        Ok(pb::Transfer::Linear) => {}
+        Ok(pb::Transfer::Unspecified | pb::Transfer::Linear) => {}
         Ok(pb::Transfer::Srgb) => murk::image::decode_srgb(&mut out),
         Err(_) => {
             return Err(MurkError::invalid(
@@ -237,7 +237,7 @@ pub fn image_to_proto(img: &ImageF32) -> pb::Image {
         data: Some(pb::image::Data::RawF32Le(bytes)),
         value_scale: 0.0,
         value_offset: 0.0,
-        transfer: pb::Transfer::Linear as i32,
+        transfer: pb::Transfer::Unspecified as i32,
     }
 }
 

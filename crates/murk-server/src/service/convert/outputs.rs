@@ -263,7 +263,7 @@ fn png_image(img: &ImageF32, quantity: Quantity) -> Result<Option<pb::Image>> {
         data: Some(pb::image::Data::Encoded(bytes)),
         value_scale: hi32 - lo32,
         value_offset: lo32,
-        transfer: pb::Transfer::Linear as i32,
+        transfer: pb::Transfer::Unspecified as i32,
     }))
 }
 

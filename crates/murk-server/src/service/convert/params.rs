@@ -427,7 +427,7 @@ impl ParamsInput {
             beta_max: est.beta_range[1],
             beta_range_from_points: est.beta_range_from_points,
             beta_bound: match est.beta_bound {
-                None => pb::BetaBound::None,
+                None => pb::BetaBound::Unspecified,
                 Some(BetaBound::Min) => pb::BetaBound::Min,
                 Some(BetaBound::Max) => pb::BetaBound::Max,
             } as i32,

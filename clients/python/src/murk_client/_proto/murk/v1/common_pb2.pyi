@@ -80,14 +80,24 @@ class _Transfer:
 
 class _TransferEnumTypeWrapper(_enum_type_wrapper._EnumTypeWrapper[_Transfer.ValueType], _builtins.type):
     DESCRIPTOR: _descriptor.EnumDescriptor
-    TRANSFER_LINEAR: _Transfer.ValueType  # 0
+    TRANSFER_UNSPECIFIED: _Transfer.ValueType  # 0
+    """Unset: the values are linear, as with TRANSFER_LINEAR. (Until murk 0.1, value 0 was named
+    TRANSFER_LINEAR; the wire value and its meaning are unchanged.)
+    """
     TRANSFER_SRGB: _Transfer.ValueType  # 1
+    TRANSFER_LINEAR: _Transfer.ValueType  # 2
+    """Linear, said explicitly."""
 
 class Transfer(_Transfer, metaclass=_TransferEnumTypeWrapper):
     """The transfer function of an Image's values (see Image.transfer)."""
 
-TRANSFER_LINEAR: Transfer.ValueType  # 0
+TRANSFER_UNSPECIFIED: Transfer.ValueType  # 0
+"""Unset: the values are linear, as with TRANSFER_LINEAR. (Until murk 0.1, value 0 was named
+TRANSFER_LINEAR; the wire value and its meaning are unchanged.)
+"""
 TRANSFER_SRGB: Transfer.ValueType  # 1
+TRANSFER_LINEAR: Transfer.ValueType  # 2
+"""Linear, said explicitly."""
 Global___Transfer: _TypeAlias = Transfer  # noqa: Y015
 
 @_typing.final
@@ -137,7 +147,8 @@ class Image(_message.Message):
     murk fits (haze, Eq. 3.3; scattering in water; ToF phasors) is linear in radiance, while
     cameras usually store 8-bit images sRGB-encoded (PNG, JPEG): TRANSFER_SRGB decodes them
     with the sRGB transfer function (IEC 61966-2-1) before any method sees them, and A, beta and
-    every other result are then in linear units. Default TRANSFER_LINEAR: used as they are.
+    every other result are then in linear units. Unset (TRANSFER_UNSPECIFIED) or TRANSFER_LINEAR:
+    used as they are.
     """
     def __init__(
         self,

@@ -139,14 +139,20 @@ class _BetaBound:
 
 class _BetaBoundEnumTypeWrapper(_enum_type_wrapper._EnumTypeWrapper[_BetaBound.ValueType], _builtins.type):
     DESCRIPTOR: _descriptor.EnumDescriptor
-    BETA_BOUND_NONE: _BetaBound.ValueType  # 0
+    BETA_BOUND_UNSPECIFIED: _BetaBound.ValueType  # 0
+    """Neither: the range did not bind. (Until murk 0.1 this value was named BETA_BOUND_NONE; the
+    wire value and its meaning are unchanged.)
+    """
     BETA_BOUND_MIN: _BetaBound.ValueType  # 1
     BETA_BOUND_MAX: _BetaBound.ValueType  # 2
 
 class BetaBound(_BetaBound, metaclass=_BetaBoundEnumTypeWrapper):
     """Which end of the beta range bound the estimate."""
 
-BETA_BOUND_NONE: BetaBound.ValueType  # 0
+BETA_BOUND_UNSPECIFIED: BetaBound.ValueType  # 0
+"""Neither: the range did not bind. (Until murk 0.1 this value was named BETA_BOUND_NONE; the
+wire value and its meaning are unchanged.)
+"""
 BETA_BOUND_MIN: BetaBound.ValueType  # 1
 BETA_BOUND_MAX: BetaBound.ValueType  # 2
 Global___BetaBound: _TypeAlias = BetaBound  # noqa: Y015
@@ -470,7 +476,8 @@ class ScatteringParamsResult(_message.Message):
     beta_range_from_points: _builtins.bool
     beta_bound: Global___BetaBound.ValueType
     """The end of the range beta* was clamped to (or, after the sweep, where its minimum lay): the
-    estimate before clamping is beta_unclamped. NONE when the range did not bind.
+    estimate before clamping is beta_unclamped. BETA_BOUND_UNSPECIFIED when the range did not
+    bind.
     """
     beta_unclamped: _builtins.float
     @_builtins.property
