@@ -9,7 +9,8 @@
 //!    rate one session sustains: one frame per compute time.
 //! 3. **Overload.** A `latest` session (a queue of one frame) is sent frames at `--load` (2)
 //!    times that rate for `--seconds` (60). Every superseded frame must come back as a
-//!    `FrameDropped` naming it.
+//!    `FrameDropped` naming it. With `--sessions=N`, N such sessions run at once, each at that
+//!    rate, and the answered frames per session show how evenly the replica shares its cores.
 //!
 //! The server is a separate `murk serve` process; its RSS is sampled every 100 ms and reported
 //! as the largest value in each 5 s window. Latency is the client's, from sending a frame to
@@ -19,6 +20,7 @@
 //! cargo build --release -p murk-server
 //! cargo run --release -p murk-server --example session_overload
 //! cargo run --release -p murk-server --example session_overload -- --seconds=20 --size=256x212
+//! cargo run --release -p murk-server --example session_overload -- --sessions=2 --seconds=30
 //! ```
 
 use std::collections::HashMap;
@@ -54,6 +56,7 @@ struct Args {
     calibration_frames: usize,
     load: f64,
     seconds: f64,
+    sessions: usize,
 }
 
 fn args() -> anyhow::Result<Args> {
@@ -65,6 +68,7 @@ fn args() -> anyhow::Result<Args> {
         calibration_frames: 8,
         load: 2.0,
         seconds: 60.0,
+        sessions: 1,
     };
     for arg in std::env::args().skip(1) {
         let (key, value) = arg.split_once('=').unwrap_or((arg.as_str(), ""));
@@ -80,9 +84,10 @@ fn args() -> anyhow::Result<Args> {
             }
             "--load" => a.load = value.parse().context("--load=X")?,
             "--seconds" => a.seconds = value.parse().context("--seconds=S")?,
+            "--sessions" => a.sessions = value.parse().context("--sessions=N")?,
             other => bail!(
                 "unknown argument {other} (--murk=PATH --size=WxH --distinct=N \
-                 --calibration-frames=N --load=X --seconds=S)"
+                 --calibration-frames=N --load=X --seconds=S --sessions=N)"
             ),
         }
     }
@@ -94,6 +99,10 @@ fn args() -> anyhow::Result<Args> {
     ensure!(
         a.load > 0.0 && a.load <= 100.0,
         "--load must be in (0, 100]"
+    );
+    ensure!(
+        (1..=16).contains(&a.sessions),
+        "--sessions must be in 1..=16"
     );
     ensure!(
         a.seconds > 0.0 && a.seconds <= 3600.0,
@@ -219,6 +228,21 @@ async fn session(
     run.sent = sender.await?;
     run.seconds = started.elapsed().as_secs_f64();
     Ok(run)
+}
+
+/// The sessions' runs as one: counts summed, samples pooled, the longest duration.
+fn merged(runs: Vec<Run>) -> Run {
+    runs.into_iter().fold(Run::default(), |mut all, r| {
+        all.sent += r.sent;
+        all.answered += r.answered;
+        all.failed += r.failed;
+        all.dropped += r.dropped;
+        all.dropped_named += r.dropped_named;
+        all.latencies.extend(r.latencies);
+        all.compute.extend(r.compute);
+        all.seconds = all.seconds.max(r.seconds);
+        all
+    })
 }
 
 fn percentile(values: &[f64], p: f64) -> f64 {
@@ -350,23 +374,48 @@ async fn run(
     };
     let stop = Arc::new(AtomicBool::new(false));
     let samples = sampler(pid, stop.clone());
-    let duration = Duration::from_secs_f64(a.seconds);
-    let load = session(
-        channel,
-        latest,
-        frames,
-        None,
-        Some((Duration::from_secs_f64(1.0 / rate), duration)),
-    )
+    let schedule = Some((
+        Duration::from_secs_f64(1.0 / rate),
+        Duration::from_secs_f64(a.seconds),
+    ));
+    let runs = futures::future::join_all((0..a.sessions).map(|_| {
+        session(
+            channel.clone(),
+            latest.clone(),
+            frames.clone(),
+            None,
+            schedule,
+        )
+    }))
     .await;
     stop.store(true, Ordering::SeqCst);
     let samples = samples.join().expect("sampler");
-    let load = load?;
+    let runs = runs.into_iter().collect::<anyhow::Result<Vec<Run>>>()?;
+    let answered: Vec<usize> = runs.iter().map(|r| r.answered).collect();
+    let load = merged(runs);
     println!(
-        "overload (latest, queue 1) at {rate:.2} frames/s ({}x) for {:.1} s: {} sent, {} answered, \
-         {} failed, {} dropped ({} reported with the frame's id)",
-        a.load, load.seconds, load.sent, load.answered, load.failed, load.dropped, load.dropped_named
+        "overload (latest, queue 1) of {} session(s), each at {rate:.2} frames/s ({}x one \
+         session's rate) for {:.1} s: {} sent, {} answered, {} failed, {} dropped ({} reported \
+         with the frame's id)",
+        a.sessions,
+        a.load,
+        load.seconds,
+        load.sent,
+        load.answered,
+        load.failed,
+        load.dropped,
+        load.dropped_named
     );
+    if a.sessions > 1 {
+        let (lo, hi) = (
+            answered.iter().min().copied().unwrap_or(0),
+            answered.iter().max().copied().unwrap_or(0),
+        );
+        println!(
+            "answered per session: {answered:?}; fewest / most {:.2}",
+            lo as f64 / hi.max(1) as f64
+        );
+    }
     let compute = mean(&load.compute);
     let p99 = percentile(&load.latencies, 0.99);
     println!(

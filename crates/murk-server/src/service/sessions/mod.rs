@@ -47,6 +47,9 @@ pub struct SessionsApi {
     metrics: SessionMetrics,
     stop: watch::Receiver<bool>,
     next_id: Arc<AtomicU64>,
+    /// One frame computes at a time on this replica, taken in the order the sessions asked
+    /// (tokio's semaphore is first-come first-served): see [`run::FrameGate`].
+    gate: run::FrameGate,
 }
 
 impl SessionsApi {
@@ -66,6 +69,7 @@ impl SessionsApi {
             metrics,
             stop,
             next_id: Arc::default(),
+            gate: run::FrameGate::default(),
         }
     }
 }
@@ -160,6 +164,7 @@ impl pb::sessions_server::Sessions for SessionsApi {
                 jobs: api.jobs.clone(),
                 metrics: api.metrics.clone(),
                 stop: api.stop.clone(),
+                gate: api.gate.clone(),
             };
             run::run(ctx, inbound, events).await;
         });

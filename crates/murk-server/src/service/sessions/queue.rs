@@ -97,6 +97,24 @@ impl FrameQueue {
         }
     }
 
+    /// Waits until a frame is queued, without taking it: true then, false once the queue is
+    /// closed and empty. (The worker waits here, then for its turn to compute, then pops: under
+    /// LATEST the frame it pops is the newest that arrived meanwhile.)
+    pub async fn wait_ready(&self) -> bool {
+        loop {
+            {
+                let s = self.lock();
+                if !s.frames.is_empty() {
+                    return true;
+                }
+                if s.closed {
+                    return false;
+                }
+            }
+            self.ready.notified().await;
+        }
+    }
+
     /// No more frames will come; the worker finishes those queued.
     pub fn close(&self) {
         self.lock().closed = true;
@@ -139,6 +157,23 @@ mod tests {
         assert_eq!(q.pop().await.unwrap().frame.sequence, 3);
         assert_eq!(q.pop().await.unwrap().frame.sequence, 4);
         assert!(q.pop().await.is_none());
+    }
+
+    #[tokio::test]
+    async fn waiting_for_a_frame_leaves_it_for_the_newest_to_replace() {
+        let q = std::sync::Arc::new(FrameQueue::new(1, pb::QueuePolicy::Latest));
+        let waiter = {
+            let q = q.clone();
+            tokio::spawn(async move { q.wait_ready().await })
+        };
+        assert!(q.push(frame(1)).await.is_none());
+        assert!(waiter.await.unwrap());
+        // The worker waited without taking frame 1, so a newer frame replaces it before the pop.
+        assert_eq!(q.push(frame(2)).await.unwrap().frame.sequence, 1);
+        assert!(q.wait_ready().await);
+        assert_eq!(q.pop().await.unwrap().frame.sequence, 2);
+        q.close();
+        assert!(!q.wait_ready().await, "closed and empty");
     }
 
     #[tokio::test]
