@@ -4,7 +4,8 @@
 # imported as `murk-standin/debian:bookworm-slim`, a builder on top of it carrying this
 # machine's Rust toolchain, `murk-standin/rust:bookworm`, and Debian's redis-server and nginx on
 # the same base for deploy/docker-compose.yml (`murk-standin/redis:bookworm`,
-# `murk-standin/nginx:bookworm`). Then:
+# `murk-standin/nginx:bookworm`, and `murk-standin/prometheus:bookworm` for its observability
+# profile). Then:
 #
 #   docker build --build-arg RUST_IMAGE=murk-standin/rust:bookworm \
 #                --build-arg RUNTIME_IMAGE=murk-standin/debian:bookworm-slim -t murk:latest .
@@ -67,6 +68,25 @@ EXPOSE 50051
 CMD ["nginx", "-g", "daemon off;"]
 DOCKERFILE
 docker build -t murk-standin/nginx:bookworm "$work/nginx"
+# The observability profile's Prometheus, from Debian's package, run as the official image runs
+# it: the binary as the entrypoint (the compose file passes only flags), data in /prometheus.
+# Grafana has no Debian package; the profile's grafana service needs the official image.
+mkdir -p "$work/prometheus"
+cat > "$work/prometheus/Dockerfile" <<'DOCKERFILE'
+FROM murk-standin/debian:bookworm-slim
+RUN apt-get update \
+    && apt-get install -y --no-install-recommends prometheus \
+    && rm -rf /var/lib/apt/lists/* \
+    && mkdir -p /prometheus && chown prometheus:prometheus /prometheus
+USER prometheus
+WORKDIR /prometheus
+EXPOSE 9090
+ENTRYPOINT ["/usr/bin/prometheus"]
+CMD ["--config.file=/etc/prometheus/prometheus.yml", "--storage.tsdb.path=/prometheus"]
+DOCKERFILE
+docker build -t murk-standin/prometheus:bookworm "$work/prometheus"
 echo "stand-in images ready (cargo from ${cargo_bin})"
-echo "compose with them: MURK_IMAGE=murk:latest REDIS_IMAGE=murk-standin/redis:bookworm \\"
-echo "  NGINX_IMAGE=murk-standin/nginx:bookworm docker-compose -p murk -f deploy/docker-compose.yml …"
+echo "compose with them: RUST_IMAGE=murk-standin/rust:bookworm \\"
+echo "  RUNTIME_IMAGE=murk-standin/debian:bookworm-slim REDIS_IMAGE=murk-standin/redis:bookworm \\"
+echo "  NGINX_IMAGE=murk-standin/nginx:bookworm PROMETHEUS_IMAGE=murk-standin/prometheus:bookworm \\"
+echo "  docker-compose -p murk -f deploy/docker-compose.yml up -d --build"

@@ -107,6 +107,11 @@ def test_full_queue_is_retried_as_retry_info_says(start_server: ServerFactory, t
     frame = mc.load_tof_frame(tof_scene)
     with Client(s.url, retry=RetryPolicy.never()) as c:
         running = c.submit(slow_tof_request(frame, 1))
+        # Only once the first job left the queue for the worker is there room for the second
+        # (on a loaded host the worker may take a moment to pick it up).
+        for status in c.watch(running):
+            if status.state == mc.JobState.RUNNING:
+                break
         queued = c.submit(slow_tof_request(frame, 2))
         with pytest.raises(mc.ResourceExhausted) as e:
             c.submit(slow_tof_request(frame, 3))
