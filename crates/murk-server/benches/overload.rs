@@ -20,7 +20,7 @@ use murk::simulate::tof::{simulate_tof, TofSimConfig};
 use murk::Monitor;
 use murk_server::jobs::JobsConfig;
 use murk_server::server::{InProcessServer, ServerConfig};
-use murk_server::service::convert::{ps_request_to_proto, tof_request_to_proto};
+use murk_server::service::convert::{ps_request_to_proto, simulated_tof_request};
 use murk_server::service::proto::v1 as pb;
 use tonic::transport::Endpoint;
 use tonic::Code;
@@ -32,13 +32,7 @@ fn frame(width: usize, height: usize, seed: u64) -> pb::TofDepthRequest {
         ..TofSimConfig::with_size(width, height)
     };
     let f = simulate_tof(&cfg, &Monitor::noop()).expect("simulate");
-    tof_request_to_proto(
-        &f.amplitude,
-        &f.phase,
-        Some(&f.intrinsics),
-        cfg.modulation_frequency_hz,
-        Some(cfg.light_position_m()),
-    )
+    simulated_tof_request(&f, &cfg)
 }
 
 /// One unary call, retried after every RESOURCE_EXHAUSTED as RetryInfo says: (latency s, refusals).

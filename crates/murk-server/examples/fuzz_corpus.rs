@@ -15,8 +15,8 @@ use murk::simulate::ps::{simulate_ps, PsSimConfig};
 use murk::simulate::tof::{simulate_tof, TofSimConfig};
 use murk::Monitor;
 use murk_server::service::convert::{
-    mvs_request_to_proto, params_request_to_proto, ps_request_to_proto, stereo_request_to_proto,
-    tof_request_to_proto,
+    mvs_request_to_proto, params_request_to_proto, ps_request_to_proto, simulated_tof_request,
+    stereo_request_to_proto,
 };
 use murk_server::service::proto::v1 as pb;
 use prost::Message;
@@ -39,13 +39,7 @@ fn main() -> anyhow::Result<()> {
         ..TofSimConfig::with_size(16, 12)
     };
     let frame = simulate_tof(&tof_cfg, &quiet)?;
-    let tof = Method::TofDepth(tof_request_to_proto(
-        &frame.amplitude,
-        &frame.phase,
-        Some(&frame.intrinsics),
-        tof_cfg.modulation_frequency_hz,
-        Some(tof_cfg.light_position_m()),
-    ));
+    let tof = Method::TofDepth(simulated_tof_request(&frame, &tof_cfg));
 
     let mvs_scene = simulate_mvs(
         &MvsSimConfig {

@@ -21,9 +21,8 @@ use murk::simulate::mvs::{simulate_mvs, MvsSimConfig};
 use murk::simulate::tof::{simulate_tof, TofSimConfig};
 use murk::tof::estimate_tof_depth;
 use murk_server::service::convert::{
-    stereo_from_proto, stereo_outputs_from_proto, stereo_request_to_proto, stereo_to_proto,
-    tof_from_proto, tof_outputs_from_proto, tof_request_to_proto, tof_to_proto, Delivery,
-    ImageLimits,
+    simulated_tof_request, stereo_from_proto, stereo_outputs_from_proto, stereo_request_to_proto,
+    stereo_to_proto, tof_from_proto, tof_outputs_from_proto, tof_to_proto, Delivery, ImageLimits,
 };
 use murk_server::service::proto::v1 as pb;
 
@@ -153,13 +152,7 @@ fn main() -> anyhow::Result<()> {
             ..TofSimConfig::with_size(w, h)
         };
         let frame = simulate_tof(&cfg, &monitor)?;
-        let mut req = tof_request_to_proto(
-            &frame.amplitude,
-            &frame.phase,
-            Some(&frame.intrinsics),
-            cfg.modulation_frequency_hz,
-            Some(cfg.light_position_m()),
-        );
+        let mut req = simulated_tof_request(&frame, &cfg);
         let (input, params, _, _) = tof_from_proto(&req, &limits)?;
         let out = estimate_tof_depth(&input, &params, &monitor)?;
         for ((delivery, encoding), tally) in variants().into_iter().zip(&mut tallies) {

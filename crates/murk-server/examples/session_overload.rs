@@ -33,7 +33,7 @@ use anyhow::{bail, ensure, Context};
 use murk::monitor::Monitor;
 use murk::simulate::tof::TofSimConfig;
 use murk::simulate::tof_sequence::{simulate_tof_sequence_frame, TofMotion};
-use murk_server::service::convert::tof_request_to_proto;
+use murk_server::service::convert::simulated_tof_request;
 use murk_server::service::proto::v1 as pb;
 use pb::session_event::Event;
 use pb::sessions_client::SessionsClient;
@@ -293,13 +293,7 @@ fn simulated(a: &Args) -> anyhow::Result<(pb::SessionConfig, Vec<pb::SessionFram
     let mut frames = Vec::new();
     for k in 0..a.distinct {
         let f = simulate_tof_sequence_frame(&cfg, &motion, k, &Monitor::noop())?;
-        let mut req = tof_request_to_proto(
-            &f.amplitude,
-            &f.phase,
-            Some(&f.intrinsics),
-            cfg.modulation_frequency_hz,
-            Some(cfg.light_position_m()),
-        );
+        let mut req = simulated_tof_request(&f, &cfg);
         frames.push(pb::SessionFrame {
             amplitude: req.amplitude.take(),
             phase: req.phase.take(),

@@ -25,7 +25,7 @@ use std::time::{Duration, Instant};
 use anyhow::{bail, Context};
 use murk::monitor::Monitor;
 use murk::simulate::tof::{simulate_tof, TofSimConfig};
-use murk_server::service::convert::tof_request_to_proto;
+use murk_server::service::convert::simulated_tof_request;
 use murk_server::service::proto::v1 as pb;
 use pb::jobs_client::JobsClient;
 use tonic::transport::{Channel, Endpoint};
@@ -188,13 +188,7 @@ async fn run(a: &Args, url: &str, pid: u32) -> anyhow::Result<()> {
         ..TofSimConfig::with_size(256, 212)
     };
     let frame = simulate_tof(&cfg, &Monitor::noop())?;
-    let mut req = tof_request_to_proto(
-        &frame.amplitude,
-        &frame.phase,
-        Some(&frame.intrinsics),
-        cfg.modulation_frequency_hz,
-        Some(cfg.light_position_m()),
-    );
+    let mut req = simulated_tof_request(&frame, &cfg);
     req.outputs = Some(pb::OutputOptions {
         fields: murk_server::service::convert::TOF_OUTPUTS
             .iter()

@@ -29,7 +29,7 @@ pub use stereo::{
     StereoConfig, StereoInput, STEREO_OUTPUTS,
 };
 pub use tof::{
-    intrinsics_from_proto, intrinsics_to_proto, tof_from_proto, tof_images_from_proto,
-    tof_outputs_from_proto, tof_params_from_proto, tof_points_from_proto, tof_request_to_proto,
-    tof_to_proto, TofPoints, TOF_OUTPUTS,
+    intrinsics_from_proto, intrinsics_to_proto, simulated_tof_request, tof_from_proto,
+    tof_images_from_proto, tof_outputs_from_proto, tof_params_from_proto, tof_points_from_proto,
+    tof_request_to_proto, tof_to_proto, TofPoints, TOF_OUTPUTS,
 };

@@ -320,6 +320,21 @@ pub fn tof_request_to_proto(
     }
 }
 
+/// The request a camera would send for a simulated frame: its images, the simulator's
+/// intrinsics, modulation frequency and light position (tests, examples, benchmarks).
+pub fn simulated_tof_request(
+    frame: &murk::simulate::TofSimFrame,
+    cfg: &murk::simulate::TofSimConfig,
+) -> pb::TofDepthRequest {
+    tof_request_to_proto(
+        &frame.amplitude,
+        &frame.phase,
+        Some(&frame.intrinsics),
+        cfg.modulation_frequency_hz,
+        Some(cfg.light_position_m()),
+    )
+}
+
 /// `depth` with 0 ("no measurement") where `range_std_m` is at its cap `unmeasured`.
 fn without_unmeasured(depth: &ImageF32, range_std_m: &ImageF32, unmeasured: f32) -> ImageF32 {
     let mut out = depth.clone();

@@ -18,7 +18,7 @@ use murk::simulate::tof::{simulate_tof, TofSimConfig};
 use murk::Monitor;
 use murk_server::jobs::JobsConfig;
 use murk_server::server::{InProcessServer, ServerConfig};
-use murk_server::service::convert::{mvs_request_to_proto, tof_request_to_proto};
+use murk_server::service::convert::{mvs_request_to_proto, simulated_tof_request};
 use murk_server::service::proto::v1 as pb;
 use pb::jobs_client::JobsClient;
 use pb::reconstruction_client::ReconstructionClient;
@@ -70,13 +70,7 @@ pub fn tof_request(width: usize, height: usize, seed: u64) -> pb::TofDepthReques
         ..TofSimConfig::with_size(width, height)
     };
     let frame = simulate_tof(&cfg, &Monitor::noop()).expect("simulate");
-    tof_request_to_proto(
-        &frame.amplitude,
-        &frame.phase,
-        Some(&frame.intrinsics),
-        cfg.modulation_frequency_hz,
-        Some(cfg.light_position_m()),
-    )
+    simulated_tof_request(&frame, &cfg)
 }
 
 /// A request that runs for a long time (thousands of fine iterations, early stopping off)
