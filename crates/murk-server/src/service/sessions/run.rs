@@ -102,6 +102,30 @@ async fn stopped(stop: &mut watch::Receiver<bool>) {
     let _ = stop.wait_for(|s| *s).await.map(|_| ());
 }
 
+/// The status that ends a session when the server shuts down.
+fn shutting_down() -> Result<pb::SessionEvent, Status> {
+    Err(Status::unavailable(
+        "the server is shutting down; open a new session (it starts cold)",
+    ))
+}
+
+/// `wait`'s output, unless the client goes away or the server stops first: then why the
+/// session ends (a stopping server first tells the client).
+async fn unless_ended<T>(
+    wait: impl std::future::Future<Output = T>,
+    events: &Events,
+    stop: &mut watch::Receiver<bool>,
+) -> Result<T, &'static str> {
+    tokio::select! {
+        t = wait => Ok(t),
+        _ = events.closed() => Err("client gone"),
+        _ = stopped(stop) => {
+            let _ = events.send(shutting_down()).await;
+            Err("server shutdown")
+        }
+    }
+}
+
 /// Runs a configured session to its end.
 pub(super) async fn run(
     ctx: SessionContext,
@@ -155,32 +179,17 @@ async fn compute_frames(
             return (0, "bad configuration");
         }
     };
-    let shutting_down = || {
-        Err(Status::unavailable(
-            "the server is shutting down; open a new session (it starts cold)",
-        ))
-    };
     loop {
-        let ready = tokio::select! {
-            r = queue.wait_ready() => r,
-            _ = events.closed() => return (computed, "client gone"),
-            _ = stopped(&mut stop) => {
-                let _ = events.send(shutting_down()).await;
-                return (computed, "server shutdown");
-            }
-        };
-        if !ready {
-            return (computed, "stream closed by the client");
+        match unless_ended(queue.wait_ready(), events, &mut stop).await {
+            Ok(true) => {}
+            Ok(false) => return (computed, "stream closed by the client"),
+            Err(why) => return (computed, why),
         }
         // Held until this frame's answer is computed; LATEST keeps replacing the waiting frame
         // meanwhile, so the frame popped below is the newest.
-        let turn = tokio::select! {
-            t = ctx.gate.turn() => t,
-            _ = events.closed() => return (computed, "client gone"),
-            _ = stopped(&mut stop) => {
-                let _ = events.send(shutting_down()).await;
-                return (computed, "server shutdown");
-            }
+        let turn = match unless_ended(ctx.gate.turn(), events, &mut stop).await {
+            Ok(t) => t,
+            Err(why) => return (computed, why),
         };
         let Some(Queued { frame, arrived }) = queue.pop().await else {
             return (computed, "stream closed by the client");
