@@ -279,10 +279,6 @@ impl ServeArgs {
                         read_pem(key, "--redis-client-key")?,
                     ));
                 }
-                anyhow::ensure!(
-                    !r.tls.is_set() || url.starts_with("rediss://"),
-                    "--redis-ca-file and --redis-client-cert need a rediss:// --redis-url"
-                );
                 Some(r)
             }
         };
@@ -344,16 +340,13 @@ impl ServeArgs {
 /// kernel is the job's memory peak; the other half holds the server, the images and results).
 fn ps_kernel_bound(explicit: Option<usize>, memory_limit: Option<u64>, jobs: usize) -> usize {
     let default = murk::ps::pipeline::DEFAULT_MAX_KERNEL_BYTES;
-    let bound = explicit.unwrap_or_else(|| match memory_limit {
-        Some(limit) => {
-            usize::try_from(limit / 2 / jobs.max(1) as u64).map_or(default, |b| b.min(default))
-        }
-        None => default,
-    });
-    let source = match (explicit, memory_limit) {
-        (Some(_), _) => "--max-ps-kernel-bytes",
-        (None, Some(_)) => "half the cgroup memory limit per concurrent job",
-        (None, None) => "default (no cgroup memory limit)",
+    let (bound, source) = match (explicit, memory_limit) {
+        (Some(b), _) => (b, "--max-ps-kernel-bytes"),
+        (None, Some(limit)) => (
+            usize::try_from(limit / 2 / jobs.max(1) as u64).map_or(default, |b| b.min(default)),
+            "half the cgroup memory limit per concurrent job",
+        ),
+        (None, None) => (default, "default (no cgroup memory limit)"),
     };
     tracing::info!(
         bytes = bound,
