@@ -17,7 +17,8 @@ import pytest
 REPO = Path(__file__).resolve().parents[3]
 
 
-def _free_port() -> int:
+def free_port() -> int:
+    """A loopback port nothing listens on (at the time of asking)."""
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
@@ -41,7 +42,7 @@ class Nginx:
         )
         if binary is None:
             pytest.skip("SKIPPED: nginx is not installed (apt-get install nginx); .ci/run installs it")
-        self.port = _free_port()
+        self.port = free_port()
         servers = "".join(f"server {u};\n        " for u in upstreams)
         temp_paths = "".join(
             f"\n    {kind}_temp_path {tmp}/{kind};"

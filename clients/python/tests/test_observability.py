@@ -27,6 +27,7 @@ import yaml
 import murk_client as mc
 from murk_client import Client, RetryPolicy
 
+from .balancer import free_port
 from .conftest import REPO, MurkServer
 
 OBSERVABILITY = REPO / "deploy" / "observability"
@@ -37,12 +38,6 @@ def _tool(name: str) -> str:
     if path is None:
         pytest.skip(f"SKIPPED: {name} is not installed (apt-get install prometheus); .ci/run installs it")
     return path
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def test_the_alert_rules_pass_their_unit_tests() -> None:
@@ -92,7 +87,7 @@ class _Prometheus:
         assert dns, "deploy/observability/prometheus.yml no longer discovers the replicas by DNS"
         config = config.replace(dns.group(0), f"    static_configs:\n      - targets: ['{metrics_addr}']\n")
         (tmp / "prometheus.yml").write_text(config)
-        self.port = _free_port()
+        self.port = free_port()
         self.proc = subprocess.Popen(
             [
                 binary,
@@ -143,7 +138,7 @@ def redis_url(tmp_path: Path) -> Iterator[str]:
         pytest.skip(
             "SKIPPED: redis-server is not installed (apt-get install redis-server); .ci/run installs it"
         )
-    port = _free_port()
+    port = free_port()
     proc = subprocess.Popen(
         [binary, "--bind", "127.0.0.1", "--port", str(port), "--save", "", "--dir", str(tmp_path)],
         stdout=subprocess.DEVNULL,
@@ -164,7 +159,7 @@ def redis_url(tmp_path: Path) -> Iterator[str]:
 def test_every_dashboard_query_returns_data_from_a_real_prometheus(
     workdir: Path, tmp_path: Path, tof_scene: Path, redis_url: str
 ) -> None:
-    metrics_addr = f"127.0.0.1:{_free_port()}"
+    metrics_addr = f"127.0.0.1:{free_port()}"
     token = "obs-token-0123456789abcdef"
     tokens = tmp_path / "tokens"
     tokens.write_text(f"fleet-a {token}\n")
