@@ -37,7 +37,7 @@ struct Args {
     /// Frame height.
     #[arg(long, default_value_t = 424)]
     height: usize,
-    /// Object placement: separated or cluttered.
+    /// Object placement: separated, cluttered or obstacles.
     #[arg(long, default_value = "separated")]
     layout: String,
     /// Camera frame rate, Hz (how far things move between frames).

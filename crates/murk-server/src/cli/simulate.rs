@@ -177,8 +177,9 @@ pub struct SimTofArgs {
     /// Overrides the preset's extinction coefficient, per millimetre.
     #[arg(long)]
     pub beta_per_mm: Option<f64>,
-    /// Object placement: separated (objects apart, background around them) or cluttered (a
-    /// large near sphere occluding a panel, plus 1–2 objects).
+    /// Object placement: separated (objects apart, background around them), cluttered (a
+    /// large near sphere occluding a panel, plus 1–2 objects) or obstacles (a near object, a
+    /// panel seen nearly edge-on at its outline, a thin pole).
     #[arg(long, default_value = "separated")]
     pub layout: String,
     /// Render a sequence of this many frames into OUT/frame_0000, OUT/frame_0001, ... (each in

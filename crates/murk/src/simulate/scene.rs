@@ -33,6 +33,18 @@ pub enum Shape {
         /// Maximum corner, m.
         max: V3,
     },
+    /// Box turned about the camera's vertical (y) axis: `half` are its half extents in its own
+    /// frame (m), and `yaw_rad` turns its local +z (its thin side, for a panel) from the camera's
+    /// +z towards +x. A panel at a yaw near ±90° is seen nearly edge-on: a narrow strip whose
+    /// depth changes along it, lit at a grazing angle.
+    TurnedBox {
+        /// Centre, m.
+        centre: V3,
+        /// Half extents along the box's own x, y and z, m.
+        half: V3,
+        /// Rotation about the vertical axis, radians.
+        yaw_rad: f64,
+    },
 }
 
 /// A Lambertian object.
@@ -56,6 +68,10 @@ pub enum SceneLayout {
     /// panel behind it, plus 1–2 further objects ([`Scene::generate_cluttered`]): the scenes on
     /// which the reference's saturated-scatter model breaks.
     Cluttered,
+    /// The obstacles a robot must not lose ([`Scene::generate_obstacles`]): a near box or sphere,
+    /// a thin panel seen nearly edge-on beside or partly behind it, so that the two touch in the
+    /// image, a thin pole, and up to one further object.
+    Obstacles,
 }
 
 impl std::fmt::Display for SceneLayout {
@@ -63,6 +79,7 @@ impl std::fmt::Display for SceneLayout {
         f.write_str(match self {
             SceneLayout::Separated => "separated",
             SceneLayout::Cluttered => "cluttered",
+            SceneLayout::Obstacles => "obstacles",
         })
     }
 }
@@ -73,9 +90,12 @@ impl std::str::FromStr for SceneLayout {
         match s.trim().to_ascii_lowercase().as_str() {
             "separated" => Ok(SceneLayout::Separated),
             "cluttered" => Ok(SceneLayout::Cluttered),
+            "obstacles" => Ok(SceneLayout::Obstacles),
             other => Err(crate::error::MurkError::invalid(
                 "layout",
-                format!("unknown scene layout {other:?}; expected separated or cluttered"),
+                format!(
+                    "unknown scene layout {other:?}; expected separated, cluttered or obstacles"
+                ),
             )),
         }
     }
@@ -172,6 +192,56 @@ impl Shape {
                     None
                 }
             }
+            Shape::TurnedBox {
+                centre,
+                half,
+                yaw_rad,
+            } => {
+                // Intersect in the box's own frame, where it is axis-aligned; a rotation keeps
+                // the ray parameter t, and turns the normal back.
+                let local = Shape::Box {
+                    min: -half,
+                    max: half,
+                };
+                let (t, n) = local.intersect(
+                    yaw_to_local(o - centre, yaw_rad),
+                    yaw_to_local(d, yaw_rad),
+                    t_min,
+                    t_max,
+                )?;
+                Some((t, yaw_to_local(n, -yaw_rad)))
+            }
+        }
+    }
+
+    /// The centre of the shape, m.
+    pub fn centre(&self) -> V3 {
+        match *self {
+            Shape::Sphere { centre, .. } | Shape::TurnedBox { centre, .. } => centre,
+            Shape::Box { min, max } => (min + max) * 0.5,
+        }
+    }
+
+    /// The shape moved by `v` (m).
+    pub fn translated(&self, v: V3) -> Shape {
+        match *self {
+            Shape::Sphere { centre, radius } => Shape::Sphere {
+                centre: centre + v,
+                radius,
+            },
+            Shape::Box { min, max } => Shape::Box {
+                min: min + v,
+                max: max + v,
+            },
+            Shape::TurnedBox {
+                centre,
+                half,
+                yaw_rad,
+            } => Shape::TurnedBox {
+                centre: centre + v,
+                half,
+                yaw_rad,
+            },
         }
     }
 
@@ -184,8 +254,16 @@ impl Shape {
                 let h = max - c;
                 (c, h.norm())
             }
+            Shape::TurnedBox { centre, half, .. } => (centre, half.norm()),
         }
     }
+}
+
+/// `v` (camera frame) in the frame of a box turned by `yaw_rad` about the vertical axis; a
+/// negative angle maps back.
+fn yaw_to_local(v: V3, yaw_rad: f64) -> V3 {
+    let (s, c) = yaw_rad.sin_cos();
+    V3::new(c * v[0] - s * v[2], v[1], s * v[0] + c * v[2])
 }
 
 impl Scene {
@@ -285,6 +363,7 @@ impl Scene {
         match layout {
             SceneLayout::Separated => Scene::generate(rng, k, width, height),
             SceneLayout::Cluttered => Scene::generate_cluttered(rng, k, width, height),
+            SceneLayout::Obstacles => Scene::generate_obstacles(rng, k, width, height),
         }
     }
 
@@ -346,6 +425,112 @@ impl Scene {
             let (coverage, spans) = scene.coarse_coverage(k, width, height);
             let hidden = scene.hidden_share(1, k, width, height);
             if coverage <= 0.55 && !spans && (0.2..=0.6).contains(&hidden) {
+                return scene;
+            }
+            last = Some(scene);
+        }
+        // Every attempt failing is practically impossible with the ranges above; the last draw
+        // is still a valid scene.
+        last.expect("at least one attempt")
+    }
+
+    /// A seeded scene of thin and touching obstacles: wall at 4–6 m (albedo 0.05) and
+    /// - a near box or sphere (albedo 0.4–0.9, nearest point 0.8–1.3 m from the camera);
+    /// - a thin panel (1.6–2.4 cm thick, 0.4–0.7 m wide, 0.3–0.6 m tall, albedo 0.3–0.8)
+    ///   0.2–0.8 m behind it, turned 70–88° from facing the camera, so that it is seen nearly
+    ///   edge-on, lit at a grazing angle, and placed at the near object's outline in the image
+    ///   (beside it or partly behind it, at most 70 % hidden);
+    /// - a pole 2–4 cm wide and 0.4–0.8 m tall at 1–2 m;
+    /// - up to one further object of [`Scene::generate`]'s kinds.
+    ///
+    /// No object spans the image from top to bottom, and objects cover at most 50 % of it.
+    pub fn generate_obstacles(
+        rng: &mut ChaCha8Rng,
+        k: &Intrinsics,
+        width: usize,
+        height: usize,
+    ) -> Scene {
+        let wall_z_m = rng.random_range(4.0..6.0);
+        let mut last = None;
+        for _attempt in 0..200 {
+            let u = rng.random_range(0.3..0.7) * (width as f64 - 1.0);
+            let v = rng.random_range(0.35..0.65) * (height as f64 - 1.0);
+            let dir = k.ray(u, v);
+            let front = rng.random_range(0.8..1.3);
+            let (near, near_half_width) = if rng.random_bool(0.5) {
+                let radius = rng.random_range(0.12..0.22);
+                let shape = Shape::Sphere {
+                    centre: dir * (front + radius),
+                    radius,
+                };
+                (shape, radius)
+            } else {
+                let half = V3::new(
+                    rng.random_range(0.1..0.2),
+                    rng.random_range(0.1..0.25),
+                    rng.random_range(0.08..0.15),
+                );
+                let c = dir * (front + half[2]);
+                (
+                    Shape::Box {
+                        min: c - half,
+                        max: c + half,
+                    },
+                    half[0],
+                )
+            };
+            let near_centre = near.centre();
+            // The panel's centre: behind the near object, sideways by 0.8–1.3 of its half
+            // width scaled to the panel's depth, so its outline meets the near object's.
+            let panel_z = near_centre[2] + rng.random_range(0.2..0.8);
+            let side = if rng.random_bool(0.5) { 1.0 } else { -1.0 };
+            let scale = panel_z / near_centre[2];
+            let centre = V3::new(
+                (near_centre[0] + side * rng.random_range(0.8..1.3) * near_half_width) * scale,
+                (near_centre[1] + rng.random_range(-0.6..0.6) * near_half_width) * scale,
+                panel_z,
+            );
+            let half = V3::new(
+                rng.random_range(0.2..0.35),
+                rng.random_range(0.15..0.3),
+                rng.random_range(0.008..0.012),
+            );
+            // Turned 70–88° from facing the camera along the ray to its centre.
+            let facing = centre[0].atan2(centre[2]);
+            let grazing = rng.random_range(70.0f64..88.0).to_radians();
+            let turn = if rng.random_bool(0.5) { 1.0 } else { -1.0 };
+            let panel = Shape::TurnedBox {
+                centre,
+                half,
+                yaw_rad: facing + turn * grazing,
+            };
+            let mut objects = vec![
+                SceneObject {
+                    shape: near,
+                    albedo: rng.random_range(0.4..0.9),
+                },
+                SceneObject {
+                    shape: panel,
+                    albedo: rng.random_range(0.3..0.8),
+                },
+            ];
+            let Some(pole) = (0..20)
+                .map(|_| random_pole(rng, k, width, height))
+                .find(|pole| clear_of(&objects, &pole.shape))
+            else {
+                continue;
+            };
+            objects.push(pole);
+            let target = objects.len() + rng.random_range(0..=1usize);
+            add_clear_objects(&mut objects, target, rng, k, width, height);
+            let scene = Scene {
+                wall_z_m,
+                wall_albedo: 0.05,
+                objects,
+            };
+            let (coverage, spans) = scene.coarse_coverage(k, width, height);
+            let hidden = scene.hidden_share(1, k, width, height);
+            if coverage <= 0.5 && !spans && hidden <= 0.7 {
                 return scene;
             }
             last = Some(scene);
@@ -432,15 +617,36 @@ fn add_clear_objects(
     while objects.len() < target && tries < 100 {
         tries += 1;
         let obj = random_object(rng, k, width, height);
-        let (c, r) = obj.shape.bounding_sphere();
-        let clear_of_others = objects.iter().all(|o| {
-            let (c2, r2) = o.shape.bounding_sphere();
-            let dc = c - c2;
-            dc.norm() > r + r2 + 0.05
-        });
-        if clear_of_others {
+        if clear_of(objects, &obj.shape) {
             objects.push(obj);
         }
+    }
+}
+
+/// Whether `shape`'s bounding sphere keeps 5 cm from those of all `objects`.
+fn clear_of(objects: &[SceneObject], shape: &Shape) -> bool {
+    let (c, r) = shape.bounding_sphere();
+    objects.iter().all(|o| {
+        let (c2, r2) = o.shape.bounding_sphere();
+        (c - c2).norm() > r + r2 + 0.05
+    })
+}
+
+/// A vertical pole 2–4 cm wide and 0.4–0.8 m tall, 1–2 m from the camera, inside the central
+/// part of the view; albedo 0.3–0.9.
+fn random_pole(rng: &mut ChaCha8Rng, k: &Intrinsics, width: usize, height: usize) -> SceneObject {
+    let u = rng.random_range(0.15..0.85) * (width as f64 - 1.0);
+    let v = rng.random_range(0.3..0.7) * (height as f64 - 1.0);
+    let hw = rng.random_range(0.01..0.02);
+    let hh = rng.random_range(0.2..0.4);
+    let c = k.ray(u, v) * rng.random_range(1.0..2.0);
+    let h = V3::new(hw, hh, hw);
+    SceneObject {
+        shape: Shape::Box {
+            min: c - h,
+            max: c + h,
+        },
+        albedo: rng.random_range(0.3..0.9),
     }
 }
 
@@ -556,6 +762,71 @@ mod tests {
             );
             let (cov, spans) = s.coarse_coverage(&k, 512, 424);
             assert!(cov <= 0.55 && !spans, "seed {seed}: {cov}");
+        }
+    }
+
+    #[test]
+    fn a_turned_box_is_hit_on_its_faces_with_turned_normals() {
+        // A 1 cm thick panel 2 m ahead, turned 90°: its face normal is the camera's ±x, so the
+        // camera sees it exactly edge-on.
+        let panel = Shape::TurnedBox {
+            centre: V3::new(0.0, 0.0, 2.0),
+            half: V3::new(0.3, 0.2, 0.005),
+            yaw_rad: std::f64::consts::FRAC_PI_2,
+        };
+        // Its local x (the 0.6 m width) now runs along the camera's −z: the ray enters the
+        // panel's end at z = 2 − 0.3.
+        let (t, n) = panel
+            .intersect(V3::zeros(), V3::new(0.0, 0.0, 1.0), 0.0, 10.0)
+            .unwrap();
+        assert!((t - 1.7).abs() < 1e-12, "{t}");
+        assert!((n - V3::new(0.0, 0.0, -1.0)).norm() < 1e-12, "{n:?}");
+        // A ray 1 cm to the side misses the 1 cm thick panel.
+        let d = V3::new(0.01, 0.0, 2.0).normalize();
+        assert!(panel.intersect(V3::zeros(), d, 0.0, 10.0).is_none());
+        // A ray from the side hits its broad face, with the normal pointing back at it.
+        let (t, n) = panel
+            .intersect(V3::new(1.0, 0.0, 2.0), V3::new(-1.0, 0.0, 0.0), 0.0, 10.0)
+            .unwrap();
+        assert!((t - 0.995).abs() < 1e-12, "{t}");
+        assert!((n - V3::new(1.0, 0.0, 0.0)).norm() < 1e-12, "{n:?}");
+        // Unturned, it is the axis-aligned box.
+        let flat = Shape::TurnedBox {
+            centre: V3::new(0.0, 0.0, 2.0),
+            half: V3::new(0.3, 0.2, 0.005),
+            yaw_rad: 0.0,
+        };
+        let (t, _) = flat
+            .intersect(V3::zeros(), V3::new(0.0, 0.0, 1.0), 0.0, 10.0)
+            .unwrap();
+        assert!((t - 1.995).abs() < 1e-12);
+    }
+
+    #[test]
+    fn obstacle_scenes_hold_a_near_object_an_edge_on_panel_and_a_pole() {
+        let k = Intrinsics::new(365.0, 365.0, 255.5, 211.5);
+        for seed in 0..20 {
+            let mut rng = ChaCha8Rng::seed_from_u64(seed);
+            let s = Scene::generate_obstacles(&mut rng, &k, 512, 424);
+            assert!((3..=4).contains(&s.objects.len()), "seed {seed}");
+            assert!((4.0..6.0).contains(&s.wall_z_m));
+            let Shape::TurnedBox {
+                centre, yaw_rad, ..
+            } = s.objects[1].shape
+            else {
+                panic!("seed {seed}: the second object is the panel");
+            };
+            // 70–88° between its face normal and the ray to its centre.
+            let grazing = (yaw_rad - centre[0].atan2(centre[2])).abs().to_degrees();
+            assert!((69.9..88.1).contains(&grazing), "seed {seed}: {grazing}");
+            assert!(s.hidden_share(1, &k, 512, 424) <= 0.7, "seed {seed}");
+            let Shape::Box { min, max } = s.objects[2].shape else {
+                panic!("seed {seed}: the third object is the pole");
+            };
+            let width = max[0] - min[0];
+            assert!((0.02..=0.04).contains(&width), "seed {seed}: {width}");
+            let (cov, spans) = s.coarse_coverage(&k, 512, 424);
+            assert!(cov <= 0.5 && !spans, "seed {seed}: {cov}");
         }
     }
 

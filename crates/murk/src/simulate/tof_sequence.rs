@@ -17,7 +17,7 @@
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use super::scene::{Scene, Shape, V3};
+use super::scene::{Scene, V3};
 use super::tof::{render_tof, TofSimConfig, TofSimFrame};
 use crate::error::{MurkError, Result};
 use crate::monitor::Monitor;
@@ -91,20 +91,6 @@ const VELOCITY_STREAM: u64 = 1 << 48;
 /// Noise streams of frame `k` start at `k · NOISE_STREAMS_PER_FRAME` (each row takes one).
 const NOISE_STREAMS_PER_FRAME: u64 = 1 << 32;
 
-/// `shape` moved by `v` (metres).
-fn translated(shape: &Shape, v: V3) -> Shape {
-    match *shape {
-        Shape::Sphere { centre, radius } => Shape::Sphere {
-            centre: centre + v,
-            radius,
-        },
-        Shape::Box { min, max } => Shape::Box {
-            min: min + v,
-            max: max + v,
-        },
-    }
-}
-
 /// Frame `index` of the sequence that starts with `cfg`'s frame and changes by `motion`.
 pub fn simulate_tof_sequence_frame(
     cfg: &TofSimConfig,
@@ -141,7 +127,7 @@ pub fn simulate_tof_sequence_frame(
         let speed = motion.max_speed_m_per_s * (1.0 + 2.0 * velocity_rng.random::<f64>()) / 3.0;
         let dz = 0.3 * (2.0 * velocity_rng.random::<f64>() - 1.0);
         let v = V3::new(angle.cos(), angle.sin(), dz).normalize() * speed;
-        object.shape = translated(&object.shape, v * t_local);
+        object.shape = object.shape.translated(v * t_local);
     }
     render_tof(
         &frame_cfg,
@@ -186,10 +172,7 @@ mod tests {
         let frames: Vec<TofSimFrame> = (0..4)
             .map(|k| simulate_tof_sequence_frame(&small(), &motion, k, &m).unwrap())
             .collect();
-        let centre = |f: &TofSimFrame| match f.scene.objects[0].shape {
-            Shape::Sphere { centre, .. } => centre,
-            Shape::Box { min, max } => (min + max) * 0.5,
-        };
+        let centre = |f: &TofSimFrame| f.scene.objects[0].shape.centre();
         // 0.1 s at 1/3..1 m/s: 33 to 100 mm per frame, at a constant velocity.
         let step = centre(&frames[1]) - centre(&frames[0]);
         assert!((0.03..=0.101).contains(&step.norm()), "{step:?}");
