@@ -12,6 +12,7 @@
 
 use rayon::prelude::*;
 
+use super::coherent::{coherent_contrast, coherent_residual};
 use super::noise_model::NoiseModel;
 use super::params::IrlsChannelParams;
 use super::quadratic_prior::{PatchGrid, QuadraticPrior};
@@ -117,6 +118,9 @@ pub struct IrlsOutcome {
     /// Coarse blocks the held-out check rejected after the coarse level (see
     /// [`HELD_OUT_ROUNDS`]).
     pub held_out_rejected: usize,
+    /// Pixels the thin-structure check moved from the background to the objects (see
+    /// [`THIN_ROUNDS`]).
+    pub thin_accepted: usize,
     /// False when the fine level ran its cap of iterations without its weights settling (with
     /// the convergence test on and at least one fine iteration): the mask may still be moving.
     pub fine_converged: bool,
@@ -158,6 +162,49 @@ impl IrlsStart {
 /// the scatter curves; object blocks, already rejected, have no weight in either solve and so
 /// do not pull the held-out estimates.
 pub const HELD_OUT_ROUNDS: usize = 3;
+
+/// Rounds of the thin-structure check that follows the fine level. A pixel's Tukey weight
+/// judges its residual alone, and an object part whose direct return is only a few noise σ
+/// above the fog — a panel seen at a grazing angle, a pole or a strip beside a nearer occluder
+/// in thick fog — is kept as background. The x-step's smoothness then bends the scatter towards
+/// it, and its residual shrinks further (to about 2 σ on a simulated thick-fog frame whose lost
+/// strip was 4.8 σ from the true scatter), so the pixel ends with the wall's depth.
+///
+/// The check looks at what one pixel cannot show: over a 3 × 3 window an object's residuals
+/// share one direction, noise's do not ([`coherent_residual`]). Each round:
+/// 1. background pixels whose window statistic exceeds [`THIN_CANDIDATE`] are candidates;
+/// 2. the scatter is solved again with the candidates held out (weight 0), so that it no
+///    longer follows them;
+/// 3. a candidate whose statistic against the held-out scatter, taken as a contrast with the
+///    background around it that is no candidate ([`coherent_contrast`]), exceeds
+///    [`THIN_ACCEPT`] joins the objects (weight 0); the others keep their weights. The contrast
+///    cancels where the scatter model itself misfits the background: without it, the
+///    outermost rows, where the beam falls off steeply, turned object on a thick-fog frame.
+///    A candidate with too little such background around it (a strip squeezed between
+///    objects) is judged on the window statistic alone.
+///
+/// The held-out scatter becomes the estimate. The rounds stop early when one finds no candidate
+/// or accepts none.
+pub const THIN_ROUNDS: usize = 1;
+
+/// Window statistic above which a background pixel is held out by the thin-structure check
+/// ([`THIN_ROUNDS`]): 3, where about one noise pixel in 90 lands (χ² with two degrees of
+/// freedom).
+pub const THIN_CANDIDATE: f64 = 3.0;
+
+/// Width of the image border, in pixels, that the thin-structure check ([`THIN_ROUNDS`]) leaves
+/// alone: one 64th of the longer side (8 pixels at 512 × 424, 2 at 128 × 106). Where the
+/// illuminator's beam falls off steeply at the image edge, the smoothness prior cannot bend
+/// the scatter estimate down far enough, and the outermost rows keep a coherent misfit of 2–4
+/// noise σ over that width on thick-fog frames, as a dim strip would: checked, whole border
+/// rows turned object. The border keeps the per-pixel Tukey test.
+pub fn thin_border_band(width: usize, height: usize) -> usize {
+    width.max(height).div_ceil(64)
+}
+
+/// Contrast statistic against the held-out scatter above which a candidate is object
+/// ([`THIN_ROUNDS`]): 5, which pure noise exceeds at about 4 pixels in a million.
+pub const THIN_ACCEPT: f64 = 5.0;
 
 /// CG tolerance multiplier of the held-out check's x-steps: the loosest the levels use while
 /// their weights still move. The check compares block RMS residuals at the noise's scale, and
@@ -568,6 +615,70 @@ pub fn run_irls_vector_from(
         }
     }
 
+    let mut thin_accepted = 0;
+    if fine_run > 0 {
+        let s1 = sigma_fine.unwrap_or(floor);
+        let mut residuals = vec![vec![0.0; n]; m];
+        for _ in 0..THIN_ROUNDS {
+            monitor.checkpoint()?;
+            let g = noise_scale.as_ref().map(|ns| &ns.g[..]);
+            signed_residuals(&x, observed, g, &mut residuals);
+            let background: Vec<bool> = weights.iter().map(|&v| v >= cfg.mask_threshold).collect();
+            let t = coherent_residual(&residuals, &background, w, s1);
+            let h = sys.height();
+            let band = thin_border_band(w, h);
+            let candidate: Vec<bool> = (0..n)
+                .map(|i| {
+                    let (px, py) = (i % w, i / w);
+                    let inside = px >= band && py >= band && px + band < w && py + band < h;
+                    inside && background[i] && t[i] > THIN_CANDIDATE
+                })
+                .collect();
+            if !candidate.contains(&true) {
+                break;
+            }
+            let held: Vec<f64> = (0..n)
+                .map(|i| if candidate[i] { 0.0 } else { weights[i] })
+                .collect();
+            let mut held_x = x.clone();
+            let (mut held_priors, mut held_img) = (priors.to_vec(), prior_img.clone());
+            cg_iterations += x_and_a_steps(
+                &held,
+                &mut held_x,
+                &mut held_img,
+                &mut held_priors,
+                HELD_OUT_TOL_SCALE,
+            )?;
+            signed_residuals(&held_x, observed, g, &mut residuals);
+            let candidates: Vec<usize> = (0..n).filter(|&i| candidate[i]).collect();
+            let plain = coherent_residual(&residuals, &background, w, s1);
+            let others: Vec<bool> = candidate.iter().map(|&c| !c).collect();
+            let contrast = coherent_contrast(&residuals, &background, &others, w, s1, &candidates);
+            let accepted: Vec<usize> = candidates
+                .iter()
+                .zip(&contrast)
+                .filter(|(&i, c)| c.unwrap_or(plain[i]) > THIN_ACCEPT)
+                .map(|(&i, _)| i)
+                .collect();
+            if accepted.is_empty() {
+                break;
+            }
+            thin_accepted += accepted.len();
+            for i in accepted {
+                weights[i] = 0.0;
+            }
+            // The held-out scatter is the estimate under the new weights but for the rejected
+            // candidates, about one pixel in a hundred scattered over the background, whose
+            // data the smooth estimate hardly needs: no further solve.
+            x = held_x;
+            prior_img = held_img;
+            priors.clone_from_slice(&held_priors);
+            if let Some(ns) = noise_scale.as_mut() {
+                ns.update(&x);
+            }
+        }
+    }
+
     if cfg.coarse_iterations + cfg.fine_iterations == 0 {
         for (xc, pc) in x.iter_mut().zip(&prior_img) {
             xc.copy_from_slice(pc);
@@ -582,6 +693,7 @@ pub fn run_irls_vector_from(
         coarse_iterations_run: coarse_run,
         fine_iterations_run: fine_run,
         held_out_rejected,
+        thin_accepted,
         fine_converged,
     })
 }
@@ -633,6 +745,21 @@ impl NoiseScale {
         self.g.par_iter_mut().enumerate().for_each(|(i, g)| {
             let norm = x.iter().map(|c| c[i] * c[i]).sum::<f64>().sqrt();
             *g = (model.sigma(norm) * inv_ref).max(1e-3);
+        });
+    }
+}
+
+/// `out[c][i] = (x̃_c − x_c)ᵢ / gᵢ`: each component's residual relative to the pixel's noise
+/// level `g` (1 without one).
+fn signed_residuals(
+    x: &[Vec<f64>],
+    observed: &[&[f64]],
+    noise_scale: Option<&[f64]>,
+    out: &mut [Vec<f64>],
+) {
+    for ((oc, xc), rc) in observed.iter().zip(x).zip(out.iter_mut()) {
+        rc.par_iter_mut().enumerate().for_each(|(i, r)| {
+            *r = (oc[i] - xc[i]) / noise_scale.map_or(1.0, |g| g[i]);
         });
     }
 }
