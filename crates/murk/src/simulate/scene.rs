@@ -380,11 +380,9 @@ impl Scene {
         height: usize,
     ) -> Scene {
         let wall_z_m = rng.random_range(5.0..6.5);
-        let mut last = None;
-        for _attempt in 0..200 {
-            let u = rng.random_range(0.3..0.7) * (width as f64 - 1.0);
-            let v = rng.random_range(0.35..0.65) * (height as f64 - 1.0);
-            let dir = k.ray(u, v);
+        let accept = |coverage: f64, hidden: f64| coverage <= 0.55 && (0.2..=0.6).contains(&hidden);
+        draw_until(wall_z_m, rng, k, width, height, accept, |rng| {
+            let dir = central_ray(rng, k, width, height);
             let radius = rng.random_range(0.2..0.3);
             let front = rng.random_range(0.75..1.05);
             let centre = dir * (front + radius);
@@ -417,21 +415,8 @@ impl Scene {
             let mut objects = vec![sphere, panel];
             let extra = rng.random_range(1..=2usize);
             add_clear_objects(&mut objects, 2 + extra, rng, k, width, height);
-            let scene = Scene {
-                wall_z_m,
-                wall_albedo: 0.05,
-                objects,
-            };
-            let (coverage, spans) = scene.coarse_coverage(k, width, height);
-            let hidden = scene.hidden_share(1, k, width, height);
-            if coverage <= 0.55 && !spans && (0.2..=0.6).contains(&hidden) {
-                return scene;
-            }
-            last = Some(scene);
-        }
-        // Every attempt failing is practically impossible with the ranges above; the last draw
-        // is still a valid scene.
-        last.expect("at least one attempt")
+            Some(objects)
+        })
     }
 
     /// A seeded scene of thin and touching obstacles: wall at 4–6 m (albedo 0.05) and
@@ -451,11 +436,9 @@ impl Scene {
         height: usize,
     ) -> Scene {
         let wall_z_m = rng.random_range(4.0..6.0);
-        let mut last = None;
-        for _attempt in 0..200 {
-            let u = rng.random_range(0.3..0.7) * (width as f64 - 1.0);
-            let v = rng.random_range(0.35..0.65) * (height as f64 - 1.0);
-            let dir = k.ray(u, v);
+        let accept = |coverage: f64, hidden: f64| coverage <= 0.5 && hidden <= 0.7;
+        draw_until(wall_z_m, rng, k, width, height, accept, |rng| {
+            let dir = central_ray(rng, k, width, height);
             let front = rng.random_range(0.8..1.3);
             let (near, near_half_width) = if rng.random_bool(0.5) {
                 let radius = rng.random_range(0.12..0.22);
@@ -514,30 +497,14 @@ impl Scene {
                     albedo: rng.random_range(0.3..0.8),
                 },
             ];
-            let Some(pole) = (0..20)
+            let pole = (0..20)
                 .map(|_| random_pole(rng, k, width, height))
-                .find(|pole| clear_of(&objects, &pole.shape))
-            else {
-                continue;
-            };
+                .find(|pole| clear_of(&objects, &pole.shape))?;
             objects.push(pole);
             let target = objects.len() + rng.random_range(0..=1usize);
             add_clear_objects(&mut objects, target, rng, k, width, height);
-            let scene = Scene {
-                wall_z_m,
-                wall_albedo: 0.05,
-                objects,
-            };
-            let (coverage, spans) = scene.coarse_coverage(k, width, height);
-            let hidden = scene.hidden_share(1, k, width, height);
-            if coverage <= 0.5 && !spans && hidden <= 0.7 {
-                return scene;
-            }
-            last = Some(scene);
-        }
-        // Every attempt failing is practically impossible with the ranges above; the last draw
-        // is still a valid scene.
-        last.expect("at least one attempt")
+            Some(objects)
+        })
     }
 
     /// Share of object `index`'s pixels (from a coarse render) that another object hides.
@@ -601,6 +568,51 @@ impl Scene {
             .any(|(a, b)| *a && *b);
         (covered as f64 / total.max(1) as f64, spans)
     }
+}
+
+/// The unit ray of a pixel drawn in the central part of the view (30–70 % of the width,
+/// 35–65 % of the height).
+fn central_ray(rng: &mut ChaCha8Rng, k: &Intrinsics, width: usize, height: usize) -> V3 {
+    let u = rng.random_range(0.3..0.7) * (width as f64 - 1.0);
+    let v = rng.random_range(0.35..0.65) * (height as f64 - 1.0);
+    k.ray(u, v)
+}
+
+/// Draws the objects of a scene in front of a wall at `wall_z_m` (albedo 0.05) until a draw
+/// spans no image from top to bottom and `accept(coverage, hidden)` holds, with `hidden` the
+/// share of the second object that others hide; at most 200 draws. `draw` returns `None` for a
+/// draw it could not complete. Every attempt failing is practically impossible with the
+/// layouts' ranges; the last complete draw is then still a valid scene.
+fn draw_until(
+    wall_z_m: f64,
+    rng: &mut ChaCha8Rng,
+    k: &Intrinsics,
+    width: usize,
+    height: usize,
+    accept: impl Fn(f64, f64) -> bool,
+    mut draw: impl FnMut(&mut ChaCha8Rng) -> Option<Vec<SceneObject>>,
+) -> Scene {
+    let mut last = None;
+    for _attempt in 0..200 {
+        let Some(objects) = draw(rng) else {
+            continue;
+        };
+        let scene = Scene {
+            wall_z_m,
+            wall_albedo: 0.05,
+            objects,
+        };
+        let (coverage, spans) = scene.coarse_coverage(k, width, height);
+        if !spans && accept(coverage, scene.hidden_share(1, k, width, height)) {
+            return scene;
+        }
+        last = Some(scene);
+    }
+    last.unwrap_or(Scene {
+        wall_z_m,
+        wall_albedo: 0.05,
+        objects: Vec::new(),
+    })
 }
 
 /// Adds [`random_object`]s whose bounding spheres keep 5 cm from every object already placed,
