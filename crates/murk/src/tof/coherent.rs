@@ -37,99 +37,110 @@ pub fn coherent_residual(
     w: usize,
     sigma: f64,
 ) -> Vec<f64> {
-    let n = background.len();
-    let h = n / w.max(1);
-    let r = WINDOW_RADIUS;
-    let mut out = vec![0.0; n];
+    let mut out = vec![0.0; background.len()];
     out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
-        let (y0, y1) = (y.saturating_sub(r), (y + r + 1).min(h));
         for (x, o) in row.iter_mut().enumerate() {
-            let (x0, x1) = (x.saturating_sub(r), (x + r + 1).min(w));
-            let mut count = 0usize;
-            let mut norm2 = 0.0;
-            for comp in residuals {
-                let mut sum = 0.0;
-                for yy in y0..y1 {
-                    for xx in x0..x1 {
-                        let j = yy * w + xx;
-                        if background[j] {
-                            sum += comp[j];
-                        }
-                    }
-                }
-                norm2 += sum * sum;
-            }
-            for yy in y0..y1 {
-                count += background[yy * w + x0..yy * w + x1]
-                    .iter()
-                    .filter(|&&b| b)
-                    .count();
-            }
-            if count > 0 {
-                *o = norm2.sqrt() / (sigma * (count as f64).sqrt());
-            }
+            *o = window_statistic(residuals, background, w, sigma, x, y);
         }
     });
     out
 }
 
+/// `t_i` of the pixel at (`x`, `y`) (see [`coherent_residual`]).
+fn window_statistic(
+    residuals: &[Vec<f64>],
+    background: &[bool],
+    w: usize,
+    sigma: f64,
+    x: usize,
+    y: usize,
+) -> f64 {
+    let h = background.len() / w.max(1);
+    let r = WINDOW_RADIUS;
+    let (y0, y1) = (y.saturating_sub(r), (y + r + 1).min(h));
+    let (x0, x1) = (x.saturating_sub(r), (x + r + 1).min(w));
+    let counted = || {
+        (y0..y1)
+            .flat_map(move |yy| (x0..x1).map(move |xx| yy * w + xx))
+            .filter(|&j| background[j])
+    };
+    let count = counted().count();
+    if count == 0 {
+        return 0.0;
+    }
+    let norm2: f64 = residuals
+        .iter()
+        .map(|comp| counted().map(|j| comp[j]).sum::<f64>().powi(2))
+        .sum();
+    norm2.sqrt() / (sigma * (count as f64).sqrt())
+}
+
+/// Pixels of the 7 × 7 neighbourhood ([`RING_RADIUS`]).
+const NEIGHBOURHOOD: usize = (2 * RING_RADIUS + 1) * (2 * RING_RADIUS + 1);
+
 /// [`coherent_residual`] against the surroundings, at `pixels` only: the window's mean residual
 /// less the median residual of the ring around it ([`RING_RADIUS`]), per component, divided by
 /// the noise of that difference, `σ·√(1/N_window + (π/2)/N_ring)` (the median of N normal
 /// values has π/2 times the variance of their mean). The window counts the `background`
-/// pixels; the ring only those that are also `reference` pixels.
+/// pixels; the ring only those that are not also `suspects`, which stand under the same
+/// suspicion as the pixel judged.
 ///
 /// Where the scatter model misfits the background — its smoothness prior leaves a bias of
 /// about 2 σ in the outermost rows where the illuminator's beam falls off steeply — window and
 /// ring share the bias and the difference cancels it. A strip a few pixels wide fills most of
-/// the window but only a minority of the ring, whose median it hardly moves. Pixels with fewer
-/// than 3 counted pixels in the window, or fewer than [`MIN_RING`] in the ring, get `None`: a
-/// strip squeezed between objects has no surroundings to compare with.
+/// the window but only a minority of the ring, whose median it hardly moves. A pixel with fewer
+/// than 3 counted pixels in its window, or fewer than [`MIN_RING`] in its ring, has no
+/// surroundings to compare with (a strip squeezed between objects): it gets the plain window
+/// statistic of [`coherent_residual`].
 pub fn coherent_contrast(
     residuals: &[Vec<f64>],
     background: &[bool],
-    reference: &[bool],
+    suspects: &[bool],
     w: usize,
     sigma: f64,
     pixels: &[usize],
-) -> Vec<Option<f64>> {
-    let n = background.len();
-    let h = n / w.max(1);
+) -> Vec<f64> {
+    let h = background.len() / w.max(1);
     pixels
         .par_iter()
         .map(|&i| {
             let (x, y) = (i % w, i / w);
-            let near = |j: usize, r: usize| (j % w).abs_diff(x) <= r && (j / w).abs_diff(y) <= r;
             let (y0, y1) = (y.saturating_sub(RING_RADIUS), (y + RING_RADIUS + 1).min(h));
             let (x0, x1) = (x.saturating_sub(RING_RADIUS), (x + RING_RADIUS + 1).min(w));
-            let (mut inner, mut ring) = (Vec::new(), Vec::new());
+            // Fixed-size buffers: this runs once per candidate pixel.
+            let (mut inner, mut n_inner) = ([0usize; NEIGHBOURHOOD], 0);
+            let (mut ring, mut n_ring) = ([0usize; NEIGHBOURHOOD], 0);
             for yy in y0..y1 {
                 for xx in x0..x1 {
                     let j = yy * w + xx;
-                    if near(j, WINDOW_RADIUS) {
-                        if background[j] {
-                            inner.push(j);
-                        }
-                    } else if background[j] && reference[j] {
-                        ring.push(j);
+                    let in_window =
+                        xx.abs_diff(x) <= WINDOW_RADIUS && yy.abs_diff(y) <= WINDOW_RADIUS;
+                    if in_window && background[j] {
+                        inner[n_inner] = j;
+                        n_inner += 1;
+                    } else if !in_window && background[j] && !suspects[j] {
+                        ring[n_ring] = j;
+                        n_ring += 1;
                     }
                 }
             }
-            if inner.len() < 3 || ring.len() < MIN_RING {
-                return None;
+            if n_inner < 3 || n_ring < MIN_RING {
+                return window_statistic(residuals, background, w, sigma, x, y);
             }
-            let mut values = Vec::with_capacity(ring.len());
+            let (inner, ring) = (&inner[..n_inner], &ring[..n_ring]);
+            let mut values = [0.0f64; NEIGHBOURHOOD];
             let mut norm2 = 0.0;
             for comp in residuals {
-                let mean = inner.iter().map(|&j| comp[j]).sum::<f64>() / inner.len() as f64;
-                values.clear();
-                values.extend(ring.iter().map(|&j| comp[j]));
-                let mid = values.len() / 2;
-                let (_, median, _) = values.select_nth_unstable_by(mid, f64::total_cmp);
+                let mean = inner.iter().map(|&j| comp[j]).sum::<f64>() / n_inner as f64;
+                for (v, &j) in values.iter_mut().zip(ring) {
+                    *v = comp[j];
+                }
+                let (_, median, _) =
+                    values[..n_ring].select_nth_unstable_by(n_ring / 2, f64::total_cmp);
                 norm2 += (mean - *median).powi(2);
             }
-            let var = 1.0 / inner.len() as f64 + std::f64::consts::FRAC_PI_2 / ring.len() as f64;
-            Some(norm2.sqrt() / (sigma * var.sqrt()))
+            let var = 1.0 / n_inner as f64 + std::f64::consts::FRAC_PI_2 / n_ring as f64;
+            norm2.sqrt() / (sigma * var.sqrt())
         })
         .collect()
 }
@@ -203,11 +214,8 @@ mod tests {
         assert!(t.iter().filter(|&&v| v > 5.0).count() > w * h / 2);
         // The ring compares with the background that is not itself under suspicion: here
         // everything but the strip's columns.
-        let reference: Vec<bool> = (0..w * h).map(|i| !(20..22).contains(&(i % w))).collect();
-        let c: Vec<f64> = coherent_contrast(&res, &background, &reference, w, 1.0, &all)
-            .into_iter()
-            .map(|v| v.expect("every pixel has surroundings"))
-            .collect();
+        let suspects: Vec<bool> = (0..w * h).map(|i| (20..22).contains(&(i % w))).collect();
+        let c = coherent_contrast(&res, &background, &suspects, w, 1.0, &all);
         let strip = |i: usize| (20..22).contains(&(i % w)) && (8..32).contains(&(i / w));
         let off_strip = |i: usize| (i % w) < 17 || (i % w) > 24;
         let worst_off = all
@@ -236,5 +244,16 @@ mod tests {
         // With nothing counted, 0.
         let t = coherent_residual(&[vec![1.0; 4]], &[false; 4], 2, 1.0);
         assert_eq!(t, vec![0.0; 4]);
+    }
+
+    #[test]
+    fn without_surroundings_the_contrast_is_the_window_statistic() {
+        // Every pixel a suspect: no ring to compare with, as for a strip between objects.
+        let (w, h) = (9, 9);
+        let res = vec![noise(w * h, 7), noise(w * h, 8)];
+        let background = vec![true; w * h];
+        let all: Vec<usize> = (0..w * h).collect();
+        let c = coherent_contrast(&res, &background, &vec![true; w * h], w, 1.0, &all);
+        assert_eq!(c, coherent_residual(&res, &background, w, 1.0));
     }
 }

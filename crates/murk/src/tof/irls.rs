@@ -651,13 +651,12 @@ pub fn run_irls_vector_from(
             )?;
             signed_residuals(&held_x, observed, g, &mut residuals);
             let candidates: Vec<usize> = (0..n).filter(|&i| candidate[i]).collect();
-            let plain = coherent_residual(&residuals, &background, w, s1);
-            let others: Vec<bool> = candidate.iter().map(|&c| !c).collect();
-            let contrast = coherent_contrast(&residuals, &background, &others, w, s1, &candidates);
+            let contrast =
+                coherent_contrast(&residuals, &background, &candidate, w, s1, &candidates);
             let accepted: Vec<usize> = candidates
                 .iter()
                 .zip(&contrast)
-                .filter(|(&i, c)| c.unwrap_or(plain[i]) > THIN_ACCEPT)
+                .filter(|&(_, &t)| t > THIN_ACCEPT)
                 .map(|(&i, _)| i)
                 .collect();
             if accepted.is_empty() {
