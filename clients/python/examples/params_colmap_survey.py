@@ -20,8 +20,10 @@ on the simulator's own model, so what the SfM costs is visible seed by seed.
     python params_colmap_survey.py --murk ../../../target/release/murk --out /tmp/colmap_survey \\
         --seeds 600-609 [--forward-motion 0.5]
 
-Prints one row per seed and MAE_A, MAE_β (per scene unit) over the seeds whose reference view
-registered; writes `survey.json` in --out.
+Prints one row per seed and, over the seeds whose reference view registered, MAE_A and MAE_β
+(per scene unit) and the coverage: on how many models the true A and β (through the depths'
+unit) both lie within 2 of murk's reported standard errors. Reported separately for the models
+murk calls identifiable, the target of docs/scattering-params.md. Writes `survey.json` in --out.
 """
 
 import argparse
@@ -140,7 +142,31 @@ def report(label: str, rows: list[dict], key: str) -> None:
     if key == "sfm":
         mae_d = np.mean([abs(r[key]["beta_via_depths"] - r["beta"]) for r in rows])
         line += f" / {mae_d:.4f} (unit from centres / depths)"
+        line += f"; truth within 2 SE (A and beta via depths): {sum(map(covered, rows))}/{len(rows)}"
     print(line)
+
+
+def fmt(v: float | None) -> str:
+    return "-" if v is None else f"{v:.4f}"
+
+
+def covered(row: dict) -> bool:
+    """Whether the true A and β (converted with the depths' unit) both lie within 2 reported
+    standard errors of the COLMAP model's estimates."""
+    s = row["sfm"]
+    if s["airlight_std_error"] is None or s["beta_std_error_via_depths"] is None:
+        return False
+    return (
+        abs(s["airlight"] - row["airlight"]) <= 2 * s["airlight_std_error"]
+        and abs(s["beta_via_depths"] - row["beta"]) <= 2 * s["beta_std_error_via_depths"]
+    )
+
+
+def coverage_label(row: dict) -> str:
+    """Returns "covered" or "MISSED" (the truth beyond 2 SE), or "-" when murk reports no error."""
+    if row["sfm"]["airlight_std_error"] is None or row["sfm"]["beta_std_error_via_depths"] is None:
+        return "-"
+    return "covered" if covered(row) else "MISSED"
 
 
 def seeds_of(spec: str) -> list[int]:
@@ -218,6 +244,11 @@ def main() -> None:
                 "beta_via_depths": p["beta"] / unit_d,
                 # None when β* is the sweep's guess (not identifiable).
                 "beta_std_error": None if p["beta_std_error"] is None else p["beta_std_error"] / unit_c,
+                "beta_std_error_via_depths": None
+                if p["beta_std_error"] is None
+                else p["beta_std_error"] / unit_d,
+                "airlight_std_error": p["airlight_std_error"],
+                "warnings": p["warnings"],
                 "identifiable": p["identifiable"],
                 "identifiability": p["identifiability"],
                 "points": model[1],
@@ -231,7 +262,8 @@ def main() -> None:
                 f"{seed:4d}  {meta['airlight']:.3f}  {s['airlight']:.3f}  {sim_params['airlight']:.3f}  |"
                 f"  {meta['beta']:.4f}  {s['beta']:.4f}/{s['beta_via_depths']:.4f}  {sim_params['beta']:.4f}"
                 f" | {unit_c:.4f}/{unit_d:.4f} | {rot_err:4.1f}/{dir_err:4.1f} | {model[1]:5d} |"
-                f" {s['identifiability']}"
+                f" {s['identifiability']} | SE A {fmt(s['airlight_std_error'])}"
+                f" beta {fmt(s['beta_std_error_via_depths'])} | {coverage_label(row)}"
             )
         else:
             print(f"{seed:4d}  the reference view did not register in COLMAP's largest model")
