@@ -196,9 +196,10 @@ class ScatteringParamsResult:
     #: Whether the SfM points determine β*; when False β* is a guess, see ``identifiability``.
     identifiable: bool
     #: ``"identifiable"``, ``"no_depth_difference"`` (a rectified pair or sideways motion),
-    #: ``"too_few_points"``, ``"flat_residual"`` or ``"airlight_conflict"`` (the points' A
+    #: ``"too_few_points"``, ``"flat_residual"``, ``"airlight_conflict"`` (the points' A
     #: disagrees with the image's airlight estimate: the SfM model is likely wrong; see
-    #: ``airlight_conflict``).
+    #: ``airlight_conflict``) or ``"airlight_at_bound"`` (the fit's A sits on the bound of its
+    #: range, so the standard errors do not hold). ``warnings`` gives the numbers.
     identifiability: str
     #: ``"joint_fit"`` (A, β and source gains fitted to the points), ``"point_ratio"`` or
     #: ``"sweep"``.
@@ -249,6 +250,7 @@ class ScatteringParamsResult:
             params_pb2.IDENTIFIABILITY_TOO_FEW_POINTS: "too_few_points",
             params_pb2.IDENTIFIABILITY_FLAT_RESIDUAL: "flat_residual",
             params_pb2.IDENTIFIABILITY_AIRLIGHT_CONFLICT: "airlight_conflict",
+            params_pb2.IDENTIFIABILITY_AIRLIGHT_AT_BOUND: "airlight_at_bound",
         }
         beta_sources = {
             params_pb2.BETA_SOURCE_JOINT_FIT: "joint_fit",

@@ -270,7 +270,7 @@ pub fn run(a: ParamsArgs) -> anyhow::Result<()> {
         println!(
             "joint fit of A, beta, the source gains and the lens fall-off: A {:.4} ± {:.4}, beta \
              {:.5} ± {:.5}, gains [{}], corners at {:.3} of the centre's brightness, over {} \
-             equations (RMS depth difference {:.4} model units); {}",
+             equations from {} points (RMS depth difference {:.4} model units); {}",
             j.airlight,
             j.airlight_std_error,
             j.beta,
@@ -282,6 +282,7 @@ pub fn run(a: ParamsArgs) -> anyhow::Result<()> {
                 .join(", "),
             1.0 + j.vignetting_falloff,
             j.equations,
+            j.points,
             j.rms_depth_difference,
             identifiability_text(j.identifiability)
         );
@@ -435,6 +436,7 @@ fn joint_fit_json(j: &pb::JointFit) -> serde_json::Value {
         "vignetting_falloff": j.vignetting_falloff,
         "source_falloffs": j.source_falloffs,
         "equations": j.equations,
+        "points": j.points,
         "rms_depth_difference": j.rms_depth_difference,
         "residual_scale": j.residual_scale,
         "identifiability": identifiability_name(j.identifiability),
@@ -465,6 +467,7 @@ fn identifiability_name(v: i32) -> &'static str {
         Ok(pb::Identifiability::TooFewPoints) => "too_few_points",
         Ok(pb::Identifiability::FlatResidual) => "flat_residual",
         Ok(pb::Identifiability::AirlightConflict) => "airlight_conflict",
+        Ok(pb::Identifiability::AirlightAtBound) => "airlight_at_bound",
         _ => "unknown",
     }
 }
@@ -480,6 +483,9 @@ fn identifiability_text(v: i32) -> &'static str {
         Ok(pb::Identifiability::FlatResidual) => "the points' residual is too flat in beta",
         Ok(pb::Identifiability::AirlightConflict) => {
             "the points' A conflicts with the image's airlight estimate: the SfM model may be wrong"
+        }
+        Ok(pb::Identifiability::AirlightAtBound) => {
+            "the points' A sits on the bound of its range, so its error and beta's do not hold"
         }
         _ => "unknown",
     }

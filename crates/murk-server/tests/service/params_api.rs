@@ -163,6 +163,7 @@ async fn default_request_fits_a_and_beta_to_the_points_and_reports_the_fit() {
     assert!(se_a > 0.0 && se_b > 0.0 && se_b < 0.15 * f64::from(out.beta));
     let joint = out.joint_fit.expect("joint fit reported");
     assert_eq!(joint.source_gains.len(), s.views.len() - 1);
+    assert!(joint.points >= 60, "{joint:?}");
     assert!(out.beta_range_from_points && out.beta_bound == pb::BetaBound::Unspecified as i32);
     assert!(out.airlight_conflict.is_none() && out.warnings.is_empty());
 
@@ -210,7 +211,16 @@ async fn default_request_fits_a_and_beta_to_the_points_and_reports_the_fit() {
         pb::Identifiability::TooFewPoints as i32,
         "{unseen:?}"
     );
-    assert_eq!(unseen.joint_fit.expect("reported").equations, 0);
+    assert_eq!(unseen.joint_fit.as_ref().expect("reported").equations, 0);
+    // The verdict comes with its numbers and what would help.
+    assert!(
+        unseen
+            .warnings
+            .iter()
+            .any(|w| w.contains("0 usable equations from 0 points") && w.contains("SIFT")),
+        "{:?}",
+        unseen.warnings
+    );
 
     // Without the joint fit: β₀ from the points' ratios at the given A₀ (here the true A).
     req.airlight = s.airlight;

@@ -33,12 +33,13 @@
 //! The airlight estimators (CNN, dark channel) enter as a Cauchy prior on `A` (heavy-tailed, so
 //! the points override an estimate that is far off), the gains as a prior around 1, the
 //! fall-offs as Gaussian priors around 0; the fit says how well the data pin each parameter
-//! down (standard errors: the
-//! larger of the Gauss–Newton covariance's and a delete-one-source jackknife's, which sees the
-//! sources' disagreement that the covariance counts as independent noise) and, through
-//! [`Identifiability`], when they do not: no depth
+//! down (standard errors: the largest of the Gauss–Newton covariance's, a delete-one-source
+//! jackknife's, which sees the sources' disagreement, and a delete-a-group jackknife's over the
+//! points, which sees the errors a point carries into all its equations; the covariance counts
+//! both as independent noise) and, through [`Identifiability`], when they do not: no depth
 //! differences between the views (a rectified pair or a purely sideways move leaves `k = 1`
-//! and every `A` and β fit), too few usable points, or a residual too flat in β.
+//! and every `A` and β fit), too few usable points, a residual too flat in β, or an `A` that
+//! sits on the bound of its range.
 
 use faer::Mat;
 use rayon::prelude::*;
@@ -75,6 +76,16 @@ pub const FALLOFF_SIGNIFICANCE: f64 = 3.0;
 /// Standard deviation of the prior on each source's relative fall-off `δ_s` that the pipeline
 /// uses: lenses of one rig rarely differ by more than half their fall-off.
 pub const RELATIVE_FALLOFF_PRIOR_SIGMA: f64 = 0.3;
+/// Fewest SfM points behind the equations. A point's errors (where SfM put it, the texture it
+/// sits on) enter all its equations at once, so the points, not the equations, are the
+/// independent evidence: the smallest COLMAP models the survey of docs/scattering-params.md
+/// found identifiable had about 100 points, and below 60 each of the ten groups of the points'
+/// jackknife holds too few to tell spread from chance. A chosen floor, not a fitted one.
+pub const MIN_POINTS: usize = 60;
+/// Smallest `A` the fit allows (its largest is 1, the brightest linear value).
+const AIRLIGHT_MIN: f64 = 1e-3;
+/// How close to a bound of `A` counts as on it.
+const BOUND_TOLERANCE: f64 = 1e-6;
 /// Tukey's biweight constant in robust standard deviations (95 % efficiency under Gaussian noise).
 const TUKEY_C: f64 = 4.685;
 const MAX_ITERATIONS: usize = 60;
@@ -105,7 +116,8 @@ pub struct JointPriors {
 pub enum Identifiability {
     /// Standard error of β below [`MAX_RELATIVE_BETA_ERROR`] of β.
     Identifiable,
-    /// Fewer than [`MIN_EQUATIONS`] usable equations.
+    /// Fewer than [`MIN_EQUATIONS`] usable equations, or fewer than [`MIN_POINTS`] SfM points
+    /// behind them.
     TooFewPoints,
     /// The views see the points at the same depths (rectified pair, sideways motion): every
     /// β explains the images equally well.
@@ -116,6 +128,10 @@ pub enum Identifiability {
     /// beyond both their errors: a sign of a wrong SfM model (set by
     /// [`crate::params::search::search_scattering`], which knows the estimator's error).
     AirlightConflict,
+    /// The fit's `A` sits on a bound of its physical range (1, the brightest linear value, or
+    /// 0.001): the best fit lies outside it, so neither `A` nor β (which moves with `A`) has a
+    /// standard error that means anything.
+    AirlightAtBound,
 }
 
 impl Identifiability {
@@ -127,6 +143,7 @@ impl Identifiability {
             Self::NoDepthDifference => "no_depth_difference",
             Self::FlatResidual => "flat_residual",
             Self::AirlightConflict => "airlight_conflict",
+            Self::AirlightAtBound => "airlight_at_bound",
         }
     }
 }
@@ -137,12 +154,13 @@ pub struct JointFit {
     /// `A`.
     pub airlight: f64,
     /// Standard error of `A` (the prior's width when the data say nothing); with 3 or more
-    /// sources at least the delete-one-source jackknife's.
+    /// sources at least the delete-one-source jackknife's, and at least the points' jackknife's.
     pub airlight_std_error: f64,
     /// β, per scene unit.
     pub beta: f64,
     /// Standard error of β, per scene unit (infinite when β is not determined at all); with 3
-    /// or more sources at least the delete-one-source jackknife's.
+    /// or more sources at least the delete-one-source jackknife's, and at least the points'
+    /// jackknife's.
     pub beta_std_error: f64,
     /// Per source, the exposure gain `g_s` relative to the reference (1 = same exposure).
     pub source_gains: Vec<f64>,
@@ -153,6 +171,8 @@ pub struct JointFit {
     pub source_falloffs: Vec<f64>,
     /// Equations with a non-zero robust weight at the end.
     pub equations: usize,
+    /// SfM points behind the usable equations.
+    pub points: usize,
     /// RMS of `z_s − z_r` over the usable equations, scene units.
     pub rms_depth_difference: f64,
     /// Robust scale (1.4826 · MAD) of the intensity residuals, pixel-value units.
@@ -173,6 +193,8 @@ impl JointFit {
 #[derive(Clone, Copy, Debug, PartialEq)]
 struct Equation {
     source: usize,
+    /// The SfM point's index ([`RatioSample::point`]).
+    point: u32,
     dz: f64,
     ir: f64,
     is: f64,
@@ -224,6 +246,7 @@ fn equations(samples: &[Vec<RatioSample>]) -> Vec<Equation> {
                 .filter(|s| usable(s.reference) && usable(s.source))
                 .map(move |s| Equation {
                     source,
+                    point: s.point,
                     dz: s.depth_difference,
                     ir: s.reference,
                     is: s.source,
@@ -243,6 +266,12 @@ pub fn fit_equations(
 ) -> JointFit {
     let eqs = equations(samples);
     let n_src = samples.len();
+    let points = {
+        let mut ids: Vec<u32> = eqs.iter().map(|e| e.point).collect();
+        ids.sort_unstable();
+        ids.dedup();
+        ids.len()
+    };
     let rms_dz = if eqs.is_empty() {
         0.0
     } else {
@@ -257,11 +286,12 @@ pub fn fit_equations(
         vignetting_falloff: 0.0,
         source_falloffs: vec![0.0; n_src],
         equations: eqs.len(),
+        points,
         rms_depth_difference: rms_dz,
         residual_scale: 0.0,
         identifiability: why,
     };
-    if eqs.len() < MIN_EQUATIONS {
+    if eqs.len() < MIN_EQUATIONS || points < MIN_POINTS {
         return not_determined(Identifiability::TooFewPoints, priors.airlight);
     }
     if rms_dz <= MIN_RELATIVE_DEPTH_DIFFERENCE * median_depth.abs().max(f64::MIN_POSITIVE) {
@@ -281,6 +311,13 @@ pub fn fit_equations(
     let significant = |v: f64, var: f64| {
         v.abs() >= MIN_FALLOFF && v.abs() > FALLOFF_SIGNIFICANCE * var.max(0.0).sqrt()
     };
+    // A fall-off that passes on the covariance must also pass on the points' jackknife: a
+    // point's errors enter all its equations, and keypoints clustered in part of the image
+    // otherwise pass as a fall-off (which then trades with A).
+    let jackknife_passes = |theta: &[f64], jack: &Option<Vec<f64>>, k: usize| {
+        jack.as_ref()
+            .is_none_or(|j| significant(theta[k], j[k] * j[k]))
+    };
     if priors.falloff_sigma > 0.0 {
         let shared = JointPriors {
             falloff_sigma: priors.falloff_sigma,
@@ -288,7 +325,10 @@ pub fn fit_equations(
         };
         let mut free = Solver::new(&eqs, n_src, &shared);
         if let Some(c) = free.run() {
-            if significant(free.theta[2 + n_src], c[2 + n_src]) {
+            let k = 2 + n_src;
+            if significant(free.theta[k], c[k])
+                && jackknife_passes(&free.theta, &point_jackknife(&eqs, &shared, &free.theta), k)
+            {
                 solver = free;
                 fit = Some(c);
                 chosen = shared;
@@ -302,7 +342,14 @@ pub fn fit_equations(
         };
         let mut free = Solver::new(&eqs, n_src, &relative);
         if let Some(c) = free.run() {
-            if (0..n_src).any(|s| significant(free.theta[3 + n_src + s], c[3 + n_src + s])) {
+            let passes = |s: usize| significant(free.theta[3 + n_src + s], c[3 + n_src + s]);
+            let keep = (0..n_src).any(passes) && {
+                let jack = point_jackknife(&eqs, &relative, &free.theta);
+                (0..n_src)
+                    .filter(|&s| passes(s))
+                    .any(|s| jackknife_passes(&free.theta, &jack, 3 + n_src + s))
+            };
+            if keep {
                 solver = free;
                 fit = Some(c);
                 chosen = relative;
@@ -315,21 +362,28 @@ pub fn fit_equations(
     let se = |i: usize| cov[i].max(0.0).sqrt();
     // The Gauss–Newton covariance counts every equation as independent noise. What is left
     // after the blur is mostly a bias that differs from source to source (footprints,
-    // occlusions, exposure), so the spread of the fits without each source bounds the error
-    // from below as well.
-    let jack = source_jackknife(&eqs, n_src, &chosen, &solver.theta);
-    let (a_se, beta_se) = match jack {
-        Some([ja, jb]) => (se(0).max(ja), se(1).max(jb)),
-        None => (se(0), se(1)),
-    };
+    // occlusions, exposure), and errors that a point carries into all its equations (where SfM
+    // put it, the texture it sits on). The spread of the fits without each source, and
+    // without each group of points, bounds the error from below as well.
+    let by_source = jackknife(&eqs, n_src, |e| e.source, &chosen, &solver.theta);
+    let by_point = point_jackknife(&eqs, &chosen, &solver.theta);
+    let (mut a_se, mut beta_se) = (se(0), se(1));
+    for j in [by_source, by_point].into_iter().flatten() {
+        a_se = a_se.max(j[0]);
+        beta_se = beta_se.max(j[1]);
+    }
     let beta = solver.theta[1];
-    let identifiability = if beta > 0.0 && beta_se < MAX_RELATIVE_BETA_ERROR * beta {
-        Identifiability::Identifiable
-    } else {
-        Identifiability::FlatResidual
-    };
+    let airlight = solver.theta[0];
+    let identifiability =
+        if !(AIRLIGHT_MIN + BOUND_TOLERANCE..=1.0 - BOUND_TOLERANCE).contains(&airlight) {
+            Identifiability::AirlightAtBound
+        } else if beta > 0.0 && beta_se < MAX_RELATIVE_BETA_ERROR * beta {
+            Identifiability::Identifiable
+        } else {
+            Identifiability::FlatResidual
+        };
     JointFit {
-        airlight: solver.theta[0],
+        airlight,
         airlight_std_error: a_se,
         beta,
         beta_std_error: beta_se,
@@ -337,55 +391,74 @@ pub fn fit_equations(
         vignetting_falloff: solver.theta[2 + n_src],
         source_falloffs: solver.theta[3 + n_src..].to_vec(),
         equations: solver.kept,
+        points,
         rms_depth_difference: rms_dz,
         residual_scale: solver.scale,
         identifiability,
     }
 }
 
-/// Fewest sources for the delete-one-source jackknife of the standard errors.
-const MIN_JACKKNIFE_SOURCES: usize = 3;
+/// Fewest groups (sources, or groups of points) for a delete-one-group jackknife.
+const MIN_JACKKNIFE_GROUPS: usize = 3;
+/// Groups of points of the delete-a-group jackknife: point `i` is in group `i mod 10`.
+/// Interleaved rather than by image region, so that each refit keeps every depth and every
+/// part of the image. Ten refits cost about as much as the fit itself.
+const POINT_JACKKNIFE_GROUPS: usize = 10;
 
-/// Delete-one-source jackknife standard errors of `A` and β, `√((S−1)/S · Σ (θ₋ₛ − θ̄)²)`, each
-/// refit started from the full fit `theta`. `None` with fewer than
-/// [`MIN_JACKKNIFE_SOURCES`] sources or refits that converge.
-fn source_jackknife(
+/// Delete-one-group jackknife standard errors of every entry of θ,
+/// `√((G−1)/G · Σ (θ₋g − θ̄)²)` over the `groups` groups that `group_of` assigns the equations
+/// to, each refit started from the full fit `theta`. `None` with fewer than
+/// [`MIN_JACKKNIFE_GROUPS`] refits that converge.
+fn jackknife(
     eqs: &[Equation],
-    n_src: usize,
+    groups: usize,
+    group_of: impl Fn(&Equation) -> usize + Sync,
     priors: &JointPriors,
     theta: &[f64],
-) -> Option<[f64; 2]> {
-    if n_src < MIN_JACKKNIFE_SOURCES {
+) -> Option<Vec<f64>> {
+    if groups < MIN_JACKKNIFE_GROUPS {
         return None;
     }
-    // The refits are independent; `collect` keeps source order, so the sums below are
+    let n_src = (theta.len() - 3) / 2;
+    // The refits are independent; `collect` keeps group order, so the sums below are
     // deterministic whatever the thread count.
-    let fits: Vec<[f64; 2]> = (0..n_src)
+    let fits: Vec<Vec<f64>> = (0..groups)
         .into_par_iter()
         .filter_map(|left_out| {
             let subset: Vec<Equation> = eqs
                 .iter()
-                .filter(|e| e.source != left_out)
+                .filter(|e| group_of(e) != left_out)
                 .copied()
                 .collect();
-            if subset.len() < MIN_EQUATIONS {
+            if subset.len() < MIN_EQUATIONS || subset.len() == eqs.len() {
                 return None;
             }
             let mut solver = Solver::new(&subset, n_src, priors);
             solver.theta.copy_from_slice(theta);
-            solver.run().map(|_| [solver.theta[0], solver.theta[1]])
+            solver.run().map(|_| solver.theta)
         })
         .collect();
-    let s = fits.len();
-    if s < MIN_JACKKNIFE_SOURCES {
+    let g = fits.len();
+    if g < MIN_JACKKNIFE_GROUPS {
         return None;
     }
-    let factor = (s - 1) as f64 / s as f64;
+    let factor = (g - 1) as f64 / g as f64;
     let se = |k: usize| {
-        let mean = fits.iter().map(|f| f[k]).sum::<f64>() / s as f64;
+        let mean = fits.iter().map(|f| f[k]).sum::<f64>() / g as f64;
         (factor * fits.iter().map(|f| (f[k] - mean).powi(2)).sum::<f64>()).sqrt()
     };
-    Some([se(0), se(1)])
+    Some((0..theta.len()).map(se).collect())
+}
+
+/// [`jackknife`] over [`POINT_JACKKNIFE_GROUPS`] interleaved groups of points.
+fn point_jackknife(eqs: &[Equation], priors: &JointPriors, theta: &[f64]) -> Option<Vec<f64>> {
+    jackknife(
+        eqs,
+        POINT_JACKKNIFE_GROUPS,
+        |e| e.point as usize % POINT_JACKKNIFE_GROUPS,
+        priors,
+        theta,
+    )
 }
 
 /// Gauss–Newton with Levenberg damping on `θ = (A, β, u_1 … u_S, a, δ_1 … δ_S)`, Tukey weights
@@ -601,7 +674,7 @@ impl<'a> Solver<'a> {
                     *v += step[(i, 0)];
                 }
                 // Physical ranges: A in (0, 1], β ≥ 0, gains positive.
-                next[0] = next[0].clamp(1e-3, 1.0);
+                next[0] = next[0].clamp(AIRLIGHT_MIN, 1.0);
                 next[1] = next[1].max(0.0);
                 let n_src = self.n_src;
                 for u in &mut next[2..2 + n_src] {
@@ -691,6 +764,7 @@ mod tests {
                             ir = rng.random_range(0.0..1.0); // occlusion
                         }
                         RatioSample {
+                            point: i as u32,
                             depth_difference: dz,
                             reference: ir.clamp(0.0, 1.0),
                             source: is,
@@ -739,6 +813,96 @@ mod tests {
             fit.airlight_std_error < 0.02 && fit.beta_std_error < 0.02,
             "{fit:?}"
         );
+    }
+
+    #[test]
+    fn a_40_point_model_is_flagged_with_its_counts() {
+        // Thousands of equations, but only 40 points behind them: each point's error enters
+        // all its equations, so the equations' count overstates the evidence.
+        let mut eqs = synthetic(0.62, 0.35, &[1.0, 1.04, 0.97, 1.1], 1.0, 0.01, 3);
+        for s in eqs.iter_mut().flatten() {
+            s.point %= 40;
+        }
+        let fit = fit_equations(&eqs, 5.0, &priors(0.62));
+        assert_eq!(
+            fit.identifiability,
+            Identifiability::TooFewPoints,
+            "{fit:?}"
+        );
+        assert_eq!(fit.points, 40);
+        assert!(fit.equations >= MIN_EQUATIONS, "{fit:?}");
+    }
+
+    #[test]
+    fn an_airlight_beyond_one_is_reported_at_its_bound() {
+        // A haze brighter than the sensor's white (an exposure that clips the sky): the fit
+        // wants A > 1 and stops at 1.
+        let eqs = synthetic(1.25, 0.35, &[1.0, 1.0, 1.0], 1.0, 0.01, 7);
+        let fit = fit_equations(&eqs, 5.0, &priors(0.95));
+        assert_eq!(
+            fit.identifiability,
+            Identifiability::AirlightAtBound,
+            "{fit:?}"
+        );
+        assert!((fit.airlight - 1.0).abs() < 1e-9, "{fit:?}");
+    }
+
+    /// Samples of `points` points seen by 4 sources, 3 channels each, where every sample of
+    /// a point is off by the point's own error (`shared` wide) on top of independent noise:
+    /// where SfM put a point on an edge, all its values move together.
+    fn shared_point_errors(
+        a: f64,
+        beta: f64,
+        points: u32,
+        shared: f64,
+        seed: u64,
+    ) -> Vec<Vec<RatioSample>> {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let render = |j: f64, z: f64| {
+            let t = (-beta * z).exp();
+            j * t + a * (1.0 - t)
+        };
+        let mut per_source = vec![Vec::new(); 4];
+        for point in 0..points {
+            let z_r: f64 = rng.random_range(2.0..8.0);
+            let dz: f64 = rng.random_range(-1.0..1.0);
+            let error: f64 = rng.random_range(-shared..shared);
+            let j: [f64; 3] = std::array::from_fn(|_| rng.random_range(0.0..1.0));
+            for (s, out) in per_source.iter_mut().enumerate() {
+                // The sources see the point at depth differences of one sign, as along a
+                // trajectory.
+                let dz_s = dz * (s + 1) as f64 / 4.0;
+                for jc in j {
+                    let noise = |rng: &mut ChaCha8Rng| 0.005 * rng.random_range(-1.7..1.7);
+                    out.push(RatioSample {
+                        point,
+                        depth_difference: dz_s,
+                        reference: (render(jc, z_r) + noise(&mut rng)).clamp(0.0, 1.0),
+                        source: (render(jc, z_r + dz_s) + error + noise(&mut rng)).clamp(0.0, 1.0),
+                        reference_r2: 0.0,
+                        source_r2: 0.0,
+                    });
+                }
+            }
+        }
+        per_source
+    }
+
+    #[test]
+    fn errors_that_points_share_widen_the_standard_errors_to_cover_the_truth() {
+        // The covariance counts a point's 12 equations as independent; the points' jackknife
+        // sees them move together.
+        let mut covered = 0;
+        for seed in 0..10 {
+            let eqs = shared_point_errors(0.7, 0.35, 150, 0.04, 20 + seed);
+            let fit = fit_equations(&eqs, 5.0, &priors(0.7));
+            if (fit.beta - 0.35).abs() <= 2.0 * fit.beta_std_error
+                && (fit.airlight - 0.7).abs() <= 2.0 * fit.airlight_std_error
+            {
+                covered += 1;
+            }
+        }
+        assert!(covered >= 8, "the truth within 2 SE on {covered} of 10");
     }
 
     #[test]

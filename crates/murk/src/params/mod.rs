@@ -6,6 +6,7 @@
 //! the points do not determine β. Method, accuracy and limits: `docs/scattering-params.md`.
 
 pub mod airlight;
+pub mod footprint;
 pub mod joint_fit;
 pub mod point_ratio;
 pub mod residual;

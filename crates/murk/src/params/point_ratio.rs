@@ -18,26 +18,26 @@
 //! measures lateral and forward trajectories).
 
 use crate::image::ImageF32;
-use crate::mvs::depth::presmooth::gaussian_presmooth;
+use rayon::prelude::*;
+
 use crate::mvs::depth::vignetting::radius2;
 use crate::mvs::View;
+use crate::params::footprint::{matched_sigmas, FootprintSampler, MAX_CHANNELS};
 use crate::params::sparse::SparseDepth;
 
-/// σ of the Gaussian applied to every view before its intensities are sampled at the SfM
+/// Base σ of the Gaussian each view is blurred by where its intensities are sampled at the SfM
 /// points, pixels, for an image `width` pixels wide: one pixel per 256 of width, within
-/// [0.5, 4].
+/// [0.5, 4]. [`crate::params::footprint`] widens it per point and view so that both views
+/// blur the surface alike.
 ///
 /// The equations assume the same `J` at a point in every view, but a pixel integrates `J` over
-/// a footprint whose size on the surface changes with the view's distance: a source behind the
-/// reference sees the texture minified (its contrast averaged down), one ahead magnified, and
-/// the bilinear interpolation of the source is a low-pass the reference (sampled at whole
-/// pixels) does not get. On textured surfaces that shifts the slope `e^{β Δz}` of every
-/// equation by a source-dependent factor. Blurring both views well past those footprints
-/// removes it; blurring too far mixes surfaces at other depths into a point's value. Measured:
-/// one source pair of a forward-moving 512×384 scene, true β 0.379, gave
+/// a footprint whose size on the surface changes with the view's distance: on textured
+/// surfaces that shifts the slope `e^{β Δz}` of every equation by a source-dependent factor.
+/// Blurring both views well past those footprints removes most of it; blurring too far mixes
+/// surfaces at other depths into a point's value. Measured with one blur for every view (before
+/// the per-point match): one source pair of a forward-moving 512×384 scene, true β 0.379, gave
 /// β 0.17 / 0.60 / −0.19 unblurred and 0.37 / 0.41 / 0.35 at σ = 2; the held-out 256×192
-/// scenes (seeds 500–519) MAE_β 0.042 at σ = 0, **0.013 at σ = 1**, 0.014 at σ = 2; the 128×96
-/// test scene β error 0.021 at σ = 0, 0.040 at 0.5, 0.050 at 1, 0.052 at 2.
+/// scenes (seeds 500–519) MAE_β 0.042 at σ = 0, **0.013 at σ = 1**, 0.014 at σ = 2.
 pub fn sample_blur_sigma_px(width: usize) -> f32 {
     (width as f32 / 256.0).clamp(0.5, 4.0)
 }
@@ -101,26 +101,13 @@ impl PointRatioFit {
     }
 }
 
-/// Bilinear sample of channel `c` at `(u, v)` (murk convention: pixel centres at integers);
-/// `None` outside the image.
-pub(crate) fn bilinear(img: &ImageF32, u: f64, v: f64, c: usize) -> Option<f64> {
-    let (w, h) = img.dims();
-    if !(u >= 0.0 && v >= 0.0 && u < (w - 1) as f64 && v < (h - 1) as f64) {
-        return None;
-    }
-    let (x0, y0) = (u as usize, v as usize);
-    let (fx, fy) = (u - x0 as f64, v - y0 as f64);
-    let g = |x, y| f64::from(img.get(x, y, c));
-    Some(
-        (1.0 - fy) * ((1.0 - fx) * g(x0, y0) + fx * g(x0 + 1, y0))
-            + fy * ((1.0 - fx) * g(x0, y0 + 1) + fx * g(x0 + 1, y0 + 1)),
-    )
-}
-
 /// One channel of one point seen by the reference and a source: what the equation of the
 /// module docs needs before the airlight is chosen.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct RatioSample {
+    /// Index of the point in [`SparseDepth::samples`]: a point's channels and sources share
+    /// its errors (where SfM put it, what texture it sits on).
+    pub point: u32,
     /// `z_s − z_r`, scene units.
     pub depth_difference: f64,
     /// `I_r` of the channel.
@@ -135,46 +122,45 @@ pub struct RatioSample {
     pub source_r2: f64,
 }
 
-/// [`ratio_samples`] for every source, on the views blurred by [`sample_blur_sigma_px`].
+/// [`ratio_samples`] for every source, each view blurred per point to a common footprint
+/// ([`crate::params::footprint`]) around the base width [`sample_blur_sigma_px`].
 pub fn blurred_ratio_samples(
     reference: &View<'_>,
     sources: &[View<'_>],
     sparse: &SparseDepth,
 ) -> Vec<Vec<RatioSample>> {
-    let sigma = sample_blur_sigma_px(reference.image.width());
-    let blurred_reference = gaussian_presmooth(reference.image, sigma);
-    let reference = View {
-        image: &blurred_reference,
-        ..*reference
-    };
+    let base = f64::from(sample_blur_sigma_px(reference.image.width()));
+    // `collect` keeps source order whatever the thread count.
     sources
-        .iter()
+        .par_iter()
         .enumerate()
-        .map(|(i, s)| {
-            let blurred = gaussian_presmooth(s.image, sigma);
-            let source = View {
-                image: &blurred,
-                ..*s
-            };
-            ratio_samples(&reference, &source, i, sparse)
-        })
+        .map(|(i, s)| ratio_samples(reference, s, i, sparse, base))
         .collect()
 }
 
-/// Every SfM pixel of `sparse` back-projected from the reference at its depth and projected
-/// into `source`, sampled per channel (points that leave either image are skipped, and so are
-/// points whose [`SparseSample::seen_by`](crate::params::sparse::SparseSample::seen_by) mask
-/// lacks `source_index`: SfM did not see them there).
+/// Every SfM point of `sparse` back-projected from the reference at its depth and projected
+/// into `source`, sampled per channel with footprint-matched blurs of base width
+/// `base_sigma_px` ([`crate::params::footprint`]) at its sub-pixel position in both views.
+/// Points whose sampling window leaves either image are skipped, and so are points whose
+/// [`SparseSample::seen_by`](crate::params::sparse::SparseSample::seen_by) mask lacks
+/// `source_index`: SfM did not see them there.
 pub fn ratio_samples(
     reference: &View<'_>,
     source: &View<'_>,
     source_index: usize,
     sparse: &SparseDepth,
+    base_sigma_px: f64,
 ) -> Vec<RatioSample> {
     let channels = reference.image.channels();
-    if source.image.channels() != channels {
+    if source.image.channels() != channels || channels > MAX_CHANNELS {
         return Vec::new();
     }
+    let focal = |v: &View<'_>| (v.intrinsics.fx * v.intrinsics.fy).abs().sqrt();
+    let (focal_ref, focal_src) = (focal(reference), focal(source));
+    let (ref_sampler, src_sampler) = (
+        FootprintSampler::new(reference.image),
+        FootprintSampler::new(source.image),
+    );
     let to_world = reference.pose.inverse();
     let mut out = Vec::new();
     // A source past the mask's 32 bits has no track information: every point may be used.
@@ -182,34 +168,41 @@ pub fn ratio_samples(
         .ok()
         .and_then(|i| 1u32.checked_shl(i))
         .unwrap_or(0);
-    for s in sparse.samples() {
+    let (mut ir, mut is) = ([0.0; MAX_CHANNELS], [0.0; MAX_CHANNELS]);
+    for (point, s) in sparse.samples().iter().enumerate() {
         if bit != 0 && s.seen_by & bit == 0 {
             // SfM did not match the point in this source: occluded, or not found there.
             continue;
         }
-        let (u, v, z_r) = (f64::from(s.x), f64::from(s.y), f64::from(s.z));
+        let (u, v, z_r) = (f64::from(s.u), f64::from(s.v), f64::from(s.z));
         let ray = reference.intrinsics.ray(u, v);
         let cam = [ray[0] * z_r / ray[2], ray[1] * z_r / ray[2], z_r];
         let p = source.pose.transform(to_world.transform(cam));
         let Some((us, vs)) = source.intrinsics.project(p) else {
             continue;
         };
+        let (sigma_r, sigma_s) = matched_sigmas(base_sigma_px, z_r, focal_ref, p[2], focal_src);
+        if !(ref_sampler.sample(u, v, sigma_r, &mut ir)
+            && src_sampler.sample(us, vs, sigma_s, &mut is))
+        {
+            continue;
+        }
+        let radius2 = |img: &ImageF32, x: f64, y: f64| {
+            f64::from(radius2(x as f32, y as f32, img.width(), img.height()))
+        };
+        let (reference_r2, source_r2) = (
+            radius2(reference.image, u, v),
+            radius2(source.image, us, vs),
+        );
         for c in 0..channels {
-            if let (Some(ir), Some(is)) = (
-                bilinear(reference.image, u, v, c),
-                bilinear(source.image, us, vs, c),
-            ) {
-                let radius2 = |img: &ImageF32, x: f64, y: f64| {
-                    f64::from(radius2(x as f32, y as f32, img.width(), img.height()))
-                };
-                out.push(RatioSample {
-                    reference_r2: radius2(reference.image, u, v),
-                    source_r2: radius2(source.image, us, vs),
-                    depth_difference: p[2] - z_r,
-                    reference: ir,
-                    source: is,
-                });
-            }
+            out.push(RatioSample {
+                point: point as u32,
+                reference_r2,
+                source_r2,
+                depth_difference: p[2] - z_r,
+                reference: ir[c],
+                source: is[c],
+            });
         }
     }
     out

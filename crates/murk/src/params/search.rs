@@ -51,7 +51,10 @@ use crate::error::{MurkError, Result};
 use crate::image::ImageF32;
 use crate::monitor::Monitor;
 use crate::mvs::{estimate_depth, CostKind, DehazingOptions, DepthParams, PlaneSet, View};
-use crate::params::joint_fit::{fit_joint_samples, Identifiability, JointFit, JointPriors};
+use crate::params::joint_fit::{
+    fit_joint_samples, Identifiability, JointFit, JointPriors, MAX_RELATIVE_BETA_ERROR,
+    MIN_EQUATIONS, MIN_POINTS,
+};
 use crate::params::point_ratio::{beta_from_ratio_samples, blurred_ratio_samples, PointRatioFit};
 use crate::params::residual::{paired_improvement_t, sparse_residuals};
 use crate::params::sparse::{SparseDepth, SparseSample};
@@ -403,6 +406,56 @@ pub struct ScatteringEstimate {
     pub seconds: f64,
 }
 
+impl ScatteringEstimate {
+    /// Sentences for the user about the estimate, with the numbers behind them: the airlight
+    /// conflict, and when the points do not determine β, why and what would help.
+    pub fn warnings(&self) -> Vec<String> {
+        let mut out: Vec<String> = self
+            .airlight_conflict
+            .iter()
+            .map(AirlightConflict::describe)
+            .collect();
+        let Some(j) = self.joint.as_ref() else {
+            return out;
+        };
+        match self.identifiability {
+            Identifiability::TooFewPoints => out.push(format!(
+                "the SfM model gives {} usable equations from {} points seen by the reference and \
+                 its sources (at least {} and {} are needed): more frames of the scene, or a lower \
+                 SIFT peak threshold, give SfM more points",
+                j.equations, j.points, MIN_EQUATIONS, MIN_POINTS
+            )),
+            Identifiability::FlatResidual if j.beta_std_error.is_finite() && j.beta > 0.0 => out
+                .push(format!(
+                    "beta's standard error {:.3} is {:.0} % of beta (identifiable below {:.0} %) \
+                     from {} points at an RMS depth difference of {:.3} between the views: frames \
+                     that move towards or away from the scene, a longer baseline, or more points \
+                     (a lower SIFT peak threshold) help",
+                    j.beta_std_error,
+                    100.0 * j.beta_std_error / j.beta,
+                    100.0 * MAX_RELATIVE_BETA_ERROR,
+                    j.points,
+                    j.rms_depth_difference
+                )),
+            Identifiability::NoDepthDifference => out.push(format!(
+                "the views see the points at the same depths (RMS depth difference {:.2e}): \
+                 a rectified pair or a purely sideways move cannot tell beta; frames that move \
+                 towards or away from the scene can",
+                j.rms_depth_difference
+            )),
+            Identifiability::AirlightAtBound => out.push(format!(
+                "the points' intensities put A at the bound of its range ({:.3}): the best fit \
+                 lies beyond it, so A* and beta* are not reliable and their standard errors do \
+                 not hold; check that the images are linear light (--srgb for sRGB-encoded \
+                 images) and that the haze is not clipped",
+                j.airlight
+            )),
+            _ => {}
+        }
+        out
+    }
+}
+
 /// `n` values uniform in `[lo, hi]` (the midpoint when `n = 1`).
 fn linspace(lo: f32, hi: f32, n: usize) -> Vec<f32> {
     if n == 1 {
@@ -604,11 +657,15 @@ pub fn search_scattering(
                 && j.beta_std_error.is_finite()
                 && matches!(
                     j.identifiability,
-                    Identifiability::Identifiable | Identifiability::FlatResidual
+                    Identifiability::Identifiable
+                        | Identifiability::FlatResidual
+                        | Identifiability::AirlightAtBound
                 )
         })
         .map(|j| ((j.airlight as f32).clamp(1e-3, 1.0), j.beta as f32));
-    let point_ratio = (from_joint.is_none() && params.beta_from_points)
+    // The ratio fit samples the same points: too few for the joint fit are too few for it.
+    let enough_points = joint.as_ref().is_none_or(|j| j.points >= MIN_POINTS);
+    let point_ratio = (from_joint.is_none() && params.beta_from_points && enough_points)
         .then(|| beta_from_ratio_samples(&samples, airlight_initial))
         .flatten();
     let from_ratio = point_ratio
@@ -796,6 +853,9 @@ impl SparseDepth {
             .map(|s| SparseSample {
                 x: s.x / f as u32,
                 y: s.y / f as u32,
+                // Pixel centres at integers in both grids.
+                u: (s.u + 0.5) / f as f32 - 0.5,
+                v: (s.v + 0.5) / f as f32 - 0.5,
                 ..*s
             })
             .filter(|s| (s.x as usize) < w && (s.y as usize) < h)
@@ -1055,6 +1115,8 @@ mod tests {
                 .map(|i| SparseSample {
                     x: i,
                     y: 0,
+                    u: i as f32,
+                    v: 0.0,
                     z: 2.0,
                     seen_by: SEEN_BY_EVERY_SOURCE,
                 })
@@ -1067,6 +1129,8 @@ mod tests {
                 .map(|i| SparseSample {
                     x: i,
                     y: 0,
+                    u: i as f32,
+                    v: 0.0,
                     z: 20.0,
                     seen_by: SEEN_BY_EVERY_SOURCE,
                 })

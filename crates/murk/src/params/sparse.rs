@@ -19,6 +19,11 @@ pub struct SparseSample {
     pub x: u32,
     /// Row, pixels.
     pub y: u32,
+    /// Column of the point's projection, pixels, before rounding to `x`: the intensity fits
+    /// sample the point where SfM found it, not at its pixel's centre.
+    pub u: f32,
+    /// Row of the point's projection, pixels, before rounding to `y`.
+    pub v: f32,
     /// z-depth in the reference camera, scene units (> 0).
     pub z: f32,
     /// Bit `i` set when source `i` sees the point: its SfM track includes that image, so it is
@@ -181,6 +186,8 @@ impl SparseDepth {
             samples.push(SparseSample {
                 x: x as u32,
                 y: y as u32,
+                u: u as f32,
+                v: v as f32,
                 z: q[2] as f32,
                 seen_by: seen_by.get(i).copied().unwrap_or(SEEN_BY_EVERY_SOURCE),
             });
@@ -306,6 +313,8 @@ mod tests {
             SparseSample {
                 x: 16,
                 y: 12,
+                u: 15.5,
+                v: 11.5,
                 z: 2.0,
                 seen_by: SEEN_BY_EVERY_SOURCE,
             }

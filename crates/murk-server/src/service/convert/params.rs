@@ -23,8 +23,8 @@ use murk::mvs::{estimate_depth, CostKind, DehazingOptions, PlaneSet, View, MAX_P
 use murk::params::airlight::{dark_channel_airlight, AirlightEstimator, DarkChannelParams};
 use murk::params::joint_fit::{Identifiability, JointFit};
 use murk::params::search::{
-    plane_range_from_sparse, search_scattering, AirlightConflict, BetaBound, BetaSource,
-    SearchParams, SearchStage, CNN_AIRLIGHT_ERROR, DARK_CHANNEL_AIRLIGHT_ERROR, MIN_SPARSE_POINTS,
+    plane_range_from_sparse, search_scattering, BetaBound, BetaSource, SearchParams, SearchStage,
+    CNN_AIRLIGHT_ERROR, DARK_CHANNEL_AIRLIGHT_ERROR, MIN_SPARSE_POINTS,
 };
 use murk::params::sparse::SparseDepth;
 
@@ -443,11 +443,7 @@ impl ParamsInput {
                     airlight_initial_error: c.airlight_initial_error,
                     sigmas: c.sigmas,
                 }),
-            warnings: est
-                .airlight_conflict
-                .iter()
-                .map(AirlightConflict::describe)
-                .collect(),
+            warnings: est.warnings(),
         })
     }
 }
@@ -462,6 +458,7 @@ fn joint_fit_to_proto(j: &JointFit) -> pb::JointFit {
         vignetting_falloff: j.vignetting_falloff,
         source_falloffs: j.source_falloffs.clone(),
         equations: u32::try_from(j.equations).unwrap_or(u32::MAX),
+        points: u32::try_from(j.points).unwrap_or(u32::MAX),
         rms_depth_difference: j.rms_depth_difference,
         residual_scale: j.residual_scale,
         identifiability: identifiability_to_proto(j.identifiability) as i32,
@@ -475,6 +472,7 @@ fn identifiability_to_proto(i: Identifiability) -> pb::Identifiability {
         Identifiability::TooFewPoints => pb::Identifiability::TooFewPoints,
         Identifiability::FlatResidual => pb::Identifiability::FlatResidual,
         Identifiability::AirlightConflict => pb::Identifiability::AirlightConflict,
+        Identifiability::AirlightAtBound => pb::Identifiability::AirlightAtBound,
     }
 }
 

@@ -85,12 +85,19 @@ class _IdentifiabilityEnumTypeWrapper(_enum_type_wrapper._EnumTypeWrapper[_Ident
     transmission is the same in every view and no beta explains the images better than another.
     """
     IDENTIFIABILITY_TOO_FEW_POINTS: _Identifiability.ValueType  # 3
-    """Fewer than 300 usable point x source x channel equations."""
+    """Fewer than 300 usable point x source x channel equations, or fewer than 60 SfM points behind
+    them (JointFit.equations and JointFit.points say how many).
+    """
     IDENTIFIABILITY_FLAT_RESIDUAL: _Identifiability.ValueType  # 4
     """Equations and depth differences exist, but beta's standard error is too large."""
     IDENTIFIABILITY_AIRLIGHT_CONFLICT: _Identifiability.ValueType  # 5
     """The joint fit determined A and beta, but its A disagrees with the image's airlight estimate
     A0 beyond both their errors (see AirlightConflict): the SfM model is likely wrong.
+    """
+    IDENTIFIABILITY_AIRLIGHT_AT_BOUND: _Identifiability.ValueType  # 6
+    """The joint fit's A sits on a bound of its range (1, the brightest linear value, or 0.001):
+    the best fit lies outside it, so the standard errors of A and beta mean nothing. A* and
+    beta* are the fit's, at the bound.
     """
 
 class Identifiability(_Identifiability, metaclass=_IdentifiabilityEnumTypeWrapper):
@@ -104,12 +111,19 @@ IDENTIFIABILITY_NO_DEPTH_DIFFERENCE: Identifiability.ValueType  # 2
 transmission is the same in every view and no beta explains the images better than another.
 """
 IDENTIFIABILITY_TOO_FEW_POINTS: Identifiability.ValueType  # 3
-"""Fewer than 300 usable point x source x channel equations."""
+"""Fewer than 300 usable point x source x channel equations, or fewer than 60 SfM points behind
+them (JointFit.equations and JointFit.points say how many).
+"""
 IDENTIFIABILITY_FLAT_RESIDUAL: Identifiability.ValueType  # 4
 """Equations and depth differences exist, but beta's standard error is too large."""
 IDENTIFIABILITY_AIRLIGHT_CONFLICT: Identifiability.ValueType  # 5
 """The joint fit determined A and beta, but its A disagrees with the image's airlight estimate
 A0 beyond both their errors (see AirlightConflict): the SfM model is likely wrong.
+"""
+IDENTIFIABILITY_AIRLIGHT_AT_BOUND: Identifiability.ValueType  # 6
+"""The joint fit's A sits on a bound of its range (1, the brightest linear value, or 0.001):
+the best fit lies outside it, so the standard errors of A and beta mean nothing. A* and
+beta* are the fit's, at the bound.
 """
 Global___Identifiability: _TypeAlias = Identifiability  # noqa: Y015
 
@@ -459,8 +473,10 @@ class ScatteringParamsResult(_message.Message):
     airlight_std_error: _builtins.float
     """Standard errors of A* and beta* (per scene unit), from the fit they came from; unset when
     there is none (A* is the estimator's A0, or beta* came from the sweep). The joint fit's are
-    the larger of its Gauss-Newton covariance's and, with 3 or more sources, a delete-one-source
-    jackknife's (the sources' disagreement, which the covariance counts as independent noise).
+    the largest of its Gauss-Newton covariance's, with 3 or more sources a delete-one-source
+    jackknife's (the sources' disagreement), and a jackknife's over ten groups of the points
+    (the errors a point carries into all its equations); the covariance counts both as
+    independent noise. They do not cover errors of the SfM poses.
     """
     beta_std_error: _builtins.float
     identifiable: _builtins.bool
@@ -506,7 +522,9 @@ class ScatteringParamsResult(_message.Message):
 
     @_builtins.property
     def warnings(self) -> _containers.RepeatedScalarFieldContainer[_builtins.str]:
-        """Sentences for the user about the estimate (the airlight conflict, when there is one)."""
+        """Sentences for the user about the estimate, with their numbers: the airlight conflict, and
+        when beta is not identifiable, why and what would help.
+        """
 
     def __init__(
         self,
@@ -608,6 +626,7 @@ class JointFit(_message.Message):
     IDENTIFIABILITY_FIELD_NUMBER: _builtins.int
     VIGNETTING_FALLOFF_FIELD_NUMBER: _builtins.int
     SOURCE_FALLOFFS_FIELD_NUMBER: _builtins.int
+    POINTS_FIELD_NUMBER: _builtins.int
     airlight: _builtins.float
     airlight_std_error: _builtins.float
     beta: _builtins.float
@@ -625,6 +644,8 @@ class JointFit(_message.Message):
     the half-diagonal; the corners record 1 + a of the centre's brightness), fitted with A and
     beta: an unmodelled vignetting biases both.
     """
+    points: _builtins.int
+    """SfM points behind the usable equations."""
     @_builtins.property
     def source_gains(self) -> _containers.RepeatedScalarFieldContainer[_builtins.float]:
         """Per source, its exposure gain relative to the reference (I_s observed = g_s x I_s at the
@@ -652,10 +673,11 @@ class JointFit(_message.Message):
         identifiability: Global___Identifiability.ValueType = ...,
         vignetting_falloff: _builtins.float = ...,
         source_falloffs: _abc.Iterable[_builtins.float] | None = ...,
+        points: _builtins.int = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["airlight", b"airlight", "airlight_std_error", b"airlight_std_error", "beta", b"beta", "beta_std_error", b"beta_std_error", "equations", b"equations", "identifiability", b"identifiability", "residual_scale", b"residual_scale", "rms_depth_difference", b"rms_depth_difference", "source_falloffs", b"source_falloffs", "source_gains", b"source_gains", "vignetting_falloff", b"vignetting_falloff"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["airlight", b"airlight", "airlight_std_error", b"airlight_std_error", "beta", b"beta", "beta_std_error", b"beta_std_error", "equations", b"equations", "identifiability", b"identifiability", "points", b"points", "residual_scale", b"residual_scale", "rms_depth_difference", b"rms_depth_difference", "source_falloffs", b"source_falloffs", "source_gains", b"source_gains", "vignetting_falloff", b"vignetting_falloff"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
