@@ -427,11 +427,11 @@ impl ScatteringEstimate {
             )),
             Identifiability::FlatResidual if j.beta_std_error.is_finite() && j.beta > 0.0 => out
                 .push(format!(
-                    "beta's standard error {:.3} is {:.0} % of beta (identifiable below {:.0} %) \
-                     from {} points at an RMS depth difference of {:.3} between the views: frames \
-                     that move towards or away from the scene, a longer baseline, or more points \
-                     (a lower SIFT peak threshold) help",
-                    j.beta_std_error,
+                    "the SfM points fit beta = {:.4} with a standard error of {:.0} % (identifiable \
+                     below {:.0} %) from {} points at an RMS depth difference of {:.3} between the \
+                     views: frames that move towards or away from the scene, a longer baseline, or \
+                     more points (a lower SIFT peak threshold) help",
+                    j.beta,
                     100.0 * j.beta_std_error / j.beta,
                     100.0 * MAX_RELATIVE_BETA_ERROR,
                     j.points,
