@@ -314,10 +314,12 @@ pub fn fit_equations(
     // A fall-off that passes on the covariance must also pass on the points' jackknife: a
     // point's errors enter all its equations, and keypoints clustered in part of the image
     // otherwise pass as a fall-off (which then trades with A).
-    let jackknife_passes = |theta: &[f64], jack: &Option<Vec<f64>>, k: usize| {
-        jack.as_ref()
-            .is_none_or(|j| significant(theta[k], j[k] * j[k]))
+    let jackknife_passes = |theta: &[f64], jack: Option<&[f64]>, k: usize| {
+        jack.is_none_or(|j| significant(theta[k], j[k] * j[k]))
     };
+    // The points' jackknife of the model chosen so far, when a fall-off test computed it: the
+    // standard errors below reuse it instead of running its ten refits again.
+    let mut chosen_point_jack: Option<Option<Vec<f64>>> = None;
     if priors.falloff_sigma > 0.0 {
         let shared = JointPriors {
             falloff_sigma: priors.falloff_sigma,
@@ -326,12 +328,14 @@ pub fn fit_equations(
         let mut free = Solver::new(&eqs, n_src, &shared);
         if let Some(c) = free.run() {
             let k = 2 + n_src;
-            if significant(free.theta[k], c[k])
-                && jackknife_passes(&free.theta, &point_jackknife(&eqs, &shared, &free.theta), k)
-            {
-                solver = free;
-                fit = Some(c);
-                chosen = shared;
+            if significant(free.theta[k], c[k]) {
+                let jack = point_jackknife(&eqs, &shared, &free.theta);
+                if jackknife_passes(&free.theta, jack.as_deref(), k) {
+                    solver = free;
+                    fit = Some(c);
+                    chosen = shared;
+                    chosen_point_jack = Some(jack);
+                }
             }
         }
     }
@@ -343,16 +347,17 @@ pub fn fit_equations(
         let mut free = Solver::new(&eqs, n_src, &relative);
         if let Some(c) = free.run() {
             let passes = |s: usize| significant(free.theta[3 + n_src + s], c[3 + n_src + s]);
-            let keep = (0..n_src).any(passes) && {
+            if (0..n_src).any(passes) {
                 let jack = point_jackknife(&eqs, &relative, &free.theta);
-                (0..n_src)
+                let keep = (0..n_src)
                     .filter(|&s| passes(s))
-                    .any(|s| jackknife_passes(&free.theta, &jack, 3 + n_src + s))
-            };
-            if keep {
-                solver = free;
-                fit = Some(c);
-                chosen = relative;
+                    .any(|s| jackknife_passes(&free.theta, jack.as_deref(), 3 + n_src + s));
+                if keep {
+                    solver = free;
+                    fit = Some(c);
+                    chosen = relative;
+                    chosen_point_jack = Some(jack);
+                }
             }
         }
     }
@@ -366,7 +371,8 @@ pub fn fit_equations(
     // put it, the texture it sits on). The spread of the fits without each source, and
     // without each group of points, bounds the error from below as well.
     let by_source = jackknife(&eqs, n_src, |e| e.source, &chosen, &solver.theta);
-    let by_point = point_jackknife(&eqs, &chosen, &solver.theta);
+    let by_point =
+        chosen_point_jack.unwrap_or_else(|| point_jackknife(&eqs, &chosen, &solver.theta));
     let (mut a_se, mut beta_se) = (se(0), se(1));
     for j in [by_source, by_point].into_iter().flatten() {
         a_se = a_se.max(j[0]);

@@ -415,10 +415,16 @@ impl ScatteringEstimate {
             .iter()
             .map(AirlightConflict::describe)
             .collect();
-        let Some(j) = self.joint.as_ref() else {
+        // The reasons are the joint fit's own verdict, given only when the estimate is not
+        // identifiable (a swept β after a fit the caller turned off has no reason of the fit's).
+        let Some(j) = self
+            .joint
+            .as_ref()
+            .filter(|_| self.identifiability != Identifiability::Identifiable)
+        else {
             return out;
         };
-        match self.identifiability {
+        match j.identifiability {
             Identifiability::TooFewPoints => out.push(format!(
                 "the SfM model gives {} usable equations from {} points seen by the reference and \
                  its sources (at least {} and {} are needed): more frames of the scene, or a lower \
