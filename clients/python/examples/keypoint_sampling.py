@@ -33,24 +33,11 @@ import pycolmap
 from murk_client import read_image
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from params_colmap_survey import qvec_to_rotation, read_exr_depth  # noqa: E402
+from params_colmap_survey import read_exr_depth, read_poses  # noqa: E402
 
 # The image's own blur, pixels (murk's PIXEL_PSF_SIGMA_PX).
 PIXEL_PSF = 0.5
 MODES = ("pixel", "subpixel", "footprint")
-
-
-def poses(images_txt: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """COLMAP images.txt → name: (world-to-camera R, t)."""
-    lines = [ln for ln in images_txt.read_text().splitlines() if ln and not ln.startswith("#")]
-    out = {}
-    for ln in lines[::2]:
-        p = ln.split()
-        out[p[9]] = (
-            qvec_to_rotation(np.array([float(v) for v in p[1:5]])),
-            np.array([float(v) for v in p[5:8]]),
-        )
-    return out
 
 
 def blur(img: np.ndarray, sigma: float) -> np.ndarray:
@@ -111,7 +98,7 @@ def scene_errors(scene: Path, sigmas: list[float]) -> dict[tuple[float, str, str
     w, h = meta["config"]["width"], meta["config"]["height"]
     cx, cy = w / 2 - 0.5, h / 2 - 0.5  # pixel centres at integers
     a, beta = meta["airlight"], meta["beta"]
-    truth = poses(scene / "sparse" / "images.txt")
+    truth = read_poses(scene / "sparse" / "images.txt")
     centre = {n: -r.T @ t for n, (r, t) in truth.items()}
     sources = sorted((n for n in truth if n != ref), key=lambda n: np.linalg.norm(centre[n] - centre[ref]))[
         :4
