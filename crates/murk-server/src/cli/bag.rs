@@ -41,10 +41,11 @@ pub struct BagArgs {
     /// Stereo: the rectified right image topic.
     #[arg(long, requires = "left")]
     pub right: Option<String>,
-    /// The left camera's CameraInfo topic (default: `camera_info` beside the image topic).
+    /// The left camera's CameraInfo topic (default: `camera_info` beside the image topic, or
+    /// beside its base topic for a transport's `…/compressed`).
     #[arg(long, requires = "left")]
     pub left_info: Option<String>,
-    /// The right camera's CameraInfo topic (default: `camera_info` beside the image topic);
+    /// The right camera's CameraInfo topic (default: as for the left one);
     /// its P gives the baseline (P[3] = Tx = −fx·B).
     #[arg(long, requires = "right")]
     pub right_info: Option<String>,
@@ -121,9 +122,20 @@ enum Kind {
     Tof,
 }
 
-/// `camera_info` beside an image topic: `/cam/left/image_rect` → `/cam/left/camera_info`.
+/// Transport suffixes of image_transport's plugins (image_transport_plugins): the compressed
+/// stream of `/cam/image_rect` is published on `/cam/image_rect/compressed`, and its CameraInfo
+/// stays at `/cam/camera_info`.
+const TRANSPORT_SUFFIXES: [&str; 4] = ["compressed", "compressedDepth", "theora", "zstd"];
+
+/// `camera_info` beside an image topic: `/cam/left/image_rect` → `/cam/left/camera_info`, and
+/// beside the base topic of a transport's topic: `/cam/left/image_rect/compressed` →
+/// `/cam/left/camera_info`.
 fn sibling_info(topic: &str) -> String {
-    match topic.rsplit_once('/') {
+    let base = match topic.rsplit_once('/') {
+        Some((base, last)) if TRANSPORT_SUFFIXES.contains(&last) && !base.is_empty() => base,
+        _ => topic,
+    };
+    match base.rsplit_once('/') {
         Some((parent, _)) => format!("{parent}/camera_info"),
         None => "camera_info".to_string(),
     }
@@ -698,5 +710,15 @@ mod tests {
             "/stereo/left/camera_info"
         );
         assert_eq!(sibling_info("image"), "camera_info");
+        assert_eq!(
+            sibling_info("/stereo/left/image_rect/compressed"),
+            "/stereo/left/camera_info"
+        );
+        assert_eq!(
+            sibling_info("/tof/depth/compressedDepth"),
+            "/tof/camera_info"
+        );
+        // a topic merely named like a transport
+        assert_eq!(sibling_info("/compressed"), "/camera_info");
     }
 }
