@@ -137,6 +137,9 @@ pub struct IrlsStart {
     pub scatter: Vec<Vec<f64>>,
     /// The previous frame's final weights.
     pub weights: Vec<f64>,
+    /// The previous frame's fine scale σ₁, at which the new frame's residuals against the
+    /// previous scatter are first weighted (without it the fine level starts from `weights`).
+    pub sigma_fine: Option<f64>,
 }
 
 impl IrlsStart {
@@ -145,6 +148,7 @@ impl IrlsStart {
         Self {
             scatter: outcome.scatter.clone(),
             weights: outcome.weights.clone(),
+            sigma_fine: outcome.sigma_fine,
         }
     }
 }
@@ -567,6 +571,22 @@ pub fn run_irls_vector_from(
     let mut prev_weights = vec![0.0; n];
     let mut conv = Convergence::new();
     let mut fine_converged = cfg.fine_iterations == 0 || cfg.weight_tolerance <= 0.0;
+    // From the previous frame's answer, the weights are first re-judged against this frame's
+    // observation at the previous frame's scale: the previous weights left the new frame's
+    // noise and moved edges out of the first x-step, which then followed them (about three
+    // times the CG iterations and twice the reweightings to converge, to the same answer).
+    if let Some(s1) = start.and_then(|s| s.sigma_fine) {
+        if let Some(ns) = noise_scale.as_mut() {
+            ns.update(&x);
+        }
+        let g = noise_scale.as_ref().map(|ns| &ns.g[..]);
+        squared_residuals(&x, observed, g, &mut res2);
+        let inv_s1 = 1.0 / s1;
+        weights
+            .par_iter_mut()
+            .zip(res2.par_iter())
+            .for_each(|(wi, r2)| *wi = tukey::weight(r2.sqrt() * inv_s1, c_fine));
+    }
     for it in 0..cfg.fine_iterations {
         monitor.checkpoint()?;
         cg_iterations += x_and_a_steps(&weights, &mut x, &mut prior_img, priors, conv.tol_scale())?;

@@ -1,10 +1,11 @@
 //! ToF in a stream: each frame starts from the previous frame's answer (the temporal prior of a
 //! sensor session), and from scratch when that answer no longer fits.
 //!
-//! What is carried from frame to frame: the scatter estimate (the phasor's two parts) and the
-//! final IRLS weights of the previous frame, 24 bytes a pixel (5.2 MB at 512×424). The next
-//! frame skips Algorithm 2's coarse level, whose work is to find the objects from "no object",
-//! and runs the fine level from that start to convergence ([`IrlsStart`]). What is dropped, and
+//! What is carried from frame to frame: the scatter estimate (the phasor's two parts), the
+//! final IRLS weights and the fine scale σ₁ of the previous frame, 24 bytes a pixel (5.2 MB at
+//! 512×424). The next frame skips Algorithm 2's coarse level, whose work is to find the objects
+//! from "no object": its residuals against the previous scatter are weighted at the previous
+//! σ₁, and the fine level runs from there to convergence ([`IrlsStart`]). What is dropped, and
 //! when:
 //! - a frame of another size, a failed frame, or the amplitude/phase channels
 //!   (`ScatterChannels::AmplitudePhase`), which always start cold;
@@ -157,7 +158,7 @@ fn changed_fraction(a: &IrlsStart, b: &IrlsStart, threshold: f32) -> f64 {
 mod tests {
     use super::*;
     use crate::simulate::{simulate_tof_sequence_frame, TofMotion, TofSimConfig};
-    use crate::tof::estimate_tof_depth;
+    use crate::tof::{estimate_tof_depth, estimate_tof_depth_from};
 
     fn frame(cfg: &TofSimConfig, motion: &TofMotion, k: usize) -> TofInput {
         let f = simulate_tof_sequence_frame(cfg, motion, k, &Monitor::noop()).unwrap();
@@ -239,6 +240,64 @@ mod tests {
             tracked.start
         );
         assert_eq!(tracked.start, TofStart::Restarted);
+    }
+
+    /// Fine-level iterations of one frame from `start`, counted by its progress ticks, and its
+    /// mask.
+    fn fine_iterations(
+        input: &TofInput,
+        params: &TofParams,
+        start: &IrlsStart,
+    ) -> (usize, Vec<f32>) {
+        let ticks = std::sync::Arc::new(std::sync::atomic::AtomicUsize::new(0));
+        let counter = ticks.clone();
+        let monitor = Monitor::new(
+            std::sync::Arc::default(),
+            Some(std::sync::Arc::new(move |stage: &str, _| {
+                if stage.ends_with(".fine") {
+                    counter.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                }
+            })),
+        );
+        let (out, _) = estimate_tof_depth_from(input, params, Some(start), &monitor).unwrap();
+        let n = ticks.load(std::sync::atomic::Ordering::Relaxed);
+        (n, out.mask.data().to_vec())
+    }
+
+    /// A warm frame first weights its residuals at the previous σ₁: it converges in fewer
+    /// reweightings than from the previous frame's weights, to the same mask.
+    #[test]
+    fn weighting_at_the_previous_scale_first_saves_iterations() {
+        let cfg = TofSimConfig {
+            seed: 2,
+            ..TofSimConfig::with_size(128, 106)
+        };
+        let motion = TofMotion::default();
+        let params = TofParams {
+            light_position_m: Some(cfg.light_position_m()),
+            ..TofParams::default()
+        };
+        let first = frame(&cfg, &motion, 0);
+        let (_, start) = estimate_tof_depth_from(&first, &params, None, &Monitor::noop()).unwrap();
+        let start = start.unwrap();
+        assert!(start.sigma_fine.is_some());
+        let next = frame(&cfg, &motion, 1);
+        let (weighted, mask) = fine_iterations(&next, &params, &start);
+        let unweighted_start = IrlsStart {
+            sigma_fine: None,
+            ..start.clone()
+        };
+        let (unweighted, mask_unweighted) = fine_iterations(&next, &params, &unweighted_start);
+        assert!(
+            weighted < unweighted,
+            "{weighted} vs {unweighted} fine iterations"
+        );
+        let differ = mask
+            .iter()
+            .zip(&mask_unweighted)
+            .filter(|(a, b)| a != b)
+            .count();
+        assert!(differ <= mask.len() / 1000, "{differ} mask pixels differ");
     }
 
     #[test]
