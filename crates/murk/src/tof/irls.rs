@@ -222,7 +222,7 @@ const HELD_OUT_TOL_SCALE: f64 = 100.0;
 #[allow(clippy::too_many_arguments)]
 fn held_out_outliers(
     sys: &XStepSystem,
-    states: &mut [XStepState],
+    state: &mut XStepState,
     priors: &[QuadraticPrior],
     prior_img: &[Vec<f64>],
     observed: &[&[f64]],
@@ -264,7 +264,8 @@ fn held_out_outliers(
             let (mut prior, mut img) = (priors[c].clone(), prior_img[c].clone());
             cg += x_and_a_step(
                 sys,
-                &mut states[c],
+                state,
+                c > 0,
                 &mut prior,
                 &held,
                 observed[c],
@@ -435,9 +436,7 @@ pub fn run_irls_vector_from(
     } else {
         cfg.coarse_iterations
     };
-    let mut states = (0..m)
-        .map(|_| XStepState::new(cfg.solver, sys))
-        .collect::<Result<Vec<_>>>()?;
+    let mut state = XStepState::new(cfg.solver, sys)?;
     let mut cg_iterations = 0;
 
     // Blocks of the coarse level's weights (Eq. 5.16); see `coarse_blocks`.
@@ -458,11 +457,14 @@ pub fn run_irls_vector_from(
                              priors: &mut [QuadraticPrior],
                              tol_scale: f64|
      -> Result<usize> {
+        // The components share the weights, so one solver state serves them all and sets its
+        // preconditioner up once per x-step.
         let mut its = 0;
         for c in 0..m {
             its += x_and_a_step(
                 sys,
-                &mut states[c],
+                &mut state,
+                c > 0,
                 &mut priors[c],
                 weights,
                 observed[c],
@@ -515,15 +517,13 @@ pub fn run_irls_vector_from(
 
     let mut held_out_rejected = 0;
     if coarse_iterations > 0 {
-        let mut cv_states = (0..m)
-            .map(|_| XStepState::new(cfg.solver, sys))
-            .collect::<Result<Vec<_>>>()?;
+        let mut cv_state = XStepState::new(cfg.solver, sys)?;
         let mut cv_rhs = vec![0.0; n];
         for _ in 0..HELD_OUT_ROUNDS {
             monitor.checkpoint()?;
             let (outliers, cg) = held_out_outliers(
                 sys,
-                &mut cv_states,
+                &mut cv_state,
                 priors,
                 &prior_img,
                 observed,
@@ -547,7 +547,8 @@ pub fn run_irls_vector_from(
             for c in 0..m {
                 cg_iterations += x_and_a_step(
                     sys,
-                    &mut cv_states[c],
+                    &mut cv_state,
+                    c > 0,
                     &mut priors[c],
                     &weights,
                     observed[c],
@@ -820,6 +821,7 @@ fn squared_residuals(
 fn x_and_a_step(
     sys: &XStepSystem,
     state: &mut XStepState,
+    same_weights: bool,
     prior: &mut QuadraticPrior,
     weights: &[f64],
     observed: &[f64],
@@ -830,7 +832,11 @@ fn x_and_a_step(
     monitor: &Monitor,
 ) -> Result<usize> {
     sys.rhs(weights, observed, prior_img, rhs);
-    let stats = state.solve_inexact(sys, weights, rhs, x, tol_scale, monitor)?;
+    let stats = if same_weights {
+        state.solve_again(sys, weights, rhs, x, tol_scale, monitor)?
+    } else {
+        state.solve_inexact(sys, weights, rhs, x, tol_scale, monitor)?
+    };
     if sys.is_joint() {
         // x already minimises over a: its uniform fits are the a-step's answer.
         prior.fit(x);

@@ -427,22 +427,30 @@ pub fn solve_pcg(
     ws: &mut PcgWorkspace,
     monitor: &Monitor,
 ) -> Result<SolveStats> {
-    let n = sys.len();
+    prepare_preconditioner(sys, weights, preconditioner, ws)?;
+    solve_pcg_prepared(
+        sys,
+        weights,
+        b,
+        x,
+        rel_tol,
+        max_iterations,
+        preconditioner,
+        ws,
+        monitor,
+    )
+}
+
+/// Sets `ws`'s preconditioner up for `sys` under `weights`: the inverse diagonal, or the
+/// V-cycle's mass and (joint form) the coarse space's factorisation.
+fn prepare_preconditioner(
+    sys: &XStepSystem,
+    weights: &[f64],
+    preconditioner: Preconditioner,
+    ws: &mut PcgWorkspace,
+) -> Result<()> {
     let w = sys.width;
-    ws.ensure(n, sys.height);
-    let bnorm = b.par_iter().map(|v| v * v).sum::<f64>().sqrt();
-    if !bnorm.is_finite() {
-        return Err(MurkError::Numerical(
-            "x-step right-hand side is not finite".into(),
-        ));
-    }
-    if bnorm == 0.0 {
-        // A is SPD (ridge), so b = 0 has the unique solution x = 0.
-        x.fill(0.0);
-        return Ok(SolveStats::default());
-    }
-    let target = rel_tol * bnorm;
-    let mut coarse = None;
+    ws.ensure(sys.len(), sys.height);
     match preconditioner {
         Preconditioner::Jacobi => {
             sys.diagonal(weights, &mut ws.inv_diag);
@@ -467,10 +475,45 @@ pub fn solve_pcg(
             let base = share * sys.gamma[0] + RIDGE;
             mg.set_mass(|i| weights[i] + base + sys.pair_coef(i / w));
             if preconditioner == Preconditioner::Multigrid {
-                coarse = sys.coarse_space(weights, &mut ws.coarse)?;
+                sys.coarse_space(weights, &mut ws.coarse)?;
             }
         }
     }
+    Ok(())
+}
+
+/// [`solve_pcg`] with `ws`'s preconditioner already set up for `sys` and `weights` by
+/// [`prepare_preconditioner`]: the phasor's components share the weights, so the second
+/// component's solve reuses the first one's setup.
+#[allow(clippy::too_many_arguments)]
+fn solve_pcg_prepared(
+    sys: &XStepSystem,
+    weights: &[f64],
+    b: &[f64],
+    x: &mut [f64],
+    rel_tol: f64,
+    max_iterations: usize,
+    preconditioner: Preconditioner,
+    ws: &mut PcgWorkspace,
+    monitor: &Monitor,
+) -> Result<SolveStats> {
+    let w = sys.width;
+    let bnorm = b.par_iter().map(|v| v * v).sum::<f64>().sqrt();
+    if !bnorm.is_finite() {
+        return Err(MurkError::Numerical(
+            "x-step right-hand side is not finite".into(),
+        ));
+    }
+    if bnorm == 0.0 {
+        // A is SPD (ridge), so b = 0 has the unique solution x = 0.
+        x.fill(0.0);
+        return Ok(SolveStats::default());
+    }
+    let target = rel_tol * bnorm;
+    let mut coarse = match preconditioner {
+        Preconditioner::Multigrid if sys.is_joint() => ws.coarse.as_deref_mut(),
+        _ => None,
+    };
     let PcgWorkspace {
         r,
         z,
@@ -705,23 +748,58 @@ impl XStepState {
         tol_scale: f64,
         monitor: &Monitor,
     ) -> Result<SolveStats> {
+        self.solve_with(sys, weights, b, x, tol_scale, true, monitor)
+    }
+
+    /// [`XStepState::solve_inexact`] of another right-hand side under the same `sys` and
+    /// `weights` as this state's previous solve: the CG reuses that solve's preconditioner
+    /// setup (the V-cycle's mass, the coarse space's factorisation), with the same result as
+    /// setting it up again.
+    pub fn solve_again(
+        &mut self,
+        sys: &XStepSystem,
+        weights: &[f64],
+        b: &[f64],
+        x: &mut [f64],
+        tol_scale: f64,
+        monitor: &Monitor,
+    ) -> Result<SolveStats> {
+        self.solve_with(sys, weights, b, x, tol_scale, false, monitor)
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn solve_with(
+        &mut self,
+        sys: &XStepSystem,
+        weights: &[f64],
+        b: &[f64],
+        x: &mut [f64],
+        tol_scale: f64,
+        prepare: bool,
+        monitor: &Monitor,
+    ) -> Result<SolveStats> {
         match self {
             XStepState::Pcg {
                 ws,
                 rel_tol,
                 max_iterations,
                 preconditioner,
-            } => solve_pcg(
-                sys,
-                weights,
-                b,
-                x,
-                *rel_tol * tol_scale.max(1.0),
-                *max_iterations,
-                *preconditioner,
-                ws,
-                monitor,
-            ),
+            } => {
+                if prepare {
+                    prepare_preconditioner(sys, weights, *preconditioner, ws)?;
+                }
+                solve_pcg_prepared(
+                    sys,
+                    weights,
+                    b,
+                    x,
+                    *rel_tol * tol_scale.max(1.0),
+                    *max_iterations,
+                    *preconditioner,
+                    ws,
+                    monitor,
+                )
+            }
             XStepState::Cholesky(c) => c.solve(weights, b, x),
         }
     }
