@@ -267,9 +267,24 @@ def test_a_stereo_bag_from_another_writer(stereo_bag: StereoBag, tmp_path: Path)
     assert mc.read_image(png).shape == (h, 3 * w, 3)
 
 
+@pytest.fixture(scope="module")
+def raw_stereo_output(
+    stereo_bag: StereoBag, tmp_path_factory: pytest.TempPathFactory
+) -> dict[str, list[Any]]:
+    """The raw bag's output, read back: what the compressed bags are compared with."""
+    out = tmp_path_factory.mktemp("raw_stereo_out") / "raw.mcap"
+    r = run_stereo_bag(stereo_bag, out)
+    assert r.returncode == 0, r.stderr
+    return read_back(out)
+
+
 @pytest.mark.parametrize("form", ["png", "jpeg"])
 def test_a_compressed_stereo_bag(
-    form: str, stereo_sequence: Path, stereo_bag: StereoBag, tmp_path: Path
+    form: str,
+    stereo_sequence: Path,
+    stereo_bag: StereoBag,
+    raw_stereo_output: dict[str, list[Any]],
+    tmp_path: Path,
 ) -> None:
     """CompressedImage pairs (image_transport's `.../compressed` topics): PNG decodes to the raw
     bag's pixels, so its depth is the raw bag's to the bit; JPEG at quality 95 loses a little
@@ -280,16 +295,14 @@ def test_a_compressed_stereo_bag(
     assert r.returncode == 0, r.stderr
     topics = read_back(out)
     cps = check_stereo_output(bag, topics, 0.5)
-    raw_out = tmp_path / "raw.mcap"
-    assert run_stereo_bag(stereo_bag, raw_out).returncode == 0
-    raw = read_back(raw_out)
-    raw_cps = check_stereo_output(stereo_bag, raw, 0.5)
     if form == "png":
-        for mine, theirs in zip(topics["/murk/depth"], raw["/murk/depth"], strict=True):
+        for mine, theirs in zip(topics["/murk/depth"], raw_stereo_output["/murk/depth"], strict=True):
             np.testing.assert_array_equal(float_image(mine), float_image(theirs))
     else:
-        # JPEG's loss costs at most a few points of C.P. on any frame
-        assert all(c >= r - 0.05 for c, r in zip(cps, raw_cps, strict=True)), (cps, raw_cps)
+        # JPEG's loss costs a few points of C.P. at most (3.4 on the worst frame with Pillow
+        # 13's libjpeg-turbo); the bound leaves room for other encoders' quantisation
+        raw_cps = check_stereo_output(stereo_bag, raw_stereo_output, 0.5)
+        assert all(c >= raw_cp - 0.08 for c, raw_cp in zip(cps, raw_cps, strict=True)), (cps, raw_cps)
 
 
 @pytest.fixture(scope="module")
@@ -425,9 +438,10 @@ def test_a_sixteen_bit_tof_bag(tof_sequence: Path, tmp_path: Path) -> None:
         runs.append(check_tof_output(tof_sequence, read_back(out)))
     for f32, u16 in zip(*runs, strict=True):
         both = np.isfinite(f32) & np.isfinite(u16)
-        # the masks agree but for a handful of boundary pixels
-        assert np.mean(np.isfinite(f32) != np.isfinite(u16)) < 0.005
-        assert float(np.median(np.abs(f32[both] - u16[both]))) < 0.002
+        # the masks agree but for a boundary pixel or two, and the depths to within the
+        # quantisation
+        assert np.mean(np.isfinite(f32) != np.isfinite(u16)) < 0.001
+        assert float(np.median(np.abs(f32[both] - u16[both]))) < 3e-4
 
 
 def assert_failed_cleanly(r: subprocess.CompletedProcess[str], out: Path, *needles: str) -> None:

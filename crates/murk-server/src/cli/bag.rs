@@ -55,7 +55,8 @@ pub struct BagArgs {
     /// ToF: the phase image topic, radians (32FC1, or 16-bit with --phase-scale).
     #[arg(long, requires = "amplitude")]
     pub phase: Option<String>,
-    /// The ToF camera's CameraInfo topic (default: `camera_info` beside the amplitude topic).
+    /// The ToF camera's CameraInfo topic (default: `camera_info` beside the amplitude topic, or
+    /// beside its base topic for a transport's `…/compressed`).
     #[arg(long, requires = "amplitude")]
     pub camera_info: Option<String>,
     /// ToF: modulation frequency, Hz.
@@ -124,7 +125,9 @@ enum Kind {
 
 /// Transport suffixes of image_transport's plugins (image_transport_plugins): the compressed
 /// stream of `/cam/image_rect` is published on `/cam/image_rect/compressed`, and its CameraInfo
-/// stays at `/cam/camera_info`.
+/// stays at `/cam/camera_info`. The rule goes by the name alone (the bag is read as a stream,
+/// so the topic's type is not known yet): a raw image published under such a name needs its
+/// CameraInfo named with the `--*-info` flags, as the error for a missing one says.
 const TRANSPORT_SUFFIXES: [&str; 4] = ["compressed", "compressedDepth", "theora", "zstd"];
 
 /// `camera_info` beside an image topic: `/cam/left/image_rect` → `/cam/left/camera_info`, and

@@ -364,7 +364,9 @@ pub fn run_irls_vector(
 
 /// [`run_irls_vector`] from `start`, when given: the previous frame's scatter and weights
 /// ([`IrlsStart`]) instead of Algorithm 2's initialisation, with no coarse level and no
-/// held-out check; the fine level measures its scale σ₁ afresh and iterates to convergence.
+/// held-out check. The weights are first re-judged from this frame's residuals against the
+/// previous scatter at the previous σ₁ (when the start has one); the fine level then measures
+/// its scale σ₁ afresh and iterates to convergence.
 #[allow(clippy::too_many_arguments)]
 pub fn run_irls_vector_from(
     observed: &[&[f64]],
@@ -594,11 +596,12 @@ pub fn run_irls_vector_from(
         fine_run += 1;
         prev_weights.copy_from_slice(&weights);
         // σ₁ is measured twice and then fixed (§5.3.4 fixes it from the level's first
-        // residuals). The first fine x-step still runs under the coarse patch weights: in every
-        // rejected patch the background residuals are the priors' misfit, not noise, and
-        // inflate σ₁ (3.5× the noise on a simulated medium-fog frame), which then keeps dim
-        // object pixels as inliers. That first estimate only seeds the first pixel weights;
-        // the residuals of the first x-step solved under pixel weights give the noise scale.
+        // residuals). From scratch, the first fine x-step still runs under the coarse patch
+        // weights: in every rejected patch the background residuals are the priors' misfit,
+        // not noise, and inflate σ₁ (3.5× the noise on a simulated medium-fog frame), which
+        // then keeps dim object pixels as inliers. That first estimate only seeds the first
+        // pixel weights; the residuals of the first x-step solved under pixel weights give the
+        // noise scale.
         // With several components the residuals of all of them are pooled: one σ per component.
         if let Some(ns) = noise_scale.as_mut() {
             ns.update(&x);
