@@ -835,11 +835,7 @@ fn x_and_a_step(
     monitor: &Monitor,
 ) -> Result<usize> {
     sys.rhs(weights, observed, prior_img, rhs);
-    let stats = if same_weights {
-        state.solve_again(sys, weights, rhs, x, tol_scale, monitor)?
-    } else {
-        state.solve_inexact(sys, weights, rhs, x, tol_scale, monitor)?
-    };
+    let stats = state.solve_reusing(sys, weights, rhs, x, tol_scale, same_weights, monitor)?;
     if sys.is_joint() {
         // x already minimises over a: its uniform fits are the a-step's answer.
         prior.fit(x);

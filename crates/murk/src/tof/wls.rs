@@ -414,36 +414,9 @@ fn dot(a: &[f64], b: &[f64], w: usize, rows: &mut [f64]) -> f64 {
     rows.iter().sum()
 }
 
-/// Preconditioned CG on `A x = b`, starting from the given `x`.
-#[allow(clippy::too_many_arguments)]
-pub fn solve_pcg(
-    sys: &XStepSystem,
-    weights: &[f64],
-    b: &[f64],
-    x: &mut [f64],
-    rel_tol: f64,
-    max_iterations: usize,
-    preconditioner: Preconditioner,
-    ws: &mut PcgWorkspace,
-    monitor: &Monitor,
-) -> Result<SolveStats> {
-    prepare_preconditioner(sys, weights, preconditioner, ws)?;
-    solve_pcg_prepared(
-        sys,
-        weights,
-        b,
-        x,
-        rel_tol,
-        max_iterations,
-        preconditioner,
-        ws,
-        monitor,
-    )
-}
-
 /// Sets `ws`'s preconditioner up for `sys` under `weights`: the inverse diagonal, or the
-/// V-cycle's mass and (joint form) the coarse space's factorisation.
-fn prepare_preconditioner(
+/// V-cycle's mass and (joint form) the coarse space's factorisation. [`solve_pcg`] uses it.
+pub fn prepare_preconditioner(
     sys: &XStepSystem,
     weights: &[f64],
     preconditioner: Preconditioner,
@@ -482,11 +455,11 @@ fn prepare_preconditioner(
     Ok(())
 }
 
-/// [`solve_pcg`] with `ws`'s preconditioner already set up for `sys` and `weights` by
-/// [`prepare_preconditioner`]: the phasor's components share the weights, so the second
-/// component's solve reuses the first one's setup.
+/// Preconditioned CG on `A x = b`, starting from the given `x`, with `ws`'s preconditioner
+/// set up for `sys` and `weights` by [`prepare_preconditioner`]. One setup serves every
+/// right-hand side under the same weights: the phasor's two components share them.
 #[allow(clippy::too_many_arguments)]
-fn solve_pcg_prepared(
+pub fn solve_pcg(
     sys: &XStepSystem,
     weights: &[f64],
     b: &[f64],
@@ -733,49 +706,24 @@ impl XStepState {
         x: &mut [f64],
         monitor: &Monitor,
     ) -> Result<SolveStats> {
-        self.solve_inexact(sys, weights, b, x, 1.0, monitor)
+        self.solve_reusing(sys, weights, b, x, 1.0, false, monitor)
     }
 
     /// [`XStepState::solve`] with the CG tolerance multiplied by `tol_scale` (≥ 1; values
     /// below 1 count as 1): early IRLS iterations, whose weights will still change, do not need
-    /// an accurate x-step. The Cholesky ignores it.
-    pub fn solve_inexact(
-        &mut self,
-        sys: &XStepSystem,
-        weights: &[f64],
-        b: &[f64],
-        x: &mut [f64],
-        tol_scale: f64,
-        monitor: &Monitor,
-    ) -> Result<SolveStats> {
-        self.solve_with(sys, weights, b, x, tol_scale, true, monitor)
-    }
-
-    /// [`XStepState::solve_inexact`] of another right-hand side under the same `sys` and
-    /// `weights` as this state's previous solve: the CG reuses that solve's preconditioner
-    /// setup (the V-cycle's mass, the coarse space's factorisation), with the same result as
-    /// setting it up again.
-    pub fn solve_again(
-        &mut self,
-        sys: &XStepSystem,
-        weights: &[f64],
-        b: &[f64],
-        x: &mut [f64],
-        tol_scale: f64,
-        monitor: &Monitor,
-    ) -> Result<SolveStats> {
-        self.solve_with(sys, weights, b, x, tol_scale, false, monitor)
-    }
-
+    /// an accurate x-step. The Cholesky ignores it. With `reuse_setup`, for another right-hand
+    /// side under the same `sys` and `weights` as this state's previous solve, the CG reuses
+    /// that solve's preconditioner setup (the V-cycle's mass, the coarse space's
+    /// factorisation), with the same result as setting it up again.
     #[allow(clippy::too_many_arguments)]
-    fn solve_with(
+    pub fn solve_reusing(
         &mut self,
         sys: &XStepSystem,
         weights: &[f64],
         b: &[f64],
         x: &mut [f64],
         tol_scale: f64,
-        prepare: bool,
+        reuse_setup: bool,
         monitor: &Monitor,
     ) -> Result<SolveStats> {
         match self {
@@ -785,10 +733,10 @@ impl XStepState {
                 max_iterations,
                 preconditioner,
             } => {
-                if prepare {
+                if !reuse_setup {
                     prepare_preconditioner(sys, weights, *preconditioner, ws)?;
                 }
-                solve_pcg_prepared(
+                solve_pcg(
                     sys,
                     weights,
                     b,
@@ -1065,6 +1013,7 @@ mod tests {
         monitor.cancel();
         let mut x = vec![0.0; w * h];
         let mut ws = PcgWorkspace::default();
+        prepare_preconditioner(&sys, &weights, Preconditioner::Multigrid, &mut ws).unwrap();
         let r = solve_pcg(
             &sys,
             &weights,
