@@ -583,12 +583,7 @@ pub fn run_irls_vector_from(
             ns.update(&x);
         }
         let g = noise_scale.as_ref().map(|ns| &ns.g[..]);
-        squared_residuals(&x, observed, g, &mut res2);
-        let inv_s1 = 1.0 / s1;
-        weights
-            .par_iter_mut()
-            .zip(res2.par_iter())
-            .for_each(|(wi, r2)| *wi = tukey::weight(r2.sqrt() * inv_s1, c_fine));
+        pixel_weights(&x, observed, g, s1, c_fine, &mut res2, &mut weights);
     }
     for it in 0..cfg.fine_iterations {
         monitor.checkpoint()?;
@@ -622,12 +617,8 @@ pub fn run_irls_vector_from(
             .ok_or_else(|| MurkError::Numerical("non-finite residual at the fine level".into()))?;
             sigma_fine = Some(s.max(floor));
         }
-        let inv_s1 = 1.0 / sigma_fine.unwrap_or(floor);
-        squared_residuals(&x, observed, g, &mut res2);
-        weights
-            .par_iter_mut()
-            .zip(res2.par_iter())
-            .for_each(|(wi, r2)| *wi = tukey::weight(r2.sqrt() * inv_s1, c_fine));
+        let s1 = sigma_fine.unwrap_or(floor);
+        pixel_weights(&x, observed, g, s1, c_fine, &mut res2, &mut weights);
         tick(&stage_fine);
 
         // The first fine iteration replaces patch weights by pixel weights: not a convergence
@@ -806,6 +797,25 @@ fn squared_residuals(
             None => ss,
         };
     });
+}
+
+/// The fine level's Tukey weight of every pixel (Eq. 5.11) from its residual norm at the scale
+/// `sigma` (`res2` receives the squared residuals, see [`squared_residuals`]).
+fn pixel_weights(
+    x: &[Vec<f64>],
+    observed: &[&[f64]],
+    noise_scale: Option<&[f64]>,
+    sigma: f64,
+    c: f64,
+    res2: &mut [f64],
+    weights: &mut [f64],
+) {
+    squared_residuals(x, observed, noise_scale, res2);
+    let inv_sigma = 1.0 / sigma;
+    weights
+        .par_iter_mut()
+        .zip(res2.par_iter())
+        .for_each(|(wi, r2)| *wi = tukey::weight(r2.sqrt() * inv_sigma, c));
 }
 
 /// One alternation of Eq. 5.12: x given a_k (and W), then a_k given x. Returns CG iterations.

@@ -163,6 +163,8 @@ mod tests {
     use super::*;
     use crate::simulate::{simulate_tof_sequence_frame, TofMotion, TofSimConfig};
     use crate::tof::{estimate_tof_depth, estimate_tof_depth_from};
+    use std::sync::atomic::{AtomicUsize, Ordering};
+    use std::sync::Arc;
 
     fn frame(cfg: &TofSimConfig, motion: &TofMotion, k: usize) -> TofInput {
         let f = simulate_tof_sequence_frame(cfg, motion, k, &Monitor::noop()).unwrap();
@@ -253,18 +255,18 @@ mod tests {
         params: &TofParams,
         start: &IrlsStart,
     ) -> (usize, Vec<f32>) {
-        let ticks = std::sync::Arc::new(std::sync::atomic::AtomicUsize::new(0));
+        let ticks = Arc::new(AtomicUsize::new(0));
         let counter = ticks.clone();
         let monitor = Monitor::new(
-            std::sync::Arc::default(),
-            Some(std::sync::Arc::new(move |stage: &str, _| {
+            Arc::default(),
+            Some(Arc::new(move |stage: &str, _| {
                 if stage.ends_with(".fine") {
-                    counter.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                    counter.fetch_add(1, Ordering::Relaxed);
                 }
             })),
         );
         let (out, _) = estimate_tof_depth_from(input, params, Some(start), &monitor).unwrap();
-        let n = ticks.load(std::sync::atomic::Ordering::Relaxed);
+        let n = ticks.load(Ordering::Relaxed);
         (n, out.mask.data().to_vec())
     }
 
