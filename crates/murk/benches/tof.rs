@@ -6,20 +6,24 @@
 //!   preconditioner (no coarse space); the reference's configuration (amplitude and phase
 //!   separately, alternating x- and a-steps).
 //! * `tof_xstep_424x512/*`: one x-step solve (Eq. 5.12) with each solver, warm and cold start.
+//! * `tof_stream_424x512/*`: the second frame of a simulated stream (`TofMotion::default()`,
+//!   10 fps) from the first frame's answer, as a session computes it; the same start without
+//!   its σ₁ (the fine level from the previous weights alone); and the frame from scratch.
 //!
-//! Run: `cargo bench -p murk --bench tof` (or `-- pipeline`, `-- xstep` for one group).
+//! Run: `cargo bench -p murk --bench tof` (or `-- pipeline`, `-- xstep`, `-- stream` for one
+//! group).
 
 use criterion::{criterion_group, criterion_main, Criterion};
 
 use murk::simulate::tof::{simulate_tof, FogPreset, TofSimConfig};
-use murk::simulate::SceneLayout;
+use murk::simulate::{simulate_tof_sequence_frame, SceneLayout, TofMotion};
 use murk::tof::irls::{run_irls, IrlsConfig};
 use murk::tof::quadratic_prior::{PatchGrid, QuadraticPrior};
 use murk::tof::symmetry::RowMirror;
 use murk::tof::wls::{XStepState, XStepSystem};
 use murk::tof::{
-    estimate_tof_depth_with_solver, IrlsChannelParams, Preconditioner, PriorCoupling,
-    ScatterChannels, TofInput, TofParams, XStepSolver,
+    estimate_tof_depth_from, estimate_tof_depth_with_solver, IrlsChannelParams, IrlsStart,
+    Preconditioner, PriorCoupling, ScatterChannels, TofInput, TofParams, XStepSolver,
 };
 use murk::Monitor;
 
@@ -170,9 +174,48 @@ fn bench(c: &mut Criterion) {
     g.finish();
 }
 
+/// A stream's warm frame against the same frame from scratch (see the module docs).
+fn bench_stream(c: &mut Criterion) {
+    let cfg = TofSimConfig::with_size(W, H);
+    let motion = TofMotion::default();
+    let frame = |k| {
+        let f = simulate_tof_sequence_frame(&cfg, &motion, k, &Monitor::noop()).expect("simulate");
+        TofInput {
+            amplitude: f.amplitude,
+            phase: f.phase,
+            intrinsics: Some(f.intrinsics),
+        }
+    };
+    let params = TofParams {
+        light_position_m: Some(cfg.light_position_m()),
+        ..TofParams::default()
+    };
+    let monitor = Monitor::noop();
+    let (_, start) =
+        estimate_tof_depth_from(&frame(0), &params, None, &monitor).expect("first frame");
+    let start = start.expect("the phasor channels leave a start");
+    let weights_only = IrlsStart {
+        sigma_fine: None,
+        ..start.clone()
+    };
+    let next = frame(1);
+    let mut g = c.benchmark_group("tof_stream_424x512");
+    g.sample_size(10);
+    for (name, from) in [
+        ("warm_frame", Some(&start)),
+        ("warm_frame_from_previous_weights", Some(&weights_only)),
+        ("cold_frame", None),
+    ] {
+        g.bench_function(name, |b| {
+            b.iter(|| estimate_tof_depth_from(&next, &params, from, &monitor).expect("frame"))
+        });
+    }
+    g.finish();
+}
+
 criterion_group! {
     name = benches;
     config = Criterion::default().sample_size(10);
-    targets = bench
+    targets = bench, bench_stream
 }
 criterion_main!(benches);
