@@ -49,7 +49,9 @@ class TofDepthResult:
     raw_z_depth_m: FloatImage | None
     #: Standard deviation of range_m, metres.
     range_std_m: FloatImage | None
-    #: Object mask: 1 = object, 0 = background.
+    #: Object mask: 1 = object, 0 = background, 127/255 (about 0.498) = uncertain (beside an
+    #: object, too dim to call either way). ``mask > 0.5`` is the object, ``mask > 0`` the object
+    #: or what may be part of it.
     mask: FloatImage | None
     #: Estimated scattering component: amplitude (sensor units) and phase (radians).
     scatter_amplitude: FloatImage | None

@@ -12,6 +12,7 @@
 
 use rayon::prelude::*;
 
+use super::ambiguous::dilate;
 use super::coherent::{coherent_contrast, coherent_residual};
 use super::noise_model::NoiseModel;
 use super::params::IrlsChannelParams;
@@ -124,6 +125,27 @@ pub struct IrlsOutcome {
     /// False when the fine level ran its cap of iterations without its weights settling (with
     /// the convergence test on and at least one fine iteration): the mask may still be moving.
     pub fine_converged: bool,
+    /// The rim of the objects ([`HELD_OUT_RING`]): its pixels, and per component the scatter
+    /// there when the rim is held out of the fit ([`hold_out_the_rim`]). `scatter` is the
+    /// fit's own fixed point, from which a stream's next frame starts;
+    /// [`IrlsOutcome::scatter_with_rim`] is the estimate to subtract.
+    pub rim: Vec<usize>,
+    /// See `rim`: one value per rim pixel and component.
+    pub rim_scatter: Vec<Vec<f64>>,
+}
+
+impl IrlsOutcome {
+    /// The scatter estimate with the rim's held-out values in place: what the pipeline
+    /// subtracts from the observation.
+    pub fn scatter_with_rim(&self) -> Vec<Vec<f64>> {
+        let mut out = self.scatter.clone();
+        for (xc, rc) in out.iter_mut().zip(&self.rim_scatter) {
+            for (&i, &v) in self.rim.iter().zip(rc) {
+                xc[i] = v;
+            }
+        }
+        out
+    }
 }
 
 /// Where an IRLS run starts when the previous frame of a stream is a good guess for this one:
@@ -204,6 +226,57 @@ pub const THIN_CANDIDATE: f64 = 3.0;
 /// rows turned object. The border keeps the per-pixel Tukey test.
 pub fn thin_border_band(width: usize, height: usize) -> usize {
     width.max(height).div_ceil(64)
+}
+
+/// Width in pixels (Chebyshev distance) of the rim of background around the objects whose
+/// scatter the fine level takes from an estimate in which the rim has no weight
+/// ([`hold_out_the_rim`]): 3. The x-step's smoothness bends the scatter towards a dim object part
+/// that passed as background — the first columns of a panel seen edge-on, a strip beside a
+/// nearer occluder — so that its residual, and with it the direct component the pipeline
+/// subtracts, shrinks into the fog. It is also the band in which the pipeline looks for
+/// uncertain pixels ([`crate::tof::ambiguous`]), which are then judged against a scatter that
+/// did not follow them.
+pub const HELD_OUT_RING: usize = crate::tof::ambiguous::REACH;
+
+/// The rim of the objects — the [`HELD_OUT_RING`] pixels of background around the pixels whose
+/// weight is below `threshold`, in a `width`-wide image — and, per component, the scatter
+/// there from the estimate `solve` gives when the rim has no weight, warm-started at `x`; and
+/// the CG iterations spent (nothing without objects). The objects and the background beyond
+/// keep the estimate they had: the rim's data is the nearest the estimate has to the scatter
+/// under an object, and the thin-structure check's decisions were taken with it (solved
+/// together with the check's candidates, the rim's extrapolated scatter let the check accept
+/// false object pixels beside objects in thin fog).
+///
+/// Warm-started at the in-sample estimate, which differs from the held-out one only near the
+/// rim, the solve takes 3–4 CG iterations on the survey's frames. It keeps the preconditioner
+/// of the last x-step, set up for weights that differ only on the rim: CG converges to the
+/// held-out system's solution all the same. With the old setup the rim costs a few percent of
+/// a 512 × 424 frame (docs/benchmarks.md); a new setup measured about twice that.
+fn hold_out_the_rim(
+    weights: &[f64],
+    x: &[Vec<f64>],
+    threshold: f64,
+    width: usize,
+    mut solve: impl FnMut(&[f64], &mut [Vec<f64>]) -> Result<usize>,
+) -> Result<(Vec<usize>, Vec<Vec<f64>>, usize)> {
+    let n = weights.len();
+    let object: Vec<bool> = weights.iter().map(|&v| v < threshold).collect();
+    if !object.contains(&true) {
+        return Ok((Vec::new(), vec![Vec::new(); x.len()], 0));
+    }
+    let near = dilate(&object, width, HELD_OUT_RING);
+    let rim: Vec<usize> = (0..n).filter(|&i| near[i] && !object[i]).collect();
+    let mut held = weights.to_vec();
+    for &i in &rim {
+        held[i] = 0.0;
+    }
+    let mut held_x = x.to_vec();
+    let its = solve(&held, &mut held_x)?;
+    let values = held_x
+        .iter()
+        .map(|hc| rim.iter().map(|&i| hc[i]).collect())
+        .collect();
+    Ok((rim, values, its))
 }
 
 /// Contrast statistic against the held-out scatter above which a candidate is object
@@ -457,16 +530,17 @@ pub fn run_irls_vector_from(
                              x: &mut [Vec<f64>],
                              prior_img: &mut [Vec<f64>],
                              priors: &mut [QuadraticPrior],
-                             tol_scale: f64|
+                             tol_scale: f64,
+                             keep_setup: bool|
      -> Result<usize> {
         // The components share the weights, so one solver state serves them all and sets its
-        // preconditioner up once per x-step.
+        // preconditioner up once per x-step (none with `keep_setup`: see `hold_out_the_rim`).
         let mut its = 0;
         for c in 0..m {
             its += x_and_a_step(
                 sys,
                 &mut state,
-                c > 0,
+                keep_setup || c > 0,
                 &mut priors[c],
                 weights,
                 observed[c],
@@ -481,7 +555,14 @@ pub fn run_irls_vector_from(
     };
     for it in 0..coarse_iterations {
         monitor.checkpoint()?;
-        cg_iterations += x_and_a_steps(&weights, &mut x, &mut prior_img, priors, conv.tol_scale())?;
+        cg_iterations += x_and_a_steps(
+            &weights,
+            &mut x,
+            &mut prior_img,
+            priors,
+            conv.tol_scale(),
+            false,
+        )?;
         coarse_run += 1;
         if let Some(ns) = noise_scale.as_mut() {
             ns.update(&x);
@@ -587,7 +668,14 @@ pub fn run_irls_vector_from(
     }
     for it in 0..cfg.fine_iterations {
         monitor.checkpoint()?;
-        cg_iterations += x_and_a_steps(&weights, &mut x, &mut prior_img, priors, conv.tol_scale())?;
+        cg_iterations += x_and_a_steps(
+            &weights,
+            &mut x,
+            &mut prior_img,
+            priors,
+            conv.tol_scale(),
+            false,
+        )?;
         fine_run += 1;
         prev_weights.copy_from_slice(&weights);
         // σ₁ is measured twice and then fixed (§5.3.4 fixes it from the level's first
@@ -631,6 +719,7 @@ pub fn run_irls_vector_from(
     }
 
     let mut thin_accepted = 0;
+    let (mut rim, mut rim_scatter) = (Vec::new(), vec![Vec::new(); m]);
     if fine_run > 0 {
         let s1 = sigma_fine.unwrap_or(floor);
         let mut residuals = vec![vec![0.0; n]; m];
@@ -663,6 +752,7 @@ pub fn run_irls_vector_from(
                 &mut held_img,
                 &mut held_priors,
                 HELD_OUT_TOL_SCALE,
+                false,
             )?;
             signed_residuals(&held_x, observed, g, &mut residuals);
             let candidates: Vec<usize> = (0..n).filter(|&i| candidate[i]).collect();
@@ -691,6 +781,19 @@ pub fn run_irls_vector_from(
                 ns.update(&x);
             }
         }
+        let (r, values, its) = hold_out_the_rim(&weights, &x, cfg.mask_threshold, w, |held, x| {
+            let (mut held_priors, mut held_img) = (priors.to_vec(), prior_img.clone());
+            x_and_a_steps(
+                held,
+                x,
+                &mut held_img,
+                &mut held_priors,
+                HELD_OUT_TOL_SCALE,
+                true,
+            )
+        })?;
+        (rim, rim_scatter) = (r, values);
+        cg_iterations += its;
     }
 
     if cfg.coarse_iterations + cfg.fine_iterations == 0 {
@@ -709,6 +812,8 @@ pub fn run_irls_vector_from(
         held_out_rejected,
         thin_accepted,
         fine_converged,
+        rim,
+        rim_scatter,
     })
 }
 

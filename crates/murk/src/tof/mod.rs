@@ -5,9 +5,11 @@
 //! Entry point: [`estimate_tof_depth`]. Building blocks, one idea per module: Tukey's biweight
 //! and MAD scale ([`tukey`]), the local quadratic prior ([`quadratic_prior`]), the flip rows of
 //! the symmetry prior ([`symmetry`]), the weighted least-squares x-step ([`wls`]), Algorithm 2
-//! ([`irls`]) and its check for thin, dim object parts ([`coherent`]), the bilateral pre-filter
+//! ([`irls`]) and its check for thin, dim object parts ([`coherent`]), the mask's uncertain
+//! pixels beside the objects ([`ambiguous`]), the bilateral pre-filter
 //! ([`bilateral`]) and the pipeline ([`pipeline`]).
 
+pub mod ambiguous;
 pub mod bilateral;
 pub mod coarse_space;
 pub mod coherent;

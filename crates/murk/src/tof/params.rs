@@ -480,6 +480,18 @@ impl TofInput {
     }
 }
 
+/// [`TofOutput::mask`] of an object pixel.
+pub const MASK_OBJECT: f32 = 1.0;
+
+/// [`TofOutput::mask`] of a pixel beside an object that is neither clearly object nor clearly
+/// background (see [`crate::tof::ambiguous`]): 127/255 ≈ 0.498. An 8-bit step, so that the
+/// 8-bit encodings (PNG results, `mono8` bag images) carry it exactly, and below 0.5, so that
+/// `mask > 0.5` still means "object" and `mask > 0` means "object or uncertain".
+pub const MASK_UNCERTAIN: f32 = 127.0 / 255.0;
+
+/// [`TofOutput::mask`] of a background pixel (scatter only).
+pub const MASK_BACKGROUND: f32 = 0.0;
+
 /// Everything the ToF method returns. All images are one-channel and input-sized.
 #[derive(Clone, Debug)]
 pub struct TofOutput {
@@ -498,8 +510,13 @@ pub struct TofOutput {
     /// where the direct return is weak against the noise, i.e. where the corrected range is no
     /// better than the raw one; threshold it together with `mask`.
     pub range_std_m: ImageF32,
-    /// Object mask: 1 where the IRLS marks an outlier (the phasor's residual by default; with
-    /// `ScatterChannels::AmplitudePhase`, both the amplitude's and the phase's), else 0.
+    /// Object mask: 1 ([`MASK_OBJECT`]) where the IRLS marks an outlier (the phasor's residual
+    /// by default; with `ScatterChannels::AmplitudePhase`, both the amplitude's and the
+    /// phase's); 127/255 ≈ 0.498 ([`MASK_UNCERTAIN`]) beside an object where the scatter alone does not
+    /// explain the observation well enough to call the pixel background, yet the evidence is
+    /// too weak to call it object ([`crate::tof::ambiguous`]); else 0 ([`MASK_BACKGROUND`]).
+    /// An uncertain pixel's range is the object hypothesis's, with the large `range_std_m` of
+    /// its weak direct return: treat it as a possible obstacle, not as background.
     pub mask: ImageF32,
     /// Estimated scattering amplitude α_s.
     pub scatter_amplitude: ImageF32,

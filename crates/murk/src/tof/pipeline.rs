@@ -10,11 +10,13 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 
 use rayon::prelude::*;
 
+use super::ambiguous::uncertain_pixels;
 use super::bilateral::bilateral_filter;
-use super::irls::{run_irls_vector_from, IrlsConfig, IrlsOutcome, IrlsStart};
+use super::irls::{run_irls_vector_from, thin_border_band, IrlsConfig, IrlsOutcome, IrlsStart};
 use super::noise_model::NoiseModel;
 use super::params::{
-    PriorCoupling, ScatterChannels, TofInput, TofOutput, TofParams, SPEED_OF_LIGHT_M_PER_S,
+    PriorCoupling, ScatterChannels, TofInput, TofOutput, TofParams, MASK_BACKGROUND, MASK_OBJECT,
+    MASK_UNCERTAIN, SPEED_OF_LIGHT_M_PER_S,
 };
 use super::quadratic_prior::{PatchGrid, QuadraticPrior};
 use super::symmetry::RowMirror;
@@ -101,10 +103,9 @@ fn estimate(
     // imaginary parts, each pre-filtered.
     let (first, second) = match params.channels {
         ScatterChannels::AmplitudePhase => {
-            drop((raw_re, raw_im));
             (input.amplitude.data().to_vec(), input.phase.data().to_vec())
         }
-        ScatterChannels::Phasor => (raw_re, raw_im),
+        ScatterChannels::Phasor => (raw_re.clone(), raw_im.clone()),
     };
     let (mut f1, mut f2) = (Vec::new(), Vec::new());
     rayon::join(|| filter(&first, &mut f1), || filter(&second, &mut f2));
@@ -179,8 +180,8 @@ fn estimate(
                 .into_iter()
                 .filter_map(|(name, r)| not_converged_warning(name, r))
                 .collect();
-            let mut ra_scatter = ra.scatter;
-            let mut rp_scatter = rp.scatter;
+            let mut ra_scatter = ra.scatter_with_rim();
+            let mut rp_scatter = rp.scatter_with_rim();
             let (sa, sp) = (ra_scatter.swap_remove(0), rp_scatter.swap_remove(0));
             // Object = outlier in both images (§5.3.4).
             let object = ra
@@ -219,7 +220,7 @@ fn estimate(
             let r = run(&[&o1, &o2], noise, params.phasor, start, "tof.phasor")?;
             next = Some(IrlsStart::from_outcome(&r));
             let warnings = not_converged_warning("phasor", &r).into_iter().collect();
-            let mut sc = r.scatter;
+            let mut sc = r.scatter_with_rim();
             let scatter_im = sc.pop().unwrap_or_default();
             let scatter_re = sc.pop().unwrap_or_default();
             ScatterEstimate {
@@ -236,8 +237,21 @@ fn estimate(
         }
     };
     monitor.checkpoint()?;
+    // The raw phasor, not the filtered one, judges the pixels beside the objects: see
+    // `tof::ambiguous`.
+    let uncertain = uncertain_pixels(
+        &raw_re,
+        &raw_im,
+        &est.scatter_re,
+        &est.scatter_im,
+        &est.object,
+        est.noise.as_ref(),
+        w,
+        thin_border_band(w, h),
+    );
+    drop((raw_re, raw_im));
 
-    let out = compose(input, params, &est)?;
+    let out = compose(input, params, &est, &uncertain)?;
     monitor.progress("tof.compose", 1.0);
     Ok((out, next))
 }
@@ -317,7 +331,12 @@ fn image(w: usize, h: usize, data: Vec<f32>) -> Result<ImageF32> {
 }
 
 /// Direct component (Eq. 5.8–5.9), ranges (Eq. 5.2), z-depth.
-fn compose(input: &TofInput, params: &TofParams, est: &ScatterEstimate) -> Result<TofOutput> {
+fn compose(
+    input: &TofInput,
+    params: &TofParams,
+    est: &ScatterEstimate,
+    uncertain: &[bool],
+) -> Result<TofOutput> {
     let (w, h) = input.amplitude.dims();
     let n = w * h;
     let f = params.modulation_frequency_hz;
@@ -345,7 +364,13 @@ fn compose(input: &TofInput, params: &TofParams, est: &ScatterEstimate) -> Resul
         .into_par_iter()
         .enumerate()
         .for_each(|(i, (m, ad, pd, rg, sa, sp, sd))| {
-            *m = if est.object[i] { 1.0 } else { 0.0 };
+            *m = if est.object[i] {
+                MASK_OBJECT
+            } else if uncertain[i] {
+                MASK_UNCERTAIN
+            } else {
+                MASK_BACKGROUND
+            };
             let (s_re, s_im) = (est.scatter_re[i], est.scatter_im[i]);
             let re = est.observed_re[i] - s_re;
             let im = est.observed_im[i] - s_im;

@@ -714,7 +714,10 @@ impl XStepState {
     /// an accurate x-step. The Cholesky ignores it. With `reuse_setup`, for another right-hand
     /// side under the same `sys` and `weights` as this state's previous solve, the CG reuses
     /// that solve's preconditioner setup (the V-cycle's mass, the coarse space's
-    /// factorisation), with the same result as setting it up again.
+    /// factorisation), with the same result as setting it up again. Under weights that differ
+    /// from the previous solve's in a few pixels, the old setup is still a symmetric positive
+    /// definite preconditioner close to the new one: the CG converges to the new system's
+    /// solution, in a few more iterations at most.
     #[allow(clippy::too_many_arguments)]
     pub fn solve_reusing(
         &mut self,
