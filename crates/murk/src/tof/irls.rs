@@ -251,7 +251,7 @@ pub const HELD_OUT_RING: usize = crate::tof::ambiguous::REACH;
 /// rim, the solve takes 3–4 CG iterations on the survey's frames. It keeps the preconditioner
 /// of the last x-step, set up for weights that differ only on the rim: CG converges to the
 /// held-out system's solution all the same. With the old setup the rim costs a few percent of
-/// a 512 × 424 frame (docs/benchmarks.md); a new setup measured about twice that.
+/// a 512 × 424 frame (docs/benchmarks.md); a new setup measured more.
 fn hold_out_the_rim(
     weights: &[f64],
     x: &[Vec<f64>],

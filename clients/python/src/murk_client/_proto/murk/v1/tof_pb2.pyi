@@ -377,7 +377,11 @@ class TofDepthResult(_message.Message):
 
     @_builtins.property
     def mask(self) -> _common_pb2.Image:
-        """Object mask, 1 = object, 0 = background (intersection of both IRLS masks)."""
+        """Object mask: 1 = object, 0 = background, 127/255 (about 0.498) = uncertain: beside an
+        object, a pixel the scatter alone does not explain but too weakly to call object (its
+        range_std_m is large). mask > 0.5 is the object; mask > 0 the object or what may be part of
+        it. 127/255 is an 8-bit step, so the PNG encoding carries it exactly.
+        """
 
     @_builtins.property
     def scatter_amplitude(self) -> _common_pb2.Image:
