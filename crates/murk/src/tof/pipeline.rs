@@ -101,15 +101,12 @@ fn estimate(
     let noise = NoiseModel::fit(&raw_re, &raw_im, input.amplitude.data(), w);
     // The observation as the pipeline sees it: amplitude and phase, or the phasor's real and
     // imaginary parts, each pre-filtered.
-    let (first, second) = match params.channels {
-        ScatterChannels::AmplitudePhase => {
-            (input.amplitude.data().to_vec(), input.phase.data().to_vec())
-        }
-        ScatterChannels::Phasor => (raw_re.clone(), raw_im.clone()),
+    let (first, second): (&[f32], &[f32]) = match params.channels {
+        ScatterChannels::AmplitudePhase => (input.amplitude.data(), input.phase.data()),
+        ScatterChannels::Phasor => (&raw_re, &raw_im),
     };
     let (mut f1, mut f2) = (Vec::new(), Vec::new());
-    rayon::join(|| filter(&first, &mut f1), || filter(&second, &mut f2));
-    drop((first, second));
+    rayon::join(|| filter(first, &mut f1), || filter(second, &mut f2));
     monitor.progress("tof.prefilter", PREFILTER_END);
     monitor.checkpoint()?;
 
