@@ -530,17 +530,16 @@ pub fn run_irls_vector_from(
                              x: &mut [Vec<f64>],
                              prior_img: &mut [Vec<f64>],
                              priors: &mut [QuadraticPrior],
-                             tol_scale: f64,
-                             keep_setup: bool|
+                             tol_scale: f64|
      -> Result<usize> {
         // The components share the weights, so one solver state serves them all and sets its
-        // preconditioner up once per x-step (none with `keep_setup`: see `hold_out_the_rim`).
+        // preconditioner up once per x-step.
         let mut its = 0;
         for c in 0..m {
             its += x_and_a_step(
                 sys,
                 &mut state,
-                keep_setup || c > 0,
+                c > 0,
                 &mut priors[c],
                 weights,
                 observed[c],
@@ -555,14 +554,7 @@ pub fn run_irls_vector_from(
     };
     for it in 0..coarse_iterations {
         monitor.checkpoint()?;
-        cg_iterations += x_and_a_steps(
-            &weights,
-            &mut x,
-            &mut prior_img,
-            priors,
-            conv.tol_scale(),
-            false,
-        )?;
+        cg_iterations += x_and_a_steps(&weights, &mut x, &mut prior_img, priors, conv.tol_scale())?;
         coarse_run += 1;
         if let Some(ns) = noise_scale.as_mut() {
             ns.update(&x);
@@ -668,14 +660,7 @@ pub fn run_irls_vector_from(
     }
     for it in 0..cfg.fine_iterations {
         monitor.checkpoint()?;
-        cg_iterations += x_and_a_steps(
-            &weights,
-            &mut x,
-            &mut prior_img,
-            priors,
-            conv.tol_scale(),
-            false,
-        )?;
+        cg_iterations += x_and_a_steps(&weights, &mut x, &mut prior_img, priors, conv.tol_scale())?;
         fine_run += 1;
         prev_weights.copy_from_slice(&weights);
         // σ₁ is measured twice and then fixed (§5.3.4 fixes it from the level's first
@@ -752,7 +737,6 @@ pub fn run_irls_vector_from(
                 &mut held_img,
                 &mut held_priors,
                 HELD_OUT_TOL_SCALE,
-                false,
             )?;
             signed_residuals(&held_x, observed, g, &mut residuals);
             let candidates: Vec<usize> = (0..n).filter(|&i| candidate[i]).collect();
@@ -781,16 +765,24 @@ pub fn run_irls_vector_from(
                 ns.update(&x);
             }
         }
+        // Only the rim's x is wanted: no a-step, and the last x-step's preconditioner setup.
         let (r, values, its) = hold_out_the_rim(&weights, &x, cfg.mask_threshold, w, |held, x| {
-            let (mut held_priors, mut held_img) = (priors.to_vec(), prior_img.clone());
-            x_and_a_steps(
-                held,
-                x,
-                &mut held_img,
-                &mut held_priors,
-                HELD_OUT_TOL_SCALE,
-                true,
-            )
+            let mut its = 0;
+            for (c, xc) in x.iter_mut().enumerate() {
+                its += x_step(
+                    sys,
+                    &mut state,
+                    true,
+                    held,
+                    observed[c],
+                    &prior_img[c],
+                    &mut rhs,
+                    xc,
+                    HELD_OUT_TOL_SCALE,
+                    monitor,
+                )?;
+            }
+            Ok(its)
         })?;
         (rim, rim_scatter) = (r, values);
         cg_iterations += its;
@@ -949,8 +941,18 @@ fn x_and_a_step(
     tol_scale: f64,
     monitor: &Monitor,
 ) -> Result<usize> {
-    sys.rhs(weights, observed, prior_img, rhs);
-    let stats = state.solve_reusing(sys, weights, rhs, x, tol_scale, same_weights, monitor)?;
+    let iterations = x_step(
+        sys,
+        state,
+        same_weights,
+        weights,
+        observed,
+        prior_img,
+        rhs,
+        x,
+        tol_scale,
+        monitor,
+    )?;
     if sys.is_joint() {
         // x already minimises over a: its uniform fits are the a-step's answer.
         prior.fit(x);
@@ -958,6 +960,27 @@ fn x_and_a_step(
         prior.fit_weighted(x, weights);
     }
     prior.evaluate(prior_img);
+    Ok(iterations)
+}
+
+/// The x-step alone: `x` solved for `weights` from the patch quadratics' current image
+/// `prior_img` (which the joint form does not read), without the a-step that follows it in
+/// [`x_and_a_step`]. Returns the CG iterations.
+#[allow(clippy::too_many_arguments)]
+fn x_step(
+    sys: &XStepSystem,
+    state: &mut XStepState,
+    same_weights: bool,
+    weights: &[f64],
+    observed: &[f64],
+    prior_img: &[f64],
+    rhs: &mut [f64],
+    x: &mut [f64],
+    tol_scale: f64,
+    monitor: &Monitor,
+) -> Result<usize> {
+    sys.rhs(weights, observed, prior_img, rhs);
+    let stats = state.solve_reusing(sys, weights, rhs, x, tol_scale, same_weights, monitor)?;
     Ok(stats.iterations)
 }
 
