@@ -29,7 +29,10 @@ use clap::{Parser, ValueEnum};
 use common::{mean, parse_seeds, Table};
 use murk::simulate::tof::{simulate_tof, FogPreset, TofSimConfig, TofSimFrame};
 use murk::simulate::SceneLayout;
-use murk::tof::{estimate_tof_depth, TofInput, TofOutput, TofParams, SPEED_OF_LIGHT_M_PER_S};
+use murk::tof::{
+    estimate_tof_depth, TofInput, TofOutput, TofParams, MASK_OBJECT, MASK_UNCERTAIN,
+    SPEED_OF_LIGHT_M_PER_S,
+};
 use murk::Monitor;
 
 /// Image size of the simulated frames.
@@ -320,8 +323,8 @@ fn score(frame: &TofSimFrame, out: &TofOutput, seconds: f64) -> Scores {
     for (i, &g) in gt.iter().enumerate() {
         let g = g > 0.5;
         let mv = out.mask.data()[i];
-        let m = mv > 0.75;
-        let u = mv > 0.25 && !m;
+        let m = mv == MASK_OBJECT;
+        let u = mv == MASK_UNCERTAIN;
         inter += (g && m) as usize;
         union += (g || m) as usize;
         if !g {
