@@ -660,7 +660,9 @@ pub fn run_irls_vector_from(
     }
     for it in 0..cfg.fine_iterations {
         monitor.checkpoint()?;
-        cg_iterations += x_and_a_steps(&weights, &mut x, &mut prior_img, priors, conv.tol_scale())?;
+        let tol_scale = conv.tol_scale();
+        let its = x_and_a_steps(&weights, &mut x, &mut prior_img, priors, tol_scale)?;
+        cg_iterations += its;
         fine_run += 1;
         prev_weights.copy_from_slice(&weights);
         // σ₁ is measured twice and then fixed (§5.3.4 fixes it from the level's first
@@ -698,6 +700,15 @@ pub fn run_irls_vector_from(
         // step.
         let (dw, flipped) = weight_change(&prev_weights, &weights, cfg.mask_threshold);
         if it > 0 && conv.update(dw, flipped, cfg.weight_tolerance) {
+            fine_converged = true;
+            break;
+        }
+        // A fixed point: the x-step found x already solved at the final tolerance, so the
+        // weights came out bit for bit as they went in (σ₁ is fixed from the third iteration
+        // on). Every further iteration would repeat this one exactly, so it stands for the
+        // remaining confirmations of `CONVERGED_RUNS`.
+        let repeats = its == 0 && tol_scale <= 1.0 && dw == 0.0 && !flipped;
+        if it > 1 && cfg.weight_tolerance > 0.0 && repeats {
             fine_converged = true;
             break;
         }

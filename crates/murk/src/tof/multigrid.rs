@@ -337,12 +337,23 @@ impl Multigrid {
         let (fine, coarse) = self.levels.split_at_mut(l + 1);
         let fl = &fine[l];
         let c = &mut coarse[0];
-        // Restriction Pᵀ: sum over the aggregate.
-        c.f.fill(0.0);
-        for y in 0..fl.h {
-            let crow = (y / 2) * c.w;
-            for x in 0..fl.w {
-                c.f[crow + x / 2] += res[y * fl.w + x];
+        // Restriction Pᵀ: sum over the aggregate, coarse row by coarse row (each cell adds its
+        // fine pixels in the same order either way).
+        let restrict = |cy: usize, crow: &mut [Real]| {
+            crow.fill(0.0);
+            for y in 2 * cy..(2 * cy + 2).min(fl.h) {
+                for (x, &v) in res[y * fl.w..(y + 1) * fl.w].iter().enumerate() {
+                    crow[x / 2] += v;
+                }
+            }
+        };
+        if fl.w * fl.h >= PAR_MIN_PIXELS {
+            c.f.par_chunks_mut(c.w)
+                .enumerate()
+                .for_each(|(cy, crow)| restrict(cy, crow));
+        } else {
+            for (cy, crow) in c.f.chunks_mut(c.w).enumerate() {
+                restrict(cy, crow);
             }
         }
         c.u.fill(0.0);

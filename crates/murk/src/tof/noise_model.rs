@@ -35,24 +35,29 @@ impl NoiseModel {
         }
         // (amplitude, normalised second difference of re, of im) per interior pixel.
         let norm = (1.0 / SECOND_DIFFERENCE_VARIANCE).sqrt();
-        let mut samples: Vec<(f64, f64, f64)> = re
-            .par_chunks(width)
+        let inner = width - 2;
+        let mut samples = vec![(0.0, 0.0, 0.0); inner * (re.len() / width)];
+        samples
+            .par_chunks_mut(inner)
+            .zip(re.par_chunks(width))
             .zip(im.par_chunks(width))
             .zip(amplitude.par_chunks(width))
-            .flat_map_iter(|((r, i), a)| {
-                (1..width - 1).map(move |x| {
+            .for_each(|(((out, r), i), a)| {
+                for (x, o) in (1..width - 1).zip(out.iter_mut()) {
                     let d = |v: &[f32]| {
                         (v[x] as f64 - 0.5 * (v[x - 1] as f64 + v[x + 1] as f64)) * norm
                     };
-                    (a[x] as f64, d(r), d(i))
-                })
-            })
-            .collect();
+                    *o = (a[x] as f64, d(r), d(i));
+                }
+            });
         if samples.len() < 2 * BINS {
             return None;
         }
-        samples.par_sort_unstable_by(|p, q| p.0.total_cmp(&q.0));
         let per = samples.len() / BINS;
+        // The bins are the samples ranked by brightness, `per` to a bin (the last takes the
+        // rest). Selecting the cuts finds the same bins as a sort, in a fraction of its time.
+        let cuts: Vec<usize> = (1..BINS).map(|b| b * per).collect();
+        partition_at(&mut samples, &cuts);
         let mut scratch = Vec::with_capacity(2 * (per + BINS));
         let mut points = Vec::with_capacity(BINS);
         for b in 0..BINS {
@@ -88,6 +93,24 @@ impl NoiseModel {
 /// slowly than linearly in amplitude at the bright end, that drove the read noise to 0 and
 /// halved σ in the dark corners, whose background then came out as objects (separated thin
 /// seed 5: 281 background pixels flagged).
+/// Reorders `samples` so that every cut `c` of the increasing `cuts` holds the sample of rank
+/// `c` by brightness (the first field), with no brighter sample before it and no dimmer one
+/// after: each run between cuts is a brightness bin, in no particular order inside.
+fn partition_at(samples: &mut [(f64, f64, f64)], cuts: &[usize]) {
+    if cuts.is_empty() {
+        return;
+    }
+    let mid = cuts.len() / 2;
+    let at = cuts[mid];
+    samples.select_nth_unstable_by(at, |p, q| p.0.total_cmp(&q.0));
+    let (below, above) = samples.split_at_mut(at);
+    let upper: Vec<usize> = cuts[mid + 1..].iter().map(|&c| c - at).collect();
+    rayon::join(
+        || partition_at(below, &cuts[..mid]),
+        || partition_at(above, &upper),
+    );
+}
+
 fn fit_line_nonnegative(points: &[(f64, f64)]) -> NoiseModel {
     let floor = points.iter().fold(0.0f64, |m, p| m.max(p.1)) * 1e-6;
     let weight = |y: f64| 1.0 / y.max(floor).max(f64::MIN_POSITIVE).powi(2);
@@ -147,8 +170,38 @@ fn fit_line_nonnegative(points: &[(f64, f64)]) -> NoiseModel {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use proptest::prelude::*;
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
+
+    proptest! {
+        /// The bins between the cuts are those of a sort by brightness (ties aside, the same
+        /// multiset of brightnesses in each), and no sample is lost.
+        #[test]
+        fn partition_at_gives_the_sorted_bins(
+            values in prop::collection::vec(0u8..40, 1..300),
+            bins in 1usize..20,
+        ) {
+            let mut samples: Vec<(f64, f64, f64)> =
+                values.iter().enumerate().map(|(i, &v)| (v as f64, i as f64, 0.0)).collect();
+            let per = samples.len() / bins;
+            let cuts: Vec<usize> = if per == 0 { Vec::new() } else { (1..bins).map(|b| b * per).collect() };
+            partition_at(&mut samples, &cuts);
+            let mut sorted: Vec<f64> = values.iter().map(|&v| v as f64).collect();
+            sorted.sort_by(f64::total_cmp);
+            let mut bounds = vec![0];
+            bounds.extend(&cuts);
+            bounds.push(samples.len());
+            for run in bounds.windows(2) {
+                let mut got: Vec<f64> = samples[run[0]..run[1]].iter().map(|s| s.0).collect();
+                got.sort_by(f64::total_cmp);
+                prop_assert_eq!(&got[..], &sorted[run[0]..run[1]]);
+            }
+            let mut ids: Vec<usize> = samples.iter().map(|s| s.1 as usize).collect();
+            ids.sort_unstable();
+            prop_assert_eq!(ids, (0..values.len()).collect::<Vec<_>>());
+        }
+    }
 
     fn gauss(rng: &mut ChaCha8Rng) -> f64 {
         let u1: f64 = 1.0 - rng.random::<f64>();

@@ -78,7 +78,6 @@ fn estimate(
     let (w, h) = input.amplitude.dims();
     params.validate_for(input)?;
     monitor.checkpoint()?;
-
     let filter = |img: &[f32], out: &mut Vec<f32>| match &params.bilateral {
         Some(b) => {
             out.resize(w * h, 0.0);
@@ -389,31 +388,36 @@ fn compose(
             *sd = range_m(sigma_phi, f) as f32;
         });
     let mut raw_range = raw_range;
-    if let (Some(k), Some(light)) = (input.intrinsics, params.light_position_m) {
-        // Eq. 5.2 gives half the optical path; with the light off the lens the range is not.
-        for img in [&mut range, &mut raw_range] {
-            img.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
-                for (x, r) in row.iter_mut().enumerate() {
-                    let d = k.ray(x as f64, y as f64);
-                    *r = range_from_path(2.0 * *r as f64, d.into(), light) as f32;
-                }
-            });
+    // With intrinsics: the ranges for a light off the lens (Eq. 5.2 gives half the optical
+    // path; with the light off the lens the range is not), and z = range · (the unit ray's z
+    // component), from one ray per pixel.
+    let (z_depth, raw_z_depth) = match input.intrinsics {
+        Some(k) => {
+            let (mut z, mut raw_z) = (vec![0.0f32; n], vec![0.0f32; n]);
+            (
+                range.par_chunks_mut(w),
+                raw_range.par_chunks_mut(w),
+                z.par_chunks_mut(w),
+                raw_z.par_chunks_mut(w),
+            )
+                .into_par_iter()
+                .enumerate()
+                .for_each(|(y, (r, raw_r, z, raw_z))| {
+                    for x in 0..w {
+                        let d = k.ray(x as f64, y as f64);
+                        if let Some(light) = params.light_position_m {
+                            for v in [&mut r[x], &mut raw_r[x]] {
+                                *v = range_from_path(2.0 * *v as f64, d.into(), light) as f32;
+                            }
+                        }
+                        z[x] = (r[x] as f64 * d[2]) as f32;
+                        raw_z[x] = (raw_r[x] as f64 * d[2]) as f32;
+                    }
+                });
+            (Some(z), Some(raw_z))
         }
-    }
-    // z = range · (the unit ray's z component).
-    let z_of = |range: &[f32]| {
-        input.intrinsics.map(|k| {
-            let mut z = vec![0.0f32; n];
-            z.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
-                for (x, zv) in row.iter_mut().enumerate() {
-                    *zv = (range[y * w + x] as f64 * k.ray(x as f64, y as f64)[2]) as f32;
-                }
-            });
-            z
-        })
+        None => (None, None),
     };
-    let z_depth = z_of(&range);
-    let raw_z_depth = z_of(&raw_range);
     let to_f32 = |v: &[f64]| v.iter().map(|&x| x as f32).collect::<Vec<f32>>();
     Ok(TofOutput {
         range_m: image(w, h, range)?,

@@ -470,6 +470,37 @@ pub fn solve_pcg(
     ws: &mut PcgWorkspace,
     monitor: &Monitor,
 ) -> Result<SolveStats> {
+    pcg(
+        sys,
+        weights,
+        b,
+        x,
+        rel_tol,
+        max_iterations,
+        preconditioner,
+        ws,
+        &mut |_| Ok(()),
+        monitor,
+    )
+}
+
+/// [`solve_pcg`] that calls `set_up` on the workspace once the starting `x` has been found not
+/// to meet the tolerance, before the preconditioner's first use. It is not called when the
+/// solve ends without an iteration (the returned stats say 0), so an IRLS step whose warm start
+/// is already converged skips the setup, a third of a 512 × 424 x-step.
+#[allow(clippy::too_many_arguments)]
+fn pcg(
+    sys: &XStepSystem,
+    weights: &[f64],
+    b: &[f64],
+    x: &mut [f64],
+    rel_tol: f64,
+    max_iterations: usize,
+    preconditioner: Preconditioner,
+    ws: &mut PcgWorkspace,
+    set_up: &mut dyn FnMut(&mut PcgWorkspace) -> Result<()>,
+    monitor: &Monitor,
+) -> Result<SolveStats> {
     let w = sys.width;
     let bnorm = b.par_iter().map(|v| v * v).sum::<f64>().sqrt();
     if !bnorm.is_finite() {
@@ -483,6 +514,25 @@ pub fn solve_pcg(
         return Ok(SolveStats::default());
     }
     let target = rel_tol * bnorm;
+    ws.ensure(sys.len(), sys.height);
+    sys.apply_with(
+        weights,
+        x,
+        &mut ws.q,
+        &mut ws.proj_sums,
+        &mut ws.proj_coeffs,
+    );
+    ws.r.par_iter_mut()
+        .zip(b.par_iter().zip(ws.q.par_iter()))
+        .for_each(|(ri, (bi, qi))| *ri = bi - qi);
+    let mut rnorm = dot(&ws.r, &ws.r, w, &mut ws.row_b).sqrt();
+    if rnorm <= target {
+        return Ok(SolveStats {
+            iterations: 0,
+            rel_residual: rnorm / bnorm,
+        });
+    }
+    set_up(ws)?;
     let mut coarse = match preconditioner {
         Preconditioner::Multigrid if sys.is_joint() => ws.coarse.as_deref_mut(),
         _ => None,
@@ -500,7 +550,6 @@ pub fn solve_pcg(
         proj_coeffs,
         ..
     } = ws;
-    sys.apply_with(weights, x, q, proj_sums, proj_coeffs);
     let mut precondition = |r: &[f64], z: &mut [f64]| match preconditioner {
         Preconditioner::Jacobi => z
             .par_iter_mut()
@@ -518,16 +567,6 @@ pub fn solve_pcg(
             }
         }
     };
-    r.par_iter_mut()
-        .zip(b.par_iter().zip(q.par_iter()))
-        .for_each(|(ri, (bi, qi))| *ri = bi - qi);
-    let mut rnorm = dot(r, r, w, row_b).sqrt();
-    if rnorm <= target {
-        return Ok(SolveStats {
-            iterations: 0,
-            rel_residual: rnorm / bnorm,
-        });
-    }
     precondition(r, z);
     p.copy_from_slice(z);
     let mut rz = dot(r, z, w, row_a);
@@ -672,6 +711,9 @@ pub enum XStepState {
         max_iterations: usize,
         /// Preconditioner.
         preconditioner: Preconditioner,
+        /// The weights of the last setup that was asked for but not needed (its solve's warm
+        /// start already met the tolerance); a later solve that reuses that setup does it then.
+        deferred: Option<Vec<f64>>,
     },
     /// Factorisation state.
     Cholesky(Box<CholeskyXSolver>),
@@ -690,6 +732,7 @@ impl XStepState {
                 rel_tol,
                 max_iterations,
                 preconditioner,
+                deferred: None,
             },
             XStepSolver::SparseCholesky => {
                 XStepState::Cholesky(Box::new(CholeskyXSolver::new(sys)?))
@@ -735,21 +778,40 @@ impl XStepState {
                 rel_tol,
                 max_iterations,
                 preconditioner,
+                deferred,
             } => {
+                // The setup waits until the CG needs it: a warm start that already meets the
+                // tolerance (the last steps of a converging IRLS) skips it. A solve that reuses
+                // a deferred setup does it then, for the weights it was asked for.
+                let preconditioner = *preconditioner;
                 if !reuse_setup {
-                    prepare_preconditioner(sys, weights, *preconditioner, ws)?;
+                    *deferred = None;
                 }
-                solve_pcg(
+                let mut set_up = |ws: &mut PcgWorkspace| match (reuse_setup, deferred.as_deref()) {
+                    (false, _) => prepare_preconditioner(sys, weights, preconditioner, ws),
+                    (true, Some(pending)) => {
+                        prepare_preconditioner(sys, pending, preconditioner, ws)
+                    }
+                    (true, None) => Ok(()),
+                };
+                let stats = pcg(
                     sys,
                     weights,
                     b,
                     x,
                     *rel_tol * tol_scale.max(1.0),
                     *max_iterations,
-                    *preconditioner,
+                    preconditioner,
                     ws,
+                    &mut set_up,
                     monitor,
-                )
+                )?;
+                if stats.iterations > 0 {
+                    *deferred = None;
+                } else if !reuse_setup {
+                    *deferred = Some(weights.to_vec());
+                }
+                Ok(stats)
             }
             XStepState::Cholesky(c) => c.solve(weights, b, x),
         }
