@@ -27,11 +27,11 @@
 //! per solve from patch moments (diagonal blocks); the rest once per system. E is 6K × 6K
 //! (96 for the default 4 × 4 patches), factored by a dense Cholesky.
 
-use std::sync::{Arc, OnceLock};
+use std::sync::{Arc, Mutex, OnceLock};
 
 use rayon::prelude::*;
 
-use super::quadratic_prior::QuadraticPrior;
+use super::quadratic_prior::{PatchGrid, QuadraticPrior};
 use super::symmetry::RowMirror;
 use crate::error::{MurkError, Result};
 
@@ -94,15 +94,66 @@ pub fn fixed_coarse_operator(
     e
 }
 
+/// How many geometries [`shared_fixed_coarse_operator`] remembers.
+const RECENT_GEOMETRIES: usize = 4;
+/// The largest operator [`shared_fixed_coarse_operator`] keeps (bytes): 4 MiB, the operator of
+/// 85 patches; the default 16 take 72 KiB.
+const RECENT_MAX_BYTES: usize = 4 << 20;
+
+/// Everything [`fixed_coarse_operator`] depends on.
+#[derive(Clone, Debug, PartialEq)]
+struct Geometry {
+    grid: PatchGrid,
+    g3_bits: u64,
+    pair_coef_bits: u64,
+    mirror: RowMirror,
+}
+
+/// The operators of the last [`RECENT_GEOMETRIES`] geometries, the latest first.
+static RECENT: Mutex<Vec<(Geometry, Arc<Vec<f64>>)>> = Mutex::new(Vec::new());
+
+/// [`fixed_coarse_operator`], remembered for the last few geometries of the process. It
+/// depends only on the image size, the patch grid, γ′₃ and the mirror pairs, which every frame
+/// of a stream (and every frame of one camera) shares, while it sums over every pixel's edges:
+/// 5–10 ms of a 512 × 424 frame on two cores, and a stream frame takes about 100 ms.
+pub fn shared_fixed_coarse_operator(
+    prior: &QuadraticPrior,
+    g3: f64,
+    pair_coef: f64,
+    mirror: &RowMirror,
+) -> Arc<Vec<f64>> {
+    let geometry = Geometry {
+        grid: prior.grid().clone(),
+        g3_bits: g3.to_bits(),
+        pair_coef_bits: pair_coef.to_bits(),
+        mirror: mirror.clone(),
+    };
+    // A panic elsewhere cannot leave the list inconsistent: every change is one push or one
+    // truncation.
+    let lock = || RECENT.lock().unwrap_or_else(|e| e.into_inner());
+    if let Some((_, op)) = lock().iter().find(|(g, _)| *g == geometry) {
+        return op.clone();
+    }
+    let op = Arc::new(fixed_coarse_operator(prior, g3, pair_coef, mirror));
+    if op.len() * std::mem::size_of::<f64>() <= RECENT_MAX_BYTES {
+        let mut recent = lock();
+        if !recent.iter().any(|(g, _)| *g == geometry) {
+            recent.insert(0, (geometry, op.clone()));
+            recent.truncate(RECENT_GEOMETRIES);
+        }
+    }
+    op
+}
+
 /// A system's [`fixed_coarse_operator`], computed on first use and shared by every solve (and
 /// clone) of that system.
 #[derive(Clone, Default)]
 pub struct FixedCoarseCache(OnceLock<Arc<Vec<f64>>>);
 
 impl FixedCoarseCache {
-    /// The cached matrix, computed by `make` on the first call.
-    pub fn get_or_init(&self, make: impl FnOnce() -> Vec<f64>) -> Arc<Vec<f64>> {
-        self.0.get_or_init(|| Arc::new(make())).clone()
+    /// The cached matrix, from `make` on the first call.
+    pub fn get_or_init(&self, make: impl FnOnce() -> Arc<Vec<f64>>) -> Arc<Vec<f64>> {
+        self.0.get_or_init(make).clone()
     }
 }
 
@@ -267,6 +318,25 @@ mod tests {
 
     use crate::tof::quadratic_prior::PatchGrid;
     use crate::tof::wls::XStepSystem;
+
+    #[test]
+    fn a_geometry_seen_before_shares_its_operator() {
+        let prior = QuadraticPrior::new(PatchGrid::new(23, 17, 3, 2)).expect("grid");
+        let mirror = RowMirror::new(17, 7.5);
+        let first = shared_fixed_coarse_operator(&prior, 2.5, 0.6, &mirror);
+        assert_eq!(*first, fixed_coarse_operator(&prior, 2.5, 0.6, &mirror));
+        let again = shared_fixed_coarse_operator(&prior, 2.5, 0.6, &mirror);
+        assert!(Arc::ptr_eq(&first, &again));
+        // Any input that changes the operator is another geometry.
+        let other = shared_fixed_coarse_operator(&prior, 2.5, 0.6, &RowMirror::new(17, 8.0));
+        assert_eq!(
+            *other,
+            fixed_coarse_operator(&prior, 2.5, 0.6, &RowMirror::new(17, 8.0))
+        );
+        assert_ne!(*other, *first);
+        let stiffer = shared_fixed_coarse_operator(&prior, 2.6, 0.6, &mirror);
+        assert_ne!(*stiffer, *first);
+    }
 
     /// E assembled from the edges, the pairs and the weighted Grams is Zᵀ A Z, with A applied
     /// column by column to the patch quadratics (uneven patches, a fractional mirror axis,

@@ -311,6 +311,13 @@ fn range_from_path(path_m: f64, d: [f64; 3], light: [f64; 3]) -> f64 {
     (path_m * path_m - l2) / (2.0 * (path_m - dl))
 }
 
+/// |re + i·im|. Amplitudes are at most 1e15 ([`crate::tof::AMPLITUDE_RANGE`]), so the squares
+/// cannot overflow and the plain root serves where `hypot` would take several times as long.
+#[inline]
+fn magnitude(re: f64, im: f64) -> f64 {
+    (re * re + im * im).sqrt()
+}
+
 /// Wraps radians into [0, 2π) (`rem_euclid` can round up to exactly 2π for tiny negatives).
 #[inline]
 fn wrap_phase(p: f64) -> f64 {
@@ -371,20 +378,21 @@ fn compose(
             let re = est.observed_re[i] - s_re;
             let im = est.observed_im[i] - s_im;
             let p = wrap_phase(im.atan2(re));
-            *ad = re.hypot(im) as f32;
+            let a_d = magnitude(re, im);
+            *ad = a_d as f32;
             *pd = p as f32;
             *rg = range_m(p, f) as f32;
-            let a_s = s_re.hypot(s_im);
+            let a_s = magnitude(s_re, s_im);
             *sa = a_s as f32;
             *sp = wrap_phase(s_im.atan2(s_re)) as f32;
             // Without a noise model (tiny frames) the spread of the scatter's own brightness
             // stands in: no uncertainty is never reported.
-            let a_o = est.observed_re[i].hypot(est.observed_im[i]);
+            let a_o = magnitude(est.observed_re[i], est.observed_im[i]);
             let (var_o, var_s) = match est.noise {
                 Some(nm) => (nm.sigma(a_o).powi(2), nm.sigma(a_s).powi(2)),
                 None => (0.0, (1e-3 * a_s).powi(2)),
             };
-            let sigma_phi = ((var_o + var_s).sqrt() / re.hypot(im).max(1e-300)).min(0.5 * PI);
+            let sigma_phi = ((var_o + var_s).sqrt() / a_d.max(1e-300)).min(0.5 * PI);
             *sd = range_m(sigma_phi, f) as f32;
         });
     let mut raw_range = raw_range;
@@ -418,7 +426,7 @@ fn compose(
         }
         None => (None, None),
     };
-    let to_f32 = |v: &[f64]| v.iter().map(|&x| x as f32).collect::<Vec<f32>>();
+    let to_f32 = |v: &[f64]| v.par_iter().map(|&x| x as f32).collect::<Vec<f32>>();
     Ok(TofOutput {
         range_m: image(w, h, range)?,
         range_std_m: image(w, h, range_std)?,

@@ -26,7 +26,7 @@ use faer::sparse::{SparseColMat, Triplet};
 use faer::Side;
 use rayon::prelude::*;
 
-use super::coarse_space::{fixed_coarse_operator, CoarseSpace, FixedCoarseCache};
+use super::coarse_space::{shared_fixed_coarse_operator, CoarseSpace, FixedCoarseCache};
 use super::multigrid::Multigrid;
 use super::quadratic_prior::{PatchGrid, QuadraticPrior};
 use super::symmetry::RowMirror;
@@ -157,7 +157,7 @@ impl XStepSystem {
             return Ok(None);
         };
         let fixed = self.coarse_fixed.get_or_init(|| {
-            fixed_coarse_operator(q, self.gamma[2], self.pair_weight(), &self.mirror)
+            shared_fixed_coarse_operator(q, self.gamma[2], self.pair_weight(), &self.mirror)
         });
         if !slot.as_ref().is_some_and(|c| c.serves(&fixed)) {
             *slot = Some(Box::new(CoarseSpace::new(q, fixed)));
