@@ -111,7 +111,9 @@ pub fn normalised_residuals(
         .into_par_iter()
         .map(|(&re, &im, &sr, &si)| {
             let (re, im) = (f64::from(re), f64::from(im));
-            let s = noise.sigma(re.hypot(im)).max(f64::MIN_POSITIVE);
+            // Amplitudes are bounded (`crate::tof::AMPLITUDE_RANGE`): no overflow to guard
+            // against with `hypot`, which took most of this pass.
+            let s = noise.sigma((re * re + im * im).sqrt()).max(f64::MIN_POSITIVE);
             [(re - sr) / s, (im - si) / s]
         })
         .collect()
