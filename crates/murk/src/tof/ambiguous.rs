@@ -113,7 +113,9 @@ pub fn normalised_residuals(
             let (re, im) = (f64::from(re), f64::from(im));
             // Amplitudes are bounded (`crate::tof::AMPLITUDE_RANGE`): no overflow to guard
             // against with `hypot`, which took most of this pass.
-            let s = noise.sigma((re * re + im * im).sqrt()).max(f64::MIN_POSITIVE);
+            let s = noise
+                .sigma((re * re + im * im).sqrt())
+                .max(f64::MIN_POSITIVE);
             [(re - sr) / s, (im - si) / s]
         })
         .collect()
