@@ -317,19 +317,24 @@ fn fill_unmeasured(
 ) -> Vec<f32> {
     let h = range.len() / w.max(1);
     let r = crate::tof::ambiguous::REACH;
-    let measured = |j: usize| object[j] && range_std[j] < cap;
+    let measured: Vec<bool> = (object, range_std)
+        .into_par_iter()
+        .map(|(&o, &s)| o && s < cap)
+        .collect();
+    // Most unmeasured pixels are fog far from any object: only those near one scan a window.
+    let near = crate::tof::ambiguous::dilate(&measured, w, r);
     let mut out = range.to_vec();
     out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
         let mut around = Vec::new();
         for (x, v) in row.iter_mut().enumerate() {
             let i = y * w + x;
-            if range_std[i] < cap {
+            if range_std[i] < cap || !near[i] {
                 continue;
             }
             around.clear();
             for yy in y.saturating_sub(r)..(y + r + 1).min(h) {
                 let cols = yy * w + x.saturating_sub(r)..yy * w + (x + r + 1).min(w);
-                around.extend(cols.filter(|&j| measured(j)).map(|j| range[j]));
+                around.extend(cols.filter(|&j| measured[j]).map(|j| range[j]));
             }
             if !around.is_empty() {
                 let mid = around.len() / 2;
