@@ -458,38 +458,14 @@ pub fn prepare_preconditioner(
 /// Preconditioned CG on `A x = b`, starting from the given `x`, with `ws`'s preconditioner
 /// set up for `sys` and `weights` by [`prepare_preconditioner`]. One setup serves every
 /// right-hand side under the same weights: the phasor's two components share them.
+///
+/// `set_up` is called on the workspace once the starting `x` has been found not to meet the
+/// tolerance, before the preconditioner's first use (pass `&mut |_| Ok(())` when it is set up
+/// already). It is not called when the solve ends without an iteration (the returned stats say
+/// 0), so an IRLS step whose warm start is already converged skips the V-cycle's masses and
+/// the coarse space's factorisation.
 #[allow(clippy::too_many_arguments)]
 pub fn solve_pcg(
-    sys: &XStepSystem,
-    weights: &[f64],
-    b: &[f64],
-    x: &mut [f64],
-    rel_tol: f64,
-    max_iterations: usize,
-    preconditioner: Preconditioner,
-    ws: &mut PcgWorkspace,
-    monitor: &Monitor,
-) -> Result<SolveStats> {
-    pcg(
-        sys,
-        weights,
-        b,
-        x,
-        rel_tol,
-        max_iterations,
-        preconditioner,
-        ws,
-        &mut |_| Ok(()),
-        monitor,
-    )
-}
-
-/// [`solve_pcg`] that calls `set_up` on the workspace once the starting `x` has been found not
-/// to meet the tolerance, before the preconditioner's first use. It is not called when the
-/// solve ends without an iteration (the returned stats say 0), so an IRLS step whose warm start
-/// is already converged skips the setup, a third of a 512 × 424 x-step.
-#[allow(clippy::too_many_arguments)]
-fn pcg(
     sys: &XStepSystem,
     weights: &[f64],
     b: &[f64],
@@ -794,7 +770,7 @@ impl XStepState {
                     }
                     (true, None) => Ok(()),
                 };
-                let stats = pcg(
+                let stats = solve_pcg(
                     sys,
                     weights,
                     b,
@@ -1088,6 +1064,7 @@ mod tests {
             1000,
             Preconditioner::Multigrid,
             &mut ws,
+            &mut |_| Ok(()),
             &monitor,
         );
         assert_eq!(r, Err(MurkError::Cancelled));
