@@ -443,14 +443,13 @@ fn compose(
             let sigma_phi = ((var_o + var_s).sqrt() / a_d.max(1e-300)).min(0.5 * PI);
             *sd = range_m(sigma_phi, f) as f32;
         });
-    let range = fill_unmeasured(
+    let mut range = fill_unmeasured(
         &range,
         &range_std,
         &est.object,
         w,
         unmeasured_range_std_m(f),
     );
-    let mut range = range;
     let mut raw_range = raw_range;
     // With intrinsics: the ranges for a light off the lens (Eq. 5.2 gives half the optical
     // path; with the light off the lens the range is not), and z = range · (the unit ray's z
