@@ -897,6 +897,54 @@ mod tests {
         }
     }
 
+    /// A solve whose warm start already meets the tolerance skips the preconditioner setup; a
+    /// later solve that reuses the setup under the same weights then does it, and gets the
+    /// same answer, bit for bit, as a state that set up eagerly.
+    #[test]
+    fn a_deferred_setup_is_done_for_the_weights_it_was_asked_for() {
+        let (w, h) = (23, 17);
+        let grid = PatchGrid::new(w, h, 2, 2);
+        let sys = XStepSystem::new(w, h, [0.1, 0.3, 2.0], RowMirror::new(h, 8.0))
+            .with_joint_prior(grid)
+            .unwrap();
+        let (weights, b) = problem(w, h);
+        let other: Vec<f64> = weights.iter().map(|v| 1.0 - 0.5 * v).collect();
+        let b2: Vec<f64> = b.iter().map(|v| 0.5 * v + 1.0).collect();
+        let monitor = Monitor::noop();
+        let fresh = || XStepState::new(XStepSolver::default(), &sys).unwrap();
+        // A state last set up for `other`, then asked for `weights` with a converged start.
+        let mut lazy = fresh();
+        let mut scratch = vec![0.0; w * h];
+        lazy.solve(&sys, &other, &b, &mut scratch, &monitor)
+            .unwrap();
+        let mut solved = vec![0.0; w * h];
+        fresh()
+            .solve(&sys, &weights, &b, &mut solved, &monitor)
+            .unwrap();
+        let mut start = solved.clone();
+        let stats = lazy
+            .solve_reusing(&sys, &weights, &b, &mut start, 1.0, false, &monitor)
+            .unwrap();
+        assert_eq!(stats.iterations, 0);
+        assert_eq!(start, solved);
+        // The next right-hand side under the same weights, reusing the (deferred) setup.
+        let mut lazy_x = vec![0.0; w * h];
+        let lazy_stats = lazy
+            .solve_reusing(&sys, &weights, &b2, &mut lazy_x, 1.0, true, &monitor)
+            .unwrap();
+        let mut eager = fresh();
+        eager
+            .solve(&sys, &weights, &b, &mut scratch.clone(), &monitor)
+            .unwrap();
+        let mut eager_x = vec![0.0; w * h];
+        let eager_stats = eager
+            .solve_reusing(&sys, &weights, &b2, &mut eager_x, 1.0, true, &monitor)
+            .unwrap();
+        assert!(lazy_stats.iterations > 0);
+        assert_eq!(lazy_stats.iterations, eager_stats.iterations);
+        assert_eq!(lazy_x, eager_x);
+    }
+
     #[test]
     fn solvers_match_dense_solve() {
         let (w, h) = (9, 8);
