@@ -28,14 +28,15 @@ pub use cost_volume::{
     DehazingResidual, RangePenalty, View,
 };
 pub use depth::{
-    depth_from_cost_volume, depth_from_costs, estimate_depth, DepthParams, DepthResult,
-    MatchingParams, PhotometricParams, PostFilter, RejectionParams, SgmParams,
+    depth_from_cost_volume, depth_from_costs, estimate_depth, estimate_depth_from_prior,
+    DepthParams, DepthResult, MatchingParams, PhotometricParams, PhotometricPrior,
+    PhotometricSearch, PostFilter, RejectionParams, SgmParams,
 };
 pub use plane_count::{planes_for_displacement, Camera, AUTO_PLANES_MAX, AUTO_PLANES_MIN};
 pub use plane_sweep::{PlaneSet, PlaneWarp, MAX_PLANES};
 pub use pose::Pose;
 pub use rectified::{
-    estimate_rectified, RectifiedDepth, RectifiedOptions, RectifiedRig, StereoRange,
-    DEFAULT_MAX_DISPARITY_PX,
+    estimate_rectified, estimate_rectified_from_prior, RectifiedDepth, RectifiedOptions,
+    RectifiedRig, StereoRange, DEFAULT_MAX_DISPARITY_PX,
 };
 pub use stereo_tracker::{Search, StereoTracker, TrackedDepth};

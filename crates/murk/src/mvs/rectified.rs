@@ -21,7 +21,7 @@ use crate::error::{MurkError, Result};
 use crate::image::ImageF32;
 use crate::monitor::Monitor;
 use crate::mvs::cost_volume::{CostKind, View};
-use crate::mvs::depth::{estimate_depth, DepthParams, DepthResult};
+use crate::mvs::depth::{estimate_depth_from_prior, DepthParams, DepthResult, PhotometricPrior};
 use crate::mvs::plane_sweep::{PlaneSet, MAX_PLANES};
 use crate::mvs::pose::Pose;
 use crate::mvs_io::{backproject, ColoredPoint};
@@ -293,6 +293,21 @@ pub fn estimate_rectified(
     options: &RectifiedOptions,
     monitor: &Monitor,
 ) -> Result<RectifiedDepth> {
+    estimate_rectified_from_prior(left, right, rig, options, None, monitor)
+}
+
+/// [`estimate_rectified`] for the next pair of the same rig, with the photometric corrections
+/// starting from `prior` (a previous pair's
+/// [`DepthResult::photometric_prior`](crate::mvs::DepthResult::photometric_prior); see
+/// [`estimate_depth_from_prior`]).
+pub fn estimate_rectified_from_prior(
+    left: &ImageF32,
+    right: &ImageF32,
+    rig: &RectifiedRig,
+    options: &RectifiedOptions,
+    prior: Option<&PhotometricPrior>,
+    monitor: &Monitor,
+) -> Result<RectifiedDepth> {
     rig.validate()?;
     let (reference, source) = rig.views(left, right)?;
     // The views' own errors name `image`: here the image *is* the field.
@@ -313,12 +328,13 @@ pub fn estimate_rectified(
         .unwrap_or_else(|| StereoRange::default_for_width(left.width()));
     let planes = rig.planes(range, options.num_planes)?;
     options.depth.validate().map_err(|e| e.within("depth"))?;
-    let depth = estimate_depth(
+    let depth = estimate_depth_from_prior(
         &reference,
         &[source],
         &planes,
         options.cost,
         &options.depth,
+        prior,
         monitor,
     )?;
     let (w, h) = depth.z_depth.dims();

@@ -21,14 +21,21 @@
 //!   one with fewer than [`MIN_CONFIDENT_FRACTION`] of its pixels confident search the whole
 //!   range; so does a pair whose band would cover most of it.
 //!
-//! What is carried between pairs is two numbers (the band), so a tracker's memory does not grow
-//! with the stream.
+//! - **The photometric corrections.** The right camera's gains and both fall-offs start from the
+//!   previous pair's ([`crate::mvs::depth::photometric`]): the fall-offs are kept and the gains
+//!   confirmed on the new pair, or searched again where the exposure changed. Every
+//!   [`REFRESH_PAIRS`] pairs carried, and after [`StereoTracker::reset`], they are searched from
+//!   scratch.
+//!
+//! What is carried between pairs is the band (two numbers) and the corrections (a gain per
+//! channel and two fall-offs), so a tracker's memory does not grow with the stream.
 
 use crate::error::Result;
 use crate::image::ImageF32;
 use crate::monitor::Monitor;
+use crate::mvs::depth::{PhotometricPrior, PhotometricSearch};
 use crate::mvs::rectified::{
-    estimate_rectified, RectifiedDepth, RectifiedOptions, RectifiedRig, StereoRange,
+    estimate_rectified_from_prior, RectifiedDepth, RectifiedOptions, RectifiedRig, StereoRange,
 };
 
 /// Quantile of the previous pair's confident disparities at which the band starts (and, from
@@ -45,6 +52,9 @@ pub const EDGE_FRACTION: f64 = 0.01;
 pub const MIN_CONFIDENT_FRACTION: f64 = 0.05;
 /// A band that covers more than this share of the configured range is not worth narrowing.
 pub const MAX_BAND_SHARE: f64 = 0.9;
+/// Pairs in a row whose photometric corrections are carried before the next pair searches them
+/// from scratch (3 s at 10 Hz): a fall-off misjudged on one pair does not stay for the session.
+pub const REFRESH_PAIRS: usize = 30;
 
 /// How a pair's depth was searched.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -74,6 +84,10 @@ pub struct StereoTracker {
     /// The previous pair's confident disparities at [`PRIOR_QUANTILE`] and its complement,
     /// pixels.
     prior: Option<(f64, f64)>,
+    /// The previous pair's photometric corrections.
+    photometric: Option<PhotometricPrior>,
+    /// Pairs in a row that carried the corrections.
+    carried: usize,
 }
 
 impl StereoTracker {
@@ -86,12 +100,17 @@ impl StereoTracker {
             rig,
             options,
             prior: None,
+            photometric: None,
+            carried: 0,
         })
     }
 
-    /// Forgets the prior: the next pair is a cold start (a known scene cut, a moved rig).
+    /// Forgets the priors, the band and the photometric corrections: the next pair is a cold
+    /// start (a known scene cut, a moved rig).
     pub fn reset(&mut self) {
         self.prior = None;
+        self.photometric = None;
+        self.carried = 0;
     }
 
     /// The band the next pair will search, disparities in pixels; `None` for the whole range.
@@ -99,7 +118,7 @@ impl StereoTracker {
         self.prior
     }
 
-    /// The depth of the next pair. Errors as [`estimate_rectified`]; an error leaves the prior
+    /// The depth of the next pair. Errors as [`crate::mvs::estimate_rectified`]; an error leaves the priors
     /// as it was.
     pub fn estimate(
         &mut self,
@@ -130,6 +149,11 @@ impl StereoTracker {
         };
         let searched_max = self.rig.disparity_of_depth(depth.planes.near);
         self.prior = confident_span(&depth, searched_max.max(0.0).ceil() as usize);
+        self.carried = match depth.depth.photometric_search {
+            PhotometricSearch::Carried => self.carried + 1,
+            _ => 0,
+        };
+        self.photometric = Some(depth.depth.photometric_prior());
         Ok(TrackedDepth { depth, search })
     }
 
@@ -169,7 +193,11 @@ impl StereoTracker {
             num_planes: Some(num_planes),
             ..self.options
         };
-        estimate_rectified(left, right, &self.rig, &options, monitor)
+        let photometric = self
+            .photometric
+            .as_ref()
+            .filter(|_| self.carried < REFRESH_PAIRS);
+        estimate_rectified_from_prior(left, right, &self.rig, &options, photometric, monitor)
     }
 }
 
@@ -345,5 +373,30 @@ mod tests {
         assert_eq!(t.band((20.0, 30.0), (1.0, 60.0)), Some((16.0, 34.0)));
         // Clamped to the configured range.
         assert_eq!(t.band((1.0, 10.0), (1.0, 60.0)), Some((1.0, 14.0)));
+    }
+
+    /// The photometric corrections are carried from the second pair on, searched again after
+    /// [`REFRESH_PAIRS`] carried pairs, and after a reset.
+    #[test]
+    fn photometric_corrections_are_carried_then_refreshed() {
+        let mut t = tracker();
+        let (l, r) = pair(10.0, 0.0);
+        let mut seen = Vec::new();
+        for _ in 0..REFRESH_PAIRS + 3 {
+            let out = t.estimate(&l, &r, &Monitor::noop()).unwrap();
+            seen.push(out.depth.depth.photometric_search);
+        }
+        let carried = PhotometricSearch::Carried;
+        let searched = PhotometricSearch::Searched;
+        assert_eq!(seen[0], searched);
+        assert!(
+            seen[1..=REFRESH_PAIRS].iter().all(|s| *s == carried),
+            "{seen:?}"
+        );
+        assert_eq!(seen[REFRESH_PAIRS + 1], searched);
+        assert_eq!(seen[REFRESH_PAIRS + 2], carried);
+        t.reset();
+        let out = t.estimate(&l, &r, &Monitor::noop()).unwrap();
+        assert_eq!(out.depth.depth.photometric_search, searched);
     }
 }

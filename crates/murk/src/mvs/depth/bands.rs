@@ -18,6 +18,7 @@ use crate::mvs::plane_sweep::PlaneSet;
 use crate::mvs::pose::Pose;
 
 use super::consistency::{ClaimScratch, SourceClaims, SourceGeometry};
+use super::photometric::{self, PhotometricPrior};
 use super::quantise::Quantiser;
 use super::select::{self, Selection};
 use super::{
@@ -38,12 +39,14 @@ pub(super) struct Layout {
 }
 
 /// [`estimate_depth`](super::estimate_depth) with its work laid out as `layout` says.
+#[allow(clippy::too_many_arguments)]
 pub(super) fn estimate_depth_in_bands(
     reference: &View<'_>,
     sources: &[View<'_>],
     planes: &PlaneSet,
     kind: CostKind,
     params: &DepthParams,
+    prior: Option<&PhotometricPrior>,
     layout: Layout,
     monitor: &Monitor,
 ) -> Result<DepthResult> {
@@ -64,98 +67,13 @@ pub(super) fn estimate_depth_in_bands(
     // Bad views fail before any strip's volume is built.
     validate_inputs(&reference, &sources, planes, kind)?;
     let channels = reference.image.channels();
-    // Each source's samples are collected once for its gains and the fall-off estimate.
-    let samples: Vec<exposure::Samples> =
-        if params.photometric.exposure_compensation || params.photometric.vignetting_compensation {
-            sources
-                .iter()
-                .map(|s| exposure::Samples::collect(&reference, s, planes, kind))
-                .collect()
-        } else {
-            Vec::new()
-        };
-    let gains_of = |samples: &[exposure::Samples]| -> Vec<f32> {
-        if params.photometric.exposure_compensation {
-            samples
-                .iter()
-                .flat_map(exposure::gains_from_samples)
-                .collect()
-        } else {
-            vec![1.0; sources.len() * channels]
-        }
-    };
-    // Each source's own fall-off relative to the reference's (a lens that differs) comes
-    // first: a gain that varies over the image, seen without any displacement, so it is
-    // estimated with the gains and only where they are. Left in, it would be read as a shared
-    // fall-off (only the right lens of the hazy Aloe pair 20 % darker at the corners: 0.10).
-    let relative = |samples: &[exposure::Samples], mut gains: Vec<f32>| -> (Vec<f32>, Vec<f32>) {
-        // One per source, also when no samples were collected (both compensations off).
-        let mut deltas = vec![0.0f32; sources.len()];
-        if !(params.photometric.vignetting_compensation && params.photometric.exposure_compensation)
-        {
-            return (deltas, gains);
-        }
-        for ((delta, gains), samples) in deltas
-            .iter_mut()
-            .zip(gains.chunks_exact_mut(channels))
-            .zip(samples)
-        {
-            if gains.iter().any(|&g| exposure::at_bound(g)) {
-                continue;
-            }
-            let (d, refined) = vignetting::estimate_relative_falloff(samples, gains);
-            *delta = vignetting::applied_relative_falloff(d);
-            if *delta != 0.0 {
-                gains.copy_from_slice(&refined);
-            }
-        }
-        (deltas, gains)
-    };
-    let (raw_falloffs, raw_gains) = relative(&samples, gains_of(&samples));
-    // The lens's fall-off shared by every view, with each source's channels divided by the
-    // gains and its relative fall-off found without it. A source whose gain stopped at the
-    // search's bound is left out: the brightness its gain did not remove would be read as a
-    // fall-off (a source 2.5× brighter drove it to the bound).
-    let falloff = if params.photometric.vignetting_compensation {
-        let relieved: Vec<Option<exposure::Samples>> = samples
-            .iter()
-            .zip(&raw_falloffs)
-            .map(|(s, &d)| (d != 0.0).then(|| s.with_source_falloff(d)))
-            .collect();
-        let usable: Vec<(&exposure::Samples, &[f32])> = samples
-            .iter()
-            .zip(&relieved)
-            .map(|(s, r)| r.as_ref().unwrap_or(s))
-            .zip(raw_gains.chunks_exact(channels))
-            .filter(|(_, g)| !g.iter().any(|&g| exposure::at_bound(g)))
-            .collect();
-        vignetting::applied_falloff(vignetting::estimate_falloff(&usable))
-    } else {
-        0.0
-    };
-    let devignetted: Option<(ImageF32, Vec<ImageF32>)> = (falloff != 0.0).then(|| {
-        (
-            vignetting::compensate(reference.image, falloff),
-            sources
-                .iter()
-                .map(|s| vignetting::compensate(s.image, falloff))
-                .collect(),
-        )
-    });
-    let (reference, sources) = views_over(&reference, &sources, &devignetted);
-    // The samples again once the shared fall-off is out of the views, and the gains and
-    // relative fall-offs from them: it had biased them toward its mean.
-    let (source_falloffs, source_gains) = if devignetted.is_some() {
-        let samples: Vec<exposure::Samples> = sources
-            .iter()
-            .map(|s| exposure::Samples::collect(&reference, s, planes, kind))
-            .collect();
-        relative(&samples, gains_of(&samples))
-    } else {
-        (raw_falloffs, raw_gains)
-    };
-    let source_gains: Vec<f32> = source_gains
-        .into_iter()
+    let corrections = photometric::corrections(&reference, &sources, planes, kind, params, prior);
+    let (reference, sources) = views_over(&reference, &sources, &corrections.devignetted);
+    let (falloff, source_falloffs) = (corrections.falloff, corrections.source_falloffs);
+    let (estimated_gains, photometric_search) = (corrections.gains, corrections.search);
+    let source_gains: Vec<f32> = estimated_gains
+        .iter()
+        .copied()
         .map(exposure::applied_gain)
         .collect();
     let compensated: Vec<Option<ImageF32>> = sources
@@ -246,6 +164,8 @@ pub(super) fn estimate_depth_in_bands(
     };
     let mut depth = finish_depth(selections, w, h, planes, guide, params, claims, monitor)?;
     depth.source_gains = source_gains;
+    depth.estimated_gains = estimated_gains;
+    depth.photometric_search = photometric_search;
     depth.vignetting_falloff = falloff;
     depth.warnings = bound_warnings(&depth.source_gains, channels, falloff, &source_falloffs);
     depth.source_falloffs = source_falloffs;

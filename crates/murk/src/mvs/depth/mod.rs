@@ -43,6 +43,7 @@ pub mod consistency;
 pub mod contrast;
 pub mod exposure;
 pub mod filter;
+pub mod photometric;
 pub mod presmooth;
 pub mod quantise;
 pub mod select;
@@ -68,6 +69,7 @@ pub use depth_params::{
     DepthParams, MatchingParams, PhotometricParams, PostFilter, RejectionParams, SgmParams,
     MAX_SPECKLE_SIZE_PX, MAX_VOLUME_BUDGET_MIB,
 };
+pub use photometric::{PhotometricPrior, PhotometricSearch};
 pub use select::{select_curve, Selection};
 pub use sgm::Penalties;
 
@@ -85,6 +87,13 @@ pub struct DepthResult {
     /// to the reference's, exactly 1 within [`exposure::DEAD_BAND`] of 1 or where compensation
     /// is off; empty from [`depth_from_cost_volume`].
     pub source_gains: Vec<f32>,
+    /// The gains as estimated, before [`exposure::DEAD_BAND`] (the layout of
+    /// [`DepthResult::source_gains`]); what the next pair of a stream starts from
+    /// ([`DepthResult::photometric_prior`]).
+    pub estimated_gains: Vec<f32>,
+    /// Whether the photometric corrections were searched or carried from a prior
+    /// ([`photometric`]).
+    pub photometric_search: PhotometricSearch,
     /// The fall-off `a` of `V(r) = 1 + a·r²` divided out of every view ([`vignetting`]; the
     /// corners' brightness relative to the centre is `1 + a`); exactly 0 within
     /// [`vignetting::DEAD_BAND`] of 0, where compensation is off, or from
@@ -102,6 +111,18 @@ pub struct DepthResult {
     pub warnings: Vec<String>,
 }
 
+impl DepthResult {
+    /// This result's photometric corrections, for the next pair of the same rig
+    /// ([`estimate_depth_from_prior`]).
+    pub fn photometric_prior(&self) -> PhotometricPrior {
+        PhotometricPrior {
+            estimated_gains: self.estimated_gains.clone(),
+            vignetting_falloff: self.vignetting_falloff,
+            source_falloffs: self.source_falloffs.clone(),
+        }
+    }
+}
+
 /// Cost volume (Eq. 3.1 or 3.7) plus [`depth_from_cost_volume`]. Errors are those of
 /// [`build_cost_volume`](crate::mvs::cost_volume::build_cost_volume) plus `sgm.…` for bad parameters; cancellation returns `Cancelled`.
 pub fn estimate_depth(
@@ -112,12 +133,30 @@ pub fn estimate_depth(
     params: &DepthParams,
     monitor: &Monitor,
 ) -> Result<DepthResult> {
+    estimate_depth_from_prior(reference, sources, planes, kind, params, None, monitor)
+}
+
+/// [`estimate_depth`] for the next views of the same cameras: the photometric corrections start
+/// from `prior` (a previous result's [`DepthResult::photometric_prior`]): its fall-offs are
+/// kept and its gains confirmed on these views, or everything is searched again where a gain
+/// moved ([`photometric`]). `None`, or a prior of other sources or channels, searches as
+/// [`estimate_depth`] does.
+pub fn estimate_depth_from_prior(
+    reference: &View<'_>,
+    sources: &[View<'_>],
+    planes: &PlaneSet,
+    kind: CostKind,
+    params: &DepthParams,
+    prior: Option<&PhotometricPrior>,
+    monitor: &Monitor,
+) -> Result<DepthResult> {
     estimate_depth_in_bands(
         reference,
         sources,
         planes,
         kind,
         params,
+        prior,
         Layout::default(),
         monitor,
     )
@@ -197,6 +236,8 @@ pub(super) fn finish_depth(
         inverse_depth: ImageF32::from_vec(w, h, 1, inv)?,
         confidence: ImageF32::from_vec(w, h, 1, conf)?,
         source_gains: Vec::new(),
+        estimated_gains: Vec::new(),
+        photometric_search: PhotometricSearch::Searched,
         vignetting_falloff: 0.0,
         source_falloffs: Vec::new(),
         warnings: Vec::new(),

@@ -690,6 +690,7 @@ fn rig_depth(
         planes,
         kind,
         params,
+        None,
         layout,
         &monitor,
     )
