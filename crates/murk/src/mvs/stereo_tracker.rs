@@ -264,10 +264,11 @@ fn piled_at_ends(out: &RectifiedDepth, band: (f64, f64), full: (f64, f64)) -> bo
 fn confident_span(out: &RectifiedDepth, border: usize) -> Option<(f64, f64)> {
     let (w, h) = out.disparity.dims();
     let mut d = Vec::with_capacity(w * h);
-    for y in 0..h {
-        for x in border.min(w)..w {
-            let v = out.disparity.get(x, y, 0);
-            if out.depth.confidence.get(x, y, 0) > 0.0 && v.is_finite() {
+    let rows = out.disparity.data().chunks_exact(w);
+    for (disparity, confidence) in rows.zip(out.depth.confidence.data().chunks_exact(w)) {
+        let from = border.min(w);
+        for (&v, &c) in disparity[from..].iter().zip(&confidence[from..]) {
+            if c > 0.0 && v.is_finite() {
                 d.push(v);
             }
         }
@@ -275,9 +276,22 @@ fn confident_span(out: &RectifiedDepth, border: usize) -> Option<(f64, f64)> {
     if d.is_empty() || (d.len() as f64) < MIN_CONFIDENT_FRACTION * (w * h) as f64 {
         return None;
     }
-    d.sort_by(f32::total_cmp);
-    let at = |p: f64| f64::from(d[((d.len() - 1) as f64 * p).round() as usize]);
-    Some((at(PRIOR_QUANTILE), at(1.0 - PRIOR_QUANTILE)))
+    Some(quantile_pair(&mut d, PRIOR_QUANTILE))
+}
+
+/// The `q` and `1 − q` quantiles of non-empty `d` (`q ≤ ½`), the samples of ranks
+/// `round((n − 1)·q)` and `round((n − 1)·(1 − q))` in ascending order; `d` is reordered. Two
+/// selections, linear: sorting a 640×480 pair's disparities took 3 ms.
+fn quantile_pair(d: &mut [f32], q: f64) -> (f64, f64) {
+    let at = |p: f64| ((d.len() - 1) as f64 * p).round() as usize;
+    let (lo, hi) = (at(q), at(1.0 - q));
+    let (_, &mut low, above) = d.select_nth_unstable_by(lo, f32::total_cmp);
+    let high = if hi > lo {
+        *above.select_nth_unstable_by(hi - lo - 1, f32::total_cmp).1
+    } else {
+        low
+    };
+    (f64::from(low), f64::from(high))
 }
 
 #[cfg(test)]
@@ -398,5 +412,19 @@ mod tests {
         t.reset();
         let out = t.estimate(&l, &r, &Monitor::noop()).unwrap();
         assert_eq!(out.depth.depth.photometric_search, searched);
+    }
+
+    proptest::proptest! {
+        /// The two selections find what sorting finds.
+        #[test]
+        fn quantile_pair_is_the_sorted_ranks(
+            mut d in proptest::collection::vec(-100.0f32..100.0, 1..400),
+            q in 0.0f64..0.5,
+        ) {
+            let mut sorted = d.clone();
+            sorted.sort_by(f32::total_cmp);
+            let at = |p: f64| f64::from(sorted[((sorted.len() - 1) as f64 * p).round() as usize]);
+            proptest::prop_assert_eq!(quantile_pair(&mut d, q), (at(q), at(1.0 - q)));
+        }
     }
 }
