@@ -30,6 +30,16 @@ def test_raw_images_are_planar_on_the_wire() -> None:
     np.testing.assert_allclose(back, grey, rtol=1e-7)
 
 
+def test_raw_u8_planes_decode_to_unit_range() -> None:
+    rgb = np.arange(2 * 3 * 3, dtype=np.uint8).reshape(2, 3, 3) * 13  # (h, w, c)
+    planar = np.ascontiguousarray(np.moveaxis(rgb, 2, 0)).tobytes()
+    msg = common_pb2.Image(width=3, height=2, channels=3, raw_u8=planar)
+    np.testing.assert_array_equal(images.from_proto(msg), rgb.astype(np.float32) / np.float32(255.0))
+    msg.raw_u8 = planar[1:]
+    with pytest.raises(mc.ClientInputError, match="raw_u8"):
+        images.from_proto(msg)
+
+
 def test_value_scale_zero_means_one() -> None:
     msg = images.to_proto(np.full((2, 2), 3.0), field="x")
     assert msg.value_scale == 0.0

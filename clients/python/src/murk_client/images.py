@@ -93,9 +93,9 @@ def srgb_to_linear(image: npt.ArrayLike) -> FloatImage:
 def from_proto(image: common_pb2.Image, *, field: str = "image") -> FloatImage:
     """Decodes a result image: ``(h, w)`` for one channel, ``(h, w, c)`` otherwise.
 
-    Raw f32 and f16 are unpacked; an encoded image (the 16-bit PNG of a compact result) is
-    decoded with the same rules as the files :func:`read_image` reads, then mapped by
-    ``value_scale``/``value_offset``.
+    Raw f32, f16 and 8-bit samples (``v / 255``) are unpacked; an encoded image (the 16-bit PNG
+    of a compact result) is decoded with the same rules as the files :func:`read_image` reads,
+    then mapped by ``value_scale``/``value_offset``.
     """
     which = image.WhichOneof("data")
     if which in ("raw_f32_le", "raw_f16_le"):
@@ -110,6 +110,13 @@ def from_proto(image: common_pb2.Image, *, field: str = "image") -> FloatImage:
             )
         planar = np.frombuffer(data, dtype=dtype).reshape(c, h, w)
         arr: FloatImage = np.ascontiguousarray(np.moveaxis(planar, 0, 2), dtype=np.float32)
+    elif which == "raw_u8":
+        h, w, c = image.height, image.width, max(image.channels, 1)
+        if len(image.raw_u8) != h * w * c:
+            got = len(image.raw_u8)
+            raise ClientInputError(field, f"{w}x{h}x{c} raw_u8 needs {h * w * c} bytes, got {got}")
+        planar8 = np.frombuffer(image.raw_u8, dtype=np.uint8).reshape(c, h, w)
+        arr = np.ascontiguousarray(np.moveaxis(planar8, 0, 2), dtype=np.float32) / np.float32(255.0)
     elif which == "encoded":
         arr = _decode_bytes(image.encoded, field)
         if arr.ndim == 2:

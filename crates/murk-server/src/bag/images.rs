@@ -52,24 +52,28 @@ pub fn to_api_image(img: &RosImage, mapping: SampleMapping) -> Result<ApiImage, 
         width: w,
         height: h,
         planes,
-        eight_bit,
     } = match img {
         RosImage::Raw(m) => raw_planes(m)?,
         RosImage::Compressed(m) => compressed_planes(m)?,
     };
-    let channels = planes.len();
-    let mut bytes = Vec::with_capacity(w * h * channels * 4);
-    for plane in &planes {
-        for v in plane {
-            bytes.extend_from_slice(&v.to_le_bytes());
+    // 8-bit samples travel as they are (a quarter of the bytes of f32), and the server maps
+    // them to [0, 1] as it maps an 8-bit file.
+    let (channels, data, eight_bit) = match planes {
+        Samples::U8(planes) => (planes.len(), pb::image::Data::RawU8(planes.concat()), true),
+        Samples::F32(planes) => {
+            let mut bytes = Vec::with_capacity(w * h * planes.len() * 4);
+            for v in planes.iter().flatten() {
+                bytes.extend_from_slice(&v.to_le_bytes());
+            }
+            (planes.len(), pb::image::Data::RawF32Le(bytes), false)
         }
-    }
+    };
     Ok(ApiImage {
         image: pb::Image {
             width: w as u32,
             height: h as u32,
             channels: channels as u32,
-            data: Some(pb::image::Data::RawF32Le(bytes)),
+            data: Some(data),
             value_scale: mapping.scale,
             value_offset: 0.0,
             transfer: if mapping.srgb && eight_bit {
@@ -82,13 +86,19 @@ pub fn to_api_image(img: &RosImage, mapping: SampleMapping) -> Result<ApiImage, 
     })
 }
 
-/// A decoded image: 1 or 3 planes of samples, integers mapped to [0, 1].
+/// A decoded image: 1 or 3 planes of samples.
 struct Planes {
     width: usize,
     height: usize,
-    planes: Vec<Vec<f32>>,
-    /// 8-bit samples (which a camera usually stores sRGB-encoded).
-    eight_bit: bool,
+    planes: Samples,
+}
+
+/// The planes' samples.
+enum Samples {
+    /// 8-bit samples as recorded (a camera usually stores them sRGB-encoded).
+    U8(Vec<Vec<u8>>),
+    /// Other samples, integers mapped to [0, 1].
+    F32(Vec<Vec<f32>>),
 }
 
 /// Planes of a raw image.
@@ -130,9 +140,9 @@ fn raw_planes(m: &Image) -> Result<Planes, String> {
         ));
     }
     let big = m.is_bigendian != 0;
+    // Samples wider than 8 bits (8-bit ones are sent as they are).
     let sample = |p: &[u8]| -> f32 {
         match bytes {
-            1 => f32::from(p[0]) / 255.0,
             2 => {
                 let v = if big {
                     u16::from_be_bytes([p[0], p[1]])
@@ -152,21 +162,34 @@ fn raw_planes(m: &Image) -> Result<Planes, String> {
         }
     };
     let out_channels = channels.min(3);
-    let mut planes = vec![Vec::with_capacity(w * h); out_channels];
-    for y in 0..h {
-        let r = &m.data[y * step..y * step + row];
-        for px in r.chunks_exact(bytes * channels) {
-            for (c, plane) in planes.iter_mut().enumerate() {
-                let k = if channels == 1 { 0 } else { order[c] };
-                plane.push(sample(&px[k * bytes..(k + 1) * bytes]));
+    let planes = if bytes == 1 {
+        let mut planes = vec![Vec::with_capacity(w * h); out_channels];
+        for y in 0..h {
+            let r = &m.data[y * step..y * step + row];
+            for px in r.chunks_exact(channels) {
+                for (c, plane) in planes.iter_mut().enumerate() {
+                    plane.push(px[if channels == 1 { 0 } else { order[c] }]);
+                }
             }
         }
-    }
+        Samples::U8(planes)
+    } else {
+        let mut planes = vec![Vec::with_capacity(w * h); out_channels];
+        for y in 0..h {
+            let r = &m.data[y * step..y * step + row];
+            for px in r.chunks_exact(bytes * channels) {
+                for (c, plane) in planes.iter_mut().enumerate() {
+                    let k = if channels == 1 { 0 } else { order[c] };
+                    plane.push(sample(&px[k * bytes..(k + 1) * bytes]));
+                }
+            }
+        }
+        Samples::F32(planes)
+    };
     Ok(Planes {
         width: w,
         height: h,
         planes,
-        eight_bit: bytes == 1,
     })
 }
 
@@ -191,20 +214,35 @@ fn compressed_planes(m: &CompressedImage) -> Result<Planes, String> {
         decoded.color(),
         image::ColorType::L8 | image::ColorType::Rgb8 | image::ColorType::Rgba8
     );
-    let planes = match decoded.color().channel_count() {
-        1 | 2 => vec![decoded.to_luma32f().pixels().map(|p| p.0[0]).collect()],
-        _ => {
+    let grey = decoded.color().channel_count() <= 2;
+    let planes = match (eight_bit, grey) {
+        (true, true) => Samples::U8(vec![decoded.to_luma8().into_raw()]),
+        (true, false) => {
+            let rgb = decoded.into_rgb8();
+            Samples::U8(
+                (0..3)
+                    .map(|c| rgb.pixels().map(|p| p.0[c]).collect())
+                    .collect(),
+            )
+        }
+        (false, true) => Samples::F32(vec![decoded
+            .to_luma32f()
+            .pixels()
+            .map(|p| p.0[0])
+            .collect()]),
+        (false, false) => {
             let rgb = decoded.into_rgb32f();
-            (0..3)
-                .map(|c| rgb.pixels().map(|p| p.0[c]).collect())
-                .collect()
+            Samples::F32(
+                (0..3)
+                    .map(|c| rgb.pixels().map(|p| p.0[c]).collect())
+                    .collect(),
+            )
         }
     };
     Ok(Planes {
         width: w,
         height: h,
         planes,
-        eight_bit,
     })
 }
 

@@ -43,11 +43,12 @@ fn decode_proto(img: &pb::Image, limits: &ImageLimits, mono: bool) -> Result<Ima
         None => {
             return Err(MurkError::invalid(
                 "",
-                "no pixel data: set `encoded`, `raw_f32_le` or `raw_f16_le`",
+                "no pixel data: set `encoded`, `raw_f32_le`, `raw_f16_le` or `raw_u8`",
             ))
         }
         Some(pb::image::Data::RawF32Le(bytes)) => raw_from_proto(img, bytes, Raw::F32, limits)?,
         Some(pb::image::Data::RawF16Le(bytes)) => raw_from_proto(img, bytes, Raw::F16, limits)?,
+        Some(pb::image::Data::RawU8(bytes)) => raw_from_proto(img, bytes, Raw::U8, limits)?,
         Some(pb::image::Data::Encoded(bytes)) => {
             let dl = DecodeLimits {
                 max_pixels: limits.max_pixels,
@@ -93,6 +94,7 @@ fn decode_proto(img: &pb::Image, limits: &ImageLimits, mono: bool) -> Result<Ima
 enum Raw {
     F32,
     F16,
+    U8,
 }
 
 impl Raw {
@@ -100,6 +102,7 @@ impl Raw {
         match self {
             Raw::F32 => "raw_f32_le",
             Raw::F16 => "raw_f16_le",
+            Raw::U8 => "raw_u8",
         }
     }
 
@@ -107,6 +110,7 @@ impl Raw {
         match self {
             Raw::F32 => 4,
             Raw::F16 => 2,
+            Raw::U8 => 1,
         }
     }
 
@@ -114,6 +118,8 @@ impl Raw {
         match self {
             Raw::F32 => f32::from_le_bytes([b[0], b[1], b[2], b[3]]),
             Raw::F16 => half::f16::from_le_bytes([b[0], b[1]]).to_f32(),
+            // As an 8-bit PNG decodes (`murk::io::decode_image`).
+            Raw::U8 => f32::from(b[0]) / 255.0,
         }
     }
 }
@@ -166,9 +172,10 @@ fn raw_from_proto(
     }
     let mut data = vec![0f32; n * c];
     // Planar on the wire (one plane per channel), interleaved in memory.
-    for (i, chunk) in bytes.chunks_exact(raw.bytes()).enumerate() {
-        let (ch, px) = (i / n, i % n);
-        data[px * c + ch] = raw.sample(chunk);
+    for (ch, plane) in bytes.chunks_exact(n * raw.bytes()).enumerate() {
+        for (px, chunk) in plane.chunks_exact(raw.bytes()).enumerate() {
+            data[px * c + ch] = raw.sample(chunk);
+        }
     }
     ImageF32::from_vec(w as usize, h as usize, c, data)
 }
@@ -250,6 +257,49 @@ mod tests {
         let img = ImageF32::from_vec(3, 2, 2, (0..12).map(|v| v as f32).collect()).unwrap();
         let back = image_from_proto(&image_to_proto(&img), &ImageLimits::default()).unwrap();
         assert_eq!(back, img);
+    }
+
+    /// Planar 8-bit samples decode as the same 8-bit PNG does, bit for bit, with the transfer
+    /// function applied; a wrong length names `raw_u8`.
+    #[test]
+    fn raw_u8_decodes_as_an_8_bit_png() {
+        let (w, h) = (5usize, 3usize);
+        let rgb: Vec<u8> = (0..w * h * 3).map(|i| (i * 37 % 256) as u8).collect();
+        let planar: Vec<u8> = (0..3)
+            .flat_map(|c| (0..w * h).map(move |px| (c, px)))
+            .map(|(c, px)| rgb[px * 3 + c])
+            .collect();
+        for transfer in [pb::Transfer::Unspecified, pb::Transfer::Srgb] {
+            let png = pb::Image {
+                data: Some(pb::image::Data::Encoded(
+                    murk::io::encode_png_rgb8(w, h, &rgb).unwrap(),
+                )),
+                transfer: transfer as i32,
+                ..Default::default()
+            };
+            let raw = pb::Image {
+                width: w as u32,
+                height: h as u32,
+                channels: 3,
+                data: Some(pb::image::Data::RawU8(planar.clone())),
+                transfer: transfer as i32,
+                ..Default::default()
+            };
+            let limits = ImageLimits::default();
+            assert_eq!(
+                image_from_proto(&raw, &limits).unwrap(),
+                image_from_proto(&png, &limits).unwrap()
+            );
+        }
+        let short = pb::Image {
+            width: w as u32,
+            height: h as u32,
+            channels: 3,
+            data: Some(pb::image::Data::RawU8(planar[1..].to_vec())),
+            ..Default::default()
+        };
+        let e = image_from_proto(&short, &ImageLimits::default()).unwrap_err();
+        assert!(matches!(e, MurkError::InvalidArgument { ref field, .. } if field == "raw_u8"));
     }
 
     #[test]

@@ -24,7 +24,7 @@ _sym_db = _symbol_database.Default()
 
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x14murk/v1/common.proto\x12\x07murk.v1\"\xcf\x01\n\x05Image\x12\r\n\x05width\x18\x01 \x01(\r\x12\x0e\n\x06height\x18\x02 \x01(\r\x12\x10\n\x08\x63hannels\x18\x03 \x01(\r\x12\x11\n\x07\x65ncoded\x18\x04 \x01(\x0cH\x00\x12\x14\n\nraw_f32_le\x18\x05 \x01(\x0cH\x00\x12\x14\n\nraw_f16_le\x18\t \x01(\x0cH\x00\x12\x13\n\x0bvalue_scale\x18\x06 \x01(\x02\x12\x14\n\x0cvalue_offset\x18\x07 \x01(\x02\x12#\n\x08transfer\x18\x08 \x01(\x0e\x32\x11.murk.v1.TransferB\x06\n\x04\x64\x61ta\"I\n\rOutputOptions\x12\x0e\n\x06\x66ields\x18\x01 \x03(\t\x12(\n\x08\x65ncoding\x18\x02 \x01(\x0e\x32\x16.murk.v1.ImageEncoding\"P\n\x10\x43\x61meraIntrinsics\x12\n\n\x02\x66x\x18\x01 \x01(\x01\x12\n\n\x02\x66y\x18\x02 \x01(\x01\x12\n\n\x02\x63x\x18\x03 \x01(\x01\x12\n\n\x02\x63y\x18\x04 \x01(\x01\x12\x0c\n\x04skew\x18\x05 \x01(\x01\"-\n\x04Pose\x12\x10\n\x08rotation\x18\x01 \x03(\x01\x12\x13\n\x0btranslation\x18\x02 \x03(\x01\"*\n\x07Vector3\x12\t\n\x01x\x18\x01 \x01(\x01\x12\t\n\x01y\x18\x02 \x01(\x01\x12\t\n\x01z\x18\x03 \x01(\x01\"=\n\nPointCloud\x12\r\n\x05\x63ount\x18\x01 \x01(\r\x12\x12\n\nxyz_f32_le\x18\x02 \x01(\x0c\x12\x0c\n\x04rgb8\x18\x03 \x01(\x0c*w\n\rImageEncoding\x12\x1e\n\x1aIMAGE_ENCODING_UNSPECIFIED\x10\x00\x12\x16\n\x12IMAGE_ENCODING_F32\x10\x01\x12\x16\n\x12IMAGE_ENCODING_F16\x10\x02\x12\x16\n\x12IMAGE_ENCODING_PNG\x10\x03*L\n\x08Transfer\x12\x18\n\x14TRANSFER_UNSPECIFIED\x10\x00\x12\x11\n\rTRANSFER_SRGB\x10\x01\x12\x13\n\x0fTRANSFER_LINEAR\x10\x02\x42:\n\nio.murk.v1P\x01Z*github.com/murk/murk/gen/go/murk/v1;murkv1b\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x14murk/v1/common.proto\x12\x07murk.v1\"\xe1\x01\n\x05Image\x12\r\n\x05width\x18\x01 \x01(\r\x12\x0e\n\x06height\x18\x02 \x01(\r\x12\x10\n\x08\x63hannels\x18\x03 \x01(\r\x12\x11\n\x07\x65ncoded\x18\x04 \x01(\x0cH\x00\x12\x14\n\nraw_f32_le\x18\x05 \x01(\x0cH\x00\x12\x14\n\nraw_f16_le\x18\t \x01(\x0cH\x00\x12\x10\n\x06raw_u8\x18\n \x01(\x0cH\x00\x12\x13\n\x0bvalue_scale\x18\x06 \x01(\x02\x12\x14\n\x0cvalue_offset\x18\x07 \x01(\x02\x12#\n\x08transfer\x18\x08 \x01(\x0e\x32\x11.murk.v1.TransferB\x06\n\x04\x64\x61ta\"I\n\rOutputOptions\x12\x0e\n\x06\x66ields\x18\x01 \x03(\t\x12(\n\x08\x65ncoding\x18\x02 \x01(\x0e\x32\x16.murk.v1.ImageEncoding\"P\n\x10\x43\x61meraIntrinsics\x12\n\n\x02\x66x\x18\x01 \x01(\x01\x12\n\n\x02\x66y\x18\x02 \x01(\x01\x12\n\n\x02\x63x\x18\x03 \x01(\x01\x12\n\n\x02\x63y\x18\x04 \x01(\x01\x12\x0c\n\x04skew\x18\x05 \x01(\x01\"-\n\x04Pose\x12\x10\n\x08rotation\x18\x01 \x03(\x01\x12\x13\n\x0btranslation\x18\x02 \x03(\x01\"*\n\x07Vector3\x12\t\n\x01x\x18\x01 \x01(\x01\x12\t\n\x01y\x18\x02 \x01(\x01\x12\t\n\x01z\x18\x03 \x01(\x01\"=\n\nPointCloud\x12\r\n\x05\x63ount\x18\x01 \x01(\r\x12\x12\n\nxyz_f32_le\x18\x02 \x01(\x0c\x12\x0c\n\x04rgb8\x18\x03 \x01(\x0c*w\n\rImageEncoding\x12\x1e\n\x1aIMAGE_ENCODING_UNSPECIFIED\x10\x00\x12\x16\n\x12IMAGE_ENCODING_F32\x10\x01\x12\x16\n\x12IMAGE_ENCODING_F16\x10\x02\x12\x16\n\x12IMAGE_ENCODING_PNG\x10\x03*L\n\x08Transfer\x12\x18\n\x14TRANSFER_UNSPECIFIED\x10\x00\x12\x11\n\rTRANSFER_SRGB\x10\x01\x12\x13\n\x0fTRANSFER_LINEAR\x10\x02\x42:\n\nio.murk.v1P\x01Z*github.com/murk/murk/gen/go/murk/v1;murkv1b\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -32,20 +32,20 @@ _builder.BuildTopDescriptorsAndMessages(DESCRIPTOR, 'murk_client._proto.murk.v1.
 if not _descriptor._USE_C_DESCRIPTORS:
   _globals['DESCRIPTOR']._loaded_options = None
   _globals['DESCRIPTOR']._serialized_options = b'\n\nio.murk.v1P\001Z*github.com/murk/murk/gen/go/murk/v1;murkv1'
-  _globals['_IMAGEENCODING']._serialized_start=554
-  _globals['_IMAGEENCODING']._serialized_end=673
-  _globals['_TRANSFER']._serialized_start=675
-  _globals['_TRANSFER']._serialized_end=751
+  _globals['_IMAGEENCODING']._serialized_start=572
+  _globals['_IMAGEENCODING']._serialized_end=691
+  _globals['_TRANSFER']._serialized_start=693
+  _globals['_TRANSFER']._serialized_end=769
   _globals['_IMAGE']._serialized_start=34
-  _globals['_IMAGE']._serialized_end=241
-  _globals['_OUTPUTOPTIONS']._serialized_start=243
-  _globals['_OUTPUTOPTIONS']._serialized_end=316
-  _globals['_CAMERAINTRINSICS']._serialized_start=318
-  _globals['_CAMERAINTRINSICS']._serialized_end=398
-  _globals['_POSE']._serialized_start=400
-  _globals['_POSE']._serialized_end=445
-  _globals['_VECTOR3']._serialized_start=447
-  _globals['_VECTOR3']._serialized_end=489
-  _globals['_POINTCLOUD']._serialized_start=491
-  _globals['_POINTCLOUD']._serialized_end=552
+  _globals['_IMAGE']._serialized_end=259
+  _globals['_OUTPUTOPTIONS']._serialized_start=261
+  _globals['_OUTPUTOPTIONS']._serialized_end=334
+  _globals['_CAMERAINTRINSICS']._serialized_start=336
+  _globals['_CAMERAINTRINSICS']._serialized_end=416
+  _globals['_POSE']._serialized_start=418
+  _globals['_POSE']._serialized_end=463
+  _globals['_VECTOR3']._serialized_start=465
+  _globals['_VECTOR3']._serialized_end=507
+  _globals['_POINTCLOUD']._serialized_start=509
+  _globals['_POINTCLOUD']._serialized_end=570
 # @@protoc_insertion_point(module_scope)

@@ -118,11 +118,12 @@ class Image(_message.Message):
     ENCODED_FIELD_NUMBER: _builtins.int
     RAW_F32_LE_FIELD_NUMBER: _builtins.int
     RAW_F16_LE_FIELD_NUMBER: _builtins.int
+    RAW_U8_FIELD_NUMBER: _builtins.int
     VALUE_SCALE_FIELD_NUMBER: _builtins.int
     VALUE_OFFSET_FIELD_NUMBER: _builtins.int
     TRANSFER_FIELD_NUMBER: _builtins.int
     width: _builtins.int
-    """Width in pixels. Required for raw_f32_le; for encoded data, if non-zero it must
+    """Width in pixels. Required for raw samples; for encoded data, if non-zero it must
     match the decoded width.
     """
     height: _builtins.int
@@ -138,6 +139,11 @@ class Image(_message.Message):
     raw_f16_le: _builtins.bytes
     """Raw little-endian IEEE-754 binary16 (half) samples, planar as raw_f32_le
     (width * height * channels * 2 bytes).
+    """
+    raw_u8: _builtins.bytes
+    """Raw 8-bit samples, planar as raw_f32_le (width * height * channels bytes): what most
+    cameras record, a quarter of raw_f32_le's bytes. Each sample v becomes v / 255, as an 8-bit
+    PNG's does, before the value mapping and the transfer function.
     """
     value_scale: _builtins.float
     """Affine mapping applied after decoding; 0 means 1."""
@@ -159,15 +165,16 @@ class Image(_message.Message):
         encoded: _builtins.bytes = ...,
         raw_f32_le: _builtins.bytes = ...,
         raw_f16_le: _builtins.bytes = ...,
+        raw_u8: _builtins.bytes = ...,
         value_scale: _builtins.float = ...,
         value_offset: _builtins.float = ...,
         transfer: Global___Transfer.ValueType = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _typing.Literal["data", b"data", "encoded", b"encoded", "raw_f16_le", b"raw_f16_le", "raw_f32_le", b"raw_f32_le"]  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["data", b"data", "encoded", b"encoded", "raw_f16_le", b"raw_f16_le", "raw_f32_le", b"raw_f32_le", "raw_u8", b"raw_u8"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["channels", b"channels", "data", b"data", "encoded", b"encoded", "height", b"height", "raw_f16_le", b"raw_f16_le", "raw_f32_le", b"raw_f32_le", "transfer", b"transfer", "value_offset", b"value_offset", "value_scale", b"value_scale", "width", b"width"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["channels", b"channels", "data", b"data", "encoded", b"encoded", "height", b"height", "raw_f16_le", b"raw_f16_le", "raw_f32_le", b"raw_f32_le", "raw_u8", b"raw_u8", "transfer", b"transfer", "value_offset", b"value_offset", "value_scale", b"value_scale", "width", b"width"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
-    _WhichOneofReturnType_data: _TypeAlias = _typing.Literal["encoded", "raw_f32_le", "raw_f16_le"]  # noqa: Y015
+    _WhichOneofReturnType_data: _TypeAlias = _typing.Literal["encoded", "raw_f32_le", "raw_f16_le", "raw_u8"]  # noqa: Y015
     _WhichOneofArgType_data: _TypeAlias = _typing.Literal["data", b"data"]  # noqa: Y015
     def WhichOneof(self, oneof_group: _WhichOneofArgType_data) -> _WhichOneofReturnType_data | None: ...
 
