@@ -171,11 +171,34 @@ fn raw_from_proto(
         ));
     }
     let mut data = vec![0f32; n * c];
-    // Planar on the wire (one plane per channel), interleaved in memory.
-    for (ch, plane) in bytes.chunks_exact(n * raw.bytes()).enumerate() {
-        for (px, chunk) in plane.chunks_exact(raw.bytes()).enumerate() {
-            data[px * c + ch] = raw.sample(chunk);
+    // Planar on the wire (one plane per channel), interleaved in memory; one loop per sample
+    // type, so that no match runs per sample.
+    fn unpack(
+        data: &mut [f32],
+        bytes: &[u8],
+        c: usize,
+        size: usize,
+        sample: impl Fn(&[u8]) -> f32,
+    ) {
+        let n = data.len() / c;
+        for (ch, plane) in bytes.chunks_exact(n * size).enumerate() {
+            for (out, chunk) in data[ch..]
+                .iter_mut()
+                .step_by(c)
+                .zip(plane.chunks_exact(size))
+            {
+                *out = sample(chunk);
+            }
         }
+    }
+    match raw {
+        Raw::U8 => {
+            // 256 values, each as `Raw::sample` gives it.
+            let table: Vec<f32> = (0..=255u8).map(|b| Raw::U8.sample(&[b])).collect();
+            unpack(&mut data, bytes, c, 1, |b| table[usize::from(b[0])]);
+        }
+        Raw::F16 => unpack(&mut data, bytes, c, 2, |b| Raw::F16.sample(b)),
+        Raw::F32 => unpack(&mut data, bytes, c, 4, |b| Raw::F32.sample(b)),
     }
     ImageF32::from_vec(w as usize, h as usize, c, data)
 }
