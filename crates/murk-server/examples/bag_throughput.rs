@@ -145,7 +145,7 @@ fn main() -> anyhow::Result<()> {
     let recorded_s = a.frames as f64 / a.rate_hz;
     println!(
         "{w}×{h} rectified rig moving through haze (A {:.3}, β {:.4} per scene unit), {} frames \
-         at {} Hz ({recorded_s:.1} s recorded), bag {:.1} MB",
+         at {} Hz ({recorded_s:.1} s recorded), bag {:.1} MB; searched over depths {near:.2}..{far:.2}",
         seq.airlight,
         seq.beta,
         a.frames,
