@@ -597,51 +597,60 @@ pub fn reject_speckles(
     max_size: usize,
     range: f32,
 ) {
-    let npix = w * h;
-    if max_size == 0 {
+    if max_size == 0 || w == 0 || h == 0 {
         return;
     }
-    // A pixel's column travels with it on the stack: a division per visited pixel (`p % w`)
-    // was most of the fill's time.
-    let mut seen = vec![false; npix];
-    let mut stack: Vec<(usize, usize)> = Vec::new();
-    let mut region: Vec<usize> = Vec::new();
-    for start in 0..npix {
-        if seen[start] || verdict[start] != Verdict::Consistent {
-            continue;
+    // Union-find over runs: a row's consistent pixels joined to their left neighbour form a
+    // run, and a pixel joined to the one above merges their runs. Two comparisons and a label
+    // per pixel, where a flood fill pushed and popped every pixel (a 640×480 pair: 3.5 ms).
+    const NONE: u32 = u32::MAX;
+    let joined = |p: usize, q: usize| (index[q] - index[p]).abs() <= range;
+    let mut label = vec![NONE; w * h];
+    let mut parent: Vec<u32> = Vec::new();
+    let mut pixels: Vec<u32> = Vec::new();
+    fn root(parent: &mut [u32], mut r: u32) -> u32 {
+        while parent[r as usize] != r {
+            // Path halving.
+            let up = parent[parent[r as usize] as usize];
+            parent[r as usize] = up;
+            r = up;
         }
-        region.clear();
-        stack.push((start, start % w));
-        seen[start] = true;
-        while let Some((p, x)) = stack.pop() {
-            region.push(p);
-            let mut visit = |q: usize, x: usize| {
-                if !seen[q]
-                    && verdict[q] == Verdict::Consistent
-                    && (index[q] - index[p]).abs() <= range
-                {
-                    seen[q] = true;
-                    stack.push((q, x));
-                }
+        r
+    }
+    for y in 0..h {
+        for x in 0..w {
+            let p = y * w + x;
+            if verdict[p] != Verdict::Consistent {
+                continue;
+            }
+            let run = if x > 0 && label[p - 1] != NONE && joined(p - 1, p) {
+                label[p - 1]
+            } else {
+                parent.push(parent.len() as u32);
+                pixels.push(0);
+                (parent.len() - 1) as u32
             };
-            if x > 0 {
-                visit(p - 1, x - 1);
-            }
-            if x + 1 < w {
-                visit(p + 1, x + 1);
-            }
-            if p >= w {
-                visit(p - w, x);
-            }
-            if p + w < npix {
-                visit(p + w, x);
+            label[p] = run;
+            pixels[run as usize] += 1;
+            if y > 0 && label[p - w] != NONE && joined(p - w, p) {
+                let (a, b) = (root(&mut parent, run), root(&mut parent, label[p - w]));
+                if a != b {
+                    parent[a as usize] = b;
+                }
             }
         }
-        // Marking in place is safe: these pixels are seen and never visited again.
-        if region.len() < max_size {
-            for &p in &region {
-                verdict[p] = Verdict::Mismatch;
-            }
+    }
+    // Each run's region size, through its root.
+    let roots: Vec<u32> = (0..parent.len() as u32)
+        .map(|r| root(&mut parent, r))
+        .collect();
+    let mut region = vec![0usize; parent.len()];
+    for (r, &n) in pixels.iter().enumerate() {
+        region[roots[r] as usize] += n as usize;
+    }
+    for (v, &l) in verdict.iter_mut().zip(&label) {
+        if l != NONE && region[roots[l as usize] as usize] < max_size {
+            *v = Verdict::Mismatch;
         }
     }
 }
@@ -755,6 +764,101 @@ const NONE: usize = usize::MAX;
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The definition: a flood fill of each region (what [`reject_speckles`] computed before
+    /// it joined runs).
+    fn flood_fill_speckles(
+        index: &[f32],
+        verdict: &mut [Verdict],
+        w: usize,
+        h: usize,
+        max_size: usize,
+        range: f32,
+    ) {
+        let npix = w * h;
+        if max_size == 0 {
+            return;
+        }
+        // A pixel's column travels with it on the stack: a division per visited pixel (`p % w`)
+        // was most of the fill's time.
+        let mut seen = vec![false; npix];
+        let mut stack: Vec<(usize, usize)> = Vec::new();
+        let mut region: Vec<usize> = Vec::new();
+        for start in 0..npix {
+            if seen[start] || verdict[start] != Verdict::Consistent {
+                continue;
+            }
+            region.clear();
+            stack.push((start, start % w));
+            seen[start] = true;
+            while let Some((p, x)) = stack.pop() {
+                region.push(p);
+                let mut visit = |q: usize, x: usize| {
+                    if !seen[q]
+                        && verdict[q] == Verdict::Consistent
+                        && (index[q] - index[p]).abs() <= range
+                    {
+                        seen[q] = true;
+                        stack.push((q, x));
+                    }
+                };
+                if x > 0 {
+                    visit(p - 1, x - 1);
+                }
+                if x + 1 < w {
+                    visit(p + 1, x + 1);
+                }
+                if p >= w {
+                    visit(p - w, x);
+                }
+                if p + w < npix {
+                    visit(p + w, x);
+                }
+            }
+            // Marking in place is safe: these pixels are seen and never visited again.
+            if region.len() < max_size {
+                for &p in &region {
+                    verdict[p] = Verdict::Mismatch;
+                }
+            }
+        }
+    }
+
+    proptest::proptest! {
+        /// Joining runs finds the flood fill's regions: the same verdicts on random maps with
+        /// rejected pixels, plateaus and NaN.
+        #[test]
+        fn speckle_runs_match_the_flood_fill(
+            w in 1usize..24,
+            h in 1usize..16,
+            seed in 0u64..10_000,
+            max_size in 0usize..12,
+        ) {
+            let n = w * h;
+            let mut state = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            let mut next = || {
+                state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+                (state >> 33) as u32
+            };
+            let index: Vec<f32> = (0..n)
+                .map(|_| match next() % 16 {
+                    0 => f32::NAN,
+                    k => (k % 5) as f32 * 0.8,
+                })
+                .collect();
+            let verdict: Vec<Verdict> = (0..n)
+                .map(|_| match next() % 6 {
+                    0 => Verdict::Occluded,
+                    1 => Verdict::Mismatch,
+                    _ => Verdict::Consistent,
+                })
+                .collect();
+            let (mut a, mut b) = (verdict.clone(), verdict);
+            reject_speckles(&index, &mut a, w, h, max_size, 1.0);
+            flood_fill_speckles(&index, &mut b, w, h, max_size, 1.0);
+            proptest::prop_assert_eq!(a, b);
+        }
+    }
 
     const W: usize = 48;
     const H: usize = 8;
