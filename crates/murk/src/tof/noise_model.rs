@@ -83,16 +83,6 @@ impl NoiseModel {
     }
 }
 
-/// Weighted least squares `y = c0 + c1·x` over `points` (bin amplitude, bin σ²), both
-/// coefficients ≥ 0 (the better of the unconstrained fit when feasible and the two
-/// one-coefficient fits).
-///
-/// Each bin's σ² comes from the same number of samples, so its standard error is a fixed
-/// fraction of σ² itself: the weights are 1/σ⁴, i.e. the fit is in relative terms. Unweighted,
-/// the bright bins, whose σ² is largest, set the line and its intercept; where σ² grows more
-/// slowly than linearly in amplitude at the bright end, that drove the read noise to 0 and
-/// halved σ in the dark corners, whose background then came out as objects (separated thin
-/// seed 5: 281 background pixels flagged).
 /// Reorders `samples` so that every cut `c` of the increasing `cuts` holds the sample of rank
 /// `c` by brightness (the first field), with no brighter sample before it and no dimmer one
 /// after: each run between cuts is a brightness bin, in no particular order inside.
@@ -111,6 +101,16 @@ fn partition_at(samples: &mut [(f64, f64, f64)], cuts: &[usize]) {
     );
 }
 
+/// Weighted least squares `y = c0 + c1·x` over `points` (bin amplitude, bin σ²), both
+/// coefficients ≥ 0 (the better of the unconstrained fit when feasible and the two
+/// one-coefficient fits).
+///
+/// Each bin's σ² comes from the same number of samples, so its standard error is a fixed
+/// fraction of σ² itself: the weights are 1/σ⁴, i.e. the fit is in relative terms. Unweighted,
+/// the bright bins, whose σ² is largest, set the line and its intercept; where σ² grows more
+/// slowly than linearly in amplitude at the bright end, that drove the read noise to 0 and
+/// halved σ in the dark corners, whose background then came out as objects (separated thin
+/// seed 5: 281 background pixels flagged).
 fn fit_line_nonnegative(points: &[(f64, f64)]) -> NoiseModel {
     let floor = points.iter().fold(0.0f64, |m, p| m.max(p.1)) * 1e-6;
     let weight = |y: f64| 1.0 / y.max(floor).max(f64::MIN_POSITIVE).powi(2);
