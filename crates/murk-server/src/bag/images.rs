@@ -161,36 +161,53 @@ fn raw_planes(m: &Image) -> Result<Planes, String> {
             }
         }
     };
-    let out_channels = channels.min(3);
     let planes = if bytes == 1 {
-        let mut planes = vec![Vec::with_capacity(w * h); out_channels];
-        for y in 0..h {
-            let r = &m.data[y * step..y * step + row];
-            for px in r.chunks_exact(channels) {
-                for (c, plane) in planes.iter_mut().enumerate() {
-                    plane.push(px[if channels == 1 { 0 } else { order[c] }]);
-                }
-            }
-        }
-        Samples::U8(planes)
+        Samples::U8(planes_of(m, step, row, channels, order, 1, |p| p[0]))
     } else {
-        let mut planes = vec![Vec::with_capacity(w * h); out_channels];
-        for y in 0..h {
-            let r = &m.data[y * step..y * step + row];
-            for px in r.chunks_exact(bytes * channels) {
-                for (c, plane) in planes.iter_mut().enumerate() {
-                    let k = if channels == 1 { 0 } else { order[c] };
-                    plane.push(sample(&px[k * bytes..(k + 1) * bytes]));
-                }
-            }
-        }
-        Samples::F32(planes)
+        Samples::F32(planes_of(m, step, row, channels, order, bytes, sample))
     };
     Ok(Planes {
         width: w,
         height: h,
         planes,
     })
+}
+
+/// The planes of `m`'s rows (`row` bytes of pixels every `step` bytes): plane `c` holds each
+/// pixel's sample `order[c]` (its only one for grey; alpha is left out), `size` bytes converted
+/// by `sample`.
+fn planes_of<T>(
+    m: &Image,
+    step: usize,
+    row: usize,
+    channels: usize,
+    order: [usize; 3],
+    size: usize,
+    sample: impl Fn(&[u8]) -> T,
+) -> Vec<Vec<T>> {
+    let h = m.height as usize;
+    let out_channels = channels.min(3);
+    let mut planes: Vec<Vec<T>> = (0..out_channels)
+        .map(|_| Vec::with_capacity(m.width as usize * h))
+        .collect();
+    for y in 0..h {
+        for px in m.data[y * step..y * step + row].chunks_exact(size * channels) {
+            for (c, plane) in planes.iter_mut().enumerate() {
+                let k = if channels == 1 { 0 } else { order[c] };
+                plane.push(sample(&px[k * size..(k + 1) * size]));
+            }
+        }
+    }
+    planes
+}
+
+/// The three planes of an RGB image.
+fn rgb_planes<P: image::Pixel>(
+    img: &image::ImageBuffer<P, Vec<P::Subpixel>>,
+) -> Vec<Vec<P::Subpixel>> {
+    (0..3)
+        .map(|c| img.pixels().map(|p| p.channels()[c]).collect())
+        .collect()
 }
 
 /// Planes of a PNG or JPEG `CompressedImage` (the format string is only a hint: the bytes'
@@ -217,27 +234,9 @@ fn compressed_planes(m: &CompressedImage) -> Result<Planes, String> {
     let grey = decoded.color().channel_count() <= 2;
     let planes = match (eight_bit, grey) {
         (true, true) => Samples::U8(vec![decoded.to_luma8().into_raw()]),
-        (true, false) => {
-            let rgb = decoded.into_rgb8();
-            Samples::U8(
-                (0..3)
-                    .map(|c| rgb.pixels().map(|p| p.0[c]).collect())
-                    .collect(),
-            )
-        }
-        (false, true) => Samples::F32(vec![decoded
-            .to_luma32f()
-            .pixels()
-            .map(|p| p.0[0])
-            .collect()]),
-        (false, false) => {
-            let rgb = decoded.into_rgb32f();
-            Samples::F32(
-                (0..3)
-                    .map(|c| rgb.pixels().map(|p| p.0[c]).collect())
-                    .collect(),
-            )
-        }
+        (true, false) => Samples::U8(rgb_planes(&decoded.into_rgb8())),
+        (false, true) => Samples::F32(vec![decoded.to_luma32f().into_raw()]),
+        (false, false) => Samples::F32(rgb_planes(&decoded.into_rgb32f())),
     };
     Ok(Planes {
         width: w,
