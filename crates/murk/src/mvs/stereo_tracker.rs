@@ -118,8 +118,8 @@ impl StereoTracker {
         self.prior
     }
 
-    /// The depth of the next pair. Errors as [`crate::mvs::estimate_rectified`]; an error leaves the priors
-    /// as it was.
+    /// The depth of the next pair. Errors as [`crate::mvs::estimate_rectified`]; an error
+    /// leaves the priors as they were.
     pub fn estimate(
         &mut self,
         left: &ImageF32,
