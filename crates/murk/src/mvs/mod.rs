@@ -29,8 +29,8 @@ pub use cost_volume::{
 };
 pub use depth::{
     depth_from_cost_volume, depth_from_costs, estimate_depth, estimate_depth_from_prior,
-    DepthParams, DepthResult, MatchingParams, PhotometricParams, PhotometricPrior,
-    PhotometricSearch, PostFilter, RejectionParams, SgmParams,
+    DepthParams, DepthPrior, DepthResult, MatchingParams, PhotometricParams, PhotometricPrior,
+    PhotometricSearch, PlaneWindows, PostFilter, RejectionParams, SgmParams,
 };
 pub use plane_count::{planes_for_displacement, Camera, AUTO_PLANES_MAX, AUTO_PLANES_MIN};
 pub use plane_sweep::{PlaneSet, PlaneWarp, MAX_PLANES};

@@ -21,7 +21,7 @@ use crate::error::{MurkError, Result};
 use crate::image::ImageF32;
 use crate::monitor::Monitor;
 use crate::mvs::cost_volume::{CostKind, View};
-use crate::mvs::depth::{estimate_depth_from_prior, DepthParams, DepthResult, PhotometricPrior};
+use crate::mvs::depth::{estimate_depth_from_prior, DepthParams, DepthPrior, DepthResult};
 use crate::mvs::plane_sweep::{PlaneSet, MAX_PLANES};
 use crate::mvs::pose::Pose;
 use crate::mvs_io::{backproject, ColoredPoint};
@@ -293,19 +293,18 @@ pub fn estimate_rectified(
     options: &RectifiedOptions,
     monitor: &Monitor,
 ) -> Result<RectifiedDepth> {
-    estimate_rectified_from_prior(left, right, rig, options, None, monitor)
+    estimate_rectified_from_prior(left, right, rig, options, &DepthPrior::default(), monitor)
 }
 
-/// [`estimate_rectified`] for the next pair of the same rig, with the photometric corrections
-/// starting from `prior` (a previous pair's
-/// [`DepthResult::photometric_prior`](crate::mvs::DepthResult::photometric_prior); see
-/// [`estimate_depth_from_prior`]).
+/// [`estimate_rectified`] for the next pair of the same rig, with what the previous pair says
+/// ([`DepthPrior`]: its photometric corrections, and plane windows of the planes
+/// `options.range` and `options.num_planes` give; see [`estimate_depth_from_prior`]).
 pub fn estimate_rectified_from_prior(
     left: &ImageF32,
     right: &ImageF32,
     rig: &RectifiedRig,
     options: &RectifiedOptions,
-    prior: Option<&PhotometricPrior>,
+    prior: &DepthPrior<'_>,
     monitor: &Monitor,
 ) -> Result<RectifiedDepth> {
     rig.validate()?;

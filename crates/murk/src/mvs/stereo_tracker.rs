@@ -13,10 +13,18 @@
 //!   plane density. The quantiles are extreme on purpose: a near object that fills 0.3 % of the
 //!   image must stay inside the band, because a surface outside it is not always seen at its
 //!   ends (the consistency check rejects it, and the fill hides it).
+//! - **Windows by rows.** A scene is layered by image row (the floor near at the bottom, far
+//!   walls at the horizon), so within the band each group of [`WINDOW_ROWS`] rows searches only
+//!   its own window ([`crate::mvs::PlaneWindows`]): the quantiles of the previous pair's
+//!   confident disparities in those rows and [`WINDOW_REACH_ROWS`] rows above and below (the
+//!   scene moves between pairs), widened by the same margins. Rows where fewer than
+//!   [`MIN_CONFIDENT_FRACTION`] of the pixels were confident (low texture, a region just
+//!   uncovered) search the whole band.
 //! - **When the prior is wrong.** Surfaces outside the band (an object that came closer, a scene
 //!   cut) pile their winners onto the band's ends. When more than [`EDGE_FRACTION`] of the
-//!   confident pixels sit within one plane of an end that is not the configured range's, the pair
-//!   is computed again over the whole range, and the tracker starts over from that result.
+//!   confident pixels of the image, or of any group of rows, sit within one plane of an end of
+//!   their window that is not the configured range's, the pair is computed again over the whole
+//!   range, and the tracker starts over from that result.
 //! - **Cold starts.** The first pair, the pair after [`StereoTracker::reset`], and a pair after
 //!   one with fewer than [`MIN_CONFIDENT_FRACTION`] of its pixels confident search the whole
 //!   range; so does a pair whose band would cover most of it.
@@ -27,13 +35,14 @@
 //!   [`REFRESH_PAIRS`] pairs carried, and after [`StereoTracker::reset`], they are searched from
 //!   scratch.
 //!
-//! What is carried between pairs is the band (two numbers) and the corrections (a gain per
-//! channel and two fall-offs), so a tracker's memory does not grow with the stream.
+//! What is carried between pairs is the band (two numbers), two numbers per
+//! [`WINDOW_ROWS`]` / 2` rows, and the corrections (a gain per channel and two fall-offs), so a
+//! tracker's memory does not grow with the stream.
 
 use crate::error::Result;
 use crate::image::ImageF32;
 use crate::monitor::Monitor;
-use crate::mvs::depth::{PhotometricPrior, PhotometricSearch};
+use crate::mvs::depth::{DepthPrior, PhotometricPrior, PhotometricSearch, PlaneWindows};
 use crate::mvs::rectified::{
     estimate_rectified_from_prior, RectifiedDepth, RectifiedOptions, RectifiedRig, StereoRange,
 };
@@ -52,6 +61,13 @@ pub const EDGE_FRACTION: f64 = 0.01;
 pub const MIN_CONFIDENT_FRACTION: f64 = 0.05;
 /// A band that covers more than this share of the configured range is not worth narrowing.
 pub const MAX_BAND_SHARE: f64 = 0.9;
+/// Rows per group that searches its own window of the band.
+pub const WINDOW_ROWS: usize = 32;
+/// Rows above and below a group whose previous disparities its window also holds.
+pub const WINDOW_REACH_ROWS: usize = 16;
+/// Windows whose planes, summed over the rows, exceed this share of the band's are not worth
+/// it: the whole band is searched.
+pub const MAX_WINDOW_SHARE: f64 = 0.9;
 /// Pairs in a row whose photometric corrections are carried before the next pair searches them
 /// from scratch (3 s at 10 Hz): a fall-off misjudged on one pair does not stay for the session.
 pub const REFRESH_PAIRS: usize = 30;
@@ -61,7 +77,8 @@ pub const REFRESH_PAIRS: usize = 30;
 pub enum Search {
     /// The whole configured range (the first pair, or no usable prior).
     Full,
-    /// The band around the previous pair's disparities.
+    /// The band around the previous pair's disparities, each group of rows within its window
+    /// where the previous pair saw its rows' depths.
     Band,
     /// The band was rejected (winners piled at its ends) and the whole range searched again.
     Restarted,
@@ -74,6 +91,9 @@ pub struct TrackedDepth {
     pub depth: RectifiedDepth,
     /// How it was searched.
     pub search: Search,
+    /// The windows of `depth.planes` the rows searched ([`WINDOW_ROWS`] rows each); `None`
+    /// where every row searched every plane.
+    pub windows: Option<PlaneWindows>,
 }
 
 /// Depth of a stream of rectified pairs from one rig (see the module documentation).
@@ -84,6 +104,9 @@ pub struct StereoTracker {
     /// The previous pair's confident disparities at [`PRIOR_QUANTILE`] and its complement,
     /// pixels.
     prior: Option<(f64, f64)>,
+    /// The same quantiles over each [`SPAN_ROWS`] rows of the previous pair, `None` where too
+    /// few of their pixels were confident.
+    row_spans: Vec<Option<(f64, f64)>>,
     /// The previous pair's photometric corrections.
     photometric: Option<PhotometricPrior>,
     /// Pairs in a row that carried the corrections.
@@ -100,6 +123,7 @@ impl StereoTracker {
             rig,
             options,
             prior: None,
+            row_spans: Vec::new(),
             photometric: None,
             carried: 0,
         })
@@ -109,6 +133,7 @@ impl StereoTracker {
     /// start (a known scene cut, a moved rig).
     pub fn reset(&mut self) {
         self.prior = None;
+        self.row_spans.clear();
         self.photometric = None;
         self.carried = 0;
     }
@@ -129,32 +154,84 @@ impl StereoTracker {
         let grid = self.full_grid(left.width())?;
         let full = (grid.first, grid.last());
         let band = self.prior.and_then(|p| self.band(p, full));
-        let (depth, search) = match band {
-            None => (
-                self.run(left, right, full, grid.count, monitor)?,
+        let (range, count) = band.map_or((full, grid.count), |b| grid.snap(b));
+        let windows = self.windows(range, count, grid.step, left.height());
+        let (depth, search, windows) = if band.is_none() && windows.is_none() {
+            (
+                self.run(left, right, full, grid.count, None, monitor)?,
                 Search::Full,
-            ),
-            Some(band) => {
-                let (band, count) = grid.snap(band);
-                let out = self.run(left, right, band, count, monitor)?;
-                if piled_at_ends(&out, band, full) {
-                    (
-                        self.run(left, right, full, grid.count, monitor)?,
-                        Search::Restarted,
-                    )
-                } else {
-                    (out, Search::Band)
-                }
+                None,
+            )
+        } else {
+            let out = self.run(left, right, range, count, windows.as_ref(), monitor)?;
+            if piled_at_ends(&out, range, full, windows.as_ref()) {
+                (
+                    self.run(left, right, full, grid.count, None, monitor)?,
+                    Search::Restarted,
+                    None,
+                )
+            } else {
+                (out, Search::Band, windows)
             }
         };
         let searched_max = self.rig.disparity_of_depth(depth.planes.near);
-        self.prior = confident_span(&depth, searched_max.max(0.0).ceil() as usize);
+        let border = searched_max.max(0.0).ceil() as usize;
+        self.prior = confident_span(&depth, border);
+        self.row_spans = if self.prior.is_some() {
+            row_spans(&depth, border)
+        } else {
+            Vec::new()
+        };
         self.carried = match depth.depth.photometric_search {
             PhotometricSearch::Carried => self.carried + 1,
             _ => 0,
         };
         self.photometric = Some(depth.depth.photometric_prior());
-        Ok(TrackedDepth { depth, search })
+        Ok(TrackedDepth {
+            depth,
+            search,
+            windows,
+        })
+    }
+
+    /// The windows of the `count` planes from disparity `range.0` on (`step` pixels apart) for
+    /// an `h`-row pair, from the previous pair's spans by rows; `None` without spans, or when
+    /// they would search most of the planes anyway.
+    fn windows(
+        &self,
+        range: (f64, f64),
+        count: usize,
+        step: f64,
+        h: usize,
+    ) -> Option<PlaneWindows> {
+        let margin = self.prior.map(margin_of)?;
+        if self.row_spans.is_empty() || count < 2 || step <= 0.0 {
+            return None;
+        }
+        let groups = h.div_ceil(WINDOW_ROWS).max(1);
+        let windows: Vec<std::ops::Range<usize>> = (0..groups)
+            .map(|g| {
+                let rows = (g * WINDOW_ROWS).saturating_sub(WINDOW_REACH_ROWS)
+                    ..((g + 1) * WINDOW_ROWS + WINDOW_REACH_ROWS).min(h);
+                let spans = (rows.start / SPAN_ROWS..rows.end.div_ceil(SPAN_ROWS))
+                    .map(|k| self.row_spans.get(k).copied().flatten());
+                let mut union: Option<(f64, f64)> = None;
+                for span in spans {
+                    // A group that cannot see its rows' depths searches the whole band.
+                    let (lo, hi) = span?;
+                    union = Some(union.map_or((lo, hi), |(a, b)| (a.min(lo), b.max(hi))));
+                }
+                let (lo, hi) = union?;
+                let last = count - 1;
+                let i0 = (((lo - margin - range.0) / step).floor().max(0.0) as usize).min(last);
+                let i1 = (((hi + margin - range.0) / step).ceil().max(0.0) as usize).min(last);
+                Some(i0..i1.max(i0) + 1)
+            })
+            .map(|w| w.unwrap_or(0..count))
+            .collect();
+        let windows = PlaneWindows::new(WINDOW_ROWS, windows).ok()?;
+        let share = windows.planes_searched(h) as f64 / (h * count) as f64;
+        (share <= MAX_WINDOW_SHARE).then_some(windows)
     }
 
     /// The configured planes as disparities: the grid every band is cut from.
@@ -175,7 +252,7 @@ impl StereoTracker {
 
     /// The band around the prior, within `full`; `None` when it would cover most of `full`.
     fn band(&self, (lo, hi): (f64, f64), full: (f64, f64)) -> Option<(f64, f64)> {
-        let margin = (BAND_MARGIN_FRACTION * (hi - lo)).max(BAND_MARGIN_PX);
+        let margin = margin_of((lo, hi));
         let band = ((lo - margin).max(full.0), (hi + margin).min(full.1));
         (band.1 - band.0 < MAX_BAND_SHARE * (full.1 - full.0) && band.1 > band.0).then_some(band)
     }
@@ -186,6 +263,7 @@ impl StereoTracker {
         right: &ImageF32,
         (min_px, max_px): (f64, f64),
         num_planes: usize,
+        windows: Option<&PlaneWindows>,
         monitor: &Monitor,
     ) -> Result<RectifiedDepth> {
         let options = RectifiedOptions {
@@ -197,7 +275,11 @@ impl StereoTracker {
             .photometric
             .as_ref()
             .filter(|_| self.carried < REFRESH_PAIRS);
-        estimate_rectified_from_prior(left, right, &self.rig, &options, photometric, monitor)
+        let prior = DepthPrior {
+            photometric,
+            windows,
+        };
+        estimate_rectified_from_prior(left, right, &self.rig, &options, &prior, monitor)
     }
 }
 
@@ -232,29 +314,86 @@ impl Grid {
     }
 }
 
-/// Whether more than [`EDGE_FRACTION`] of the confident pixels won within one plane of a band
-/// end that is not also an end of `full`. The left border, whose matches leave the right image
-/// for the band's larger disparities, has no complete cost curve and is not counted: a real
-/// change of the scene shows across the image.
-fn piled_at_ends(out: &RectifiedDepth, band: (f64, f64), full: (f64, f64)) -> bool {
+/// Whether more than [`EDGE_FRACTION`] of the confident pixels of the image, or of all the
+/// pixels of any group of `windows`' rows, won within one plane of an end of their window (the band's, without
+/// windows) that is not also an end of `full`. The left border, whose matches leave the right
+/// image for the band's larger disparities, has no complete cost curve and is not counted: a
+/// real change of the scene shows across the image.
+fn piled_at_ends(
+    out: &RectifiedDepth,
+    band: (f64, f64),
+    full: (f64, f64),
+    windows: Option<&PlaneWindows>,
+) -> bool {
     let step = (band.1 - band.0) / (out.planes.num_planes.max(2) - 1) as f64;
-    let (low_open, high_open) = (band.0 > full.0, band.1 < full.1);
     let (w, h) = out.disparity.dims();
     let border = (band.1.max(0.0).ceil() as usize).min(w);
+    let group_rows = windows.map_or(h.max(1), |p| p.group_rows());
     let (mut confident, mut at_ends) = (0usize, 0usize);
-    for y in 0..h {
-        for x in border..w {
-            if out.depth.confidence.get(x, y, 0) <= 0.0 {
-                continue;
-            }
-            confident += 1;
-            let d = f64::from(out.disparity.get(x, y, 0));
-            if (low_open && d <= band.0 + step) || (high_open && d >= band.1 - step) {
-                at_ends += 1;
+    let mut piled_group = false;
+    for rows in (0..h).step_by(group_rows.max(1)) {
+        let plane = windows.map_or(0..out.planes.num_planes, |p| p.of_row(rows));
+        let lo = band.0 + step * plane.start as f64;
+        let hi = band.0 + step * (plane.end - 1) as f64;
+        let (low_open, high_open) = (lo > full.0, hi < full.1);
+        let (mut c, mut e) = (0usize, 0usize);
+        for y in rows..(rows + group_rows).min(h) {
+            for x in border..w {
+                if out.depth.confidence.get(x, y, 0) <= 0.0 {
+                    continue;
+                }
+                c += 1;
+                let d = f64::from(out.disparity.get(x, y, 0));
+                if (low_open && d <= lo + step) || (high_open && d >= hi - step) {
+                    e += 1;
+                }
             }
         }
+        // A group's share is of all its pixels, so a group with few confident ones does not
+        // restart the pair on a handful of them.
+        let pixels = ((rows + group_rows).min(h) - rows) * (w - border);
+        piled_group |= e as f64 > EDGE_FRACTION * pixels as f64;
+        confident += c;
+        at_ends += e;
     }
-    confident > 0 && at_ends as f64 > EDGE_FRACTION * confident as f64
+    piled_group || (confident > 0 && at_ends as f64 > EDGE_FRACTION * confident as f64)
+}
+
+/// The margin on each side of a band around the disparities `lo..hi`: [`BAND_MARGIN_FRACTION`]
+/// of their span, at least [`BAND_MARGIN_PX`]. The windows take the band's margin: how far a
+/// surface moves between pairs does not depend on how many depths its rows hold.
+fn margin_of((lo, hi): (f64, f64)) -> f64 {
+    (BAND_MARGIN_FRACTION * (hi - lo)).max(BAND_MARGIN_PX)
+}
+
+/// Rows per span of [`row_spans`].
+const SPAN_ROWS: usize = 16;
+
+/// [`confident_span`] of every [`SPAN_ROWS`] rows, from the top; `None` where fewer than
+/// [`MIN_CONFIDENT_FRACTION`] of their pixels right of the border are confident.
+fn row_spans(out: &RectifiedDepth, border: usize) -> Vec<Option<(f64, f64)>> {
+    let (w, h) = out.disparity.dims();
+    let from = border.min(w);
+    let mut d = Vec::with_capacity(SPAN_ROWS * w);
+    (0..h)
+        .step_by(SPAN_ROWS)
+        .map(|y0| {
+            d.clear();
+            for y in y0..(y0 + SPAN_ROWS).min(h) {
+                let disparity = &out.disparity.data()[y * w..(y + 1) * w];
+                let confidence = &out.depth.confidence.data()[y * w..(y + 1) * w];
+                for (&v, &c) in disparity[from..].iter().zip(&confidence[from..]) {
+                    if c > 0.0 && v.is_finite() {
+                        d.push(v);
+                    }
+                }
+            }
+            let pixels = (y0 + SPAN_ROWS).min(h) - y0;
+            let enough = !d.is_empty()
+                && d.len() as f64 >= MIN_CONFIDENT_FRACTION * (pixels * (w - from)) as f64;
+            enough.then(|| quantile_pair(&mut d, PRIOR_QUANTILE))
+        })
+        .collect()
 }
 
 /// The [`PRIOR_QUANTILE`] and `1 − PRIOR_QUANTILE` quantiles of the confident disparities right
@@ -365,6 +504,76 @@ mod tests {
 
         t.reset();
         assert_eq!(t.prior(), None);
+    }
+
+    /// A textured ground: the disparity of row `y` of the 128×128 pair is `disparity(y)`.
+    /// The texture is value noise (hashed lattice values, linear along the row), so no
+    /// disparity but the true one matches.
+    fn ground(disparity: impl Fn(usize) -> f64, phase: f64) -> (ImageF32, ImageF32) {
+        let lattice = |i: i64, y: f64| {
+            let k = (i as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15)
+                ^ (y as u64).wrapping_mul(0xC2B2_AE3D_27D4_EB4F);
+            let k = (k ^ (k >> 29)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+            0.15 + 0.7 * ((k >> 40) as f64 / (1u64 << 24) as f64)
+        };
+        let texture = |x: f64, y: f64| {
+            let x = x + 7.0 * phase;
+            let (i, f) = (x.floor(), x - x.floor());
+            ((1.0 - f) * lattice(i as i64, y) + f * lattice(i as i64 + 1, y)) as f32
+        };
+        let (w, h) = (128, 128);
+        (
+            ImageF32::from_fn(w, h, |x, y| texture(x as f64, y as f64)),
+            ImageF32::from_fn(w, h, |x, y| texture(x as f64 + disparity(y), y as f64)),
+        )
+    }
+
+    /// Median over the pixels right of `border` of |disparity − truth|.
+    fn median_error(t: &TrackedDepth, truth: impl Fn(usize) -> f64, border: usize) -> f64 {
+        let (w, h) = t.depth.disparity.dims();
+        let mut e: Vec<f64> = (0..h)
+            .flat_map(|y| (border..w).map(move |x| (x, y)))
+            .map(|(x, y)| (f64::from(t.depth.disparity.get(x, y, 0)) - truth(y)).abs())
+            .collect();
+        e.sort_by(f64::total_cmp);
+        e[e.len() / 2]
+    }
+
+    /// Rows whose depths differ search windows of their own: the ground's second pair searches
+    /// under two thirds of the band's planes, as accurately as a pair that searches them all;
+    /// a near object in the top rows, inside the band but outside their window, restarts the
+    /// pair.
+    #[test]
+    fn rows_search_their_own_windows_and_a_surface_outside_one_restarts() {
+        let slope = |y: usize| 6.0 + 34.0 * y as f64 / 127.0;
+        let mut t = tracker();
+        let (l, r) = ground(slope, 0.0);
+        let first = t.estimate(&l, &r, &Monitor::noop()).unwrap();
+        assert_eq!(
+            (first.search, first.windows.is_none()),
+            (Search::Full, true)
+        );
+
+        let (l, r) = ground(slope, 0.3);
+        let second = t.estimate(&l, &r, &Monitor::noop()).unwrap();
+        assert_eq!(second.search, Search::Band);
+        let windows = second.windows.as_ref().expect("the rows have windows");
+        let all = 128 * second.depth.planes.num_planes;
+        let share = windows.planes_searched(128) as f64 / all as f64;
+        assert!(share < 0.67, "{share}: {windows:?}");
+        let mut every = tracker();
+        let whole = every.estimate(&l, &r, &Monitor::noop()).unwrap();
+        let (a, b) = (
+            median_error(&second, slope, 45),
+            median_error(&whole, slope, 45),
+        );
+        assert!(a <= b + 0.05, "windows {a} px, every plane {b} px");
+
+        // The top rows come near: within the band, above their own window.
+        let (l, r) = ground(|y| if y < 40 { 42.0 } else { slope(y) }, 0.6);
+        let cut = t.estimate(&l, &r, &Monitor::noop()).unwrap();
+        assert_eq!(cut.search, Search::Restarted);
+        assert!(median_error(&cut, |y| if y < 40 { 42.0 } else { slope(y) }, 45) < 0.3);
     }
 
     #[test]

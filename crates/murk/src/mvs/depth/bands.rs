@@ -18,11 +18,13 @@ use crate::mvs::plane_sweep::PlaneSet;
 use crate::mvs::pose::Pose;
 
 use super::consistency::{ClaimScratch, SourceClaims, SourceGeometry};
-use super::photometric::{self, PhotometricPrior};
+use super::photometric;
 use super::quantise::Quantiser;
 use super::select::{self, Selection};
+use super::windows::PlaneWindows;
 use super::{
-    contrast, exposure, finish_depth, presmooth, sgm, vignetting, window, DepthParams, DepthResult,
+    contrast, exposure, finish_depth, presmooth, sgm, vignetting, window, DepthParams, DepthPrior,
+    DepthResult,
 };
 
 /// How [`estimate_depth_in_bands`] lays out its work; the defaults are [`estimate_depth`](super::estimate_depth)'s.
@@ -46,11 +48,14 @@ pub(super) fn estimate_depth_in_bands(
     planes: &PlaneSet,
     kind: CostKind,
     params: &DepthParams,
-    prior: Option<&PhotometricPrior>,
+    prior: &DepthPrior<'_>,
     layout: Layout,
     monitor: &Monitor,
 ) -> Result<DepthResult> {
     params.validate().map_err(|e| e.within("sgm"))?;
+    if let Some(windows) = prior.windows {
+        windows.validate(planes.num_planes)?;
+    }
     // Invalid images are left to `build_cost_volume` to report; smoothing keeps their sizes and
     // spreads NaN, so the field it names is unchanged.
     let sigma = params.matching.presmooth_sigma_px;
@@ -67,7 +72,14 @@ pub(super) fn estimate_depth_in_bands(
     // Bad views fail before any strip's volume is built.
     validate_inputs(&reference, &sources, planes, kind)?;
     let channels = reference.image.channels();
-    let corrections = photometric::corrections(&reference, &sources, planes, kind, params, prior);
+    let corrections = photometric::corrections(
+        &reference,
+        &sources,
+        planes,
+        kind,
+        params,
+        prior.photometric,
+    );
     let (reference, sources) = views_over(&reference, &sources, &corrections.devignetted);
     let (falloff, source_falloffs) = (corrections.falloff, corrections.source_falloffs);
     let (estimated_gains, photometric_search) = (corrections.gains, corrections.search);
@@ -157,7 +169,15 @@ pub(super) fn estimate_depth_in_bands(
         radius: params.matching.cost_window_radius,
     };
     let selections = if params.sgm.num_paths == 5 && !layout.volumes {
-        one_pass_selections(&source, guide, params, layout, &claims, monitor)?
+        one_pass_selections(
+            &source,
+            guide,
+            params,
+            layout,
+            &claims,
+            prior.windows,
+            monitor,
+        )?
     } else {
         let bands = layout.band_rows;
         strip_pass_selections(&source, guide, params, bands, &claims, monitor)?
@@ -223,8 +243,8 @@ pub(super) struct Band {
     costs: Vec<f32>,
     /// Values from one plane's rows to the next plane's: the most rows a band holds.
     stride: usize,
-    /// The image rows of the last band.
-    kept: Option<std::ops::Range<usize>>,
+    /// The image rows and the planes of the last band.
+    kept: Option<(std::ops::Range<usize>, std::ops::Range<usize>)>,
 }
 
 impl Band {
@@ -237,22 +257,25 @@ impl Band {
         }
     }
 
-    /// The levels of image rows `own` into `out` (`[row][x][plane]`, `own.len() · w · n`
-    /// values), scaled by `quant`: their costs and those of the rows their windows read are
+    /// The levels of image rows `own` at the planes `planes` (`n` of them) into `out`
+    /// (`[row][x][plane]`, `own.len() · w · n` values), scaled by `quant`: their costs and those of the rows their windows read are
     /// built (or their means moved from the last band), the census term added, and the window
     /// run, clipped at the rows `clip` (a strip's rows, or the whole image's), a group of planes
     /// at a time while its rows are in L2 ([`window::window_groups_to_levels`]). The band must
     /// hold `own.len() + 2r` rows.
+    #[allow(clippy::too_many_arguments)]
     fn levels(
         &mut self,
         src: &LevelSource<'_>,
         clip: std::ops::Range<usize>,
         own: std::ops::Range<usize>,
+        planes: std::ops::Range<usize>,
         quant: &Quantiser,
         out: &mut [u16],
         monitor: &Monitor,
     ) -> Result<()> {
-        let (w, n, r) = (src.width(), src.planes(), src.radius);
+        let (w, n, r) = (src.width(), planes.len(), src.radius);
+        let first = planes.start;
         let read = own.start.saturating_sub(r).max(clip.start)..(own.end + r).min(clip.end);
         let (held, stride) = (read.len(), self.stride);
         assert!(
@@ -260,11 +283,14 @@ impl Band {
             "the band holds the rows its windows read"
         );
         // A row's horizontal means do not depend on the band or the strip, so any row of the
-        // last band is moved; with the census term, which adds to whole bands' costs, they are
-        // computed again.
+        // last band is moved when the band had the same planes; with the census term, which
+        // adds to whole bands' costs, they are computed again.
         let (have, shift) = match &self.kept {
-            Some(prev)
-                if src.census.is_none() && prev.start <= read.start && read.start < prev.end =>
+            Some((prev, kept_planes))
+                if src.census.is_none()
+                    && *kept_planes == planes
+                    && prev.start <= read.start
+                    && read.start < prev.end =>
             {
                 (prev.end.min(read.end) - read.start, read.start - prev.start)
             }
@@ -314,10 +340,11 @@ impl Band {
                         plane.copy_within(shift * w..(shift + have) * w, 0);
                     }
                     if let Some(costs) = &costs {
-                        costs.fill_plane(g0 + j, &mut plane[have * w..held * w], cost_scratch);
+                        let i = first + g0 + j;
+                        costs.fill_plane(i, &mut plane[have * w..held * w], cost_scratch);
                     }
                     if let Some(census) = &census {
-                        census.add_to_plane(g0 + j, &mut plane[..held * w], census_scratch);
+                        census.add_to_plane(first + g0 + j, &mut plane[..held * w], census_scratch);
                     }
                 }
                 let k = done.fetch_add(1, Ordering::Relaxed) + 1;
@@ -326,7 +353,7 @@ impl Band {
             },
             monitor,
         )?;
-        self.kept = Some(read);
+        self.kept = Some((read, planes));
         Ok(())
     }
 }
@@ -380,6 +407,7 @@ pub(super) fn strip_pass_selections(
                 src,
                 strip.rows.clone(),
                 strip.rows.start + own.start..strip.rows.start + own.end,
+                0..n,
                 &quant,
                 &mut levels[own.start * row_len..own.end * row_len],
                 &m,
@@ -446,18 +474,23 @@ pub(super) const ONE_PASS_BAND_ROWS: usize = 4;
 /// kept. The image is split into stripes of about [`ONE_PASS_STRIPE_ROWS`] own rows run in
 /// parallel, each stripe's paths starting [`STRIP_OVERLAP_ROWS`](super::STRIP_OVERLAP_ROWS) rows above its own rows (the
 /// window is clipped at the image's rows, not the stripe's). One quantiser serves the whole
-/// image.
+/// image. With `windows`, each row searches only its group's planes: a band never spans two
+/// groups, and the downward paths carry their costs across a group's edge
+/// ([`sgm::OnePass::set_planes`]).
 pub(super) fn one_pass_selections(
     src: &LevelSource<'_>,
     guide: &ImageF32,
     params: &DepthParams,
     layout: Layout,
     claims: &[SourceClaims],
+    windows: Option<&PlaneWindows>,
     monitor: &Monitor,
 ) -> Result<Vec<Selection>> {
-    let (w, h, n) = (src.width(), src.height(), src.planes());
+    let (w, h, n_all) = (src.width(), src.height(), src.planes());
     let r = src.radius;
-    let row_len = w * n;
+    let window_of = |y: usize| windows.map_or(0..n_all, |p| p.of_row(y));
+    let group_end = |y: usize| windows.map_or(usize::MAX, |p| p.group_end(y));
+    let n_max = windows.map_or(n_all, |p| p.max_len());
     let quant = Quantiser::new(
         cost_bound(
             src.reference.image.channels(),
@@ -489,27 +522,32 @@ pub(super) fn one_pass_selections(
             let band_rows = (layout.band_rows)
                 .unwrap_or(ONE_PASS_BAND_ROWS)
                 .clamp(1, rows.len());
-            let mut band = Band::new((band_rows + 2 * r).min(h), w, n);
-            let mut levels = crate::large_buffer::zeroed::<u16>(band_rows * row_len);
+            let mut band = Band::new((band_rows + 2 * r).min(h), w, n_max);
+            let mut levels = crate::large_buffer::zeroed::<u16>(band_rows * w * n_max);
             // One row of sums: each row's claims and selection follow its aggregation at once,
             // while its sums are in L2.
-            let mut srow = vec![0u16; row_len];
+            let mut srow = vec![0u16; w * n_max];
             let mut claim_scratch = ClaimScratch::default();
-            let mut pass = sgm::OnePass::new(w, n, isa);
+            let mut pass = sgm::OnePass::new(w, window_of(rows.start).len(), isa);
             let mut y0 = rows.start;
             while y0 < rows.end {
                 silent.checkpoint()?;
-                let y1 = (y0 + band_rows).min(rows.end);
+                let planes = window_of(y0);
+                let (first, n) = (planes.start, planes.len());
+                let row_len = w * n;
+                pass.set_planes(planes.clone());
+                let y1 = (y0 + band_rows).min(rows.end).min(group_end(y0));
                 let levels = &mut levels[..(y1 - y0) * row_len];
-                band.levels(src, 0..h, y0..y1, &quant, levels, &silent)?;
+                band.levels(src, 0..h, y0..y1, planes, &quant, levels, &silent)?;
+                let srow = &mut srow[..row_len];
                 for (y, crow) in (y0..y1).zip(levels.chunks_exact(row_len)) {
-                    pass.row(crow, &mut srow, y, &pen, Some(sgm::Guide::new(guide)));
+                    pass.row(crow, srow, y, &pen, Some(sgm::Guide::new(guide)));
                     if core.contains(&y) {
                         let k = y - core.start;
                         claim_and_select_row(
-                            &srow,
+                            srow,
                             y,
-                            n,
+                            (first, n),
                             &quant,
                             params,
                             claims,
@@ -759,16 +797,26 @@ pub(super) fn claim_and_select(
         .zip(selected.par_chunks_mut(w))
         .enumerate()
         .for_each_init(ClaimScratch::default, |scratch, (k, (row, sel))| {
-            claim_and_select_row(row, first_row + k, n, quant, params, claims, sel, scratch);
+            claim_and_select_row(
+                row,
+                first_row + k,
+                (0, n),
+                quant,
+                params,
+                claims,
+                sel,
+                scratch,
+            );
         });
 }
 
-/// [`claim_and_select`] of the one row `y` whose sums are `row`.
+/// [`claim_and_select`] of the one row `y` whose sums are `row`, over the `n` planes from
+/// `first` on (`(first, n)`): the claims and the selections name planes of the whole set.
 #[allow(clippy::too_many_arguments)]
 pub(super) fn claim_and_select_row(
     row: &[u16],
     y: usize,
-    n: usize,
+    (first, n): (usize, usize),
     quant: &Quantiser,
     params: &DepthParams,
     claims: &[SourceClaims],
@@ -777,7 +825,12 @@ pub(super) fn claim_and_select_row(
 ) {
     let eps = quant.scaled(select::CONFIDENCE_EPS_PER_PATH * params.sgm.num_paths as f32);
     for c in claims {
-        c.add_row(y, row, n, quant.unit(), scratch);
+        c.add_row(y, row, first, n, quant.unit(), scratch);
     }
     select::select_into(row, n, eps, selected);
+    if first > 0 {
+        for s in selected.iter_mut() {
+            s.index += first as f32;
+        }
+    }
 }

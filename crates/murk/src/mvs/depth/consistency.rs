@@ -361,23 +361,25 @@ impl SourceClaims {
         let y0 = rows.start;
         rows.into_par_iter()
             .for_each_init(ClaimScratch::default, |scratch, y| {
-                self.add_row(y, &sum[(y - y0) * w * n..][..w * n], n, 1.0, scratch)
+                self.add_row(y, &sum[(y - y0) * w * n..][..w * n], 0, n, 1.0, scratch)
             });
     }
 
     /// [`Self::add`] for one reference row `y` whose aggregated costs are `row` (`[x][plane]`,
-    /// `n` planes per pixel), for a caller that has the row in cache for other work too. `unit`
+    /// `n` planes per pixel, the planes `first..first + n` of the set), for a caller that has the row in cache for other work too. `unit`
     /// converts `row`'s values to cost units (1 for `f32` costs; [`super::quantise::Quantiser::unit`]
     /// for a strip's `u16` levels), so that claims of rows from different strips compare.
     pub fn add_row<T: PathCost>(
         &self,
         y: usize,
         row: &[T],
+        first: usize,
         n: usize,
         unit: f32,
         scratch: &mut ClaimScratch,
     ) {
         let g = &self.geometry;
+        let plane_warps = &self.warps[first..first + n];
         let avx2 = crate::cpu::avx2_enabled();
         let ClaimScratch {
             warps,
@@ -387,12 +389,12 @@ impl SourceClaims {
             local,
         } = scratch;
         let w = row.len() / n.max(1);
-        if let Some(start) = shift_targets(&self.warps, y, w, g, offsets) {
-            self.add_shift_row(row, n, unit, start, offsets, local);
+        if let Some(start) = shift_targets(plane_warps, y, w, g, offsets) {
+            self.add_shift_row(row, first, n, unit, start, offsets, local);
             return;
         }
         warps.clear();
-        warps.extend(self.warps.iter().map(|wp| wp.row(y as f64).to_f32()));
+        warps.extend(plane_warps.iter().map(|wp| wp.row(y as f64).to_f32()));
         reciprocals.clear();
         reciprocals.extend(warps.iter().map_while(|t| t.constant_reciprocal()));
         if reciprocals.len() != warps.len() {
@@ -412,7 +414,8 @@ impl SourceClaims {
                     continue;
                 }
                 let cost = c.to_f32() * unit;
-                let key = (u64::from(cost.max(0.0).to_bits()) << 32) | u64::from(!(i as u32));
+                let key =
+                    (u64::from(cost.max(0.0).to_bits()) << 32) | u64::from(!((first + i) as u32));
                 // Most claims lose: a plain load first skips the locked read-modify-write for
                 // them.
                 let slot = &self.best[q as usize];
@@ -429,9 +432,11 @@ impl SourceClaims {
     /// over contiguous columns (a vector minimum, no atomics), and the source row then takes one
     /// atomic minimum per column: the same winners, because the cost `level · unit` orders like
     /// the level and ties still go to the higher plane. `f32` costs take the per-voxel loop.
+    #[allow(clippy::too_many_arguments)]
     fn add_shift_row<T: PathCost>(
         &self,
         row: &[T],
+        first: usize,
         n: usize,
         unit: f32,
         start: usize,
@@ -440,8 +445,9 @@ impl SourceClaims {
     ) {
         let w = row.len() / n.max(1);
         let w_src = self.geometry.width;
+        // `i` is the plane within the row's planes; the key names the set's plane.
         let claim = |q: usize, cost: f32, i: usize| {
-            let key = (u64::from(cost.max(0.0).to_bits()) << 32) | u64::from(!(i as u32));
+            let key = (u64::from(cost.max(0.0).to_bits()) << 32) | u64::from(!((first + i) as u32));
             let slot = &self.best[start + q];
             if key < slot.load(Ordering::Relaxed) {
                 slot.fetch_min(key, Ordering::Relaxed);
@@ -998,8 +1004,8 @@ mod tests {
         let mut scratch = ClaimScratch::default();
         for y in 0..H {
             let r = y * W * N..(y + 1) * W * N;
-            fast.add_row(y, &levels[r.clone()], N, unit, &mut scratch);
-            plain.add_row(y, &costs[r], N, 1.0, &mut scratch);
+            fast.add_row(y, &levels[r.clone()], 0, N, unit, &mut scratch);
+            plain.add_row(y, &costs[r], 0, N, 1.0, &mut scratch);
         }
         let (fast, plain) = (fast.winners(), plain.winners());
         assert_eq!(fast.wins, plain.wins);

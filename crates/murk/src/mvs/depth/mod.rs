@@ -21,6 +21,9 @@
 //!    aggregated curve ([`select`]);
 //! 5. optional guided, confidence-weighted median of inverse depth ([`filter`]).
 //!
+//! With a prior ([`estimate_depth_from_prior`]), groups of rows may search only a run of the
+//! planes each ([`windows`]), with the 5 paths of the one pass.
+//!
 //! Memory, 5 paths (the default): every path reaches a row from rows above it, so rows stream
 //! from costs to selections a band at a time ([`one_pass_selections`](bands::one_pass_selections)): a band's `f32` costs,
 //! its `u16` levels, one row of sums and one row of path costs per direction, a few MiB per
@@ -50,6 +53,7 @@ pub mod select;
 pub mod sgm;
 pub mod vignetting;
 pub mod window;
+pub mod windows;
 
 mod bands;
 mod depth_params;
@@ -72,6 +76,7 @@ pub use depth_params::{
 pub use photometric::{PhotometricPrior, PhotometricSearch};
 pub use select::{select_curve, Selection};
 pub use sgm::Penalties;
+pub use windows::PlaneWindows;
 
 /// Depth of the reference view.
 #[derive(Clone, Debug, PartialEq)]
@@ -133,21 +138,41 @@ pub fn estimate_depth(
     params: &DepthParams,
     monitor: &Monitor,
 ) -> Result<DepthResult> {
-    estimate_depth_from_prior(reference, sources, planes, kind, params, None, monitor)
+    estimate_depth_from_prior(
+        reference,
+        sources,
+        planes,
+        kind,
+        params,
+        &DepthPrior::default(),
+        monitor,
+    )
 }
 
-/// [`estimate_depth`] for the next views of the same cameras: the photometric corrections start
-/// from `prior` (a previous result's [`DepthResult::photometric_prior`]): its fall-offs are
-/// kept and its gains confirmed on these views, or everything is searched again where a gain
-/// moved ([`photometric`]). `None`, or a prior of other sources or channels, searches as
-/// [`estimate_depth`] does.
+/// What a previous result of the same cameras tells [`estimate_depth_from_prior`]; the default
+/// (nothing) estimates as [`estimate_depth`] does.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct DepthPrior<'a> {
+    /// The photometric corrections start from these (a previous result's
+    /// [`DepthResult::photometric_prior`]): its fall-offs are kept and its gains confirmed on
+    /// these views, or everything is searched again where a gain moved ([`photometric`]). A
+    /// prior of other sources or channels is searched again.
+    pub photometric: Option<&'a PhotometricPrior>,
+    /// Each group of rows searches only its window of the planes ([`windows`]). Used with the
+    /// default 5 paths ([`SgmParams::num_paths`]); with 8 or 4 paths every row searches every
+    /// plane.
+    pub windows: Option<&'a windows::PlaneWindows>,
+}
+
+/// [`estimate_depth`] for the next views of the same cameras, with what a previous result says
+/// ([`DepthPrior`]). Errors as [`estimate_depth`], and `windows` for windows outside `planes`.
 pub fn estimate_depth_from_prior(
     reference: &View<'_>,
     sources: &[View<'_>],
     planes: &PlaneSet,
     kind: CostKind,
     params: &DepthParams,
-    prior: Option<&PhotometricPrior>,
+    prior: &DepthPrior<'_>,
     monitor: &Monitor,
 ) -> Result<DepthResult> {
     estimate_depth_in_bands(

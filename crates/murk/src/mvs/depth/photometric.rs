@@ -285,7 +285,7 @@ mod tests {
     use crate::atmosphere::AtmosphereParams;
     use crate::monitor::Monitor;
     use crate::mvs::cost_volume::DehazingOptions;
-    use crate::mvs::depth::{estimate_depth, estimate_depth_from_prior, DepthResult};
+    use crate::mvs::depth::{estimate_depth, estimate_depth_from_prior, DepthPrior, DepthResult};
     use crate::simulate::mvs::{simulate_mvs, MvsScene, MvsSimConfig};
 
     /// The simulator's hazy 160×120 rectified pair.
@@ -325,7 +325,10 @@ mod tests {
                 &planes,
                 haze,
                 &params,
-                Some(p),
+                &DepthPrior {
+                    photometric: Some(p),
+                    ..DepthPrior::default()
+                },
                 &Monitor::noop(),
             ),
             None => estimate_depth(

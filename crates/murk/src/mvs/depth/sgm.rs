@@ -780,6 +780,8 @@ fn add_row<T: PathCost>(isa: Isa, sum: &mut [T], add: &[T]) {
 /// bit for bit (tested).
 pub(crate) struct OnePass<T> {
     w: usize,
+    /// The rows' planes: `n` from `first` on ([`Self::set_planes`]).
+    first: usize,
     n: usize,
     isa: Isa,
     /// The left-to-right and the right-to-left path's curves: the two run side by side.
@@ -798,6 +800,7 @@ impl<T: PathCost> OnePass<T> {
     pub(crate) fn new(w: usize, n: usize, isa: Isa) -> Self {
         Self {
             w,
+            first: 0,
             n,
             isa,
             rightward: HorizontalCurves::new(n),
@@ -806,6 +809,46 @@ impl<T: PathCost> OnePass<T> {
             vertical: RowCurves::new(w, n, 3),
             last: None,
         }
+    }
+
+    /// The next rows search the planes `planes` (of a set whose first `n` planes a new pass
+    /// searches), so their costs and sums hold `planes.len()` values per pixel. The downward
+    /// paths keep the previous row's costs of the planes both runs hold, and their steps stay
+    /// among those planes; a plane the previous run lacked starts from the path's jump,
+    /// `min_k L(p−r, k) + P2` (the minimum over all the previous run's planes), which is what
+    /// the recursion gives where the previous row's cost is unbounded (see
+    /// [`super::windows`]). The same run as before changes nothing.
+    pub(crate) fn set_planes(&mut self, planes: std::ops::Range<usize>) {
+        let (first, n) = (planes.start, planes.len());
+        if (first, n) == (self.first, self.n) {
+            return;
+        }
+        let (w, k) = (self.w, ONE_PASS_DOWNWARD_DX.len());
+        if n != self.n {
+            self.rightward = HorizontalCurves::new(n);
+            self.leftward = HorizontalCurves::new(n);
+            self.leftward_row = vec![T::ZERO; w * n];
+        }
+        let mut vertical = RowCurves::new(w, n, k);
+        if self.last.is_some() {
+            // The planes both runs hold, as offsets into each run's curves (after the
+            // sentinel).
+            let (lo, hi) = (first.max(self.first), (first + n).min(self.first + self.n));
+            if lo < hi {
+                let (from, to, len) = (1 + lo - self.first, 1 + lo - first, hi - lo);
+                let old = &self.vertical.prev;
+                for (o, c) in old
+                    .chunks_exact(self.n + 2)
+                    .zip(vertical.prev.chunks_exact_mut(n + 2))
+                {
+                    c[to..to + len].copy_from_slice(&o[from..from + len]);
+                }
+            }
+            // Each curve's minimum is over all the planes its row had: the jump's base.
+            vertical.prev_min = std::mem::take(&mut self.vertical.prev_min);
+        }
+        self.vertical = vertical;
+        (self.first, self.n) = (first, n);
     }
 
     /// `S` of row `y` into `srow` (every value overwritten) from its costs `crow` (both

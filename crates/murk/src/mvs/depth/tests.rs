@@ -171,6 +171,109 @@ fn one_pass_rows_equal_the_five_path_aggregation() {
     }
 }
 
+/// [`sgm::OnePass`] over rows whose planes change ([`sgm::OnePass::set_planes`]: narrower,
+/// wider, shifted, disjoint) is the 5-path recursion written out plane by plane in the set's
+/// indices, where the steps from the previous pixel stay inside the planes both rows search and
+/// every other plane is reached only by the jump `min_k L(p−r, k) + P2`, for every instruction
+/// set.
+#[test]
+fn one_pass_over_changing_windows_is_the_recursion_with_unsearched_planes_unreachable() {
+    let (w, h, all) = (41, 10, 40usize);
+    let windows: [std::ops::Range<usize>; 10] = [
+        0..40,
+        0..40,
+        5..20,
+        5..20,
+        10..33,
+        30..40,
+        0..3,
+        2..37,
+        2..37,
+        17..18,
+    ];
+    let (p1, p2) = (40u16, 900u16);
+    let pen = Penalties {
+        p1: f32::from(p1),
+        p2: f32::from(p2),
+        p2_gradient_scale: 0.0,
+    };
+    // Levels of every plane of the set; a row reads its window's.
+    let c: Vec<u16> = lcg(5, w * h * all)
+        .iter()
+        .map(|v| (v * 4000.0) as u16)
+        .collect();
+    let cost = |x: usize, y: usize, g: usize| c[(y * w + x) * all + g];
+    // The recursion, one direction at a time, in the set's plane indices.
+    let mut expected: Vec<Vec<u32>> = (0..h).map(|y| vec![0; w * windows[y].len()]).collect();
+    for (dx, dy) in sgm::ONE_PASS_DIRECTIONS {
+        let mut l: Vec<Vec<u16>> = (0..h).map(|y| vec![0; w * windows[y].len()]).collect();
+        for y in 0..h {
+            let xs: Vec<usize> = if dx >= 0 {
+                (0..w).collect()
+            } else {
+                (0..w).rev().collect()
+            };
+            let win = windows[y].clone();
+            let n = win.len();
+            for x in xs {
+                let (xp, yp) = (x as i64 - i64::from(dx), y as i64 - i64::from(dy));
+                let inside = xp >= 0 && xp < w as i64 && yp >= 0;
+                for (i, g) in win.clone().enumerate() {
+                    let v = if !inside {
+                        cost(x, y, g)
+                    } else {
+                        let (xp, yp) = (xp as usize, yp as usize);
+                        let pw = windows[yp].clone();
+                        let prev = &l[yp][xp * pw.len()..(xp + 1) * pw.len()];
+                        // Only planes both rows search: a ±1 step from outside this row's window
+                        // is not taken either.
+                        let both = |k: i64| {
+                            k >= pw.start.max(win.start) as i64 && k < pw.end.min(win.end) as i64
+                        };
+                        let at = |k: i64| -> u16 {
+                            if both(k) {
+                                prev[k as usize - pw.start]
+                            } else {
+                                u16::MAX
+                            }
+                        };
+                        let prev_min = *prev.iter().min().unwrap();
+                        let g = g as i64;
+                        let m = at(g)
+                            .min(at(g - 1).min(at(g + 1)).saturating_add(p1))
+                            .min(prev_min.saturating_add(p2));
+                        cost(x, y, g as usize).saturating_add(m - prev_min)
+                    };
+                    l[y][x * n + i] = v;
+                    expected[y][x * n + i] += u32::from(v);
+                }
+            }
+        }
+    }
+    for (no_avx512, scalar) in [(false, false), (true, false), (true, true)] {
+        crate::cpu::force_no_avx512(no_avx512);
+        crate::cpu::force_scalar(scalar);
+        let isa = crate::cpu::Isa::detect();
+        let mut pass = sgm::OnePass::new(w, all, isa);
+        for (y, win) in windows.iter().enumerate() {
+            pass.set_planes(win.clone());
+            let crow: Vec<u16> = (0..w)
+                .flat_map(|x| win.clone().map(move |g| (x, g)))
+                .map(|(x, g)| cost(x, y, g))
+                .collect();
+            let mut sum = vec![0u16; w * win.len()];
+            pass.row(&crow, &mut sum, y, &pen, None);
+            let want: Vec<u16> = expected[y].iter().map(|&v| v as u16).collect();
+            assert!(
+                sum == want,
+                "row {y}, window {win:?}, no_avx512 {no_avx512}, scalar {scalar}"
+            );
+        }
+    }
+    crate::cpu::force_no_avx512(false);
+    crate::cpu::force_scalar(false);
+}
+
 /// The `u16` aggregation gives the same sums bit for bit through its AVX-512 copy (masked
 /// 32-lane chunks), the AVX2 copy and the plain loops, for curves shorter than, equal to and
 /// longer than a chunk, with and without a masked last chunk, and with levels near the top of
@@ -690,7 +793,7 @@ fn rig_depth(
         planes,
         kind,
         params,
-        None,
+        &DepthPrior::default(),
         layout,
         &monitor,
     )
@@ -741,6 +844,93 @@ fn one_pass_streams_what_the_volumes_aggregate() {
             "{kind:?}"
         );
     }
+}
+
+/// Plane windows ([`PlaneWindows`]) restrict each row's search: windows of every plane change
+/// nothing (bit for bit, in one group or several), windows around each group's true depths keep
+/// the accuracy, and windows away from the truth hold every confident pixel's plane inside
+/// its row's window.
+#[test]
+fn plane_windows_restrict_each_rows_search() {
+    let rig = rig(4.0, 0.4, f64::INFINITY);
+    let views = views_of(&rig.images, &rig.poses);
+    let planes = PlaneSet::new(2.0, 10.0, 64).unwrap();
+    let params = DepthParams::default();
+    assert_eq!(params.sgm.num_paths, 5, "windows apply to the one pass");
+    let run = |windows: Option<&PlaneWindows>| {
+        let prior = DepthPrior {
+            windows,
+            ..DepthPrior::default()
+        };
+        estimate_depth_in_bands(
+            &views[0],
+            &views[1..],
+            &planes,
+            CostKind::Ordinary,
+            &params,
+            &prior,
+            Layout::default(),
+            &Monitor::noop(),
+        )
+        .unwrap()
+    };
+    let free = run(None);
+    for every in [
+        PlaneWindows::whole(64, H).unwrap(),
+        PlaneWindows::new(8, vec![0..64; H.div_ceil(8)]).unwrap(),
+    ] {
+        let same = run(Some(&every));
+        assert_eq!(same.z_depth.data(), free.z_depth.data());
+        assert_eq!(same.confidence.data(), free.confidence.data());
+    }
+
+    // Each group of 8 rows: its true planes and 3 more on each side.
+    let group = 8;
+    let around: Vec<std::ops::Range<usize>> = (0..H.div_ceil(group))
+        .map(|g| {
+            let index = |x: usize, y: usize| {
+                planes.index_of_inverse_depth(1.0 / f64::from(rig.depth.get(x, y, 0)))
+            };
+            let rows = g * group..((g + 1) * group).min(H);
+            let (lo, hi) = rows
+                .flat_map(|y| (0..W).map(move |x| (x, y)))
+                .map(|(x, y)| index(x, y))
+                .fold((f64::MAX, f64::MIN), |(a, b), i| (a.min(i), b.max(i)));
+            (lo.floor() as usize).saturating_sub(3)..((hi.ceil() as usize) + 4).min(64)
+        })
+        .collect();
+    let around = PlaneWindows::new(group, around).unwrap();
+    assert!(around.planes_searched(H) < H * 64 * 3 / 4, "{around:?}");
+    let narrow = run(Some(&around));
+    let (a, b) = (
+        share_within(&narrow, &rig.depth, &planes, 1.0),
+        share_within(&free, &rig.depth, &planes, 1.0),
+    );
+    assert!(a >= b - 0.01, "around the truth {a}, every plane {b}");
+
+    // Away from the truth (true planes 13–44): the far planes above, the near ones below.
+    let half = H.div_ceil(group) / 2;
+    let away: Vec<std::ops::Range<usize>> = (0..H.div_ceil(group))
+        .map(|g| if g < half { 0..12 } else { 50..64 })
+        .collect();
+    let away = PlaneWindows::new(group, away).unwrap();
+    let missed = run(Some(&away));
+    let mut confident = 0;
+    for y in 0..H {
+        let window = away.of_row(y);
+        for x in 0..W {
+            if missed.confidence.get(x, y, 0) <= 0.0 {
+                continue;
+            }
+            confident += 1;
+            let i = planes.index_of_inverse_depth(f64::from(missed.inverse_depth.get(x, y, 0)));
+            assert!(
+                i >= window.start as f64 - 0.5 && i <= (window.end - 1) as f64 + 0.5,
+                "({x}, {y}): plane {i} outside {window:?}"
+            );
+        }
+    }
+    assert!(confident > 0, "some pixels are confident");
 }
 
 /// The one pass's stripes partition the image in order, each aggregating its own rows and the
