@@ -17,10 +17,10 @@ use murk::ImageF32;
 use murk_server::bag::frames::{BagFrame, BagFrames, FramePlan};
 use murk_server::bag::images::{float_image, mono8_image, to_api_image, SampleMapping};
 use murk_server::bag::msgs::{CameraInfo, DisparityImage, Header, MessageType, RegionOfInterest};
-use murk_server::bag::pointcloud::rgb_cloud;
+use murk_server::bag::pointcloud::rgb_cloud_from_api;
 use murk_server::bag::reader::{BagMessage, BagReader};
 use murk_server::bag::writer::{BagWriter, ChunkCompression};
-use murk_server::service::convert::{image_from_proto, points_from_proto, ImageLimits};
+use murk_server::service::convert::{image_from_proto, ImageLimits};
 use murk_server::service::proto::v1 as pb;
 
 use super::session::{stream_sequence, ResultSink, WriteResult};
@@ -650,12 +650,11 @@ impl OutputWriter {
                     },
                 )?;
                 if let Some(cloud) = &s.points {
-                    let points = points_from_proto(cloud)?;
                     w.write(
                         &topic("points"),
                         MessageType::PointCloud2,
                         t,
-                        &rgb_cloud(h, &points),
+                        &rgb_cloud_from_api(h, cloud)?,
                     )?;
                 }
             }
@@ -686,13 +685,12 @@ impl OutputWriter {
                     &float_image(h, &std, |_| false),
                 )?;
                 // The server's points (murk::tof::measured_points) keep the same pixels.
-                let points =
-                    points_from_proto(o.points.as_ref().context("the result has no points")?)?;
+                let cloud = o.points.as_ref().context("the result has no points")?;
                 w.write(
                     &topic("points"),
                     MessageType::PointCloud2,
                     t,
-                    &rgb_cloud(h, &points),
+                    &rgb_cloud_from_api(h, cloud)?,
                 )?;
             }
             _ => bail!("frame {}: a result of another method", r.frame_id),

@@ -24,9 +24,9 @@ pub use ps::{
     canonicalize_ps_request, ps_from_proto, ps_from_result, ps_request_to_proto, ps_to_proto,
 };
 pub use stereo::{
-    canonicalize_stereo_request, points_from_proto, points_to_proto, stereo_from_proto,
-    stereo_images_from_proto, stereo_outputs_from_proto, stereo_request_to_proto, stereo_to_proto,
-    StereoConfig, StereoInput, STEREO_OUTPUTS,
+    canonicalize_stereo_request, check_points, points_from_proto, points_to_proto,
+    stereo_from_proto, stereo_images_from_proto, stereo_outputs_from_proto,
+    stereo_request_to_proto, stereo_to_proto, StereoConfig, StereoInput, STEREO_OUTPUTS,
 };
 pub use tof::{
     intrinsics_from_proto, intrinsics_to_proto, simulated_tof_request, tof_from_proto,

@@ -384,6 +384,22 @@ pub fn points_to_proto(points: &[ColoredPoint]) -> pb::PointCloud {
 
 /// The wire's points, checked: `count` positions and colours.
 pub fn points_from_proto(cloud: &pb::PointCloud) -> Result<Vec<ColoredPoint>> {
+    check_points(cloud)?;
+    Ok(cloud
+        .xyz_f32_le
+        .chunks_exact(12)
+        .zip(cloud.rgb8.chunks_exact(3))
+        .map(|(p, c)| ColoredPoint {
+            xyz: [0, 4, 8]
+                .map(|o| f64::from(f32::from_le_bytes([p[o], p[o + 1], p[o + 2], p[o + 3]]))),
+            rgb: [c[0], c[1], c[2]],
+        })
+        .collect())
+}
+
+/// The number of the wire's points, when it holds `count` positions and colours; errors name
+/// `points`.
+pub fn check_points(cloud: &pb::PointCloud) -> Result<usize> {
     let n = cloud.count as usize;
     if cloud.xyz_f32_le.len() != n * 12 || cloud.rgb8.len() != n * 3 {
         return Err(MurkError::invalid(
@@ -397,16 +413,7 @@ pub fn points_from_proto(cloud: &pb::PointCloud) -> Result<Vec<ColoredPoint>> {
             ),
         ));
     }
-    Ok(cloud
-        .xyz_f32_le
-        .chunks_exact(12)
-        .zip(cloud.rgb8.chunks_exact(3))
-        .map(|(p, c)| ColoredPoint {
-            xyz: [0, 4, 8]
-                .map(|o| f64::from(f32::from_le_bytes([p[o], p[o + 1], p[o + 2], p[o + 3]]))),
-            rgb: [c[0], c[1], c[2]],
-        })
-        .collect())
+    Ok(n)
 }
 
 #[cfg(test)]
