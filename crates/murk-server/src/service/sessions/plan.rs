@@ -267,8 +267,8 @@ impl SessionPlan {
                 let seconds = started.elapsed().as_secs_f64();
                 let warnings = match tracked.search {
                     Search::Restarted => vec![
-                        "the scene left the previous frame's disparity band; the whole range was \
-                         searched again"
+                        "the scene left the previous frame's disparity band, or a group of rows \
+                         left its window of it; the whole range was searched again"
                             .to_string(),
                     ],
                     Search::Full | Search::Band => Vec::new(),
