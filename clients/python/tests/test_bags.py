@@ -278,6 +278,22 @@ def raw_stereo_output(
     return read_back(out)
 
 
+def test_no_points_leaves_the_clouds_out_and_the_rest_as_it_was(
+    stereo_bag: StereoBag, raw_stereo_output: dict[str, list[Any]], tmp_path: Path
+) -> None:
+    out = tmp_path / "out.mcap"
+    r = run_stereo_bag(stereo_bag, out, "", "--no-points")
+    assert r.returncode == 0, r.stderr
+    topics = read_back(out)
+    assert "/murk/points" not in topics
+    assert len(raw_stereo_output["/murk/points"]) == len(stereo_bag.gt_depth)
+    for t in ("depth", "confidence", "disparity"):
+        mine, theirs = topics[f"/murk/{t}"], raw_stereo_output[f"/murk/{t}"]
+        assert len(mine) == len(theirs) == len(stereo_bag.gt_depth), t
+    for mine, theirs in zip(topics["/murk/depth"], raw_stereo_output["/murk/depth"], strict=True):
+        np.testing.assert_array_equal(float_image(mine), float_image(theirs))
+
+
 @pytest.mark.parametrize("form", ["png", "jpeg"])
 def test_a_compressed_stereo_bag(
     form: str,

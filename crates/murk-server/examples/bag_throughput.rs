@@ -43,6 +43,9 @@ struct Args {
     /// `--compression` of `murk bag`'s output: lz4, zstd or none.
     #[arg(long, default_value = "zstd")]
     compression: String,
+    /// Pass `--no-points` to `murk bag`: no point clouds computed or written.
+    #[arg(long)]
+    no_points: bool,
     /// Working folder (the bags are written here).
     #[arg(long, default_value = "target/bag-throughput")]
     work: PathBuf,
@@ -165,6 +168,7 @@ fn main() -> anyhow::Result<()> {
         .args(["--beta", &seq.beta.to_string()])
         .args(["--depth-range", &format!("{near},{far}")])
         .args(["--compression", &a.compression])
+        .args(a.no_points.then_some("--no-points"))
         .output()
         .with_context(|| format!("running {}", a.murk.display()))?;
     let seconds = started.elapsed().as_secs_f64();

@@ -91,6 +91,11 @@ pub struct BagArgs {
     /// Copy the input topics murk reads into the output, so one file shows both.
     #[arg(long)]
     pub copy_inputs: bool,
+    /// Leave the point clouds out: the session computes none and the output has no `points`
+    /// topic (the depth image and the CameraInfo let a viewer make one). A 640×480 cloud is
+    /// about 4.9 MB a frame, most of what the output's compression works on.
+    #[arg(long)]
+    pub no_points: bool,
     /// Largest difference of the two images' header stamps in a pair, milliseconds.
     #[arg(long, default_value_t = 1.0)]
     pub stamp_tolerance_ms: f64,
@@ -413,6 +418,7 @@ fn session_config(
                     .to_vec(),
                 encoding: pb::ImageEncoding::F32 as i32,
             });
+            request.return_points = !a.no_points;
             config.method = Some(pb::session_config::Method::Stereo(request));
             0.0
         }
@@ -433,7 +439,7 @@ fn session_config(
                     fine_iterations: a.fine_iterations,
                     ..Default::default()
                 }),
-                return_points: true,
+                return_points: !a.no_points,
                 max_point_range_std_m: a.max_range_std_m as f32,
                 outputs: Some(pb::OutputOptions {
                     fields: ["z_depth_m", "mask", "range_std_m"]
@@ -685,13 +691,14 @@ impl OutputWriter {
                     &float_image(h, &std, |_| false),
                 )?;
                 // The server's points (murk::tof::measured_points) keep the same pixels.
-                let cloud = o.points.as_ref().context("the result has no points")?;
-                w.write(
-                    &topic("points"),
-                    MessageType::PointCloud2,
-                    t,
-                    &rgb_cloud_from_api(h, cloud)?,
-                )?;
+                if let Some(cloud) = &o.points {
+                    w.write(
+                        &topic("points"),
+                        MessageType::PointCloud2,
+                        t,
+                        &rgb_cloud_from_api(h, cloud)?,
+                    )?;
+                }
             }
             _ => bail!("frame {}: a result of another method", r.frame_id),
         }
