@@ -19,7 +19,9 @@
 //!   confident disparities in those rows and [`WINDOW_REACH_ROWS`] rows above and below (the
 //!   scene moves between pairs), widened by the same margins. Rows where fewer than
 //!   [`MIN_CONFIDENT_FRACTION`] of the pixels were confident (low texture, a region just
-//!   uncovered) search the whole band.
+//!   uncovered) search the whole band. A window inside the last one and narrower by less than
+//!   two margins stays as it was, so that a still scene settles on one set of windows (and one
+//!   depth) instead of alternating between two.
 //! - **When the prior is wrong.** Surfaces outside the band (an object that came closer, a scene
 //!   cut) pile their winners onto the band's ends. When more than [`EDGE_FRACTION`] of the
 //!   confident pixels of the image, or of any group of rows, sit within one plane of an end of
@@ -107,6 +109,9 @@ pub struct StereoTracker {
     /// The same quantiles over each [`SPAN_ROWS`] rows of the previous pair, `None` where too
     /// few of their pixels were confident.
     row_spans: Vec<Option<(f64, f64)>>,
+    /// The windows the previous pair searched, disparities per group of [`WINDOW_ROWS`] rows
+    /// (`None`: the whole band); empty when it searched without windows.
+    window_spans: Vec<Option<(f64, f64)>>,
     /// The previous pair's photometric corrections.
     photometric: Option<PhotometricPrior>,
     /// Pairs in a row that carried the corrections.
@@ -124,6 +129,7 @@ impl StereoTracker {
             options,
             prior: None,
             row_spans: Vec::new(),
+            window_spans: Vec::new(),
             photometric: None,
             carried: 0,
         })
@@ -134,6 +140,7 @@ impl StereoTracker {
     pub fn reset(&mut self) {
         self.prior = None;
         self.row_spans.clear();
+        self.window_spans.clear();
         self.photometric = None;
         self.carried = 0;
     }
@@ -155,7 +162,7 @@ impl StereoTracker {
         let full = (grid.first, grid.last());
         let band = self.prior.and_then(|p| self.band(p, full));
         let (range, count) = band.map_or((full, grid.count), |b| grid.snap(b));
-        let windows = self.windows(range, count, grid.step, left.height());
+        let (windows, spans) = self.windows(range, count, grid.step, left.height()).unzip();
         let (depth, search, windows) = if band.is_none() && windows.is_none() {
             (
                 self.run(left, right, full, grid.count, None, monitor)?,
@@ -173,6 +180,10 @@ impl StereoTracker {
             } else {
                 (out, Search::Band, windows)
             }
+        };
+        self.window_spans = match (&windows, spans) {
+            (Some(_), Some(spans)) => spans,
+            _ => Vec::new(),
         };
         let searched_max = self.rig.disparity_of_depth(depth.planes.near);
         let border = searched_max.max(0.0).ceil() as usize;
@@ -195,21 +206,22 @@ impl StereoTracker {
     }
 
     /// The windows of the `count` planes from disparity `range.0` on (`step` pixels apart) for
-    /// an `h`-row pair, from the previous pair's spans by rows; `None` without spans, or when
-    /// they would search most of the planes anyway.
+    /// an `h`-row pair, from the previous pair's spans by rows, and each group's window in
+    /// disparities (`None`: the whole band); `None` without spans, or when they would search
+    /// most of the planes anyway.
     fn windows(
         &self,
         range: (f64, f64),
         count: usize,
         step: f64,
         h: usize,
-    ) -> Option<PlaneWindows> {
+    ) -> Option<(PlaneWindows, Vec<Span>)> {
         let margin = self.prior.map(margin_of)?;
         if self.row_spans.is_empty() || count < 2 || step <= 0.0 {
             return None;
         }
         let groups = h.div_ceil(WINDOW_ROWS).max(1);
-        let windows: Vec<std::ops::Range<usize>> = (0..groups)
+        let spans: Vec<Span> = (0..groups)
             .map(|g| {
                 let rows = (g * WINDOW_ROWS).saturating_sub(WINDOW_REACH_ROWS)
                     ..((g + 1) * WINDOW_ROWS + WINDOW_REACH_ROWS).min(h);
@@ -222,16 +234,38 @@ impl StereoTracker {
                     union = Some(union.map_or((lo, hi), |(a, b)| (a.min(lo), b.max(hi))));
                 }
                 let (lo, hi) = union?;
-                let last = count - 1;
-                let i0 = (((lo - margin - range.0) / step).floor().max(0.0) as usize).min(last);
-                let i1 = (((hi + margin - range.0) / step).ceil().max(0.0) as usize).min(last);
-                Some(i0..i1.max(i0) + 1)
+                let new = (lo - margin, hi + margin);
+                // A window inside the last one, narrower by less than two margins, stays as it
+                // was. Without this a still scene's windows alternate between two sets, and so
+                // do its depths: a narrow window holds some pixels at its end, which widens the
+                // next one, which frees them, which narrows the one after (hazy Aloe).
+                match self.window_spans.get(g).copied().flatten() {
+                    Some(old) if old.0 <= new.0 && new.1 <= old.1 => {
+                        Some(if (new.0 - old.0) + (old.1 - new.1) <= 2.0 * margin {
+                            old
+                        } else {
+                            new
+                        })
+                    }
+                    _ => Some(new),
+                }
             })
-            .map(|w| w.unwrap_or(0..count))
+            .collect();
+        let last = count - 1;
+        let windows: Vec<std::ops::Range<usize>> = spans
+            .iter()
+            .map(|span| match span {
+                Some((lo, hi)) => {
+                    let i0 = (((lo - range.0) / step).floor().max(0.0) as usize).min(last);
+                    let i1 = (((hi - range.0) / step).ceil().max(0.0) as usize).min(last);
+                    i0..i1.max(i0) + 1
+                }
+                None => 0..count,
+            })
             .collect();
         let windows = PlaneWindows::new(WINDOW_ROWS, windows).ok()?;
         let share = windows.planes_searched(h) as f64 / (h * count) as f64;
-        (share <= MAX_WINDOW_SHARE).then_some(windows)
+        (share <= MAX_WINDOW_SHARE).then_some((windows, spans))
     }
 
     /// The configured planes as disparities: the grid every band is cut from.
@@ -365,6 +399,9 @@ fn piled_at_ends(
 fn margin_of((lo, hi): (f64, f64)) -> f64 {
     (BAND_MARGIN_FRACTION * (hi - lo)).max(BAND_MARGIN_PX)
 }
+
+/// A span of disparities, pixels (`None`: unknown, or the whole band).
+type Span = Option<(f64, f64)>;
 
 /// Rows per span of [`row_spans`].
 const SPAN_ROWS: usize = 16;
@@ -568,6 +605,11 @@ mod tests {
             median_error(&whole, slope, 45),
         );
         assert!(a <= b + 0.05, "windows {a} px, every plane {b} px");
+        // The same pair again and again: the windows and the depth settle.
+        let third = t.estimate(&l, &r, &Monitor::noop()).unwrap();
+        let fourth = t.estimate(&l, &r, &Monitor::noop()).unwrap();
+        assert_eq!(third.windows, fourth.windows);
+        assert_eq!(third.depth.disparity.data(), fourth.depth.disparity.data());
 
         // The top rows come near: within the band, above their own window.
         let (l, r) = ground(|y| if y < 40 { 42.0 } else { slope(y) }, 0.6);
