@@ -615,7 +615,7 @@ impl OutputWriter {
         let (h, t) = (&meta.header, meta.log_time);
         let mut info = meta.info.clone();
         info.header = h.clone();
-        match (&r.outcome, self.kind) {
+        let points = match (&r.outcome, self.kind) {
             (Some(pb::frame_result::Outcome::Stereo(s)), Kind::Stereo) => {
                 let z = decode("z_depth", &s.z_depth)?;
                 let disparity = decode("disparity", &s.disparity)?;
@@ -655,14 +655,7 @@ impl OutputWriter {
                         delta_d: (s.max_disparity_px - s.min_disparity_px) / (planes - 1.0),
                     },
                 )?;
-                if let Some(cloud) = &s.points {
-                    w.write(
-                        &topic("points"),
-                        MessageType::PointCloud2,
-                        t,
-                        &rgb_cloud_from_api(h, cloud)?,
-                    )?;
-                }
+                s.points.as_ref()
             }
             (Some(pb::frame_result::Outcome::Tof(o)), Kind::Tof) => {
                 let z = decode("z_depth_m", &o.z_depth_m)?;
@@ -691,16 +684,18 @@ impl OutputWriter {
                     &float_image(h, &std, |_| false),
                 )?;
                 // The server's points (murk::tof::measured_points) keep the same pixels.
-                if let Some(cloud) = &o.points {
-                    w.write(
-                        &topic("points"),
-                        MessageType::PointCloud2,
-                        t,
-                        &rgb_cloud_from_api(h, cloud)?,
-                    )?;
-                }
+                o.points.as_ref()
             }
             _ => bail!("frame {}: a result of another method", r.frame_id),
+        };
+        // None with --no-points.
+        if let Some(cloud) = points {
+            w.write(
+                &topic("points"),
+                MessageType::PointCloud2,
+                t,
+                &rgb_cloud_from_api(h, cloud)?,
+            )?;
         }
         w.write(&topic("camera_info"), MessageType::CameraInfo, t, &info)?;
         Ok(())
