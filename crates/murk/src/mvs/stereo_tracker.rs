@@ -349,8 +349,8 @@ impl Grid {
 }
 
 /// Whether more than [`EDGE_FRACTION`] of the confident pixels of the image, or of all the
-/// pixels of any group of `windows`' rows, won within one plane of an end of their window (the band's, without
-/// windows) that is not also an end of `full`. The left border, whose matches leave the right
+/// pixels of any group of `windows`' rows, won within one plane of an end of their window (the
+/// band's, without windows) that is not also an end of `full`. The left border, whose matches leave the right
 /// image for the band's larger disparities, has no complete cost curve and is not counted: a
 /// real change of the scene shows across the image.
 fn piled_at_ends(

@@ -258,11 +258,11 @@ impl Band {
     }
 
     /// The levels of image rows `own` at the planes `planes` (`n` of them) into `out`
-    /// (`[row][x][plane]`, `own.len() · w · n` values), scaled by `quant`: their costs and those of the rows their windows read are
-    /// built (or their means moved from the last band), the census term added, and the window
-    /// run, clipped at the rows `clip` (a strip's rows, or the whole image's), a group of planes
-    /// at a time while its rows are in L2 ([`window::window_groups_to_levels`]). The band must
-    /// hold `own.len() + 2r` rows.
+    /// (`[row][x][plane]`, `own.len() · w · n` values), scaled by `quant`: their costs and
+    /// those of the rows their windows read are built (or their means moved from the last
+    /// band), the census term added, and the window run, clipped at the rows `clip` (a strip's
+    /// rows, or the whole image's), a group of planes at a time while its rows are in L2
+    /// ([`window::window_groups_to_levels`]). The band must hold `own.len() + 2r` rows.
     #[allow(clippy::too_many_arguments)]
     fn levels(
         &mut self,
@@ -336,15 +336,16 @@ impl Band {
             || (CostScratch::default(), CensusScratch::default()),
             |(cost_scratch, census_scratch), g0, group| {
                 for (j, plane) in group.chunks_exact_mut(stride).enumerate() {
+                    // The set's plane.
+                    let i = first + g0 + j;
                     if have > 0 && shift > 0 {
                         plane.copy_within(shift * w..(shift + have) * w, 0);
                     }
                     if let Some(costs) = &costs {
-                        let i = first + g0 + j;
                         costs.fill_plane(i, &mut plane[have * w..held * w], cost_scratch);
                     }
                     if let Some(census) = &census {
-                        census.add_to_plane(first + g0 + j, &mut plane[..held * w], census_scratch);
+                        census.add_to_plane(i, &mut plane[..held * w], census_scratch);
                     }
                 }
                 let k = done.fetch_add(1, Ordering::Relaxed) + 1;

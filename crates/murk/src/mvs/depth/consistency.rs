@@ -320,6 +320,14 @@ pub struct ClaimScratch {
 /// Marker of a source pixel that no reference voxel lands on.
 const UNCLAIMED: u64 = u64::MAX;
 
+/// A claim of plane `i` (of the set) at aggregated `cost` as one `u64`: smaller is better, and
+/// of equal costs the higher plane wins ([`SourceClaims`]). Costs are `≥ 0`, so their bits order
+/// like their values.
+#[inline(always)]
+fn claim_key(cost: f32, i: usize) -> u64 {
+    (u64::from(cost.max(0.0).to_bits()) << 32) | u64::from(!(i as u32))
+}
+
 /// The source's winner-take-all plane at every source pixel, accumulated over the reference
 /// rows as their aggregated costs become available (depth is estimated in strips): the
 /// `argmin` over the reference voxels `(p, i)` that project to the source pixel of their
@@ -366,9 +374,10 @@ impl SourceClaims {
     }
 
     /// [`Self::add`] for one reference row `y` whose aggregated costs are `row` (`[x][plane]`,
-    /// `n` planes per pixel, the planes `first..first + n` of the set), for a caller that has the row in cache for other work too. `unit`
-    /// converts `row`'s values to cost units (1 for `f32` costs; [`super::quantise::Quantiser::unit`]
-    /// for a strip's `u16` levels), so that claims of rows from different strips compare.
+    /// `n` planes per pixel, the planes `first..first + n` of the set), for a caller that has
+    /// the row in cache for other work too. `unit` converts `row`'s values to cost units (1 for
+    /// `f32` costs; [`super::quantise::Quantiser::unit`] for a strip's `u16` levels), so that
+    /// claims of rows from different strips compare.
     pub fn add_row<T: PathCost>(
         &self,
         y: usize,
@@ -413,9 +422,7 @@ impl SourceClaims {
                 if q == OUTSIDE {
                     continue;
                 }
-                let cost = c.to_f32() * unit;
-                let key =
-                    (u64::from(cost.max(0.0).to_bits()) << 32) | u64::from(!((first + i) as u32));
+                let key = claim_key(c.to_f32() * unit, first + i);
                 // Most claims lose: a plain load first skips the locked read-modify-write for
                 // them.
                 let slot = &self.best[q as usize];
@@ -447,7 +454,7 @@ impl SourceClaims {
         let w_src = self.geometry.width;
         // `i` is the plane within the row's planes; the key names the set's plane.
         let claim = |q: usize, cost: f32, i: usize| {
-            let key = (u64::from(cost.max(0.0).to_bits()) << 32) | u64::from(!((first + i) as u32));
+            let key = claim_key(cost, first + i);
             let slot = &self.best[start + q];
             if key < slot.load(Ordering::Relaxed) {
                 slot.fetch_min(key, Ordering::Relaxed);
@@ -771,8 +778,8 @@ const NONE: usize = usize::MAX;
 mod tests {
     use super::*;
 
-    /// The definition: a flood fill of each region (what [`reject_speckles`] computed before
-    /// it joined runs).
+    /// The definition of the regions [`reject_speckles`] finds by joining runs: a flood fill of
+    /// each region from its pixels' 4-neighbours.
     fn flood_fill_speckles(
         index: &[f32],
         verdict: &mut [Verdict],
