@@ -2,8 +2,6 @@
 //! little-endian float32 `x, y, z` in the camera's frame (metres; x right, y down, z forward,
 //! the optical frame of REP 103), plus `rgb` (PCL's packing: 0x00RRGGBB in a float32's bits).
 
-use murk::mvs_io::ColoredPoint;
-
 use crate::service::convert::check_points;
 use crate::service::proto::v1 as pb;
 
@@ -18,23 +16,11 @@ fn field(name: &str, offset: u32) -> PointField {
     }
 }
 
-/// Coloured points (stereo; ToF grey from the direct amplitude) as `x, y, z, rgb`.
-pub fn rgb_cloud(header: &Header, points: &[ColoredPoint]) -> PointCloud2 {
-    let mut data = Vec::with_capacity(points.len() * 16);
-    for p in points {
-        for v in p.xyz {
-            data.extend_from_slice(&(v as f32).to_le_bytes());
-        }
-        data.extend_from_slice(&packed_rgb(p.rgb));
-    }
-    cloud_of(header, data)
-}
-
-/// A result's points as they came from the API ([`pb::PointCloud`]: little-endian `f32`
-/// positions, 8-bit colours) as `x, y, z, rgb`, their bytes copied as they are: the cloud
-/// [`rgb_cloud`] makes of the decoded points, without widening every position to `f64` and
-/// back (a 640×480 pair has about 300 000 points). Errors name `points` when the byte counts
-/// do not match the count.
+/// A result's coloured points (stereo; ToF grey from the direct amplitude) as they came from
+/// the API ([`pb::PointCloud`]: little-endian `f32` positions, 8-bit colours) as `x, y, z, rgb`,
+/// their bytes copied as they are, without widening every position to `f64` and back (a
+/// 640×480 pair has about 300 000 points). Errors name `points` when the byte counts do not
+/// match the count.
 pub fn rgb_cloud_from_api(header: &Header, cloud: &pb::PointCloud) -> murk::Result<PointCloud2> {
     let n = check_points(cloud)?;
     let mut data = Vec::with_capacity(n * 16);
@@ -80,6 +66,20 @@ fn cloud_of(header: &Header, data: Vec<u8>) -> PointCloud2 {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use murk::mvs_io::ColoredPoint;
+
+    /// The cloud by definition: each decoded point's position narrowed to `f32`, its colour
+    /// packed.
+    fn rgb_cloud(header: &Header, points: &[ColoredPoint]) -> PointCloud2 {
+        let mut data = Vec::with_capacity(points.len() * 16);
+        for p in points {
+            for v in p.xyz {
+                data.extend_from_slice(&(v as f32).to_le_bytes());
+            }
+            data.extend_from_slice(&packed_rgb(p.rgb));
+        }
+        cloud_of(header, data)
+    }
 
     #[test]
     fn layouts_are_consistent() {
