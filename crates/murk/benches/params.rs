@@ -15,7 +15,7 @@ use criterion::{criterion_group, criterion_main, Criterion};
 use murk::atmosphere::AtmosphereParams;
 use murk::mvs::{estimate_depth, CostKind, DehazingOptions, DepthParams, PlaneSet};
 use murk::params::airlight::{dark_channel_airlight, DarkChannelParams};
-use murk::params::search::{plane_range_from_sparse, search_scattering, SearchParams};
+use murk::params::search::{plane_range_from_sparse, search_scattering, SearchParams, SfmEvidence};
 use murk::simulate::mvs::{simulate_mvs, MvsSimConfig};
 use murk::Monitor;
 
@@ -58,7 +58,13 @@ fn bench(c: &mut Criterion) {
     g.bench_function("search_26_evaluations", |b| {
         b.iter(|| {
             search_scattering(
-                &reference, &sources, &sparse, 0.9, &planes, &params, &monitor,
+                &reference,
+                &sources,
+                SfmEvidence::map(&sparse),
+                0.9,
+                &planes,
+                &params,
+                &monitor,
             )
             .expect("search")
         })
@@ -97,7 +103,13 @@ fn bench(c: &mut Criterion) {
     g.bench_function("search_default_joint_fit", |b| {
         b.iter(|| {
             search_scattering(
-                &reference, &sources, &sparse, 0.9, &planes, &defaults, &monitor,
+                &reference,
+                &sources,
+                SfmEvidence::map(&sparse),
+                0.9,
+                &planes,
+                &defaults,
+                &monitor,
             )
             .expect("search")
         })
@@ -105,7 +117,13 @@ fn bench(c: &mut Criterion) {
     g.bench_function("full_estimation_26_search_plus_final_depth", |b| {
         b.iter(|| {
             let est = search_scattering(
-                &reference, &sources, &sparse, 0.9, &planes, &params, &monitor,
+                &reference,
+                &sources,
+                SfmEvidence::map(&sparse),
+                0.9,
+                &planes,
+                &params,
+                &monitor,
             )
             .expect("search");
             let kind = CostKind::DehazingWith(

@@ -41,7 +41,7 @@ use murk::params::joint_fit::{
 };
 use murk::params::point_ratio::beta_from_point_ratios;
 use murk::params::search::{
-    beta_range_from_points, plane_range_from_sparse, search_scattering, SearchParams,
+    beta_range_from_points, plane_range_from_sparse, search_scattering, SearchParams, SfmEvidence,
     AIRLIGHT_PRIOR_SIGMA, CNN_AIRLIGHT_ERROR, DARK_CHANNEL_AIRLIGHT_ERROR,
 };
 use murk::simulate::mvs::{simulate_mvs, MvsSimConfig};
@@ -248,7 +248,7 @@ fn survey_search(args: &Args, cnn: Option<&AirlightEstimator>) -> anyhow::Result
         let est = search_scattering(
             &reference,
             &sources,
-            &sparse,
+            SfmEvidence::map(&sparse),
             a0,
             &planes,
             &params,

@@ -17,7 +17,7 @@ use std::path::PathBuf;
 
 use murk::metrics::{depth_metrics, mean_angular_error_deg};
 use murk::mvs::{estimate_depth, CostKind, DehazingOptions, DepthParams, PlaneSet};
-use murk::params::search::{plane_range_from_sparse, search_scattering, SearchParams};
+use murk::params::search::{plane_range_from_sparse, search_scattering, SearchParams, SfmEvidence};
 use murk::ps::{photometric_stereo, PsParams};
 use murk::simulate::mvs::{simulate_mvs, MvsSimConfig};
 use murk::simulate::ps::{simulate_ps, PsSimConfig};
@@ -267,7 +267,7 @@ fn params_joint_fit_walking_room() {
     let est = search_scattering(
         &reference,
         &sources,
-        &sparse,
+        SfmEvidence::map(&sparse),
         scene.airlight - 0.06,
         &planes,
         &params,

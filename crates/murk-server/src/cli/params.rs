@@ -14,8 +14,9 @@ use murk::mvs_io::{
     backproject, find_gt_depth, find_scene_metadata, model_unit_in_scene_units, unit_note,
     write_ply, LoadedView, PlyFormat,
 };
-use murk::params::sparse::{selected_points_with_sources, PointSelection};
-use murk_server::service::convert::params_request_to_proto;
+use murk::params::pose_error::SfmTracks;
+use murk::params::sparse::PointSelection;
+use murk_server::service::convert::{observations_to_proto, params_request_to_proto};
 use murk_server::service::proto::v1 as pb;
 
 use super::mvs::{
@@ -117,6 +118,10 @@ pub struct ParamsArgs {
     /// residuals.csv.
     #[arg(long)]
     pub out: PathBuf,
+    /// Take the SfM poses as exact: send no observations, so the standard errors leave out the
+    /// poses' share (computed by default from where the model's points were seen in the views).
+    #[arg(long)]
+    pub no_pose_error: bool,
     /// Server URL; without it a server is started in this process.
     #[arg(long, env = "MURK_SERVER")]
     pub server: Option<String>,
@@ -144,8 +149,8 @@ pub fn run(a: ParamsArgs) -> anyhow::Result<()> {
         PointSelection::ObservedInReference
     };
     let source_names: Vec<&str> = sources.iter().map(|s| s.name.as_str()).collect();
-    let (points, seen_by) =
-        selected_points_with_sources(&model, &reference.name, selection, &source_names)?;
+    let tracks = SfmTracks::from_colmap(&model, &reference.name, selection, &source_names)?;
+    let points = &tracks.points;
     if points.is_empty() {
         bail!("the model has no 3D points");
     }
@@ -159,12 +164,16 @@ pub fn run(a: ParamsArgs) -> anyhow::Result<()> {
     let mut request = params_request_to_proto(
         &reference.view(),
         &source_views,
-        &points,
+        points,
         a.airlight_source.wire(),
         a.airlight.unwrap_or(0.0),
     );
-    // The points' tracks: the fit samples a point only in the sources that saw it.
-    request.sparse_point_sources = seen_by;
+    // The points' tracks: the fit samples a point only in the sources that saw it, and the
+    // observations give the poses' uncertainty.
+    if !a.no_pose_error {
+        request.sparse_point_observations = observations_to_proto(&tracks);
+    }
+    request.sparse_point_sources = tracks.seen_by;
     use_encoded_images(
         request
             .reference
@@ -292,6 +301,22 @@ pub fn run(a: ParamsArgs) -> anyhow::Result<()> {
             );
         }
     }
+    if let Some(p) = &r.pose_error {
+        let share = match (p.airlight_std_error, p.beta_std_error) {
+            (Some(a), Some(b)) => format!("A ± {a:.4}, beta ± {b:.5} of the errors above"),
+            _ => format!("not computed: {}", p.undetermined),
+        };
+        println!(
+            "SfM poses: {} observations of {} points (reprojection error {:.2} px) place the \
+             sources to within {:.2} degrees of rotation and {:.1} degrees of baseline direction \
+             (1 sigma); their share: {share}",
+            p.observations,
+            p.points,
+            p.reprojection_rms_px,
+            p.max_rotation_std_deg,
+            p.max_baseline_direction_std_deg
+        );
+    }
     println!(
         "times: airlight {:.3} s, search ({} depth evaluations) {:.2} s, final depth {:.2} s \
          ({} planes over z {:.3}..{:.3}); outputs in {}",
@@ -398,6 +423,16 @@ fn params_json(r: &pb::ScatteringParamsResult, job_id: &str) -> serde_json::Valu
             "sigmas": c.sigmas,
         })),
         "warnings": r.warnings,
+        "pose_error": r.pose_error.as_ref().map(|p| serde_json::json!({
+            "airlight_std_error": p.airlight_std_error,
+            "beta_std_error": p.beta_std_error,
+            "observations": p.observations,
+            "points": p.points,
+            "reprojection_rms_px": p.reprojection_rms_px,
+            "max_rotation_std_deg": finite_or_null(p.max_rotation_std_deg),
+            "max_baseline_direction_std_deg": finite_or_null(p.max_baseline_direction_std_deg),
+            "undetermined": (!p.undetermined.is_empty()).then_some(&p.undetermined),
+        })),
         "point_ratio": r.point_ratio.as_ref().map(|f| serde_json::json!({
             "beta": f.beta,
             "std_error": finite_or_null(f.std_error),
@@ -468,6 +503,7 @@ fn identifiability_name(v: i32) -> &'static str {
         Ok(pb::Identifiability::FlatResidual) => "flat_residual",
         Ok(pb::Identifiability::AirlightConflict) => "airlight_conflict",
         Ok(pb::Identifiability::AirlightAtBound) => "airlight_at_bound",
+        Ok(pb::Identifiability::WeakSfm) => "weak_sfm",
         _ => "unknown",
     }
 }
@@ -487,6 +523,7 @@ fn identifiability_text(v: i32) -> &'static str {
         Ok(pb::Identifiability::AirlightAtBound) => {
             "the points' A sits on the bound of its range, so its error and beta's do not hold"
         }
+        Ok(pb::Identifiability::WeakSfm) => "the SfM poses are too uncertain to pin beta down",
         _ => "unknown",
     }
 }

@@ -4,10 +4,13 @@
 use crate::common;
 
 use common::*;
+use murk::params::pose_error::SfmTracks;
 use murk::params::sparse::{selected_points, PointSelection};
 use murk::simulate::mvs::{simulate_mvs, MvsScene, MvsSimConfig};
 use murk::Monitor;
-use murk_server::service::convert::{params_request_to_proto, MAX_SPARSE_POINTS};
+use murk_server::service::convert::{
+    observations_to_proto, params_request_to_proto, MAX_SPARSE_POINTS,
+};
 use murk_server::service::proto::v1 as pb;
 
 pub(crate) fn scene(w: usize, h: usize, seed: u64) -> MvsScene {
@@ -32,6 +35,47 @@ pub(crate) fn request(
     )
     .unwrap();
     params_request_to_proto(&reference, &sources, &points, source, airlight)
+}
+
+/// A forward-moving room at 128×96 whose points determine A and β.
+fn forward_scene() -> MvsScene {
+    let cfg = MvsSimConfig {
+        seed: 5,
+        beta_range: Some([0.4, 0.8]),
+        forward_motion: 0.5,
+        ..MvsSimConfig::with_size(128, 96)
+    };
+    simulate_mvs(&cfg, &Monitor::noop()).expect("simulate")
+}
+
+fn observation(point: u32, view: u32) -> pb::SparsePointObservation {
+    pb::SparsePointObservation {
+        point,
+        view,
+        x: 10.0,
+        y: 10.0,
+    }
+}
+
+/// The request's `sparse_point_observations`: where the scene's model saw its points in the
+/// reference (view 0) and the request's sources (view 1 + i), in murk's pixel convention.
+fn with_observations(scene: &MvsScene, req: &mut pb::ScatteringParamsRequest) {
+    let r = scene.reference;
+    let mut others: Vec<usize> = (0..scene.views.len()).filter(|&i| i != r).collect();
+    others.sort_by_key(|&i| i.abs_diff(r));
+    let names: Vec<&str> = others
+        .iter()
+        .map(|&i| scene.views[i].name.as_str())
+        .collect();
+    let tracks = SfmTracks::from_colmap(
+        &scene.sparse,
+        &scene.views[r].name,
+        PointSelection::ObservedInReference,
+        &names,
+    )
+    .unwrap();
+    assert_eq!(tracks.points.len(), req.sparse_points.len());
+    req.sparse_point_observations = observations_to_proto(&tracks);
 }
 
 fn job(req: pb::ScatteringParamsRequest) -> pb::SubmitJobRequest {
@@ -134,13 +178,7 @@ async fn unary_and_jobs_agree_and_the_result_is_complete() {
 #[tokio::test]
 async fn default_request_fits_a_and_beta_to_the_points_and_reports_the_fit() {
     let server = start(config(4)).await;
-    let cfg = MvsSimConfig {
-        seed: 5,
-        beta_range: Some([0.4, 0.8]),
-        forward_motion: 0.5,
-        ..MvsSimConfig::with_size(128, 96)
-    };
-    let s = simulate_mvs(&cfg, &Monitor::noop()).expect("simulate");
+    let s = forward_scene();
     // A₀ given 0.06 off: the joint fit moves A to the data.
     let mut req = request(&s, pb::AirlightSource::Given, s.airlight - 0.06);
     req.num_planes = 32;
@@ -244,6 +282,75 @@ async fn default_request_fits_a_and_beta_to_the_points_and_reports_the_fit() {
     server.stop().await.unwrap();
 }
 
+/// The model's observations add the poses' share to the standard errors and leave the
+/// estimates as they were: on the simulator's model (sound poses) the share is small; the
+/// same observations 12 px off make the poses uncertain enough that β is `weak_sfm`, with
+/// a sentence that names the numbers and what would help.
+#[tokio::test]
+async fn observations_add_the_poses_share_to_the_errors() {
+    let server = start(config(4)).await;
+    let s = forward_scene();
+    let mut req = request(&s, pb::AirlightSource::Given, s.airlight);
+    req.num_planes = 32;
+    req.search_planes = 16;
+    let plain = recon(&server)
+        .scattering_params(req.clone())
+        .await
+        .expect("unary")
+        .into_inner();
+    assert!(plain.pose_error.is_none());
+    with_observations(&s, &mut req);
+    let posed = recon(&server)
+        .scattering_params(req.clone())
+        .await
+        .expect("unary")
+        .into_inner();
+    assert_eq!((posed.airlight, posed.beta), (plain.airlight, plain.beta));
+    let pe = posed
+        .pose_error
+        .clone()
+        .expect("the poses' share is reported");
+    assert!(pe.undetermined.is_empty(), "{pe:?}");
+    assert!(pe.observations > 0 && pe.points > 60, "{pe:?}");
+    let (a, b) = (pe.airlight_std_error.unwrap(), pe.beta_std_error.unwrap());
+    let (joint, joint0) = (posed.joint_fit.clone().unwrap(), plain.joint_fit.unwrap());
+    assert!((joint.beta_std_error - joint0.beta_std_error.hypot(b)).abs() < 1e-9);
+    assert!((joint.airlight_std_error - joint0.airlight_std_error.hypot(a)).abs() < 1e-9);
+    assert!(b > 0.0 && b < joint0.beta_std_error, "{pe:?} {joint0:?}");
+    assert!(posed.identifiable, "{posed:?}");
+
+    // Every observation 12 px off, alternately in x and y: the poses are uncertain by
+    // degrees.
+    for (i, o) in req.sparse_point_observations.iter_mut().enumerate() {
+        if i % 2 == 0 {
+            o.x += 12.0;
+        } else {
+            o.y -= 12.0;
+        }
+    }
+    let weak = recon(&server)
+        .scattering_params(req)
+        .await
+        .expect("unary")
+        .into_inner();
+    assert_eq!(
+        weak.identifiability,
+        pb::Identifiability::WeakSfm as i32,
+        "{:?} {:?}",
+        weak.pose_error,
+        weak.joint_fit
+    );
+    assert!(!weak.identifiable);
+    assert!(
+        weak.warnings
+            .iter()
+            .any(|w| w.contains("poses are too uncertain") && w.contains("longer baseline")),
+        "{:?}",
+        weak.warnings
+    );
+    server.stop().await.unwrap();
+}
+
 #[tokio::test]
 async fn bad_params_requests_name_the_field() {
     let server = start(config(4)).await;
@@ -327,6 +434,34 @@ async fn bad_params_requests_name_the_field() {
                 r.sparse_point_sources = vec![1; n];
                 // A bit for a source that is not in the request.
                 r.sparse_point_sources[1] = 1 << r.sources.len();
+            }),
+        ),
+        (
+            "sparse_point_observations[1].view",
+            Box::new(|r| {
+                r.sparse_point_observations = vec![observation(0, 0); 2];
+                r.sparse_point_observations[1].view = 1 + r.sources.len() as u32;
+            }),
+        ),
+        (
+            "sparse_point_observations[0].point",
+            Box::new(|r| {
+                let n = r.sparse_points.len() as u32;
+                r.sparse_point_observations = vec![observation(n, 0)];
+            }),
+        ),
+        (
+            "sparse_point_observations[0].y",
+            Box::new(|r| {
+                r.sparse_point_observations = vec![observation(0, 1)];
+                r.sparse_point_observations[0].y = f64::INFINITY;
+            }),
+        ),
+        (
+            "sparse_point_observations",
+            Box::new(|r| {
+                let n = r.sparse_points.len();
+                r.sparse_point_observations = vec![observation(0, 0); 64 * n + 1];
             }),
         ),
         ("sources", Box::new(|r| r.sources.clear())),

@@ -132,6 +132,11 @@ pub enum Identifiability {
     /// 0.001): the best fit lies outside it, so neither `A` nor β (which moves with `A`) has a
     /// standard error that means anything.
     AirlightAtBound,
+    /// The points determine β, but the SfM poses do not pin it down: with the poses'
+    /// uncertainty ([`crate::params::pose_error`]) β's standard error exceeds
+    /// [`MAX_RELATIVE_BETA_ERROR`] of β, or the observations leave a pose undetermined (set by
+    /// [`crate::params::search::search_scattering`], which has the model's tracks).
+    WeakSfm,
 }
 
 impl Identifiability {
@@ -144,6 +149,7 @@ impl Identifiability {
             Self::FlatResidual => "flat_residual",
             Self::AirlightConflict => "airlight_conflict",
             Self::AirlightAtBound => "airlight_at_bound",
+            Self::WeakSfm => "weak_sfm",
         }
     }
 }
@@ -179,12 +185,42 @@ pub struct JointFit {
     pub residual_scale: f64,
     /// Whether β (and `A`) are determined, and if not why.
     pub identifiability: Identifiability,
+    /// The priors of the model the fit chose: a fall-off's σ is 0 where none was fitted.
+    /// [`JointFit::refit`] fits the same model.
+    pub model: JointPriors,
 }
 
 impl JointFit {
     /// Whether β is determined by the points.
     pub fn is_identifiable(&self) -> bool {
         self.identifiability == Identifiability::Identifiable
+    }
+
+    /// `[A, β]` of this fit's model on other samples of the same scene (taken by
+    /// [`blurred_ratio_samples`] after the SfM model moved), started from this fit's solution.
+    /// `None` when the samples give too few equations or the fit does not converge.
+    pub fn refit(&self, samples: &[Vec<RatioSample>]) -> Option<[f64; 2]> {
+        let n_src = samples.len();
+        if n_src != self.source_gains.len() {
+            return None;
+        }
+        let eqs = equations(samples);
+        if eqs.len() < MIN_EQUATIONS {
+            return None;
+        }
+        let mut solver = Solver::new(&eqs, n_src, &self.model);
+        solver.theta[0] = self.airlight;
+        solver.theta[1] = self.beta;
+        for (u, g) in solver.theta[2..2 + n_src]
+            .iter_mut()
+            .zip(&self.source_gains)
+        {
+            *u = 1.0 / g;
+        }
+        solver.theta[2 + n_src] = self.vignetting_falloff;
+        solver.theta[3 + n_src..].copy_from_slice(&self.source_falloffs);
+        solver.tolerance = JACKKNIFE_TOLERANCE;
+        solver.run().map(|_| [solver.theta[0], solver.theta[1]])
     }
 }
 
@@ -290,6 +326,7 @@ pub fn fit_equations(
         rms_depth_difference: rms_dz,
         residual_scale: 0.0,
         identifiability: why,
+        model: *priors,
     };
     if eqs.len() < MIN_EQUATIONS || points < MIN_POINTS {
         return not_determined(Identifiability::TooFewPoints, priors.airlight);
@@ -401,6 +438,7 @@ pub fn fit_equations(
         rms_depth_difference: rms_dz,
         residual_scale: solver.scale,
         identifiability,
+        model: chosen,
     }
 }
 

@@ -9,6 +9,7 @@ pub mod airlight;
 pub mod footprint;
 pub mod joint_fit;
 pub mod point_ratio;
+pub mod pose_error;
 pub mod residual;
 pub mod search;
 pub mod sparse;

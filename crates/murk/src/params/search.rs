@@ -56,6 +56,7 @@ use crate::params::joint_fit::{
     MIN_EQUATIONS, MIN_POINTS,
 };
 use crate::params::point_ratio::{beta_from_ratio_samples, blurred_ratio_samples, PointRatioFit};
+use crate::params::pose_error::{pose_error_of_fit, PoseError, SfmTracks};
 use crate::params::residual::{paired_improvement_t, sparse_residuals};
 use crate::params::sparse::{SparseDepth, SparseSample};
 
@@ -356,6 +357,28 @@ pub enum BetaBound {
     Max,
 }
 
+/// What the SfM model gives [`search_scattering`]: the sparse map of Eq. 3.8 and, when known,
+/// the points' tracks, whose observations add the poses' share to the standard errors
+/// ([`crate::params::pose_error`]).
+#[derive(Clone, Copy, Debug)]
+pub struct SfmEvidence<'a> {
+    /// `z_sfm` and `m` of Eq. 3.8 in the reference view.
+    pub sparse: &'a SparseDepth,
+    /// The points with their observations in the reference and the sources; `None` takes the
+    /// poses as exact.
+    pub tracks: Option<&'a SfmTracks>,
+}
+
+impl<'a> SfmEvidence<'a> {
+    /// The sparse map alone: the poses taken as exact.
+    pub fn map(sparse: &'a SparseDepth) -> Self {
+        Self {
+            sparse,
+            tracks: None,
+        }
+    }
+}
+
 /// Result of [`search_scattering`].
 #[derive(Clone, Debug, PartialEq)]
 pub struct ScatteringEstimate {
@@ -387,8 +410,12 @@ pub struct ScatteringEstimate {
     pub beta_bound: Option<BetaBound>,
     /// The estimate before clamping to the range, per scene unit.
     pub beta_unclamped: f32,
-    /// The joint fit (always run, used when `joint_fit` is set and it determines β).
+    /// The joint fit (always run, used when `joint_fit` is set and it determines β). With the
+    /// model's tracks its standard errors include the poses' share ([`Self::pose_error`]).
     pub joint: Option<JointFit>,
+    /// The SfM poses' share of the joint fit's standard errors, when the search was given the
+    /// model's tracks and the fit determined β with a finite error.
+    pub pose_error: Option<PoseError>,
     /// Set when the joint fit's `A*` conflicted with `A₀` (see the module docs); an estimate the
     /// fit called identifiable is then reported as [`Identifiability::AirlightConflict`] (one it
     /// did not keeps its own reason).
@@ -443,6 +470,10 @@ impl ScatteringEstimate {
                     j.points,
                     j.rms_depth_difference
                 )),
+            Identifiability::WeakSfm => out.push(self.pose_error.as_ref().map_or_else(
+                || "the SfM poses' uncertainty is unknown".to_string(),
+                |p| weak_sfm_warning(j, p),
+            )),
             Identifiability::NoDepthDifference => out.push(format!(
                 "the views see the points at the same depths (RMS depth difference {:.2e}): \
                  a rectified pair or a purely sideways move cannot tell beta; frames that move \
@@ -460,6 +491,36 @@ impl ScatteringEstimate {
         }
         out
     }
+}
+
+/// The [`Identifiability::WeakSfm`] sentence: how uncertain the poses are, what that does to
+/// β, and what would help.
+fn weak_sfm_warning(j: &JointFit, p: &PoseError) -> String {
+    let poses = format!(
+        "{} observations of {} points in the views place the sources to within {:.2} degrees of \
+         rotation and {:.1} degrees of baseline direction (1 sigma; reprojection error {:.2} px)",
+        p.observations,
+        p.points,
+        p.max_rotation_std_deg,
+        p.max_baseline_direction_std_deg,
+        p.reprojection_rms_px
+    );
+    let effect = match (&p.undetermined, p.beta_std_error) {
+        (Some(why), _) => format!("the poses' effect on beta is unknown: {why}"),
+        (None, Some(b)) => format!(
+            "with them beta = {:.4} has a standard error of {:.0} % (identifiable below {:.0} %; \
+             {:.0} % from the poses alone)",
+            j.beta,
+            100.0 * j.beta_std_error / j.beta,
+            100.0 * MAX_RELATIVE_BETA_ERROR,
+            100.0 * b / j.beta
+        ),
+        (None, None) => String::new(),
+    };
+    format!(
+        "the SfM poses are too uncertain for beta: {poses}; {effect}. More frames, a longer \
+         baseline, or more points (a lower SIFT peak threshold) help"
+    )
 }
 
 /// `n` values uniform in `[lo, hi]` (the midpoint when `n = 1`).
@@ -564,13 +625,14 @@ fn resolve_beta_range(params: &SearchParams, sparse: &SparseDepth) -> Result<([f
 pub fn search_scattering(
     reference: &View<'_>,
     sources: &[View<'_>],
-    sparse: &SparseDepth,
+    sfm: SfmEvidence<'_>,
     airlight_initial: f32,
     planes: &PlaneSet,
     params: &SearchParams,
     monitor: &Monitor,
 ) -> Result<ScatteringEstimate> {
     let start = Instant::now();
+    let SfmEvidence { sparse, tracks } = sfm;
     params.validate().map_err(|e| e.within("params"))?;
     if !(airlight_initial.is_finite() && airlight_initial > 0.0 && airlight_initial <= 1.0) {
         return Err(MurkError::invalid(
@@ -619,6 +681,10 @@ pub fn search_scattering(
             ),
         ));
     }
+    if let Some(t) = tracks {
+        t.validate(1 + sources.len())
+            .map_err(|e| e.within("tracks"))?;
+    }
     let ([beta_lo, beta_hi], beta_range_from_points) = resolve_beta_range(params, sparse)?;
     let reference_view = View {
         image: &ref_small.0,
@@ -649,7 +715,38 @@ pub fn search_scattering(
         falloff_sigma: crate::params::joint_fit::FALLOFF_PRIOR_SIGMA,
         relative_falloff_sigma: crate::params::joint_fit::RELATIVE_FALLOFF_PRIOR_SIGMA,
     };
-    let joint = fit_joint_samples(&samples, sparse, &priors);
+    let mut joint = fit_joint_samples(&samples, sparse, &priors);
+    // The poses' share of the fit's errors, where the model's tracks say how well SfM placed
+    // them: added in quadrature (the poses' errors are independent of the images' noise).
+    let mut pose_error = None;
+    if let (Some(t), Some(j)) = (tracks, joint.as_mut()) {
+        if j.beta > 0.0
+            && j.beta_std_error.is_finite()
+            && matches!(
+                j.identifiability,
+                Identifiability::Identifiable | Identifiability::FlatResidual
+            )
+        {
+            monitor.checkpoint()?;
+            let pe = pose_error_of_fit(reference, sources, t, j);
+            match (pe.airlight_std_error, pe.beta_std_error) {
+                (Some(a), Some(b)) => {
+                    j.airlight_std_error = j.airlight_std_error.hypot(a);
+                    j.beta_std_error = j.beta_std_error.hypot(b);
+                    if j.identifiability == Identifiability::Identifiable
+                        && j.beta_std_error >= MAX_RELATIVE_BETA_ERROR * j.beta
+                    {
+                        j.identifiability = Identifiability::WeakSfm;
+                    }
+                }
+                _ if j.identifiability == Identifiability::Identifiable => {
+                    j.identifiability = Identifiability::WeakSfm;
+                }
+                _ => {}
+            }
+            pose_error = Some(pe);
+        }
+    }
     // The joint fit's estimate is used whenever it converged with a finite standard error,
     // also when that error is too large to call β identifiable: it is still the data's best
     // estimate (on 20 held-out lateral scenes the one flat case erred by 0.07 with it and by 0.22
@@ -666,6 +763,7 @@ pub fn search_scattering(
                     Identifiability::Identifiable
                         | Identifiability::FlatResidual
                         | Identifiability::AirlightAtBound
+                        | Identifiability::WeakSfm
                 )
         })
         .map(|j| ((j.airlight as f32).clamp(1e-3, 1.0), j.beta as f32));
@@ -829,6 +927,7 @@ pub fn search_scattering(
         beta_bound,
         beta_unclamped,
         joint,
+        pose_error,
         airlight_conflict,
         point_ratio,
         residual: best.0,
@@ -942,7 +1041,7 @@ mod tests {
         search_scattering(
             &reference,
             &sources,
-            &sparse,
+            SfmEvidence::map(&sparse),
             a0,
             &planes,
             params,
@@ -1196,7 +1295,13 @@ mod tests {
         };
         let monitor = Monitor::new(Arc::new(AtomicBool::new(false)), Some(sink));
         let est = search_scattering(
-            &reference, &sources, &sparse, 0.85, &planes, &params, &monitor,
+            &reference,
+            &sources,
+            SfmEvidence::map(&sparse),
+            0.85,
+            &planes,
+            &params,
+            &monitor,
         )
         .unwrap();
         assert_eq!(est.grid.len(), 4 + 4);
@@ -1231,32 +1336,56 @@ mod tests {
 
         let cancelled = Monitor::new(Arc::new(AtomicBool::new(true)), None);
         assert_eq!(
-            search_scattering(&reference, &sources, &sparse, 0.85, &planes, &params, &cancelled)
-                .unwrap_err(),
+            search_scattering(
+                &reference,
+                &sources,
+                SfmEvidence::map(&sparse),
+                0.85,
+                &planes,
+                &params,
+                &cancelled
+            )
+            .unwrap_err(),
             MurkError::Cancelled
         );
         // Too few points, bad A₀, bad parameters: named.
+        let search = |a0: f32, p: &SearchParams| {
+            search_scattering(
+                &reference,
+                &sources,
+                SfmEvidence::map(&sparse),
+                a0,
+                &planes,
+                p,
+                &monitor,
+            )
+        };
         let few = SparseDepth::from_samples(64, 48, sparse.samples()[..3].to_vec());
-        let err = search_scattering(&reference, &sources, &few, 0.85, &planes, &params, &monitor);
-        assert_eq!(err.unwrap_err().field(), Some("sparse_points"));
         let err = search_scattering(
-            &reference, &sources, &sparse, 0.0, &planes, &params, &monitor,
+            &reference,
+            &sources,
+            SfmEvidence::map(&few),
+            0.85,
+            &planes,
+            &params,
+            &monitor,
         );
+        assert_eq!(err.unwrap_err().field(), Some("sparse_points"));
+        let err = search(0.0, &params);
         assert_eq!(err.unwrap_err().field(), Some("airlight_initial"));
         let bad = SearchParams {
             beta_min: Some(0.5),
             beta_max: Some(0.4),
             ..params.clone()
         };
-        let err = search_scattering(&reference, &sources, &sparse, 0.85, &planes, &bad, &monitor);
+        let err = search(0.85, &bad);
         assert_eq!(err.unwrap_err().field(), Some("params.beta_max"));
         for v in [0.0, -0.1, 1.5, f32::NAN] {
             let bad = SearchParams {
                 airlight_initial_error: v,
                 ..params.clone()
             };
-            let err =
-                search_scattering(&reference, &sources, &sparse, 0.85, &planes, &bad, &monitor);
+            let err = search(0.85, &bad);
             assert_eq!(
                 err.unwrap_err().field(),
                 Some("params.airlight_initial_error")

@@ -6,6 +6,7 @@ use crate::error::{MurkError, Result};
 use crate::image::ImageF32;
 use crate::mvs::colmap::{ColmapModel, Point3D};
 use crate::mvs::pose::Pose;
+use crate::params::pose_error::{Observation, SfmTracks};
 
 /// [`SparseSample::seen_by`] of a point whose visibility in the sources is unknown: it may be
 /// used in every source.
@@ -73,6 +74,19 @@ pub fn selected_points_with_sources(
     selection: PointSelection,
     sources: &[&str],
 ) -> Result<(Vec<[f64; 3]>, Vec<u32>)> {
+    let t = selected_tracks(model, reference, selection, sources)?;
+    Ok((t.points, t.seen_by))
+}
+
+/// [`selected_points_with_sources`] as [`SfmTracks`], with the points' observations in the reference (view 0)
+/// and `sources` (view `1 + i`), in murk's pixel convention (COLMAP's coordinates shifted by
+/// −0.5). The observations are empty when the model stores no tracks.
+pub(crate) fn selected_tracks(
+    model: &ColmapModel,
+    reference: &str,
+    selection: PointSelection,
+    sources: &[&str],
+) -> Result<SfmTracks> {
     let mut ids = Vec::with_capacity(sources.len());
     for (i, name) in sources.iter().enumerate() {
         let image = model.image_by_name(name).ok_or_else(|| {
@@ -92,7 +106,10 @@ pub fn selected_points_with_sources(
     let points = selected(model, reference, selection)?;
     let xyz = points.iter().map(|p| p.xyz).collect();
     if model.points.values().all(|p| p.track.is_empty()) {
-        return Ok((xyz, Vec::new()));
+        return Ok(SfmTracks {
+            points: xyz,
+            ..SfmTracks::default()
+        });
     }
     let masks = points
         .iter()
@@ -103,7 +120,38 @@ pub fn selected_points_with_sources(
                 .fold(0u32, |m, (i, _)| m | (1 << i))
         })
         .collect();
-    Ok((xyz, masks))
+    // `selected` found the reference by name already.
+    let reference_id = model.image_by_name(reference).map_or(u32::MAX, |im| im.id);
+    let view_of = |image_id: u32| {
+        if image_id == reference_id {
+            Some(0)
+        } else {
+            ids.iter()
+                .position(|&id| id == image_id)
+                .map(|i| i as u32 + 1)
+        }
+    };
+    let mut observations = Vec::new();
+    for (i, p) in points.iter().enumerate() {
+        for t in &p.track {
+            let (Some(view), Some(image)) = (view_of(t.image_id), model.images.get(&t.image_id))
+            else {
+                continue;
+            };
+            if let Some(kp) = image.points2d.get(t.point2d_idx as usize) {
+                observations.push(Observation {
+                    point: i as u32,
+                    view,
+                    pixel: [kp.xy[0] - 0.5, kp.xy[1] - 0.5],
+                });
+            }
+        }
+    }
+    Ok(SfmTracks {
+        points: xyz,
+        seen_by: masks,
+        observations,
+    })
 }
 
 fn selected<'m>(

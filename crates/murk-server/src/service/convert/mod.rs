@@ -17,8 +17,8 @@ pub use mvs::{
 };
 pub use outputs::{Delivery, Encoding, OutputField, OutputSelection, Quantity};
 pub use params::{
-    canonicalize_params_request, params_from_proto, params_request_to_proto, AirlightService,
-    ParamsInput, MAX_SPARSE_POINTS,
+    canonicalize_params_request, observations_to_proto, params_from_proto, params_request_to_proto,
+    AirlightService, ParamsInput, MAX_SPARSE_POINTS,
 };
 pub use ps::{
     canonicalize_ps_request, ps_from_proto, ps_from_result, ps_request_to_proto, ps_to_proto,

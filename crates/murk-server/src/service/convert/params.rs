@@ -22,14 +22,18 @@ use murk::mvs::cost_volume::MAX_VOXELS;
 use murk::mvs::{estimate_depth, CostKind, DehazingOptions, PlaneSet, View, MAX_PLANES};
 use murk::params::airlight::{dark_channel_airlight, AirlightEstimator, DarkChannelParams};
 use murk::params::joint_fit::{Identifiability, JointFit};
+use murk::params::pose_error::{Observation, SfmTracks};
 use murk::params::search::{
     plane_range_from_sparse, search_scattering, BetaBound, BetaSource, SearchParams, SearchStage,
-    CNN_AIRLIGHT_ERROR, DARK_CHANNEL_AIRLIGHT_ERROR, MIN_SPARSE_POINTS,
+    SfmEvidence, CNN_AIRLIGHT_ERROR, DARK_CHANNEL_AIRLIGHT_ERROR, MIN_SPARSE_POINTS,
 };
 use murk::params::sparse::SparseDepth;
 
 /// Most SfM points per request (COLMAP reconstructions of a few hundred images have ~10⁵).
 pub const MAX_SPARSE_POINTS: usize = 1_000_000;
+/// Most `sparse_point_observations` per sparse point (a track longer than this many views of
+/// one request cannot exist: a request has at most 1 + `MAX_SOURCE_VIEWS` views).
+pub const MAX_OBSERVATIONS_PER_POINT: usize = 64;
 
 /// The airlight estimators a server offers: its configured estimator (the CNN, or the dark
 /// channel when configured so or fallen back to), used for `AIRLIGHT_SOURCE_UNSPECIFIED`.
@@ -91,6 +95,9 @@ pub struct ParamsInput {
     pub sources: Vec<MvsViewInput>,
     /// Eq. 3.8's sparse depth in the reference view (full resolution).
     pub sparse: SparseDepth,
+    /// The points with their observations, when the request carried them: the poses' share of
+    /// the standard errors.
+    pub tracks: Option<SfmTracks>,
     /// Where `A₀` comes from (UNSPECIFIED resolved).
     pub airlight_source: pb::AirlightSource,
     /// `A₀` for GIVEN.
@@ -290,6 +297,7 @@ pub fn params_from_proto(
             ),
         ));
     }
+    let tracks = tracks_from_proto(req, points, sources.len())?;
     let (near, far) = if req.near == 0.0 {
         plane_range_from_sparse(&sparse).expect("checked non-empty above")
     } else {
@@ -311,6 +319,7 @@ pub fn params_from_proto(
         reference,
         sources,
         sparse,
+        tracks,
         airlight_source: source,
         airlight_given: req.airlight,
         search,
@@ -336,7 +345,10 @@ impl ParamsInput {
         let est = search_scattering(
             &reference,
             &sources,
-            &self.sparse,
+            SfmEvidence {
+                sparse: &self.sparse,
+                tracks: self.tracks.as_ref(),
+            },
             a0,
             &self.planes,
             &self.search,
@@ -444,8 +456,79 @@ impl ParamsInput {
                     sigmas: c.sigmas,
                 }),
             warnings: est.warnings(),
+            pose_error: est.pose_error.as_ref().map(|p| pb::PoseError {
+                airlight_std_error: p.airlight_std_error,
+                beta_std_error: p.beta_std_error,
+                observations: u32::try_from(p.observations).unwrap_or(u32::MAX),
+                points: u32::try_from(p.points).unwrap_or(u32::MAX),
+                reprojection_rms_px: p.reprojection_rms_px,
+                max_rotation_std_deg: p.max_rotation_std_deg,
+                max_baseline_direction_std_deg: p.max_baseline_direction_std_deg,
+                undetermined: p.undetermined.clone().unwrap_or_default(),
+            }),
         })
     }
+}
+
+/// The request's points and `sparse_point_observations` as [`SfmTracks`], `None` without
+/// observations. Errors name `sparse_point_observations` or its `[i].point`, `.view`, `.x`
+/// and `.y`.
+fn tracks_from_proto(
+    req: &pb::ScatteringParamsRequest,
+    points: Vec<[f64; 3]>,
+    sources: usize,
+) -> Result<Option<SfmTracks>> {
+    let obs = &req.sparse_point_observations;
+    if obs.is_empty() {
+        return Ok(None);
+    }
+    let most = MAX_OBSERVATIONS_PER_POINT * points.len();
+    if obs.len() > most {
+        return Err(MurkError::invalid(
+            "sparse_point_observations",
+            format!(
+                "at most {MAX_OBSERVATIONS_PER_POINT} per sparse point ({most}), got {}",
+                obs.len()
+            ),
+        ));
+    }
+    let field = |i: usize, name: &str| format!("sparse_point_observations[{i}].{name}");
+    let mut observations = Vec::with_capacity(obs.len());
+    for (i, o) in obs.iter().enumerate() {
+        if o.point as usize >= points.len() {
+            return Err(MurkError::invalid(
+                field(i, "point"),
+                format!("{} but there are {} sparse points", o.point, points.len()),
+            ));
+        }
+        if o.view as usize > sources {
+            return Err(MurkError::invalid(
+                field(i, "view"),
+                format!(
+                    "{} but there are {sources} sources (0 = the reference, 1 + i = sources[i])",
+                    o.view
+                ),
+            ));
+        }
+        for (name, v) in [("x", o.x), ("y", o.y)] {
+            if !v.is_finite() {
+                return Err(MurkError::invalid(
+                    field(i, name),
+                    format!("must be finite, got {v}"),
+                ));
+            }
+        }
+        observations.push(Observation {
+            point: o.point,
+            view: o.view,
+            pixel: [o.x, o.y],
+        });
+    }
+    Ok(Some(SfmTracks {
+        points,
+        seen_by: req.sparse_point_sources.clone(),
+        observations,
+    }))
 }
 
 fn joint_fit_to_proto(j: &JointFit) -> pb::JointFit {
@@ -473,7 +556,22 @@ fn identifiability_to_proto(i: Identifiability) -> pb::Identifiability {
         Identifiability::FlatResidual => pb::Identifiability::FlatResidual,
         Identifiability::AirlightConflict => pb::Identifiability::AirlightConflict,
         Identifiability::AirlightAtBound => pb::Identifiability::AirlightAtBound,
+        Identifiability::WeakSfm => pb::Identifiability::WeakSfm,
     }
+}
+
+/// The `sparse_point_observations` of `tracks` (for clients: the CLI, tests).
+pub fn observations_to_proto(tracks: &SfmTracks) -> Vec<pb::SparsePointObservation> {
+    tracks
+        .observations
+        .iter()
+        .map(|o| pb::SparsePointObservation {
+            point: o.point,
+            view: o.view,
+            x: o.pixel[0],
+            y: o.pixel[1],
+        })
+        .collect()
 }
 
 /// A request for clients (CLI, demo, tests): views as raw f32, SfM points, the airlight source

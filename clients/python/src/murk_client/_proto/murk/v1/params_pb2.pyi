@@ -99,6 +99,11 @@ class _IdentifiabilityEnumTypeWrapper(_enum_type_wrapper._EnumTypeWrapper[_Ident
     the best fit lies outside it, so the standard errors of A and beta mean nothing. A* and
     beta* are the fit's, at the bound.
     """
+    IDENTIFIABILITY_WEAK_SFM: _Identifiability.ValueType  # 7
+    """The points determine beta, but the SfM poses do not: with the poses' uncertainty (the
+    request's sparse_point_observations) beta's standard error exceeds 15 % of beta, or the
+    observations leave a pose undetermined. PoseError says how uncertain the poses are.
+    """
 
 class Identifiability(_Identifiability, metaclass=_IdentifiabilityEnumTypeWrapper):
     """Whether the SfM points determine beta."""
@@ -124,6 +129,11 @@ IDENTIFIABILITY_AIRLIGHT_AT_BOUND: Identifiability.ValueType  # 6
 """The joint fit's A sits on a bound of its range (1, the brightest linear value, or 0.001):
 the best fit lies outside it, so the standard errors of A and beta mean nothing. A* and
 beta* are the fit's, at the bound.
+"""
+IDENTIFIABILITY_WEAK_SFM: Identifiability.ValueType  # 7
+"""The points determine beta, but the SfM poses do not: with the poses' uncertainty (the
+request's sparse_point_observations) beta's standard error exceeds 15 % of beta, or the
+observations leave a pose undetermined. PoseError says how uncertain the poses are.
 """
 Global___Identifiability: _TypeAlias = Identifiability  # noqa: Y015
 
@@ -224,6 +234,7 @@ class ScatteringParamsRequest(_message.Message):
     JOINT_FIT_FIELD_NUMBER: _builtins.int
     AIRLIGHT_PRIOR_SIGMA_FIELD_NUMBER: _builtins.int
     SPARSE_POINT_SOURCES_FIELD_NUMBER: _builtins.int
+    SPARSE_POINT_OBSERVATIONS_FIELD_NUMBER: _builtins.int
     airlight_source: Global___AirlightSource.ValueType
     """Where A0 comes from. UNSPECIFIED = the server's configured estimator (the CNN by default)."""
     airlight: _builtins.float
@@ -315,6 +326,17 @@ class ScatteringParamsRequest(_message.Message):
         at or above the number of sources must be 0.
         """
 
+    @_builtins.property
+    def sparse_point_observations(self) -> _containers.RepeatedCompositeFieldContainer[Global___SparsePointObservation]:
+        """Where SfM saw the points, for the poses' share of the standard errors: empty = the poses
+        are taken as exact. Each entry is one 2-D observation of sparse_points[point] in a view of
+        this request (0 = the reference, 1 + i = sources[i]), in pixels with the top-left pixel's
+        centre at (0, 0) (COLMAP's keypoints minus 0.5). From them the server computes the poses'
+        covariance, as a bundle adjustment of these views would (reference fixed, scale fixed), and
+        how far it moves A and beta; ScatteringParamsResult.pose_error reports it, and the joint
+        fit's standard errors include it. At most 64 per sparse point.
+        """
+
     def __init__(
         self,
         *,
@@ -341,10 +363,11 @@ class ScatteringParamsRequest(_message.Message):
         joint_fit: _builtins.bool | None = ...,
         airlight_prior_sigma: _builtins.float | None = ...,
         sparse_point_sources: _abc.Iterable[_builtins.int] | None = ...,
+        sparse_point_observations: _abc.Iterable[Global___SparsePointObservation] | None = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["_airlight_prior_sigma", b"_airlight_prior_sigma", "_beta_from_points", b"_beta_from_points", "_beta_max", b"_beta_max", "_beta_min", b"_beta_min", "_beta_steps", b"_beta_steps", "_delta_airlight", b"_delta_airlight", "_delta_beta", b"_delta_beta", "_delta_px", b"_delta_px", "_grid_steps", b"_grid_steps", "_joint_fit", b"_joint_fit", "_min_improvement_t", b"_min_improvement_t", "airlight_prior_sigma", b"airlight_prior_sigma", "beta_from_points", b"beta_from_points", "beta_max", b"beta_max", "beta_min", b"beta_min", "beta_steps", b"beta_steps", "delta_airlight", b"delta_airlight", "delta_beta", b"delta_beta", "delta_px", b"delta_px", "grid_steps", b"grid_steps", "joint_fit", b"joint_fit", "min_improvement_t", b"min_improvement_t", "reference", b"reference", "sgm", b"sgm"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["_airlight_prior_sigma", b"_airlight_prior_sigma", "_beta_from_points", b"_beta_from_points", "_beta_max", b"_beta_max", "_beta_min", b"_beta_min", "_beta_steps", b"_beta_steps", "_delta_airlight", b"_delta_airlight", "_delta_beta", b"_delta_beta", "_delta_px", b"_delta_px", "_grid_steps", b"_grid_steps", "_joint_fit", b"_joint_fit", "_min_improvement_t", b"_min_improvement_t", "airlight", b"airlight", "airlight_prior_sigma", b"airlight_prior_sigma", "airlight_source", b"airlight_source", "beta_from_points", b"beta_from_points", "beta_max", b"beta_max", "beta_min", b"beta_min", "beta_steps", b"beta_steps", "delta_airlight", b"delta_airlight", "delta_beta", b"delta_beta", "delta_px", b"delta_px", "far", b"far", "grid_steps", b"grid_steps", "joint_fit", b"joint_fit", "min_improvement_t", b"min_improvement_t", "near", b"near", "num_planes", b"num_planes", "reference", b"reference", "search_downsample", b"search_downsample", "search_planes", b"search_planes", "sgm", b"sgm", "sources", b"sources", "sparse_point_sources", b"sparse_point_sources", "sparse_points", b"sparse_points"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["_airlight_prior_sigma", b"_airlight_prior_sigma", "_beta_from_points", b"_beta_from_points", "_beta_max", b"_beta_max", "_beta_min", b"_beta_min", "_beta_steps", b"_beta_steps", "_delta_airlight", b"_delta_airlight", "_delta_beta", b"_delta_beta", "_delta_px", b"_delta_px", "_grid_steps", b"_grid_steps", "_joint_fit", b"_joint_fit", "_min_improvement_t", b"_min_improvement_t", "airlight", b"airlight", "airlight_prior_sigma", b"airlight_prior_sigma", "airlight_source", b"airlight_source", "beta_from_points", b"beta_from_points", "beta_max", b"beta_max", "beta_min", b"beta_min", "beta_steps", b"beta_steps", "delta_airlight", b"delta_airlight", "delta_beta", b"delta_beta", "delta_px", b"delta_px", "far", b"far", "grid_steps", b"grid_steps", "joint_fit", b"joint_fit", "min_improvement_t", b"min_improvement_t", "near", b"near", "num_planes", b"num_planes", "reference", b"reference", "search_downsample", b"search_downsample", "search_planes", b"search_planes", "sgm", b"sgm", "sources", b"sources", "sparse_point_observations", b"sparse_point_observations", "sparse_point_sources", b"sparse_point_sources", "sparse_points", b"sparse_points"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     _WhichOneofReturnType__airlight_prior_sigma: _TypeAlias = _typing.Literal["airlight_prior_sigma"]  # noqa: Y015
     _WhichOneofArgType__airlight_prior_sigma: _TypeAlias = _typing.Literal["_airlight_prior_sigma", b"_airlight_prior_sigma"]  # noqa: Y015
@@ -392,6 +415,99 @@ class ScatteringParamsRequest(_message.Message):
     def WhichOneof(self, oneof_group: _WhichOneofArgType__min_improvement_t) -> _WhichOneofReturnType__min_improvement_t | None: ...
 
 Global___ScatteringParamsRequest: _TypeAlias = ScatteringParamsRequest  # noqa: Y015
+
+@_typing.final
+class SparsePointObservation(_message.Message):
+    """One 2-D observation of a sparse point (see ScatteringParamsRequest.sparse_point_observations)."""
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    POINT_FIELD_NUMBER: _builtins.int
+    VIEW_FIELD_NUMBER: _builtins.int
+    X_FIELD_NUMBER: _builtins.int
+    Y_FIELD_NUMBER: _builtins.int
+    point: _builtins.int
+    """Index into sparse_points."""
+    view: _builtins.int
+    """0 = the reference, 1 + i = sources[i]."""
+    x: _builtins.float
+    """Pixel coordinates, top-left pixel centre at (0, 0)."""
+    y: _builtins.float
+    def __init__(
+        self,
+        *,
+        point: _builtins.int = ...,
+        view: _builtins.int = ...,
+        x: _builtins.float = ...,
+        y: _builtins.float = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["point", b"point", "view", b"view", "x", b"x", "y", b"y"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___SparsePointObservation: _TypeAlias = SparsePointObservation  # noqa: Y015
+
+@_typing.final
+class PoseError(_message.Message):
+    """The SfM poses' share of the joint fit's standard errors (the request's
+    sparse_point_observations).
+    """
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    AIRLIGHT_STD_ERROR_FIELD_NUMBER: _builtins.int
+    BETA_STD_ERROR_FIELD_NUMBER: _builtins.int
+    OBSERVATIONS_FIELD_NUMBER: _builtins.int
+    POINTS_FIELD_NUMBER: _builtins.int
+    REPROJECTION_RMS_PX_FIELD_NUMBER: _builtins.int
+    MAX_ROTATION_STD_DEG_FIELD_NUMBER: _builtins.int
+    MAX_BASELINE_DIRECTION_STD_DEG_FIELD_NUMBER: _builtins.int
+    UNDETERMINED_FIELD_NUMBER: _builtins.int
+    airlight_std_error: _builtins.float
+    """The poses' share of A's and beta's (per scene unit) standard errors; unset when it could
+    not be computed (undetermined says why).
+    """
+    beta_std_error: _builtins.float
+    observations: _builtins.int
+    """Observations and points (seen by two or more views) behind the poses' covariance."""
+    points: _builtins.int
+    reprojection_rms_px: _builtins.float
+    """Reprojection error per degree of freedom, pixels."""
+    max_rotation_std_deg: _builtins.float
+    """The largest 1-sigma rotation of a source, and the largest 1-sigma turn of a source's
+    direction from the reference camera, degrees.
+    """
+    max_baseline_direction_std_deg: _builtins.float
+    undetermined: _builtins.str
+    """Why the poses' share could not be computed; empty when it was."""
+    def __init__(
+        self,
+        *,
+        airlight_std_error: _builtins.float | None = ...,
+        beta_std_error: _builtins.float | None = ...,
+        observations: _builtins.int = ...,
+        points: _builtins.int = ...,
+        reprojection_rms_px: _builtins.float = ...,
+        max_rotation_std_deg: _builtins.float = ...,
+        max_baseline_direction_std_deg: _builtins.float = ...,
+        undetermined: _builtins.str = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _typing.Literal["_airlight_std_error", b"_airlight_std_error", "_beta_std_error", b"_beta_std_error", "airlight_std_error", b"airlight_std_error", "beta_std_error", b"beta_std_error"]  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["_airlight_std_error", b"_airlight_std_error", "_beta_std_error", b"_beta_std_error", "airlight_std_error", b"airlight_std_error", "beta_std_error", b"beta_std_error", "max_baseline_direction_std_deg", b"max_baseline_direction_std_deg", "max_rotation_std_deg", b"max_rotation_std_deg", "observations", b"observations", "points", b"points", "reprojection_rms_px", b"reprojection_rms_px", "undetermined", b"undetermined"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    _WhichOneofReturnType__airlight_std_error: _TypeAlias = _typing.Literal["airlight_std_error"]  # noqa: Y015
+    _WhichOneofArgType__airlight_std_error: _TypeAlias = _typing.Literal["_airlight_std_error", b"_airlight_std_error"]  # noqa: Y015
+    _WhichOneofReturnType__beta_std_error: _TypeAlias = _typing.Literal["beta_std_error"]  # noqa: Y015
+    _WhichOneofArgType__beta_std_error: _TypeAlias = _typing.Literal["_beta_std_error", b"_beta_std_error"]  # noqa: Y015
+    @_typing.overload
+    def WhichOneof(self, oneof_group: _WhichOneofArgType__airlight_std_error) -> _WhichOneofReturnType__airlight_std_error | None: ...
+    @_typing.overload
+    def WhichOneof(self, oneof_group: _WhichOneofArgType__beta_std_error) -> _WhichOneofReturnType__beta_std_error | None: ...
+
+Global___PoseError: _TypeAlias = PoseError  # noqa: Y015
 
 @_typing.final
 class ResidualSample(_message.Message):
@@ -455,6 +571,7 @@ class ScatteringParamsResult(_message.Message):
     JOINT_FIT_FIELD_NUMBER: _builtins.int
     AIRLIGHT_CONFLICT_FIELD_NUMBER: _builtins.int
     WARNINGS_FIELD_NUMBER: _builtins.int
+    POSE_ERROR_FIELD_NUMBER: _builtins.int
     airlight: _builtins.float
     """A* and beta* (per scene unit)."""
     beta: _builtins.float
@@ -526,6 +643,12 @@ class ScatteringParamsResult(_message.Message):
         when beta is not identifiable, why and what would help.
         """
 
+    @_builtins.property
+    def pose_error(self) -> Global___PoseError:
+        """The SfM poses' share of the joint fit's standard errors, when the request carried
+        sparse_point_observations and the fit determined beta with a finite error.
+        """
+
     def __init__(
         self,
         *,
@@ -555,10 +678,11 @@ class ScatteringParamsResult(_message.Message):
         joint_fit: Global___JointFit | None = ...,
         airlight_conflict: Global___AirlightConflict | None = ...,
         warnings: _abc.Iterable[_builtins.str] | None = ...,
+        pose_error: Global___PoseError | None = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _typing.Literal["_airlight_std_error", b"_airlight_std_error", "_beta_std_error", b"_beta_std_error", "airlight_conflict", b"airlight_conflict", "airlight_std_error", b"airlight_std_error", "beta_std_error", b"beta_std_error", "depth", b"depth", "joint_fit", b"joint_fit", "point_ratio", b"point_ratio"]  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["_airlight_std_error", b"_airlight_std_error", "_beta_std_error", b"_beta_std_error", "airlight_conflict", b"airlight_conflict", "airlight_std_error", b"airlight_std_error", "beta_std_error", b"beta_std_error", "depth", b"depth", "joint_fit", b"joint_fit", "point_ratio", b"point_ratio", "pose_error", b"pose_error"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["_airlight_std_error", b"_airlight_std_error", "_beta_std_error", b"_beta_std_error", "airlight", b"airlight", "airlight_conflict", b"airlight_conflict", "airlight_initial", b"airlight_initial", "airlight_seconds", b"airlight_seconds", "airlight_source", b"airlight_source", "airlight_std_error", b"airlight_std_error", "beta", b"beta", "beta_bound", b"beta_bound", "beta_initial", b"beta_initial", "beta_max", b"beta_max", "beta_min", b"beta_min", "beta_range_from_points", b"beta_range_from_points", "beta_source", b"beta_source", "beta_std_error", b"beta_std_error", "beta_unclamped", b"beta_unclamped", "depth", b"depth", "depth_seconds", b"depth_seconds", "grid", b"grid", "identifiability", b"identifiability", "identifiable", b"identifiable", "joint_fit", b"joint_fit", "num_sparse_points", b"num_sparse_points", "point_ratio", b"point_ratio", "residual", b"residual", "search_seconds", b"search_seconds", "warnings", b"warnings"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["_airlight_std_error", b"_airlight_std_error", "_beta_std_error", b"_beta_std_error", "airlight", b"airlight", "airlight_conflict", b"airlight_conflict", "airlight_initial", b"airlight_initial", "airlight_seconds", b"airlight_seconds", "airlight_source", b"airlight_source", "airlight_std_error", b"airlight_std_error", "beta", b"beta", "beta_bound", b"beta_bound", "beta_initial", b"beta_initial", "beta_max", b"beta_max", "beta_min", b"beta_min", "beta_range_from_points", b"beta_range_from_points", "beta_source", b"beta_source", "beta_std_error", b"beta_std_error", "beta_unclamped", b"beta_unclamped", "depth", b"depth", "depth_seconds", b"depth_seconds", "grid", b"grid", "identifiability", b"identifiability", "identifiable", b"identifiable", "joint_fit", b"joint_fit", "num_sparse_points", b"num_sparse_points", "point_ratio", b"point_ratio", "pose_error", b"pose_error", "residual", b"residual", "search_seconds", b"search_seconds", "warnings", b"warnings"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     _WhichOneofReturnType__airlight_std_error: _TypeAlias = _typing.Literal["airlight_std_error"]  # noqa: Y015
     _WhichOneofArgType__airlight_std_error: _TypeAlias = _typing.Literal["_airlight_std_error", b"_airlight_std_error"]  # noqa: Y015
