@@ -32,9 +32,9 @@ pub const PIXEL_PSF_SIGMA_PX: f64 = 0.5;
 /// Smallest blur applied to either view, pixels: below it the Gaussian's weights on the pixel
 /// grid no longer vary smoothly with the sub-pixel position.
 pub const MIN_SAMPLE_SIGMA_PX: f64 = 0.5;
-/// Largest blur applied to either view, pixels: twice the widest base blur. A wider match
-/// (a source over twice as far as the reference) is capped, leaving that pair's footprints
-/// unequal.
+/// Largest blur applied to either view, pixels: eight times the widest base blur. A wider
+/// match (a source over eight times as far as the reference) is capped, leaving that pair's
+/// footprints unequal.
 pub const MAX_SAMPLE_SIGMA_PX: f64 = 8.0;
 /// Half-width of the sampling window in standard deviations.
 const WINDOW_SIGMAS: f64 = 3.0;
