@@ -196,6 +196,42 @@ def test_scattering_params_recovers_a_and_beta(client: Client, mvs_scene_forward
     assert r.depth.z_depth.shape == (72, 96) and r.depth.num_planes == 64
 
 
+def test_scattering_params_with_observations_reports_the_poses_share(
+    client: Client, mvs_scene_forward: Path
+) -> None:
+    meta = read_meta(mvs_scene_forward)
+    model = mc.load_colmap_model(mvs_scene_forward / "sparse")
+    ref = meta["reference"]
+    views = [model.view(n, mvs_scene_forward / "images") for n in [ref, *model.nearest_sources(ref, 4)]]
+    # Where each view sees each point, 0.5 px of noise added: observations as SfM would give.
+    rng = np.random.default_rng(3)
+    obs = []
+    for i, p in enumerate(np.asarray(model.points_scene_units)):
+        for v, view in enumerate(views):
+            x, y, z = view.pose.rotation @ p + view.pose.translation_scene_units
+            k = view.intrinsics
+            if z > 0:
+                u, w = k.fx * x / z + k.cx, k.fy * y / z + k.cy
+                obs.append([i, v, u + 0.5 * rng.standard_normal(), w + 0.5 * rng.standard_normal()])
+    r = client.scattering_params(
+        views[0],
+        views[1:],
+        model.points_scene_units,
+        airlight_source="dark_channel",
+        observations=obs,
+        options={"num_planes": 64, "search_planes": 32},
+    )
+    plain = params_of(client, mvs_scene_forward)
+    assert (r.airlight, r.beta_per_scene_unit) == (plain.airlight, plain.beta_per_scene_unit)
+    pe = r.pose_error
+    assert pe is not None and pe.undetermined == "" and pe.points > 60
+    assert 0.4 < pe.reprojection_rms_px < 0.7, pe
+    assert pe.beta_std_error_per_scene_unit is not None and pe.beta_std_error_per_scene_unit > 0
+    assert r.beta_std_error_per_scene_unit is not None and plain.beta_std_error_per_scene_unit is not None
+    assert r.beta_std_error_per_scene_unit > plain.beta_std_error_per_scene_unit
+    assert plain.pose_error is None
+
+
 def test_scattering_params_reports_an_airlight_conflict(client: Client, mvs_scene_forward: Path) -> None:
     meta = read_meta(mvs_scene_forward)
     model = mc.load_colmap_model(mvs_scene_forward / "sparse")

@@ -186,3 +186,22 @@ def test_seen_by_sources_become_track_masks() -> None:
     with pytest.raises(mc.ClientInputError) as e:
         mc.scattering_params_request(view, [view], pts, seen_by_sources=[[0], [1]])
     assert e.value.field == "request.scattering_params.sparse_point_sources[1]"
+
+
+def test_observations_go_into_the_request_and_bad_ones_name_the_field() -> None:
+    view = mc.View(np.zeros((4, 4)), mc.Intrinsics(4.0, 4.0, 2.0, 2.0), mc.Pose(np.eye(3), np.zeros(3)))
+    pts = np.array([[0.0, 0.0, 1.0], [0.1, 0.0, 1.0]])
+    obs = [[0, 0, 1.5, 2.0], [1, 2, 3.0, 0.5]]
+    req = mc.scattering_params_request(view, [view, view], pts, observations=obs).scattering_params
+    got = [(o.point, o.view, o.x, o.y) for o in req.sparse_point_observations]
+    assert got == [(0, 0, 1.5, 2.0), (1, 2, 3.0, 0.5)]
+    field = "request.scattering_params.sparse_point_observations"
+    for bad, where in [
+        ([[2, 0, 1.0, 1.0]], f"{field}[0].point"),
+        ([[0, 0, 1.0, 1.0], [0, 3, 1.0, 1.0]], f"{field}[1].view"),
+        ([[0, 1, float("nan"), 1.0]], f"{field}[0]"),
+        ([[0, 1, 1.0]], field),
+    ]:
+        with pytest.raises(mc.ClientInputError) as e:
+            mc.scattering_params_request(view, [view, view], pts, observations=bad)
+        assert e.value.field == where

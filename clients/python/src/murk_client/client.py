@@ -344,6 +344,7 @@ class Client:
         near_scene_units: float | None = None,
         far_scene_units: float | None = None,
         seen_by_sources: Sequence[Sequence[int]] | None = None,
+        observations: npt.ArrayLike | None = None,
         options: Tuning | None = None,
         progress: ProgressCallback | None = None,
         timeout_s: float | None = None,
@@ -360,6 +361,7 @@ class Client:
             near_scene_units=near_scene_units,
             far_scene_units=far_scene_units,
             seen_by_sources=seen_by_sources,
+            observations=observations,
             options=options,
         )
         return _expect(self.run(req, progress=progress, timeout_s=timeout_s), ScatteringParamsResult)

@@ -291,6 +291,7 @@ def scattering_params_request(
     near_scene_units: float | None = None,
     far_scene_units: float | None = None,
     seen_by_sources: Sequence[Sequence[int]] | None = None,
+    observations: npt.ArrayLike | None = None,
     options: Tuning | None = None,
 ) -> jobs_pb2.JobRequest:
     """Airlight A and scattering coefficient β by Algorithm 1 (Ch. 3.3), then the depth with them.
@@ -299,6 +300,10 @@ def scattering_params_request(
     ``seen_by_sources``: for each point, the indices into ``sources`` of the images whose SfM
     track includes it (COLMAP's observations); the fit then samples a point only where it was
     seen, not where a nearer surface hides it. Unset: every point is used in every source.
+    ``observations``: an ``(m, 4)`` array of where SfM saw the points: point index, view (0 the
+    reference, ``1 + i`` for ``sources[i]``) and the pixel ``x, y`` with the top-left pixel's
+    centre at (0, 0) (COLMAP's keypoints minus 0.5). The standard errors then include the SfM
+    poses' share (``ScatteringParamsResult.pose_error``). Unset: the poses are taken as exact.
     ``airlight_source``: ``"server"`` (its configured estimator), ``"cnn"``, ``"dark_channel"``
     or ``"given"`` (then ``airlight`` in (0, 1]); by default A is then fitted with β to the
     points, A0 as a prior. β bounds are per scene unit; unset ends come from the points' depths
@@ -342,6 +347,20 @@ def scattering_params_request(
                     raise ClientInputError(f"{field}[{i}]", f"source index {s} outside 0..{len(sources) - 1}")
                 mask |= 1 << int(s)
             req.sparse_point_sources.append(mask)
+    del req.sparse_point_observations[:]
+    if observations is not None:
+        field = "request.scattering_params.sparse_point_observations"
+        obs = np.asarray(observations, dtype=np.float64)
+        if obs.ndim != 2 or obs.shape[1] != 4:
+            raise ClientInputError(field, f"expected shape (m, 4): point, view, x, y; got {obs.shape}")
+        for i, (point, view, x, y) in enumerate(obs.tolist()):
+            if not (point == int(point) and 0 <= point < len(pts)):
+                raise ClientInputError(f"{field}[{i}].point", f"an index in 0..{len(pts) - 1}, got {point}")
+            if not (view == int(view) and 0 <= view <= len(sources)):
+                raise ClientInputError(f"{field}[{i}].view", f"0 (reference) to {len(sources)}, got {view}")
+            if not (math.isfinite(x) and math.isfinite(y)):
+                raise ClientInputError(f"{field}[{i}]", f"pixel must be finite, got ({x}, {y})")
+            req.sparse_point_observations.add(point=int(point), view=int(view), x=x, y=y)
     req.airlight_source = _AIRLIGHT_SOURCES[airlight_source]
     if airlight is not None:
         req.airlight = _finite(airlight, "request.scattering_params.airlight", positive=True)

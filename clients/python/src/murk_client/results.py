@@ -185,6 +185,40 @@ class AirlightConflict:
 
 
 @dataclass(frozen=True)
+class PoseError:
+    """The SfM poses' share of the joint fit's standard errors, from the request's observations."""
+
+    #: The poses' share of A's and β's (per scene unit) standard errors; None when it could not
+    #: be computed (``undetermined`` says why).
+    airlight_std_error: float | None
+    beta_std_error_per_scene_unit: float | None
+    #: Observations and points (seen by two or more views) behind the poses' covariance.
+    observations: int
+    points: int
+    #: Reprojection error per degree of freedom, pixels.
+    reprojection_rms_px: float
+    #: The sources' largest 1-sigma rotation and baseline-direction turn, degrees.
+    max_rotation_std_deg: float
+    max_baseline_direction_std_deg: float
+    #: Why the share could not be computed; empty when it was.
+    undetermined: str
+
+    @classmethod
+    def from_proto(cls, p: params_pb2.PoseError) -> PoseError:
+        """From the result's message."""
+        return cls(
+            airlight_std_error=p.airlight_std_error if p.HasField("airlight_std_error") else None,
+            beta_std_error_per_scene_unit=p.beta_std_error if p.HasField("beta_std_error") else None,
+            observations=p.observations,
+            points=p.points,
+            reprojection_rms_px=p.reprojection_rms_px,
+            max_rotation_std_deg=p.max_rotation_std_deg,
+            max_baseline_direction_std_deg=p.max_baseline_direction_std_deg,
+            undetermined=p.undetermined,
+        )
+
+
+@dataclass(frozen=True)
 class ScatteringParamsResult:
     """A*, β* of Algorithm 1 and the depth with them, with what the data say about them."""
 
@@ -200,8 +234,9 @@ class ScatteringParamsResult:
     #: ``"identifiable"``, ``"no_depth_difference"`` (a rectified pair or sideways motion),
     #: ``"too_few_points"``, ``"flat_residual"``, ``"airlight_conflict"`` (the points' A
     #: disagrees with the image's airlight estimate: the SfM model is likely wrong; see
-    #: ``airlight_conflict``) or ``"airlight_at_bound"`` (the fit's A sits on the bound of its
-    #: range, so the standard errors do not hold). ``warnings`` gives the numbers.
+    #: ``airlight_conflict``), ``"airlight_at_bound"`` (the fit's A sits on the bound of its
+    #: range, so the standard errors do not hold) or ``"weak_sfm"`` (the SfM poses are too
+    #: uncertain to pin β down; see ``pose_error``). ``warnings`` gives the numbers.
     identifiability: str
     #: ``"joint_fit"`` (A, β and source gains fitted to the points), ``"point_ratio"`` or
     #: ``"sweep"``.
@@ -237,6 +272,9 @@ class ScatteringParamsResult:
     warnings: tuple[str, ...]
     job_id: str
     proto: params_pb2.ScatteringParamsResult
+    #: The SfM poses' share of the standard errors (included in them), when the request carried
+    #: observations and the fit determined β with a finite error; None otherwise.
+    pose_error: PoseError | None = None
 
     @classmethod
     def from_proto(cls, r: params_pb2.ScatteringParamsResult, job_id: str = "") -> ScatteringParamsResult:
@@ -253,6 +291,7 @@ class ScatteringParamsResult:
             params_pb2.IDENTIFIABILITY_FLAT_RESIDUAL: "flat_residual",
             params_pb2.IDENTIFIABILITY_AIRLIGHT_CONFLICT: "airlight_conflict",
             params_pb2.IDENTIFIABILITY_AIRLIGHT_AT_BOUND: "airlight_at_bound",
+            params_pb2.IDENTIFIABILITY_WEAK_SFM: "weak_sfm",
         }
         beta_sources = {
             params_pb2.BETA_SOURCE_JOINT_FIT: "joint_fit",
@@ -304,6 +343,7 @@ class ScatteringParamsResult:
             warnings=tuple(r.warnings),
             job_id=job_id,
             proto=r,
+            pose_error=PoseError.from_proto(r.pose_error) if r.HasField("pose_error") else None,
         )
 
 
