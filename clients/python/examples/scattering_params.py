@@ -30,17 +30,24 @@ def main() -> None:
     a = ap.parse_args()
 
     model = mc.load_colmap_model(a.model)
+    sources = model.nearest_sources(a.reference, a.sources)
     with mc.Client(a.server, token=a.token) as murk:
         r = murk.scattering_params(
             model.view(a.reference, a.images),
-            [model.view(n, a.images) for n in model.nearest_sources(a.reference, a.sources)],
+            [model.view(n, a.images) for n in sources],
             model.points_scene_units,
             airlight_source=a.airlight_source,
+            # Where SfM saw the points: the standard errors then include the poses' share.
+            observations=model.observations(a.reference, sources),
         )
     a.out.mkdir(parents=True, exist_ok=True)
     summary = {
         "airlight": r.airlight,
         "beta_per_scene_unit": r.beta_per_scene_unit,
+        "airlight_std_error": r.airlight_std_error,
+        "beta_std_error_per_scene_unit": r.beta_std_error_per_scene_unit,
+        "identifiability": r.identifiability,
+        "pose_error": None if r.pose_error is None else r.pose_error.__dict__,
         "airlight_initial": r.airlight_initial,
         "airlight_source": r.airlight_source,
         "beta_initial_per_scene_unit": r.beta_initial_per_scene_unit,

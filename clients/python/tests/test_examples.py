@@ -64,6 +64,9 @@ def test_params_example(server: MurkServer, mvs_scene: Path, tmp_path: Path) -> 
     )
     params = json.loads((tmp_path / "params.json").read_text())
     assert 0 < params["airlight"] <= 1 and params["beta_per_scene_unit"] > 0 and params["search"]
+    # The model's observations went with the request: the poses' share is reported with them.
+    pose = params["pose_error"]
+    assert pose is None or pose["observations"] > 0, pose
 
 
 @pytest.mark.parametrize("script", ["photometric_stereo.py"])

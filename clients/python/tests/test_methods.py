@@ -230,6 +230,18 @@ def test_scattering_params_with_observations_reports_the_poses_share(
     assert r.beta_std_error_per_scene_unit is not None and plain.beta_std_error_per_scene_unit is not None
     assert r.beta_std_error_per_scene_unit > plain.beta_std_error_per_scene_unit
     assert plain.pose_error is None
+    # The model's own observations (the simulator's: exact projections of the true points).
+    own = model.observations(ref, model.nearest_sources(ref, 4))
+    assert own.shape[1] == 4 and len(own) > 2 * len(model.points_scene_units)
+    r = client.scattering_params(
+        views[0],
+        views[1:],
+        model.points_scene_units,
+        airlight_source="dark_channel",
+        observations=own,
+        options={"num_planes": 64, "search_planes": 32},
+    )
+    assert r.pose_error is not None and r.pose_error.points > 60, r.pose_error
 
 
 def test_scattering_params_reports_an_airlight_conflict(client: Client, mvs_scene_forward: Path) -> None:

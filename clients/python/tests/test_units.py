@@ -167,6 +167,13 @@ def test_colmap_binary_and_text_models(tmp_path: Path) -> None:
     np.testing.assert_allclose(t.points_scene_units, m.points_scene_units)
     assert [i.name for i in t.images.values()] == ["a.png", "b.png"]
     assert t.point_tracks == m.point_tracks
+    # The keypoints behind the tracks, as observations in murk's pixels (COLMAP's minus 0.5).
+    assert t.point_track_keypoints == m.point_track_keypoints == [(0, 0), (0, 0)]
+    every = [[0, 0, 2.5, 3.5], [0, 1, 2.5, 3.5], [1, 0, 2.5, 3.5], [1, 1, 2.5, 3.5]]
+    assert m.observations("a.png", ["b.png"]).tolist() == every
+    # b.png lists no keypoints in the text model: only the reference's observations remain.
+    assert t.observations("a.png", ["b.png"]).tolist() == [every[0], every[2]]
+    assert m.observations("b.png", []).tolist() == [[0, 0, 2.5, 3.5], [1, 0, 2.5, 3.5]]
     with pytest.raises(mc.ClientInputError):
         mc.ColmapCamera(1, "OPENCV", 4, 4, (1, 1, 1, 1, 0, 0, 0, 0)).intrinsics()
     (tmp_path / "points3D.bin").write_bytes(struct.pack("<Q", 5))

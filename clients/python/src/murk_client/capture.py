@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import struct
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -201,12 +202,14 @@ class ColmapCamera:
 
 @dataclass(frozen=True)
 class ColmapImage:
-    """A registered image: name, world-to-camera pose, camera id."""
+    """A registered image: name, world-to-camera pose, camera id, and its 2D keypoints."""
 
     id: int
     name: str
     pose: Pose
     camera_id: int
+    #: ``(k, 2)`` keypoint positions, COLMAP's pixels (the top-left pixel's centre at (0.5, 0.5)).
+    keypoints: npt.NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 2)))
 
 
 @dataclass
@@ -219,6 +222,25 @@ class ColmapModel:
     points_scene_units: npt.NDArray[np.float64]
     #: Per point, the ids of the images whose track includes it.
     point_tracks: list[tuple[int, ...]] = field(default_factory=list)
+    #: Per point, its track's keypoint index in each of those images (same order).
+    point_track_keypoints: list[tuple[int, ...]] = field(default_factory=list)
+
+    def observations(self, reference: str, sources: Sequence[str]) -> npt.NDArray[np.float64]:
+        """Where the model saw its points in ``reference`` and ``sources`` (image names): an
+        ``(m, 4)`` array of point index (into ``points_scene_units``), view (0 the reference,
+        ``1 + i`` for ``sources[i]``) and pixel in murk's convention (COLMAP's minus 0.5), the
+        ``observations`` of :meth:`murk_client.Client.scattering_params`."""
+        views = {self.image(reference).id: 0}
+        for i, name in enumerate(sources):
+            views[self.image(name).id] = i + 1
+        rows = []
+        for p, (ids, kps) in enumerate(zip(self.point_tracks, self.point_track_keypoints, strict=True)):
+            for image_id, k in zip(ids, kps, strict=True):
+                view = views.get(image_id)
+                keypoints = self.images[image_id].keypoints if image_id in self.images else None
+                if view is not None and keypoints is not None and k < len(keypoints):
+                    rows.append([p, view, keypoints[k][0] - 0.5, keypoints[k][1] - 0.5])
+        return np.asarray(rows, dtype=np.float64).reshape(-1, 4)
 
     def image(self, name: str) -> ColmapImage:
         """The registered image called ``name``."""
@@ -259,16 +281,16 @@ def load_colmap_model(folder: PathLike) -> ColmapModel:
         with open(d / "images.bin", "rb") as f:
             images = _images_bin(f)
         with open(d / "points3D.bin", "rb") as f:
-            points, tracks = _points_bin(f)
+            points, tracks, keypoints = _points_bin(f)
     elif all((d / f"{n}.txt").exists() for n in ("cameras", "images", "points3D")):
         cameras, images = _cameras_txt(d / "cameras.txt"), _images_txt(d / "images.txt")
-        points, tracks = _points_txt(d / "points3D.txt")
+        points, tracks, keypoints = _points_txt(d / "points3D.txt")
     else:
         raise ClientInputError(str(d), "no COLMAP model (cameras/images/points3D .txt or .bin)")
     for im in images.values():
         if im.camera_id not in cameras:
             raise ClientInputError(f"images.{im.name}", f"unknown camera {im.camera_id}")
-    return ColmapModel(cameras, images, points, tracks)
+    return ColmapModel(cameras, images, points, tracks, keypoints)
 
 
 def _lines(path: Path) -> list[str]:
@@ -297,20 +319,27 @@ def _images_txt(path: Path) -> dict[int, ColmapImage]:
         iid = int(t[0])
         q = [float(v) for v in t[1:5]]
         tv = [float(v) for v in t[5:8]]
+        xy = lines[i + 1].split() if i + 1 < len(lines) else []
+        keypoints = np.asarray(
+            [[float(xy[j]), float(xy[j + 1])] for j in range(0, len(xy) - 2, 3)], dtype=np.float64
+        ).reshape(-1, 2)
         out[iid] = ColmapImage(
-            iid, " ".join(t[9:]), Pose.from_quaternion(q[0], q[1], q[2], q[3], tv), int(t[8])
+            iid, " ".join(t[9:]), Pose.from_quaternion(q[0], q[1], q[2], q[3], tv), int(t[8]), keypoints
         )
         i += 2
     return out
 
 
-def _points_txt(path: Path) -> tuple[npt.NDArray[np.float64], list[tuple[int, ...]]]:
-    xyz, tracks = [], []
+def _points_txt(
+    path: Path,
+) -> tuple[npt.NDArray[np.float64], list[tuple[int, ...]], list[tuple[int, ...]]]:
+    xyz, tracks, keypoints = [], [], []
     for ln in _lines(path):
         t = ln.split()
         xyz.append([float(t[1]), float(t[2]), float(t[3])])
         tracks.append(tuple(int(v) for v in t[8::2]))
-    return np.asarray(xyz, dtype=np.float64).reshape(-1, 3), tracks
+        keypoints.append(tuple(int(v) for v in t[9::2]))
+    return np.asarray(xyz, dtype=np.float64).reshape(-1, 3), tracks, keypoints
 
 
 def _read(f: BinaryIO, fmt: str) -> tuple[Any, ...]:
@@ -345,16 +374,22 @@ def _images_bin(f: BinaryIO) -> dict[int, ColmapImage]:
                 break
             name += c
         n2d = _read(f, "<Q")[0]
-        f.seek(24 * n2d, 1)
-        out[iid] = ColmapImage(iid, name.decode(), Pose.from_quaternion(qw, qx, qy, qz, [tx, ty, tz]), cid)
+        # x, y (f64) and the point's id (i64) per keypoint; only the positions are kept.
+        raw = _read(f, "<" + "ddq" * n2d) if n2d else ()
+        keypoints = np.asarray([raw[0::3], raw[1::3]], dtype=np.float64).T.reshape(-1, 2)
+        pose = Pose.from_quaternion(qw, qx, qy, qz, [tx, ty, tz])
+        out[iid] = ColmapImage(iid, name.decode(), pose, cid, keypoints)
     return out
 
 
-def _points_bin(f: BinaryIO) -> tuple[npt.NDArray[np.float64], list[tuple[int, ...]]]:
-    xyz, tracks = [], []
+def _points_bin(
+    f: BinaryIO,
+) -> tuple[npt.NDArray[np.float64], list[tuple[int, ...]], list[tuple[int, ...]]]:
+    xyz, tracks, keypoints = [], [], []
     for _ in range(_read(f, "<Q")[0]):
         _pid, x, y, z, _r, _g, _b, _err, n = _read(f, "<Q3d3BdQ")
         track = _read(f, f"<{2 * n}i") if n else ()
         xyz.append([x, y, z])
         tracks.append(tuple(track[0::2]))
-    return np.asarray(xyz, dtype=np.float64).reshape(-1, 3), tracks
+        keypoints.append(tuple(track[1::2]))
+    return np.asarray(xyz, dtype=np.float64).reshape(-1, 3), tracks, keypoints
