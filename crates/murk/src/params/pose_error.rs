@@ -37,6 +37,7 @@ use rayon::prelude::*;
 
 use crate::camera::Intrinsics;
 use crate::error::{MurkError, Result};
+use crate::monitor::Monitor;
 use crate::mvs::colmap::ColmapModel;
 use crate::mvs::pose::Pose;
 use crate::mvs::View;
@@ -501,20 +502,28 @@ pub struct PoseError {
 /// The poses' share of `fit`'s standard errors for `reference` and `sources` (whose poses and
 /// intrinsics the model gave) and the model's `tracks`: [`pose_covariance`], then
 /// [`PoseCovariance::propagate`] with [`JointFit::refit`] on [`blurred_ratio_samples`].
+///
+/// The refits stop early when `monitor` is cancelled, and the call then returns `Cancelled`.
 pub fn pose_error_of_fit(
     reference: &View<'_>,
     sources: &[View<'_>],
     tracks: &SfmTracks,
     fit: &JointFit,
-) -> PoseError {
+    monitor: &Monitor,
+) -> Result<PoseError> {
     let views: Vec<(Intrinsics, Pose)> = std::iter::once(reference)
         .chain(sources)
         .map(|v| (v.intrinsics, v.pose))
         .collect();
     let cov = pose_covariance(&views, tracks);
+    // A cancelled job stops at the next refit: each sees `None` and the spread is dropped.
     let spread = cov.propagate(reference, sources, tracks, |r, s, sparse| {
+        if monitor.is_cancelled() {
+            return None;
+        }
         fit.refit(&blurred_ratio_samples(r, s, sparse))
     });
+    monitor.checkpoint()?;
     let largest = |v: &[f64]| v.iter().copied().fold(0.0, f64::max);
     let undetermined = match (&cov.undetermined, spread) {
         (Some(why), _) => Some(why.clone()),
@@ -525,7 +534,7 @@ pub fn pose_error_of_fit(
         ),
         (None, Some(_)) => None,
     };
-    PoseError {
+    Ok(PoseError {
         airlight_std_error: spread.map(|s| s[0]),
         beta_std_error: spread.map(|s| s[1]),
         observations: cov.observations,
@@ -534,13 +543,12 @@ pub fn pose_error_of_fit(
         max_rotation_std_deg: largest(&cov.rotation_std_deg),
         max_baseline_direction_std_deg: largest(&cov.baseline_direction_std_deg),
         undetermined,
-    }
+    })
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::monitor::Monitor;
     use crate::params::joint_fit::{fit_joint_samples, JointPriors, FALLOFF_PRIOR_SIGMA};
     use crate::simulate::mvs::{simulate_mvs, MvsScene, MvsSimConfig};
     use rand::{Rng, SeedableRng};
@@ -721,7 +729,8 @@ mod tests {
     }
 
     /// On the simulator's model the observations are the true points' projections and the
-    /// points carry a little noise: the poses are well known and their share is small.
+    /// points carry a little noise: the poses are well known and their share is small. A
+    /// cancelled job gets no share but `Cancelled`.
     #[test]
     fn sound_poses_add_little() {
         let scene = walking_scene(11);
@@ -734,7 +743,7 @@ mod tests {
             &priors(&scene),
         )
         .unwrap();
-        let pe = pose_error_of_fit(&reference, &sources, &tracks, &fit);
+        let pe = pose_error_of_fit(&reference, &sources, &tracks, &fit, &Monitor::noop()).unwrap();
         assert!(pe.undetermined.is_none(), "{pe:?}");
         let b = pe.beta_std_error.unwrap();
         assert!(
@@ -743,6 +752,12 @@ mod tests {
             fit.beta_std_error
         );
         assert!(pe.max_baseline_direction_std_deg < 2.0, "{pe:?}");
+        // A cancelled job stops the refits and says so.
+        let cancelled = Monitor::new(std::sync::Arc::new(true.into()), None);
+        assert_eq!(
+            pose_error_of_fit(&reference, &sources, &tracks, &fit, &cancelled),
+            Err(MurkError::Cancelled)
+        );
     }
 
     /// Models as SfM would return them from observations with 3 px of noise: poses drawn
@@ -787,7 +802,8 @@ mod tests {
                 &priors(&scene),
             )
             .unwrap();
-            let pe = pose_error_of_fit(&reference, &moved, &tracks, &fit);
+            let pe =
+                pose_error_of_fit(&reference, &moved, &tracks, &fit, &Monitor::noop()).unwrap();
             let miss = (fit.beta - truth).abs();
             own += usize::from(miss <= 2.0 * fit.beta_std_error);
             let total = fit.beta_std_error.hypot(pe.beta_std_error.unwrap());

@@ -728,7 +728,7 @@ pub fn search_scattering(
             )
         {
             monitor.checkpoint()?;
-            let pe = pose_error_of_fit(reference, sources, t, j);
+            let pe = pose_error_of_fit(reference, sources, t, j, monitor)?;
             match (pe.airlight_std_error, pe.beta_std_error) {
                 (Some(a), Some(b)) => {
                     j.airlight_std_error = j.airlight_std_error.hypot(a);
