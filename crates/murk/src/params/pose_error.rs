@@ -139,6 +139,13 @@ const POSE_DOF: usize = 6;
 /// A point whose 3 × 3 information is this ill-conditioned (smallest over largest eigenvalue)
 /// is not located by its observations (seen from one centre): it is left out.
 const MIN_POINT_CONDITION: f64 = 1e-9;
+/// Most points behind the poses' covariance: those with the longest tracks. Each keeps a 3 × 3
+/// inverse and a 3 × 6 coupling per source that sees it (about 0.5 KB for three sources), so
+/// the cap bounds a job's memory (about 10 MB) on the largest requests. Leaving points out only
+/// widens the covariance, and the points left out keep their place in the sigma points (their
+/// samples move with the poses): both err on the side of a larger error. The survey's COLMAP
+/// models have 100–1 200 points.
+pub const MAX_COVARIANCE_POINTS: usize = 20_000;
 /// The poses count as undetermined when the weakest direction's information is below this
 /// fraction of the strongest's.
 const MIN_POSE_CONDITION: f64 = 1e-12;
@@ -205,10 +212,21 @@ pub fn pose_covariance(views: &[(Intrinsics, Pose)], tracks: &SfmTracks) -> Pose
     for (i, o) in tracks.observations.iter().enumerate() {
         by_point[o.point as usize].push(i);
     }
+    // The points with the longest tracks, at most `MAX_COVARIANCE_POINTS` of them (ties by
+    // index, so the choice is deterministic).
+    let mut chosen: Vec<usize> = (0..by_point.len())
+        .filter(|&p| by_point[p].len() >= 2)
+        .collect();
+    if chosen.len() > MAX_COVARIANCE_POINTS {
+        chosen.sort_by_key(|&p| (std::cmp::Reverse(by_point[p].len()), p));
+        chosen.truncate(MAX_COVARIANCE_POINTS);
+        chosen.sort_unstable();
+    }
     let mut schur = DMatrix::<f64>::zeros(n, n);
     let mut blocks = Vec::new();
     let (mut ssr, mut used) = (0.0, 0usize);
-    for (p, obs) in by_point.iter().enumerate() {
+    for &p in &chosen {
+        let obs = &by_point[p];
         let x = Vector3::from(tracks.points[p]);
         let mut hxx = Matrix3::<f64>::zeros();
         let mut coupling: Vec<(usize, SMatrix<f64, 3, 6>)> = Vec::new();
@@ -557,6 +575,15 @@ mod tests {
     /// Three cameras 0.3 apart looking at points 4–6 units away; each observation is the exact
     /// projection plus Gaussian noise of `noise_px`.
     fn synthetic(noise_px: f64, scale: f64, seed: u64) -> (Vec<(Intrinsics, Pose)>, SfmTracks) {
+        synthetic_points(200, noise_px, scale, seed)
+    }
+
+    fn synthetic_points(
+        points: u32,
+        noise_px: f64,
+        scale: f64,
+        seed: u64,
+    ) -> (Vec<(Intrinsics, Pose)>, SfmTracks) {
         let k = Intrinsics::new(300.0, 300.0, 160.0, 120.0);
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let views: Vec<(Intrinsics, Pose)> =
@@ -569,7 +596,7 @@ mod tests {
             let (u1, u2): (f64, f64) = (rng.random::<f64>().max(1e-12), rng.random());
             (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
         };
-        for i in 0..200u32 {
+        for i in 0..points {
             let z = rng.random_range(4.0..6.0);
             let p = [
                 rng.random_range(-2.0..2.0) * z / 4.0,
@@ -645,6 +672,32 @@ mod tests {
             assert!((scaled.baseline_direction_std_deg[s] / d - 1.0).abs() < 1e-6);
             assert!((scaled.rotation_std_deg[s] / base.rotation_std_deg[s] - 1.0).abs() < 1e-6);
         }
+    }
+
+    /// Past the cap the points with the longest tracks are used, the first by index among
+    /// equals.
+    #[test]
+    fn the_longest_tracks_are_used_up_to_the_cap() {
+        let extra = 100;
+        let (views, mut tracks) =
+            synthetic_points(MAX_COVARIANCE_POINTS as u32 + extra, 0.5, 1.0, 8);
+        // The first 150 points lose their third view.
+        tracks
+            .observations
+            .retain(|o| !(o.point < 150 && o.view == 2));
+        let cov = pose_covariance(&views, &tracks);
+        assert!(cov.is_determined());
+        assert_eq!(cov.points, MAX_COVARIANCE_POINTS);
+        let two_view = 150 - extra as usize;
+        assert_eq!(
+            cov.observations,
+            3 * (MAX_COVARIANCE_POINTS - two_view) + 2 * two_view
+        );
+        // Left out: the two-view points past the first `two_view` of them.
+        assert!(cov
+            .point_blocks
+            .iter()
+            .all(|b| !(two_view..150).contains(&b.point)));
     }
 
     #[test]
