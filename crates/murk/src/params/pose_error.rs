@@ -169,6 +169,9 @@ pub struct PoseCovariance {
     pub undetermined: Option<String>,
     directions: Vec<DVector<f64>>,
     point_blocks: Vec<PointBlock>,
+    /// The points' mean log depth in the reference at the model: what a moved scene is
+    /// rescaled back to.
+    mean_log_depth: Option<f64>,
 }
 
 /// How one point follows the poses: `δx = −H_xx⁻¹ Σ_s B_s δp_s`.
@@ -178,6 +181,24 @@ struct PointBlock {
     hxx_inv: Matrix3<f64>,
     /// Per source that sees it, `B_s = J_xᵀ J_p` summed over its observations there.
     coupling: Vec<(usize, SMatrix<f64, 3, 6>)>,
+}
+
+/// The intrinsics and pose of `reference` and then of each source: the camera list of
+/// [`pose_covariance`].
+pub fn cameras(reference: &View<'_>, sources: &[View<'_>]) -> Vec<(Intrinsics, Pose)> {
+    std::iter::once(reference)
+        .chain(sources)
+        .map(|v| (v.intrinsics, v.pose))
+        .collect()
+}
+
+/// The mean log z-depth of the points in front of `camera`; `None` when none is.
+fn mean_log_depth(camera: &Pose, points: impl Iterator<Item = Vector3<f64>>) -> Option<f64> {
+    let (sum, n) = points
+        .map(|p| (camera.rotation() * p + camera.translation()).z)
+        .filter(|z| *z > 0.0)
+        .fold((0.0, 0usize), |(s, n), z| (s + z.ln(), n + 1));
+    (n > 0).then(|| sum / n as f64)
 }
 
 /// `[v]×`, the cross-product matrix.
@@ -305,6 +326,9 @@ pub fn pose_covariance(views: &[(Intrinsics, Pose)], tracks: &SfmTracks) -> Pose
         undetermined: None,
         directions: Vec::new(),
         point_blocks: blocks,
+        mean_log_depth: views.first().and_then(|(_, reference)| {
+            mean_log_depth(reference, tracks.points.iter().map(|p| Vector3::from(*p)))
+        }),
     };
     if n_src == 0 {
         out.undetermined = Some("no source views".into());
@@ -381,7 +405,8 @@ impl PoseCovariance {
     /// stays as it was.
     fn moved(
         &self,
-        views: &[(Intrinsics, Pose)],
+        reference: &Pose,
+        sources: &[View<'_>],
         tracks: &SfmTracks,
         d: &DVector<f64>,
     ) -> Option<(Vec<Pose>, Vec<[f64; 3]>)> {
@@ -394,28 +419,19 @@ impl PoseCovariance {
             }
             points[b.point] -= b.hxx_inv * rhs;
         }
-        let reference = &views[0].1;
         let c_ref = *reference.inverse().translation();
-        let log_depth = |pts: &[Vector3<f64>]| {
-            let (sum, n) = pts
-                .iter()
-                .map(|p| (reference.rotation() * p + reference.translation()).z)
-                .filter(|z| *z > 0.0)
-                .fold((0.0, 0usize), |(s, n), z| (s + z.ln(), n + 1));
-            (n > 0).then(|| sum / n as f64)
-        };
-        let before: Vec<Vector3<f64>> = tracks.points.iter().map(|p| Vector3::from(*p)).collect();
-        let scale = (log_depth(&before)? - log_depth(&points)?).exp();
+        let scale =
+            (self.mean_log_depth? - mean_log_depth(reference, points.iter().copied())?).exp();
         let points = points
             .iter()
             .map(|p| (c_ref + (p - c_ref) * scale).into())
             .collect();
-        let mut poses = Vec::with_capacity(views.len() - 1);
-        for (s, (_, pose)) in views[1..].iter().enumerate() {
+        let mut poses = Vec::with_capacity(sources.len());
+        for (s, v) in sources.iter().enumerate() {
             let step = d.fixed_rows::<6>(POSE_DOF * s);
             let turn = Rotation3::new(Vector3::new(step[0], step[1], step[2])).into_inner();
-            let rotation = turn * pose.rotation();
-            let translation = turn * pose.translation() + Vector3::new(step[3], step[4], step[5]);
+            let rotation = turn * v.pose.rotation();
+            let translation = turn * v.pose.translation() + Vector3::new(step[3], step[4], step[5]);
             let centre = -(rotation.transpose() * translation);
             let centre = c_ref + (centre - c_ref) * scale;
             poses.push(Pose::new(rotation, -(rotation * centre)).ok()?);
@@ -432,11 +448,7 @@ impl PoseCovariance {
         tracks: &SfmTracks,
         d: &DVector<f64>,
     ) -> Option<(Vec<View<'a>>, SparseDepth)> {
-        let views: Vec<(Intrinsics, Pose)> = std::iter::once(reference)
-            .chain(sources)
-            .map(|v| (v.intrinsics, v.pose))
-            .collect();
-        let (poses, points) = self.moved(&views, tracks, d)?;
+        let (poses, points) = self.moved(&reference.pose, sources, tracks, d)?;
         let moved = sources
             .iter()
             .zip(&poses)
@@ -529,11 +541,7 @@ pub fn pose_error_of_fit(
     fit: &JointFit,
     monitor: &Monitor,
 ) -> Result<PoseError> {
-    let views: Vec<(Intrinsics, Pose)> = std::iter::once(reference)
-        .chain(sources)
-        .map(|v| (v.intrinsics, v.pose))
-        .collect();
-    let cov = pose_covariance(&views, tracks);
+    let cov = pose_covariance(&cameras(reference, sources), tracks);
     // A cancelled job stops at the next refit: each sees `None` and the spread is dropped.
     let spread = cov.propagate(reference, sources, tracks, |r, s, sparse| {
         if monitor.is_cancelled() {
@@ -763,15 +771,10 @@ mod tests {
 
     /// Tracks of the scene's own model for its reference and sources.
     fn scene_tracks(scene: &MvsScene, sources: usize) -> SfmTracks {
-        let names: Vec<&str> = {
-            let r = scene.reference;
-            let mut others: Vec<usize> = (0..scene.views.len()).filter(|&i| i != r).collect();
-            others.sort_by_key(|&i| i.abs_diff(r));
-            others[..sources]
-                .iter()
-                .map(|&i| scene.views[i].name.as_str())
-                .collect()
-        };
+        let names: Vec<&str> = scene.source_indices()[..sources]
+            .iter()
+            .map(|&i| scene.views[i].name.as_str())
+            .collect();
         SfmTracks::from_colmap(
             &scene.sparse,
             &scene.views[scene.reference].name,
@@ -831,11 +834,7 @@ mod tests {
             o.pixel[0] += 3.0 * gauss();
             o.pixel[1] += 3.0 * gauss();
         }
-        let views: Vec<(Intrinsics, Pose)> = std::iter::once(&reference)
-            .chain(&sources)
-            .map(|v| (v.intrinsics, v.pose))
-            .collect();
-        let cov = pose_covariance(&views, &tracks);
+        let cov = pose_covariance(&cameras(&reference, &sources), &tracks);
         assert!(
             cov.is_determined() && cov.reprojection_rms_px > 2.5,
             "{cov:?}"
