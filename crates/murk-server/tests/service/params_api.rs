@@ -60,16 +60,14 @@ fn observation(point: u32, view: u32) -> pb::SparsePointObservation {
 /// The request's `sparse_point_observations`: where the scene's model saw its points in the
 /// reference (view 0) and the request's sources (view 1 + i), in murk's pixel convention.
 fn with_observations(scene: &MvsScene, req: &mut pb::ScatteringParamsRequest) {
-    let r = scene.reference;
-    let mut others: Vec<usize> = (0..scene.views.len()).filter(|&i| i != r).collect();
-    others.sort_by_key(|&i| i.abs_diff(r));
-    let names: Vec<&str> = others
-        .iter()
-        .map(|&i| scene.views[i].name.as_str())
+    let names: Vec<&str> = scene
+        .source_indices()
+        .into_iter()
+        .map(|i| scene.views[i].name.as_str())
         .collect();
     let tracks = SfmTracks::from_colmap(
         &scene.sparse,
-        &scene.views[r].name,
+        &scene.views[scene.reference].name,
         PointSelection::ObservedInReference,
         &names,
     )

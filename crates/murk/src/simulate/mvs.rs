@@ -341,10 +341,21 @@ impl MvsScene {
     /// trajectory first.
     pub fn reference_and_sources(&self) -> (View<'_>, Vec<View<'_>>) {
         let views = self.hazy_views();
+        let sources = self
+            .source_indices()
+            .into_iter()
+            .map(|i| views[i])
+            .collect();
+        (views[self.reference], sources)
+    }
+
+    /// The indices of the views [`Self::reference_and_sources`] returns as sources, in its
+    /// order: every view but the reference, nearest along the trajectory first.
+    pub fn source_indices(&self) -> Vec<usize> {
         let r = self.reference;
-        let mut others: Vec<usize> = (0..views.len()).filter(|&i| i != r).collect();
+        let mut others: Vec<usize> = (0..self.views.len()).filter(|&i| i != r).collect();
         others.sort_by_key(|&i| i.abs_diff(r));
-        (views[r], others.into_iter().map(|i| views[i]).collect())
+        others
     }
 
     /// The sparse depth of Eq. 3.8 in the reference view: the SfM points whose track includes
