@@ -196,6 +196,32 @@ impl JointFit {
         self.identifiability == Identifiability::Identifiable
     }
 
+    /// Whether the SfM poses' share can be added to the errors: β determined with a finite
+    /// error, identifiable or flat (a verdict on other grounds stands as it is).
+    pub fn takes_pose_share(&self) -> bool {
+        self.beta > 0.0
+            && self.beta_std_error.is_finite()
+            && matches!(
+                self.identifiability,
+                Identifiability::Identifiable | Identifiability::FlatResidual
+            )
+    }
+
+    /// Adds the SfM poses' share `[A, β]` of the standard errors in quadrature (the poses'
+    /// errors are independent of the images' noise). An identifiable fit whose β error then
+    /// reaches [`MAX_RELATIVE_BETA_ERROR`] of β, or whose share could not be computed (`None`),
+    /// becomes [`Identifiability::WeakSfm`].
+    pub fn add_pose_share(&mut self, share: Option<[f64; 2]>) {
+        if let Some([a, b]) = share {
+            self.airlight_std_error = self.airlight_std_error.hypot(a);
+            self.beta_std_error = self.beta_std_error.hypot(b);
+        }
+        let weak = share.is_none() || self.beta_std_error >= MAX_RELATIVE_BETA_ERROR * self.beta;
+        if self.identifiability == Identifiability::Identifiable && weak {
+            self.identifiability = Identifiability::WeakSfm;
+        }
+    }
+
     /// `[A, β]` of this fit's model on other samples of the same scene (taken by
     /// [`blurred_ratio_samples`] after the SfM model moved), started from this fit's solution.
     /// `None` when the samples give too few equations or the fit does not converge.
@@ -883,6 +909,34 @@ mod tests {
         );
         assert_eq!(fit.points, 40);
         assert!(fit.equations >= MIN_EQUATIONS, "{fit:?}");
+    }
+
+    /// The poses' share adds in quadrature; an identifiable fit it takes past 15 %, or whose
+    /// share is unknown, is `weak_sfm`; a flat fit stays flat.
+    #[test]
+    fn the_poses_share_widens_the_errors_and_can_make_beta_weak() {
+        let eqs = synthetic(0.62, 0.35, &[1.0, 1.04, 0.97, 1.1], 1.0, 0.01, 3);
+        let fit = fit_equations(&eqs, 5.0, &priors(0.62));
+        assert!(fit.is_identifiable() && fit.takes_pose_share(), "{fit:?}");
+        let mut small = fit.clone();
+        small.add_pose_share(Some([0.01, 0.02]));
+        assert_eq!(small.identifiability, Identifiability::Identifiable);
+        assert_eq!(small.airlight_std_error, fit.airlight_std_error.hypot(0.01));
+        assert_eq!(small.beta_std_error, fit.beta_std_error.hypot(0.02));
+        let mut large = fit.clone();
+        large.add_pose_share(Some([0.01, 0.2 * fit.beta]));
+        assert_eq!(large.identifiability, Identifiability::WeakSfm);
+        assert!(!large.takes_pose_share());
+        let mut unknown = fit.clone();
+        unknown.add_pose_share(None);
+        assert_eq!(unknown.identifiability, Identifiability::WeakSfm);
+        assert_eq!(unknown.beta_std_error, fit.beta_std_error);
+        let mut flat = JointFit {
+            identifiability: Identifiability::FlatResidual,
+            ..fit
+        };
+        flat.add_pose_share(None);
+        assert_eq!(flat.identifiability, Identifiability::FlatResidual);
     }
 
     #[test]

@@ -529,6 +529,13 @@ pub struct PoseError {
     pub undetermined: Option<String>,
 }
 
+impl PoseError {
+    /// The share `[A, β]`, when it could be computed.
+    pub fn share(&self) -> Option<[f64; 2]> {
+        Some([self.airlight_std_error?, self.beta_std_error?])
+    }
+}
+
 /// The poses' share of `fit`'s standard errors for `reference` and `sources` (whose poses and
 /// intrinsics the model gave) and the model's `tracks`: [`pose_covariance`], then
 /// [`PoseCovariance::propagate`] with [`JointFit::refit`] on [`blurred_ratio_samples`].

@@ -718,35 +718,15 @@ pub fn search_scattering(
     let mut joint = fit_joint_samples(&samples, sparse, &priors);
     // The poses' share of the fit's errors, where the model's tracks say how well SfM placed
     // them: added in quadrature (the poses' errors are independent of the images' noise).
-    let mut pose_error = None;
-    if let (Some(t), Some(j)) = (tracks, joint.as_mut()) {
-        if j.beta > 0.0
-            && j.beta_std_error.is_finite()
-            && matches!(
-                j.identifiability,
-                Identifiability::Identifiable | Identifiability::FlatResidual
-            )
-        {
+    let pose_error = match (tracks, joint.as_mut()) {
+        (Some(t), Some(j)) if j.takes_pose_share() => {
             monitor.checkpoint()?;
             let pe = pose_error_of_fit(reference, sources, t, j, monitor)?;
-            match (pe.airlight_std_error, pe.beta_std_error) {
-                (Some(a), Some(b)) => {
-                    j.airlight_std_error = j.airlight_std_error.hypot(a);
-                    j.beta_std_error = j.beta_std_error.hypot(b);
-                    if j.identifiability == Identifiability::Identifiable
-                        && j.beta_std_error >= MAX_RELATIVE_BETA_ERROR * j.beta
-                    {
-                        j.identifiability = Identifiability::WeakSfm;
-                    }
-                }
-                _ if j.identifiability == Identifiability::Identifiable => {
-                    j.identifiability = Identifiability::WeakSfm;
-                }
-                _ => {}
-            }
-            pose_error = Some(pe);
+            j.add_pose_share(pe.share());
+            Some(pe)
         }
-    }
+        _ => None,
+    };
     // The joint fit's estimate is used whenever it converged with a finite standard error,
     // also when that error is too large to call β identifiable: it is still the data's best
     // estimate (on 20 held-out lateral scenes the one flat case erred by 0.07 with it and by 0.22
