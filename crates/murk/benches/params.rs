@@ -3,7 +3,8 @@
 //! - the airlight estimators on the reference image, and loading the CNN's embedded weights;
 //! - the points' transmission-ratio fit at A₀, and the joint fit of A, β, the source gains and
 //!   the lens fall-offs (with and without the fall-off terms);
-//! - the search as `murk params` runs it by default (the joint fit, then one depth evaluation);
+//! - the search as `murk params` runs it by default (the joint fit, then one depth evaluation),
+//!   without and with the model's observations (the SfM poses' share of the errors);
 //! - the published Algorithm 1 (β₀ by the sweep of Eq. 3.10, then the 4×4 grid with
 //!   Δ_A = Δ_β = 0.05: 10 + 16 = 26 depth evaluations at 128×96 with 64 planes), alone and with
 //!   the final 256-plane depth.
@@ -15,7 +16,9 @@ use criterion::{criterion_group, criterion_main, Criterion};
 use murk::atmosphere::AtmosphereParams;
 use murk::mvs::{estimate_depth, CostKind, DehazingOptions, DepthParams, PlaneSet};
 use murk::params::airlight::{dark_channel_airlight, DarkChannelParams};
+use murk::params::pose_error::SfmTracks;
 use murk::params::search::{plane_range_from_sparse, search_scattering, SearchParams, SfmEvidence};
+use murk::params::sparse::PointSelection;
 use murk::simulate::mvs::{simulate_mvs, MvsSimConfig};
 use murk::Monitor;
 
@@ -112,6 +115,39 @@ fn bench(c: &mut Criterion) {
                 &monitor,
             )
             .expect("search")
+        })
+    });
+    // The same with the model's observations: the SfM poses' share of the errors, 46 sigma-point
+    // refits for 4 sources.
+    let names: Vec<&str> = scene
+        .source_indices()
+        .into_iter()
+        .map(|i| scene.views[i].name.as_str())
+        .collect();
+    let tracks = SfmTracks::from_colmap(
+        &scene.sparse,
+        &scene.views[scene.reference].name,
+        PointSelection::ObservedInReference,
+        &names,
+    )
+    .expect("tracks");
+    g.bench_function("search_default_joint_fit_with_pose_error", |b| {
+        b.iter(|| {
+            let est = search_scattering(
+                &reference,
+                &sources,
+                SfmEvidence {
+                    sparse: &sparse,
+                    tracks: Some(&tracks),
+                },
+                0.9,
+                &planes,
+                &defaults,
+                &monitor,
+            )
+            .expect("search");
+            assert!(est.pose_error.is_some());
+            est
         })
     });
     g.bench_function("full_estimation_26_search_plus_final_depth", |b| {
