@@ -219,6 +219,26 @@ class PoseError:
 
 
 @dataclass(frozen=True)
+class PointRelief:
+    """How far the SfM points stand out of one plane in the reference camera."""
+
+    #: Points behind the plane fit.
+    points: int
+    #: Median distance of the points to the least-squares plane over their median depth.
+    relief: float
+    #: Angle between the plane's normal and the optical axis, degrees (0 = facing the camera).
+    tilt_deg: float
+    #: A flat cloud facing the reference (relief below 0.04, tilt at most 45°): SfM's poses may
+    #: be wrong by several degrees with small errors, and an identifiable estimate is "weak_sfm".
+    ambiguous: bool
+
+    @classmethod
+    def from_proto(cls, p: params_pb2.PointRelief) -> PointRelief:
+        """From the result's message."""
+        return cls(points=p.points, relief=p.relief, tilt_deg=p.tilt_deg, ambiguous=p.ambiguous)
+
+
+@dataclass(frozen=True)
 class ScatteringParamsResult:
     """A*, β* of Algorithm 1 and the depth with them, with what the data say about them."""
 
@@ -236,7 +256,8 @@ class ScatteringParamsResult:
     #: disagrees with the image's airlight estimate: the SfM model is likely wrong; see
     #: ``airlight_conflict``), ``"airlight_at_bound"`` (the fit's A sits on the bound of its
     #: range, so the standard errors do not hold) or ``"weak_sfm"`` (the SfM poses are too
-    #: uncertain to pin β down; see ``pose_error``). ``warnings`` gives the numbers.
+    #: uncertain to pin β down, see ``pose_error``, or ambiguous, see ``relief``). ``warnings``
+    #: gives the numbers.
     identifiability: str
     #: ``"joint_fit"`` (A, β and source gains fitted to the points), ``"point_ratio"`` or
     #: ``"sweep"``.
@@ -275,6 +296,8 @@ class ScatteringParamsResult:
     #: The SfM poses' share of the standard errors (included in them), when the request carried
     #: observations and the fit determined β with a finite error; None otherwise.
     pose_error: PoseError | None = None
+    #: How far the SfM points stand out of one plane (None with fewer than 10 points).
+    relief: PointRelief | None = None
 
     @classmethod
     def from_proto(cls, r: params_pb2.ScatteringParamsResult, job_id: str = "") -> ScatteringParamsResult:
@@ -344,6 +367,7 @@ class ScatteringParamsResult:
             job_id=job_id,
             proto=r,
             pose_error=PoseError.from_proto(r.pose_error) if r.HasField("pose_error") else None,
+            relief=PointRelief.from_proto(r.relief) if r.HasField("relief") else None,
         )
 
 

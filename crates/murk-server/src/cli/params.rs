@@ -317,6 +317,19 @@ pub fn run(a: ParamsArgs) -> anyhow::Result<()> {
             p.max_baseline_direction_std_deg
         );
     }
+    if let Some(p) = &r.relief {
+        println!(
+            "SfM points: {} in the reference lie a median {:.1} % of their depth off one plane              tilted {:.0} degrees from facing it{}",
+            p.points,
+            100.0 * p.relief,
+            p.tilt_deg,
+            if p.ambiguous {
+                " (flat: the poses may be wrong with small errors)"
+            } else {
+                ""
+            }
+        );
+    }
     println!(
         "times: airlight {:.3} s, search ({} depth evaluations) {:.2} s, final depth {:.2} s \
          ({} planes over z {:.3}..{:.3}); outputs in {}",
@@ -432,6 +445,12 @@ fn params_json(r: &pb::ScatteringParamsResult, job_id: &str) -> serde_json::Valu
             "max_rotation_std_deg": finite_or_null(p.max_rotation_std_deg),
             "max_baseline_direction_std_deg": finite_or_null(p.max_baseline_direction_std_deg),
             "undetermined": (!p.undetermined.is_empty()).then_some(&p.undetermined),
+        })),
+        "relief": r.relief.as_ref().map(|p| serde_json::json!({
+            "points": p.points,
+            "relief": p.relief,
+            "tilt_deg": p.tilt_deg,
+            "ambiguous": p.ambiguous,
         })),
         "point_ratio": r.point_ratio.as_ref().map(|f| serde_json::json!({
             "beta": f.beta,

@@ -297,6 +297,12 @@ async fn observations_add_the_poses_share_to_the_errors() {
         .expect("unary")
         .into_inner();
     assert!(plain.pose_error.is_none());
+    // The points' relief is reported with every estimate; the simulator's room is not flat.
+    let relief = plain.relief.expect("the points' relief is reported");
+    assert!(
+        relief.points >= 10 && relief.relief > 0.04 && !relief.ambiguous,
+        "{relief:?}"
+    );
     with_observations(&s, &mut req);
     let posed = recon(&server)
         .scattering_params(req.clone())

@@ -47,6 +47,7 @@ use rayon::prelude::*;
 use crate::linalg::DenseLlt;
 use crate::mvs::View;
 use crate::params::point_ratio::{blurred_ratio_samples, RatioSample};
+use crate::params::relief::Relief;
 use crate::params::sparse::SparseDepth;
 
 /// Fewest equations (point × source × channel) for a fit.
@@ -134,8 +135,9 @@ pub enum Identifiability {
     AirlightAtBound,
     /// The points determine β, but the SfM poses do not pin it down: with the poses'
     /// uncertainty ([`crate::params::pose_error`]) β's standard error exceeds
-    /// [`MAX_RELATIVE_BETA_ERROR`] of β, or the observations leave a pose undetermined (set by
-    /// [`crate::params::search::search_scattering`], which has the model's tracks).
+    /// [`MAX_RELATIVE_BETA_ERROR`] of β, or the observations leave a pose undetermined, or the
+    /// points lie so close to one plane facing the reference that the poses are ambiguous
+    /// ([`crate::params::relief`]). Set by [`crate::params::search::search_scattering`].
     WeakSfm,
 }
 
@@ -218,6 +220,18 @@ impl JointFit {
         }
         let weak = share.is_none() || self.beta_std_error >= MAX_RELATIVE_BETA_ERROR * self.beta;
         if self.identifiability == Identifiability::Identifiable && weak {
+            self.identifiability = Identifiability::WeakSfm;
+        }
+    }
+
+    /// An identifiable fit on points whose relief makes SfM's poses ambiguous
+    /// ([`Relief::is_ambiguous`]) becomes [`Identifiability::WeakSfm`]: wrong poses there keep
+    /// small reprojection errors and a small covariance, so no standard error covers them.
+    /// Other verdicts stand.
+    pub fn check_relief(&mut self, relief: Option<&Relief>) {
+        if self.identifiability == Identifiability::Identifiable
+            && relief.is_some_and(Relief::is_ambiguous)
+        {
             self.identifiability = Identifiability::WeakSfm;
         }
     }
@@ -937,6 +951,38 @@ mod tests {
         };
         flat.add_pose_share(None);
         assert_eq!(flat.identifiability, Identifiability::FlatResidual);
+    }
+
+    /// A flat point cloud facing the reference makes an identifiable fit `weak_sfm`, with its
+    /// estimate and errors unchanged; a cloud with relief, or none measured, changes nothing.
+    #[test]
+    fn a_flat_point_cloud_makes_beta_weak() {
+        let eqs = synthetic(0.62, 0.35, &[1.0, 1.04, 0.97, 1.1], 1.0, 0.01, 3);
+        let fit = fit_equations(&eqs, 5.0, &priors(0.62));
+        assert!(fit.is_identifiable(), "{fit:?}");
+        let relief = |relief, tilt_deg| Relief {
+            points: 300,
+            relief,
+            tilt_deg,
+        };
+        let mut flat = fit.clone();
+        flat.check_relief(Some(&relief(0.01, 10.0)));
+        assert_eq!(flat.identifiability, Identifiability::WeakSfm);
+        assert_eq!(
+            (flat.beta, flat.beta_std_error),
+            (fit.beta, fit.beta_std_error)
+        );
+        for sound in [Some(relief(0.08, 10.0)), Some(relief(0.01, 80.0)), None] {
+            let mut f = fit.clone();
+            f.check_relief(sound.as_ref());
+            assert_eq!(f, fit);
+        }
+        let mut too_few = JointFit {
+            identifiability: Identifiability::TooFewPoints,
+            ..fit
+        };
+        too_few.check_relief(Some(&relief(0.01, 10.0)));
+        assert_eq!(too_few.identifiability, Identifiability::TooFewPoints);
     }
 
     #[test]

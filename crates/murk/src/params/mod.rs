@@ -10,6 +10,7 @@ pub mod footprint;
 pub mod joint_fit;
 pub mod point_ratio;
 pub mod pose_error;
+pub mod relief;
 pub mod residual;
 pub mod search;
 pub mod sparse;

@@ -57,6 +57,7 @@ use crate::params::joint_fit::{
 };
 use crate::params::point_ratio::{beta_from_ratio_samples, blurred_ratio_samples, PointRatioFit};
 use crate::params::pose_error::{pose_error_of_fit, PoseError, SfmTracks};
+use crate::params::relief::Relief;
 use crate::params::residual::{paired_improvement_t, sparse_residuals};
 use crate::params::sparse::{SparseDepth, SparseSample};
 
@@ -416,6 +417,11 @@ pub struct ScatteringEstimate {
     /// The SfM poses' share of the joint fit's standard errors, when the search was given the
     /// model's tracks and the fit determined β with a finite error.
     pub pose_error: Option<PoseError>,
+    /// How far the SfM points stand out of one plane in the reference (`None` with too few
+    /// points). A flat cloud facing the reference ([`Relief::is_ambiguous`]) makes an
+    /// identifiable fit [`Identifiability::WeakSfm`]: SfM's poses may be wrong there with small
+    /// errors.
+    pub relief: Option<Relief>,
     /// Set when the joint fit's `A*` conflicted with `A₀` (see the module docs); an estimate the
     /// fit called identifiable is then reported as [`Identifiability::AirlightConflict`] (one it
     /// did not keeps its own reason).
@@ -470,10 +476,17 @@ impl ScatteringEstimate {
                     j.points,
                     j.rms_depth_difference
                 )),
-            Identifiability::WeakSfm => out.push(self.pose_error.as_ref().map_or_else(
-                || "the SfM poses' uncertainty is unknown".to_string(),
-                |p| weak_sfm_warning(j, p),
-            )),
+            Identifiability::WeakSfm => {
+                let flat = self.relief.filter(Relief::is_ambiguous);
+                let uncertain = self.pose_error.as_ref().filter(|p| {
+                    p.undetermined.is_some() || j.beta_std_error >= MAX_RELATIVE_BETA_ERROR * j.beta
+                });
+                out.extend(flat.map(|r| r.describe()));
+                out.extend(uncertain.map(|p| weak_sfm_warning(j, p)));
+                if flat.is_none() && uncertain.is_none() {
+                    out.push("the SfM poses' uncertainty is unknown".to_string());
+                }
+            }
             Identifiability::NoDepthDifference => out.push(format!(
                 "the views see the points at the same depths (RMS depth difference {:.2e}): \
                  a rectified pair or a purely sideways move cannot tell beta; frames that move \
@@ -488,6 +501,14 @@ impl ScatteringEstimate {
                 j.airlight
             )),
             _ => {}
+        }
+        // A flat cloud says the same about any verdict the points gave.
+        if j.identifiability != Identifiability::WeakSfm {
+            out.extend(
+                self.relief
+                    .filter(Relief::is_ambiguous)
+                    .map(|r| r.describe()),
+            );
         }
         out
     }
@@ -727,6 +748,12 @@ pub fn search_scattering(
         }
         _ => None,
     };
+    // A flat point cloud facing the reference hides wrong poses behind small errors (see
+    // crate::params::relief): the fit's own errors cannot cover them.
+    let relief = Relief::of(sparse, &reference.intrinsics);
+    if let Some(j) = joint.as_mut() {
+        j.check_relief(relief.as_ref());
+    }
     // The joint fit's estimate is used whenever it converged with a finite standard error,
     // also when that error is too large to call β identifiable: it is still the data's best
     // estimate (on 20 held-out lateral scenes the one flat case erred by 0.07 with it and by 0.22
@@ -908,6 +935,7 @@ pub fn search_scattering(
         beta_unclamped,
         joint,
         pose_error,
+        relief,
         airlight_conflict,
         point_ratio,
         residual: best.0,
@@ -1105,6 +1133,25 @@ mod tests {
         assert!(est.beta_range[0] < est.beta && est.beta < est.beta_range[1]);
         // 0.06 is 2 of the CNN's typical errors: no conflict.
         assert!(est.airlight_conflict.is_none(), "{est:?}");
+        // The simulator's room stands well out of any plane, so its poses are not ambiguous.
+        let relief = est.relief.unwrap();
+        assert!(!relief.is_ambiguous() && relief.points == scene.sparse_depth().unwrap().len());
+        // Had the points been flat, the verdict and the warning say so, with the numbers.
+        let mut flat = est.clone();
+        flat.relief = Some(Relief {
+            relief: 0.012,
+            tilt_deg: 8.0,
+            ..relief
+        });
+        flat.identifiability = Identifiability::WeakSfm;
+        flat.joint.as_mut().unwrap().identifiability = Identifiability::WeakSfm;
+        let warnings = flat.warnings();
+        assert_eq!(warnings.len(), 1, "{warnings:?}");
+        assert!(
+            warnings[0].contains("within 1.2 % of their depth"),
+            "{warnings:?}"
+        );
+        assert!(warnings[0].contains("bas-relief"), "{warnings:?}");
 
         let ratio = SearchParams {
             joint_fit: false,

@@ -466,6 +466,12 @@ impl ParamsInput {
                 max_baseline_direction_std_deg: p.max_baseline_direction_std_deg,
                 undetermined: p.undetermined.clone().unwrap_or_default(),
             }),
+            relief: est.relief.map(|r| pb::PointRelief {
+                points: u32::try_from(r.points).unwrap_or(u32::MAX),
+                relief: r.relief,
+                tilt_deg: r.tilt_deg,
+                ambiguous: r.is_ambiguous(),
+            }),
         })
     }
 }

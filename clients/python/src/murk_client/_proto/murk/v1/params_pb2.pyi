@@ -102,7 +102,9 @@ class _IdentifiabilityEnumTypeWrapper(_enum_type_wrapper._EnumTypeWrapper[_Ident
     IDENTIFIABILITY_WEAK_SFM: _Identifiability.ValueType  # 7
     """The points determine beta, but the SfM poses do not: with the poses' uncertainty (the
     request's sparse_point_observations) beta's standard error exceeds 15 % of beta, or the
-    observations leave a pose undetermined. PoseError says how uncertain the poses are.
+    observations leave a pose undetermined (PoseError says how uncertain the poses are), or
+    the points lie so close to one plane facing the reference that the poses are ambiguous
+    (PointRelief).
     """
 
 class Identifiability(_Identifiability, metaclass=_IdentifiabilityEnumTypeWrapper):
@@ -133,7 +135,9 @@ beta* are the fit's, at the bound.
 IDENTIFIABILITY_WEAK_SFM: Identifiability.ValueType  # 7
 """The points determine beta, but the SfM poses do not: with the poses' uncertainty (the
 request's sparse_point_observations) beta's standard error exceeds 15 % of beta, or the
-observations leave a pose undetermined. PoseError says how uncertain the poses are.
+observations leave a pose undetermined (PoseError says how uncertain the poses are), or
+the points lie so close to one plane facing the reference that the poses are ambiguous
+(PointRelief).
 """
 Global___Identifiability: _TypeAlias = Identifiability  # noqa: Y015
 
@@ -572,6 +576,7 @@ class ScatteringParamsResult(_message.Message):
     AIRLIGHT_CONFLICT_FIELD_NUMBER: _builtins.int
     WARNINGS_FIELD_NUMBER: _builtins.int
     POSE_ERROR_FIELD_NUMBER: _builtins.int
+    RELIEF_FIELD_NUMBER: _builtins.int
     airlight: _builtins.float
     """A* and beta* (per scene unit)."""
     beta: _builtins.float
@@ -649,6 +654,14 @@ class ScatteringParamsResult(_message.Message):
         sparse_point_observations and the fit determined beta with a finite error.
         """
 
+    @_builtins.property
+    def relief(self) -> Global___PointRelief:
+        """How far the SfM points stand out of one plane in the reference; unset with fewer than 10
+        points. Points within 4 % of their depth of a plane facing the reference (ambiguous) make
+        an identifiable estimate WEAK_SFM: SfM's poses for such a cloud may be wrong by several
+        degrees with small reprojection errors (the bas-relief ambiguity).
+        """
+
     def __init__(
         self,
         *,
@@ -679,10 +692,11 @@ class ScatteringParamsResult(_message.Message):
         airlight_conflict: Global___AirlightConflict | None = ...,
         warnings: _abc.Iterable[_builtins.str] | None = ...,
         pose_error: Global___PoseError | None = ...,
+        relief: Global___PointRelief | None = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _typing.Literal["_airlight_std_error", b"_airlight_std_error", "_beta_std_error", b"_beta_std_error", "airlight_conflict", b"airlight_conflict", "airlight_std_error", b"airlight_std_error", "beta_std_error", b"beta_std_error", "depth", b"depth", "joint_fit", b"joint_fit", "point_ratio", b"point_ratio", "pose_error", b"pose_error"]  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["_airlight_std_error", b"_airlight_std_error", "_beta_std_error", b"_beta_std_error", "airlight_conflict", b"airlight_conflict", "airlight_std_error", b"airlight_std_error", "beta_std_error", b"beta_std_error", "depth", b"depth", "joint_fit", b"joint_fit", "point_ratio", b"point_ratio", "pose_error", b"pose_error", "relief", b"relief"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["_airlight_std_error", b"_airlight_std_error", "_beta_std_error", b"_beta_std_error", "airlight", b"airlight", "airlight_conflict", b"airlight_conflict", "airlight_initial", b"airlight_initial", "airlight_seconds", b"airlight_seconds", "airlight_source", b"airlight_source", "airlight_std_error", b"airlight_std_error", "beta", b"beta", "beta_bound", b"beta_bound", "beta_initial", b"beta_initial", "beta_max", b"beta_max", "beta_min", b"beta_min", "beta_range_from_points", b"beta_range_from_points", "beta_source", b"beta_source", "beta_std_error", b"beta_std_error", "beta_unclamped", b"beta_unclamped", "depth", b"depth", "depth_seconds", b"depth_seconds", "grid", b"grid", "identifiability", b"identifiability", "identifiable", b"identifiable", "joint_fit", b"joint_fit", "num_sparse_points", b"num_sparse_points", "point_ratio", b"point_ratio", "pose_error", b"pose_error", "residual", b"residual", "search_seconds", b"search_seconds", "warnings", b"warnings"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["_airlight_std_error", b"_airlight_std_error", "_beta_std_error", b"_beta_std_error", "airlight", b"airlight", "airlight_conflict", b"airlight_conflict", "airlight_initial", b"airlight_initial", "airlight_seconds", b"airlight_seconds", "airlight_source", b"airlight_source", "airlight_std_error", b"airlight_std_error", "beta", b"beta", "beta_bound", b"beta_bound", "beta_initial", b"beta_initial", "beta_max", b"beta_max", "beta_min", b"beta_min", "beta_range_from_points", b"beta_range_from_points", "beta_source", b"beta_source", "beta_std_error", b"beta_std_error", "beta_unclamped", b"beta_unclamped", "depth", b"depth", "depth_seconds", b"depth_seconds", "grid", b"grid", "identifiability", b"identifiability", "identifiable", b"identifiable", "joint_fit", b"joint_fit", "num_sparse_points", b"num_sparse_points", "point_ratio", b"point_ratio", "pose_error", b"pose_error", "relief", b"relief", "residual", b"residual", "search_seconds", b"search_seconds", "warnings", b"warnings"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     _WhichOneofReturnType__airlight_std_error: _TypeAlias = _typing.Literal["airlight_std_error"]  # noqa: Y015
     _WhichOneofArgType__airlight_std_error: _TypeAlias = _typing.Literal["_airlight_std_error", b"_airlight_std_error"]  # noqa: Y015
@@ -694,6 +708,40 @@ class ScatteringParamsResult(_message.Message):
     def WhichOneof(self, oneof_group: _WhichOneofArgType__beta_std_error) -> _WhichOneofReturnType__beta_std_error | None: ...
 
 Global___ScatteringParamsResult: _TypeAlias = ScatteringParamsResult  # noqa: Y015
+
+@_typing.final
+class PointRelief(_message.Message):
+    """The SfM points' relief about the least-squares plane through them, in the reference camera."""
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    POINTS_FIELD_NUMBER: _builtins.int
+    RELIEF_FIELD_NUMBER: _builtins.int
+    TILT_DEG_FIELD_NUMBER: _builtins.int
+    AMBIGUOUS_FIELD_NUMBER: _builtins.int
+    points: _builtins.int
+    """Points behind the plane fit."""
+    relief: _builtins.float
+    """Median distance of the points to the plane over their median z-depth (0 = all on it)."""
+    tilt_deg: _builtins.float
+    """Angle between the plane's normal and the optical axis, degrees (0 = facing the camera)."""
+    ambiguous: _builtins.bool
+    """Whether the relief is below 0.04 with a tilt of at most 45 degrees."""
+    def __init__(
+        self,
+        *,
+        points: _builtins.int = ...,
+        relief: _builtins.float = ...,
+        tilt_deg: _builtins.float = ...,
+        ambiguous: _builtins.bool = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["ambiguous", b"ambiguous", "points", b"points", "relief", b"relief", "tilt_deg", b"tilt_deg"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___PointRelief: _TypeAlias = PointRelief  # noqa: Y015
 
 @_typing.final
 class AirlightConflict(_message.Message):
