@@ -244,8 +244,14 @@ pub fn run(a: ParamsArgs) -> anyhow::Result<()> {
         println!("warning: {w}");
     }
     if !r.identifiable {
+        // A fitted beta* keeps its (wide) standard error; a swept one has none.
+        let what = if r.beta_std_error.is_some() {
+            "beta* is the points' best estimate, no better than its standard error says"
+        } else {
+            "beta* is a guess"
+        };
         println!(
-            "warning: beta is NOT identifiable from these views ({}); beta* is a guess",
+            "warning: beta is NOT identifiable from these views ({}); {what}",
             identifiability_text(r.identifiability)
         );
     }
@@ -319,7 +325,8 @@ pub fn run(a: ParamsArgs) -> anyhow::Result<()> {
     }
     if let Some(p) = &r.relief {
         println!(
-            "SfM points: {} in the reference lie a median {:.1} % of their depth off one plane              tilted {:.0} degrees from facing it{}",
+            "SfM points: {} in the reference lie a median {:.1} % of their depth off one plane \
+             tilted {:.0} degrees from facing it{}",
             p.points,
             100.0 * p.relief,
             p.tilt_deg,
@@ -542,7 +549,9 @@ fn identifiability_text(v: i32) -> &'static str {
         Ok(pb::Identifiability::AirlightAtBound) => {
             "the points' A sits on the bound of its range, so its error and beta's do not hold"
         }
-        Ok(pb::Identifiability::WeakSfm) => "the SfM poses are too uncertain to pin beta down",
+        Ok(pb::Identifiability::WeakSfm) => {
+            "the SfM poses are too uncertain, or too ambiguous, to pin beta down"
+        }
         _ => "unknown",
     }
 }

@@ -9,6 +9,7 @@ pub mod redis_server;
 
 mod serve;
 
+use std::sync::LazyLock;
 use std::time::Duration;
 
 use murk::atmosphere::AtmosphereParams;
@@ -73,10 +74,14 @@ pub fn tof_request(width: usize, height: usize, seed: u64) -> pb::TofDepthReques
     simulated_tof_request(&frame, &cfg)
 }
 
+/// The frame of [`long_tof_request`], rendered once per test process: a debug build takes
+/// seconds to render it, which every test that submits a long job would otherwise pay again.
+static LONG_TOF_FRAME: LazyLock<pb::TofDepthRequest> = LazyLock::new(|| tof_request(256, 212, 7));
+
 /// A request that runs for a long time (thousands of fine iterations, early stopping off)
 /// unless cancelled.
 pub fn long_tof_request(fine_iterations: u32) -> pb::TofDepthRequest {
-    let mut r = tof_request(256, 212, 7);
+    let mut r = LONG_TOF_FRAME.clone();
     r.options = Some(pb::TofOptions {
         fine_iterations: Some(fine_iterations),
         convergence_tolerance: Some(0.0),
@@ -201,8 +206,14 @@ pub fn bad_field(s: &tonic::Status) -> String {
 
 /// Submits a long job (see [`long_tof_request`]) and returns its id once it is RUNNING.
 pub async fn submit_running_long_job(client: &mut JobsClient<Channel>) -> String {
+    // Built off the runtime's thread: on a test's single-threaded runtime, seconds of rendering
+    // there would keep the connected client from sending its HTTP/2 preface, and the server
+    // closes a connection that stays silent past its handshake timeout.
+    let request = tokio::task::spawn_blocking(|| job(long_tof_request(10_000)))
+        .await
+        .expect("the long request is built");
     let j = client
-        .submit_job(job(long_tof_request(10_000)))
+        .submit_job(request)
         .await
         .expect("submit")
         .into_inner();
