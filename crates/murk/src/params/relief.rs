@@ -9,10 +9,10 @@
 //! truth. Only the points that stand out of the plane break the ambiguity. The reprojection
 //! error and the bundle adjustment's covariance ([`crate::params::pose_error`]) are computed
 //! at the solution SfM chose, so they cannot see a wrong one: on the COLMAP models of
-//! `docs/scattering-params.md` the poses of such models were off by 5–15° with a 1-σ rotation
-//! of 0.2–1.6° and a reprojection error of 0.6–1.05 px, like sound models. What they share is the
-//! flattened relief: their points lie within 0.3–3.5 % of their depth of one plane facing the
-//! reference, where the sound models facing a plane lie 5–10 % off it.
+//! `docs/scattering-params.md` the poses of such models were off by 5–15° with a 1-σ
+//! rotation of 0.2–1.6° and a reprojection error of 0.6–1.05 px, like sound models. What they
+//! share is the flattened relief: their points lie within 0.3–3.5 % of their depth of one
+//! plane facing the reference, where the sound models facing a plane lie 5–10 % off it.
 //!
 //! [`Relief`] measures that: a least-squares plane through the points in the reference camera
 //! (all of them, so the points on objects pull it as much as those on a wall), the median
