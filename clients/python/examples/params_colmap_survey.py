@@ -23,7 +23,9 @@ on the simulator's own model, so what the SfM costs is visible seed by seed.
 Prints one row per seed and, over the seeds whose reference view registered, MAE_A and MAE_β
 (per scene unit) and the coverage: on how many models the true A and β (through the depths'
 unit) both lie within 2 of murk's reported standard errors. Reported separately for the models
-murk calls identifiable, the target of docs/scattering-params.md. Writes `survey.json` in --out.
+murk calls identifiable, the target of docs/scattering-params.md. Each row ends with the SfM
+points' relief about their plane and the plane's tilt, "flat" where murk calls the cloud
+ambiguous. Writes `survey.json` in --out.
 """
 
 import argparse
@@ -150,6 +152,15 @@ def fmt(v: float | None) -> str:
     return "-" if v is None else f"{v:.4f}"
 
 
+def fmt_relief(r: dict | None) -> str:
+    """The points' median distance to their plane over their depth and the plane's tilt from
+    facing the reference, "flat" where murk calls the cloud ambiguous
+    (docs/scattering-params.md#a-flat-point-cloud)."""
+    if r is None:
+        return "-"
+    return f"{100 * r['relief']:.1f} %/{r['tilt_deg']:.0f} deg" + (" flat" if r["ambiguous"] else "")
+
+
 def covered(row: dict) -> bool:
     """Whether the true A and β (converted with the depths' unit) both lie within 2 reported
     standard errors of the COLMAP model's estimates."""
@@ -195,7 +206,7 @@ def main() -> None:
     print(
         "seed  A true  A sfm  A sim  | beta (per scene unit) true, sfm (centres/depths), sim"
         " | unit from centres/depths"
-        " | pose err rot/dir deg | points | identifiability"
+        " | pose err rot/dir deg | points | identifiability | SE | coverage | relief/tilt"
     )
     for seed in seeds_of(a.seeds):
         scene = a.out / f"seed{seed}"
@@ -256,6 +267,7 @@ def main() -> None:
                 "unit_from_depths": unit_d,
                 "worst_rotation_error_deg": rot_err,
                 "worst_translation_direction_error_deg": dir_err,
+                "relief": p.get("relief"),
             }
             s = row["sfm"]
             print(
@@ -264,6 +276,7 @@ def main() -> None:
                 f" | {unit_c:.4f}/{unit_d:.4f} | {rot_err:4.1f}/{dir_err:4.1f} | {model[1]:5d} |"
                 f" {s['identifiability']} | SE A {fmt(s['airlight_std_error'])}"
                 f" beta {fmt(s['beta_std_error_via_depths'])} | {coverage_label(row)}"
+                f" | {fmt_relief(s['relief'])}"
             )
         else:
             print(f"{seed:4d}  the reference view did not register in COLMAP's largest model")
@@ -285,7 +298,11 @@ def main() -> None:
         ]
         report("COLMAP models whose two unit estimates agree within 5 %", sound, "sfm")
         flagged = sum(not r["sfm"]["identifiable"] for r in done)
-        print(f"registered {len(done)}/{len(rows)}; flagged not identifiable on the COLMAP model: {flagged}")
+        flat = sum(bool(r["sfm"]["relief"] and r["sfm"]["relief"]["ambiguous"]) for r in done)
+        print(
+            f"registered {len(done)}/{len(rows)}; flagged not identifiable on the COLMAP model: {flagged};"
+            f" flat point clouds: {flat}"
+        )
     (a.out / "survey.json").write_text(json.dumps(rows, indent=1))
 
 
