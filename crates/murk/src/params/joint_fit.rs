@@ -198,6 +198,13 @@ impl JointFit {
         self.identifiability == Identifiability::Identifiable
     }
 
+    /// Whether β's standard error is below [`MAX_RELATIVE_BETA_ERROR`] of β: the test of
+    /// [`Identifiability::Identifiable`], here on the fit as it stands (after
+    /// [`Self::add_pose_share`], with the poses' share).
+    pub fn beta_is_determined(&self) -> bool {
+        self.beta > 0.0 && self.beta_std_error < MAX_RELATIVE_BETA_ERROR * self.beta
+    }
+
     /// Whether the SfM poses' share can be added to the errors: β determined with a finite
     /// error, identifiable or flat (a verdict on other grounds stands as it is).
     pub fn takes_pose_share(&self) -> bool {
@@ -218,8 +225,9 @@ impl JointFit {
             self.airlight_std_error = self.airlight_std_error.hypot(a);
             self.beta_std_error = self.beta_std_error.hypot(b);
         }
-        let weak = share.is_none() || self.beta_std_error >= MAX_RELATIVE_BETA_ERROR * self.beta;
-        if self.identifiability == Identifiability::Identifiable && weak {
+        if self.identifiability == Identifiability::Identifiable
+            && (share.is_none() || !self.beta_is_determined())
+        {
             self.identifiability = Identifiability::WeakSfm;
         }
     }

@@ -476,17 +476,14 @@ impl ScatteringEstimate {
                     j.points,
                     j.rms_depth_difference
                 )),
-            Identifiability::WeakSfm => {
-                let flat = self.relief.filter(Relief::is_ambiguous);
-                let uncertain = self.pose_error.as_ref().filter(|p| {
-                    p.undetermined.is_some() || j.beta_std_error >= MAX_RELATIVE_BETA_ERROR * j.beta
-                });
-                out.extend(flat.map(|r| r.describe()));
-                out.extend(uncertain.map(|p| weak_sfm_warning(j, p)));
-                if flat.is_none() && uncertain.is_none() {
-                    out.push("the SfM poses' uncertainty is unknown".to_string());
-                }
-            }
+            // The poses' part of the verdict (JointFit::add_pose_share); a flat cloud's part
+            // is said below, as for any verdict.
+            Identifiability::WeakSfm => out.extend(
+                self.pose_error
+                    .as_ref()
+                    .filter(|p| p.undetermined.is_some() || !j.beta_is_determined())
+                    .map(|p| weak_sfm_warning(j, p)),
+            ),
             Identifiability::NoDepthDifference => out.push(format!(
                 "the views see the points at the same depths (RMS depth difference {:.2e}): \
                  a rectified pair or a purely sideways move cannot tell beta; frames that move \
@@ -502,14 +499,13 @@ impl ScatteringEstimate {
             )),
             _ => {}
         }
-        // A flat cloud says the same about any verdict the points gave.
-        if j.identifiability != Identifiability::WeakSfm {
-            out.extend(
-                self.relief
-                    .filter(Relief::is_ambiguous)
-                    .map(|r| r.describe()),
-            );
-        }
+        // A flat cloud makes an identifiable fit weak_sfm (JointFit::check_relief) and casts
+        // the same doubt on any other verdict.
+        out.extend(
+            self.relief
+                .filter(Relief::is_ambiguous)
+                .map(|r| r.describe()),
+        );
         out
     }
 }
@@ -1418,5 +1414,24 @@ mod tests {
                 Some("params.airlight_initial_error")
             );
         }
+        // Tracks that name a view the search was not given: refused under `tracks`.
+        let tracks = SfmTracks {
+            points: vec![[0.0, 0.0, 5.0]],
+            seen_by: Vec::new(),
+            observations: vec![crate::params::pose_error::Observation {
+                point: 0,
+                view: 1 + sources.len() as u32,
+                pixel: [1.0, 1.0],
+            }],
+        };
+        let sfm = SfmEvidence {
+            sparse: &sparse,
+            tracks: Some(&tracks),
+        };
+        let err = search_scattering(&reference, &sources, sfm, 0.85, &planes, &params, &monitor);
+        assert_eq!(
+            err.unwrap_err().field(),
+            Some("tracks.observations[0].view")
+        );
     }
 }
