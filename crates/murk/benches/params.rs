@@ -16,9 +16,7 @@ use criterion::{criterion_group, criterion_main, Criterion};
 use murk::atmosphere::AtmosphereParams;
 use murk::mvs::{estimate_depth, CostKind, DehazingOptions, DepthParams, PlaneSet};
 use murk::params::airlight::{dark_channel_airlight, DarkChannelParams};
-use murk::params::pose_error::SfmTracks;
 use murk::params::search::{plane_range_from_sparse, search_scattering, SearchParams, SfmEvidence};
-use murk::params::sparse::PointSelection;
 use murk::simulate::mvs::{simulate_mvs, MvsSimConfig};
 use murk::Monitor;
 
@@ -119,18 +117,7 @@ fn bench(c: &mut Criterion) {
     });
     // The same with the model's observations: the SfM poses' share of the errors, 46 sigma-point
     // refits for 4 sources.
-    let names: Vec<&str> = scene
-        .source_indices()
-        .into_iter()
-        .map(|i| scene.views[i].name.as_str())
-        .collect();
-    let tracks = SfmTracks::from_colmap(
-        &scene.sparse,
-        &scene.views[scene.reference].name,
-        PointSelection::ObservedInReference,
-        &names,
-    )
-    .expect("tracks");
+    let tracks = scene.sfm_tracks(sources.len()).expect("tracks");
     g.bench_function("search_default_joint_fit_with_pose_error", |b| {
         b.iter(|| {
             let est = search_scattering(

@@ -4,7 +4,6 @@
 use crate::common;
 
 use common::*;
-use murk::params::pose_error::SfmTracks;
 use murk::params::sparse::{selected_points, PointSelection};
 use murk::simulate::mvs::{simulate_mvs, MvsScene, MvsSimConfig};
 use murk::Monitor;
@@ -60,18 +59,7 @@ fn observation(point: u32, view: u32) -> pb::SparsePointObservation {
 /// The request's `sparse_point_observations`: where the scene's model saw its points in the
 /// reference (view 0) and the request's sources (view 1 + i), in murk's pixel convention.
 fn with_observations(scene: &MvsScene, req: &mut pb::ScatteringParamsRequest) {
-    let names: Vec<&str> = scene
-        .source_indices()
-        .into_iter()
-        .map(|i| scene.views[i].name.as_str())
-        .collect();
-    let tracks = SfmTracks::from_colmap(
-        &scene.sparse,
-        &scene.views[scene.reference].name,
-        PointSelection::ObservedInReference,
-        &names,
-    )
-    .unwrap();
+    let tracks = scene.sfm_tracks(req.sources.len()).unwrap();
     assert_eq!(tracks.points.len(), req.sparse_points.len());
     req.sparse_point_observations = observations_to_proto(&tracks);
 }

@@ -776,21 +776,6 @@ mod tests {
         }
     }
 
-    /// Tracks of the scene's own model for its reference and sources.
-    fn scene_tracks(scene: &MvsScene, sources: usize) -> SfmTracks {
-        let names: Vec<&str> = scene.source_indices()[..sources]
-            .iter()
-            .map(|&i| scene.views[i].name.as_str())
-            .collect();
-        SfmTracks::from_colmap(
-            &scene.sparse,
-            &scene.views[scene.reference].name,
-            PointSelection::ObservedInReference,
-            &names,
-        )
-        .unwrap()
-    }
-
     /// On the simulator's model the observations are the true points' projections and the
     /// points carry a little noise: the poses are well known and their share is small. A
     /// cancelled job gets no share but `Cancelled`.
@@ -798,7 +783,7 @@ mod tests {
     fn sound_poses_add_little() {
         let scene = walking_scene(11);
         let (reference, sources) = scene.reference_and_sources();
-        let tracks = scene_tracks(&scene, sources.len());
+        let tracks = scene.sfm_tracks(sources.len()).unwrap();
         let sparse = scene.sparse_depth().unwrap();
         let fit = fit_joint_samples(
             &blurred_ratio_samples(&reference, &sources, &sparse),
@@ -831,7 +816,7 @@ mod tests {
     fn models_with_perturbed_poses_are_covered_once_the_poses_share_is_added() {
         let scene = walking_scene(11);
         let (reference, sources) = scene.reference_and_sources();
-        let mut tracks = scene_tracks(&scene, sources.len());
+        let mut tracks = scene.sfm_tracks(sources.len()).unwrap();
         let mut rng = ChaCha8Rng::seed_from_u64(5);
         let mut gauss = || {
             let (u1, u2): (f64, f64) = (rng.random::<f64>().max(1e-12), rng.random());

@@ -64,23 +64,12 @@ pub fn selected_points(
         .collect())
 }
 
-/// [`selected_points`] with each point's [`SparseSample::seen_by`] mask over `sources` (image
-/// names; bit `i` for `sources[i]`, at most 32): the images in its SfM track. The masks are
-/// empty when the model stores no tracks (every point then counts as seen everywhere). Fails
-/// naming `reference` or `sources[i]` for an unknown image.
-pub fn selected_points_with_sources(
-    model: &ColmapModel,
-    reference: &str,
-    selection: PointSelection,
-    sources: &[&str],
-) -> Result<(Vec<[f64; 3]>, Vec<u32>)> {
-    let t = selected_tracks(model, reference, selection, sources)?;
-    Ok((t.points, t.seen_by))
-}
-
-/// [`selected_points_with_sources`] as [`SfmTracks`], with the points' observations in the reference (view 0)
-/// and `sources` (view `1 + i`), in murk's pixel convention (COLMAP's coordinates shifted by
-/// −0.5). The observations are empty when the model stores no tracks.
+/// The points [`selected_points`] picks, with each point's [`SparseSample::seen_by`] mask over
+/// `sources` (image names; bit `i` for `sources[i]`, at most 32: the images in its SfM track)
+/// and its observations in the reference (view 0) and `sources` (view `1 + i`), in murk's pixel
+/// convention (COLMAP's coordinates shifted by −0.5). Masks and observations are empty when the
+/// model stores no tracks (every point then counts as seen everywhere). Fails naming
+/// `reference` or `sources[i]` for an unknown image. Public as [`SfmTracks::from_colmap`].
 pub(crate) fn selected_tracks(
     model: &ColmapModel,
     reference: &str,
@@ -469,13 +458,11 @@ mod tests {
             ]),
         };
         // Bit i for sources[i], whatever the image ids.
-        let (xyz, masks) = selected_points_with_sources(
-            &model,
-            "ref.png",
-            PointSelection::All,
-            &["b.png", "a.png"],
-        )
-        .unwrap();
+        let SfmTracks {
+            points: xyz,
+            seen_by: masks,
+            ..
+        } = selected_tracks(&model, "ref.png", PointSelection::All, &["b.png", "a.png"]).unwrap();
         assert_eq!(xyz.len(), 3);
         assert_eq!(masks, vec![0b11, 0b01, 0b00]);
         let sparse =
@@ -490,11 +477,9 @@ mod tests {
         for p in untracked.points.values_mut() {
             p.track.clear();
         }
-        let (_, none) =
-            selected_points_with_sources(&untracked, "ref.png", PointSelection::All, &["a.png"])
-                .unwrap();
-        assert!(none.is_empty());
-        let e = selected_points_with_sources(&model, "ref.png", PointSelection::All, &["c.png"]);
+        let none = selected_tracks(&untracked, "ref.png", PointSelection::All, &["a.png"]).unwrap();
+        assert!(none.seen_by.is_empty() && none.observations.is_empty());
+        let e = selected_tracks(&model, "ref.png", PointSelection::All, &["c.png"]);
         assert_eq!(e.unwrap_err().field(), Some("sources[0]"));
         let e = SparseDepth::from_tracked_points(&xyz, &[1], &k, &Pose::identity(), 32, 24);
         assert_eq!(e.unwrap_err().field(), Some("seen_by"));

@@ -70,6 +70,7 @@ use crate::mvs::colmap::{
 };
 use crate::mvs::pose::Pose;
 use crate::mvs::View;
+use crate::params::pose_error::SfmTracks;
 use crate::params::sparse::{PointSelection, SparseDepth};
 use crate::simulate::scene::{Shape, V3};
 
@@ -367,6 +368,24 @@ impl MvsScene {
             self.config.width,
             self.config.height,
             PointSelection::ObservedInReference,
+        )
+    }
+
+    /// The points of [`Self::sparse_depth`] with their observations in the reference and the
+    /// first `sources` views of [`Self::source_indices`] (the search's tracks, for the poses'
+    /// share of the errors). `sources` beyond the scene's count take them all.
+    pub fn sfm_tracks(&self, sources: usize) -> Result<SfmTracks> {
+        let indices = self.source_indices();
+        let names: Vec<&str> = indices
+            .iter()
+            .take(sources)
+            .map(|&i| self.views[i].name.as_str())
+            .collect();
+        SfmTracks::from_colmap(
+            &self.sparse,
+            &self.views[self.reference].name,
+            PointSelection::ObservedInReference,
+            &names,
         )
     }
 
