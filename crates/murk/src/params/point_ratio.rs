@@ -33,7 +33,7 @@ use crate::params::sparse::SparseDepth;
 /// With the footprints matched, the base blur only has to smooth the pixel grid; a wider one
 /// makes the sample more sensitive to what the match misses at SfM keypoints, which sit on
 /// blobs of about the blur's size. On 20 forward-moving 512×384 scenes through COLMAP (seeds
-/// 700–719, 7 views) a base of 2 px (one per 256 of width, as before the match) left β 13 %
+/// 700–719, 7 views) a base of 2 px (one per 256 of width) left β 13 %
 /// high with exact geometry and exact poses at COLMAP's keypoints; 1 px took the models murk
 /// calls identifiable from the truth within two standard errors on 4 of 8 to 5 of 7, MAE_A
 /// 0.046 → 0.029 and MAE_β 0.032 → 0.029, and the simulator's own models of the same scenes
