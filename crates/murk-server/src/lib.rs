@@ -9,6 +9,7 @@
 // a public item may point at the private helper that does the work.
 #![allow(rustdoc::private_intra_doc_links)]
 
+pub mod allocator;
 pub mod bag;
 pub mod cgroup;
 pub mod connections;

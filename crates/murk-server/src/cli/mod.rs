@@ -115,6 +115,8 @@ enum Command {
 
 /// Parses the command line and runs the chosen command.
 pub fn run() -> anyhow::Result<()> {
+    // Before any other thread allocates: frames then reuse their buffers' pages.
+    let allocator = murk_server::allocator::keep_working_set();
     let cli = Cli::parse();
     // The server logs every job; the client commands only warnings, so progress bars and
     // result tables stay readable.
@@ -130,6 +132,7 @@ pub fn run() -> anyhow::Result<()> {
         LogFormat::Json => logs.json().with_current_span(true).init(),
         LogFormat::Text => logs.with_ansi(std::io::stderr().is_terminal()).init(),
     }
+    tracing::debug!(?allocator, "allocator thresholds");
     match cli.command {
         Command::Serve(a) => serve::run(a),
         Command::Simulate(c) => simulate::run(c),
