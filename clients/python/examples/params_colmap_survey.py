@@ -26,6 +26,10 @@ unit) both lie within 2 of murk's reported standard errors. Reported separately 
 murk calls identifiable, the target of docs/scattering-params.md. Each row ends with the SfM
 points' relief about their plane and the plane's tilt, "flat" where murk calls the cloud
 ambiguous. Writes `survey.json` in --out.
+
+Rendering and COLMAP take most of a run. With `--reuse`, seeds whose folder in --out already
+holds a scene and its COLMAP models run only `murk params` again (another build, other
+`--murk-args`) on the same models.
 """
 
 import argparse
@@ -180,6 +184,17 @@ def coverage_label(row: dict) -> str:
     return "covered" if covered(row) else "MISSED"
 
 
+def written_models(scene: Path) -> list[tuple[Path, int]]:
+    """The COLMAP models `reconstruct` wrote for `scene` earlier: (folder, number of points) each."""
+    out = []
+    for folder in sorted((scene / "colmap" / "sparse").glob("*")):
+        points = folder / "points3D.txt"
+        if points.exists():
+            lines = points.read_text().splitlines()
+            out.append((folder, sum(1 for ln in lines if ln and not ln.startswith("#"))))
+    return out
+
+
 def seeds_of(spec: str) -> list[int]:
     if "-" in spec:
         lo, hi = spec.split("-")
@@ -200,6 +215,12 @@ def main() -> None:
     ap.add_argument(
         "--peak-threshold", type=float, default=PEAK_THRESHOLD, help="COLMAP's SIFT peak threshold"
     )
+    ap.add_argument(
+        "--reuse",
+        action="store_true",
+        help="keep a seed's rendered scene and COLMAP models where its folder in --out holds them,"
+        " and run only murk again (the scene's settings are those it was rendered with)",
+    )
     a = ap.parse_args()
     a.out.mkdir(parents=True, exist_ok=True)
     rows = []
@@ -210,17 +231,19 @@ def main() -> None:
     )
     for seed in seeds_of(a.seeds):
         scene = a.out / f"seed{seed}"
-        shutil.rmtree(scene, ignore_errors=True)
-        sim = [a.murk, "simulate", "mvs", "--out", str(scene), "--seed", str(seed)]
-        sim += ["--width", str(a.width), "--height", str(a.height), "--views", str(a.views)]
-        sim += ["--forward-motion", str(a.forward_motion)]
-        sim += ["--airlight-range", "0.5,1.0", "--median-transmission-range", "0.1,0.4"]
-        subprocess.run(sim, check=True, capture_output=True)
+        reused = a.reuse and (scene / "meta.json").exists() and (scene / "colmap" / "database.db").exists()
+        if not reused:
+            shutil.rmtree(scene, ignore_errors=True)
+            sim = [a.murk, "simulate", "mvs", "--out", str(scene), "--seed", str(seed)]
+            sim += ["--width", str(a.width), "--height", str(a.height), "--views", str(a.views)]
+            sim += ["--forward-motion", str(a.forward_motion)]
+            sim += ["--airlight-range", "0.5,1.0", "--median-transmission-range", "0.1,0.4"]
+            subprocess.run(sim, check=True, capture_output=True)
         meta = json.loads((scene / "meta.json").read_text())
         reference = meta["reference"]
         focal = meta["config"]["focal_px"]
         intr = f"{focal},{focal},{a.width / 2},{a.height / 2}"
-        models = reconstruct(scene, intr, a.peak_threshold, quiet=True)
+        models = written_models(scene) if reused else reconstruct(scene, intr, a.peak_threshold, quiet=True)
         model = max(models, key=lambda m: m[1], default=None) if models else None
         registered = model is not None and reference in read_poses(model[0] / "images.txt")
         extra = a.murk_args.split()
