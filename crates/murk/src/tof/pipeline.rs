@@ -297,10 +297,20 @@ fn range_m(phase_rad: f64, frequency_hz: f64) -> f64 {
     SPEED_OF_LIGHT_M_PER_S * phase_rad / (2.0 * TAU * frequency_hz)
 }
 
-/// `range` with every unmeasured pixel (its `range_std` at `cap`: a direct return no stronger
-/// than the noise, whose phase is a guess) that has measured object pixels within
-/// [`REACH`](crate::tof::ambiguous::REACH) given the median range of those pixels. Its
-/// `range_std_m` stays at the cap.
+/// A pixel whose `range_std_m` is at least this fraction of the cap (σ_φ ≥ π/4: its direct
+/// return within about 1.4 noise σ of nothing) has a weak measurement ([`fill_unmeasured`]).
+const WEAK_FRACTION_OF_CAP: f32 = 0.5;
+
+/// A weak measurement farther than this many of its own standard deviations from its measured
+/// neighbours' median range takes that median ([`fill_unmeasured`]).
+const FILL_CONSISTENCY_SIGMAS: f32 = 2.0;
+
+/// `range` with the weak pixels beside measured object pixels given the median range of those
+/// pixels (within [`REACH`](crate::tof::ambiguous::REACH); measured: object pixels with a
+/// `range_std` below [`WEAK_FRACTION_OF_CAP`] of `cap`): every unmeasured pixel (its
+/// `range_std` at `cap`: a direct return no stronger than the noise, whose phase is a guess),
+/// and every weak one whose range lies more than [`FILL_CONSISTENCY_SIGMAS`] of its own
+/// `range_std` from that median. Their `range_std_m` stays as it was.
 ///
 /// Such pixels lie on the objects' outlines: a dim edge, a strip beside a nearer occluder. The
 /// phase of a noise-sized direct component is uniform over the ambiguity interval, so the guess
@@ -317,9 +327,10 @@ fn fill_unmeasured(
 ) -> Vec<f32> {
     let h = range.len() / w.max(1);
     let r = crate::tof::ambiguous::REACH;
+    let weak = WEAK_FRACTION_OF_CAP * cap;
     let measured: Vec<bool> = (object, range_std)
         .into_par_iter()
-        .map(|(&o, &s)| o && s < cap)
+        .map(|(&o, &s)| o && s < weak)
         .collect();
     // Most unmeasured pixels are fog far from any object: only those near one scan a window.
     let near = crate::tof::ambiguous::dilate(&measured, w, r);
@@ -328,7 +339,7 @@ fn fill_unmeasured(
         let mut around = Vec::new();
         for (x, v) in row.iter_mut().enumerate() {
             let i = y * w + x;
-            if range_std[i] < cap || !near[i] {
+            if range_std[i] < weak || !near[i] {
                 continue;
             }
             around.clear();
@@ -336,9 +347,16 @@ fn fill_unmeasured(
                 let cols = yy * w + x.saturating_sub(r)..yy * w + (x + r + 1).min(w);
                 around.extend(cols.filter(|&j| measured[j]).map(|j| range[j]));
             }
-            if !around.is_empty() {
-                let mid = around.len() / 2;
-                *v = *around.select_nth_unstable_by(mid, f32::total_cmp).1;
+            if around.is_empty() {
+                continue;
+            }
+            let mid = around.len() / 2;
+            let median = *around.select_nth_unstable_by(mid, f32::total_cmp).1;
+            // A weak measurement within its own errors of the surroundings stands: it may see
+            // a farther surface beside a nearer one. Beyond them, or without a measurement at
+            // all, the surroundings are the better answer.
+            if range_std[i] >= cap || (*v - median).abs() > FILL_CONSISTENCY_SIGMAS * range_std[i] {
+                *v = median;
             }
         }
     });
@@ -537,6 +555,36 @@ mod tests {
         for i in (0..w * h).filter(|&i| std[i] < cap) {
             assert_eq!(out[i], range[i]);
         }
+    }
+
+    /// A weak measurement (σ_φ ≥ π/4) beside an object takes the object's range only when it
+    /// lies beyond two of its own standard deviations from it: a guess 7 m behind the object
+    /// goes (a cluttered survey frame's worst pixel), a farther surface 0.7 m behind it, seen
+    /// weakly beside the nearer one, stays.
+    #[test]
+    fn a_weak_pixel_keeps_its_range_only_within_its_errors_of_its_neighbours() {
+        let (w, h) = (12, 9);
+        let cap = 2.0f32;
+        let mut range = vec![7.5f32; w * h];
+        let mut std = vec![cap; w * h];
+        let mut object = vec![false; w * h];
+        for y in 0..h {
+            for x in 0..5 {
+                let i = y * w + x;
+                object[i] = true;
+                range[i] = 1.1;
+                std[i] = 0.01;
+            }
+        }
+        let (guess, farther, measured) = (2 * w + 4, 6 * w + 4, 4 * w + 3);
+        (range[guess], std[guess]) = (8.4, 1.6);
+        (range[farther], std[farther]) = (1.8, 1.6);
+        (range[measured], std[measured]) = (1.4, 0.9);
+        let out = fill_unmeasured(&range, &std, &object, w, cap);
+        assert_eq!(out[guess], 1.1);
+        assert_eq!(out[farther], 1.8);
+        // Below half the cap a pixel is measured, and is never filled.
+        assert_eq!(out[measured], 1.4);
     }
 
     #[test]
