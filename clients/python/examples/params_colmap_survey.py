@@ -22,7 +22,8 @@ on the simulator's own model, so what the SfM costs is visible seed by seed.
 
 Prints one row per seed and, over the seeds whose reference view registered, MAE_A and MAE_β
 (per scene unit) and the coverage: on how many models the true A and β (through the depths'
-unit) both lie within 2 of murk's reported standard errors. Reported separately for the models
+unit) both lie within 2 of murk's reported standard errors, with the errors' mean and RMS in
+reported standard errors (0 and 1 where they are calibrated). Reported separately for the models
 murk calls identifiable, the target of docs/scattering-params.md. Each row ends with the SfM
 points' relief about their plane and the plane's tilt, "flat" where murk calls the cloud
 ambiguous. Writes `survey.json` in --out.
@@ -149,7 +150,30 @@ def report(label: str, rows: list[dict], key: str) -> None:
         mae_d = np.mean([abs(r[key]["beta_via_depths"] - r["beta"]) for r in rows])
         line += f" / {mae_d:.4f} (unit from centres / depths)"
         line += f"; truth within 2 SE (A and beta via depths): {sum(map(covered, rows))}/{len(rows)}"
+        z = standard_scores(rows)
+        if z:
+            za, zb = np.array([a for a, _ in z]), np.array([b for _, b in z])
+            line += (
+                f"; errors in reported SE: A mean {za.mean():+.2f} RMS {np.sqrt((za**2).mean()):.2f},"
+                f" beta mean {zb.mean():+.2f} RMS {np.sqrt((zb**2).mean()):.2f}"
+            )
     print(line)
+
+
+def standard_scores(rows: list[dict]) -> list[tuple[float, float]]:
+    """(estimate − truth) / reported SE of A and of β (via the depths' unit) for the COLMAP models
+    with both errors: about 0 on average and of RMS 1 where the errors are calibrated."""
+    out = []
+    for r in rows:
+        s = r["sfm"]
+        if s["airlight_std_error"] and s["beta_std_error_via_depths"]:
+            out.append(
+                (
+                    (s["airlight"] - r["airlight"]) / s["airlight_std_error"],
+                    (s["beta_via_depths"] - r["beta"]) / s["beta_std_error_via_depths"],
+                )
+            )
+    return out
 
 
 def fmt(v: float | None) -> str:
