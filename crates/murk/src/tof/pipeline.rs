@@ -523,12 +523,14 @@ mod tests {
     use crate::camera::Intrinsics;
     use crate::tof::params::{IrlsChannelParams, REFERENCE_SIZE_PX};
 
-    #[test]
-    fn an_unmeasured_pixel_beside_an_object_takes_the_objects_range() {
+    /// A 12 × 9 frame whose columns 0..5 are a measured object (`range_std` 0.01 m) at the
+    /// range `range_of(column)`, everything else unmeasured (at `cap`) with a guessed 7.5 m:
+    /// `(range, range_std, object)`.
+    fn object_in_columns(
+        cap: f32,
+        range_of: impl Fn(usize) -> f32,
+    ) -> (Vec<f32>, Vec<f32>, Vec<bool>) {
         let (w, h) = (12, 9);
-        let cap = 2.0f32;
-        // An object in columns 0..5 at 1.0–1.4 m, measured but for (4, 4); everything else
-        // unmeasured with guessed ranges.
         let mut range = vec![7.5f32; w * h];
         let mut std = vec![cap; w * h];
         let mut object = vec![false; w * h];
@@ -536,10 +538,19 @@ mod tests {
             for x in 0..5 {
                 let i = y * w + x;
                 object[i] = true;
-                range[i] = 1.0 + 0.1 * x as f32;
+                range[i] = range_of(x);
                 std[i] = 0.01;
             }
         }
+        (range, std, object)
+    }
+
+    #[test]
+    fn an_unmeasured_pixel_beside_an_object_takes_the_objects_range() {
+        let (w, h) = (12, 9);
+        let cap = 2.0f32;
+        // The object at 1.0–1.4 m, measured but for (4, 4).
+        let (range, mut std, object) = object_in_columns(cap, |x| 1.0 + 0.1 * x as f32);
         let hole = 4 * w + 4;
         std[hole] = cap;
         let out = fill_unmeasured(&range, &std, &object, w, cap);
@@ -563,19 +574,9 @@ mod tests {
     /// weakly beside the nearer one, stays.
     #[test]
     fn a_weak_pixel_keeps_its_range_only_within_its_errors_of_its_neighbours() {
-        let (w, h) = (12, 9);
+        let w = 12;
         let cap = 2.0f32;
-        let mut range = vec![7.5f32; w * h];
-        let mut std = vec![cap; w * h];
-        let mut object = vec![false; w * h];
-        for y in 0..h {
-            for x in 0..5 {
-                let i = y * w + x;
-                object[i] = true;
-                range[i] = 1.1;
-                std[i] = 0.01;
-            }
-        }
+        let (mut range, mut std, object) = object_in_columns(cap, |_| 1.1);
         let (guess, farther, measured) = (2 * w + 4, 6 * w + 4, 4 * w + 3);
         (range[guess], std[guess]) = (8.4, 1.6);
         (range[farther], std[farther]) = (1.8, 1.6);
