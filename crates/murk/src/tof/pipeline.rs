@@ -298,11 +298,11 @@ fn range_m(phase_rad: f64, frequency_hz: f64) -> f64 {
 }
 
 /// A pixel whose `range_std_m` is at least this fraction of the cap (σ_φ ≥ π/4: its direct
-/// return within about 1.4 noise σ of nothing) has a weak measurement ([`fill_unmeasured`]).
+/// return within about 1.4 noise σ of nothing) has a weak measurement ([`fill_outline_pixels`]).
 const WEAK_FRACTION_OF_CAP: f32 = 0.5;
 
 /// A weak measurement farther than this many of its own standard deviations from its measured
-/// neighbours' median range takes that median ([`fill_unmeasured`]).
+/// neighbours' median range takes that median ([`fill_outline_pixels`]).
 const FILL_CONSISTENCY_SIGMAS: f32 = 2.0;
 
 /// `range` with the weak pixels beside measured object pixels given the median range of those
@@ -318,7 +318,7 @@ const FILL_CONSISTENCY_SIGMAS: f32 = 2.0;
 /// added 3 mm to the frame's mean error). The surface beside it is the likelier answer, and a
 /// robot that reads the depth without the mask or the uncertainty then sees the obstacle's
 /// extent rather than a point far behind it.
-fn fill_unmeasured(
+fn fill_outline_pixels(
     range: &[f32],
     range_std: &[f32],
     object: &[bool],
@@ -461,7 +461,7 @@ fn compose(
             let sigma_phi = ((var_o + var_s).sqrt() / a_d.max(1e-300)).min(0.5 * PI);
             *sd = range_m(sigma_phi, f) as f32;
         });
-    let mut range = fill_unmeasured(
+    let mut range = fill_outline_pixels(
         &range,
         &range_std,
         &est.object,
@@ -553,7 +553,7 @@ mod tests {
         let (range, mut std, object) = object_in_columns(cap, |x| 1.0 + 0.1 * x as f32);
         let hole = 4 * w + 4;
         std[hole] = cap;
-        let out = fill_unmeasured(&range, &std, &object, w, cap);
+        let out = fill_outline_pixels(&range, &std, &object, w, cap);
         // The hole and the background pixels within 3 columns take the median of the measured
         // object pixels in their 7 × 7 window: the hole's holds columns 1–4 (7 pixels each of
         // columns 1–3, 6 of column 4), (5, 4)'s columns 2–4, (7, 4)'s column 4 alone.
@@ -581,7 +581,7 @@ mod tests {
         (range[guess], std[guess]) = (8.4, 1.6);
         (range[farther], std[farther]) = (1.8, 1.6);
         (range[measured], std[measured]) = (1.4, 0.9);
-        let out = fill_unmeasured(&range, &std, &object, w, cap);
+        let out = fill_outline_pixels(&range, &std, &object, w, cap);
         assert_eq!(out[guess], 1.1);
         assert_eq!(out[farther], 1.8);
         // Below half the cap a pixel is measured, and is never filled.
