@@ -47,7 +47,7 @@ import pycolmap
 from murk_client import read_image
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from sfm_pycolmap import PEAK_THRESHOLD, reconstruct  # noqa: E402
+from sfm_pycolmap import PEAK_THRESHOLD, reconstruct, written_models  # noqa: E402
 
 
 def qvec_to_rotation(q: np.ndarray) -> np.ndarray:
@@ -206,17 +206,6 @@ def coverage_label(row: dict) -> str:
     if row["sfm"]["airlight_std_error"] is None or row["sfm"]["beta_std_error_via_depths"] is None:
         return "-"
     return "covered" if covered(row) else "MISSED"
-
-
-def written_models(scene: Path) -> list[tuple[Path, int]]:
-    """The COLMAP models `reconstruct` wrote for `scene` earlier: (folder, number of points) each."""
-    out = []
-    for folder in sorted((scene / "colmap" / "sparse").glob("*")):
-        points = folder / "points3D.txt"
-        if points.exists():
-            lines = points.read_text().splitlines()
-            out.append((folder, sum(1 for ln in lines if ln and not ln.startswith("#"))))
-    return out
 
 
 def seeds_of(spec: str) -> list[int]:

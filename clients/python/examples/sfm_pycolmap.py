@@ -72,6 +72,18 @@ def reconstruct(
     return written
 
 
+def written_models(scene: Path) -> list[tuple[Path, int]]:
+    """The models an earlier `reconstruct` of `scene` wrote, as it returned them: (folder, number of
+    points) each."""
+    out = []
+    for folder in sorted((scene / "colmap" / "sparse").glob("*")):
+        points = folder / "points3D.txt"
+        if points.exists():
+            lines = points.read_text().splitlines()
+            out.append((folder, sum(1 for ln in lines if ln and not ln.startswith("#"))))
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("scene", type=Path, help="folder written by `murk simulate mvs`")
