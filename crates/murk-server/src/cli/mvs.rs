@@ -6,7 +6,7 @@ use anyhow::{bail, Context};
 use clap::{Args, ValueEnum};
 
 use murk::atmosphere::AtmosphereParams;
-use murk::io::{read_image, write_colormap_png, write_exr, DecodeLimits};
+use murk::io::{preview_range, read_image, write_colormap_png, write_exr, DecodeLimits};
 use murk::metrics::{depth_metrics, DepthMetrics};
 use murk::mvs::colmap::{read_colmap_dir, ColmapModel};
 use murk::mvs_io::{
@@ -560,7 +560,7 @@ pub(super) fn write_depth_images(
         },
         || {
             inverse_depth.map_or(Ok(()), |inverse_depth| {
-                let (lo, hi) = robust_range(inverse_depth);
+                let (lo, hi) = preview_range(inverse_depth, None);
                 write_colormap_png(&dir.join("depth.png"), inverse_depth, lo, hi, None)
             })
         },
@@ -568,27 +568,6 @@ pub(super) fn write_depth_images(
     written?;
     png?;
     Ok(())
-}
-
-/// 2nd and 98th percentile of the finite samples (`(0, 1)` when there are none).
-fn robust_range(img: &ImageF32) -> (f32, f32) {
-    let mut v: Vec<f32> = img
-        .data()
-        .iter()
-        .copied()
-        .filter(|x| x.is_finite())
-        .collect();
-    if v.is_empty() {
-        return (0.0, 1.0);
-    }
-    v.sort_by(f32::total_cmp);
-    let lo = v[v.len() / 50];
-    let hi = v[(v.len() * 49 / 50).min(v.len() - 1)];
-    if hi > lo {
-        (lo, hi)
-    } else {
-        (lo, lo + 1.0)
-    }
 }
 
 /// Display name of a wire cost-volume kind.

@@ -6,7 +6,7 @@ use anyhow::{bail, Context};
 use clap::Args;
 
 use murk::camera::Intrinsics;
-use murk::io::{read_image, write_colormap_png, write_exr, DecodeLimits};
+use murk::io::{preview_range, read_image, write_colormap_png, write_exr, DecodeLimits};
 use murk::mvs_io::{write_ply, PlyFormat};
 use murk::simulate::{read_tof_capture, TofCapture};
 use murk::ImageF32;
@@ -287,10 +287,7 @@ pub fn write_tof_result(dir: &Path, r: &pb::TofDepthResult) -> anyhow::Result<Op
         ),
     };
     if let Some((name, img)) = main {
-        let (lo, hi) = match mask {
-            Some(mask) => robust_range(img, mask),
-            None => robust_range(img, &ImageF32::filled(img.width(), img.height(), 1, 1.0)),
-        };
+        let (lo, hi) = preview_range(img, mask);
         write_colormap_png(&dir.join(format!("{name}.png")), img, lo, hi, mask)?;
         if let Some(raw) = raw {
             write_colormap_png(&dir.join(format!("raw_{name}.png")), raw, lo, hi, mask)?;
@@ -315,25 +312,4 @@ pub fn write_tof_result(dir: &Path, r: &pb::TofDepthResult) -> anyhow::Result<Op
         }),
         _ => None,
     })
-}
-
-fn robust_range(img: &ImageF32, mask: &ImageF32) -> (f32, f32) {
-    let mut v: Vec<f32> = img
-        .data()
-        .iter()
-        .zip(mask.data())
-        .filter(|(d, m)| **m > 0.5 && d.is_finite())
-        .map(|(d, _)| *d)
-        .collect();
-    if v.is_empty() {
-        return (0.0, 1.0);
-    }
-    v.sort_by(f32::total_cmp);
-    let lo = v[v.len() / 50];
-    let hi = v[v.len() * 49 / 50];
-    if hi > lo {
-        (lo, hi)
-    } else {
-        (lo, lo + 1.0)
-    }
 }

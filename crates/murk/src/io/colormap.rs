@@ -78,6 +78,41 @@ pub fn colorize(img: &ImageF32, lo: f32, hi: f32, mask: Option<&ImageF32>) -> Ve
     out
 }
 
+/// The colour scale of a preview that a few outliers do not flatten: the 2nd and 98th
+/// percentiles (ranks `n / 50` and `49·n / 50` in sorted order) of channel 0's `n` finite samples
+/// of `img` where `mask` (same size, > 0.5 = valid; ignored when of another size) is set.
+/// `(lo, lo + 1)` when the two are equal, `(0, 1)` when no sample counts. Two selections instead
+/// of a sort: a streaming client takes the scale of every frame it writes.
+pub fn preview_range(img: &ImageF32, mask: Option<&ImageF32>) -> (f32, f32) {
+    let mask = mask.filter(|m| m.dims() == img.dims());
+    let c = img.channels();
+    let mut v: Vec<f32> = (0..img.pixel_count())
+        .map(|i| img.data()[i * c])
+        .enumerate()
+        .filter(|&(i, x)| {
+            x.is_finite() && mask.is_none_or(|m| mask_set(m.data()[i * m.channels()]))
+        })
+        .map(|(_, x)| x)
+        .collect();
+    let n = v.len();
+    if n == 0 {
+        return (0.0, 1.0);
+    }
+    let (lo_rank, hi_rank) = (n / 50, n * 49 / 50);
+    let (below, &mut hi, _) = v.select_nth_unstable_by(hi_rank, f32::total_cmp);
+    // Everything before the high rank is at most `hi`, so the low rank is found among it.
+    let lo = if lo_rank < hi_rank {
+        *below.select_nth_unstable_by(lo_rank, f32::total_cmp).1
+    } else {
+        hi
+    };
+    if hi > lo {
+        (lo, hi)
+    } else {
+        (lo, lo + 1.0)
+    }
+}
+
 /// Writes [`colorize`] as an 8-bit RGB PNG. Unlike `colorize`, a mask of the wrong size is an
 /// error (field `mask`).
 pub fn write_colormap_png(
@@ -133,5 +168,65 @@ mod tests {
         let bad = ImageF32::filled(2, 1, 1, 1.0);
         assert!(write_colormap_png(&dir.path().join("c.png"), &img, 0.0, 1.0, Some(&bad)).is_err());
         write_colormap_png(&dir.path().join("c.png"), &img, 0.0, 1.0, None).unwrap();
+    }
+
+    /// [`preview_range`] by sorting, as it is specified.
+    fn sorted_range(img: &ImageF32, mask: Option<&ImageF32>) -> (f32, f32) {
+        let mut v: Vec<f32> = img
+            .data()
+            .iter()
+            .enumerate()
+            .filter(|&(i, x)| x.is_finite() && mask.is_none_or(|m| m.data()[i] > 0.5))
+            .map(|(_, &x)| x)
+            .collect();
+        if v.is_empty() {
+            return (0.0, 1.0);
+        }
+        v.sort_by(f32::total_cmp);
+        let (lo, hi) = (v[v.len() / 50], v[v.len() * 49 / 50]);
+        if hi > lo {
+            (lo, hi)
+        } else {
+            (lo, lo + 1.0)
+        }
+    }
+
+    #[test]
+    fn preview_range_edge_cases() {
+        let none = ImageF32::from_vec(2, 1, 1, vec![f32::NAN, f32::INFINITY]).unwrap();
+        assert_eq!(preview_range(&none, None), (0.0, 1.0));
+        let flat = ImageF32::filled(4, 4, 1, 2.5);
+        assert_eq!(preview_range(&flat, None), (2.5, 3.5));
+        let one = ImageF32::from_vec(1, 1, 1, vec![-3.0]).unwrap();
+        assert_eq!(preview_range(&one, None), (-3.0, -2.0));
+        // 100 samples: ranks 2 and 98, so the outliers at both ends fall outside.
+        let mut data: Vec<f32> = (0..100).map(|i| i as f32).collect();
+        (data[0], data[99]) = (-1e9, 1e9);
+        let img = ImageF32::from_vec(10, 10, 1, data).unwrap();
+        assert_eq!(preview_range(&img, None), (2.0, 98.0));
+        // A mask of another size is ignored, as `colorize` ignores it.
+        let odd = ImageF32::filled(3, 3, 1, 0.0);
+        assert_eq!(preview_range(&img, Some(&odd)), (2.0, 98.0));
+    }
+
+    proptest::proptest! {
+        /// The selections find the ranks a sort finds, with and without a mask.
+        #[test]
+        fn preview_range_is_the_sorted_percentiles(
+            data in proptest::collection::vec(
+                proptest::prop_oneof![-1e3f32..1e3, proptest::strategy::Just(f32::NAN)],
+                1..600,
+            ),
+            keep in proptest::collection::vec(proptest::bool::ANY, 600),
+        ) {
+            let n = data.len();
+            let img = ImageF32::from_vec(n, 1, 1, data).unwrap();
+            let mask = ImageF32::from_fn(n, 1, |x, _| f32::from(u8::from(keep[x])));
+            proptest::prop_assert_eq!(preview_range(&img, None), sorted_range(&img, None));
+            proptest::prop_assert_eq!(
+                preview_range(&img, Some(&mask)),
+                sorted_range(&img, Some(&mask))
+            );
+        }
     }
 }

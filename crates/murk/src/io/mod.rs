@@ -9,7 +9,7 @@ mod decode;
 mod exr;
 mod png;
 
-pub use colormap::{colorize, turbo, write_colormap_png, MASKED_RGB};
+pub use colormap::{colorize, preview_range, turbo, write_colormap_png, MASKED_RGB};
 pub use decode::{decode_image, read_image, sniff_format, DecodeLimits, ImageFormat};
 pub use exr::{encode_exr, write_exr};
 pub use png::{
