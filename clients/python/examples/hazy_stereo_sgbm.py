@@ -250,6 +250,13 @@ def main() -> None:
         "the rig's flags): frames/s, per-frame compute and the first and last frames' scores",
     )
     ap.add_argument("--repeats", type=int, default=3, help="timed runs of each method (best is reported)")
+    ap.add_argument(
+        "--sgbm-threads",
+        type=int,
+        default=os.cpu_count() or 1,
+        help="OpenCV's threads for SGBM (default: every core, as murk uses them; MODE_SGBM_3WAY "
+        "runs its rows in parallel)",
+    )
     ap.add_argument("--murk-args", default="", help="extra `murk mvs` flags")
     ap.add_argument(
         "--srgb",
@@ -352,7 +359,8 @@ def main() -> None:
         speckleRange=2,
         mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
     )
-    cv2.setNumThreads(0)
+    # The same cores as murk. (OpenCV's 0 would run SGBM on one thread.)
+    cv2.setNumThreads(max(a.sgbm_threads, 1))
 
     def run_sgbm() -> tuple[np.ndarray, float]:
         t0 = time.perf_counter()
@@ -469,6 +477,7 @@ def main() -> None:
         "sgbm": {
             **scores(depth_sgbm, sgbm_valid, gt_depth, gt_ok, fb, doffs, sgbm_valid),
             "seconds": min(sgbm_times),
+            "threads": cv2.getNumThreads(),
             "peak_rss_mib_python_process": peak_self_mib,
         },
         "murk": {
