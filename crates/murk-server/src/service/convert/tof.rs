@@ -1,5 +1,7 @@
 //! `TofDepthRequest` → ([`TofInput`], [`TofParams`]) and [`TofOutput`] → `TofDepthResult`.
 
+use rayon::prelude::*;
+
 use super::image::{image_to_proto, mono_image_from_proto, ImageLimits};
 use super::outputs::{Delivery, Encoding, OutputField, OutputSelection, Quantity};
 use crate::service::proto::v1 as pb;
@@ -356,34 +358,49 @@ pub fn tof_to_proto(
     outputs: &OutputSelection,
     points: Option<&TofPoints>,
 ) -> Result<pb::TofDepthResult> {
-    let image = |name: &str, img: &ImageF32| outputs.encode(name, img);
-    let depth = |name: &str, img: &ImageF32| {
-        if outputs.encoding() == Encoding::Png && outputs.wants(name) {
-            let unmeasured = unmeasured_range_std_m(params.modulation_frequency_hz);
-            outputs.encode(name, &without_unmeasured(img, &out.range_std_m, unmeasured))
-        } else {
-            outputs.encode(name, img)
-        }
-    };
+    // The images encode side by side (a PNG deflates on one core; a stream's frame waits for
+    // all of them). The two depths travel without their unmeasured pixels' guesses as PNG.
+    let fields: [(&str, Option<&ImageF32>, bool); 12] = [
+        ("range_m", Some(&out.range_m), true),
+        ("z_depth_m", out.z_depth_m.as_ref(), true),
+        ("raw_range_m", Some(&out.raw_range_m), false),
+        ("raw_z_depth_m", out.raw_z_depth_m.as_ref(), false),
+        ("mask", Some(&out.mask), false),
+        ("scatter_amplitude", Some(&out.scatter_amplitude), false),
+        ("scatter_phase", Some(&out.scatter_phase), false),
+        ("weight_amplitude", Some(&out.weight_amplitude), false),
+        ("weight_phase", Some(&out.weight_phase), false),
+        ("corrected_amplitude", Some(&out.corrected_amplitude), false),
+        ("corrected_phase", Some(&out.corrected_phase), false),
+        ("range_std_m", Some(&out.range_std_m), false),
+    ];
+    let encoded: Vec<Option<pb::Image>> = fields
+        .par_iter()
+        .map(|&(name, img, is_depth)| match img {
+            None => Ok(None),
+            Some(img) if is_depth && outputs.encoding() == Encoding::Png && outputs.wants(name) => {
+                let unmeasured = unmeasured_range_std_m(params.modulation_frequency_hz);
+                outputs.encode(name, &without_unmeasured(img, &out.range_std_m, unmeasured))
+            }
+            Some(img) => outputs.encode(name, img),
+        })
+        .collect::<Result<_>>()?;
+    // Taken in the order of `fields`, as the struct's fields are evaluated as written.
+    let mut encoded = encoded.into_iter();
+    let mut next = move || encoded.next().flatten();
     Ok(pb::TofDepthResult {
-        range_m: depth("range_m", &out.range_m)?,
-        z_depth_m: out
-            .z_depth_m
-            .as_ref()
-            .map_or(Ok(None), |z| depth("z_depth_m", z))?,
-        raw_range_m: image("raw_range_m", &out.raw_range_m)?,
-        raw_z_depth_m: out
-            .raw_z_depth_m
-            .as_ref()
-            .map_or(Ok(None), |z| image("raw_z_depth_m", z))?,
-        mask: image("mask", &out.mask)?,
-        scatter_amplitude: image("scatter_amplitude", &out.scatter_amplitude)?,
-        scatter_phase: image("scatter_phase", &out.scatter_phase)?,
-        weight_amplitude: image("weight_amplitude", &out.weight_amplitude)?,
-        weight_phase: image("weight_phase", &out.weight_phase)?,
-        corrected_amplitude: image("corrected_amplitude", &out.corrected_amplitude)?,
-        corrected_phase: image("corrected_phase", &out.corrected_phase)?,
-        range_std_m: image("range_std_m", &out.range_std_m)?,
+        range_m: next(),
+        z_depth_m: next(),
+        raw_range_m: next(),
+        raw_z_depth_m: next(),
+        mask: next(),
+        scatter_amplitude: next(),
+        scatter_phase: next(),
+        weight_amplitude: next(),
+        weight_phase: next(),
+        corrected_amplitude: next(),
+        corrected_phase: next(),
+        range_std_m: next(),
         warnings: out.warnings.clone(),
         points: points
             .map(|p| {
@@ -397,4 +414,83 @@ pub fn tof_to_proto(
             .transpose()?
             .map(|p| points_to_proto(&p)),
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::service::convert::image::image_from_proto;
+
+    /// A result whose every image is a constant, its field's index.
+    fn numbered_output() -> TofOutput {
+        let img = |v: f32| ImageF32::filled(4, 3, 1, v);
+        TofOutput {
+            range_m: img(1.0),
+            z_depth_m: Some(img(2.0)),
+            raw_range_m: img(3.0),
+            raw_z_depth_m: Some(img(4.0)),
+            range_std_m: img(12.0),
+            mask: img(5.0),
+            scatter_amplitude: img(6.0),
+            scatter_phase: img(7.0),
+            weight_amplitude: img(8.0),
+            weight_phase: img(9.0),
+            corrected_amplitude: img(10.0),
+            corrected_phase: img(11.0),
+            warnings: vec![],
+        }
+    }
+
+    fn value(img: &Option<pb::Image>) -> Option<f32> {
+        img.as_ref()
+            .map(|i| image_from_proto(i, &ImageLimits::default()).unwrap().data()[0])
+    }
+
+    #[test]
+    fn every_image_travels_in_its_own_field_and_only_those_asked_for() {
+        let out = numbered_output();
+        let params = TofParams::default();
+        let every = pb::TofDepthRequest::default();
+        let all = tof_outputs_from_proto(&every, Delivery::OneShot).unwrap();
+        let r = tof_to_proto(&out, &params, &all, None).unwrap();
+        let got = [
+            &r.range_m,
+            &r.z_depth_m,
+            &r.raw_range_m,
+            &r.raw_z_depth_m,
+            &r.mask,
+            &r.scatter_amplitude,
+            &r.scatter_phase,
+            &r.weight_amplitude,
+            &r.weight_phase,
+            &r.corrected_amplitude,
+            &r.corrected_phase,
+            &r.range_std_m,
+        ]
+        .map(value);
+        let want: Vec<Option<f32>> = (1..=12).map(|v| Some(v as f32)).collect();
+        assert_eq!(got.to_vec(), want);
+
+        // A session's compact default: the z-depth, the mask and range_std_m, nothing else.
+        let with_intrinsics = pb::TofDepthRequest {
+            intrinsics: Some(pb::CameraIntrinsics::default()),
+            ..Default::default()
+        };
+        let compact = tof_outputs_from_proto(&with_intrinsics, Delivery::Session).unwrap();
+        let r = tof_to_proto(&out, &params, &compact, None).unwrap();
+        assert!(r.z_depth_m.is_some() && r.mask.is_some() && r.range_std_m.is_some());
+        for other in [
+            &r.range_m,
+            &r.raw_range_m,
+            &r.raw_z_depth_m,
+            &r.scatter_amplitude,
+            &r.scatter_phase,
+            &r.weight_amplitude,
+            &r.weight_phase,
+            &r.corrected_amplitude,
+            &r.corrected_phase,
+        ] {
+            assert!(other.is_none());
+        }
+    }
 }
