@@ -75,6 +75,24 @@ def right_view_disparity(disp_left: np.ndarray) -> np.ndarray:
     return fill_occlusions(out)
 
 
+def make_sgbm(min_disp: int, num_disp: int) -> "cv2.StereoSGBM":
+    """OpenCV's SGBM as the comparisons run it: MODE_SGBM_3WAY, a 5×5 block, OpenCV's suggested
+    P1/P2 for 3 channels, its usual uniqueness and speckle filters."""
+    bs = 5
+    return cv2.StereoSGBM_create(
+        minDisparity=min_disp,
+        numDisparities=num_disp,
+        blockSize=bs,
+        P1=8 * 3 * bs * bs,
+        P2=32 * 3 * bs * bs,
+        disp12MaxDiff=1,
+        uniquenessRatio=10,
+        speckleWindowSize=100,
+        speckleRange=2,
+        mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
+    )
+
+
 def write_colmap(
     out: Path,
     w: int,
@@ -346,19 +364,7 @@ def main() -> None:
     min_disp = int(np.floor(d_lo * 0.8))
     num_disp = int(np.ceil((d_hi * 1.2 - min_disp) / 16.0) * 16)
 
-    bs = 5
-    sgbm = cv2.StereoSGBM_create(
-        minDisparity=min_disp,
-        numDisparities=num_disp,
-        blockSize=bs,
-        P1=8 * 3 * bs * bs,
-        P2=32 * 3 * bs * bs,
-        disp12MaxDiff=1,
-        uniquenessRatio=10,
-        speckleWindowSize=100,
-        speckleRange=2,
-        mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
-    )
+    sgbm = make_sgbm(min_disp, num_disp)
     # The same cores as murk. (OpenCV's 0 would run SGBM on one thread.)
     cv2.setNumThreads(max(a.sgbm_threads, 1))
 

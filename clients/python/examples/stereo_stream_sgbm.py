@@ -34,7 +34,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from hazy_stereo_sgbm import cv2, np, scores  # noqa: E402  (cv2 with the EXR switch set)
+from hazy_stereo_sgbm import cv2, make_sgbm, np, scores  # noqa: E402  (cv2 with the EXR switch set)
 
 
 def read_exr(path: Path) -> np.ndarray:
@@ -141,19 +141,7 @@ def main() -> None:
     fps = re.search(r"([0-9.]+) frames/s", summary)
     stream_compute = re.search(r"compute mean ([0-9.]+) ms", summary)
 
-    bs = 5
-    sgbm = cv2.StereoSGBM_create(
-        minDisparity=min_disp,
-        numDisparities=num_disp,
-        blockSize=bs,
-        P1=8 * 3 * bs * bs,
-        P2=32 * 3 * bs * bs,
-        disp12MaxDiff=1,
-        uniquenessRatio=10,
-        speckleWindowSize=100,
-        speckleRange=2,
-        mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
-    )
+    sgbm = make_sgbm(min_disp, num_disp)
     cv2.setNumThreads(max(a.sgbm_threads, 1))
 
     rows = []
