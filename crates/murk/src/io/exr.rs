@@ -139,10 +139,10 @@ fn select_channels(names: &[String]) -> Result<Vec<String>> {
 /// scan lines, lossless and read by every OpenEXR reader.
 ///
 /// RLE shrinks runs of equal values (masks, constant backgrounds) and leaves noisy floats
-/// nearly as they are. ZIP took 10–25 ms per 512×424 or 640×480 f32
-/// image against RLE's 1–2 ms, and saved 1 % on most of murk's float results (16 % on a stereo
-/// depth, 28 % on a ToF range deviation): a stream's client writes three to twelve of them per
-/// frame, on the cores that compute the next (docs/benchmarks.md, "Result files").
+/// nearly as they are. ZIP takes about ten times as long (12–21 ms against 1–1.5 ms for a
+/// 512×424 or 640×480 f32 image) and saves 1 % on a ToF range or amplitude, 18–20 % on a
+/// stereo depth or disparity (`cargo bench -p murk --bench io`), while a stream's client writes
+/// three to twelve of them per frame on the cores that compute the next.
 const WRITE_ENCODING: Encoding = Encoding {
     compression: Compression::RLE,
     blocks: Blocks::ScanLines,
