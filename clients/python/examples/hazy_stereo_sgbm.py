@@ -6,7 +6,8 @@ A real rectified pair with ground-truth disparity (Middlebury Aloe, shipped by D
 `t = exp(−β z)` (Eq. 3.3), plus sensor noise, and is saved as 8-bit PNGs with a COLMAP text
 model (two PINHOLE cameras, metres). Then:
 
-- OpenCV's StereoSGBM runs on the hazy pair (timed in this process);
+- OpenCV's StereoSGBM runs on the hazy pair (timed in this process, on as many threads as murk
+  has cores: `--sgbm-threads`);
 - `murk mvs` runs on the same files with the true A and β (timed, and its peak memory measured
   by GNU time: the CLI starts its server in-process, so the process's peak RSS is murk's), or
   with `--method stereo`, `murk stereo` with the rig's calibration (focal length, principal
