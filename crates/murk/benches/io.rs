@@ -1,8 +1,9 @@
-//! Writing result images as OpenEXR: murk's encoding (run-length, [`murk::io::encode_exr`])
+//! Writing result images. As OpenEXR: murk's encoding (run-length, [`murk::io::encode_exr`])
 //! against ZIP (deflate over 16 scan lines, the `exr` crate's `SMALL_LOSSLESS`), on the images a
 //! streaming client writes every frame: a simulated 512×424 medium-fog ToF frame's results and a
 //! simulated hazy 640×480 rectified pair's. Each image's size in both encodings is printed
-//! before the timings.
+//! before the timings. As a preview: the stereo depth coloured by [`murk::io::colorize`] (a
+//! table of Turbo) against [`murk::io::turbo`] evaluated at every pixel.
 //!
 //! ```sh
 //! cargo bench -p murk --bench io
@@ -18,7 +19,7 @@ use exr::prelude::{
 
 use murk::atmosphere::AtmosphereParams;
 use murk::image::ImageF32;
-use murk::io::encode_exr;
+use murk::io::{colorize, encode_exr, preview_range, turbo};
 use murk::mvs::{estimate_rectified, CostKind, DehazingOptions, RectifiedOptions, RectifiedRig};
 use murk::simulate::mvs::{simulate_mvs, MvsSimConfig};
 use murk::simulate::tof::{simulate_tof, FogPreset, TofSimConfig};
@@ -115,6 +116,25 @@ fn bench(c: &mut Criterion) {
         });
         g.bench_function(format!("{name}_zip"), |b| b.iter(|| encode_zip(img)));
     }
+    g.finish();
+
+    let depth = &images
+        .iter()
+        .find(|(name, _)| name == "stereo_depth")
+        .expect("the stereo depth")
+        .1;
+    let (lo, hi) = preview_range(depth, None);
+    let mut g = c.benchmark_group("preview_640x480");
+    g.bench_function("colorize", |b| b.iter(|| colorize(depth, lo, hi, None)));
+    g.bench_function("turbo_per_pixel", |b| {
+        b.iter(|| {
+            depth
+                .data()
+                .iter()
+                .flat_map(|&v| turbo((v - lo) / (hi - lo)))
+                .collect::<Vec<u8>>()
+        })
+    });
     g.finish();
 }
 
