@@ -127,10 +127,9 @@ fn scatter_change(input: &TofInput, start: &IrlsStart, threshold: f32) -> f64 {
         _ => return 0.0,
     };
     // In parallel: this check runs before every warm frame, and at 512×424 it took 7 ms on one
-    // core. The median of the same values does not depend on their order. The squared ratio is
-    // ranked instead of the ratio (the same order, without two `hypot`s a pixel; the phasors
-    // are far from overflow), and only the middle values are rooted.
-    let mut rel2: Vec<f64> = input
+    // core. The median of the same values does not depend on their order. One square root a
+    // pixel instead of two `hypot`s: the phasors are far from overflow.
+    let mut rel: Vec<f64> = input
         .amplitude
         .data()
         .par_iter()
@@ -142,28 +141,10 @@ fn scatter_change(input: &TofInput, start: &IrlsStart, threshold: f32) -> f64 {
             let s2 = sr * sr + si * si;
             let (sin, cos) = f64::from(p).sin_cos();
             let (dr, di) = (f64::from(a) * cos - sr, f64::from(a) * sin - si);
-            (s2 > 0.0).then(|| (dr * dr + di * di) / s2)
+            (s2 > 0.0).then(|| ((dr * dr + di * di) / s2).sqrt())
         })
         .collect();
-    median_of_roots(&mut rel2).unwrap_or(0.0)
-}
-
-/// The median of the square roots of the non-negative `squares` (reordered in place), as
-/// [`super::tukey::median_in_place`] takes it (the mean of the two middle values of an even
-/// count); `None` when empty or NaN-tainted.
-fn median_of_roots(squares: &mut [f64]) -> Option<f64> {
-    let n = squares.len();
-    if n == 0 || squares.iter().any(|v| v.is_nan()) {
-        return None;
-    }
-    let (lo, m, _) = squares.select_nth_unstable_by(n / 2, f64::total_cmp);
-    let upper = m.sqrt();
-    if n % 2 == 1 {
-        Some(upper)
-    } else {
-        let lower = lo.iter().copied().fold(f64::NEG_INFINITY, f64::max).sqrt();
-        Some(0.5 * (lower + upper))
-    }
+    super::tukey::median_in_place(&mut rel).unwrap_or(0.0)
 }
 
 /// Fraction of pixels whose class (object: weight below `threshold`) differs between two runs.
@@ -181,27 +162,6 @@ fn changed_fraction(a: &IrlsStart, b: &IrlsStart, threshold: f32) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    proptest::proptest! {
-        /// Ranking the squares and rooting the middle ones gives the median of the roots.
-        #[test]
-        fn median_of_roots_is_the_median_of_the_roots(
-            v in proptest::collection::vec(0.0f64..1e3, 1..300),
-        ) {
-            let mut squares: Vec<f64> = v.iter().map(|x| x * x).collect();
-            let mut roots: Vec<f64> = squares.iter().map(|s| s.sqrt()).collect();
-            let want = super::super::tukey::median_in_place(&mut roots).unwrap();
-            let got = median_of_roots(&mut squares).unwrap();
-            proptest::prop_assert!((got - want).abs() <= 1e-12 * want.max(1.0), "{got} {want}");
-        }
-    }
-
-    #[test]
-    fn median_of_roots_of_nothing_or_nan_is_none() {
-        assert_eq!(median_of_roots(&mut []), None);
-        assert_eq!(median_of_roots(&mut [1.0, f64::NAN]), None);
-        assert_eq!(median_of_roots(&mut [4.0, 9.0]), Some(2.5));
-    }
     use crate::simulate::{simulate_tof_sequence_frame, TofMotion, TofSimConfig};
     use crate::tof::{estimate_tof_depth, estimate_tof_depth_from};
     use std::sync::atomic::{AtomicUsize, Ordering};
