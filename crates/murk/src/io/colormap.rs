@@ -110,12 +110,9 @@ pub fn preview_range(img: &ImageF32, mask: Option<&ImageF32>) -> (f32, f32) {
     let mask = mask.filter(|m| m.dims() == img.dims());
     let c = img.channels();
     let mut v: Vec<f32> = (0..img.pixel_count())
+        .filter(|&i| mask.is_none_or(|m| mask_set(m.data()[i * m.channels()])))
         .map(|i| img.data()[i * c])
-        .enumerate()
-        .filter(|&(i, x)| {
-            x.is_finite() && mask.is_none_or(|m| mask_set(m.data()[i * m.channels()]))
-        })
-        .map(|(_, x)| x)
+        .filter(|x| x.is_finite())
         .collect();
     let n = v.len();
     if n == 0 {
