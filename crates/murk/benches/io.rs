@@ -21,8 +21,9 @@ use murk::atmosphere::AtmosphereParams;
 use murk::image::ImageF32;
 use murk::io::{colorize, encode_exr, preview_range, turbo};
 use murk::mvs::{estimate_rectified, CostKind, DehazingOptions, RectifiedOptions, RectifiedRig};
-use murk::simulate::mvs::{simulate_mvs, MvsSimConfig};
+use murk::simulate::mvs::MvsSimConfig;
 use murk::simulate::tof::{simulate_tof, FogPreset, TofSimConfig};
+use murk::simulate::{StereoMotion, StereoSequence};
 use murk::tof::{estimate_tof_depth, TofInput, TofParams};
 use murk::Monitor;
 
@@ -60,28 +61,23 @@ fn results() -> Vec<(String, ImageF32)> {
     };
     let tof = estimate_tof_depth(&input, &TofParams::default(), &noop).expect("ToF");
 
-    let cfg = MvsSimConfig {
-        num_views: 2,
-        rectified_pair: true,
-        ..MvsSimConfig::with_size(640, 480)
-    };
-    let scene = simulate_mvs(&cfg, &noop).expect("simulate");
-    let rig = RectifiedRig::new(
-        scene.views[0].intrinsics,
-        -scene.views[1].pose.translation()[0],
-    );
+    // The rig's first pair (the same pair as `simulate_mvs` renders), with the true A and β.
+    let rig = StereoSequence::new(&MvsSimConfig::with_size(640, 480), &StereoMotion::default())
+        .expect("simulate");
+    let pair = rig.frame(0, &noop).expect("simulate");
     let options = RectifiedOptions {
         cost: CostKind::DehazingWith(
             AtmosphereParams {
-                airlight: scene.airlight,
-                beta: scene.beta,
+                airlight: rig.airlight,
+                beta: rig.beta,
             },
             DehazingOptions::default(),
         ),
         ..RectifiedOptions::default()
     };
-    let (left, right) = (&scene.views[0].hazy, &scene.views[1].hazy);
-    let pair = estimate_rectified(left, right, &rig, &options, &noop).expect("stereo");
+    let calibration = RectifiedRig::new(rig.intrinsics(), rig.baseline());
+    let pair =
+        estimate_rectified(&pair.left, &pair.right, &calibration, &options, &noop).expect("stereo");
 
     vec![
         ("tof_range_m".into(), tof.range_m),
