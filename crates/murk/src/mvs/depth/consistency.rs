@@ -8,15 +8,14 @@
 //! `(p, i)` that lands there: one pass over the aggregated volume, with a 64-bit atomic minimum
 //! per source pixel that packs the cost's bits (non-negative `f32`s order like their bit
 //! patterns) above the plane index. On a rectified pair, whose rows land on one source row by a
-//! whole-pixel shift per plane, a row's claims are first reduced per source column (plane by
-//! plane over contiguous columns) and take one atomic minimum per column
-//! ([`SourceClaims::add_row`]). Reference pixel `p` with winner `i*` is **consistent** with
-//! a source when the source's winner at `q* = round(π(p; z_{i*}))` is within `tolerance` planes
-//! of `i*`. When the source pixel is claimed by a nearer plane (a larger index) by more than the
-//! tolerance, a nearer surface hides `p` from that source: **occluded**; any other disagreement
-//! is a **mismatch**. With several sources a pixel is kept when it is consistent with at least
-//! one (each source sees different occlusions), and it is occluded when every source that sees
-//! it says so.
+//! whole-pixel shift per plane, a row's claims are first reduced per source column with vector
+//! minima and take one atomic minimum per column ([`SourceClaims::add_row`]). Reference pixel
+//! `p` with winner `i*` is **consistent** with a source when the source's winner at
+//! `q* = round(π(p; z_{i*}))` is within `tolerance` planes of `i*`. When the source pixel is
+//! claimed by a nearer plane (a larger index) by more than the tolerance, a nearer surface
+//! hides `p` from that source: **occluded**; any other disagreement is a **mismatch**. With
+//! several sources a pixel is kept when it is consistent with at least one (each source sees
+//! different occlusions), and it is occluded when every source that sees it says so.
 //!
 //! Rejected pixels are filled as in Hirschmüller's §4.4 so the depth map stays dense (the
 //! confidence output carries the rejection): the nearest accepted pixel along each of 8
@@ -33,6 +32,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use rayon::prelude::*;
 
 use super::sgm::PathCost;
+use super::shift_claims::{inside_columns, reduce_shift_levels, shift_key_parts};
 use crate::camera::Intrinsics;
 use crate::mvs::cost_volume::SHIFT_TOLERANCE_PX;
 use crate::mvs::plane_sweep::{PlaneSet, PlaneWarp, RowWarpF32};
@@ -177,135 +177,6 @@ fn shift_targets(
     row.map(|v| v as usize * g.width)
 }
 
-/// The columns `x` of a `w`-pixel reference row whose voxel at `offset` lands inside a
-/// `w_src`-pixel source row.
-#[inline]
-fn inside_columns(offset: i32, w: usize, w_src: usize) -> std::ops::Range<usize> {
-    let lo = (-(offset as i64)).max(0) as usize;
-    let hi = (w_src as i64 - offset as i64).clamp(0, w as i64) as usize;
-    lo.min(hi)..hi
-}
-
-/// A shift row's claim of plane `i` at `level` as one `u32`: smaller is better, and of equal
-/// levels the higher plane (the nearer surface) wins, as in the 64-bit keys of
-/// [`SourceClaims`].
-#[inline(always)]
-fn shift_key(level: u16, i: usize) -> u32 {
-    (u32::from(level) << 16) | (0xFFFF - i as u32)
-}
-
-/// The level and the plane of a [`shift_key`].
-#[inline]
-fn shift_key_parts(key: u32) -> (u16, usize) {
-    ((key >> 16) as u16, (0xFFFF - (key & 0xFFFF)) as usize)
-}
-
-/// The per-source-column reduction of a shift row's `u16` claims ([`SourceClaims::add_row`]):
-/// `local[x + offsets[i]] = min(local[x + offsets[i]], shift_key(levels[x·n + i], i))`
-/// over the row's pixels `x` (`levels` is `[x][plane]`, `n` planes per pixel) whose target lies
-/// in `local` (the source row). Plane by plane over contiguous columns; with `avx512` (the CPU
-/// has AVX-512 F, BW and VL) each plane's levels are gathered 16 pixels at a time (a stride of
-/// `n` values) and the keys' minimum is one vector operation, the same keys and minima as the
-/// plain loop.
-fn reduce_shift_levels(avx512: bool, levels: &[u16], n: usize, offsets: &[i32], local: &mut [u32]) {
-    let w = levels.len() / n.max(1);
-    #[cfg(target_arch = "x86_64")]
-    if avx512 && n > 0 && std::mem::size_of_val(levels) < i32::MAX as usize {
-        // SAFETY: the CPU has AVX-512 F, BW and VL (the caller's `avx512`), and `levels` is
-        // addressable by `i32` byte offsets (checked above).
-        unsafe { reduce_shift_levels_avx512(levels, n, w, offsets, local) };
-        return;
-    }
-    let _ = avx512;
-    for (i, &o) in offsets.iter().enumerate() {
-        let cols = inside_columns(o, w, local.len());
-        if cols.is_empty() {
-            // Every voxel of the plane lands outside (and `cols.start + o` may be negative).
-            continue;
-        }
-        let dst = &mut local[(cols.start as i64 + o as i64) as usize..][..cols.len()];
-        for (d, x) in dst.iter_mut().zip(cols) {
-            *d = (*d).min(shift_key(levels[x * n + i], i));
-        }
-    }
-}
-
-/// [`reduce_shift_levels`] with AVX-512: per plane, 16 pixels' levels by one masked gather of
-/// the 32-bit words that hold them (the word starting at the level, or for the last plane the
-/// word ending at it, so no gather reads outside `levels`), then 16 keys and one masked
-/// minimum into `local`.
-///
-/// # Safety
-/// The CPU has AVX-512 F, BW and VL; `levels` (`w·n` values) is under `i32::MAX` bytes.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f,avx512bw,avx512vl,avx2")]
-unsafe fn reduce_shift_levels_avx512(
-    levels: &[u16],
-    n: usize,
-    w: usize,
-    offsets: &[i32],
-    local: &mut [u32],
-) {
-    use std::arch::x86_64::*;
-    assert!(
-        levels.len() == w * n && offsets.len() <= n,
-        "w·n levels, n offsets"
-    );
-    let base = levels.as_ptr().cast::<i32>();
-    let stride = _mm512_set1_epi32((2 * n) as i32);
-    let lane = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
-    let low = _mm512_set1_epi32(0xFFFF);
-    for (i, &o) in offsets.iter().enumerate() {
-        let cols = inside_columns(o, w, local.len());
-        // `shift_key`'s low half, the same for every lane of the plane.
-        let tag = _mm512_set1_epi32(shift_key(0, i) as i32);
-        // The level of plane `i` is the low half of the word at it, or for the last of `n ≥ 2`
-        // planes (whose word would reach into the next pixel, past the last one) the high half
-        // of the word before it. With one plane the last pixel is left to the scalar below.
-        let (first_byte, high) = if n == 1 || i + 1 < n {
-            (2 * i as i32, false)
-        } else {
-            (2 * i as i32 - 2, true)
-        };
-        let mut x = cols.start;
-        while x < cols.end {
-            let count = (cols.end - x).min(16);
-            let mut k: __mmask16 = if count == 16 { !0 } else { (1u16 << count) - 1 };
-            if n == 1 && x + count == w {
-                // One plane: the last pixel's word would end past `levels`; the scalar below.
-                k &= !(1u16 << (count - 1));
-            }
-            let pixels = _mm512_add_epi32(_mm512_set1_epi32(x as i32), lane);
-            let offs = _mm512_add_epi32(
-                _mm512_mullo_epi32(pixels, stride),
-                _mm512_set1_epi32(first_byte),
-            );
-            // SAFETY: lane `j < count` reads the 4 bytes at `2(x + j)n + first_byte`, inside
-            // `levels` for every pixel but (with one plane) the last, which the mask excludes;
-            // the masked `local` accesses stay in `x + o .. x + o + count ⊂ 0..local.len()`
-            // ([`inside_columns`]).
-            unsafe {
-                let words = _mm512_mask_i32gather_epi32::<1>(_mm512_setzero_si512(), k, offs, base);
-                let level = if high {
-                    _mm512_srli_epi32::<16>(words)
-                } else {
-                    _mm512_and_si512(words, low)
-                };
-                let keys = _mm512_or_si512(_mm512_slli_epi32::<16>(level), tag);
-                let dst = local.as_mut_ptr().add((x as i64 + o as i64) as usize);
-                let cur = _mm512_maskz_loadu_epi32(k, dst.cast::<i32>());
-                _mm512_mask_storeu_epi32(dst.cast::<i32>(), k, _mm512_min_epu32(cur, keys));
-            }
-            if k.count_ones() as usize != count {
-                let last = x + count - 1;
-                let q = (last as i64 + o as i64) as usize;
-                local[q] = local[q].min(shift_key(levels[last * n + i], i));
-            }
-            x += count;
-        }
-    }
-}
-
 /// Per-task buffers of [`SourceClaims::add_row`], reused from row to row.
 #[derive(Default)]
 pub struct ClaimScratch {
@@ -435,8 +306,8 @@ impl SourceClaims {
 
     /// [`Self::add_row`] of a row whose voxels land on one source row at `start` by the
     /// whole-pixel `offsets` ([`shift_targets`]). For `u16` levels the row's claims are first
-    /// reduced per source column as `u32` keys ([`shift_key`]), plane by plane
-    /// over contiguous columns (a vector minimum, no atomics), and the source row then takes one
+    /// reduced per source column as `u32` keys ([`reduce_shift_levels`]: vector minima, no
+    /// atomics), and the source row then takes one
     /// atomic minimum per column: the same winners, because the cost `level · unit` orders like
     /// the level and ties still go to the higher plane. `f32` costs take the per-voxel loop.
     #[allow(clippy::too_many_arguments)]
@@ -1019,47 +890,6 @@ mod tests {
         assert!(fast.wins.iter().filter(|&&j| j != u32::MAX).count() > W * H / 2);
     }
 
-    /// The gathered AVX-512 reduction of a shift row's keys equals the plain loop's, for one
-    /// plane and many, rows of one pixel and more, source rows shorter and longer than the
-    /// reference's, and offsets that put some, all or none of a plane outside the source.
-    #[test]
-    fn shift_level_reduction_is_the_same_gathered() {
-        if !crate::cpu::avx512bw_enabled() {
-            eprintln!("skipped: this CPU has no AVX-512 BW");
-            return;
-        }
-        let mut s = 99u64;
-        let mut next = |m: u64| {
-            s = s
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (s >> 33) % m
-        };
-        for n in [1usize, 2, 3, 17, 173] {
-            for w in [1usize, 5, 16, 37] {
-                for w_src in [w.saturating_sub(3).max(1), w, w + 7] {
-                    let levels: Vec<u16> = (0..w * n).map(|_| next(9000) as u16).collect();
-                    let offsets: Vec<i32> = (0..n)
-                        .map(|_| next(2 * w as u64 + 9) as i32 - w as i32 - 4)
-                        .collect();
-                    let start: Vec<u32> = (0..w_src)
-                        .map(|_| {
-                            if next(3) == 0 {
-                                u32::MAX
-                            } else {
-                                next(1 << 31) as u32
-                            }
-                        })
-                        .collect();
-                    let (mut plain, mut gathered) = (start.clone(), start);
-                    reduce_shift_levels(false, &levels, n, &offsets, &mut plain);
-                    reduce_shift_levels(true, &levels, n, &offsets, &mut gathered);
-                    assert_eq!(plain, gathered, "n {n}, w {w}, source row {w_src}");
-                }
-            }
-        }
-    }
-
     #[test]
     fn plane_step_is_one_pixel_of_disparity() {
         let planes = PlaneSet::new(1.0, 10.0, N).unwrap();
@@ -1067,6 +897,32 @@ mod tests {
         for i in 0..N - 1 {
             let d = disparity(&planes, &g, i + 1) - disparity(&planes, &g, i);
             assert!((d - 1.0).abs() < 1e-9, "plane {i}: {d}");
+        }
+    }
+
+    /// A rectified pair's planes, one pixel of disparity apart or less (down to just over half
+    /// a pixel), give every row offsets that the sliding reduction takes
+    /// ([`super::super::shift_claims::sliding_offsets`]), whole plane set or any run of it.
+    #[test]
+    fn rectified_offsets_take_the_sliding_reduction() {
+        use super::super::shift_claims::sliding_offsets;
+        let planes = PlaneSet::new(1.0, 10.0, N).unwrap();
+        for step_px in [1.0, 0.93, 0.7, 0.51] {
+            let mut g = rectified(&planes);
+            let b = step_px / (20.0 * planes.inverse_depth_step());
+            g.relative = Pose::translation_only([-b, 0.0, 0.0]).unwrap();
+            let claims = SourceClaims::new(&g, &planes);
+            let mut offsets = Vec::new();
+            for y in 0..H {
+                for (first, end) in [(0, N), (3, 11), (N - 1, N)] {
+                    let start = shift_targets(&claims.warps[first..end], y, W, &g, &mut offsets);
+                    assert!(start.is_some(), "step {step_px}, row {y}: a shift row");
+                    assert!(
+                        sliding_offsets(&offsets),
+                        "step {step_px}, row {y}, planes {first}..{end}: {offsets:?}"
+                    );
+                }
+            }
         }
     }
 

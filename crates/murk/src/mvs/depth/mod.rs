@@ -57,6 +57,7 @@ pub mod windows;
 
 mod bands;
 mod depth_params;
+mod shift_claims;
 
 use crate::error::{MurkError, Result};
 use crate::image::ImageF32;
