@@ -303,6 +303,42 @@ unsafe fn reduce_shift_levels_gathered(
 mod tests {
     use super::*;
 
+    /// A seeded linear congruential generator.
+    struct Lcg(u64);
+
+    impl Lcg {
+        /// The next value in `0..m`.
+        fn next(&mut self, m: u64) -> u64 {
+            self.0 = self
+                .0
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (self.0 >> 33) % m
+        }
+
+        /// Reduces `levels` by the plain loop and by the AVX-512 dispatch into the same random
+        /// `w_src`-column source row (a third of it unclaimed), and checks that the keys agree.
+        fn check(&mut self, levels: &[u16], n: usize, offsets: &[i32], w_src: usize) {
+            let start: Vec<u32> = (0..w_src)
+                .map(|_| {
+                    if self.next(3) == 0 {
+                        u32::MAX
+                    } else {
+                        self.next(1 << 31) as u32
+                    }
+                })
+                .collect();
+            let (mut plain, mut fast) = (start.clone(), start);
+            reduce_shift_levels(false, levels, n, offsets, &mut plain);
+            reduce_shift_levels(true, levels, n, offsets, &mut fast);
+            let w = levels.len() / n;
+            assert_eq!(
+                plain, fast,
+                "n {n}, w {w}, source row {w_src}, offsets {offsets:?}"
+            );
+        }
+    }
+
     /// The gathered AVX-512 reduction of a shift row's keys equals the plain loop's, for one
     /// plane and many, rows of one pixel and more, source rows shorter and longer than the
     /// reference's, and offsets that put some, all or none of a plane outside the source.
@@ -312,33 +348,15 @@ mod tests {
             eprintln!("skipped: this CPU has no AVX-512 BW");
             return;
         }
-        let mut s = 99u64;
-        let mut next = |m: u64| {
-            s = s
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (s >> 33) % m
-        };
+        let mut rng = Lcg(99);
         for n in [1usize, 2, 3, 17, 173] {
             for w in [1usize, 5, 16, 37] {
                 for w_src in [w.saturating_sub(3).max(1), w, w + 7] {
-                    let levels: Vec<u16> = (0..w * n).map(|_| next(9000) as u16).collect();
+                    let levels: Vec<u16> = (0..w * n).map(|_| rng.next(9000) as u16).collect();
                     let offsets: Vec<i32> = (0..n)
-                        .map(|_| next(2 * w as u64 + 9) as i32 - w as i32 - 4)
+                        .map(|_| rng.next(2 * w as u64 + 9) as i32 - w as i32 - 4)
                         .collect();
-                    let start: Vec<u32> = (0..w_src)
-                        .map(|_| {
-                            if next(3) == 0 {
-                                u32::MAX
-                            } else {
-                                next(1 << 31) as u32
-                            }
-                        })
-                        .collect();
-                    let (mut plain, mut gathered) = (start.clone(), start);
-                    reduce_shift_levels(false, &levels, n, &offsets, &mut plain);
-                    reduce_shift_levels(true, &levels, n, &offsets, &mut gathered);
-                    assert_eq!(plain, gathered, "n {n}, w {w}, source row {w_src}");
+                    rng.check(&levels, n, &offsets, w_src);
                 }
             }
         }
@@ -354,45 +372,24 @@ mod tests {
             eprintln!("skipped: this CPU has no AVX-512 BW");
             return;
         }
-        let mut s = 7u64;
-        let mut next = |m: u64| {
-            s = s
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (s >> 33) % m
-        };
+        let mut rng = Lcg(7);
         let mut checked = 0;
         for n in [1usize, 2, 15, 16, 17, 33, 113] {
             for w in [1usize, 5, 16, 17, 40, 161] {
                 for w_src in [w.saturating_sub(3).max(1), w, w + 7] {
                     for repeats in [0u64, 1, 2] {
-                        let levels: Vec<u16> = (0..w * n).map(|_| next(9000) as u16).collect();
+                        let levels: Vec<u16> = (0..w * n).map(|_| rng.next(9000) as u16).collect();
                         let mut offsets =
-                            vec![next(2 * w as u64 + n as u64 + 9) as i32 - (w as i32) / 2];
+                            vec![rng.next(2 * w as u64 + n as u64 + 9) as i32 - (w as i32) / 2];
                         for i in 1..n {
                             let last = offsets[i - 1];
                             let repeat = repeats > 0
-                                && next(3) < repeats
+                                && rng.next(3) < repeats
                                 && (i < 2 || offsets[i - 2] != last);
                             offsets.push(if repeat { last } else { last - 1 });
                         }
                         assert!(sliding_offsets(&offsets));
-                        let start: Vec<u32> = (0..w_src)
-                            .map(|_| {
-                                if next(3) == 0 {
-                                    u32::MAX
-                                } else {
-                                    next(1 << 31) as u32
-                                }
-                            })
-                            .collect();
-                        let (mut plain, mut sliding) = (start.clone(), start);
-                        reduce_shift_levels(false, &levels, n, &offsets, &mut plain);
-                        reduce_shift_levels(true, &levels, n, &offsets, &mut sliding);
-                        assert_eq!(
-                            plain, sliding,
-                            "n {n}, w {w}, source row {w_src}, offsets {offsets:?}"
-                        );
+                        rng.check(&levels, n, &offsets, w_src);
                         checked += 1;
                     }
                 }
