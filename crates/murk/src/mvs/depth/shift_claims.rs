@@ -95,8 +95,8 @@ pub(super) fn sliding_offsets(offsets: &[i32]) -> bool {
 /// column then has had every plane of the block (later pixels land further right), so `r`
 /// shifts up by a lane for the next pixel, and the lane that leaves goes into a second register,
 /// which after 16 pixels holds 16 finished columns in a row and takes one masked minimum into
-/// `local`. The gathered path's cost is a 16-lane gather of `u32` words a 16 voxels with a
-/// stride of `n`; this one's is a few register operations.
+/// `local`. The gathered path costs a 16-lane gather of `u32` words (a stride of `n`) per 16
+/// voxels; this one a few register operations.
 ///
 /// # Safety
 /// The CPU has AVX-512 F, BW and VL; `levels` holds `w·n` values, `offsets.len() ≤ n`, and
@@ -112,9 +112,12 @@ unsafe fn reduce_shift_levels_sliding(
 ) {
     use std::arch::x86_64::*;
     assert!(
-        levels.len() == w * n && offsets.len() <= n && sliding_offsets(offsets),
-        "w·n levels, offsets that step by 0 or −1"
+        levels.len() == w * n && offsets.len() <= n,
+        "w·n levels, n offsets"
     );
+    // The dispatch has just checked the steps. Memory safety does not rest on them (a lane
+    // index out of its block fails the bounds check of `first`), only the keys' columns do.
+    debug_assert!(sliding_offsets(offsets), "offsets that step by 0 or −1");
     let none = _mm512_set1_epi32(-1);
     let lane = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
     for b in (0..offsets.len()).step_by(16) {
