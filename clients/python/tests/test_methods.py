@@ -230,6 +230,15 @@ def test_scattering_params_with_observations_reports_the_poses_share(
     assert r.beta_std_error_per_scene_unit is not None and plain.beta_std_error_per_scene_unit is not None
     assert r.beta_std_error_per_scene_unit > plain.beta_std_error_per_scene_unit
     assert plain.pose_error is None
+    # Where SfM put its points counts with or without observations: the same share in both.
+    for res in (r, plain):
+        sh = res.sampling
+        assert sh is not None and sh.wide_blur_px == 2 * sh.base_blur_px, sh
+        assert sh.beta_std_error_per_scene_unit is not None and sh.refit_beta_per_scene_unit is not None
+        # β* travels as a float32; the share is the f64 fit's move.
+        moved = abs(sh.refit_beta_per_scene_unit - res.beta_per_scene_unit)
+        assert sh.beta_std_error_per_scene_unit == pytest.approx(moved, abs=1e-6), sh
+    assert r.sampling == plain.sampling
     # The model's own observations (the simulator's: exact projections of the true points).
     own = model.observations(ref, model.nearest_sources(ref, 4))
     assert own.shape[1] == 4 and len(own) > 2 * len(model.points_scene_units)

@@ -57,6 +57,7 @@ from .results import (
     RectifiedStereoResult,
     ResidualSample,
     Result,
+    SamplingShare,
     ScatteringParamsResult,
     TofDepthResult,
 )
@@ -91,6 +92,7 @@ __all__ = [
     "PhotometricStereoResult",
     "PointRelief",
     "PoseError",
+    "SamplingShare",
     "Pose",
     "ProgressCallback",
     "RectifiedStereoResult",

@@ -219,6 +219,35 @@ class PoseError:
 
 
 @dataclass(frozen=True)
+class SamplingShare:
+    """Where SfM put its points: their share of the joint fit's standard errors, from the same
+    model refitted on the points sampled with twice the blur."""
+
+    #: The blur of the fit's samples and the wider one, pixels.
+    base_blur_px: float
+    wide_blur_px: float
+    #: A and β (per scene unit) refitted at the wider blur; None when that refit failed.
+    refit_airlight: float | None
+    refit_beta_per_scene_unit: float | None
+    #: The share of A's and β's standard errors (how far they moved); None with the refit.
+    airlight_std_error: float | None
+    beta_std_error_per_scene_unit: float | None
+
+    @classmethod
+    def from_proto(cls, p: params_pb2.SamplingShare) -> SamplingShare:
+        """From the result's message."""
+
+        return cls(
+            base_blur_px=p.base_blur_px,
+            wide_blur_px=p.wide_blur_px,
+            refit_airlight=p.refit_airlight if p.HasField("refit_airlight") else None,
+            refit_beta_per_scene_unit=p.refit_beta if p.HasField("refit_beta") else None,
+            airlight_std_error=p.airlight_std_error if p.HasField("airlight_std_error") else None,
+            beta_std_error_per_scene_unit=p.beta_std_error if p.HasField("beta_std_error") else None,
+        )
+
+
+@dataclass(frozen=True)
 class PointRelief:
     """How far the SfM points stand out of one plane in the reference camera."""
 
@@ -255,8 +284,9 @@ class ScatteringParamsResult:
     #: ``"too_few_points"``, ``"flat_residual"``, ``"airlight_conflict"`` (the points' A
     #: disagrees with the image's airlight estimate: the SfM model is likely wrong; see
     #: ``airlight_conflict``), ``"airlight_at_bound"`` (the fit's A sits on the bound of its
-    #: range, so the standard errors do not hold) or ``"weak_sfm"`` (the SfM poses are too
-    #: uncertain to pin β down, see ``pose_error``, or ambiguous, see ``relief``). ``warnings``
+    #: range, so the standard errors do not hold) or ``"weak_sfm"`` (the SfM input cannot pin
+    #: β down: its poses are too uncertain, see ``pose_error``, or ambiguous, see ``relief``, or
+    #: its points' intensities depend on how they are sampled, see ``sampling``). ``warnings``
     #: gives the numbers.
     identifiability: str
     #: ``"joint_fit"`` (A, β and source gains fitted to the points), ``"point_ratio"`` or
@@ -298,6 +328,9 @@ class ScatteringParamsResult:
     pose_error: PoseError | None = None
     #: How far the SfM points stand out of one plane (None with fewer than 10 points).
     relief: PointRelief | None = None
+    #: Where SfM put its points: their share of the standard errors (included in them), when
+    #: the fit determined β with a finite error; None otherwise.
+    sampling: SamplingShare | None = None
 
     @classmethod
     def from_proto(cls, r: params_pb2.ScatteringParamsResult, job_id: str = "") -> ScatteringParamsResult:
@@ -368,6 +401,7 @@ class ScatteringParamsResult:
             proto=r,
             pose_error=PoseError.from_proto(r.pose_error) if r.HasField("pose_error") else None,
             relief=PointRelief.from_proto(r.relief) if r.HasField("relief") else None,
+            sampling=SamplingShare.from_proto(r.sampling) if r.HasField("sampling") else None,
         )
 
 

@@ -323,6 +323,17 @@ pub fn run(a: ParamsArgs) -> anyhow::Result<()> {
             p.max_baseline_direction_std_deg
         );
     }
+    if let Some(s) = &r.sampling {
+        let share = match (s.airlight_std_error, s.beta_std_error) {
+            (Some(a), Some(b)) => format!("A ± {a:.4}, beta ± {b:.5} of the errors above"),
+            _ => "unknown: the refit failed".to_string(),
+        };
+        println!(
+            "SfM keypoints: sampled with a {:.1} px blur instead of {:.1} px the fit moves; its \
+             share: {share}",
+            s.wide_blur_px, s.base_blur_px
+        );
+    }
     if let Some(p) = &r.relief {
         println!(
             "SfM points: {} in the reference lie a median {:.1} % of their depth off one plane \
@@ -453,6 +464,14 @@ fn params_json(r: &pb::ScatteringParamsResult, job_id: &str) -> serde_json::Valu
             "max_baseline_direction_std_deg": finite_or_null(p.max_baseline_direction_std_deg),
             "undetermined": (!p.undetermined.is_empty()).then_some(&p.undetermined),
         })),
+        "sampling": r.sampling.as_ref().map(|s| serde_json::json!({
+            "base_blur_px": s.base_blur_px,
+            "wide_blur_px": s.wide_blur_px,
+            "refit_airlight": s.refit_airlight,
+            "refit_beta": s.refit_beta,
+            "airlight_std_error": s.airlight_std_error,
+            "beta_std_error": s.beta_std_error,
+        })),
         "relief": r.relief.as_ref().map(|p| serde_json::json!({
             "points": p.points,
             "relief": p.relief,
@@ -550,7 +569,7 @@ fn identifiability_text(v: i32) -> &'static str {
             "the points' A sits on the bound of its range, so its error and beta's do not hold"
         }
         Ok(pb::Identifiability::WeakSfm) => {
-            "the SfM poses are too uncertain, or too ambiguous, to pin beta down"
+            "the SfM input (its poses, where it put its points, or a flat cloud) cannot pin beta down"
         }
         _ => "unknown",
     }

@@ -133,9 +133,10 @@ pub enum Identifiability {
     /// 0.001): the best fit lies outside it, so neither `A` nor β (which moves with `A`) has a
     /// standard error that means anything.
     AirlightAtBound,
-    /// The points determine β, but the SfM poses do not pin it down: with the poses'
-    /// uncertainty ([`crate::params::pose_error`]) β's standard error exceeds
-    /// [`MAX_RELATIVE_BETA_ERROR`] of β, or the observations leave a pose undetermined, or the
+    /// The points determine β, but the SfM input does not pin it down: with its shares of the
+    /// errors (where SfM put its points, [`crate::params::sampling_share`]; the poses'
+    /// uncertainty, [`crate::params::pose_error`]) β's standard error exceeds
+    /// [`MAX_RELATIVE_BETA_ERROR`] of β, or a share could not be computed, or the
     /// points lie so close to one plane facing the reference that the poses are ambiguous
     /// ([`crate::params::relief`]). Set by [`crate::params::search::search_scattering`].
     WeakSfm,
@@ -200,14 +201,14 @@ impl JointFit {
 
     /// Whether β's standard error is below [`MAX_RELATIVE_BETA_ERROR`] of β: the test of
     /// [`Identifiability::Identifiable`], here on the fit as it stands (after
-    /// [`Self::add_pose_share`], with the poses' share).
+    /// [`Self::add_sfm_share`], with the SfM input's shares).
     pub fn beta_is_determined(&self) -> bool {
         self.beta > 0.0 && self.beta_std_error < MAX_RELATIVE_BETA_ERROR * self.beta
     }
 
-    /// Whether the SfM poses' share can be added to the errors: β determined with a finite
+    /// Whether the SfM input's shares ([`Self::add_sfm_share`]) can be added to the errors: β determined with a finite
     /// error, identifiable or flat (a verdict on other grounds stands as it is).
-    pub fn takes_pose_share(&self) -> bool {
+    pub fn takes_sfm_shares(&self) -> bool {
         self.beta > 0.0
             && self.beta_std_error.is_finite()
             && matches!(
@@ -216,11 +217,13 @@ impl JointFit {
             )
     }
 
-    /// Adds the SfM poses' share `[A, β]` of the standard errors in quadrature (the poses'
-    /// errors are independent of the images' noise). An identifiable fit whose β error then
-    /// reaches [`MAX_RELATIVE_BETA_ERROR`] of β, or whose share could not be computed (`None`),
-    /// becomes [`Identifiability::WeakSfm`].
-    pub fn add_pose_share(&mut self, share: Option<[f64; 2]>) {
+    /// Adds a share `[A, β]` of the standard errors that comes from the SfM input in quadrature:
+    /// the poses' ([`crate::params::pose_error`]) or the sampling's at SfM's keypoints
+    /// ([`crate::params::sampling_share`]). Neither depends on the images' noise. An
+    /// identifiable fit whose β error then reaches [`MAX_RELATIVE_BETA_ERROR`] of β, or whose
+    /// share could not be computed (`None`), becomes [`Identifiability::WeakSfm`]: an error the
+    /// fit cannot bound is not covered.
+    pub fn add_sfm_share(&mut self, share: Option<[f64; 2]>) {
         if let Some([a, b]) = share {
             self.airlight_std_error = self.airlight_std_error.hypot(a);
             self.beta_std_error = self.beta_std_error.hypot(b);
@@ -939,25 +942,25 @@ mod tests {
     fn the_poses_share_widens_the_errors_and_can_make_beta_weak() {
         let eqs = synthetic(0.62, 0.35, &[1.0, 1.04, 0.97, 1.1], 1.0, 0.01, 3);
         let fit = fit_equations(&eqs, 5.0, &priors(0.62));
-        assert!(fit.is_identifiable() && fit.takes_pose_share(), "{fit:?}");
+        assert!(fit.is_identifiable() && fit.takes_sfm_shares(), "{fit:?}");
         let mut small = fit.clone();
-        small.add_pose_share(Some([0.01, 0.02]));
+        small.add_sfm_share(Some([0.01, 0.02]));
         assert_eq!(small.identifiability, Identifiability::Identifiable);
         assert_eq!(small.airlight_std_error, fit.airlight_std_error.hypot(0.01));
         assert_eq!(small.beta_std_error, fit.beta_std_error.hypot(0.02));
         let mut large = fit.clone();
-        large.add_pose_share(Some([0.01, 0.2 * fit.beta]));
+        large.add_sfm_share(Some([0.01, 0.2 * fit.beta]));
         assert_eq!(large.identifiability, Identifiability::WeakSfm);
-        assert!(!large.takes_pose_share());
+        assert!(!large.takes_sfm_shares());
         let mut unknown = fit.clone();
-        unknown.add_pose_share(None);
+        unknown.add_sfm_share(None);
         assert_eq!(unknown.identifiability, Identifiability::WeakSfm);
         assert_eq!(unknown.beta_std_error, fit.beta_std_error);
         let mut flat = JointFit {
             identifiability: Identifiability::FlatResidual,
             ..fit
         };
-        flat.add_pose_share(None);
+        flat.add_sfm_share(None);
         assert_eq!(flat.identifiability, Identifiability::FlatResidual);
     }
 

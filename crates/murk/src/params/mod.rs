@@ -12,5 +12,6 @@ pub mod point_ratio;
 pub mod pose_error;
 pub mod relief;
 pub mod residual;
+pub mod sampling_share;
 pub mod search;
 pub mod sparse;

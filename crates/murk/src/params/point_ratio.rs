@@ -139,11 +139,22 @@ pub fn blurred_ratio_samples(
     sparse: &SparseDepth,
 ) -> Vec<Vec<RatioSample>> {
     let base = f64::from(sample_blur_sigma_px(reference.image.width()));
+    blurred_ratio_samples_at(reference, sources, sparse, base)
+}
+
+/// [`blurred_ratio_samples`] around the base width `base_sigma_px` instead of
+/// [`sample_blur_sigma_px`] (see [`crate::params::sampling_share`]).
+pub fn blurred_ratio_samples_at(
+    reference: &View<'_>,
+    sources: &[View<'_>],
+    sparse: &SparseDepth,
+    base_sigma_px: f64,
+) -> Vec<Vec<RatioSample>> {
     // `collect` keeps source order whatever the thread count.
     sources
         .par_iter()
         .enumerate()
-        .map(|(i, s)| ratio_samples(reference, s, i, sparse, base))
+        .map(|(i, s)| ratio_samples(reference, s, i, sparse, base_sigma_px))
         .collect()
 }
 

@@ -59,6 +59,7 @@ use crate::params::point_ratio::{beta_from_ratio_samples, blurred_ratio_samples,
 use crate::params::pose_error::{pose_error_of_fit, PoseError, SfmTracks};
 use crate::params::relief::Relief;
 use crate::params::residual::{paired_improvement_t, sparse_residuals};
+use crate::params::sampling_share::{sampling_share, SamplingShare};
 use crate::params::sparse::{SparseDepth, SparseSample};
 
 /// Fewest SfM pixels in the reference view the search accepts: below this the residual of
@@ -417,6 +418,9 @@ pub struct ScatteringEstimate {
     /// The SfM poses' share of the joint fit's standard errors, when the search was given the
     /// model's tracks and the fit determined β with a finite error.
     pub pose_error: Option<PoseError>,
+    /// The share of the joint fit's standard errors that comes from where SfM put its points
+    /// ([`crate::params::sampling_share`]), when the fit determined β with a finite error.
+    pub sampling: Option<SamplingShare>,
     /// How far the SfM points stand out of one plane in the reference (`None` with too few
     /// points). A flat cloud facing the reference ([`Relief::is_ambiguous`]) makes an
     /// identifiable fit [`Identifiability::WeakSfm`]: SfM's poses may be wrong there with small
@@ -476,14 +480,28 @@ impl ScatteringEstimate {
                     j.points,
                     j.rms_depth_difference
                 )),
-            // The poses' part of the verdict (JointFit::add_pose_share); a flat cloud's part
-            // is said below, as for any verdict.
-            Identifiability::WeakSfm => out.extend(
-                self.pose_error
-                    .as_ref()
-                    .filter(|p| p.undetermined.is_some() || !j.beta_is_determined())
-                    .map(|p| weak_sfm_warning(j, p)),
-            ),
+            // The SfM input's part of the verdict (JointFit::add_sfm_share): a share that could
+            // not be computed, and when the shares took β's error past the limit, the larger of
+            // them. A flat cloud's part is said below, as for any verdict.
+            Identifiability::WeakSfm => {
+                let pose_b = self.pose_error.as_ref().and_then(|p| p.beta_std_error);
+                let sampling_b = self.sampling.and_then(|s| s.share).map(|s| s[1]);
+                let too_wide = !j.beta_is_determined();
+                let larger = |own: Option<f64>, other: Option<f64>| {
+                    too_wide && own.is_some_and(|b| b >= other.unwrap_or(0.0))
+                };
+                out.extend(
+                    self.pose_error
+                        .as_ref()
+                        .filter(|p| p.undetermined.is_some() || larger(pose_b, sampling_b))
+                        .map(|p| weak_sfm_warning(j, p)),
+                );
+                out.extend(
+                    self.sampling
+                        .filter(|s| s.share.is_none() || larger(sampling_b, pose_b))
+                        .map(|s| s.describe(j, MAX_RELATIVE_BETA_ERROR)),
+                );
+            }
             Identifiability::NoDepthDifference => out.push(format!(
                 "the views see the points at the same depths (RMS depth difference {:.2e}): \
                  a rectified pair or a purely sideways move cannot tell beta; frames that move \
@@ -733,17 +751,32 @@ pub fn search_scattering(
         relative_falloff_sigma: crate::params::joint_fit::RELATIVE_FALLOFF_PRIOR_SIGMA,
     };
     let mut joint = fit_joint_samples(&samples, sparse, &priors);
-    // The poses' share of the fit's errors, where the model's tracks say how well SfM placed
-    // them: added in quadrature (the poses' errors are independent of the images' noise).
-    let pose_error = match (tracks, joint.as_mut()) {
-        (Some(t), Some(j)) if j.takes_pose_share() => {
+    // The SfM input's shares of the fit's errors, both computed from the fit as it came out and
+    // added in quadrature (neither depends on the images' noise): where SfM put its points, and
+    // where the model's tracks say how well SfM placed the poses, the poses.
+    let takes_shares = joint.as_ref().is_some_and(JointFit::takes_sfm_shares);
+    let sampling = match joint.as_ref() {
+        Some(j) if takes_shares => {
             monitor.checkpoint()?;
-            let pe = pose_error_of_fit(reference, sources, t, j, monitor)?;
-            j.add_pose_share(pe.share());
-            Some(pe)
+            Some(sampling_share(reference, sources, sparse, j))
         }
         _ => None,
     };
+    let pose_error = match (tracks, joint.as_ref()) {
+        (Some(t), Some(j)) if takes_shares => {
+            monitor.checkpoint()?;
+            Some(pose_error_of_fit(reference, sources, t, j, monitor)?)
+        }
+        _ => None,
+    };
+    if let Some(j) = joint.as_mut() {
+        if let Some(s) = &sampling {
+            j.add_sfm_share(s.share);
+        }
+        if let Some(pe) = &pose_error {
+            j.add_sfm_share(pe.share());
+        }
+    }
     // A flat point cloud facing the reference hides wrong poses behind small errors (see
     // crate::params::relief): the fit's own errors cannot cover them.
     let relief = Relief::of(sparse, &reference.intrinsics);
@@ -931,6 +964,7 @@ pub fn search_scattering(
         beta_unclamped,
         joint,
         pose_error,
+        sampling,
         relief,
         airlight_conflict,
         point_ratio,
@@ -1148,6 +1182,38 @@ mod tests {
             "{warnings:?}"
         );
         assert!(warnings[0].contains("bas-relief"), "{warnings:?}");
+        // The sampling's share is in the errors. Had it taken β's error past the limit, the
+        // verdict's warning names it with its numbers.
+        let sampling = est.sampling.unwrap();
+        let [_, share_b] = sampling.share.unwrap();
+        assert_eq!(sampling.wide_blur_px, 2.0 * sampling.base_blur_px);
+        assert!(
+            se_b >= share_b && share_b < 0.05 * f64::from(est.beta),
+            "{sampling:?}"
+        );
+        let mut sampled = est.clone();
+        sampled.identifiability = Identifiability::WeakSfm;
+        let j = sampled.joint.as_mut().unwrap();
+        j.identifiability = Identifiability::WeakSfm;
+        j.beta_std_error = 0.2 * j.beta;
+        let warnings = sampled.warnings();
+        assert_eq!(warnings.len(), 1, "{warnings:?}");
+        assert!(
+            warnings[0].contains("depend on how they are sampled")
+                && warnings[0].contains("standard error is 20 %"),
+            "{warnings:?}"
+        );
+        sampled.sampling = Some(SamplingShare {
+            refit: None,
+            share: None,
+            ..sampling
+        });
+        let warnings = sampled.warnings();
+        let failed = format!(
+            "a refit on samples with a {:.1} px blur failed",
+            sampling.wide_blur_px
+        );
+        assert!(warnings[0].contains(&failed), "{warnings:?}");
 
         let ratio = SearchParams {
             joint_fit: false,

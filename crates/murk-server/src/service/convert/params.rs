@@ -466,6 +466,14 @@ impl ParamsInput {
                 max_baseline_direction_std_deg: p.max_baseline_direction_std_deg,
                 undetermined: p.undetermined.clone().unwrap_or_default(),
             }),
+            sampling: est.sampling.map(|s| pb::SamplingShare {
+                base_blur_px: s.base_blur_px,
+                wide_blur_px: s.wide_blur_px,
+                refit_airlight: s.refit.map(|r| r[0]),
+                refit_beta: s.refit.map(|r| r[1]),
+                airlight_std_error: s.share.map(|r| r[0]),
+                beta_std_error: s.share.map(|r| r[1]),
+            }),
             relief: est.relief.map(|r| pb::PointRelief {
                 points: u32::try_from(r.points).unwrap_or(u32::MAX),
                 relief: r.relief,

@@ -100,11 +100,11 @@ class _IdentifiabilityEnumTypeWrapper(_enum_type_wrapper._EnumTypeWrapper[_Ident
     beta* are the fit's, at the bound.
     """
     IDENTIFIABILITY_WEAK_SFM: _Identifiability.ValueType  # 7
-    """The points determine beta, but the SfM poses do not: with the poses' uncertainty (the
-    request's sparse_point_observations) beta's standard error exceeds 15 % of beta, or the
-    observations leave a pose undetermined (PoseError says how uncertain the poses are), or
-    the points lie so close to one plane facing the reference that the poses are ambiguous
-    (PointRelief).
+    """The points determine beta, but the SfM input does not: with the SfM input's shares of the
+    errors (SamplingShare: where SfM put its points; PoseError: the poses' uncertainty, from
+    the request's sparse_point_observations) beta's standard error exceeds 15 % of beta, or a
+    share could not be computed, or the points lie so close to one plane facing the reference
+    that the poses are ambiguous (PointRelief).
     """
 
 class Identifiability(_Identifiability, metaclass=_IdentifiabilityEnumTypeWrapper):
@@ -133,11 +133,11 @@ the best fit lies outside it, so the standard errors of A and beta mean nothing.
 beta* are the fit's, at the bound.
 """
 IDENTIFIABILITY_WEAK_SFM: Identifiability.ValueType  # 7
-"""The points determine beta, but the SfM poses do not: with the poses' uncertainty (the
-request's sparse_point_observations) beta's standard error exceeds 15 % of beta, or the
-observations leave a pose undetermined (PoseError says how uncertain the poses are), or
-the points lie so close to one plane facing the reference that the poses are ambiguous
-(PointRelief).
+"""The points determine beta, but the SfM input does not: with the SfM input's shares of the
+errors (SamplingShare: where SfM put its points; PoseError: the poses' uncertainty, from
+the request's sparse_point_observations) beta's standard error exceeds 15 % of beta, or a
+share could not be computed, or the points lie so close to one plane facing the reference
+that the poses are ambiguous (PointRelief).
 """
 Global___Identifiability: _TypeAlias = Identifiability  # noqa: Y015
 
@@ -514,6 +514,66 @@ class PoseError(_message.Message):
 Global___PoseError: _TypeAlias = PoseError  # noqa: Y015
 
 @_typing.final
+class SamplingShare(_message.Message):
+    """The share of the joint fit's standard errors that comes from where SfM put its points: the
+    same model refitted on the points' intensities sampled with twice the blur. SfM's keypoints
+    sit on blobs and corners, where the sampled value depends most on the blur; how far A and
+    beta move is added to their standard errors.
+    """
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    BASE_BLUR_PX_FIELD_NUMBER: _builtins.int
+    WIDE_BLUR_PX_FIELD_NUMBER: _builtins.int
+    REFIT_AIRLIGHT_FIELD_NUMBER: _builtins.int
+    REFIT_BETA_FIELD_NUMBER: _builtins.int
+    AIRLIGHT_STD_ERROR_FIELD_NUMBER: _builtins.int
+    BETA_STD_ERROR_FIELD_NUMBER: _builtins.int
+    base_blur_px: _builtins.float
+    """The blur of the fit's samples and the wider one, pixels."""
+    wide_blur_px: _builtins.float
+    refit_airlight: _builtins.float
+    """A and beta (per scene unit) refitted at the wider blur; unset when that refit failed (the
+    share is then unknown, and an identifiable estimate becomes WEAK_SFM).
+    """
+    refit_beta: _builtins.float
+    airlight_std_error: _builtins.float
+    """The share of A's and beta's standard errors: how far they moved; unset with the refit."""
+    beta_std_error: _builtins.float
+    def __init__(
+        self,
+        *,
+        base_blur_px: _builtins.float = ...,
+        wide_blur_px: _builtins.float = ...,
+        refit_airlight: _builtins.float | None = ...,
+        refit_beta: _builtins.float | None = ...,
+        airlight_std_error: _builtins.float | None = ...,
+        beta_std_error: _builtins.float | None = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _typing.Literal["_airlight_std_error", b"_airlight_std_error", "_beta_std_error", b"_beta_std_error", "_refit_airlight", b"_refit_airlight", "_refit_beta", b"_refit_beta", "airlight_std_error", b"airlight_std_error", "beta_std_error", b"beta_std_error", "refit_airlight", b"refit_airlight", "refit_beta", b"refit_beta"]  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["_airlight_std_error", b"_airlight_std_error", "_beta_std_error", b"_beta_std_error", "_refit_airlight", b"_refit_airlight", "_refit_beta", b"_refit_beta", "airlight_std_error", b"airlight_std_error", "base_blur_px", b"base_blur_px", "beta_std_error", b"beta_std_error", "refit_airlight", b"refit_airlight", "refit_beta", b"refit_beta", "wide_blur_px", b"wide_blur_px"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    _WhichOneofReturnType__airlight_std_error: _TypeAlias = _typing.Literal["airlight_std_error"]  # noqa: Y015
+    _WhichOneofArgType__airlight_std_error: _TypeAlias = _typing.Literal["_airlight_std_error", b"_airlight_std_error"]  # noqa: Y015
+    _WhichOneofReturnType__beta_std_error: _TypeAlias = _typing.Literal["beta_std_error"]  # noqa: Y015
+    _WhichOneofArgType__beta_std_error: _TypeAlias = _typing.Literal["_beta_std_error", b"_beta_std_error"]  # noqa: Y015
+    _WhichOneofReturnType__refit_airlight: _TypeAlias = _typing.Literal["refit_airlight"]  # noqa: Y015
+    _WhichOneofArgType__refit_airlight: _TypeAlias = _typing.Literal["_refit_airlight", b"_refit_airlight"]  # noqa: Y015
+    _WhichOneofReturnType__refit_beta: _TypeAlias = _typing.Literal["refit_beta"]  # noqa: Y015
+    _WhichOneofArgType__refit_beta: _TypeAlias = _typing.Literal["_refit_beta", b"_refit_beta"]  # noqa: Y015
+    @_typing.overload
+    def WhichOneof(self, oneof_group: _WhichOneofArgType__airlight_std_error) -> _WhichOneofReturnType__airlight_std_error | None: ...
+    @_typing.overload
+    def WhichOneof(self, oneof_group: _WhichOneofArgType__beta_std_error) -> _WhichOneofReturnType__beta_std_error | None: ...
+    @_typing.overload
+    def WhichOneof(self, oneof_group: _WhichOneofArgType__refit_airlight) -> _WhichOneofReturnType__refit_airlight | None: ...
+    @_typing.overload
+    def WhichOneof(self, oneof_group: _WhichOneofArgType__refit_beta) -> _WhichOneofReturnType__refit_beta | None: ...
+
+Global___SamplingShare: _TypeAlias = SamplingShare  # noqa: Y015
+
+@_typing.final
 class ResidualSample(_message.Message):
     """One evaluation of the objective."""
 
@@ -577,6 +637,7 @@ class ScatteringParamsResult(_message.Message):
     WARNINGS_FIELD_NUMBER: _builtins.int
     POSE_ERROR_FIELD_NUMBER: _builtins.int
     RELIEF_FIELD_NUMBER: _builtins.int
+    SAMPLING_FIELD_NUMBER: _builtins.int
     airlight: _builtins.float
     """A* and beta* (per scene unit)."""
     beta: _builtins.float
@@ -598,7 +659,8 @@ class ScatteringParamsResult(_message.Message):
     the largest of its Gauss-Newton covariance's, with 3 or more sources a delete-one-source
     jackknife's (the sources' disagreement), and a jackknife's over ten groups of the points
     (the errors a point carries into all its equations); the covariance counts both as
-    independent noise. They do not cover errors of the SfM poses.
+    independent noise. The SfM input's shares are added in quadrature: the sampling's at SfM's
+    keypoints (sampling) and, with sparse_point_observations, the poses' (pose_error).
     """
     beta_std_error: _builtins.float
     identifiable: _builtins.bool
@@ -662,6 +724,13 @@ class ScatteringParamsResult(_message.Message):
         degrees with small reprojection errors (the bas-relief ambiguity).
         """
 
+    @_builtins.property
+    def sampling(self) -> Global___SamplingShare:
+        """Where SfM put its points: their share of the joint fit's standard errors, when the fit
+        determined beta with a finite error. An identifiable estimate whose beta error it takes to
+        15 % of beta or more becomes WEAK_SFM.
+        """
+
     def __init__(
         self,
         *,
@@ -693,10 +762,11 @@ class ScatteringParamsResult(_message.Message):
         warnings: _abc.Iterable[_builtins.str] | None = ...,
         pose_error: Global___PoseError | None = ...,
         relief: Global___PointRelief | None = ...,
+        sampling: Global___SamplingShare | None = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _typing.Literal["_airlight_std_error", b"_airlight_std_error", "_beta_std_error", b"_beta_std_error", "airlight_conflict", b"airlight_conflict", "airlight_std_error", b"airlight_std_error", "beta_std_error", b"beta_std_error", "depth", b"depth", "joint_fit", b"joint_fit", "point_ratio", b"point_ratio", "pose_error", b"pose_error", "relief", b"relief"]  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["_airlight_std_error", b"_airlight_std_error", "_beta_std_error", b"_beta_std_error", "airlight_conflict", b"airlight_conflict", "airlight_std_error", b"airlight_std_error", "beta_std_error", b"beta_std_error", "depth", b"depth", "joint_fit", b"joint_fit", "point_ratio", b"point_ratio", "pose_error", b"pose_error", "relief", b"relief", "sampling", b"sampling"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["_airlight_std_error", b"_airlight_std_error", "_beta_std_error", b"_beta_std_error", "airlight", b"airlight", "airlight_conflict", b"airlight_conflict", "airlight_initial", b"airlight_initial", "airlight_seconds", b"airlight_seconds", "airlight_source", b"airlight_source", "airlight_std_error", b"airlight_std_error", "beta", b"beta", "beta_bound", b"beta_bound", "beta_initial", b"beta_initial", "beta_max", b"beta_max", "beta_min", b"beta_min", "beta_range_from_points", b"beta_range_from_points", "beta_source", b"beta_source", "beta_std_error", b"beta_std_error", "beta_unclamped", b"beta_unclamped", "depth", b"depth", "depth_seconds", b"depth_seconds", "grid", b"grid", "identifiability", b"identifiability", "identifiable", b"identifiable", "joint_fit", b"joint_fit", "num_sparse_points", b"num_sparse_points", "point_ratio", b"point_ratio", "pose_error", b"pose_error", "relief", b"relief", "residual", b"residual", "search_seconds", b"search_seconds", "warnings", b"warnings"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["_airlight_std_error", b"_airlight_std_error", "_beta_std_error", b"_beta_std_error", "airlight", b"airlight", "airlight_conflict", b"airlight_conflict", "airlight_initial", b"airlight_initial", "airlight_seconds", b"airlight_seconds", "airlight_source", b"airlight_source", "airlight_std_error", b"airlight_std_error", "beta", b"beta", "beta_bound", b"beta_bound", "beta_initial", b"beta_initial", "beta_max", b"beta_max", "beta_min", b"beta_min", "beta_range_from_points", b"beta_range_from_points", "beta_source", b"beta_source", "beta_std_error", b"beta_std_error", "beta_unclamped", b"beta_unclamped", "depth", b"depth", "depth_seconds", b"depth_seconds", "grid", b"grid", "identifiability", b"identifiability", "identifiable", b"identifiable", "joint_fit", b"joint_fit", "num_sparse_points", b"num_sparse_points", "point_ratio", b"point_ratio", "pose_error", b"pose_error", "relief", b"relief", "residual", b"residual", "sampling", b"sampling", "search_seconds", b"search_seconds", "warnings", b"warnings"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     _WhichOneofReturnType__airlight_std_error: _TypeAlias = _typing.Literal["airlight_std_error"]  # noqa: Y015
     _WhichOneofArgType__airlight_std_error: _TypeAlias = _typing.Literal["_airlight_std_error", b"_airlight_std_error"]  # noqa: Y015
