@@ -294,6 +294,11 @@ fn params_joint_fit_walking_room() {
     g.stat("beta", f64::from(est.beta));
     g.stat("beta_true", f64::from(scene.beta));
     g.stat("beta_std_error", est.beta_std_error.unwrap_or(f64::NAN));
+    // Where SfM put its points: the share of the errors from sampling at twice the blur.
+    let share = est.sampling.and_then(|s| s.share).unwrap_or([f64::NAN; 2]);
+    g.checksum.f64s(share);
+    g.stat("airlight_sampling_share", share[0]);
+    g.stat("beta_sampling_share", share[1]);
     g.check();
 }
 
