@@ -569,7 +569,7 @@ fn identifiability_text(v: i32) -> &'static str {
             "the points' A sits on the bound of its range, so its error and beta's do not hold"
         }
         Ok(pb::Identifiability::WeakSfm) => {
-            "the SfM input (its poses, where it put its points, or a flat cloud) cannot pin beta down"
+            "the SfM input (its poses, where it put its points, a flat cloud) cannot pin beta down"
         }
         _ => "unknown",
     }

@@ -206,8 +206,9 @@ impl JointFit {
         self.beta > 0.0 && self.beta_std_error < MAX_RELATIVE_BETA_ERROR * self.beta
     }
 
-    /// Whether the SfM input's shares ([`Self::add_sfm_share`]) can be added to the errors: β determined with a finite
-    /// error, identifiable or flat (a verdict on other grounds stands as it is).
+    /// Whether the SfM input's shares ([`Self::add_sfm_share`]) can be added to the errors: β
+    /// determined with a finite error, identifiable or flat (a verdict on other grounds stands
+    /// as it is).
     pub fn takes_sfm_shares(&self) -> bool {
         self.beta > 0.0
             && self.beta_std_error.is_finite()

@@ -21,7 +21,7 @@
 //! depths, so the move is not all bias.
 
 use crate::mvs::View;
-use crate::params::joint_fit::JointFit;
+use crate::params::joint_fit::{JointFit, MAX_RELATIVE_BETA_ERROR};
 use crate::params::point_ratio::{blurred_ratio_samples_at, sample_blur_sigma_px};
 use crate::params::sparse::SparseDepth;
 
@@ -46,7 +46,7 @@ pub struct SamplingShare {
 impl SamplingShare {
     /// The sentence for a fit whose verdict this share decided: its numbers, what it means and
     /// what would help.
-    pub fn describe(&self, fit: &JointFit, max_relative_beta_error: f64) -> String {
+    pub fn describe(&self, fit: &JointFit) -> String {
         let effect = match (self.refit, self.share) {
             (Some([a, b]), Some([_, share_b])) => format!(
                 "sampled with a {:.1} px blur instead of {:.1} px they give A = {a:.3} and beta = \
@@ -57,7 +57,7 @@ impl SamplingShare {
                 fit.airlight,
                 fit.beta,
                 100.0 * fit.beta_std_error / fit.beta,
-                100.0 * max_relative_beta_error,
+                100.0 * MAX_RELATIVE_BETA_ERROR,
                 100.0 * share_b / fit.beta
             ),
             _ => format!(

@@ -499,7 +499,7 @@ impl ScatteringEstimate {
                 out.extend(
                     self.sampling
                         .filter(|s| s.share.is_none() || larger(sampling_b, pose_b))
-                        .map(|s| s.describe(j, MAX_RELATIVE_BETA_ERROR)),
+                        .map(|s| s.describe(j)),
                 );
             }
             Identifiability::NoDepthDifference => out.push(format!(

@@ -226,10 +226,10 @@ unsafe fn min_into_descending(
     }
 }
 
-/// [`reduce_shift_levels`] of any offsets with AVX-512: per plane, 16 pixels' levels by one masked gather of
-/// the 32-bit words that hold them (the word starting at the level, or for the last plane the
-/// word ending at it, so no gather reads outside `levels`), then 16 keys and one masked
-/// minimum into `local`.
+/// [`reduce_shift_levels`] of any offsets with AVX-512: per plane, 16 pixels' levels by one
+/// masked gather of the 32-bit words that hold them (the word starting at the level, or for the
+/// last plane the word ending at it, so no gather reads outside `levels`), then 16 keys and one
+/// masked minimum into `local`.
 ///
 /// # Safety
 /// The CPU has AVX-512 F, BW and VL; `levels` (`w·n` values) is under `i32::MAX` bytes.
