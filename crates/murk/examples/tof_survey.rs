@@ -24,9 +24,9 @@ mod common;
 use std::time::Instant;
 
 use anyhow::Context;
-use clap::{Parser, ValueEnum};
+use clap::Parser;
 
-use common::{mean, parse_seeds, Table};
+use common::{mean, parse_seeds, range_from_path, Size, Table};
 use murk::simulate::tof::{simulate_tof, FogPreset, TofSimConfig, TofSimFrame};
 use murk::simulate::SceneLayout;
 use murk::tof::{
@@ -34,27 +34,6 @@ use murk::tof::{
     SPEED_OF_LIGHT_M_PER_S,
 };
 use murk::Monitor;
-
-/// Image size of the simulated frames.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
-enum Size {
-    /// 128 × 106: a quarter of the Kinect v2's sides, the same field of view.
-    Reduced,
-    /// 256 × 212: half the Kinect v2's sides.
-    Half,
-    /// 512 × 424, the Kinect v2's depth camera.
-    Full,
-}
-
-impl Size {
-    fn dims(self) -> (usize, usize) {
-        match self {
-            Size::Reduced => (128, 106),
-            Size::Half => (256, 212),
-            Size::Full => (512, 424),
-        }
-    }
-}
 
 /// Flags of the survey.
 #[derive(Parser, Debug)]
@@ -287,18 +266,6 @@ fn simulate(
         ..TofSimConfig::with_size(width, height)
     };
     simulate_tof(&cfg, &Monitor::noop())
-}
-
-/// Range along the unit ray `d` of a surface whose optical path light → surface → camera is
-/// `path_m`, for the emitter at `light` (camera frame, metres): the inversion the pipeline
-/// applies, so the floor is scored with the same geometry as the estimate.
-fn range_from_path(path_m: f64, d: [f64; 3], light: [f64; 3]) -> f64 {
-    let l2 = light.iter().map(|v| v * v).sum::<f64>();
-    let dl = d.iter().zip(&light).map(|(a, b)| a * b).sum::<f64>();
-    if path_m * path_m <= l2 || path_m <= dl {
-        return 0.5 * path_m;
-    }
-    (path_m * path_m - l2) / (2.0 * (path_m - dl))
 }
 
 fn score(frame: &TofSimFrame, out: &TofOutput, seconds: f64) -> Scores {

@@ -72,6 +72,22 @@ impl Intrinsics {
         Ok(())
     }
 
+    /// Intrinsics of the image box-downsampled by `factor` (each pixel the mean of a
+    /// `factor × factor` block): coarse pixel `i` covers fine pixels `factor·i … factor·i +
+    /// factor − 1`, whose centre is `factor·i + (factor − 1)/2`, so it sees along that centre's
+    /// ray.
+    pub fn box_downsampled(&self, factor: usize) -> Self {
+        let f = factor as f64;
+        let shift = (f - 1.0) / 2.0;
+        Self {
+            fx: self.fx / f,
+            fy: self.fy / f,
+            cx: (self.cx - shift) / f,
+            cy: (self.cy - shift) / f,
+            skew: self.skew / f,
+        }
+    }
+
     /// Unit-length viewing ray (camera frame) through pixel `(u, v)`.
     pub fn ray(&self, u: f64, v: f64) -> Vector3<f64> {
         let y = (v - self.cy) / self.fy;
@@ -123,15 +139,37 @@ impl Intrinsics {
 mod tests {
     use super::*;
 
-    #[test]
-    fn ray_projects_back_to_pixel() {
-        let k = Intrinsics {
+    /// A Kinect-like camera with a little skew.
+    fn skewed() -> Intrinsics {
+        Intrinsics {
             fx: 365.0,
             fy: 360.0,
             cx: 256.3,
             cy: 211.7,
             skew: 0.5,
-        };
+        }
+    }
+
+    #[test]
+    fn a_downsampled_pixel_sees_along_its_blocks_centre() {
+        let k = skewed();
+        for factor in [1, 2, 3, 4] {
+            let c = k.box_downsampled(factor);
+            let f = factor as f64;
+            for (i, j) in [(0.0, 0.0), (17.0, 5.0), (63.0, 52.0)] {
+                let coarse = c.ray(i, j);
+                let fine = k.ray(f * i + (f - 1.0) / 2.0, f * j + (f - 1.0) / 2.0);
+                assert!(
+                    (coarse - fine).norm() < 1e-12,
+                    "factor {factor} at ({i}, {j})"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn ray_projects_back_to_pixel() {
+        let k = skewed();
         let r = k.ray(100.0, 300.0);
         let (u, v) = k.project([r[0] * 2.0, r[1] * 2.0, r[2] * 2.0]).unwrap();
         assert!((u - 100.0).abs() < 1e-9 && (v - 300.0).abs() < 1e-9);

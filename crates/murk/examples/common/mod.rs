@@ -4,6 +4,11 @@
 
 use std::fmt::Display;
 
+use clap::ValueEnum;
+use murk::image::ImageF32;
+use murk::simulate::tof::TofSimFrame;
+use murk::tof::SPEED_OF_LIGHT_M_PER_S;
+
 /// Parses a seed list: `4`, `0-5` (inclusive), or a comma-separated mix such as `0-2,7,9`.
 pub fn parse_seeds(text: &str) -> Result<Vec<u64>, String> {
     let mut seeds = Vec::new();
@@ -62,4 +67,157 @@ impl Table {
 /// Arithmetic mean; NaN for an empty slice.
 pub fn mean(values: &[f64]) -> f64 {
     values.iter().sum::<f64>() / values.len() as f64
+}
+
+/// Image size of the simulated frames.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum Size {
+    /// 128 × 106: a quarter of the Kinect v2's sides, the same field of view.
+    Reduced,
+    /// 256 × 212: half the Kinect v2's sides.
+    Half,
+    /// 512 × 424, the Kinect v2's depth camera.
+    Full,
+}
+
+impl Size {
+    /// Width and height, pixels.
+    pub fn dims(self) -> (usize, usize) {
+        match self {
+            Size::Reduced => (128, 106),
+            Size::Half => (256, 212),
+            Size::Full => (512, 424),
+        }
+    }
+}
+
+/// Range along the unit ray `d` of a surface whose optical path light → surface → camera is
+/// `path_m`, for the emitter at `light` (camera frame, metres): the inversion the pipeline
+/// applies, so the floor is scored with the same geometry as the estimate.
+pub fn range_from_path(path_m: f64, d: [f64; 3], light: [f64; 3]) -> f64 {
+    let l2 = light.iter().map(|v| v * v).sum::<f64>();
+    let dl = d.iter().zip(&light).map(|(a, b)| a * b).sum::<f64>();
+    if path_m * path_m <= l2 || path_m <= dl {
+        return 0.5 * path_m;
+    }
+    (path_m * path_m - l2) / (2.0 * (path_m - dl))
+}
+
+/// A scattering phasor per pixel, row-major: real and imaginary parts.
+pub struct Phasor {
+    /// Width, pixels.
+    pub w: usize,
+    /// Height, pixels.
+    pub h: usize,
+    /// Real parts.
+    pub re: Vec<f64>,
+    /// Imaginary parts.
+    pub im: Vec<f64>,
+}
+
+impl Phasor {
+    /// The phasor of an amplitude and a phase image (radians).
+    pub fn from_polar(amplitude: &ImageF32, phase: &ImageF32) -> Self {
+        let (w, h) = amplitude.dims();
+        let (re, im) = amplitude
+            .data()
+            .iter()
+            .zip(phase.data())
+            .map(|(&a, &p)| {
+                let (s, c) = f64::from(p).sin_cos();
+                (f64::from(a) * c, f64::from(a) * s)
+            })
+            .unzip();
+        Self { w, h, re, im }
+    }
+
+    /// The means of `k × k` blocks (the sides must be multiples of `k`).
+    pub fn block_means(&self, k: usize) -> Self {
+        let (w, h) = (self.w / k, self.h / k);
+        let (mut re, mut im) = (vec![0.0; w * h], vec![0.0; w * h]);
+        for y in 0..self.h {
+            for x in 0..self.w {
+                let (i, j) = (y * self.w + x, (y / k) * w + x / k);
+                re[j] += self.re[i];
+                im[j] += self.im[i];
+            }
+        }
+        let n = (k * k) as f64;
+        re.iter_mut().chain(im.iter_mut()).for_each(|v| *v /= n);
+        Self { w, h, re, im }
+    }
+
+    /// Bilinear interpolation of a grid `k` times coarser back to `w × h`: a fine pixel's
+    /// centre lies at `(x − (k − 1)/2)/k` in coarse pixels; beyond the outer centres the edge
+    /// values hold.
+    pub fn upsampled(&self, k: usize, w: usize, h: usize) -> Self {
+        let off = (k as f64 - 1.0) / 2.0;
+        let axis = |x: usize, n: usize| {
+            let u = ((x as f64 - off) / k as f64).clamp(0.0, (n - 1) as f64);
+            let u0 = (u.floor() as usize).min(n.saturating_sub(2));
+            (u0, (u0 + 1).min(n - 1), u - u0 as f64)
+        };
+        let (mut re, mut im) = (vec![0.0; w * h], vec![0.0; w * h]);
+        for y in 0..h {
+            let (y0, y1, ty) = axis(y, self.h);
+            for x in 0..w {
+                let (x0, x1, tx) = axis(x, self.w);
+                let at = |v: &[f64]| {
+                    let top = v[y0 * self.w + x0] * (1.0 - tx) + v[y0 * self.w + x1] * tx;
+                    let bottom = v[y1 * self.w + x0] * (1.0 - tx) + v[y1 * self.w + x1] * tx;
+                    top * (1.0 - ty) + bottom * ty
+                };
+                re[y * w + x] = at(&self.re);
+                im[y * w + x] = at(&self.im);
+            }
+        }
+        Self { w, h, re, im }
+    }
+
+    /// Amplitude and phase images (phase in `[0, 2π)`).
+    pub fn to_polar(&self) -> (ImageF32, ImageF32) {
+        let amplitude = self
+            .re
+            .iter()
+            .zip(&self.im)
+            .map(|(r, i)| r.hypot(*i) as f32);
+        let phase = self
+            .re
+            .iter()
+            .zip(&self.im)
+            .map(|(r, i)| i.atan2(*r).rem_euclid(std::f64::consts::TAU) as f32);
+        (
+            ImageF32::from_vec(self.w, self.h, 1, amplitude.collect()).expect("sizes match"),
+            ImageF32::from_vec(self.w, self.h, 1, phase.collect()).expect("sizes match"),
+        )
+    }
+}
+
+/// Mean |range − true range| (metres) over the ground-truth mask when `scatter` is subtracted
+/// from the frame's observation; NaN when no object is in view.
+pub fn range_error(frame: &TofSimFrame, scatter: &Phasor) -> f64 {
+    let observed = Phasor::from_polar(&frame.amplitude, &frame.phase);
+    let light = frame.config.light_position_m();
+    let path_per_rad = SPEED_OF_LIGHT_M_PER_S
+        / (2.0 * std::f64::consts::PI * frame.config.modulation_frequency_hz);
+    let (mut sum, mut n) = (0.0, 0usize);
+    for (i, &g) in frame.gt_mask.data().iter().enumerate() {
+        if g < 0.5 {
+            continue;
+        }
+        let phase = (observed.im[i] - scatter.im[i])
+            .atan2(observed.re[i] - scatter.re[i])
+            .rem_euclid(std::f64::consts::TAU);
+        let d = frame
+            .intrinsics
+            .ray((i % observed.w) as f64, (i / observed.w) as f64);
+        let range = range_from_path(phase * path_per_rad, d.into(), light);
+        sum += (range - f64::from(frame.gt_range_m.data()[i])).abs();
+        n += 1;
+    }
+    if n == 0 {
+        f64::NAN
+    } else {
+        sum / n as f64
+    }
 }

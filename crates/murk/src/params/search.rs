@@ -612,20 +612,6 @@ fn box_downsample(img: &ImageF32, f: usize) -> ImageF32 {
     ImageF32::from_vec(w, h, c, out).expect("non-empty: checked by the caller")
 }
 
-/// Intrinsics of the `f×f` box-downsampled image: coarse pixel `i` covers fine pixels
-/// `f·i … f·i + f − 1`, whose centre is `f·i + (f − 1)/2`.
-fn downsample_intrinsics(k: &Intrinsics, f: usize) -> Intrinsics {
-    let f = f as f64;
-    let shift = (f - 1.0) / 2.0;
-    Intrinsics {
-        fx: k.fx / f,
-        fy: k.fy / f,
-        cx: (k.cx - shift) / f,
-        cy: (k.cy - shift) / f,
-        skew: k.skew / f,
-    }
-}
-
 /// The β range of a search: the caller's ends, the missing ones from the points. Errors name
 /// `params.beta_min`/`params.beta_max` when a given end leaves the range empty.
 fn resolve_beta_range(params: &SearchParams, sparse: &SparseDepth) -> Result<([f32; 2], bool)> {
@@ -696,12 +682,7 @@ pub fn search_scattering(
         ));
     }
     // Search-resolution views and sparse map.
-    let scaled = |v: &View<'_>| {
-        (
-            box_downsample(v.image, f),
-            downsample_intrinsics(&v.intrinsics, f),
-        )
-    };
+    let scaled = |v: &View<'_>| (box_downsample(v.image, f), v.intrinsics.box_downsampled(f));
     let ref_small = scaled(reference);
     let src_small: Vec<(ImageF32, Intrinsics)> = sources.iter().map(scaled).collect();
     let sparse_small = sparse.downsampled(f);
@@ -1027,7 +1008,7 @@ mod tests {
             skew: 0.5,
         };
         for f in [1usize, 2, 3] {
-            let kc = downsample_intrinsics(&k, f);
+            let kc = k.box_downsampled(f);
             let p = [0.3, -0.2, 2.0];
             let (u, v) = k.project(p).unwrap();
             let (uc, vc) = kc.project(p).unwrap();
