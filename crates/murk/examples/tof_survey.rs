@@ -56,6 +56,10 @@ struct Args {
     /// Cap on the fine IRLS iterations (default: `TofParams`' 150; the reference's is 50).
     #[arg(long)]
     fine_iterations: Option<usize>,
+    /// Multiplier of the sensor's noise (both its shot and its read terms' standard
+    /// deviations; 1: the Kinect v2-like sensor of the docs).
+    #[arg(long, default_value_t = 1.0)]
+    noise_scale: f64,
 }
 
 /// One frame's scores, all over the ground-truth mask unless stated.
@@ -138,7 +142,7 @@ fn main() -> anyhow::Result<()> {
             let (w, h) = size.dims();
             for &seed in &seeds {
                 eprintln!("{preset} {w}×{h} seed {seed} ...");
-                let frame = simulate(preset, seed, w, h, args.layout)
+                let frame = simulate(preset, seed, w, h, args.layout, args.noise_scale)
                     .with_context(|| format!("simulating {preset} seed {seed}"))?;
                 let input = TofInput {
                     amplitude: frame.amplitude.clone(),
@@ -258,12 +262,16 @@ fn simulate(
     width: usize,
     height: usize,
     layout: SceneLayout,
+    noise_scale: f64,
 ) -> murk::Result<TofSimFrame> {
+    let base = TofSimConfig::with_size(width, height);
     let cfg = TofSimConfig {
         preset,
         seed,
         layout,
-        ..TofSimConfig::with_size(width, height)
+        noise_shot: base.noise_shot * noise_scale,
+        noise_read: base.noise_read * noise_scale,
+        ..base
     };
     simulate_tof(&cfg, &Monitor::noop())
 }
