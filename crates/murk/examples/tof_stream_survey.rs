@@ -13,7 +13,11 @@
 //! With `--scatter-grid K` the stream's frames go to the tracker as their K×K block means (the
 //! observed phasors averaged, the intrinsics scaled), and both columns are scored by subtracting
 //! a scatter phasor from the full frame: the from-scratch estimate's own, and the stream's
-//! interpolated back (bilinear). Neither fills unmeasured outline pixels.
+//! interpolated back (bilinear). Neither fills unmeasured outline pixels. With
+//! `--cold-full-size` as well, the first frame is computed at full size and every later one at
+//! the grid's from the previous frame's answer (`estimate_tof_depth_from`; the first frame's
+//! scatter and weights as block means, its σ₁ divided by K as a block mean's noise is), without
+//! the tracker's checks for cuts and fog changes.
 
 mod common;
 
@@ -22,8 +26,12 @@ use std::time::Instant;
 use clap::Parser;
 
 use common::{mean, range_error, Phasor, Table};
+use murk::simulate::tof::FogPreset;
 use murk::simulate::{simulate_tof_sequence_frame, SceneLayout, TofMotion, TofSimConfig};
-use murk::tof::{estimate_tof_depth, TofInput, TofOutput, TofParams, TofStart, TofTracker};
+use murk::tof::{
+    estimate_tof_depth, estimate_tof_depth_from, IrlsStart, TofInput, TofOutput, TofParams,
+    TofStart, TofTracker,
+};
 use murk::Monitor;
 
 /// Cold against warm-started frames of one simulated stream.
@@ -60,6 +68,24 @@ struct Args {
     /// documentation); 1: the frames themselves, scored by their range.
     #[arg(long, default_value_t = 1)]
     scatter_grid: usize,
+    /// With `--scatter-grid`: the first frame at full size, the rest on the grid from it (see
+    /// the module documentation).
+    #[arg(long)]
+    cold_full_size: bool,
+    /// Fog preset: thin, medium or thick.
+    #[arg(long, default_value = "medium")]
+    preset: FogPreset,
+}
+
+/// `values` (`w × h`, row-major) averaged over `k × k` blocks.
+fn block_means_of(values: &[f64], w: usize, h: usize, k: usize) -> Vec<f64> {
+    let grid = Phasor {
+        w,
+        h,
+        re: values.to_vec(),
+        im: vec![0.0; values.len()],
+    };
+    grid.block_means(k).re
 }
 
 /// Mean |range − truth| on the lit object pixels, millimetres; NaN when none is in view.
@@ -84,9 +110,13 @@ fn main() -> anyhow::Result<()> {
         anyhow::bail!("--scatter-grid must be at least 1 and divide the frame's sides");
     }
     let layout: SceneLayout = a.layout.parse()?;
+    if a.cold_full_size && grid == 1 {
+        anyhow::bail!("--cold-full-size needs --scatter-grid 2 or more");
+    }
     let cfg = TofSimConfig {
         seed: a.seed,
         layout,
+        preset: a.preset,
         ..TofSimConfig::with_size(a.width, a.height)
     };
     let motion = TofMotion {
@@ -102,6 +132,8 @@ fn main() -> anyhow::Result<()> {
     };
     let monitor = Monitor::noop();
     let mut tracker = TofTracker::new(params.clone());
+    // The grid-size start of `--cold-full-size`.
+    let mut grid_start: Option<IrlsStart> = None;
     let mut table = Table::new(&[
         "frame",
         "start",
@@ -123,8 +155,9 @@ fn main() -> anyhow::Result<()> {
         let cold = estimate_tof_depth(&input, &params, &monitor)?;
         let tc = t.elapsed().as_secs_f64();
         let t = Instant::now();
-        let (tracked, streamed) = if grid == 1 {
-            (tracker.estimate(&input, &monitor)?, None)
+        let ((output, label), streamed) = if grid == 1 {
+            let tracked = tracker.estimate(&input, &monitor)?;
+            ((tracked.output, tracked.start), None)
         } else {
             let (amplitude, phase) = Phasor::from_polar(&f.amplitude, &f.phase)
                 .block_means(grid)
@@ -134,17 +167,55 @@ fn main() -> anyhow::Result<()> {
                 phase,
                 intrinsics: Some(f.intrinsics.box_downsampled(grid)),
             };
-            let tracked = tracker.estimate(&coarse, &monitor)?;
-            let out = &tracked.output;
-            let scatter = Phasor::from_polar(&out.scatter_amplitude, &out.scatter_phase)
+            let (output, label) = if !a.cold_full_size {
+                let tracked = tracker.estimate(&coarse, &monitor)?;
+                (tracked.output, tracked.start)
+            } else if k == 0 {
+                let (out, full) = estimate_tof_depth_from(&input, &params, None, &monitor)?;
+                grid_start = full.map(|s| IrlsStart {
+                    scatter: s
+                        .scatter
+                        .iter()
+                        .map(|c| block_means_of(c, a.width, a.height, grid))
+                        .collect(),
+                    weights: block_means_of(&s.weights, a.width, a.height, grid),
+                    sigma_fine: s.sigma_fine.map(|v| v / grid as f64),
+                });
+                let scatter = Phasor::from_polar(&out.scatter_amplitude, &out.scatter_phase);
+                let tw = t.elapsed().as_secs_f64();
+                let ec = range_error(
+                    &f,
+                    &Phasor::from_polar(&cold.scatter_amplitude, &cold.scatter_phase),
+                ) * 1e3;
+                let ew = range_error(&f, &scatter) * 1e3;
+                cold_s.push(tc);
+                warm_s.push(tw);
+                ratios.push(ew / ec.max(1e-9));
+                table.row(&[
+                    "0".to_string(),
+                    "cold, full size".into(),
+                    format!("{tc:.3}"),
+                    format!("{tw:.3}"),
+                    format!("{ec:.1}"),
+                    format!("{ew:.1}"),
+                    format!("{:.3}", ew / ec.max(1e-9)),
+                ]);
+                continue;
+            } else {
+                let (out, next) =
+                    estimate_tof_depth_from(&coarse, &params, grid_start.as_ref(), &monitor)?;
+                grid_start = next;
+                (out, TofStart::Warm)
+            };
+            let scatter = Phasor::from_polar(&output.scatter_amplitude, &output.scatter_phase)
                 .upsampled(grid, a.width, a.height);
-            (tracked, Some(scatter))
+            ((output, label), Some(scatter))
         };
         let tw = t.elapsed().as_secs_f64();
         let (ec, ew) = match &streamed {
             None => (
                 error_mm(&cold, &f.gt_range_m, &f.gt_mask),
-                error_mm(&tracked.output, &f.gt_range_m, &f.gt_mask),
+                error_mm(&output, &f.gt_range_m, &f.gt_mask),
             ),
             Some(scatter) => (
                 range_error(
@@ -160,7 +231,7 @@ fn main() -> anyhow::Result<()> {
         if ec.is_finite() && ew.is_finite() {
             ratios.push(ew / ec.max(1e-9));
         }
-        let start = match tracked.start {
+        let start = match label {
             TofStart::Cold => "cold",
             TofStart::Warm => "warm",
             TofStart::Restarted => "restarted",
