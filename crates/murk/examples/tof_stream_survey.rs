@@ -16,8 +16,8 @@
 //! interpolated back (bilinear). Neither fills unmeasured outline pixels. With
 //! `--cold-full-size` as well, the first frame is computed at full size and every later one at
 //! the grid's from the previous frame's answer (`estimate_tof_depth_from`; the first frame's
-//! scatter and weights as block means, its σ₁ divided by K as a block mean's noise is), without
-//! the tracker's checks for cuts and fog changes.
+//! start carried to the grid by `IrlsStart::box_downsampled`), without the tracker's checks for
+//! cuts and fog changes.
 
 mod common;
 
@@ -75,17 +75,6 @@ struct Args {
     /// Fog preset: thin, medium or thick.
     #[arg(long, default_value = "medium")]
     preset: FogPreset,
-}
-
-/// `values` (`w × h`, row-major) averaged over `k × k` blocks.
-fn block_means_of(values: &[f64], w: usize, h: usize, k: usize) -> Vec<f64> {
-    let grid = Phasor {
-        w,
-        h,
-        re: values.to_vec(),
-        im: vec![0.0; values.len()],
-    };
-    grid.block_means(k).re
 }
 
 /// Mean |range − truth| on the lit object pixels, millimetres; NaN when none is in view.
@@ -172,15 +161,9 @@ fn main() -> anyhow::Result<()> {
                 (tracked.output, tracked.start)
             } else if k == 0 {
                 let (out, full) = estimate_tof_depth_from(&input, &params, None, &monitor)?;
-                grid_start = full.map(|s| IrlsStart {
-                    scatter: s
-                        .scatter
-                        .iter()
-                        .map(|c| block_means_of(c, a.width, a.height, grid))
-                        .collect(),
-                    weights: block_means_of(&s.weights, a.width, a.height, grid),
-                    sigma_fine: s.sigma_fine.map(|v| v / grid as f64),
-                });
+                grid_start = full
+                    .map(|s| s.box_downsampled(a.width, a.height, grid))
+                    .transpose()?;
                 let scatter = Phasor::from_polar(&out.scatter_amplitude, &out.scatter_phase);
                 let tw = t.elapsed().as_secs_f64();
                 let ec = range_error(

@@ -7,12 +7,14 @@
 //! the symmetry prior ([`symmetry`]), the weighted least-squares x-step ([`wls`]), Algorithm 2
 //! ([`irls`]) and its check for thin, dim object parts ([`coherent`]), the mask's uncertain
 //! pixels beside the objects ([`ambiguous`]), the bilateral pre-filter
-//! ([`bilateral`]) and the pipeline ([`pipeline`]).
+//! ([`bilateral`]), the pipeline ([`pipeline`]), and a stream's start on a coarser grid
+//! ([`IrlsStart::box_downsampled`]).
 
 pub mod ambiguous;
 pub mod bilateral;
 pub mod coarse_space;
 pub mod coherent;
+mod grid;
 pub mod irls;
 pub mod multigrid;
 pub mod noise_model;
