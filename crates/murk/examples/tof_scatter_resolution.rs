@@ -123,6 +123,7 @@ fn main() -> anyhow::Result<()> {
                 let frame = simulate_tof(&cfg, &Monitor::noop())
                     .with_context(|| format!("simulating {preset} seed {seed}"))?;
                 let truth = Phasor::from_polar(&frame.scatter_amplitude, &frame.scatter_phase);
+                let observed = Phasor::from_polar(&frame.amplitude, &frame.phase);
                 let (full, full_s) = estimate(
                     frame.amplitude.clone(),
                     frame.phase.clone(),
@@ -130,12 +131,12 @@ fn main() -> anyhow::Result<()> {
                     &frame,
                 )
                 .with_context(|| format!("estimating {preset} seed {seed}"))?;
-                let full_err = range_error(&frame, &full);
+                let full_err = range_error(&frame, &observed, &full);
                 let mut row = vec![
                     format!("{w}×{h}"),
                     preset.to_string(),
                     seed.to_string(),
-                    format!("{:.1}", range_error(&frame, &truth) * 1e3),
+                    format!("{:.1}", range_error(&frame, &observed, &truth) * 1e3),
                     format!("{:.1}", full_err * 1e3),
                     format!("{full_s:.2}"),
                 ];
@@ -144,17 +145,16 @@ fn main() -> anyhow::Result<()> {
                         row.extend(["–".to_string(), "–".into(), "–".into()]);
                         continue;
                     }
-                    let oracle = truth.block_means(k).upsampled(k, w, h);
-                    let observed = Phasor::from_polar(&frame.amplitude, &frame.phase);
-                    let (amplitude, phase) = observed.block_means(k).to_polar();
+                    let oracle = truth.block_means(k)?.upsampled(k, w, h);
+                    let (amplitude, phase) = observed.block_means(k)?.to_polar();
                     let intrinsics = frame.intrinsics.box_downsampled(k);
                     let (coarse, coarse_s) = estimate(amplitude, phase, intrinsics, &frame)
                         .with_context(|| format!("estimating {preset} seed {seed} at 1/{k}"))?;
-                    let coarse_err = range_error(&frame, &coarse.upsampled(k, w, h));
+                    let coarse_err = range_error(&frame, &observed, &coarse.upsampled(k, w, h));
                     excess[j].push((coarse_err - full_err) * 1e3);
                     speedup[j].push(full_s / coarse_s);
                     row.extend([
-                        format!("{:.1}", range_error(&frame, &oracle) * 1e3),
+                        format!("{:.1}", range_error(&frame, &observed, &oracle) * 1e3),
                         format!("{:.1}", coarse_err * 1e3),
                         format!("{coarse_s:.2}"),
                     ]);

@@ -29,8 +29,7 @@ use common::{mean, range_error, Phasor, Table};
 use murk::simulate::tof::FogPreset;
 use murk::simulate::{simulate_tof_sequence_frame, SceneLayout, TofMotion, TofSimConfig};
 use murk::tof::{
-    estimate_tof_depth, estimate_tof_depth_from, IrlsStart, TofInput, TofOutput, TofParams,
-    TofStart, TofTracker,
+    estimate_tof_depth_from, IrlsStart, TofInput, TofOutput, TofParams, TofStart, TofTracker,
 };
 use murk::Monitor;
 
@@ -75,6 +74,14 @@ struct Args {
     /// Fog preset: thin, medium or thick.
     #[arg(long, default_value = "medium")]
     preset: FogPreset,
+}
+
+/// What a streamed frame is scored by.
+enum Streamed {
+    /// Its result, by its range.
+    Output(Box<TofOutput>),
+    /// A scatter phasor at the frame's size, subtracted from the observation.
+    Scatter(Phasor),
 }
 
 /// Mean |range − truth| on the lit object pixels, millimetres; NaN when none is in view.
@@ -140,73 +147,60 @@ fn main() -> anyhow::Result<()> {
             phase: f.phase.clone(),
             intrinsics: Some(f.intrinsics),
         };
+        let observed = Phasor::from_polar(&f.amplitude, &f.phase);
         let t = Instant::now();
-        let cold = estimate_tof_depth(&input, &params, &monitor)?;
+        let (cold, cold_start) = estimate_tof_depth_from(&input, &params, None, &monitor)?;
         let tc = t.elapsed().as_secs_f64();
         let t = Instant::now();
-        let ((output, label), streamed) = if grid == 1 {
+        // The stream's frame: its start, and what it is scored by.
+        let (label, streamed) = if grid == 1 {
             let tracked = tracker.estimate(&input, &monitor)?;
-            ((tracked.output, tracked.start), None)
+            (tracked.start, Streamed::Output(Box::new(tracked.output)))
+        } else if a.cold_full_size && k == 0 {
+            // The stream's first frame is the frame from scratch.
+            grid_start = cold_start
+                .map(|s| s.box_downsampled(a.width, a.height, grid))
+                .transpose()?;
+            let scatter = Phasor::from_polar(&cold.scatter_amplitude, &cold.scatter_phase);
+            (TofStart::Cold, Streamed::Scatter(scatter))
         } else {
-            let (amplitude, phase) = Phasor::from_polar(&f.amplitude, &f.phase)
-                .block_means(grid)
-                .to_polar();
+            let (amplitude, phase) = observed.block_means(grid)?.to_polar();
             let coarse = TofInput {
                 amplitude,
                 phase,
                 intrinsics: Some(f.intrinsics.box_downsampled(grid)),
             };
-            let (output, label) = if !a.cold_full_size {
-                let tracked = tracker.estimate(&coarse, &monitor)?;
-                (tracked.output, tracked.start)
-            } else if k == 0 {
-                let (out, full) = estimate_tof_depth_from(&input, &params, None, &monitor)?;
-                grid_start = full
-                    .map(|s| s.box_downsampled(a.width, a.height, grid))
-                    .transpose()?;
-                let scatter = Phasor::from_polar(&out.scatter_amplitude, &out.scatter_phase);
-                let tw = t.elapsed().as_secs_f64();
-                let ec = range_error(
-                    &f,
-                    &Phasor::from_polar(&cold.scatter_amplitude, &cold.scatter_phase),
-                ) * 1e3;
-                let ew = range_error(&f, &scatter) * 1e3;
-                cold_s.push(tc);
-                warm_s.push(tw);
-                ratios.push(ew / ec.max(1e-9));
-                table.row(&[
-                    "0".to_string(),
-                    "cold, full size".into(),
-                    format!("{tc:.3}"),
-                    format!("{tw:.3}"),
-                    format!("{ec:.1}"),
-                    format!("{ew:.1}"),
-                    format!("{:.3}", ew / ec.max(1e-9)),
-                ]);
-                continue;
-            } else {
+            let (output, label) = if a.cold_full_size {
                 let (out, next) =
                     estimate_tof_depth_from(&coarse, &params, grid_start.as_ref(), &monitor)?;
                 grid_start = next;
                 (out, TofStart::Warm)
+            } else {
+                let tracked = tracker.estimate(&coarse, &monitor)?;
+                (tracked.output, tracked.start)
             };
             let scatter = Phasor::from_polar(&output.scatter_amplitude, &output.scatter_phase)
                 .upsampled(grid, a.width, a.height);
-            ((output, label), Some(scatter))
+            (label, Streamed::Scatter(scatter))
         };
-        let tw = t.elapsed().as_secs_f64();
+        // The first frame of `--cold-full-size` is not computed again.
+        let tw = if grid > 1 && a.cold_full_size && k == 0 {
+            tc
+        } else {
+            t.elapsed().as_secs_f64()
+        };
         let (ec, ew) = match &streamed {
-            None => (
+            Streamed::Output(output) => (
                 error_mm(&cold, &f.gt_range_m, &f.gt_mask),
-                error_mm(&output, &f.gt_range_m, &f.gt_mask),
+                error_mm(output, &f.gt_range_m, &f.gt_mask),
             ),
-            Some(scatter) => (
-                range_error(
-                    &f,
-                    &Phasor::from_polar(&cold.scatter_amplitude, &cold.scatter_phase),
-                ) * 1e3,
-                range_error(&f, scatter) * 1e3,
-            ),
+            Streamed::Scatter(scatter) => {
+                let own = Phasor::from_polar(&cold.scatter_amplitude, &cold.scatter_phase);
+                (
+                    range_error(&f, &observed, &own) * 1e3,
+                    range_error(&f, &observed, scatter) * 1e3,
+                )
+            }
         };
         cold_s.push(tc);
         warm_s.push(tw);

@@ -98,6 +98,12 @@ struct Scores {
 fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     let seeds = parse_seeds(&args.seeds).map_err(anyhow::Error::msg)?;
+    if !(args.noise_scale.is_finite() && args.noise_scale >= 0.0) {
+        anyhow::bail!(
+            "--noise-scale must be finite and at least 0, got {}",
+            args.noise_scale
+        );
+    }
     let cap = args
         .fine_iterations
         .map(|n| format!(", fine-iteration cap {n}"))

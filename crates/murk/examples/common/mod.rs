@@ -7,7 +7,7 @@ use std::fmt::Display;
 use clap::ValueEnum;
 use murk::image::ImageF32;
 use murk::simulate::tof::TofSimFrame;
-use murk::tof::SPEED_OF_LIGHT_M_PER_S;
+use murk::tof::{block_means, SPEED_OF_LIGHT_M_PER_S};
 
 /// Parses a seed list: `4`, `0-5` (inclusive), or a comma-separated mix such as `0-2,7,9`.
 pub fn parse_seeds(text: &str) -> Result<Vec<u64>, String> {
@@ -131,20 +131,15 @@ impl Phasor {
         Self { w, h, re, im }
     }
 
-    /// The means of `k × k` blocks (the sides must be multiples of `k`).
-    pub fn block_means(&self, k: usize) -> Self {
-        let (w, h) = (self.w / k, self.h / k);
-        let (mut re, mut im) = (vec![0.0; w * h], vec![0.0; w * h]);
-        for y in 0..self.h {
-            for x in 0..self.w {
-                let (i, j) = (y * self.w + x, (y / k) * w + x / k);
-                re[j] += self.re[i];
-                im[j] += self.im[i];
-            }
-        }
-        let n = (k * k) as f64;
-        re.iter_mut().chain(im.iter_mut()).for_each(|v| *v /= n);
-        Self { w, h, re, im }
+    /// The means of `k × k` blocks ([`murk::tof::block_means`]; errors name `factor` unless
+    /// `k` divides both sides).
+    pub fn block_means(&self, k: usize) -> murk::Result<Self> {
+        Ok(Self {
+            w: self.w / k.max(1),
+            h: self.h / k.max(1),
+            re: block_means(&self.re, self.w, self.h, k)?,
+            im: block_means(&self.im, self.w, self.h, k)?,
+        })
     }
 
     /// Bilinear interpolation of a grid `k` times coarser back to `w × h`: a fine pixel's
@@ -194,9 +189,8 @@ impl Phasor {
 }
 
 /// Mean |range − true range| (metres) over the ground-truth mask when `scatter` is subtracted
-/// from the frame's observation; NaN when no object is in view.
-pub fn range_error(frame: &TofSimFrame, scatter: &Phasor) -> f64 {
-    let observed = Phasor::from_polar(&frame.amplitude, &frame.phase);
+/// from the frame's `observed` phasor; NaN when no object is in view.
+pub fn range_error(frame: &TofSimFrame, observed: &Phasor, scatter: &Phasor) -> f64 {
     let light = frame.config.light_position_m();
     let path_per_rad = SPEED_OF_LIGHT_M_PER_S
         / (2.0 * std::f64::consts::PI * frame.config.modulation_frequency_hz);

@@ -3,8 +3,9 @@
 //! Fog's backscatter varies slowly across the image: the true scatter averaged over 2×2 blocks
 //! and interpolated back costs at most 0.1 mm of range over the sensor-noise floor on every
 //! simulated 512×424 frame, and the x-step's work follows the pixels (docs/benchmarks.md, "The
-//! scatter on a coarser grid"). A stream's frames after the first can therefore be solved on the
-//! frame's block means, starting from the previous frame's answer carried to that grid.
+//! scatter on a coarser grid"). [`IrlsStart::box_downsampled`] carries a stream's start to the
+//! grid of a frame's block means ([`block_means`]), for a caller that solves the frames after
+//! the first on that grid (`tof_stream_survey --cold-full-size` does).
 
 use super::irls::IrlsStart;
 use crate::error::{MurkError, Result};
@@ -15,12 +16,6 @@ impl IrlsStart {
     /// `factor`, as the noise of a mean of `factor²` pixels is. Errors name `factor` when it is
     /// 0 or does not divide both sides, and `start` when the images are not `width × height`.
     pub fn box_downsampled(&self, width: usize, height: usize, factor: usize) -> Result<Self> {
-        if factor == 0 || !width.is_multiple_of(factor) || !height.is_multiple_of(factor) {
-            return Err(MurkError::invalid(
-                "factor",
-                format!("{factor} must be at least 1 and divide the frame's {width}×{height}"),
-            ));
-        }
         let n = width * height;
         if self.weights.len() != n || self.scatter.iter().any(|c| c.len() != n) {
             return Err(MurkError::invalid(
@@ -30,16 +25,33 @@ impl IrlsStart {
         }
         let means = |values: &[f64]| block_means(values, width, height, factor);
         Ok(Self {
-            scatter: self.scatter.iter().map(|c| means(c)).collect(),
-            weights: means(&self.weights),
+            scatter: self
+                .scatter
+                .iter()
+                .map(|c| means(c))
+                .collect::<Result<_>>()?,
+            weights: means(&self.weights)?,
             sigma_fine: self.sigma_fine.map(|s| s / factor as f64),
         })
     }
 }
 
-/// `values` (`width × height`, row-major; both sides multiples of `factor`) averaged over
-/// `factor × factor` blocks, row-major on the coarse grid.
-fn block_means(values: &[f64], width: usize, height: usize, factor: usize) -> Vec<f64> {
+/// `values` (`width × height`, row-major) averaged over `factor × factor` blocks, row-major on
+/// the coarse grid. Errors name `factor` when it is 0 or does not divide both sides, and
+/// `values` when there are not `width × height` of them.
+pub fn block_means(values: &[f64], width: usize, height: usize, factor: usize) -> Result<Vec<f64>> {
+    if factor == 0 || !width.is_multiple_of(factor) || !height.is_multiple_of(factor) {
+        return Err(MurkError::invalid(
+            "factor",
+            format!("{factor} must be at least 1 and divide the frame's {width}×{height}"),
+        ));
+    }
+    if values.len() != width * height {
+        return Err(MurkError::invalid(
+            "values",
+            format!("{} values for a {width}×{height} grid", values.len()),
+        ));
+    }
     let cw = width / factor;
     let mut out = vec![0.0; cw * (height / factor)];
     for (y, row) in values.chunks_exact(width).enumerate() {
@@ -50,7 +62,7 @@ fn block_means(values: &[f64], width: usize, height: usize, factor: usize) -> Ve
     }
     let inv = 1.0 / (factor * factor) as f64;
     out.iter_mut().for_each(|v| *v *= inv);
-    out
+    Ok(out)
 }
 
 #[cfg(test)]
@@ -95,5 +107,7 @@ mod tests {
         }
         let e = s.box_downsampled(8, 4, 2).unwrap_err().to_string();
         assert!(e.contains("start"), "{e}");
+        let e = block_means(&[1.0; 5], 2, 2, 1).unwrap_err().to_string();
+        assert!(e.contains("values"), "{e}");
     }
 }

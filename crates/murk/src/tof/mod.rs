@@ -27,6 +27,7 @@ mod tracker;
 pub mod tukey;
 pub mod wls;
 
+pub use grid::block_means;
 pub use irls::IrlsStart;
 pub use params::*;
 pub use pipeline::{
