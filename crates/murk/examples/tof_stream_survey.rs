@@ -10,14 +10,13 @@
 //!     --scatter-grid 2
 //! ```
 //!
-//! With `--scatter-grid K` the stream's frames go to the tracker as their K×K block means (the
-//! observed phasors averaged, the intrinsics scaled), and both columns are scored by subtracting
-//! a scatter phasor from the full frame: the from-scratch estimate's own, and the stream's
-//! interpolated back (bilinear). Neither fills unmeasured outline pixels. With
-//! `--cold-full-size` as well, the first frame is computed at full size and every later one at
-//! the grid's from the previous frame's answer (`estimate_tof_depth_from`; the first frame's
-//! start carried to the grid by `IrlsStart::box_downsampled`), without the tracker's checks for
-//! cuts and fog changes.
+//! With `--scatter-grid K` the stream's tracker solves its warm frames' scatter on K×K block
+//! means (`TofTracker::with_scatter_grid`; cold and restarted frames at full size), and both
+//! columns are scored by their range, as without it. With `--cold-on-grid` as well, the stream
+//! instead hands the tracker the block means themselves, so every frame, the cold ones
+//! included, runs on the grid; both columns are then scored by subtracting a scatter phasor
+//! from the full frame: the from-scratch estimate's own, and the stream's interpolated back
+//! (bilinear). Neither fills unmeasured outline pixels.
 
 mod common;
 
@@ -28,9 +27,7 @@ use clap::Parser;
 use common::{mean, range_error, Phasor, Table};
 use murk::simulate::tof::FogPreset;
 use murk::simulate::{simulate_tof_sequence_frame, SceneLayout, TofMotion, TofSimConfig};
-use murk::tof::{
-    estimate_tof_depth_from, IrlsStart, TofInput, TofOutput, TofParams, TofStart, TofTracker,
-};
+use murk::tof::{estimate_tof_depth, TofInput, TofOutput, TofParams, TofStart, TofTracker};
 use murk::Monitor;
 
 /// Cold against warm-started frames of one simulated stream.
@@ -63,14 +60,14 @@ struct Args {
     /// Fastest an object moves, metres per second.
     #[arg(long, default_value_t = 0.3)]
     max_speed_m_per_s: f64,
-    /// Track the scatter on a grid this many times coarser than the frames (see the module
-    /// documentation); 1: the frames themselves, scored by their range.
+    /// Solve the warm frames' scatter on a grid this many times coarser than the frames (see
+    /// the module documentation); 1: the frames themselves.
     #[arg(long, default_value_t = 1)]
     scatter_grid: usize,
-    /// With `--scatter-grid`: the first frame at full size, the rest on the grid from it (see
-    /// the module documentation).
+    /// With `--scatter-grid`: every frame on the grid, cold ones included (see the module
+    /// documentation).
     #[arg(long)]
-    cold_full_size: bool,
+    cold_on_grid: bool,
     /// Fog preset: thin, medium or thick.
     #[arg(long, default_value = "medium")]
     preset: FogPreset,
@@ -106,8 +103,8 @@ fn main() -> anyhow::Result<()> {
         anyhow::bail!("--scatter-grid must be at least 1 and divide the frame's sides");
     }
     let layout: SceneLayout = a.layout.parse()?;
-    if a.cold_full_size && grid == 1 {
-        anyhow::bail!("--cold-full-size needs --scatter-grid 2 or more");
+    if a.cold_on_grid && grid == 1 {
+        anyhow::bail!("--cold-on-grid needs --scatter-grid 2 or more");
     }
     let cfg = TofSimConfig {
         seed: a.seed,
@@ -127,9 +124,11 @@ fn main() -> anyhow::Result<()> {
         ..TofParams::default()
     };
     let monitor = Monitor::noop();
-    let mut tracker = TofTracker::new(params.clone());
-    // The grid-size start of `--cold-full-size`.
-    let mut grid_start: Option<IrlsStart> = None;
+    let mut tracker = if a.cold_on_grid {
+        TofTracker::new(params.clone())
+    } else {
+        TofTracker::with_scatter_grid(params.clone(), grid)?
+    };
     let mut table = Table::new(&[
         "frame",
         "start",
@@ -149,20 +148,13 @@ fn main() -> anyhow::Result<()> {
         };
         let observed = Phasor::from_polar(&f.amplitude, &f.phase);
         let t = Instant::now();
-        let (cold, cold_start) = estimate_tof_depth_from(&input, &params, None, &monitor)?;
+        let cold = estimate_tof_depth(&input, &params, &monitor)?;
         let tc = t.elapsed().as_secs_f64();
         let t = Instant::now();
         // The stream's frame: its start, and what it is scored by.
-        let (label, streamed) = if grid == 1 {
+        let (label, streamed) = if !a.cold_on_grid {
             let tracked = tracker.estimate(&input, &monitor)?;
             (tracked.start, Streamed::Output(Box::new(tracked.output)))
-        } else if a.cold_full_size && k == 0 {
-            // The stream's first frame is the frame from scratch.
-            grid_start = cold_start
-                .map(|s| s.box_downsampled(a.width, a.height, grid))
-                .transpose()?;
-            let scatter = Phasor::from_polar(&cold.scatter_amplitude, &cold.scatter_phase);
-            (TofStart::Cold, Streamed::Scatter(scatter))
         } else {
             let (amplitude, phase) = observed.block_means(grid)?.to_polar();
             let coarse = TofInput {
@@ -170,25 +162,13 @@ fn main() -> anyhow::Result<()> {
                 phase,
                 intrinsics: Some(f.intrinsics.box_downsampled(grid)),
             };
-            let (output, label) = if a.cold_full_size {
-                let (out, next) =
-                    estimate_tof_depth_from(&coarse, &params, grid_start.as_ref(), &monitor)?;
-                grid_start = next;
-                (out, TofStart::Warm)
-            } else {
-                let tracked = tracker.estimate(&coarse, &monitor)?;
-                (tracked.output, tracked.start)
-            };
+            let tracked = tracker.estimate(&coarse, &monitor)?;
+            let output = tracked.output;
             let scatter = Phasor::from_polar(&output.scatter_amplitude, &output.scatter_phase)
                 .upsampled(grid, a.width, a.height);
-            (label, Streamed::Scatter(scatter))
+            (tracked.start, Streamed::Scatter(scatter))
         };
-        // The first frame of `--cold-full-size` is not computed again.
-        let tw = if grid > 1 && a.cold_full_size && k == 0 {
-            tc
-        } else {
-            t.elapsed().as_secs_f64()
-        };
+        let tw = t.elapsed().as_secs_f64();
         let (ec, ew) = match &streamed {
             Streamed::Output(output) => (
                 error_mm(&cold, &f.gt_range_m, &f.gt_mask),

@@ -69,6 +69,10 @@ pub struct TofArgs {
     /// Streaming a sequence of frames.
     #[command(flatten)]
     pub stream: SequenceFlags,
+    /// With --sequence: frames computed from the previous frame's answer solve the scatter on
+    /// blocks of this many pixels a side, 1..=4 (1: at full size; default 2).
+    #[arg(long, requires = "sequence")]
+    pub scatter_grid: Option<u32>,
 }
 
 /// Runs `murk tof`.
@@ -132,6 +136,7 @@ fn run_sequence(a: &TofArgs, dir: &Path) -> anyhow::Result<()> {
         ..Default::default()
     };
     a.stream.apply(&mut config);
+    config.tof_scatter_grid = a.scatter_grid.unwrap_or(0);
     let phase_scale = a.phase_scale;
     let load: LoadFrame = Arc::new(move |dir: &Path| {
         let mut c = read_tof_capture(dir)?;

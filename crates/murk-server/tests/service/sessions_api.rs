@@ -113,6 +113,7 @@ fn tof_session(
         queue_policy: policy as i32,
         max_queued_frames: queued,
         frame_deadline_seconds: 0.0,
+        tof_scatter_grid: 0,
     };
     (config, frame)
 }
@@ -311,6 +312,13 @@ async fn bad_configurations_end_the_stream_naming_the_field() {
         ),
         (
             config_message(pb::SessionConfig {
+                tof_scatter_grid: 5,
+                ..config.clone()
+            }),
+            "config.tof_scatter_grid",
+        ),
+        (
+            config_message(pb::SessionConfig {
                 method: None,
                 ..config.clone()
             }),
@@ -345,6 +353,26 @@ async fn bad_configurations_end_the_stream_naming_the_field() {
                 ..config.clone()
             }),
             "config.stereo.baseline",
+        ),
+        (
+            config_message(pb::SessionConfig {
+                method: Some(pb::session_config::Method::Stereo(
+                    pb::RectifiedStereoRequest {
+                        intrinsics: Some(pb::CameraIntrinsics {
+                            fx: 50.0,
+                            fy: 50.0,
+                            cx: 31.5,
+                            cy: 26.0,
+                            skew: 0.0,
+                        }),
+                        baseline: 0.1,
+                        ..Default::default()
+                    },
+                )),
+                tof_scatter_grid: 2,
+                ..config.clone()
+            }),
+            "config.tof_scatter_grid",
         ),
         (
             config_message(pb::SessionConfig {

@@ -1,14 +1,211 @@
-//! A stream's start on a grid coarser than its frames.
+//! A stream's frames on a grid coarser than the frames.
 //!
 //! Fog's backscatter varies slowly across the image: the true scatter averaged over 2×2 blocks
 //! and interpolated back costs at most 0.1 mm of range over the sensor-noise floor on every
 //! simulated 512×424 frame, and the x-step's work follows the pixels (docs/benchmarks.md, "The
-//! scatter on a coarser grid"). [`IrlsStart::box_downsampled`] carries a stream's start to the
-//! grid of a frame's block means ([`block_means`]), for a caller that solves the frames after
-//! the first on that grid (`tof_stream_survey --cold-full-size` does).
+//! scatter on a coarser grid"). [`estimate_tof_depth_on_grid`] computes a stream's warm frame
+//! that way: the fine level of Algorithm 2 runs on the frame's `factor × factor` block means
+//! ([`block_means`]) from the previous frame's start carried to that grid
+//! ([`IrlsStart::box_downsampled`]); the scatter is interpolated back to the frame, and the
+//! mask, the ranges and their uncertainties are decided at the frame's own size. Only frames
+//! from a start run on the grid: from scratch, a block mean's halved noise breaks the coarse
+//! level's held-out check in thick fog (docs/accuracy.md, "A quieter sensor"), so cold frames
+//! stay at full size ([`TofTracker::with_scatter_grid`](super::TofTracker::with_scatter_grid)).
 
-use super::irls::IrlsStart;
+use rayon::prelude::*;
+
+use super::irls::{weights_against, IrlsStart};
+use super::params::{ScatterChannels, TofInput, TofOutput, TofParams};
+use super::pipeline::{finish, prefiltered, separate, RawPhasor, ScatterEstimate};
+use super::wls::XStepSolver;
 use crate::error::{MurkError, Result};
+use crate::image::ImageF32;
+use crate::monitor::Monitor;
+
+/// A stream's warm frame with the scatter solved on the grid of `factor × factor` block means,
+/// from `start`, the previous frame's answer on that grid; returns the frame's estimate at its
+/// own size and the start (on the grid) it leaves for the next frame. See the module docs.
+///
+/// What differs from [`estimate_tof_depth_from`](super::estimate_tof_depth_from) at full size:
+/// the scatter is bilinear between block centres, and each pixel's IRLS weight (hence the mask)
+/// is the fine level's Tukey weight of its own residual against that scatter, at the scale σ₁
+/// measured over the grid's background at the frame's noise. The thin-structure check
+/// ([`THIN_ROUNDS`](super::irls::THIN_ROUNDS)) runs on the block means only.
+///
+/// Errors: those of [`TofInput::validate`] and [`TofParams::validate_for`]; `factor` when it is
+/// 0 or does not divide both sides; `start` when its images are not the grid's; `channels`
+/// with [`ScatterChannels::AmplitudePhase`], which has no start; `Cancelled` from `monitor`.
+pub fn estimate_tof_depth_on_grid(
+    input: &TofInput,
+    params: &TofParams,
+    start: &IrlsStart,
+    factor: usize,
+    monitor: &Monitor,
+) -> Result<(TofOutput, Option<IrlsStart>)> {
+    input.validate()?;
+    params.validate_for(input)?;
+    let (w, h) = input.amplitude.dims();
+    if factor == 0 || !w.is_multiple_of(factor) || !h.is_multiple_of(factor) {
+        return Err(MurkError::invalid(
+            "factor",
+            format!("{factor} must be at least 1 and divide the frame's {w}×{h}"),
+        ));
+    }
+    if params.channels != ScatterChannels::Phasor {
+        return Err(MurkError::invalid(
+            "channels",
+            "a frame on the grid starts from the previous frame's phasor scatter",
+        ));
+    }
+    let (cw, ch) = (w / factor, h / factor);
+    if start.weights.len() != cw * ch || start.scatter.iter().any(|c| c.len() != cw * ch) {
+        return Err(MurkError::invalid(
+            "start",
+            format!(
+                "its images are not the {cw}×{ch} grid of the frame's {factor}×{factor} blocks"
+            ),
+        ));
+    }
+    monitor.checkpoint()?;
+    let raw = RawPhasor::of(input);
+    let coarse = coarse_input(input, factor)?;
+    let coarse_params = TofParams {
+        symmetry_row: params
+            .symmetry_row
+            .map(|r| (r - (factor as f64 - 1.0) / 2.0) / factor as f64),
+        ..params.clone()
+    };
+    coarse_params.validate_for(&coarse)?;
+    let coarse_raw = RawPhasor::of(&coarse);
+    let (grid_est, next) = separate(
+        &coarse,
+        &coarse_raw,
+        &coarse_params,
+        XStepSolver::default(),
+        Some(start),
+        monitor,
+    )?;
+    drop(coarse_raw);
+    monitor.checkpoint()?;
+
+    // Back at the frame's size: the observation pre-filtered as a cold frame's is, and the
+    // scatter between block centres.
+    let noise = super::noise_model::NoiseModel::fit(&raw.re, &raw.im, input.amplitude.data(), w);
+    let to_f64 = |v: Vec<f32>| -> Vec<f64> { v.into_par_iter().map(f64::from).collect() };
+    let (observed_re, observed_im) = rayon::join(
+        || to_f64(prefiltered(&raw.re, w, h, params)),
+        || to_f64(prefiltered(&raw.im, w, h, params)),
+    );
+    let scatter = vec![
+        upsampled(&grid_est.scatter_re, cw, ch, factor),
+        upsampled(&grid_est.scatter_im, cw, ch, factor),
+    ];
+    let background: Vec<bool> = (0..w * h)
+        .into_par_iter()
+        .map(|i| !grid_est.object[(i / w / factor) * cw + (i % w) / factor])
+        .collect();
+    let weights = weights_against(
+        &[&observed_re, &observed_im],
+        &scatter,
+        noise,
+        &background,
+        params.phasor.c_fine,
+    )?;
+    let t = f64::from(params.mask_threshold);
+    let [scatter_re, scatter_im]: [Vec<f64>; 2] = scatter
+        .try_into()
+        .map_err(|_| MurkError::Numerical("two scatter components".into()))?;
+    let est = ScatterEstimate {
+        object: weights.par_iter().map(|&v| v < t).collect(),
+        observed_re,
+        observed_im,
+        scatter_re,
+        scatter_im,
+        weight_amplitude: weights.clone(),
+        weight_phase: weights,
+        noise,
+        warnings: grid_est.warnings,
+    };
+    let out = finish(input, params, &est, raw, monitor)?;
+    Ok((out, next))
+}
+
+/// The raw phasor of `input` averaged over `factor × factor` blocks: real and imaginary parts,
+/// row-major on the grid. Errors name `factor` unless it divides both sides.
+pub(super) fn block_mean_phasor(input: &TofInput, factor: usize) -> Result<(Vec<f64>, Vec<f64>)> {
+    let (w, h) = input.amplitude.dims();
+    let (re, im): (Vec<f64>, Vec<f64>) = input
+        .amplitude
+        .data()
+        .par_iter()
+        .zip(input.phase.data().par_iter())
+        .map(|(&a, &p)| {
+            let (s, c) = f64::from(p).sin_cos();
+            (f64::from(a) * c, f64::from(a) * s)
+        })
+        .unzip();
+    let (re, im) = rayon::join(
+        || block_means(&re, w, h, factor),
+        || block_means(&im, w, h, factor),
+    );
+    Ok((re?, im?))
+}
+
+/// The frame's `factor × factor` block means as a frame of its own: the phasor averaged over
+/// each block, and the intrinsics of the coarser pixels.
+fn coarse_input(input: &TofInput, factor: usize) -> Result<TofInput> {
+    let (w, h) = input.amplitude.dims();
+    let (re, im) = block_mean_phasor(input, factor)?;
+    let (amplitude, phase): (Vec<f32>, Vec<f32>) = re
+        .par_iter()
+        .zip(im.par_iter())
+        .map(|(&r, &i)| {
+            let p = i.atan2(r).rem_euclid(std::f64::consts::TAU);
+            // `rem_euclid` can round up to exactly 2π for tiny negative angles.
+            let p = if p >= std::f64::consts::TAU { 0.0 } else { p };
+            ((r * r + i * i).sqrt() as f32, p as f32)
+        })
+        .unzip();
+    let image = |data| {
+        ImageF32::from_vec(w / factor, h / factor, 1, data)
+            .map_err(|e| MurkError::Numerical(e.to_string()))
+    };
+    Ok(TofInput {
+        amplitude: image(amplitude)?,
+        phase: image(phase)?,
+        intrinsics: input.intrinsics.map(|k| k.box_downsampled(factor)),
+    })
+}
+
+/// Bilinear interpolation of a `cw × ch` grid of `factor × factor` block means back to the
+/// frame's `cw·factor × ch·factor` pixels: a pixel's centre lies at `(x − (factor − 1)/2) /
+/// factor` in grid pixels, and beyond the outermost block centres the edge values hold.
+pub fn upsampled(values: &[f64], cw: usize, ch: usize, factor: usize) -> Vec<f64> {
+    let (w, h) = (cw * factor, ch * factor);
+    let off = (factor as f64 - 1.0) / 2.0;
+    let axis = |x: usize, n: usize| {
+        let u = ((x as f64 - off) / factor as f64).clamp(0.0, n.saturating_sub(1) as f64);
+        let u0 = (u.floor() as usize).min(n.saturating_sub(2));
+        (u0, (u0 + 1).min(n - 1), u - u0 as f64)
+    };
+    let cols: Vec<(usize, usize, f64)> = (0..w).map(|x| axis(x, cw)).collect();
+    let mut out = vec![0.0; w * h];
+    out.par_chunks_mut(w.max(1))
+        .enumerate()
+        .for_each(|(y, row)| {
+            let (y0, y1, ty) = axis(y, ch);
+            let (top, bottom) = (
+                &values[y0 * cw..(y0 + 1) * cw],
+                &values[y1 * cw..(y1 + 1) * cw],
+            );
+            for (o, &(x0, x1, tx)) in row.iter_mut().zip(&cols) {
+                let t = top[x0] * (1.0 - tx) + top[x1] * tx;
+                let b = bottom[x0] * (1.0 - tx) + bottom[x1] * tx;
+                *o = t * (1.0 - ty) + b * ty;
+            }
+        });
+    out
+}
 
 impl IrlsStart {
     /// This start (of `width × height` frames) on the grid of `factor × factor` block means:
@@ -68,6 +265,7 @@ pub fn block_means(values: &[f64], width: usize, height: usize, factor: usize) -
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::tof::MASK_OBJECT;
 
     fn start(width: usize, height: usize) -> IrlsStart {
         let ramp = |k: f64| {
@@ -80,6 +278,108 @@ mod tests {
             weights: (0..width * height).map(|i| (i % 2) as f64).collect(),
             sigma_fine: Some(3.0),
         }
+    }
+
+    /// Bilinear interpolation reproduces a plane between the block centres, and holds the
+    /// edge values beyond them.
+    #[test]
+    fn upsampling_block_means_of_a_plane_gives_the_plane_back() {
+        let (w, h, k) = (12, 8, 2);
+        let plane: Vec<f64> = (0..w * h)
+            .map(|i| 0.5 * (i % w) as f64 - 1.5 * (i / w) as f64 + 3.0)
+            .collect();
+        let up = upsampled(&block_means(&plane, w, h, k).unwrap(), w / k, h / k, k);
+        for y in 0..h {
+            for x in 0..w {
+                // Beyond the outermost block centres (half a block) the edge values hold.
+                let cx = (x as f64).clamp(0.5, w as f64 - 1.5);
+                let cy = (y as f64).clamp(0.5, h as f64 - 1.5);
+                let want = 0.5 * cx - 1.5 * cy + 3.0;
+                assert!((up[y * w + x] - want).abs() < 1e-12, "({x}, {y})");
+            }
+        }
+    }
+
+    fn sim_input(seed: u64, k: usize) -> TofInput {
+        use crate::simulate::{simulate_tof_sequence_frame, TofMotion, TofSimConfig};
+        let cfg = TofSimConfig {
+            seed,
+            ..TofSimConfig::with_size(128, 106)
+        };
+        let f =
+            simulate_tof_sequence_frame(&cfg, &TofMotion::default(), k, &Monitor::noop()).unwrap();
+        TofInput {
+            amplitude: f.amplitude,
+            phase: f.phase,
+            intrinsics: Some(f.intrinsics),
+        }
+    }
+
+    /// A warm frame on the grid: full-size outputs whose mask and ranges agree with the same
+    /// frame computed warm at full size.
+    #[test]
+    fn a_frame_on_the_grid_matches_the_full_size_frame() {
+        let params = TofParams::default();
+        let first = sim_input(3, 0);
+        let (_, start) =
+            crate::tof::estimate_tof_depth_from(&first, &params, None, &Monitor::noop()).unwrap();
+        let start = start.unwrap();
+        let next = sim_input(3, 1);
+        let (full, _) =
+            crate::tof::estimate_tof_depth_from(&next, &params, Some(&start), &Monitor::noop())
+                .unwrap();
+        let coarse = start.box_downsampled(128, 106, 2).unwrap();
+        let (grid, grid_next) =
+            estimate_tof_depth_on_grid(&next, &params, &coarse, 2, &Monitor::noop()).unwrap();
+        assert_eq!(grid_next.unwrap().weights.len(), 64 * 53);
+        assert_eq!(grid.range_m.dims(), (128, 106));
+        let (mut differ, mut objects, mut range_diff) = (0, 0, Vec::new());
+        for i in 0..128 * 106 {
+            let (a, b) = (full.mask.data()[i], grid.mask.data()[i]);
+            differ += usize::from((a == MASK_OBJECT) != (b == MASK_OBJECT));
+            if a == MASK_OBJECT && b == MASK_OBJECT {
+                objects += 1;
+                range_diff.push((full.range_m.data()[i] - grid.range_m.data()[i]).abs());
+            }
+        }
+        assert!(objects > 500, "{objects} object pixels");
+        assert!(
+            differ * 100 <= objects,
+            "{differ} of {objects} object pixels differ"
+        );
+        range_diff.sort_by(f32::total_cmp);
+        let median = range_diff[range_diff.len() / 2];
+        assert!(median < 5e-3, "median range difference {median} m");
+    }
+
+    #[test]
+    fn bad_grids_starts_and_channels_are_refused_naming_the_field() {
+        let input = sim_input(1, 0);
+        let params = TofParams::default();
+        let start = IrlsStart {
+            scatter: vec![vec![0.0; 64 * 53]; 2],
+            weights: vec![1.0; 64 * 53],
+            sigma_fine: None,
+        };
+        let run = |p: &TofParams, s: &IrlsStart, k| {
+            estimate_tof_depth_on_grid(&input, p, s, k, &Monitor::noop())
+                .unwrap_err()
+                .to_string()
+        };
+        // 4 does not divide the 106 rows.
+        for k in [0, 3, 4] {
+            assert!(run(&params, &start, k).contains("factor"));
+        }
+        let small = IrlsStart {
+            weights: vec![1.0; 10],
+            ..start.clone()
+        };
+        assert!(run(&params, &small, 2).contains("start"));
+        let amplitude_phase = TofParams {
+            channels: ScatterChannels::AmplitudePhase,
+            ..params.clone()
+        };
+        assert!(run(&amplitude_phase, &start, 2).contains("channels"));
     }
 
     #[test]

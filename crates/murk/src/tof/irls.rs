@@ -820,6 +820,76 @@ pub fn run_irls_vector_from(
     })
 }
 
+/// The fine level's pixel weights (Eq. 5.11) of an observation against a scatter estimate found
+/// elsewhere (on a coarser grid, see `tof::grid`), as the level's last reweighting would give
+/// them: each pixel's residual relative to its noise level, at the scale σ₁ measured over
+/// `background` as the level measures it ([`fine_scale_with_noise_model`], or the residuals'
+/// MAD without a noise model). `observed` and `scatter` hold one image per component.
+pub(super) fn weights_against(
+    observed: &[&[f64]],
+    scatter: &[Vec<f64>],
+    noise: Option<NoiseModel>,
+    background: &[bool],
+    c_fine: f64,
+) -> Result<Vec<f64>> {
+    let n = background.len();
+    let m = observed.len();
+    if m == 0
+        || scatter.len() != m
+        || observed.iter().any(|o| o.len() != n)
+        || scatter.iter().any(|x| x.len() != n)
+    {
+        return Err(MurkError::Numerical(
+            "weights: buffers do not match the image size".into(),
+        ));
+    }
+    let magnitude = observed
+        .iter()
+        .map(|o| o.par_iter().map(|v| v.abs()).reduce(|| 0.0, f64::max))
+        .fold(0.0, f64::max);
+    let floor = scale_floor(magnitude);
+    let noise_scale = noise.map(|model| {
+        let mut norms: Vec<f64> = (0..n)
+            .into_par_iter()
+            .map(|i| observed.iter().map(|o| o[i] * o[i]).sum::<f64>().sqrt())
+            .collect();
+        let med = median_in_place(&mut norms).unwrap_or(0.0);
+        let mut ns = NoiseScale {
+            model,
+            inv_ref: 1.0 / model.sigma(med).max(floor),
+            g: vec![1.0; n],
+        };
+        ns.update(scatter);
+        ns
+    });
+    let g = noise_scale.as_ref().map(|ns| &ns.g[..]);
+    let mut res = vec![0.0; n * m];
+    for c in 0..m {
+        res[c * n..(c + 1) * n]
+            .par_iter_mut()
+            .zip(scatter[c].par_iter().zip(observed[c].par_iter()))
+            .enumerate()
+            .for_each(|(i, (r, (xi, oi)))| *r = (xi - oi) / g.map_or(1.0, |g| g[i]));
+    }
+    let sigma = match &noise_scale {
+        Some(ns) => fine_scale_with_noise_model(&mut res, background, ns),
+        None => mad_sigma_in_place(&mut res),
+    }
+    .ok_or_else(|| MurkError::Numerical("non-finite residual against the scatter".into()))?
+    .max(floor);
+    let mut weights = vec![0.0; n];
+    pixel_weights(
+        scatter,
+        observed,
+        g,
+        sigma,
+        c_fine,
+        &mut res[..n],
+        &mut weights,
+    );
+    Ok(weights)
+}
+
 /// σ₁ of the fine level when the frame's noise model is known: the MAD of the residuals (`res`,
 /// `m` components of n pixels, already divided by the relative noise level) over the pixels the
 /// coarse level kept as background (`background`), but never below the sensor noise itself.

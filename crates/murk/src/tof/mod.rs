@@ -7,8 +7,8 @@
 //! the symmetry prior ([`symmetry`]), the weighted least-squares x-step ([`wls`]), Algorithm 2
 //! ([`irls`]) and its check for thin, dim object parts ([`coherent`]), the mask's uncertain
 //! pixels beside the objects ([`ambiguous`]), the bilateral pre-filter
-//! ([`bilateral`]), the pipeline ([`pipeline`]), and a stream's start on a coarser grid
-//! ([`IrlsStart::box_downsampled`]).
+//! ([`bilateral`]), the pipeline ([`pipeline`]), a stream's frames from the previous one's answer
+//! ([`TofTracker`]) and on a coarser grid ([`estimate_tof_depth_on_grid`]).
 
 pub mod ambiguous;
 pub mod bilateral;
@@ -27,7 +27,7 @@ mod tracker;
 pub mod tukey;
 pub mod wls;
 
-pub use grid::block_means;
+pub use grid::{block_means, estimate_tof_depth_on_grid, upsampled};
 pub use irls::IrlsStart;
 pub use params::*;
 pub use pipeline::{
@@ -35,5 +35,5 @@ pub use pipeline::{
     unmeasured_range_std_m,
 };
 pub use points::{measured_points, DEFAULT_MAX_POINT_RANGE_STD_M};
-pub use tracker::{TofStart, TofTracker, TrackedTof};
+pub use tracker::{TofStart, TofTracker, TrackedTof, MAX_SCATTER_GRID};
 pub use wls::{Preconditioner, XStepSolver};

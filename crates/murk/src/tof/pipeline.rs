@@ -75,37 +75,74 @@ fn estimate(
     monitor: &Monitor,
 ) -> Result<(TofOutput, Option<IrlsStart>)> {
     input.validate()?;
-    let (w, h) = input.amplitude.dims();
     params.validate_for(input)?;
     monitor.checkpoint()?;
-    let filter = |img: &[f32], out: &mut Vec<f32>| match &params.bilateral {
+    let raw = RawPhasor::of(input);
+    let (est, next) = separate(input, &raw, params, solver, start, monitor)?;
+    let out = finish(input, params, &est, raw, monitor)?;
+    Ok((out, next))
+}
+
+/// A frame's phasor as observed, before any filter: real and imaginary parts, row-major.
+pub(super) struct RawPhasor {
+    pub(super) re: Vec<f32>,
+    pub(super) im: Vec<f32>,
+}
+
+impl RawPhasor {
+    /// The phasor of `input`'s amplitude and phase.
+    pub(super) fn of(input: &TofInput) -> Self {
+        let (re, im) = input
+            .amplitude
+            .data()
+            .par_iter()
+            .zip(input.phase.data().par_iter())
+            .map(|(&a, &p)| {
+                let (s, c) = (p as f64).sin_cos();
+                ((a as f64 * c) as f32, (a as f64 * s) as f32)
+            })
+            .unzip();
+        Self { re, im }
+    }
+}
+
+/// `img` (`w × h`) through the pre-filter of `params`, or copied without one.
+pub(super) fn prefiltered(img: &[f32], w: usize, h: usize, params: &TofParams) -> Vec<f32> {
+    match &params.bilateral {
         Some(b) => {
-            out.resize(w * h, 0.0);
-            bilateral_filter(img, w, h, b, out);
+            let mut out = vec![0.0; w * h];
+            bilateral_filter(img, w, h, b, &mut out);
+            out
         }
-        None => out.extend_from_slice(img),
-    };
-    // The raw phasor and its noise model (shot + read), which scales the IRLS residuals of the
-    // phasor channels and gives every pixel's range uncertainty.
-    let (raw_re, raw_im): (Vec<f32>, Vec<f32>) = input
-        .amplitude
-        .data()
-        .par_iter()
-        .zip(input.phase.data().par_iter())
-        .map(|(&a, &p)| {
-            let (s, c) = (p as f64).sin_cos();
-            ((a as f64 * c) as f32, (a as f64 * s) as f32)
-        })
-        .unzip();
-    let noise = NoiseModel::fit(&raw_re, &raw_im, input.amplitude.data(), w);
+        None => img.to_vec(),
+    }
+}
+
+/// Algorithm 2 on a validated frame whose raw phasor is `raw`: the scatter, the weights and the
+/// object mask, and the start the frame leaves for the next (phasor channels only).
+pub(super) fn separate(
+    input: &TofInput,
+    raw: &RawPhasor,
+    params: &TofParams,
+    solver: XStepSolver,
+    start: Option<&IrlsStart>,
+    monitor: &Monitor,
+) -> Result<(ScatterEstimate, Option<IrlsStart>)> {
+    let (w, h) = input.amplitude.dims();
+    let (raw_re, raw_im) = (&raw.re, &raw.im);
+    // The noise model (shot + read) scales the IRLS residuals of the phasor channels and gives
+    // every pixel's range uncertainty.
+    let noise = NoiseModel::fit(raw_re, raw_im, input.amplitude.data(), w);
     // The observation as the pipeline sees it: amplitude and phase, or the phasor's real and
     // imaginary parts, each pre-filtered.
     let (first, second): (&[f32], &[f32]) = match params.channels {
         ScatterChannels::AmplitudePhase => (input.amplitude.data(), input.phase.data()),
-        ScatterChannels::Phasor => (&raw_re, &raw_im),
+        ScatterChannels::Phasor => (raw_re, raw_im),
     };
-    let (mut f1, mut f2) = (Vec::new(), Vec::new());
-    rayon::join(|| filter(first, &mut f1), || filter(second, &mut f2));
+    let (f1, f2) = rayon::join(
+        || prefiltered(first, w, h, params),
+        || prefiltered(second, w, h, params),
+    );
     monitor.progress("tof.prefilter", PREFILTER_END);
     monitor.checkpoint()?;
 
@@ -233,11 +270,24 @@ fn estimate(
         }
     };
     monitor.checkpoint()?;
+    Ok((est, next))
+}
+
+/// The frame's outputs from the separated scatter: the pixels beside the objects judged, then
+/// the direct component and its ranges (see [`compose`]).
+pub(super) fn finish(
+    input: &TofInput,
+    params: &TofParams,
+    est: &ScatterEstimate,
+    raw: RawPhasor,
+    monitor: &Monitor,
+) -> Result<TofOutput> {
+    let (w, h) = input.amplitude.dims();
     // The raw phasor, not the filtered one, judges the pixels beside the objects: see
     // `tof::ambiguous`.
     let uncertain = uncertain_pixels(
-        &raw_re,
-        &raw_im,
+        &raw.re,
+        &raw.im,
         &est.scatter_re,
         &est.scatter_im,
         &est.object,
@@ -245,27 +295,26 @@ fn estimate(
         w,
         thin_border_band(w, h),
     );
-    drop((raw_re, raw_im));
-
-    let out = compose(input, params, &est, &uncertain)?;
+    drop(raw);
+    let out = compose(input, params, est, &uncertain)?;
     monitor.progress("tof.compose", 1.0);
-    Ok((out, next))
+    Ok(out)
 }
 
 /// What the IRLS produced, as phasors: the pre-filtered observation and the scattering
 /// component per pixel, the object mask and the channels' weights.
-struct ScatterEstimate {
-    object: Vec<bool>,
-    observed_re: Vec<f64>,
-    observed_im: Vec<f64>,
-    scatter_re: Vec<f64>,
-    scatter_im: Vec<f64>,
-    weight_amplitude: Vec<f64>,
-    weight_phase: Vec<f64>,
+pub(super) struct ScatterEstimate {
+    pub(super) object: Vec<bool>,
+    pub(super) observed_re: Vec<f64>,
+    pub(super) observed_im: Vec<f64>,
+    pub(super) scatter_re: Vec<f64>,
+    pub(super) scatter_im: Vec<f64>,
+    pub(super) weight_amplitude: Vec<f64>,
+    pub(super) weight_phase: Vec<f64>,
     /// The frame's noise model (`None` for frames too small to fit one).
-    noise: Option<NoiseModel>,
+    pub(super) noise: Option<NoiseModel>,
     /// What the caller should know about the estimate (see [`TofOutput::warnings`]).
-    warnings: Vec<String>,
+    pub(super) warnings: Vec<String>,
 }
 
 /// A sentence when the IRLS of `channel` stopped at its cap of fine iterations with the weights

@@ -16,9 +16,16 @@
 //! - a frame whose object mask, computed from the start, differs from the start's in more than
 //!   [`MAX_CHANGED_FRACTION`] of the pixels: the scene changed (a cut), and the frame is computed
 //!   again from scratch ([`TofStart::Restarted`]).
+//!
+//! With a scatter grid ([`TofTracker::with_scatter_grid`]) the warm frames solve the scatter on
+//! the frame's block means and decide everything else at full size
+//! ([`estimate_tof_depth_on_grid`]); the carried start lives on the grid (6 bytes a pixel at
+//! factor 2), and cold and restarted frames run at full size as above. The checks for a fog
+//! change and a cut compare the grid's block means and weights.
 
 use rayon::prelude::*;
 
+use super::grid::{block_mean_phasor, estimate_tof_depth_on_grid};
 use super::irls::IrlsStart;
 use super::params::{TofInput, TofOutput, TofParams};
 use super::pipeline::estimate_tof_depth_from;
@@ -60,17 +67,53 @@ pub struct TrackedTof {
 #[derive(Debug)]
 pub struct TofTracker {
     params: TofParams,
-    /// The previous frame's size and answer.
-    start: Option<((usize, usize), IrlsStart)>,
+    /// Warm frames solve the scatter on blocks of this many pixels a side (1: the frame's).
+    scatter_grid: usize,
+    /// The previous frame's size, and its answer on the grid it was carried to.
+    start: Option<((usize, usize), Carried)>,
 }
 
+/// A start and the grid factor it lives on.
+#[derive(Debug)]
+struct Carried {
+    factor: usize,
+    start: IrlsStart,
+}
+
+/// Largest scatter grid factor a tracker accepts: 4 keeps the true scatter within 0.1 mm of
+/// the noise floor on the simulated obstacles (docs/benchmarks.md), and coarser blocks would
+/// average objects a few pixels wide into the fog.
+pub const MAX_SCATTER_GRID: usize = 4;
+
 impl TofTracker {
-    /// A tracker for frames computed with `params`.
+    /// A tracker for frames computed with `params`, every frame at its own size.
     pub fn new(params: TofParams) -> Self {
         Self {
             params,
+            scatter_grid: 1,
             start: None,
         }
+    }
+
+    /// A tracker whose warm frames solve the scatter on `factor × factor` block means (see the
+    /// module docs); frames whose sides `factor` does not divide run at their own size. Errors
+    /// name `scatter_grid` outside 1..=[`MAX_SCATTER_GRID`].
+    pub fn with_scatter_grid(params: TofParams, factor: usize) -> Result<Self> {
+        if !(1..=MAX_SCATTER_GRID).contains(&factor) {
+            return Err(crate::error::MurkError::invalid(
+                "scatter_grid",
+                format!("must be in 1..={MAX_SCATTER_GRID}, got {factor}"),
+            ));
+        }
+        Ok(Self {
+            scatter_grid: factor,
+            ..Self::new(params)
+        })
+    }
+
+    /// The grid factor of warm frames (1: none).
+    pub fn scatter_grid(&self) -> usize {
+        self.scatter_grid
     }
 
     /// The parameters every frame is computed with.
@@ -83,24 +126,33 @@ impl TofTracker {
     pub fn estimate(&mut self, input: &TofInput, monitor: &Monitor) -> Result<TrackedTof> {
         let dims = input.amplitude.dims();
         let threshold = self.params.mask_threshold;
+        let g = self.scatter_grid;
+        let factor = if dims.0.is_multiple_of(g) && dims.1.is_multiple_of(g) {
+            g
+        } else {
+            1
+        };
         let start = self
             .start
             .as_ref()
-            .filter(|(d, _)| *d == dims)
-            .map(|(_, s)| s);
+            .filter(|(d, c)| *d == dims && c.factor == factor)
+            .map(|(_, c)| &c.start);
         let kind = match start {
             None => TofStart::Cold,
-            Some(start) if scatter_change(input, start, threshold) > MAX_SCATTER_CHANGE => {
+            Some(start) if scatter_change(input, factor, start, threshold) > MAX_SCATTER_CHANGE => {
                 TofStart::Restarted
             }
             Some(start) => {
-                let (output, next) =
-                    estimate_tof_depth_from(input, &self.params, Some(start), monitor)?;
+                let (output, next) = if factor > 1 {
+                    estimate_tof_depth_on_grid(input, &self.params, start, factor, monitor)?
+                } else {
+                    estimate_tof_depth_from(input, &self.params, Some(start), monitor)?
+                };
                 let changed = next
                     .as_ref()
                     .map_or(1.0, |n| changed_fraction(start, n, threshold));
                 if changed <= MAX_CHANGED_FRACTION {
-                    self.start = next.map(|n| (dims, n));
+                    self.start = next.map(|start| (dims, Carried { factor, start }));
                     return Ok(TrackedTof {
                         output,
                         start: TofStart::Warm,
@@ -110,7 +162,10 @@ impl TofTracker {
             }
         };
         let (output, next) = estimate_tof_depth_from(input, &self.params, None, monitor)?;
-        self.start = next.map(|n| (dims, n));
+        let next = next
+            .map(|n| n.box_downsampled(dims.0, dims.1, factor))
+            .transpose()?;
+        self.start = next.map(|start| (dims, Carried { factor, start }));
         Ok(TrackedTof {
             output,
             start: kind,
@@ -119,8 +174,9 @@ impl TofTracker {
 }
 
 /// Median of |observed − scatter| / |scatter| over the pixels `start` took for fog alone (weight
-/// at least `threshold`), with the observation as the raw phasor; 0 when there are none.
-fn scatter_change(input: &TofInput, start: &IrlsStart, threshold: f32) -> f64 {
+/// at least `threshold`), with the observation as the raw phasor (its `factor × factor` block
+/// means, on which `start` lives); 0 when there are none.
+fn scatter_change(input: &TofInput, factor: usize, start: &IrlsStart, threshold: f32) -> f64 {
     let t = f64::from(threshold);
     let [re, im] = match start.scatter.as_slice() {
         [re, im] => [re, im],
@@ -129,18 +185,32 @@ fn scatter_change(input: &TofInput, start: &IrlsStart, threshold: f32) -> f64 {
     // In parallel: this check runs before every warm frame, and at 512×424 it took 7 ms on one
     // core. The median of the same values does not depend on their order. One square root a
     // pixel instead of two `hypot`s: the phasors are far from overflow.
-    let mut rel: Vec<f64> = input
-        .amplitude
-        .data()
+    let (or, oi): (Vec<f64>, Vec<f64>) = if factor > 1 {
+        match block_mean_phasor(input, factor) {
+            Ok(phasor) => phasor,
+            Err(_) => return f64::INFINITY,
+        }
+    } else {
+        input
+            .amplitude
+            .data()
+            .par_iter()
+            .zip(input.phase.data().par_iter())
+            .map(|(&a, &p)| {
+                let (sin, cos) = f64::from(p).sin_cos();
+                (f64::from(a) * cos, f64::from(a) * sin)
+            })
+            .unzip()
+    };
+    let mut rel: Vec<f64> = or
         .par_iter()
-        .zip(input.phase.data().par_iter())
+        .zip(oi.par_iter())
         .zip(start.weights.par_iter())
         .zip(re.par_iter().zip(im.par_iter()))
-        .filter(|(((_, _), &w), _)| w >= t)
-        .filter_map(|(((&a, &p), _), (&sr, &si))| {
+        .filter(|((_, &w), _)| w >= t)
+        .filter_map(|(((&or, &oi), _), (&sr, &si))| {
             let s2 = sr * sr + si * si;
-            let (sin, cos) = f64::from(p).sin_cos();
-            let (dr, di) = (f64::from(a) * cos - sr, f64::from(a) * sin - si);
+            let (dr, di) = (or - sr, oi - si);
             (s2 > 0.0).then(|| ((dr * dr + di * di) / s2).sqrt())
         })
         .collect();
@@ -305,6 +375,62 @@ mod tests {
             .filter(|(a, b)| a != b)
             .count();
         assert!(differ <= mask.len() / 1000, "{differ} mask pixels differ");
+    }
+
+    /// On a 2×2 grid the stream goes cold, warm, warm, restarted as at full size, and every
+    /// frame's mask is the cold frame's but for a few pixels on the objects' outlines.
+    #[test]
+    fn a_stream_on_the_grid_agrees_with_cold_frames() {
+        let cfg = TofSimConfig {
+            seed: 5,
+            ..TofSimConfig::with_size(128, 106)
+        };
+        let motion = TofMotion {
+            cut_every: Some(3),
+            ..TofMotion::default()
+        };
+        let mut tracker = TofTracker::with_scatter_grid(TofParams::default(), 2).unwrap();
+        assert_eq!(tracker.scatter_grid(), 2);
+        let mut starts = Vec::new();
+        for k in 0..4 {
+            let input = frame(&cfg, &motion, k);
+            let tracked = tracker.estimate(&input, &Monitor::noop()).unwrap();
+            assert_eq!(tracked.output.mask.dims(), (128, 106));
+            let diff = differs_from_cold(&tracked, &input, tracker.params());
+            assert!(
+                diff * 50 <= input.amplitude.pixel_count(),
+                "frame {k}: {diff} px"
+            );
+            starts.push(tracked.start);
+        }
+        assert_eq!(starts[0], TofStart::Cold);
+        assert_eq!(&starts[1..3], &[TofStart::Warm, TofStart::Warm]);
+        assert!(starts[3] != TofStart::Cold, "{starts:?}");
+    }
+
+    /// A grid that does not divide the frame's sides leaves its frames at full size: still
+    /// warm from the second frame on.
+    #[test]
+    fn a_grid_that_does_not_divide_the_frame_runs_at_full_size() {
+        let motion = TofMotion::default();
+        let cfg = TofSimConfig::with_size(63, 53);
+        let mut tracker = TofTracker::with_scatter_grid(TofParams::default(), 2).unwrap();
+        tracker
+            .estimate(&frame(&cfg, &motion, 0), &Monitor::noop())
+            .unwrap();
+        let t = tracker
+            .estimate(&frame(&cfg, &motion, 1), &Monitor::noop())
+            .unwrap();
+        assert_eq!(t.start, TofStart::Warm);
+        assert_eq!(t.output.mask.dims(), (63, 53));
+    }
+
+    #[test]
+    fn a_grid_outside_its_range_is_refused_naming_it() {
+        for g in [0, MAX_SCATTER_GRID + 1] {
+            let e = TofTracker::with_scatter_grid(TofParams::default(), g).unwrap_err();
+            assert!(e.to_string().contains("scatter_grid"), "{e}");
+        }
     }
 
     #[test]

@@ -13,7 +13,7 @@ use murk::camera::Intrinsics;
 use murk::error::{MurkError, Result};
 use murk::monitor::Monitor;
 use murk::mvs::{Search, StereoTracker};
-use murk::tof::{TofInput, TofParams, TofStart, TofTracker};
+use murk::tof::{TofInput, TofParams, TofStart, TofTracker, MAX_SCATTER_GRID};
 
 /// Most frames a session may queue.
 pub const MAX_QUEUED_FRAMES: u32 = 64;
@@ -32,7 +32,12 @@ pub struct TofSettings {
     pub outputs: OutputSelection,
     /// Each frame's point cloud, when asked for.
     pub points: Option<TofPoints>,
+    /// The block size on which warm frames solve the scatter (1: the frame's pixels).
+    pub scatter_grid: usize,
 }
+
+/// The block size of a ToF session's warm frames when the configuration leaves it 0.
+pub const DEFAULT_TOF_SCATTER_GRID: usize = 2;
 
 /// What a session computes.
 #[derive(Clone, Debug)]
@@ -116,11 +121,22 @@ impl SessionPlan {
                     tof_outputs_from_proto(t, Delivery::Session).map_err(|e| e.within("tof"))?;
                 let intrinsics = t.intrinsics.as_ref().map(intrinsics_from_proto);
                 let points = tof_points_from_proto(t).map_err(|e| e.within("tof"))?;
+                let scatter_grid = match c.tof_scatter_grid as usize {
+                    0 => DEFAULT_TOF_SCATTER_GRID,
+                    g if g <= MAX_SCATTER_GRID => g,
+                    g => {
+                        return Err(MurkError::invalid(
+                            "tof_scatter_grid",
+                            format!("must be 1 to {MAX_SCATTER_GRID} (0: the default), got {g}"),
+                        ))
+                    }
+                };
                 SessionMethod::Tof(Box::new(TofSettings {
                     params,
                     intrinsics,
                     outputs,
                     points,
+                    scatter_grid,
                 }))
             }
             Some(pb::session_config::Method::Stereo(s)) => {
@@ -128,6 +144,12 @@ impl SessionPlan {
                     return Err(MurkError::invalid(
                         "stereo.left",
                         "the images come with each frame; leave them unset in the configuration",
+                    ));
+                }
+                if c.tof_scatter_grid != 0 {
+                    return Err(MurkError::invalid(
+                        "tof_scatter_grid",
+                        "applies to ToF sessions; leave it 0 for stereo",
                     ));
                 }
                 let config = StereoConfig::from_proto(s, w, h, Delivery::Session)
@@ -175,9 +197,9 @@ impl SessionPlan {
     /// The state a new session starts with.
     pub fn initial_state(&self) -> Result<SessionState> {
         Ok(match &self.method {
-            SessionMethod::Tof(settings) => {
-                SessionState::Tof(Box::new(TofTracker::new(settings.params.clone())))
-            }
+            SessionMethod::Tof(settings) => SessionState::Tof(Box::new(
+                TofTracker::with_scatter_grid(settings.params.clone(), settings.scatter_grid)?,
+            )),
             SessionMethod::Stereo(c) => {
                 SessionState::Stereo(Box::new(StereoTracker::new(c.rig, c.options)?))
             }
