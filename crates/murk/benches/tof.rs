@@ -7,8 +7,10 @@
 //!   separately, alternating x- and a-steps).
 //! * `tof_xstep_424x512/*`: one x-step solve (Eq. 5.12) with each solver, warm and cold start.
 //! * `tof_stream_424x512/*`: the second frame of a simulated stream (`TofMotion::default()`,
-//!   10 fps) from the first frame's answer, as a session computes it; the same start without
-//!   its σ₁ (the fine level from the previous weights alone); and the frame from scratch.
+//!   10 fps) from the first frame's answer, as a session computes it by default: its scatter
+//!   solved on 2×2 block means (`estimate_tof_depth_on_grid`); the same at full size; the full
+//!   size start without its σ₁ (the fine level from the previous weights alone); and the frame
+//!   from scratch.
 //!
 //! Run: `cargo bench -p murk --bench tof` (or `-- pipeline`, `-- xstep`, `-- stream` for one
 //! group).
@@ -22,8 +24,9 @@ use murk::tof::quadratic_prior::{PatchGrid, QuadraticPrior};
 use murk::tof::symmetry::RowMirror;
 use murk::tof::wls::{XStepState, XStepSystem};
 use murk::tof::{
-    estimate_tof_depth_from, estimate_tof_depth_with_solver, IrlsChannelParams, IrlsStart,
-    Preconditioner, PriorCoupling, ScatterChannels, TofInput, TofParams, XStepSolver,
+    estimate_tof_depth_from, estimate_tof_depth_on_grid, estimate_tof_depth_with_solver,
+    IrlsChannelParams, IrlsStart, Preconditioner, PriorCoupling, ScatterChannels, TofInput,
+    TofParams, XStepSolver,
 };
 use murk::Monitor;
 
@@ -198,9 +201,13 @@ fn bench_stream(c: &mut Criterion) {
         sigma_fine: None,
         ..start.clone()
     };
+    let on_grid = start.box_downsampled(W, H, 2).expect("2 divides the sides");
     let next = frame(1);
     let mut g = c.benchmark_group("tof_stream_424x512");
     g.sample_size(10);
+    g.bench_function("warm_frame_on_2x2_grid", |b| {
+        b.iter(|| estimate_tof_depth_on_grid(&next, &params, &on_grid, 2, &monitor).expect("frame"))
+    });
     for (name, from) in [
         ("warm_frame", Some(&start)),
         ("warm_frame_from_previous_weights", Some(&weights_only)),

@@ -138,9 +138,23 @@ pub struct SequenceReport {
     pub latencies: Vec<f64>,
     /// Server-side compute, seconds, per computed frame.
     pub compute: Vec<f64>,
+    /// When each computed frame's result arrived, seconds after the first frame was sent.
+    pub arrivals: Vec<f64>,
 }
 
 impl SequenceReport {
+    /// Computed frames per second from the first result to the last: the rate a stream
+    /// sustains once running, without the first frame, which a session computes from scratch.
+    /// `None` with fewer than two results.
+    pub fn sustained_rate(&self) -> Option<f64> {
+        match self.arrivals.as_slice() {
+            [first, .., last] if last > first => {
+                Some((self.arrivals.len() - 1) as f64 / (last - first))
+            }
+            _ => None,
+        }
+    }
+
     /// One line: frames/s and the latency percentiles.
     pub fn summary(&self) -> String {
         let mut l = self.latencies.clone();
@@ -150,8 +164,11 @@ impl SequenceReport {
                 .map_or(f64::NAN, |v| v * 1e3)
         };
         let mean_compute = self.compute.iter().sum::<f64>() / self.compute.len().max(1) as f64;
+        let sustained = self.sustained_rate().map_or_else(String::new, |r| {
+            format!(" ({r:.2} from the first result on)")
+        });
         format!(
-            "{} frames sent, {} computed, {} failed, {} dropped in {:.2} s: {:.2} frames/s; \
+            "{} frames sent, {} computed, {} failed, {} dropped in {:.2} s: {:.2} frames/s{}; \
              latency (send to result) p50 {:.0} ms, p90 {:.0} ms, p99 {:.0} ms; compute mean \
              {:.0} ms",
             self.sent,
@@ -160,6 +177,7 @@ impl SequenceReport {
             self.dropped,
             self.seconds,
             self.computed as f64 / self.seconds.max(1e-9),
+            sustained,
             pct(0.5),
             pct(0.9),
             pct(0.99),
@@ -310,6 +328,7 @@ async fn run(
                 }
                 report.computed += 1;
                 report.compute.push(r.compute_seconds);
+                report.arrivals.push((arrived - started).as_secs_f64());
                 while writes.len() >= sink.parallel.max(1) {
                     if let Some(done) = writes.join_next().await {
                         done??;
@@ -340,4 +359,29 @@ async fn run(
         done??;
     }
     Ok(report)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_sustained_rate_leaves_out_the_wait_for_the_first_result() {
+        let report = SequenceReport {
+            computed: 4,
+            seconds: 1.6,
+            arrivals: vec![1.0, 1.2, 1.4, 1.6],
+            ..SequenceReport::default()
+        };
+        let rate = report.sustained_rate().unwrap();
+        assert!((rate - 5.0).abs() < 1e-9, "{rate}");
+        assert!(report
+            .summary()
+            .contains("2.50 frames/s (5.00 from the first result on)"));
+        let one = SequenceReport {
+            arrivals: vec![1.0],
+            ..SequenceReport::default()
+        };
+        assert_eq!(one.sustained_rate(), None);
+    }
 }

@@ -43,14 +43,49 @@ pub fn estimate_tof_depth_on_grid(
     monitor: &Monitor,
 ) -> Result<(TofOutput, Option<IrlsStart>)> {
     input.validate()?;
+    let frame = GridFrame::of(input, factor)?;
+    solve_on_grid(input, frame, params, start, monitor)
+}
+
+/// A frame's raw phasor and its block means, computed once for both the tracker's checks and
+/// the solve.
+pub(super) struct GridFrame {
+    raw: RawPhasor,
+    factor: usize,
+    /// The block means' real and imaginary parts, row-major on the grid.
+    pub(super) means: (Vec<f64>, Vec<f64>),
+}
+
+impl GridFrame {
+    /// The raw phasor of `input` and its `factor × factor` block means. Errors name `factor`
+    /// unless it divides both sides.
+    pub(super) fn of(input: &TofInput, factor: usize) -> Result<Self> {
+        let (w, h) = input.amplitude.dims();
+        let raw = RawPhasor::of(input);
+        let means = |v: &[f32]| {
+            let v: Vec<f64> = v.par_iter().map(|&x| f64::from(x)).collect();
+            block_means(&v, w, h, factor)
+        };
+        let (re, im) = rayon::join(|| means(&raw.re), || means(&raw.im));
+        Ok(Self {
+            raw,
+            factor,
+            means: (re?, im?),
+        })
+    }
+}
+
+/// [`estimate_tof_depth_on_grid`] of a validated `input` whose phasor `frame` holds.
+pub(super) fn solve_on_grid(
+    input: &TofInput,
+    frame: GridFrame,
+    params: &TofParams,
+    start: &IrlsStart,
+    monitor: &Monitor,
+) -> Result<(TofOutput, Option<IrlsStart>)> {
     params.validate_for(input)?;
     let (w, h) = input.amplitude.dims();
-    if factor == 0 || !w.is_multiple_of(factor) || !h.is_multiple_of(factor) {
-        return Err(MurkError::invalid(
-            "factor",
-            format!("{factor} must be at least 1 and divide the frame's {w}×{h}"),
-        ));
-    }
+    let factor = frame.factor;
     if params.channels != ScatterChannels::Phasor {
         return Err(MurkError::invalid(
             "channels",
@@ -67,8 +102,8 @@ pub fn estimate_tof_depth_on_grid(
         ));
     }
     monitor.checkpoint()?;
-    let raw = RawPhasor::of(input);
-    let coarse = coarse_input(input, factor)?;
+    let GridFrame { raw, means, .. } = frame;
+    let coarse = coarse_input(input, means, factor)?;
     let coarse_params = TofParams {
         symmetry_row: params
             .symmetry_row
@@ -130,32 +165,11 @@ pub fn estimate_tof_depth_on_grid(
     Ok((out, next))
 }
 
-/// The raw phasor of `input` averaged over `factor × factor` blocks: real and imaginary parts,
-/// row-major on the grid. Errors name `factor` unless it divides both sides.
-pub(super) fn block_mean_phasor(input: &TofInput, factor: usize) -> Result<(Vec<f64>, Vec<f64>)> {
+/// The frame's block means (`means`: real and imaginary parts) as a frame of its own, with the
+/// intrinsics of the coarser pixels.
+fn coarse_input(input: &TofInput, means: (Vec<f64>, Vec<f64>), factor: usize) -> Result<TofInput> {
     let (w, h) = input.amplitude.dims();
-    let (re, im): (Vec<f64>, Vec<f64>) = input
-        .amplitude
-        .data()
-        .par_iter()
-        .zip(input.phase.data().par_iter())
-        .map(|(&a, &p)| {
-            let (s, c) = f64::from(p).sin_cos();
-            (f64::from(a) * c, f64::from(a) * s)
-        })
-        .unzip();
-    let (re, im) = rayon::join(
-        || block_means(&re, w, h, factor),
-        || block_means(&im, w, h, factor),
-    );
-    Ok((re?, im?))
-}
-
-/// The frame's `factor × factor` block means as a frame of its own: the phasor averaged over
-/// each block, and the intrinsics of the coarser pixels.
-fn coarse_input(input: &TofInput, factor: usize) -> Result<TofInput> {
-    let (w, h) = input.amplitude.dims();
-    let (re, im) = block_mean_phasor(input, factor)?;
+    let (re, im) = means;
     let (amplitude, phase): (Vec<f32>, Vec<f32>) = re
         .par_iter()
         .zip(im.par_iter())

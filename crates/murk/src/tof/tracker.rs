@@ -25,7 +25,7 @@
 
 use rayon::prelude::*;
 
-use super::grid::{block_mean_phasor, estimate_tof_depth_on_grid};
+use super::grid::{solve_on_grid, GridFrame};
 use super::irls::IrlsStart;
 use super::params::{TofInput, TofOutput, TofParams};
 use super::pipeline::estimate_tof_depth_from;
@@ -137,16 +137,25 @@ impl TofTracker {
             .as_ref()
             .filter(|(d, c)| *d == dims && c.factor == factor)
             .map(|(_, c)| &c.start);
+        // On the grid: the frame's phasor and block means, for both the check and the solve.
+        let grid = match (start, factor) {
+            (Some(_), 2..) => Some(GridFrame::of(input, factor)?),
+            _ => None,
+        };
         let kind = match start {
             None => TofStart::Cold,
-            Some(start) if scatter_change(input, factor, start, threshold) > MAX_SCATTER_CHANGE => {
+            Some(start)
+                if scatter_change(input, grid.as_ref(), start, threshold) > MAX_SCATTER_CHANGE =>
+            {
                 TofStart::Restarted
             }
             Some(start) => {
-                let (output, next) = if factor > 1 {
-                    estimate_tof_depth_on_grid(input, &self.params, start, factor, monitor)?
-                } else {
-                    estimate_tof_depth_from(input, &self.params, Some(start), monitor)?
+                let (output, next) = match grid {
+                    Some(frame) => {
+                        input.validate()?;
+                        solve_on_grid(input, frame, &self.params, start, monitor)?
+                    }
+                    None => estimate_tof_depth_from(input, &self.params, Some(start), monitor)?,
                 };
                 let changed = next
                     .as_ref()
@@ -174,9 +183,14 @@ impl TofTracker {
 }
 
 /// Median of |observed − scatter| / |scatter| over the pixels `start` took for fog alone (weight
-/// at least `threshold`), with the observation as the raw phasor (its `factor × factor` block
-/// means, on which `start` lives); 0 when there are none.
-fn scatter_change(input: &TofInput, factor: usize, start: &IrlsStart, threshold: f32) -> f64 {
+/// at least `threshold`), with the observation as the raw phasor (its block means in `grid`,
+/// when `start` lives on the grid); 0 when there are none.
+fn scatter_change(
+    input: &TofInput,
+    grid: Option<&GridFrame>,
+    start: &IrlsStart,
+    threshold: f32,
+) -> f64 {
     let t = f64::from(threshold);
     let [re, im] = match start.scatter.as_slice() {
         [re, im] => [re, im],
@@ -185,22 +199,22 @@ fn scatter_change(input: &TofInput, factor: usize, start: &IrlsStart, threshold:
     // In parallel: this check runs before every warm frame, and at 512×424 it took 7 ms on one
     // core. The median of the same values does not depend on their order. One square root a
     // pixel instead of two `hypot`s: the phasors are far from overflow.
-    let (or, oi): (Vec<f64>, Vec<f64>) = if factor > 1 {
-        match block_mean_phasor(input, factor) {
-            Ok(phasor) => phasor,
-            Err(_) => return f64::INFINITY,
+    let full: (Vec<f64>, Vec<f64>);
+    let (or, oi) = match grid {
+        Some(g) => (&g.means.0, &g.means.1),
+        None => {
+            full = input
+                .amplitude
+                .data()
+                .par_iter()
+                .zip(input.phase.data().par_iter())
+                .map(|(&a, &p)| {
+                    let (sin, cos) = f64::from(p).sin_cos();
+                    (f64::from(a) * cos, f64::from(a) * sin)
+                })
+                .unzip();
+            (&full.0, &full.1)
         }
-    } else {
-        input
-            .amplitude
-            .data()
-            .par_iter()
-            .zip(input.phase.data().par_iter())
-            .map(|(&a, &p)| {
-                let (sin, cos) = f64::from(p).sin_cos();
-                (f64::from(a) * cos, f64::from(a) * sin)
-            })
-            .unzip()
     };
     let mut rel: Vec<f64> = or
         .par_iter()
