@@ -6,13 +6,13 @@
 //! ```sh
 //! cargo run --release -p murk --example tof_stream_survey -- --frames 30 --cut-every 15
 //! cargo run --release -p murk --example tof_stream_survey -- --frames 8 --fps 1 --fog-drift 0.9
-//! cargo run --release -p murk --example tof_stream_survey -- --frames 30 --cut-every 15 \
-//!     --scatter-grid 2
+//! cargo run --release -p murk --example tof_stream_survey -- --frames 12 --preset thick \
+//!     --scatter-grid 1
 //! ```
 //!
-//! With `--scatter-grid K` the stream's tracker solves its warm frames' scatter on K×K block
-//! means (`TofTracker::with_scatter_grid`; cold and restarted frames at full size), and both
-//! columns are scored by their range, as without it. With `--cold-on-grid` as well, the stream
+//! The stream's tracker solves its warm frames' scatter on K×K block means, `--scatter-grid K`
+//! (`TofTracker::with_scatter_grid`; cold and restarted frames at full size), 2 by default as
+//! in a session; both columns are scored by their range. With `--cold-on-grid`, the stream
 //! instead hands the tracker the block means themselves, so every frame, the cold ones
 //! included, runs on the grid; both columns are then scored by subtracting a scatter phasor
 //! from the full frame: the from-scratch estimate's own, and the stream's interpolated back
@@ -61,8 +61,8 @@ struct Args {
     #[arg(long, default_value_t = 0.3)]
     max_speed_m_per_s: f64,
     /// Solve the warm frames' scatter on a grid this many times coarser than the frames (see
-    /// the module documentation); 1: the frames themselves.
-    #[arg(long, default_value_t = 1)]
+    /// the module documentation), as a session does by default; 1: the frames themselves.
+    #[arg(long, default_value_t = 2)]
     scatter_grid: usize,
     /// With `--scatter-grid`: every frame on the grid, cold ones included (see the module
     /// documentation).

@@ -15,6 +15,7 @@
 use rayon::prelude::*;
 
 use super::irls::{weights_against, IrlsStart};
+use super::noise_model::NoiseModel;
 use super::params::{ScatterChannels, TofInput, TofOutput, TofParams};
 use super::pipeline::{finish, prefiltered, separate, RawPhasor, ScatterEstimate};
 use super::wls::XStepSolver;
@@ -112,25 +113,38 @@ pub(super) fn solve_on_grid(
     };
     coarse_params.validate_for(&coarse)?;
     let coarse_raw = RawPhasor::of(&coarse);
-    let (grid_est, next) = separate(
-        &coarse,
-        &coarse_raw,
-        &coarse_params,
-        XStepSolver::default(),
-        Some(start),
-        monitor,
-    )?;
+    // The full-size observation, pre-filtered as a cold frame's is, and its noise model do not
+    // depend on the solve: they are prepared beside it, on the cores its many short parallel
+    // loops on the small grid leave idle.
+    let to_f64 = |v: Vec<f32>| -> Vec<f64> { v.into_par_iter().map(f64::from).collect() };
+    let (solved, (noise, (observed_re, observed_im))) = rayon::join(
+        || {
+            separate(
+                &coarse,
+                &coarse_raw,
+                &coarse_params,
+                XStepSolver::default(),
+                Some(start),
+                monitor,
+            )
+        },
+        || {
+            rayon::join(
+                || NoiseModel::fit(&raw.re, &raw.im, input.amplitude.data(), w),
+                || {
+                    rayon::join(
+                        || to_f64(prefiltered(&raw.re, w, h, params)),
+                        || to_f64(prefiltered(&raw.im, w, h, params)),
+                    )
+                },
+            )
+        },
+    );
+    let (grid_est, next) = solved?;
     drop(coarse_raw);
     monitor.checkpoint()?;
 
-    // Back at the frame's size: the observation pre-filtered as a cold frame's is, and the
-    // scatter between block centres.
-    let noise = super::noise_model::NoiseModel::fit(&raw.re, &raw.im, input.amplitude.data(), w);
-    let to_f64 = |v: Vec<f32>| -> Vec<f64> { v.into_par_iter().map(f64::from).collect() };
-    let (observed_re, observed_im) = rayon::join(
-        || to_f64(prefiltered(&raw.re, w, h, params)),
-        || to_f64(prefiltered(&raw.im, w, h, params)),
-    );
+    // Back at the frame's size: the scatter between block centres.
     let scatter = vec![
         upsampled(&grid_est.scatter_re, cw, ch, factor),
         upsampled(&grid_est.scatter_im, cw, ch, factor),
