@@ -15,7 +15,7 @@ from murk_client import Client
 from murk_client._proto.murk.v1 import sessions_pb2
 
 from .balancer import Nginx
-from .conftest import MurkServer
+from .conftest import MurkServer, simulate
 
 
 def test_a_tof_session_answers_every_frame_in_order(client: Client, tof_scene: Path) -> None:
@@ -91,6 +91,36 @@ def test_a_session_returns_the_images_and_encoding_it_asks_for(client: Client, t
     with pytest.raises(mc.ClientInputError) as e:
         mc.tof_session_config(width=w, height=h, **kwargs, encoding="jpeg")
     assert e.value.field == "config.tof.outputs.encoding"
+
+
+def test_a_tof_sessions_grid_answers_as_the_full_size_frames(client: Client, tmp_path: Path) -> None:
+    # 128 x 106 frames: the default 2 x 2 grid divides them, so the warm frames solve for the
+    # scatter on the 64 x 53 block means and decide the mask and depth at full size.
+    seq = simulate("tof", tmp_path / "seq", "--width", "128", "--height", "106", "--seed", "4", "--frames", "3")
+    frames = [mc.load_tof_frame(d) for d in sorted(p for p in seq.iterdir() if p.is_dir())]
+    h, w = frames[0].amplitude.shape
+    kwargs = {
+        "modulation_frequency_hz": frames[0].modulation_frequency_hz,
+        "intrinsics": frames[0].intrinsics,
+        "light_position_m": frames[0].light_position_m,
+        "outputs": ["range_m", "mask"],
+        "encoding": "f32",
+    }
+    answers = {}
+    for grid in (0, 1):
+        config = mc.tof_session_config(width=w, height=h, **kwargs, scatter_grid=grid)
+        answers[grid] = list(client.session(config, [mc.tof_frame(f.amplitude, f.phase) for f in frames]))
+    for on_grid, full in zip(answers[0][1:], answers[1][1:]):
+        assert on_grid.result is not None and full.result is not None
+        assert on_grid.result.mask.shape == (h, w)
+        object_pixels = (full.result.mask == 1.0) & (on_grid.result.mask == 1.0)
+        assert np.mean(on_grid.result.mask != full.result.mask) <= 0.01
+        assert object_pixels.sum() > 1000
+        diff = np.abs(on_grid.result.range_m - full.result.range_m)[object_pixels]
+        assert np.median(diff) < 1e-3
+    with pytest.raises(mc.ClientInputError) as e:
+        mc.tof_session_config(width=w, height=h, **kwargs, scatter_grid=5)
+    assert e.value.field == "config.tof_scatter_grid"
 
 
 def test_latest_drops_frames_it_cannot_keep_up_with(client: Client, tof_scene: Path) -> None:

@@ -89,6 +89,7 @@ def tof_session_config(
     queue_policy: str = "fifo",
     max_queued_frames: int = 0,
     frame_deadline_s: float = 0.0,
+    scatter_grid: int = 0,
 ) -> sessions_pb2.SessionConfig:
     """A ToF session of ``width × height`` frames; arguments as for ``tof_depth_request``.
 
@@ -98,7 +99,13 @@ def tof_session_config(
 
     ``queue_policy``: ``"fifo"`` (every frame computed; the server pushes back) or ``"latest"``
     (a full queue drops its oldest frame). ``max_queued_frames`` 0 = the server's default.
+
+    ``scatter_grid``: a frame computed from the previous frame's answer solves for the scatter
+    on the means of blocks this many pixels a side (1–4; 1 = every frame at full size; 0 = the
+    server's default, 2); the mask and the depths are still decided at full size.
     """
+    if not 0 <= int(scatter_grid) <= 4:
+        raise ClientInputError("config.tof_scatter_grid", f"0 to 4 (0: the default), got {scatter_grid}")
     # The images come with each frame: the request is built on placeholders and sent without.
     blank = np.zeros((2, 2), np.float32)
     with _as_config("request.tof_depth", "config.tof"):
@@ -114,7 +121,9 @@ def tof_session_config(
             return_points=return_points,
             max_point_range_std_m=max_point_range_std_m,
         )
-    return _config(req, width, height, queue_policy, max_queued_frames, frame_deadline_s)
+    config = _config(req, width, height, queue_policy, max_queued_frames, frame_deadline_s)
+    config.tof_scatter_grid = int(scatter_grid)
+    return config
 
 
 def stereo_session_config(

@@ -278,6 +278,22 @@ async fn latest_reports_every_frame_it_drops_and_answers_the_rest() {
     server.stop().await.unwrap();
 }
 
+/// A rectified stereo session's method for 64×53 frames with `baseline`.
+fn stereo_method(baseline: f64) -> pb::session_config::Method {
+    pb::session_config::Method::Stereo(pb::RectifiedStereoRequest {
+        intrinsics: Some(pb::CameraIntrinsics {
+            fx: 50.0,
+            fy: 50.0,
+            cx: 31.5,
+            cy: 26.0,
+            skew: 0.0,
+        }),
+        baseline,
+        cost_volume: pb::CostVolumeKind::Ordinary as i32,
+        ..Default::default()
+    })
+}
+
 #[tokio::test]
 async fn bad_configurations_end_the_stream_naming_the_field() {
     let server = start(config(4)).await;
@@ -336,39 +352,14 @@ async fn bad_configurations_end_the_stream_naming_the_field() {
         ),
         (
             config_message(pb::SessionConfig {
-                method: Some(pb::session_config::Method::Stereo(
-                    pb::RectifiedStereoRequest {
-                        intrinsics: Some(pb::CameraIntrinsics {
-                            fx: 50.0,
-                            fy: 50.0,
-                            cx: 31.5,
-                            cy: 26.0,
-                            skew: 0.0,
-                        }),
-                        baseline: -0.1,
-                        cost_volume: pb::CostVolumeKind::Ordinary as i32,
-                        ..Default::default()
-                    },
-                )),
+                method: Some(stereo_method(-0.1)),
                 ..config.clone()
             }),
             "config.stereo.baseline",
         ),
         (
             config_message(pb::SessionConfig {
-                method: Some(pb::session_config::Method::Stereo(
-                    pb::RectifiedStereoRequest {
-                        intrinsics: Some(pb::CameraIntrinsics {
-                            fx: 50.0,
-                            fy: 50.0,
-                            cx: 31.5,
-                            cy: 26.0,
-                            skew: 0.0,
-                        }),
-                        baseline: 0.1,
-                        ..Default::default()
-                    },
-                )),
+                method: Some(stereo_method(0.1)),
                 tof_scatter_grid: 2,
                 ..config.clone()
             }),

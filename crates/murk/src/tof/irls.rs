@@ -469,27 +469,11 @@ pub fn run_irls_vector_from(
             "IRLS buffers do not match the image size".into(),
         ));
     }
-    let magnitude = observed
-        .iter()
-        .map(|o| o.par_iter().map(|v| v.abs()).reduce(|| 0.0, f64::max))
-        .fold(0.0, f64::max);
-    let floor = scale_floor(magnitude);
+    let floor = observed_scale_floor(observed);
     let stage_coarse = format!("{stage_prefix}.coarse");
     let stage_fine = format!("{stage_prefix}.fine");
 
-    let mut noise_scale = noise.map(|model| {
-        let norms: Vec<f64> = (0..n)
-            .into_par_iter()
-            .map(|i| observed.iter().map(|o| o[i] * o[i]).sum::<f64>().sqrt())
-            .collect();
-        let mut sorted = norms;
-        let med = median_in_place(&mut sorted).unwrap_or(0.0);
-        NoiseScale {
-            model,
-            inv_ref: 1.0 / model.sigma(med).max(floor),
-            g: vec![1.0; n],
-        }
-    });
+    let mut noise_scale = noise.map(|model| NoiseScale::new(model, observed, floor));
     let mut weights = start.map_or_else(|| vec![1.0; n], |s| s.weights.clone());
     let mut prior_img = vec![vec![0.0; n]; m];
     let mut rhs = vec![0.0; n];
@@ -843,22 +827,9 @@ pub(super) fn weights_against(
             "weights: buffers do not match the image size".into(),
         ));
     }
-    let magnitude = observed
-        .iter()
-        .map(|o| o.par_iter().map(|v| v.abs()).reduce(|| 0.0, f64::max))
-        .fold(0.0, f64::max);
-    let floor = scale_floor(magnitude);
+    let floor = observed_scale_floor(observed);
     let noise_scale = noise.map(|model| {
-        let mut norms: Vec<f64> = (0..n)
-            .into_par_iter()
-            .map(|i| observed.iter().map(|o| o[i] * o[i]).sum::<f64>().sqrt())
-            .collect();
-        let med = median_in_place(&mut norms).unwrap_or(0.0);
-        let mut ns = NoiseScale {
-            model,
-            inv_ref: 1.0 / model.sigma(med).max(floor),
-            g: vec![1.0; n],
-        };
+        let mut ns = NoiseScale::new(model, observed, floor);
         ns.update(scatter);
         ns
     });
@@ -931,7 +902,33 @@ struct NoiseScale {
     g: Vec<f64>,
 }
 
+/// The smallest robust scale of an observation (`observed`, one image per component): see
+/// [`scale_floor`].
+fn observed_scale_floor(observed: &[&[f64]]) -> f64 {
+    let magnitude = observed
+        .iter()
+        .map(|o| o.par_iter().map(|v| v.abs()).reduce(|| 0.0, f64::max))
+        .fold(0.0, f64::max);
+    scale_floor(magnitude)
+}
+
 impl NoiseScale {
+    /// The noise levels of `model` relative to its σ at the observation's median brightness
+    /// (never below `floor`), with every pixel's level at 1 until [`NoiseScale::update`].
+    fn new(model: NoiseModel, observed: &[&[f64]], floor: f64) -> Self {
+        let n = observed.first().map_or(0, |o| o.len());
+        let mut norms: Vec<f64> = (0..n)
+            .into_par_iter()
+            .map(|i| observed.iter().map(|o| o[i] * o[i]).sum::<f64>().sqrt())
+            .collect();
+        let med = median_in_place(&mut norms).unwrap_or(0.0);
+        NoiseScale {
+            model,
+            inv_ref: 1.0 / model.sigma(med).max(floor),
+            g: vec![1.0; n],
+        }
+    }
+
     fn update(&mut self, x: &[Vec<f64>]) {
         let (model, inv_ref) = (self.model, self.inv_ref);
         self.g.par_iter_mut().enumerate().for_each(|(i, g)| {

@@ -35,5 +35,5 @@ pub use pipeline::{
     unmeasured_range_std_m,
 };
 pub use points::{measured_points, DEFAULT_MAX_POINT_RANGE_STD_M};
-pub use tracker::{TofStart, TofTracker, TrackedTof, MAX_SCATTER_GRID};
+pub use tracker::{TofStart, TofTracker, TrackedTof, MAX_SCATTER_GRID, MIN_GRID_SIDE};
 pub use wls::{Preconditioner, XStepSolver};

@@ -29,7 +29,7 @@ from murk_client._proto.murk.v1 import stereo_pb2 as murk_dot_v1_dot_stereo__pb2
 from murk_client._proto.murk.v1 import tof_pb2 as murk_dot_v1_dot_tof__pb2
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x16murk/v1/sessions.proto\x12\x07murk.v1\x1a\x1fgoogle/protobuf/timestamp.proto\x1a\x14murk/v1/common.proto\x1a\x12murk/v1/jobs.proto\x1a\x14murk/v1/stereo.proto\x1a\x11murk/v1/tof.proto\"m\n\x0eSessionRequest\x12(\n\x06\x63onfig\x18\x01 \x01(\x0b\x32\x16.murk.v1.SessionConfigH\x00\x12&\n\x05\x66rame\x18\x02 \x01(\x0b\x32\x15.murk.v1.SessionFrameH\x00\x42\t\n\x07message\"\xfb\x01\n\rSessionConfig\x12\r\n\x05width\x18\x01 \x01(\r\x12\x0e\n\x06height\x18\x02 \x01(\r\x12\'\n\x03tof\x18\x03 \x01(\x0b\x32\x18.murk.v1.TofDepthRequestH\x00\x12\x31\n\x06stereo\x18\x04 \x01(\x0b\x32\x1f.murk.v1.RectifiedStereoRequestH\x00\x12*\n\x0cqueue_policy\x18\x05 \x01(\x0e\x32\x14.murk.v1.QueuePolicy\x12\x19\n\x11max_queued_frames\x18\x06 \x01(\r\x12\x1e\n\x16\x66rame_deadline_seconds\x18\x07 \x01(\x01\x42\x08\n\x06method\"\xdc\x01\n\x0cSessionFrame\x12\x10\n\x08sequence\x18\x01 \x01(\x04\x12\x10\n\x08\x66rame_id\x18\x02 \x01(\t\x12)\n\x05stamp\x18\x03 \x01(\x0b\x32\x1a.google.protobuf.Timestamp\x12!\n\tamplitude\x18\x04 \x01(\x0b\x32\x0e.murk.v1.Image\x12\x1d\n\x05phase\x18\x05 \x01(\x0b\x32\x0e.murk.v1.Image\x12\x1c\n\x04left\x18\x06 \x01(\x0b\x32\x0e.murk.v1.Image\x12\x1d\n\x05right\x18\x07 \x01(\x0b\x32\x0e.murk.v1.Image\"\xbb\x01\n\x0cSessionEvent\x12*\n\x07started\x18\x01 \x01(\x0b\x32\x17.murk.v1.SessionStartedH\x00\x12&\n\x06result\x18\x02 \x01(\x0b\x32\x14.murk.v1.FrameResultH\x00\x12(\n\x07\x64ropped\x18\x03 \x01(\x0b\x32\x15.murk.v1.FrameDroppedH\x00\x12$\n\x07refused\x18\x04 \x01(\x0b\x32\x11.murk.v1.JobErrorH\x00\x42\x07\n\x05\x65vent\"k\n\x0eSessionStarted\x12\x12\n\nsession_id\x18\x01 \x01(\t\x12*\n\x0cqueue_policy\x18\x02 \x01(\x0e\x32\x14.murk.v1.QueuePolicy\x12\x19\n\x11max_queued_frames\x18\x03 \x01(\r\"\xa7\x02\n\x0b\x46rameResult\x12\x10\n\x08sequence\x18\x01 \x01(\x04\x12\x10\n\x08\x66rame_id\x18\x02 \x01(\t\x12)\n\x05stamp\x18\x03 \x01(\x0b\x32\x1a.google.protobuf.Timestamp\x12\x15\n\rqueue_seconds\x18\x04 \x01(\x01\x12\x17\n\x0f\x63ompute_seconds\x18\x05 \x01(\x01\x12&\n\x03tof\x18\x06 \x01(\x0b\x32\x17.murk.v1.TofDepthResultH\x00\x12\x30\n\x06stereo\x18\x07 \x01(\x0b\x32\x1e.murk.v1.RectifiedStereoResultH\x00\x12\"\n\x05\x65rror\x18\x08 \x01(\x0b\x32\x11.murk.v1.JobErrorH\x00\x12\x10\n\x08warnings\x18\t \x03(\tB\t\n\x07outcome\"\x82\x01\n\x0c\x46rameDropped\x12\x10\n\x08sequence\x18\x01 \x01(\x04\x12\x10\n\x08\x66rame_id\x18\x02 \x01(\t\x12)\n\x05stamp\x18\x03 \x01(\x0b\x32\x1a.google.protobuf.Timestamp\x12#\n\x06reason\x18\x04 \x01(\x0e\x32\x13.murk.v1.DropReason*[\n\x0bQueuePolicy\x12\x1c\n\x18QUEUE_POLICY_UNSPECIFIED\x10\x00\x12\x17\n\x13QUEUE_POLICY_LATEST\x10\x01\x12\x15\n\x11QUEUE_POLICY_FIFO\x10\x02*_\n\nDropReason\x12\x1b\n\x17\x44ROP_REASON_UNSPECIFIED\x10\x00\x12\x1a\n\x16\x44ROP_REASON_SUPERSEDED\x10\x01\x12\x18\n\x14\x44ROP_REASON_DEADLINE\x10\x02\x32H\n\x08Sessions\x12<\n\x06Stream\x12\x17.murk.v1.SessionRequest\x1a\x15.murk.v1.SessionEvent(\x01\x30\x01\x42:\n\nio.murk.v1P\x01Z*github.com/murk/murk/gen/go/murk/v1;murkv1b\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x16murk/v1/sessions.proto\x12\x07murk.v1\x1a\x1fgoogle/protobuf/timestamp.proto\x1a\x14murk/v1/common.proto\x1a\x12murk/v1/jobs.proto\x1a\x14murk/v1/stereo.proto\x1a\x11murk/v1/tof.proto\"m\n\x0eSessionRequest\x12(\n\x06\x63onfig\x18\x01 \x01(\x0b\x32\x16.murk.v1.SessionConfigH\x00\x12&\n\x05\x66rame\x18\x02 \x01(\x0b\x32\x15.murk.v1.SessionFrameH\x00\x42\t\n\x07message\"\x95\x02\n\rSessionConfig\x12\r\n\x05width\x18\x01 \x01(\r\x12\x0e\n\x06height\x18\x02 \x01(\r\x12\'\n\x03tof\x18\x03 \x01(\x0b\x32\x18.murk.v1.TofDepthRequestH\x00\x12\x31\n\x06stereo\x18\x04 \x01(\x0b\x32\x1f.murk.v1.RectifiedStereoRequestH\x00\x12*\n\x0cqueue_policy\x18\x05 \x01(\x0e\x32\x14.murk.v1.QueuePolicy\x12\x19\n\x11max_queued_frames\x18\x06 \x01(\r\x12\x1e\n\x16\x66rame_deadline_seconds\x18\x07 \x01(\x01\x12\x18\n\x10tof_scatter_grid\x18\x08 \x01(\rB\x08\n\x06method\"\xdc\x01\n\x0cSessionFrame\x12\x10\n\x08sequence\x18\x01 \x01(\x04\x12\x10\n\x08\x66rame_id\x18\x02 \x01(\t\x12)\n\x05stamp\x18\x03 \x01(\x0b\x32\x1a.google.protobuf.Timestamp\x12!\n\tamplitude\x18\x04 \x01(\x0b\x32\x0e.murk.v1.Image\x12\x1d\n\x05phase\x18\x05 \x01(\x0b\x32\x0e.murk.v1.Image\x12\x1c\n\x04left\x18\x06 \x01(\x0b\x32\x0e.murk.v1.Image\x12\x1d\n\x05right\x18\x07 \x01(\x0b\x32\x0e.murk.v1.Image\"\xbb\x01\n\x0cSessionEvent\x12*\n\x07started\x18\x01 \x01(\x0b\x32\x17.murk.v1.SessionStartedH\x00\x12&\n\x06result\x18\x02 \x01(\x0b\x32\x14.murk.v1.FrameResultH\x00\x12(\n\x07\x64ropped\x18\x03 \x01(\x0b\x32\x15.murk.v1.FrameDroppedH\x00\x12$\n\x07refused\x18\x04 \x01(\x0b\x32\x11.murk.v1.JobErrorH\x00\x42\x07\n\x05\x65vent\"k\n\x0eSessionStarted\x12\x12\n\nsession_id\x18\x01 \x01(\t\x12*\n\x0cqueue_policy\x18\x02 \x01(\x0e\x32\x14.murk.v1.QueuePolicy\x12\x19\n\x11max_queued_frames\x18\x03 \x01(\r\"\xa7\x02\n\x0b\x46rameResult\x12\x10\n\x08sequence\x18\x01 \x01(\x04\x12\x10\n\x08\x66rame_id\x18\x02 \x01(\t\x12)\n\x05stamp\x18\x03 \x01(\x0b\x32\x1a.google.protobuf.Timestamp\x12\x15\n\rqueue_seconds\x18\x04 \x01(\x01\x12\x17\n\x0f\x63ompute_seconds\x18\x05 \x01(\x01\x12&\n\x03tof\x18\x06 \x01(\x0b\x32\x17.murk.v1.TofDepthResultH\x00\x12\x30\n\x06stereo\x18\x07 \x01(\x0b\x32\x1e.murk.v1.RectifiedStereoResultH\x00\x12\"\n\x05\x65rror\x18\x08 \x01(\x0b\x32\x11.murk.v1.JobErrorH\x00\x12\x10\n\x08warnings\x18\t \x03(\tB\t\n\x07outcome\"\x82\x01\n\x0c\x46rameDropped\x12\x10\n\x08sequence\x18\x01 \x01(\x04\x12\x10\n\x08\x66rame_id\x18\x02 \x01(\t\x12)\n\x05stamp\x18\x03 \x01(\x0b\x32\x1a.google.protobuf.Timestamp\x12#\n\x06reason\x18\x04 \x01(\x0e\x32\x13.murk.v1.DropReason*[\n\x0bQueuePolicy\x12\x1c\n\x18QUEUE_POLICY_UNSPECIFIED\x10\x00\x12\x17\n\x13QUEUE_POLICY_LATEST\x10\x01\x12\x15\n\x11QUEUE_POLICY_FIFO\x10\x02*_\n\nDropReason\x12\x1b\n\x17\x44ROP_REASON_UNSPECIFIED\x10\x00\x12\x1a\n\x16\x44ROP_REASON_SUPERSEDED\x10\x01\x12\x18\n\x14\x44ROP_REASON_DEADLINE\x10\x02\x32H\n\x08Sessions\x12<\n\x06Stream\x12\x17.murk.v1.SessionRequest\x1a\x15.murk.v1.SessionEvent(\x01\x30\x01\x42:\n\nio.murk.v1P\x01Z*github.com/murk/murk/gen/go/murk/v1;murkv1b\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -37,24 +37,24 @@ _builder.BuildTopDescriptorsAndMessages(DESCRIPTOR, 'murk_client._proto.murk.v1.
 if not _descriptor._USE_C_DESCRIPTORS:
   _globals['DESCRIPTOR']._loaded_options = None
   _globals['DESCRIPTOR']._serialized_options = b'\n\nio.murk.v1P\001Z*github.com/murk/murk/gen/go/murk/v1;murkv1'
-  _globals['_QUEUEPOLICY']._serialized_start=1469
-  _globals['_QUEUEPOLICY']._serialized_end=1560
-  _globals['_DROPREASON']._serialized_start=1562
-  _globals['_DROPREASON']._serialized_end=1657
+  _globals['_QUEUEPOLICY']._serialized_start=1495
+  _globals['_QUEUEPOLICY']._serialized_end=1586
+  _globals['_DROPREASON']._serialized_start=1588
+  _globals['_DROPREASON']._serialized_end=1683
   _globals['_SESSIONREQUEST']._serialized_start=151
   _globals['_SESSIONREQUEST']._serialized_end=260
   _globals['_SESSIONCONFIG']._serialized_start=263
-  _globals['_SESSIONCONFIG']._serialized_end=514
-  _globals['_SESSIONFRAME']._serialized_start=517
-  _globals['_SESSIONFRAME']._serialized_end=737
-  _globals['_SESSIONEVENT']._serialized_start=740
-  _globals['_SESSIONEVENT']._serialized_end=927
-  _globals['_SESSIONSTARTED']._serialized_start=929
-  _globals['_SESSIONSTARTED']._serialized_end=1036
-  _globals['_FRAMERESULT']._serialized_start=1039
-  _globals['_FRAMERESULT']._serialized_end=1334
-  _globals['_FRAMEDROPPED']._serialized_start=1337
-  _globals['_FRAMEDROPPED']._serialized_end=1467
-  _globals['_SESSIONS']._serialized_start=1659
-  _globals['_SESSIONS']._serialized_end=1731
+  _globals['_SESSIONCONFIG']._serialized_end=540
+  _globals['_SESSIONFRAME']._serialized_start=543
+  _globals['_SESSIONFRAME']._serialized_end=763
+  _globals['_SESSIONEVENT']._serialized_start=766
+  _globals['_SESSIONEVENT']._serialized_end=953
+  _globals['_SESSIONSTARTED']._serialized_start=955
+  _globals['_SESSIONSTARTED']._serialized_end=1062
+  _globals['_FRAMERESULT']._serialized_start=1065
+  _globals['_FRAMERESULT']._serialized_end=1360
+  _globals['_FRAMEDROPPED']._serialized_start=1363
+  _globals['_FRAMEDROPPED']._serialized_end=1493
+  _globals['_SESSIONS']._serialized_start=1685
+  _globals['_SESSIONS']._serialized_end=1757
 # @@protoc_insertion_point(module_scope)

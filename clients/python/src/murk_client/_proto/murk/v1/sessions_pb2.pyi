@@ -121,6 +121,7 @@ class SessionConfig(_message.Message):
     QUEUE_POLICY_FIELD_NUMBER: _builtins.int
     MAX_QUEUED_FRAMES_FIELD_NUMBER: _builtins.int
     FRAME_DEADLINE_SECONDS_FIELD_NUMBER: _builtins.int
+    TOF_SCATTER_GRID_FIELD_NUMBER: _builtins.int
     width: _builtins.int
     """The size every frame of the session has, pixels, at least 2 x 2 and at most the server's
     image limit. A frame of another size is refused as a bad frame.
@@ -133,6 +134,14 @@ class SessionConfig(_message.Message):
     frame_deadline_seconds: _builtins.float
     """A frame that has waited longer than this when its turn comes is dropped (FrameDropped with
     DROP_REASON_DEADLINE) instead of computed, seconds, finite and >= 0; 0 = no deadline.
+    """
+    tof_scatter_grid: _builtins.int
+    """ToF sessions: a frame computed from the previous frame's answer solves the scatter on the
+    means of blocks this many pixels a side, 1 to 4, and decides the mask, the ranges and their
+    uncertainties at full size; frames computed from scratch, frames whose sides it does not
+    divide and frames whose grid would be under 64 pixels on its longer side run at full size.
+    1 = every frame at full size; 0 = the default, 2 (docs/tof.md, "Streams of frames").
+    Stereo sessions leave it 0.
     """
     @_builtins.property
     def tof(self) -> _tof_pb2.TofDepthRequest:
@@ -156,10 +165,11 @@ class SessionConfig(_message.Message):
         queue_policy: Global___QueuePolicy.ValueType = ...,
         max_queued_frames: _builtins.int = ...,
         frame_deadline_seconds: _builtins.float = ...,
+        tof_scatter_grid: _builtins.int = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["method", b"method", "stereo", b"stereo", "tof", b"tof"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["frame_deadline_seconds", b"frame_deadline_seconds", "height", b"height", "max_queued_frames", b"max_queued_frames", "method", b"method", "queue_policy", b"queue_policy", "stereo", b"stereo", "tof", b"tof", "width", b"width"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["frame_deadline_seconds", b"frame_deadline_seconds", "height", b"height", "max_queued_frames", b"max_queued_frames", "method", b"method", "queue_policy", b"queue_policy", "stereo", b"stereo", "tof", b"tof", "tof_scatter_grid", b"tof_scatter_grid", "width", b"width"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     _WhichOneofReturnType_method: _TypeAlias = _typing.Literal["tof", "stereo"]  # noqa: Y015
     _WhichOneofArgType_method: _TypeAlias = _typing.Literal["method", b"method"]  # noqa: Y015
