@@ -74,6 +74,10 @@ pub struct BagArgs {
     /// ToF: cap on the fine IRLS iterations.
     #[arg(long, requires = "amplitude")]
     pub fine_iterations: Option<u32>,
+    /// ToF: frames computed from the previous frame's answer solve the scatter on blocks of this
+    /// many pixels a side, 1..=4 (1: at full size; default 2).
+    #[arg(long, requires = "amplitude")]
+    pub scatter_grid: Option<u32>,
     /// ToF: pixels whose range_std_m exceeds this are no measurement: NaN in the depth image and
     /// left out of the points (the request's max_point_range_std_m). Fog-only pixels, whose
     /// direct return is buried in the scatter, carry spreads of metres.
@@ -449,6 +453,7 @@ fn session_config(
                 }),
                 ..Default::default()
             }));
+            config.tof_scatter_grid = a.scatter_grid.unwrap_or(0);
             f
         }
     };

@@ -823,6 +823,18 @@ fn a_simulated_tof_sequence_streams_through_a_session() {
         }
         assert!(!out.join(format!("frame_{k:04}/range_m.exr")).exists());
     }
+    // A grid outside its range ends the session before any frame, naming the field.
+    let bad = murk()
+        .env_remove("MURK_SERVER")
+        .args(["tof", "--sequence"])
+        .arg(&seq)
+        .args(["--scatter-grid", "5", "--out"])
+        .arg(dir.path().join("bad"))
+        .output()
+        .unwrap();
+    assert!(!bad.status.success());
+    let said = String::from_utf8_lossy(&bad.stderr);
+    assert!(said.contains("tof_scatter_grid"), "{said}");
 }
 
 #[test]
