@@ -145,12 +145,12 @@ fn main() -> anyhow::Result<()> {
                         row.extend(["–".to_string(), "–".into(), "–".into()]);
                         continue;
                     }
-                    let oracle = truth.block_means(k)?.upsampled(k, w, h);
+                    let oracle = truth.block_means(k)?.upsampled(k)?;
                     let (amplitude, phase) = observed.block_means(k)?.to_polar();
                     let intrinsics = frame.intrinsics.box_downsampled(k);
                     let (coarse, coarse_s) = estimate(amplitude, phase, intrinsics, &frame)
                         .with_context(|| format!("estimating {preset} seed {seed} at 1/{k}"))?;
-                    let coarse_err = range_error(&frame, &observed, &coarse.upsampled(k, w, h));
+                    let coarse_err = range_error(&frame, &observed, &coarse.upsampled(k)?);
                     excess[j].push((coarse_err - full_err) * 1e3);
                     speedup[j].push(full_s / coarse_s);
                     row.extend([

@@ -165,7 +165,7 @@ fn main() -> anyhow::Result<()> {
             let tracked = tracker.estimate(&coarse, &monitor)?;
             let output = tracked.output;
             let scatter = Phasor::from_polar(&output.scatter_amplitude, &output.scatter_phase)
-                .upsampled(grid, a.width, a.height);
+                .upsampled(grid)?;
             (tracked.start, Streamed::Scatter(scatter))
         };
         let tw = t.elapsed().as_secs_f64();

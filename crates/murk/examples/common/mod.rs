@@ -7,7 +7,7 @@ use std::fmt::Display;
 use clap::ValueEnum;
 use murk::image::ImageF32;
 use murk::simulate::tof::TofSimFrame;
-use murk::tof::{block_means, SPEED_OF_LIGHT_M_PER_S};
+use murk::tof::{block_means, upsampled, SPEED_OF_LIGHT_M_PER_S};
 
 /// Parses a seed list: `4`, `0-5` (inclusive), or a comma-separated mix such as `0-2,7,9`.
 pub fn parse_seeds(text: &str) -> Result<Vec<u64>, String> {
@@ -142,31 +142,15 @@ impl Phasor {
         })
     }
 
-    /// Bilinear interpolation of a grid `k` times coarser back to `w × h`: a fine pixel's
-    /// centre lies at `(x − (k − 1)/2)/k` in coarse pixels; beyond the outer centres the edge
-    /// values hold.
-    pub fn upsampled(&self, k: usize, w: usize, h: usize) -> Self {
-        let off = (k as f64 - 1.0) / 2.0;
-        let axis = |x: usize, n: usize| {
-            let u = ((x as f64 - off) / k as f64).clamp(0.0, (n - 1) as f64);
-            let u0 = (u.floor() as usize).min(n.saturating_sub(2));
-            (u0, (u0 + 1).min(n - 1), u - u0 as f64)
-        };
-        let (mut re, mut im) = (vec![0.0; w * h], vec![0.0; w * h]);
-        for y in 0..h {
-            let (y0, y1, ty) = axis(y, self.h);
-            for x in 0..w {
-                let (x0, x1, tx) = axis(x, self.w);
-                let at = |v: &[f64]| {
-                    let top = v[y0 * self.w + x0] * (1.0 - tx) + v[y0 * self.w + x1] * tx;
-                    let bottom = v[y1 * self.w + x0] * (1.0 - tx) + v[y1 * self.w + x1] * tx;
-                    top * (1.0 - ty) + bottom * ty
-                };
-                re[y * w + x] = at(&self.re);
-                im[y * w + x] = at(&self.im);
-            }
-        }
-        Self { w, h, re, im }
+    /// Bilinear interpolation of a grid `k` times coarser back to the frame
+    /// ([`murk::tof::upsampled`]; errors name `factor` or `values`).
+    pub fn upsampled(&self, k: usize) -> murk::Result<Self> {
+        Ok(Self {
+            w: self.w * k,
+            h: self.h * k,
+            re: upsampled(&self.re, self.w, self.h, k)?,
+            im: upsampled(&self.im, self.w, self.h, k)?,
+        })
     }
 
     /// Amplitude and phase images (phase in `[0, 2π)`).

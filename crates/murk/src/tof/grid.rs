@@ -146,8 +146,8 @@ pub(super) fn solve_on_grid(
 
     // Back at the frame's size: the scatter between block centres.
     let scatter = vec![
-        upsampled(&grid_est.scatter_re, cw, ch, factor),
-        upsampled(&grid_est.scatter_im, cw, ch, factor),
+        upsampled(&grid_est.scatter_re, cw, ch, factor)?,
+        upsampled(&grid_est.scatter_im, cw, ch, factor)?,
     ];
     let background: Vec<bool> = (0..w * h)
         .into_par_iter()
@@ -207,8 +207,18 @@ fn coarse_input(input: &TofInput, means: (Vec<f64>, Vec<f64>), factor: usize) ->
 
 /// Bilinear interpolation of a `cw × ch` grid of `factor × factor` block means back to the
 /// frame's `cw·factor × ch·factor` pixels: a pixel's centre lies at `(x − (factor − 1)/2) /
-/// factor` in grid pixels, and beyond the outermost block centres the edge values hold.
-pub fn upsampled(values: &[f64], cw: usize, ch: usize, factor: usize) -> Vec<f64> {
+/// factor` in grid pixels, and beyond the outermost block centres the edge values hold. Errors
+/// name `factor` when it is 0 and `values` when there are not `cw × ch` of them (at least one).
+pub fn upsampled(values: &[f64], cw: usize, ch: usize, factor: usize) -> Result<Vec<f64>> {
+    if factor == 0 {
+        return Err(MurkError::invalid("factor", "must be at least 1"));
+    }
+    if cw == 0 || ch == 0 || values.len() != cw * ch {
+        return Err(MurkError::invalid(
+            "values",
+            format!("{} values for a {cw}×{ch} grid", values.len()),
+        ));
+    }
     let (w, h) = (cw * factor, ch * factor);
     let off = (factor as f64 - 1.0) / 2.0;
     let axis = |x: usize, n: usize| {
@@ -232,7 +242,7 @@ pub fn upsampled(values: &[f64], cw: usize, ch: usize, factor: usize) -> Vec<f64
                 *o = t * (1.0 - ty) + b * ty;
             }
         });
-    out
+    Ok(out)
 }
 
 impl IrlsStart {
@@ -316,7 +326,7 @@ mod tests {
         let plane: Vec<f64> = (0..w * h)
             .map(|i| 0.5 * (i % w) as f64 - 1.5 * (i / w) as f64 + 3.0)
             .collect();
-        let up = upsampled(&block_means(&plane, w, h, k).unwrap(), w / k, h / k, k);
+        let up = upsampled(&block_means(&plane, w, h, k).unwrap(), w / k, h / k, k).unwrap();
         for y in 0..h {
             for x in 0..w {
                 // Beyond the outermost block centres (half a block) the edge values hold.
@@ -437,5 +447,13 @@ mod tests {
         assert!(e.contains("start"), "{e}");
         let e = block_means(&[1.0; 5], 2, 2, 1).unwrap_err().to_string();
         assert!(e.contains("values"), "{e}");
+        for (values, cw, ch, k, field) in [
+            (&[1.0; 4][..], 2, 2, 0, "factor"),
+            (&[1.0; 5][..], 2, 2, 2, "values"),
+            (&[][..], 0, 3, 2, "values"),
+        ] {
+            let e = upsampled(values, cw, ch, k).unwrap_err().to_string();
+            assert!(e.contains(field), "{e}");
+        }
     }
 }
