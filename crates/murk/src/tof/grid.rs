@@ -14,10 +14,12 @@
 
 use rayon::prelude::*;
 
-use super::irls::{weights_against, IrlsStart};
+use super::ambiguous::uncertain_pixels;
+use super::irls::thin_border_band;
+use super::irls::{weights_against, IrlsStart, NoiseScale};
 use super::noise_model::NoiseModel;
 use super::params::{ScatterChannels, TofInput, TofOutput, TofParams};
-use super::pipeline::{finish, prefiltered, separate, RawPhasor, ScatterEstimate};
+use super::pipeline::{compose, prefiltered, separate, Direct, RawPhasor, ScatterEstimate};
 use super::wls::XStepSolver;
 use crate::error::{MurkError, Result};
 use crate::image::ImageF32;
@@ -117,7 +119,7 @@ pub(super) fn solve_on_grid(
     // depend on the solve: they are prepared beside it, on the cores its many short parallel
     // loops on the small grid leave idle.
     let to_f64 = |v: Vec<f32>| -> Vec<f64> { v.into_par_iter().map(f64::from).collect() };
-    let (solved, (noise, (observed_re, observed_im))) = rayon::join(
+    let (solved, ((noise, noise_scale), (observed_re, observed_im))) = rayon::join(
         || {
             separate(
                 &coarse,
@@ -129,7 +131,7 @@ pub(super) fn solve_on_grid(
             )
         },
         || {
-            rayon::join(
+            let (noise, observed) = rayon::join(
                 || NoiseModel::fit(&raw.re, &raw.im, input.amplitude.data(), w),
                 || {
                     rayon::join(
@@ -137,7 +139,10 @@ pub(super) fn solve_on_grid(
                         || to_f64(prefiltered(&raw.im, w, h, params)),
                     )
                 },
-            )
+            );
+            // The pixels' noise levels are relative to the observation's median brightness.
+            let scale = noise.map(|m| NoiseScale::of_observation(m, &[&observed.0, &observed.1]));
+            ((noise, scale), observed)
         },
     );
     let (grid_est, next) = solved?;
@@ -153,19 +158,48 @@ pub(super) fn solve_on_grid(
         .into_par_iter()
         .map(|i| !grid_est.object[(i / w / factor) * cw + (i % w) / factor])
         .collect();
-    let weights = weights_against(
-        &[&observed_re, &observed_im],
-        &scatter,
-        noise,
-        &background,
-        params.phasor.c_fine,
-    )?;
     let t = f64::from(params.mask_threshold);
+    // Each pixel's weight, the mask and the uncertain pixels beside it (whose medians and
+    // windows leave a core idle at times), beside the direct component, which needs neither.
+    let (decided, direct) = rayon::join(
+        || -> Result<_> {
+            let weights = weights_against(
+                &[&observed_re, &observed_im],
+                &scatter,
+                noise_scale,
+                &background,
+                params.phasor.c_fine,
+            )?;
+            let object: Vec<bool> = weights.par_iter().map(|&v| v < t).collect();
+            let uncertain = uncertain_pixels(
+                &raw.re,
+                &raw.im,
+                &scatter[0],
+                &scatter[1],
+                &object,
+                noise.as_ref(),
+                w,
+                thin_border_band(w, h),
+            );
+            Ok((weights, object, uncertain))
+        },
+        || {
+            Direct::of(
+                input,
+                params,
+                [&observed_re, &observed_im],
+                [&scatter[0], &scatter[1]],
+                noise,
+            )
+        },
+    );
+    let (weights, object, uncertain) = decided?;
+    drop(raw);
     let [scatter_re, scatter_im]: [Vec<f64>; 2] = scatter
         .try_into()
         .map_err(|_| MurkError::Numerical("two scatter components".into()))?;
     let est = ScatterEstimate {
-        object: weights.par_iter().map(|&v| v < t).collect(),
+        object,
         observed_re,
         observed_im,
         scatter_re,
@@ -175,7 +209,8 @@ pub(super) fn solve_on_grid(
         noise,
         warnings: grid_est.warnings,
     };
-    let out = finish(input, params, &est, raw, monitor)?;
+    let out = compose(input, params, &est, &uncertain, direct)?;
+    monitor.progress("tof.compose", 1.0);
     Ok((out, next))
 }
 

@@ -809,10 +809,14 @@ pub fn run_irls_vector_from(
 /// them: each pixel's residual relative to its noise level, at the scale σ₁ measured over
 /// `background` as the level measures it ([`fine_scale_with_noise_model`], or the residuals'
 /// MAD without a noise model). `observed` and `scatter` hold one image per component.
+///
+/// `noise` is the frame's noise model relative to its σ at the observation's median brightness
+/// ([`NoiseScale::of_observation`]), which does not depend on the scatter and can be prepared
+/// beforehand.
 pub(super) fn weights_against(
     observed: &[&[f64]],
     scatter: &[Vec<f64>],
-    noise: Option<NoiseModel>,
+    noise: Option<NoiseScale>,
     background: &[bool],
     c_fine: f64,
 ) -> Result<Vec<f64>> {
@@ -828,8 +832,12 @@ pub(super) fn weights_against(
         ));
     }
     let floor = observed_scale_floor(observed);
-    let noise_scale = noise.map(|model| {
-        let mut ns = NoiseScale::new(model, observed, floor);
+    if noise.as_ref().is_some_and(|ns| ns.g.len() != n) {
+        return Err(MurkError::Numerical(
+            "weights: the noise scale does not match the image size".into(),
+        ));
+    }
+    let noise_scale = noise.map(|mut ns| {
         ns.update(scatter);
         ns
     });
@@ -894,7 +902,7 @@ fn fine_scale_with_noise_model(
 }
 
 /// Relative noise level of every pixel under the inlier hypothesis (see [`run_irls_vector`]).
-struct NoiseScale {
+pub(super) struct NoiseScale {
     model: NoiseModel,
     /// 1 / σ at the observation's median brightness.
     inv_ref: f64,
@@ -927,6 +935,11 @@ impl NoiseScale {
             inv_ref: 1.0 / model.sigma(med).max(floor),
             g: vec![1.0; n],
         }
+    }
+
+    /// [`NoiseScale::new`] at the observation's own scale floor.
+    pub(super) fn of_observation(model: NoiseModel, observed: &[&[f64]]) -> Self {
+        Self::new(model, observed, observed_scale_floor(observed))
     }
 
     fn update(&mut self, x: &[Vec<f64>]) {

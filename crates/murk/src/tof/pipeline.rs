@@ -284,19 +284,32 @@ pub(super) fn finish(
 ) -> Result<TofOutput> {
     let (w, h) = input.amplitude.dims();
     // The raw phasor, not the filtered one, judges the pixels beside the objects: see
-    // `tof::ambiguous`.
-    let uncertain = uncertain_pixels(
-        &raw.re,
-        &raw.im,
-        &est.scatter_re,
-        &est.scatter_im,
-        &est.object,
-        est.noise.as_ref(),
-        w,
-        thin_border_band(w, h),
+    // `tof::ambiguous`. The direct component does not depend on them, and is computed beside.
+    let (uncertain, direct) = rayon::join(
+        || {
+            uncertain_pixels(
+                &raw.re,
+                &raw.im,
+                &est.scatter_re,
+                &est.scatter_im,
+                &est.object,
+                est.noise.as_ref(),
+                w,
+                thin_border_band(w, h),
+            )
+        },
+        || {
+            Direct::of(
+                input,
+                params,
+                [&est.observed_re, &est.observed_im],
+                [&est.scatter_re, &est.scatter_im],
+                est.noise,
+            )
+        },
     );
     drop(raw);
-    let out = compose(input, params, est, &uncertain)?;
+    let out = compose(input, params, est, &uncertain, direct)?;
     monitor.progress("tof.compose", 1.0);
     Ok(out)
 }
@@ -448,68 +461,122 @@ fn image(w: usize, h: usize, data: Vec<f32>) -> Result<ImageF32> {
     ImageF32::from_vec(w, h, 1, data).map_err(|e| MurkError::Numerical(e.to_string()))
 }
 
-/// Direct component (Eq. 5.8–5.9), ranges (Eq. 5.2), z-depth.
-fn compose(
+/// A frame's per-pixel results that the mask does not change: the direct component (Eq.
+/// 5.8–5.9) and its range (Eq. 5.2) with its standard deviation, the scatter in polar form and
+/// the raw phase's range, all before the outline fill and the light's offset.
+pub(super) struct Direct {
+    alpha_d: Vec<f32>,
+    phi_d: Vec<f32>,
+    range: Vec<f32>,
+    scatter_a: Vec<f32>,
+    scatter_p: Vec<f32>,
+    range_std: Vec<f32>,
+    raw_range: Vec<f32>,
+}
+
+impl Direct {
+    /// The observed phasor less the scatter, pixel by pixel; `noise` gives the ranges'
+    /// standard deviations.
+    pub(super) fn of(
+        input: &TofInput,
+        params: &TofParams,
+        observed: [&[f64]; 2],
+        scatter: [&[f64]; 2],
+        noise: Option<NoiseModel>,
+    ) -> Self {
+        let n = input.amplitude.pixel_count();
+        let f = params.modulation_frequency_hz;
+        let [observed_re, observed_im] = observed;
+        let [scatter_re, scatter_im] = scatter;
+        let mut alpha_d = vec![0.0f32; n];
+        let mut phi_d = vec![0.0f32; n];
+        let mut range = vec![0.0f32; n];
+        let mut scatter_a = vec![0.0f32; n];
+        let mut scatter_p = vec![0.0f32; n];
+        let mut range_std = vec![0.0f32; n];
+        let raw_range: Vec<f32> = input
+            .phase
+            .data()
+            .par_iter()
+            .map(|&p| range_m(wrap_phase(p as f64), f) as f32)
+            .collect();
+        (
+            alpha_d.par_iter_mut(),
+            phi_d.par_iter_mut(),
+            range.par_iter_mut(),
+            scatter_a.par_iter_mut(),
+            scatter_p.par_iter_mut(),
+            range_std.par_iter_mut(),
+        )
+            .into_par_iter()
+            .enumerate()
+            .for_each(|(i, (ad, pd, rg, sa, sp, sd))| {
+                let (s_re, s_im) = (scatter_re[i], scatter_im[i]);
+                let re = observed_re[i] - s_re;
+                let im = observed_im[i] - s_im;
+                let p = wrap_phase(im.atan2(re));
+                let a_d = magnitude(re, im);
+                *ad = a_d as f32;
+                *pd = p as f32;
+                *rg = range_m(p, f) as f32;
+                let a_s = magnitude(s_re, s_im);
+                *sa = a_s as f32;
+                *sp = wrap_phase(s_im.atan2(s_re)) as f32;
+                // Without a noise model (tiny frames) the spread of the scatter's own brightness
+                // stands in: no uncertainty is never reported.
+                let a_o = magnitude(observed_re[i], observed_im[i]);
+                let (var_o, var_s) = match noise {
+                    Some(nm) => (nm.sigma(a_o).powi(2), nm.sigma(a_s).powi(2)),
+                    None => (0.0, (1e-3 * a_s).powi(2)),
+                };
+                let sigma_phi = ((var_o + var_s).sqrt() / a_d.max(1e-300)).min(0.5 * PI);
+                *sd = range_m(sigma_phi, f) as f32;
+            });
+        Self {
+            alpha_d,
+            phi_d,
+            range,
+            scatter_a,
+            scatter_p,
+            range_std,
+            raw_range,
+        }
+    }
+}
+
+/// The outputs: the mask, the ranges of `direct` with the outline filled and the light's
+/// offset solved for, z-depth.
+pub(super) fn compose(
     input: &TofInput,
     params: &TofParams,
     est: &ScatterEstimate,
     uncertain: &[bool],
+    direct: Direct,
 ) -> Result<TofOutput> {
     let (w, h) = input.amplitude.dims();
     let n = w * h;
     let f = params.modulation_frequency_hz;
-    let mut mask = vec![0.0f32; n];
-    let mut alpha_d = vec![0.0f32; n];
-    let mut phi_d = vec![0.0f32; n];
-    let mut range = vec![0.0f32; n];
-    let mut scatter_a = vec![0.0f32; n];
-    let mut scatter_p = vec![0.0f32; n];
-    let mut range_std = vec![0.0f32; n];
-    let raw_phase = input.phase.data();
-    let raw_range: Vec<f32> = raw_phase
-        .par_iter()
-        .map(|&p| range_m(wrap_phase(p as f64), f) as f32)
-        .collect();
-    (
-        mask.par_iter_mut(),
-        alpha_d.par_iter_mut(),
-        phi_d.par_iter_mut(),
-        range.par_iter_mut(),
-        scatter_a.par_iter_mut(),
-        scatter_p.par_iter_mut(),
-        range_std.par_iter_mut(),
-    )
+    let mask: Vec<f32> = (0..n)
         .into_par_iter()
-        .enumerate()
-        .for_each(|(i, (m, ad, pd, rg, sa, sp, sd))| {
-            *m = if est.object[i] {
+        .map(|i| {
+            if est.object[i] {
                 MASK_OBJECT
             } else if uncertain[i] {
                 MASK_UNCERTAIN
             } else {
                 MASK_BACKGROUND
-            };
-            let (s_re, s_im) = (est.scatter_re[i], est.scatter_im[i]);
-            let re = est.observed_re[i] - s_re;
-            let im = est.observed_im[i] - s_im;
-            let p = wrap_phase(im.atan2(re));
-            let a_d = magnitude(re, im);
-            *ad = a_d as f32;
-            *pd = p as f32;
-            *rg = range_m(p, f) as f32;
-            let a_s = magnitude(s_re, s_im);
-            *sa = a_s as f32;
-            *sp = wrap_phase(s_im.atan2(s_re)) as f32;
-            // Without a noise model (tiny frames) the spread of the scatter's own brightness
-            // stands in: no uncertainty is never reported.
-            let a_o = magnitude(est.observed_re[i], est.observed_im[i]);
-            let (var_o, var_s) = match est.noise {
-                Some(nm) => (nm.sigma(a_o).powi(2), nm.sigma(a_s).powi(2)),
-                None => (0.0, (1e-3 * a_s).powi(2)),
-            };
-            let sigma_phi = ((var_o + var_s).sqrt() / a_d.max(1e-300)).min(0.5 * PI);
-            *sd = range_m(sigma_phi, f) as f32;
-        });
+            }
+        })
+        .collect();
+    let Direct {
+        alpha_d,
+        phi_d,
+        range,
+        scatter_a,
+        scatter_p,
+        range_std,
+        raw_range,
+    } = direct;
     let mut range = fill_outline_pixels(
         &range,
         &range_std,
