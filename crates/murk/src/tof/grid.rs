@@ -19,7 +19,9 @@ use super::irls::thin_border_band;
 use super::irls::{weights_against, IrlsStart, NoiseScale};
 use super::noise_model::NoiseModel;
 use super::params::{ScatterChannels, TofInput, TofOutput, TofParams};
-use super::pipeline::{compose, prefiltered, separate, Direct, RawPhasor, ScatterEstimate};
+use super::pipeline::{
+    compose, prefiltered, separate, wrap_phase, Direct, RawPhasor, ScatterEstimate,
+};
 use super::wls::XStepSolver;
 use crate::error::{MurkError, Result};
 use crate::image::ImageF32;
@@ -65,11 +67,10 @@ impl GridFrame {
     pub(super) fn of(input: &TofInput, factor: usize) -> Result<Self> {
         let (w, h) = input.amplitude.dims();
         let raw = RawPhasor::of(input);
-        let means = |v: &[f32]| {
-            let v: Vec<f64> = v.par_iter().map(|&x| f64::from(x)).collect();
-            block_means(&v, w, h, factor)
-        };
-        let (re, im) = rayon::join(|| means(&raw.re), || means(&raw.im));
+        let (re, im) = rayon::join(
+            || block_means(&raw.re, w, h, factor),
+            || block_means(&raw.im, w, h, factor),
+        );
         Ok(Self {
             raw,
             factor,
@@ -106,7 +107,7 @@ pub(super) fn solve_on_grid(
     }
     monitor.checkpoint()?;
     let GridFrame { raw, means, .. } = frame;
-    let coarse = coarse_input(input, means, factor)?;
+    let (coarse, coarse_raw) = coarse_input(input, means, factor)?;
     let coarse_params = TofParams {
         symmetry_row: params
             .symmetry_row
@@ -114,7 +115,6 @@ pub(super) fn solve_on_grid(
         ..params.clone()
     };
     coarse_params.validate_for(&coarse)?;
-    let coarse_raw = RawPhasor::of(&coarse);
     // The full-size observation, pre-filtered as a cold frame's is, and its noise model do not
     // depend on the solve: they are prepared beside it, on the cores its many short parallel
     // loops on the small grid leave idle.
@@ -215,29 +215,37 @@ pub(super) fn solve_on_grid(
 }
 
 /// The frame's block means (`means`: real and imaginary parts) as a frame of its own, with the
-/// intrinsics of the coarser pixels.
-fn coarse_input(input: &TofInput, means: (Vec<f64>, Vec<f64>), factor: usize) -> Result<TofInput> {
+/// intrinsics of the coarser pixels, and as its raw phasor (the means themselves, which the
+/// polar images would only give back through a round of trigonometry).
+fn coarse_input(
+    input: &TofInput,
+    means: (Vec<f64>, Vec<f64>),
+    factor: usize,
+) -> Result<(TofInput, RawPhasor)> {
     let (w, h) = input.amplitude.dims();
     let (re, im) = means;
     let (amplitude, phase): (Vec<f32>, Vec<f32>) = re
         .par_iter()
         .zip(im.par_iter())
-        .map(|(&r, &i)| {
-            let p = i.atan2(r).rem_euclid(std::f64::consts::TAU);
-            // `rem_euclid` can round up to exactly 2π for tiny negative angles.
-            let p = if p >= std::f64::consts::TAU { 0.0 } else { p };
-            ((r * r + i * i).sqrt() as f32, p as f32)
-        })
+        .map(|(&r, &i)| ((r * r + i * i).sqrt() as f32, wrap_phase(i.atan2(r)) as f32))
         .unzip();
     let image = |data| {
         ImageF32::from_vec(w / factor, h / factor, 1, data)
             .map_err(|e| MurkError::Numerical(e.to_string()))
     };
-    Ok(TofInput {
+    let to_f32 = |v: Vec<f64>| -> Vec<f32> { v.into_par_iter().map(|x| x as f32).collect() };
+    let input = TofInput {
         amplitude: image(amplitude)?,
         phase: image(phase)?,
         intrinsics: input.intrinsics.map(|k| k.box_downsampled(factor)),
-    })
+    };
+    Ok((
+        input,
+        RawPhasor {
+            re: to_f32(re),
+            im: to_f32(im),
+        },
+    ))
 }
 
 /// Bilinear interpolation of a `cw × ch` grid of `factor × factor` block means back to the
@@ -309,7 +317,12 @@ impl IrlsStart {
 /// `values` (`width × height`, row-major) averaged over `factor × factor` blocks, row-major on
 /// the coarse grid. Errors name `factor` when it is 0 or does not divide both sides, and
 /// `values` when there are not `width × height` of them.
-pub fn block_means(values: &[f64], width: usize, height: usize, factor: usize) -> Result<Vec<f64>> {
+pub fn block_means<T: Copy + Into<f64>>(
+    values: &[T],
+    width: usize,
+    height: usize,
+    factor: usize,
+) -> Result<Vec<f64>> {
     if factor == 0 || !width.is_multiple_of(factor) || !height.is_multiple_of(factor) {
         return Err(MurkError::invalid(
             "factor",
@@ -327,7 +340,7 @@ pub fn block_means(values: &[f64], width: usize, height: usize, factor: usize) -
     for (y, row) in values.chunks_exact(width).enumerate() {
         let coarse = &mut out[(y / factor) * cw..(y / factor + 1) * cw];
         for (x, &v) in row.iter().enumerate() {
-            coarse[x / factor] += v;
+            coarse[x / factor] += v.into();
         }
     }
     let inv = 1.0 / (factor * factor) as f64;

@@ -831,7 +831,10 @@ pub(super) fn weights_against(
             "weights: buffers do not match the image size".into(),
         ));
     }
-    let floor = observed_scale_floor(observed);
+    // The noise scale was prepared on the same observation, with its floor.
+    let floor = noise
+        .as_ref()
+        .map_or_else(|| observed_scale_floor(observed), |ns| ns.floor);
     if noise.as_ref().is_some_and(|ns| ns.g.len() != n) {
         return Err(MurkError::Numerical(
             "weights: the noise scale does not match the image size".into(),
@@ -908,6 +911,8 @@ pub(super) struct NoiseScale {
     inv_ref: f64,
     /// σ(|x|)/σ_ref per pixel, never below 1e-3.
     g: Vec<f64>,
+    /// The observation's scale floor ([`scale_floor`]) the reference was bounded by.
+    floor: f64,
 }
 
 /// The smallest robust scale of an observation (`observed`, one image per component): see
@@ -934,6 +939,7 @@ impl NoiseScale {
             model,
             inv_ref: 1.0 / model.sigma(med).max(floor),
             g: vec![1.0; n],
+            floor,
         }
     }
 

@@ -448,7 +448,7 @@ fn magnitude(re: f64, im: f64) -> f64 {
 
 /// Wraps radians into [0, 2π) (`rem_euclid` can round up to exactly 2π for tiny negatives).
 #[inline]
-fn wrap_phase(p: f64) -> f64 {
+pub(super) fn wrap_phase(p: f64) -> f64 {
     let r = p.rem_euclid(TAU);
     if r >= TAU {
         0.0

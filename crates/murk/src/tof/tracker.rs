@@ -206,35 +206,38 @@ fn scatter_change(
     // In parallel: this check runs before every warm frame, and at 512×424 it took 7 ms on one
     // core. The median of the same values does not depend on their order. One square root a
     // pixel instead of two `hypot`s: the phasors are far from overflow.
-    let full: (Vec<f64>, Vec<f64>);
-    let (or, oi) = match grid {
-        Some(g) => (&g.means.0, &g.means.1),
-        None => {
-            full = input
-                .amplitude
-                .data()
-                .par_iter()
-                .zip(input.phase.data().par_iter())
-                .map(|(&a, &p)| {
-                    let (sin, cos) = f64::from(p).sin_cos();
-                    (f64::from(a) * cos, f64::from(a) * sin)
-                })
-                .unzip();
-            (&full.0, &full.1)
-        }
+    let relative = |(or, oi): (f64, f64), w: f64, (sr, si): (f64, f64)| -> Option<f64> {
+        let s2 = sr * sr + si * si;
+        let (dr, di) = (or - sr, oi - si);
+        (w >= t && s2 > 0.0).then(|| ((dr * dr + di * di) / s2).sqrt())
     };
-    let mut rel: Vec<f64> = or
-        .par_iter()
-        .zip(oi.par_iter())
-        .zip(start.weights.par_iter())
-        .zip(re.par_iter().zip(im.par_iter()))
-        .filter(|((_, &w), _)| w >= t)
-        .filter_map(|(((&or, &oi), _), (&sr, &si))| {
-            let s2 = sr * sr + si * si;
-            let (dr, di) = (or - sr, oi - si);
-            (s2 > 0.0).then(|| ((dr * dr + di * di) / s2).sqrt())
-        })
-        .collect();
+    let scatter = re.par_iter().zip(im.par_iter()).map(|(&r, &i)| (r, i));
+    let weights = start.weights.par_iter();
+    let mut rel: Vec<f64> = match grid {
+        Some(g) => g
+            .means
+            .0
+            .par_iter()
+            .zip(g.means.1.par_iter())
+            .map(|(&r, &i)| (r, i))
+            .zip(weights)
+            .zip(scatter)
+            .filter_map(|((o, &w), s)| relative(o, w, s))
+            .collect(),
+        None => input
+            .amplitude
+            .data()
+            .par_iter()
+            .zip(input.phase.data().par_iter())
+            .map(|(&a, &p)| {
+                let (sin, cos) = f64::from(p).sin_cos();
+                (f64::from(a) * cos, f64::from(a) * sin)
+            })
+            .zip(weights)
+            .zip(scatter)
+            .filter_map(|((o, &w), s)| relative(o, w, s))
+            .collect(),
+    };
     super::tukey::median_in_place(&mut rel).unwrap_or(0.0)
 }
 
