@@ -10,7 +10,8 @@
 //!   10 fps) from the first frame's answer, as a session computes it by default: its scatter
 //!   solved on 2×2 block means (`estimate_tof_depth_on_grid`); the same at full size; the full
 //!   size start without its σ₁ (the fine level from the previous weights alone); and the frame
-//!   from scratch.
+//!   from scratch, by itself and as a session's first frame (`TofTracker` with its 2×2 grid:
+//!   the coarse level on the grid).
 //!
 //! Run: `cargo bench -p murk --bench tof` (or `-- pipeline`, `-- xstep`, `-- stream` for one
 //! group).
@@ -26,7 +27,7 @@ use murk::tof::wls::{XStepState, XStepSystem};
 use murk::tof::{
     estimate_tof_depth_from, estimate_tof_depth_on_grid, estimate_tof_depth_with_solver,
     IrlsChannelParams, IrlsStart, Preconditioner, PriorCoupling, ScatterChannels, TofInput,
-    TofParams, XStepSolver,
+    TofParams, TofTracker, XStepSolver,
 };
 use murk::Monitor;
 
@@ -207,6 +208,13 @@ fn bench_stream(c: &mut Criterion) {
     g.sample_size(10);
     g.bench_function("warm_frame_on_2x2_grid", |b| {
         b.iter(|| estimate_tof_depth_on_grid(&next, &params, &on_grid, 2, &monitor).expect("frame"))
+    });
+    // A session's first frame: from scratch, its coarse level on the grid.
+    g.bench_function("cold_frame_with_2x2_grid", |b| {
+        b.iter(|| {
+            let mut tracker = TofTracker::with_scatter_grid(params.clone(), 2).expect("grid");
+            tracker.estimate(&next, &monitor).expect("frame")
+        })
     });
     for (name, from) in [
         ("warm_frame", Some(&start)),

@@ -11,10 +11,10 @@
 //! ```
 //!
 //! The stream's tracker solves its warm frames' scatter on K×K block means, `--scatter-grid K`
-//! (`TofTracker::with_scatter_grid`; cold and restarted frames at full size), 2 by default as
-//! in a session; both columns are scored by their range. With `--cold-on-grid`, the stream
-//! instead hands the tracker the block means themselves, so every frame, the cold ones
-//! included, runs on the grid; both columns are then scored by subtracting a scatter phasor
+//! (`TofTracker::with_scatter_grid`; cold and restarted frames solve only their coarse level
+//! there, judged at full size), 2 by default as in a session; both columns are scored by their
+//! range. With `--cold-on-grid`, the stream instead hands the tracker the block means
+//! themselves, so every frame, the cold ones included, runs wholly on the grid; both columns are then scored by subtracting a scatter phasor
 //! from the full frame: the from-scratch estimate's own, and the stream's interpolated back
 //! (bilinear). Neither fills unmeasured outline pixels.
 

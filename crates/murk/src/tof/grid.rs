@@ -8,9 +8,12 @@
 //! ([`block_means`]) from the previous frame's start carried to that grid
 //! ([`IrlsStart::box_downsampled`]); the scatter is interpolated back to the frame, and the
 //! mask, the ranges and their uncertainties are decided at the frame's own size. Only frames
-//! from a start run on the grid: from scratch, a block mean's halved noise breaks the coarse
-//! level's held-out check in thick fog (docs/accuracy.md, "A quieter sensor"), so cold frames
-//! stay at full size ([`TofTracker::with_scatter_grid`](super::TofTracker::with_scatter_grid)).
+//! from a start run their fine level on the grid: from scratch, a block mean's halved noise
+//! lets the quadratic patches' misfit show, and judged on the grid the coarse level's held-out
+//! check fails in thick fog (docs/accuracy.md, "A quieter sensor") and the fine level peels
+//! the wall for tens of iterations. A cold frame solves its coarse level on the grid but judges
+//! it at full size, and runs its fine level at full size (`tof::grid_coarse`,
+//! [`TofTracker::with_scatter_grid`](super::TofTracker::with_scatter_grid)).
 
 use rayon::prelude::*;
 
@@ -49,14 +52,14 @@ pub fn estimate_tof_depth_on_grid(
 ) -> Result<(TofOutput, Option<IrlsStart>)> {
     input.validate()?;
     let frame = GridFrame::of(input, factor)?;
-    solve_on_grid(input, frame, params, start, monitor)
+    solve_on_grid(input, frame, params, start, None, monitor)
 }
 
 /// A frame's raw phasor and its block means, computed once for both the tracker's checks and
 /// the solve.
 pub(super) struct GridFrame {
-    raw: RawPhasor,
-    factor: usize,
+    pub(super) raw: RawPhasor,
+    pub(super) factor: usize,
     /// The block means' real and imaginary parts, row-major on the grid.
     pub(super) means: (Vec<f64>, Vec<f64>),
 }
@@ -79,12 +82,51 @@ impl GridFrame {
     }
 }
 
-/// [`estimate_tof_depth_on_grid`] of a validated `input` whose phasor `frame` holds.
+/// The full-size observation as the pipeline sees it (the raw phasor pre-filtered, in `f64`),
+/// its noise model, and the pixels' noise levels relative to its median brightness: what a
+/// frame on the grid is decided against at its own size.
+pub(super) struct Prepared {
+    pub(super) noise: Option<NoiseModel>,
+    pub(super) noise_scale: Option<NoiseScale>,
+    pub(super) observed: [Vec<f64>; 2],
+}
+
+impl Prepared {
+    /// Prepared from the frame's raw phasor.
+    pub(super) fn of(input: &TofInput, raw: &RawPhasor, params: &TofParams) -> Self {
+        let (w, h) = input.amplitude.dims();
+        let to_f64 = |v: Vec<f32>| -> Vec<f64> { v.into_par_iter().map(f64::from).collect() };
+        let (noise, (re, im)) = rayon::join(
+            || NoiseModel::fit(&raw.re, &raw.im, input.amplitude.data(), w),
+            || {
+                rayon::join(
+                    || to_f64(prefiltered(&raw.re, w, h, params)),
+                    || to_f64(prefiltered(&raw.im, w, h, params)),
+                )
+            },
+        );
+        Self::from_parts(noise, [re, im])
+    }
+
+    fn from_parts(noise: Option<NoiseModel>, observed: [Vec<f64>; 2]) -> Self {
+        let noise_scale =
+            noise.map(|m| NoiseScale::of_observation(m, &[&observed[0], &observed[1]]));
+        Self {
+            noise,
+            noise_scale,
+            observed,
+        }
+    }
+}
+
+/// [`estimate_tof_depth_on_grid`] of a validated `input` whose phasor `frame` holds; `prepared`
+/// is its full-size observation when the caller has it (else it is prepared beside the solve).
 pub(super) fn solve_on_grid(
     input: &TofInput,
     frame: GridFrame,
     params: &TofParams,
     start: &IrlsStart,
+    prepared: Option<Prepared>,
     monitor: &Monitor,
 ) -> Result<(TofOutput, Option<IrlsStart>)> {
     params.validate_for(input)?;
@@ -108,43 +150,30 @@ pub(super) fn solve_on_grid(
     monitor.checkpoint()?;
     let GridFrame { raw, means, .. } = frame;
     let (coarse, coarse_raw) = coarse_input(input, means, factor)?;
-    let coarse_params = TofParams {
-        symmetry_row: params
-            .symmetry_row
-            .map(|r| (r - (factor as f64 - 1.0) / 2.0) / factor as f64),
-        ..params.clone()
-    };
+    let coarse_params = grid_params(params, factor);
     coarse_params.validate_for(&coarse)?;
-    // The full-size observation, pre-filtered as a cold frame's is, and its noise model do not
-    // depend on the solve: they are prepared beside it, on the cores its many short parallel
-    // loops on the small grid leave idle.
-    let to_f64 = |v: Vec<f32>| -> Vec<f64> { v.into_par_iter().map(f64::from).collect() };
-    let (solved, ((noise, noise_scale), (observed_re, observed_im))) = rayon::join(
-        || {
-            separate(
-                &coarse,
-                &coarse_raw,
-                &coarse_params,
-                XStepSolver::default(),
-                Some(start),
-                monitor,
-            )
-        },
-        || {
-            let (noise, observed) = rayon::join(
-                || NoiseModel::fit(&raw.re, &raw.im, input.amplitude.data(), w),
-                || {
-                    rayon::join(
-                        || to_f64(prefiltered(&raw.re, w, h, params)),
-                        || to_f64(prefiltered(&raw.im, w, h, params)),
-                    )
-                },
-            );
-            // The pixels' noise levels are relative to the observation's median brightness.
-            let scale = noise.map(|m| NoiseScale::of_observation(m, &[&observed.0, &observed.1]));
-            ((noise, scale), observed)
-        },
-    );
+    let solve = || {
+        separate(
+            &coarse,
+            &coarse_raw,
+            &coarse_params,
+            XStepSolver::default(),
+            Some(start),
+            monitor,
+        )
+    };
+    let (solved, prepared) = match prepared {
+        Some(prepared) => (solve(), prepared),
+        // The full-size observation, pre-filtered as a cold frame's is, and its noise model do
+        // not depend on the solve: they are prepared beside it, on the cores its many short
+        // parallel loops on the small grid leave idle.
+        None => rayon::join(solve, || Prepared::of(input, &raw, params)),
+    };
+    let Prepared {
+        noise,
+        noise_scale,
+        observed: [observed_re, observed_im],
+    } = prepared;
     let (grid_est, next) = solved?;
     drop(coarse_raw);
     monitor.checkpoint()?;
@@ -214,10 +243,20 @@ pub(super) fn solve_on_grid(
     Ok((out, next))
 }
 
+/// `params` for the grid of `factor × factor` blocks: the symmetry row in grid rows.
+pub(super) fn grid_params(params: &TofParams, factor: usize) -> TofParams {
+    TofParams {
+        symmetry_row: params
+            .symmetry_row
+            .map(|r| (r - (factor as f64 - 1.0) / 2.0) / factor as f64),
+        ..params.clone()
+    }
+}
+
 /// The frame's block means (`means`: real and imaginary parts) as a frame of its own, with the
 /// intrinsics of the coarser pixels, and as its raw phasor (the means themselves, which the
 /// polar images would only give back through a round of trigonometry).
-fn coarse_input(
+pub(super) fn coarse_input(
     input: &TofInput,
     means: (Vec<f64>, Vec<f64>),
     factor: usize,

@@ -13,10 +13,11 @@
 use rayon::prelude::*;
 
 use super::ambiguous::dilate;
+use super::coarse_level::{coarse_blocks, coarse_level, CoarseSolve};
 use super::coherent::{coherent_contrast, coherent_residual};
 use super::noise_model::NoiseModel;
 use super::params::IrlsChannelParams;
-use super::quadratic_prior::{PatchGrid, QuadraticPrior};
+use super::quadratic_prior::QuadraticPrior;
 use super::tukey::{self, mad_sigma_in_place, median_in_place, scale_floor};
 use super::wls::{XStepSolver, XStepState, XStepSystem};
 use crate::error::{MurkError, Result};
@@ -53,14 +54,14 @@ pub const DEFAULT_WEIGHT_TOLERANCE: f64 = 1e-3;
 
 /// Tracks the convergence test of one IRLS level.
 #[derive(Default)]
-struct Convergence {
+pub(super) struct Convergence {
     runs: usize,
     /// Largest weight change of the last iteration (1 before any).
     last_change: f64,
 }
 
 impl Convergence {
-    fn new() -> Self {
+    pub(super) fn new() -> Self {
         Self {
             runs: 0,
             last_change: 1.0,
@@ -69,7 +70,7 @@ impl Convergence {
 
     /// Records an iteration's largest weight change and whether the binarised mask changed;
     /// true when the level has converged.
-    fn update(&mut self, max_change: f64, mask_changed: bool, tol: f64) -> bool {
+    pub(super) fn update(&mut self, max_change: f64, mask_changed: bool, tol: f64) -> bool {
         self.last_change = max_change;
         if tol > 0.0 && max_change < tol && !mask_changed {
             self.runs += 1;
@@ -83,13 +84,13 @@ impl Convergence {
     /// x-step only needs to be accurate to a fraction of the change the next reweighting will
     /// bring, so the tolerance is relaxed by up to 100× (Δ ≥ 1) and reaches the configured one
     /// (×1) once Δ ≤ 1 %.
-    fn tol_scale(&self) -> f64 {
+    pub(super) fn tol_scale(&self) -> f64 {
         (100.0 * self.last_change).clamp(1.0, 100.0)
     }
 }
 
 /// Largest |a − b| and whether any pair lies on different sides of `threshold`.
-fn weight_change(old: &[f64], new: &[f64], threshold: f64) -> (f64, bool) {
+pub(super) fn weight_change(old: &[f64], new: &[f64], threshold: f64) -> (f64, bool) {
     old.par_iter()
         .zip(new.par_iter())
         .map(|(&a, &b)| ((a - b).abs(), (a < threshold) != (b < threshold)))
@@ -286,89 +287,7 @@ pub const THIN_ACCEPT: f64 = 5.0;
 /// CG tolerance multiplier of the held-out check's x-steps: the loosest the levels use while
 /// their weights still move. The check compares block RMS residuals at the noise's scale, and
 /// the fine level's first x-step solves the kept estimate again anyway.
-const HELD_OUT_TOL_SCALE: f64 = 100.0;
-
-/// The accepted blocks (`patch_weight` ≥ 0.5) whose held-out residual is an outlier among the
-/// accepted blocks' ([`HELD_OUT_ROUNDS`]), and the CG iterations spent; none when fewer than 8
-/// blocks are accepted. `weights` are the coarse level's pixel weights, `x` the current
-/// estimate (warm start of the held-out solves, left unchanged).
-#[allow(clippy::too_many_arguments)]
-fn held_out_outliers(
-    sys: &XStepSystem,
-    state: &mut XStepState,
-    priors: &[QuadraticPrior],
-    prior_img: &[Vec<f64>],
-    observed: &[&[f64]],
-    x: &[Vec<f64>],
-    weights: &[f64],
-    blocks: &PatchGrid,
-    patch_weight: &[f64],
-    g: Option<&[f64]>,
-    c_coarse: f64,
-    monitor: &Monitor,
-) -> Result<(Vec<usize>, usize)> {
-    let (n, w) = (sys.len(), sys.width());
-    let k = blocks.count();
-    let accepted: Vec<bool> = patch_weight.iter().map(|&pw| pw >= 0.5).collect();
-    if accepted.iter().filter(|&&a| a).count() < 8 {
-        return Ok((Vec::new(), 0));
-    }
-    let mut col_block = vec![0usize; w];
-    for (b, &(x0, x1)) in blocks.col_ranges().iter().enumerate() {
-        col_block[x0..x1].fill(b);
-    }
-    let pxn = blocks.patches_x();
-    let mut rhs = vec![0.0; n];
-    let (mut cv_res2, mut held_res2) = (vec![0.0; n], vec![0.0; n]);
-    let mut cg = 0;
-    for colour in 0..2 {
-        let held: Vec<f64> = (0..n)
-            .map(|i| {
-                let (bx, by) = (col_block[i % w], blocks.patch_row_of(i / w));
-                if accepted[by * pxn + bx] && (bx + by) % 2 == colour {
-                    0.0
-                } else {
-                    weights[i]
-                }
-            })
-            .collect();
-        let mut xs = x.to_vec();
-        for (c, xc) in xs.iter_mut().enumerate() {
-            let (mut prior, mut img) = (priors[c].clone(), prior_img[c].clone());
-            cg += x_and_a_step(
-                sys,
-                state,
-                c > 0,
-                &mut prior,
-                &held,
-                observed[c],
-                &mut img,
-                &mut rhs,
-                xc,
-                HELD_OUT_TOL_SCALE,
-                monitor,
-            )?;
-        }
-        squared_residuals(&xs, observed, g, &mut cv_res2);
-        for i in 0..n {
-            if held[i] == 0.0 && weights[i] > 0.0 {
-                held_res2[i] = cv_res2[i];
-            }
-        }
-    }
-    let mut row_sums = vec![0.0; sys.height() * pxn];
-    let mut rms = vec![0.0; k];
-    patch_rms_residuals(blocks, &held_res2, &mut row_sums, &mut rms);
-    let mut acc: Vec<f64> = (0..k).filter(|&b| accepted[b]).map(|b| rms[b]).collect();
-    let med = median_in_place(&mut acc).unwrap_or(0.0);
-    let mut dev: Vec<f64> = acc.iter().map(|v| (v - med).abs()).collect();
-    let mad = 1.4826 * median_in_place(&mut dev).unwrap_or(0.0);
-    let cut = med + c_coarse * mad;
-    let out = (0..k)
-        .filter(|&b| accepted[b] && rms[b] > cut && rms[b].is_finite())
-        .collect();
-    Ok((out, cg))
-}
+pub(super) const HELD_OUT_TOL_SCALE: f64 = 100.0;
 
 /// Runs Algorithm 2 on `observed` (row-major, the system's size).
 ///
@@ -498,132 +417,43 @@ pub fn run_irls_vector_from(
     let mut state = XStepState::new(cfg.solver, sys)?;
     let mut cg_iterations = 0;
 
-    // Blocks of the coarse level's weights (Eq. 5.16); see `coarse_blocks`.
-    let blocks = coarse_blocks(priors[0].grid(), cfg.coarse_subdivision);
-    let pxn = blocks.patches_x();
-    let k = blocks.count();
-    let mut row_sums = vec![0.0; sys.height() * pxn];
-    let mut patch_rms = vec![0.0; k];
-    let mut patch_weight = vec![1.0; k];
-    let mut sigma_coarse = None;
-    let mut prev_patch_weight = vec![1.0; k];
-    let mut conv = Convergence::new();
     let mut coarse_run = 0;
     let mut fine_run = 0;
+    let mut sigma_coarse = None;
+    let mut held_out_rejected = 0;
+    if coarse_iterations > 0 {
+        // Blocks of the coarse level's weights (Eq. 5.16); see `coarse_blocks`.
+        let blocks = coarse_blocks(priors[0].grid(), cfg.coarse_subdivision);
+        let mut own = OwnSize {
+            sys,
+            state: &mut state,
+            check_state: XStepState::new(cfg.solver, sys)?,
+            priors,
+            prior_img: &mut prior_img,
+            x: &mut x,
+            noise_scale: &mut noise_scale,
+            observed,
+            rhs: &mut rhs,
+            monitor,
+        };
+        let coarse = coarse_level(&mut own, &blocks, cfg, floor, &stage_coarse, monitor, tick)?;
+        weights = coarse.weights;
+        sigma_coarse = coarse.sigma;
+        coarse_run = coarse.iterations_run;
+        held_out_rejected = coarse.held_out_rejected;
+        cg_iterations += coarse.cg_iterations;
+    }
+
     let mut x_and_a_steps = |weights: &[f64],
                              x: &mut [Vec<f64>],
                              prior_img: &mut [Vec<f64>],
                              priors: &mut [QuadraticPrior],
                              tol_scale: f64|
      -> Result<usize> {
-        // The components share the weights, so one solver state serves them all and sets its
-        // preconditioner up once per x-step.
-        let mut its = 0;
-        for c in 0..m {
-            its += x_and_a_step(
-                sys,
-                &mut state,
-                c > 0,
-                &mut priors[c],
-                weights,
-                observed[c],
-                &mut prior_img[c],
-                &mut rhs,
-                &mut x[c],
-                tol_scale,
-                monitor,
-            )?;
-        }
-        Ok(its)
+        x_and_a_steps(
+            sys, &mut state, priors, weights, observed, prior_img, &mut rhs, x, tol_scale, monitor,
+        )
     };
-    for it in 0..coarse_iterations {
-        monitor.checkpoint()?;
-        cg_iterations += x_and_a_steps(&weights, &mut x, &mut prior_img, priors, conv.tol_scale())?;
-        coarse_run += 1;
-        if let Some(ns) = noise_scale.as_mut() {
-            ns.update(&x);
-        }
-        let g = noise_scale.as_ref().map(|ns| &ns.g[..]);
-        squared_residuals(&x, observed, g, &mut res2);
-        patch_rms_residuals(&blocks, &res2, &mut row_sums, &mut patch_rms);
-        if it == 0 {
-            // The patch residual is an RMS, i.e. already a per-pixel deviation about the ideal
-            // zero residual, so its median over patches is the robust scale (a "median absolute
-            // deviation" about zero): background patches sit near r = 1 and an object patch at
-            // r ≫ 1, independent of patch size (the last patches are larger). (A pixel-level
-            // MAD instead was tried: it ignores the quadratic misfit of background patches and
-            // flagged whole background patches as outliers on several simulated frames.)
-            scratch[..k].copy_from_slice(&patch_rms);
-            let med =
-                quantile_in_place(&mut scratch[..k], cfg.coarse_quantile).ok_or_else(|| {
-                    MurkError::Numerical("non-finite residual at the coarse level".into())
-                })?;
-            sigma_coarse = Some(med.max(floor));
-        }
-        let s2 = sigma_coarse.unwrap_or(floor);
-
-        for (pw, &rms) in patch_weight.iter_mut().zip(&patch_rms) {
-            *pw = tukey::weight(rms / s2, cfg.channel.c_coarse);
-        }
-        spread_patch_weights(&blocks, &patch_weight, &mut weights);
-        tick(&stage_coarse);
-        let (dw, flipped) = weight_change(&prev_patch_weight, &patch_weight, cfg.mask_threshold);
-        prev_patch_weight.copy_from_slice(&patch_weight);
-        if it > 0 && conv.update(dw, flipped, cfg.weight_tolerance) {
-            break;
-        }
-    }
-
-    let mut held_out_rejected = 0;
-    if coarse_iterations > 0 {
-        let mut cv_state = XStepState::new(cfg.solver, sys)?;
-        let mut cv_rhs = vec![0.0; n];
-        for _ in 0..HELD_OUT_ROUNDS {
-            monitor.checkpoint()?;
-            let (outliers, cg) = held_out_outliers(
-                sys,
-                &mut cv_state,
-                priors,
-                &prior_img,
-                observed,
-                &x,
-                &weights,
-                &blocks,
-                &patch_weight,
-                noise_scale.as_ref().map(|ns| &ns.g[..]),
-                cfg.channel.c_coarse,
-                monitor,
-            )?;
-            cg_iterations += cg;
-            if outliers.is_empty() {
-                break;
-            }
-            held_out_rejected += outliers.len();
-            for b in outliers {
-                patch_weight[b] = 0.0;
-            }
-            spread_patch_weights(&blocks, &patch_weight, &mut weights);
-            for c in 0..m {
-                cg_iterations += x_and_a_step(
-                    sys,
-                    &mut cv_state,
-                    c > 0,
-                    &mut priors[c],
-                    &weights,
-                    observed[c],
-                    &mut prior_img[c],
-                    &mut cv_rhs,
-                    &mut x[c],
-                    HELD_OUT_TOL_SCALE,
-                    monitor,
-                )?;
-            }
-            if let Some(ns) = noise_scale.as_mut() {
-                ns.update(&x);
-            }
-        }
-    }
-
     let mut sigma_fine = None;
     let c_fine = cfg.channel.c_fine;
     // The coarse level's background, where σ₁ is measured when a noise model is known.
@@ -917,7 +747,7 @@ pub(super) struct NoiseScale {
 
 /// The smallest robust scale of an observation (`observed`, one image per component): see
 /// [`scale_floor`].
-fn observed_scale_floor(observed: &[&[f64]]) -> f64 {
+pub(super) fn observed_scale_floor(observed: &[&[f64]]) -> f64 {
     let magnitude = observed
         .iter()
         .map(|o| o.par_iter().map(|v| v.abs()).reduce(|| 0.0, f64::max))
@@ -948,7 +778,13 @@ impl NoiseScale {
         Self::new(model, observed, observed_scale_floor(observed))
     }
 
-    fn update(&mut self, x: &[Vec<f64>]) {
+    /// Every pixel's noise level relative to the reference, as last updated.
+    pub(super) fn levels(&self) -> &[f64] {
+        &self.g
+    }
+
+    /// The levels at the brightness of the scatter estimate `x` (one image per component).
+    pub(super) fn update(&mut self, x: &[Vec<f64>]) {
         let (model, inv_ref) = (self.model, self.inv_ref);
         self.g.par_iter_mut().enumerate().for_each(|(i, g)| {
             let norm = x.iter().map(|c| c[i] * c[i]).sum::<f64>().sqrt();
@@ -974,7 +810,7 @@ fn signed_residuals(
 
 /// `out[i] = Σ_c (x_c − x̃_c)ᵢ² / gᵢ²`: each pixel's squared residual norm over the components,
 /// relative to its noise level `g` (1 without one).
-fn squared_residuals(
+pub(super) fn squared_residuals(
     x: &[Vec<f64>],
     observed: &[&[f64]],
     noise_scale: Option<&[f64]>,
@@ -1025,7 +861,7 @@ fn pixel_weights(
 /// object region receives the background's quadratic. At the coarse level all pixels of a patch
 /// share one weight, so the fit is the uniform one there (see `fit_weighted`).
 #[allow(clippy::too_many_arguments)]
-fn x_and_a_step(
+pub(super) fn x_and_a_step(
     sys: &XStepSystem,
     state: &mut XStepState,
     same_weights: bool,
@@ -1060,6 +896,126 @@ fn x_and_a_step(
     Ok(iterations)
 }
 
+/// [`x_and_a_step`] for every component under the same `weights`: the components share the
+/// weights, so one solver state serves them all and sets its preconditioner up once.
+#[allow(clippy::too_many_arguments)]
+fn x_and_a_steps(
+    sys: &XStepSystem,
+    state: &mut XStepState,
+    priors: &mut [QuadraticPrior],
+    weights: &[f64],
+    observed: &[&[f64]],
+    prior_img: &mut [Vec<f64>],
+    rhs: &mut [f64],
+    x: &mut [Vec<f64>],
+    tol_scale: f64,
+    monitor: &Monitor,
+) -> Result<usize> {
+    let mut its = 0;
+    for c in 0..observed.len() {
+        its += x_and_a_step(
+            sys,
+            state,
+            c > 0,
+            &mut priors[c],
+            weights,
+            observed[c],
+            &mut prior_img[c],
+            rhs,
+            &mut x[c],
+            tol_scale,
+            monitor,
+        )?;
+    }
+    Ok(its)
+}
+
+/// The coarse level's solves on the system's own pixels, which it also judges.
+struct OwnSize<'a> {
+    sys: &'a XStepSystem,
+    /// The level's solver state, which the fine level goes on with.
+    state: &'a mut XStepState,
+    /// The held-out check's, set up for its own weights.
+    check_state: XStepState,
+    priors: &'a mut [QuadraticPrior],
+    prior_img: &'a mut [Vec<f64>],
+    x: &'a mut [Vec<f64>],
+    noise_scale: &'a mut Option<NoiseScale>,
+    observed: &'a [&'a [f64]],
+    rhs: &'a mut [f64],
+    monitor: &'a Monitor,
+}
+
+impl OwnSize<'_> {
+    /// The x- and a-steps of every component under `weights`, in the level's solver state or
+    /// (`check`) the held-out check's.
+    fn steps(&mut self, check: bool, weights: &[f64], tol_scale: f64) -> Result<usize> {
+        let state = if check {
+            &mut self.check_state
+        } else {
+            &mut *self.state
+        };
+        x_and_a_steps(
+            self.sys,
+            state,
+            self.priors,
+            weights,
+            self.observed,
+            self.prior_img,
+            self.rhs,
+            self.x,
+            tol_scale,
+            self.monitor,
+        )
+    }
+
+    /// The noise levels following the scatter.
+    fn follow(&mut self) {
+        if let Some(ns) = self.noise_scale.as_mut() {
+            ns.update(self.x);
+        }
+    }
+}
+
+impl CoarseSolve for OwnSize<'_> {
+    fn solve(&mut self, weights: &[f64], tol_scale: f64) -> Result<usize> {
+        self.steps(false, weights, tol_scale)
+    }
+
+    fn residuals2(&mut self, out: &mut [f64]) -> Result<()> {
+        self.follow();
+        let g = self.noise_scale.as_ref().map(|ns| &ns.g[..]);
+        squared_residuals(self.x, self.observed, g, out);
+        Ok(())
+    }
+
+    fn held_out_residuals2(&mut self, held: &[f64], out: &mut [f64]) -> Result<usize> {
+        let mut xs = self.x.to_vec();
+        let (mut priors, mut img) = (self.priors.to_vec(), self.prior_img.to_vec());
+        let its = x_and_a_steps(
+            self.sys,
+            &mut self.check_state,
+            &mut priors,
+            held,
+            self.observed,
+            &mut img,
+            self.rhs,
+            &mut xs,
+            HELD_OUT_TOL_SCALE,
+            self.monitor,
+        )?;
+        let g = self.noise_scale.as_ref().map(|ns| &ns.g[..]);
+        squared_residuals(&xs, self.observed, g, out);
+        Ok(its)
+    }
+
+    fn resolve(&mut self, weights: &[f64]) -> Result<usize> {
+        let its = self.steps(true, weights, HELD_OUT_TOL_SCALE)?;
+        self.follow();
+        Ok(its)
+    }
+}
+
 /// The x-step alone: `x` solved for `weights` from the patch quadratics' current image
 /// `prior_img` (which the joint form does not read), without the a-step that follows it in
 /// [`x_and_a_step`]. Returns the CG iterations.
@@ -1079,64 +1035,4 @@ fn x_step(
     sys.rhs(weights, observed, prior_img, rhs);
     let stats = state.solve_reusing(sys, weights, rhs, x, tol_scale, same_weights, monitor)?;
     Ok(stats.iterations)
-}
-
-/// RMS of x − x̃ over every patch (Eq. 5.16's ‖x_k − x̃_k‖ divided by √N_k), from each pixel's
-/// squared residual `res2`.
-fn patch_rms_residuals(grid: &PatchGrid, res2: &[f64], row_sums: &mut [f64], out: &mut [f64]) {
-    let w = grid.width();
-    let pxn = grid.patches_x();
-    let cols = grid.col_ranges();
-    row_sums
-        .par_chunks_mut(pxn)
-        .zip(res2.par_chunks(w))
-        .for_each(|(sums, rr)| {
-            for (s, &(x0, x1)) in sums.iter_mut().zip(cols) {
-                *s = rr[x0..x1].iter().sum();
-            }
-        });
-    for (py, &(y0, y1)) in grid.row_ranges().iter().enumerate() {
-        for (px, &(x0, x1)) in cols.iter().enumerate() {
-            let ss: f64 = (y0..y1).map(|y| row_sums[y * pxn + px]).sum();
-            out[py * pxn + px] = (ss / ((y1 - y0) * (x1 - x0)) as f64).sqrt();
-        }
-    }
-}
-
-/// The `q`-quantile (0–1) of `values` by selection, reordering them; `None` when empty or NaN.
-fn quantile_in_place(values: &mut [f64], q: f64) -> Option<f64> {
-    if values.is_empty() || values.iter().any(|v| v.is_nan()) {
-        return None;
-    }
-    let k = ((values.len() - 1) as f64 * q.clamp(0.0, 1.0)).round() as usize;
-    let (_, v, _) = values.select_nth_unstable_by(k, f64::total_cmp);
-    Some(*v)
-}
-
-/// The coarse level's blocks: each quadratic patch split `subdivision` times along each axis
-/// (never below 3 pixels a side). With 1 they are the patches, as in Eq. 5.16. The robust scale
-/// σ₂ is the median block RMS, which measures the background only while most blocks hold no
-/// object: a large near object covering parts of over half the 4 × 4 patches drives it up to the
-/// object's residuals, and a rejected patch then also discards the background beside the object.
-fn coarse_blocks(grid: &PatchGrid, subdivision: usize) -> PatchGrid {
-    let (w, h) = (grid.width(), grid.height());
-    let s = subdivision.max(1);
-    let bx = (grid.patches_x() * s).min(w / 3).max(1);
-    let by = (grid.patches_y() * s).min(h / 3).max(1);
-    PatchGrid::new(w, h, bx, by)
-}
-
-/// Every pixel of a patch shares the patch's coarse weight (Eq. 5.16).
-fn spread_patch_weights(grid: &PatchGrid, patch_weight: &[f64], weights: &mut [f64]) {
-    let pxn = grid.patches_x();
-    let cols = grid.col_ranges();
-    weights
-        .par_chunks_mut(grid.width())
-        .enumerate()
-        .for_each(|(y, row)| {
-            let py = grid.patch_row_of(y);
-            for (px, &(x0, x1)) in cols.iter().enumerate() {
-                row[x0..x1].fill(patch_weight[py * pxn + px]);
-            }
-        });
 }

@@ -12,9 +12,11 @@
 
 pub mod ambiguous;
 pub mod bilateral;
+mod coarse_level;
 pub mod coarse_space;
 pub mod coherent;
 mod grid;
+mod grid_coarse;
 pub mod irls;
 pub mod multigrid;
 pub mod noise_model;

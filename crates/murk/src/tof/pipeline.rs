@@ -14,6 +14,7 @@ use super::ambiguous::uncertain_pixels;
 use super::bilateral::bilateral_filter;
 use super::irls::{run_irls_vector_from, thin_border_band, IrlsConfig, IrlsOutcome, IrlsStart};
 use super::noise_model::NoiseModel;
+use super::params::IrlsChannelParams;
 use super::params::{
     PriorCoupling, ScatterChannels, TofInput, TofOutput, TofParams, MASK_BACKGROUND, MASK_OBJECT,
     MASK_UNCERTAIN, SPEED_OF_LIGHT_M_PER_S,
@@ -139,19 +140,67 @@ pub(super) fn separate(
         ScatterChannels::AmplitudePhase => (input.amplitude.data(), input.phase.data()),
         ScatterChannels::Phasor => (raw_re, raw_im),
     };
-    let (f1, f2) = rayon::join(
-        || prefiltered(first, w, h, params),
-        || prefiltered(second, w, h, params),
+    let to_f64 = |img: Vec<f32>| -> Vec<f64> { img.into_par_iter().map(f64::from).collect() };
+    let (o1, o2) = rayon::join(
+        || to_f64(prefiltered(first, w, h, params)),
+        || to_f64(prefiltered(second, w, h, params)),
     );
     monitor.progress("tof.prefilter", PREFILTER_END);
-    monitor.checkpoint()?;
+    separate_observed(input, params, solver, start, [o1, o2], noise, monitor)
+}
 
+/// The settings of one IRLS run of `params` on an image of `channel`.
+pub(super) fn irls_config(
+    params: &TofParams,
+    channel: IrlsChannelParams,
+    solver: XStepSolver,
+) -> IrlsConfig {
+    IrlsConfig {
+        channel,
+        coarse_iterations: params.coarse_iterations,
+        fine_iterations: params.fine_iterations,
+        solver,
+        weight_tolerance: params.convergence_tolerance,
+        mask_threshold: params.mask_threshold as f64,
+        coarse_subdivision: params.coarse_subdivision,
+        coarse_quantile: params.coarse_quantile,
+    }
+}
+
+/// The x-step system of a validated `input` under `params` for an image of `channel`, and the
+/// patch grid of its quadratic priors.
+pub(super) fn scatter_system(
+    input: &TofInput,
+    params: &TofParams,
+    channel: IrlsChannelParams,
+) -> Result<(XStepSystem, PatchGrid)> {
+    let (w, h) = input.amplitude.dims();
     let row0 = params
         .symmetry_row
         .or(input.intrinsics.map(|k| k.cy))
         .unwrap_or((h as f64 - 1.0) * 0.5);
-    let mirror = RowMirror::new(h, row0);
     let grid = PatchGrid::new(w, h, params.patches_x, params.patches_y);
+    let sys = XStepSystem::new(w, h, channel.effective_gamma(w, h), RowMirror::new(h, row0));
+    let sys = match params.prior_coupling {
+        PriorCoupling::Joint => sys.with_joint_prior(grid.clone())?,
+        PriorCoupling::Alternating => sys,
+    };
+    Ok((sys, grid))
+}
+
+/// [`separate`] from the observation as the pipeline sees it (`observed`: the pre-filtered
+/// amplitude and phase, or the phasor's real and imaginary parts, in `f64`) and the frame's
+/// noise model.
+pub(super) fn separate_observed(
+    input: &TofInput,
+    params: &TofParams,
+    solver: XStepSolver,
+    start: Option<&IrlsStart>,
+    observed: [Vec<f64>; 2],
+    noise: Option<NoiseModel>,
+    monitor: &Monitor,
+) -> Result<(ScatterEstimate, Option<IrlsStart>)> {
+    monitor.checkpoint()?;
     let runs = match params.channels {
         ScatterChannels::AmplitudePhase => 2,
         ScatterChannels::Phasor => 1,
@@ -163,29 +212,15 @@ pub(super) fn separate(
         let f = PREFILTER_END + (IRLS_END - PREFILTER_END) * d as f32 / total.max(1) as f32;
         monitor.progress(stage, f);
     };
-    let to_f64 = |img: &[f32]| -> Vec<f64> { img.iter().map(|&v| v as f64).collect() };
     let run = |imgs: &[&[f64]],
                noise: Option<NoiseModel>,
                channel,
                start: Option<&IrlsStart>,
                prefix: &str|
      -> Result<IrlsOutcome> {
-        let cfg = IrlsConfig {
-            channel,
-            coarse_iterations: params.coarse_iterations,
-            fine_iterations: params.fine_iterations,
-            solver,
-            weight_tolerance: params.convergence_tolerance,
-            mask_threshold: params.mask_threshold as f64,
-            coarse_subdivision: params.coarse_subdivision,
-            coarse_quantile: params.coarse_quantile,
-        };
-        let sys = XStepSystem::new(w, h, cfg.channel.effective_gamma(w, h), mirror.clone());
-        let sys = match params.prior_coupling {
-            PriorCoupling::Joint => sys.with_joint_prior(grid.clone())?,
-            PriorCoupling::Alternating => sys,
-        };
-        let mut priors = vec![QuadraticPrior::new(grid.clone())?; imgs.len()];
+        let cfg = irls_config(params, channel, solver);
+        let (sys, grid) = scatter_system(input, params, channel)?;
+        let mut priors = vec![QuadraticPrior::new(grid)?; imgs.len()];
         run_irls_vector_from(
             imgs,
             noise,
@@ -198,8 +233,7 @@ pub(super) fn separate(
             &tick,
         )
     };
-    let (o1, o2) = (to_f64(&f1), to_f64(&f2));
-    drop((f1, f2));
+    let [o1, o2] = observed;
     let t = params.mask_threshold as f64;
     let mut next = None;
     let est = match params.channels {

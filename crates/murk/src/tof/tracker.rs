@@ -20,14 +20,17 @@
 //! With a scatter grid ([`TofTracker::with_scatter_grid`]) the warm frames solve the scatter on
 //! the frame's block means and decide everything else at full size
 //! ([`estimate_tof_depth_on_grid`]); the carried start lives on the grid (6 bytes a pixel at
-//! factor 2), and cold and restarted frames run at full size as above. The checks for a fog
-//! change and a cut compare the grid's block means and weights.
+//! factor 2). Cold and restarted frames solve their coarse level on the grid too, judge it at
+//! full size, and run the fine level at full size (`tof::grid_coarse`): the same answer in
+//! about 0.6 of the time (docs/benchmarks.md). The checks for a fog change and a cut compare the
+//! grid's block means and weights.
 
 use rayon::prelude::*;
 
 use super::grid::{solve_on_grid, GridFrame};
+use super::grid_coarse::cold_frame_on_grid;
 use super::irls::IrlsStart;
-use super::params::{TofInput, TofOutput, TofParams};
+use super::params::{ScatterChannels, TofInput, TofOutput, TofParams};
 use super::pipeline::estimate_tof_depth_from;
 use crate::error::Result;
 use crate::monitor::Monitor;
@@ -102,9 +105,10 @@ impl TofTracker {
         }
     }
 
-    /// A tracker whose warm frames solve the scatter on `factor × factor` block means (see the
-    /// module docs); frames whose sides `factor` does not divide, or whose grid would be shorter
-    /// than [`MIN_GRID_SIDE`] on its longer side, run at their own size. Errors name
+    /// A tracker whose warm frames solve the scatter on `factor × factor` block means, and whose
+    /// cold frames solve their coarse level there (see the module docs); frames whose sides
+    /// `factor` does not divide, or whose grid would be shorter than [`MIN_GRID_SIDE`] on its
+    /// longer side, run at their own size. Errors name
     /// `scatter_grid` outside 1..=[`MAX_SCATTER_GRID`].
     pub fn with_scatter_grid(params: TofParams, factor: usize) -> Result<Self> {
         if !(1..=MAX_SCATTER_GRID).contains(&factor) {
@@ -144,11 +148,11 @@ impl TofTracker {
             .as_ref()
             .filter(|(d, c)| *d == dims && c.factor == factor)
             .map(|(_, c)| &c.start);
-        // On the grid: the frame's phasor and block means, for both the check and the solve.
-        let grid = match (start, factor) {
-            (Some(_), 2..) => Some(GridFrame::of(input, factor)?),
-            _ => None,
-        };
+        // On the grid: the frame's phasor and block means, for the check and the solve.
+        let phasor = self.params.channels == ScatterChannels::Phasor;
+        let mut grid = (factor >= 2 && phasor)
+            .then(|| GridFrame::of(input, factor))
+            .transpose()?;
         let kind = match start {
             None => TofStart::Cold,
             Some(start)
@@ -157,10 +161,10 @@ impl TofTracker {
                 TofStart::Restarted
             }
             Some(start) => {
-                let (output, next) = match grid {
+                let (output, next) = match grid.take() {
                     Some(frame) => {
                         input.validate()?;
-                        solve_on_grid(input, frame, &self.params, start, monitor)?
+                        solve_on_grid(input, frame, &self.params, start, None, monitor)?
                     }
                     None => estimate_tof_depth_from(input, &self.params, Some(start), monitor)?,
                 };
@@ -177,10 +181,24 @@ impl TofTracker {
                 TofStart::Restarted
             }
         };
-        let (output, next) = estimate_tof_depth_from(input, &self.params, None, monitor)?;
-        let next = next
-            .map(|n| n.box_downsampled(dims.0, dims.1, factor))
-            .transpose()?;
+        // From scratch: the coarse level on the grid where the grid applies, else wholly at
+        // full size (the amplitude/phase channels, or no coarse level).
+        let on_grid = factor >= 2 && phasor && self.params.coarse_iterations > 0;
+        let (output, next) = if on_grid {
+            input.validate()?;
+            let frame = match grid {
+                Some(frame) => frame,
+                // The frame went to the warm attempt, which a cut undid.
+                None => GridFrame::of(input, factor)?,
+            };
+            cold_frame_on_grid(input, frame, &self.params, monitor)?
+        } else {
+            let (output, next) = estimate_tof_depth_from(input, &self.params, None, monitor)?;
+            let next = next
+                .map(|n| n.box_downsampled(dims.0, dims.1, factor))
+                .transpose()?;
+            (output, next)
+        };
         self.start = next.map(|start| (dims, Carried { factor, start }));
         Ok(TrackedTof {
             output,
@@ -444,6 +462,28 @@ mod tests {
             }
             assert_eq!(on_grid.start.as_ref().map(|(_, c)| c.factor), Some(1));
         }
+    }
+
+    /// Without a coarse level there is nothing to solve on the grid from scratch: the cold
+    /// frame is the full-size frame's bit for bit, and the warm frames go on on the grid.
+    #[test]
+    fn without_a_coarse_level_a_cold_frame_runs_at_full_size() {
+        let params = TofParams {
+            coarse_iterations: 0,
+            ..TofParams::default()
+        };
+        let cfg = TofSimConfig {
+            seed: 2,
+            ..TofSimConfig::with_size(128, 106)
+        };
+        let input = frame(&cfg, &TofMotion::default(), 0);
+        let mut tracker = TofTracker::with_scatter_grid(params.clone(), 2).unwrap();
+        let tracked = tracker.estimate(&input, &Monitor::noop()).unwrap();
+        let (full, _) = estimate_tof_depth_from(&input, &params, None, &Monitor::noop()).unwrap();
+        assert_eq!(tracked.start, TofStart::Cold);
+        assert_eq!(tracked.output.mask.data(), full.mask.data());
+        assert_eq!(tracked.output.range_m.data(), full.range_m.data());
+        assert_eq!(tracker.start.as_ref().map(|(_, c)| c.factor), Some(2));
     }
 
     #[test]
