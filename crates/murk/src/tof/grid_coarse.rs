@@ -24,7 +24,9 @@ use super::irls::{
     HELD_OUT_TOL_SCALE,
 };
 use super::params::{ScatterChannels, TofInput, TofOutput, TofParams};
-use super::pipeline::{finish, irls_config, prefiltered, scatter_system, separate_observed};
+use super::pipeline::{
+    finish, irls_config, prefiltered, scatter_system, separate_observed, PREFILTER_END,
+};
 use super::quadratic_prior::{PatchGrid, QuadraticPrior};
 use super::wls::{XStepSolver, XStepState, XStepSystem};
 use crate::error::{MurkError, Result};
@@ -99,7 +101,9 @@ pub(super) fn cold_frame_on_grid(
         params.coarse_subdivision,
     );
     let floor = observed_scale_floor(&frame_observed);
-    let tick = |stage: &str| monitor.progress(stage, 0.5);
+    // The fine level's ticks start at the pre-filter's end again: the coarse level's stay there,
+    // so the progress does not move backwards.
+    let tick = |stage: &str| monitor.progress(stage, PREFILTER_END);
     let outcome = coarse_level(
         &mut solves,
         &blocks,
@@ -339,6 +343,30 @@ mod tests {
                 "{preset:?}: median range difference {median} m"
             );
         }
+    }
+
+    /// Cancelled from the progress sink during the coarse level on the grid, the frame stops.
+    #[test]
+    fn a_cancel_during_the_coarse_level_stops_the_frame() {
+        use std::sync::atomic::{AtomicBool, Ordering};
+        use std::sync::Arc;
+        let input = sim_input(3, FogPreset::Medium);
+        let flag = Arc::new(AtomicBool::new(false));
+        let (f2, seen) = (flag.clone(), Arc::new(AtomicBool::new(false)));
+        let s2 = seen.clone();
+        let monitor = Monitor::new(
+            flag,
+            Some(Arc::new(move |stage: &str, _| {
+                if stage.ends_with(".coarse") {
+                    s2.store(true, Ordering::Relaxed);
+                    f2.store(true, Ordering::Relaxed);
+                }
+            })),
+        );
+        let frame = GridFrame::of(&input, 2).unwrap();
+        let e = cold_frame_on_grid(&input, frame, &TofParams::default(), &monitor).unwrap_err();
+        assert_eq!(e, MurkError::Cancelled);
+        assert!(seen.load(Ordering::Relaxed));
     }
 
     #[test]

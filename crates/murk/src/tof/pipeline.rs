@@ -27,7 +27,7 @@ use crate::image::ImageF32;
 use crate::monitor::Monitor;
 
 /// Progress fractions of the pipeline's stages.
-const PREFILTER_END: f32 = 0.05;
+pub(super) const PREFILTER_END: f32 = 0.05;
 const IRLS_END: f32 = 0.95;
 
 /// Estimates the object mask and the fog-corrected range of a CW-ToF frame (Ch. 5, Algorithm 2,
