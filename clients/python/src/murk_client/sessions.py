@@ -102,7 +102,8 @@ def tof_session_config(
 
     ``scatter_grid``: a frame computed from the previous frame's answer solves for the scatter
     on the means of blocks this many pixels a side (1–4; 1 = every frame at full size; 0 = the
-    server's default, 2); the mask and the depths are still decided at full size.
+    server's default, 2), and a frame computed from scratch its coarse level; the mask and the
+    depths are still decided at full size.
     """
     if not 0 <= int(scatter_grid) <= 4:
         raise ClientInputError("config.tof_scatter_grid", f"0 to 4 (0: the default), got {scatter_grid}")

@@ -75,7 +75,8 @@ pub struct BagArgs {
     #[arg(long, requires = "amplitude")]
     pub fine_iterations: Option<u32>,
     /// ToF: frames computed from the previous frame's answer solve the scatter on blocks of this
-    /// many pixels a side, 1..=4 (1: at full size; default 2).
+    /// many pixels a side, 1..=4 (1: at full size; default 2); frames computed from scratch
+    /// solve their coarse level there.
     #[arg(long, requires = "amplitude")]
     pub scatter_grid: Option<u32>,
     /// ToF: pixels whose range_std_m exceeds this are no measurement: NaN in the depth image and

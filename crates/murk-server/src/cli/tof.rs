@@ -70,7 +70,8 @@ pub struct TofArgs {
     #[command(flatten)]
     pub stream: SequenceFlags,
     /// With --sequence: frames computed from the previous frame's answer solve the scatter on
-    /// blocks of this many pixels a side, 1..=4 (1: at full size; default 2).
+    /// blocks of this many pixels a side, 1..=4 (1: at full size; default 2); frames computed
+    /// from scratch solve their coarse level there.
     #[arg(long, requires = "sequence")]
     pub scatter_grid: Option<u32>,
 }

@@ -138,9 +138,10 @@ class SessionConfig(_message.Message):
     tof_scatter_grid: _builtins.int
     """ToF sessions: a frame computed from the previous frame's answer solves the scatter on the
     means of blocks this many pixels a side, 1 to 4, and decides the mask, the ranges and their
-    uncertainties at full size; frames computed from scratch, frames whose sides it does not
-    divide and frames whose grid would be under 64 pixels on its longer side run at full size.
-    1 = every frame at full size; 0 = the default, 2 (docs/tof.md, "Streams of frames").
+    uncertainties at full size; a frame computed from scratch solves only its coarse level
+    there, judged at full size. Frames whose sides it does not divide and frames whose grid
+    would be under 64 pixels on its longer side run at full size. 1 = every frame at full size;
+    0 = the default, 2 (docs/tof.md, "Streams of frames").
     Stereo sessions leave it 0.
     """
     @_builtins.property
