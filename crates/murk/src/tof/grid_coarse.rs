@@ -113,6 +113,8 @@ pub(super) fn cold_frame_on_grid(
         monitor,
         &tick,
     )?;
+    // No fine level has run, so there is no σ₁ to re-judge the weights at: the fine level starts
+    // from the coarse level's block weights and measures σ₁ as it does from scratch.
     let start = IrlsStart {
         scatter: solves.upsampled(&solves.scatter.x)?,
         weights: outcome.weights,
