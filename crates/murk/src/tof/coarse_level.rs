@@ -6,11 +6,25 @@
 
 use rayon::prelude::*;
 
-use super::irls::{weight_change, Convergence, IrlsConfig, HELD_OUT_ROUNDS};
+use super::irls_settings::{weight_change, Convergence, IrlsConfig};
 use super::quadratic_prior::PatchGrid;
 use super::tukey::{self, median_in_place};
 use crate::error::{MurkError, Result};
 use crate::monitor::Monitor;
+
+/// Rounds of the held-out check that follows the coarse level. Algorithm 2 starts from "no
+/// object" (every weight 1), so the first x-step bends over a large near object; where the bend
+/// is enough for some of its blocks to fit, the coarse level accepts them, and the fine level
+/// then keeps the object's band as background (cluttered thick seed 1 at 512×424,
+/// docs/accuracy.md). The check judges every accepted block against the estimate its
+/// neighbours imply: two x-steps in which the accepted blocks of one colour of a checkerboard
+/// have no weight. A block whose held-out RMS residual lies more than `c_coarse` robust
+/// deviations (1.4826·MAD) above the median of the accepted blocks' is rejected; the estimate
+/// is then solved again and the check repeated, until a round rejects nothing. The scale comes
+/// from the held-out residuals themselves, because they are larger than in-sample ones wherever
+/// the scatter curves; object blocks, already rejected, have no weight in either solve and so
+/// do not pull the held-out estimates.
+pub const HELD_OUT_ROUNDS: usize = 3;
 
 /// The solves the coarse level judges, and the residuals it judges them by, over the judged
 /// pixels (`weights` and `out` have one value per pixel).

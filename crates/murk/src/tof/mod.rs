@@ -18,6 +18,7 @@ pub mod coherent;
 mod grid;
 mod grid_coarse;
 pub mod irls;
+mod irls_settings;
 pub mod multigrid;
 pub mod noise_model;
 mod params;

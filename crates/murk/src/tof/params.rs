@@ -25,6 +25,10 @@ pub const MAX_PATCHES_PER_AXIS: usize = 64;
 /// the reference's Kinect v2 frames are 512 × 424.
 pub const REFERENCE_SIZE_PX: f64 = 512.0;
 
+/// Default of `TofParams::convergence_tolerance`, the IRLS levels' convergence test
+/// (`tof::irls::IrlsConfig::weight_tolerance`): a level stops once no weight moves by more.
+pub const DEFAULT_WEIGHT_TOLERANCE: f64 = 1e-3;
+
 /// IRLS settings for one image (amplitude or phase): Eq. 5.12 weights and Tukey's `c` (Eq. 5.15).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct IrlsChannelParams {
@@ -223,7 +227,7 @@ impl Default for TofParams {
             bilateral: Some(BilateralParams::default()),
             mask_threshold: 0.5,
             light_position_m: None,
-            convergence_tolerance: super::irls::DEFAULT_WEIGHT_TOLERANCE,
+            convergence_tolerance: DEFAULT_WEIGHT_TOLERANCE,
             prior_coupling: PriorCoupling::Joint,
             channels: ScatterChannels::Phasor,
             phasor: IrlsChannelParams::PHASOR,
