@@ -16,7 +16,7 @@ use exr::prelude::{
     LayerAttributes, LineOrder, MetaData, SmallVec,
 };
 
-use super::decode::DecodeLimits;
+use super::limits::DecodeLimits;
 use super::write_file;
 use crate::error::{MurkError, Result};
 use crate::image::ImageF32;

@@ -7,11 +7,13 @@
 mod colormap;
 mod decode;
 mod exr;
+mod limits;
 mod png;
 
 pub use colormap::{colorize, preview_range, turbo, write_colormap_png, MASKED_RGB};
-pub use decode::{decode_image, read_image, sniff_format, DecodeLimits, ImageFormat};
+pub use decode::{decode_image, read_image, sniff_format, ImageFormat};
 pub use exr::{encode_exr, write_exr};
+pub use limits::DecodeLimits;
 pub use png::{
     encode_png16, encode_png_grey, encode_png_rgb8, write_png16, write_png_rgb8, PngEffort,
 };

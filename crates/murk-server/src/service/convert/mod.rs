@@ -1,5 +1,6 @@
 //! Protobuf ↔ domain conversions, one file per message family.
 
+mod geometry;
 mod image;
 mod job;
 mod mvs;
@@ -9,6 +10,9 @@ mod ps;
 mod stereo;
 mod tof;
 
+pub use geometry::{
+    check_points, intrinsics_from_proto, intrinsics_to_proto, points_from_proto, points_to_proto,
+};
 pub use image::{image_from_proto, image_to_proto, mono_image_from_proto, ImageLimits};
 pub use job::{job_to_proto, timestamp};
 pub use mvs::{
@@ -24,12 +28,12 @@ pub use ps::{
     canonicalize_ps_request, ps_from_proto, ps_from_result, ps_request_to_proto, ps_to_proto,
 };
 pub use stereo::{
-    canonicalize_stereo_request, check_points, points_from_proto, points_to_proto,
-    stereo_from_proto, stereo_images_from_proto, stereo_outputs_from_proto,
-    stereo_request_to_proto, stereo_to_proto, StereoConfig, StereoInput, STEREO_OUTPUTS,
+    canonicalize_stereo_request, stereo_from_proto, stereo_images_from_proto,
+    stereo_outputs_from_proto, stereo_request_to_proto, stereo_to_proto, StereoConfig, StereoInput,
+    STEREO_OUTPUTS,
 };
 pub use tof::{
-    intrinsics_from_proto, intrinsics_to_proto, simulated_tof_request, tof_from_proto,
-    tof_images_from_proto, tof_outputs_from_proto, tof_params_from_proto, tof_points_from_proto,
-    tof_request_to_proto, tof_to_proto, TofPoints, TOF_OUTPUTS,
+    simulated_tof_request, tof_from_proto, tof_images_from_proto, tof_outputs_from_proto,
+    tof_params_from_proto, tof_points_from_proto, tof_request_to_proto, tof_to_proto, TofPoints,
+    TOF_OUTPUTS,
 };

@@ -6,8 +6,8 @@
 //! `reference.intrinsics.fx`, `near`, `airlight`, `sgm.p2`, ...); the submit path adds the outer
 //! prefix (`request.mvs_depth.`) for `Jobs.SubmitJob`.
 
+use super::geometry::{intrinsics_from_proto, intrinsics_to_proto};
 use super::image::{image_from_proto, image_to_proto, ImageLimits};
-use super::tof::{intrinsics_from_proto, intrinsics_to_proto};
 use crate::service::proto::v1 as pb;
 use murk::atmosphere::AtmosphereParams;
 use murk::camera::Intrinsics;

@@ -1,8 +1,8 @@
 //! `PhotometricStereoRequest` → ([`PsCapture`], [`PsParams`]) and [`PsResult`] →
 //! `PhotometricStereoResult`.
 
+use super::geometry::{intrinsics_from_proto, intrinsics_to_proto};
 use super::image::{image_from_proto, image_to_proto, mono_image_from_proto, ImageLimits};
-use super::tof::{intrinsics_from_proto, intrinsics_to_proto};
 use crate::service::proto::v1 as pb;
 use murk::error::{MurkError, Result};
 use murk::image::ImageF32;

@@ -4,10 +4,10 @@
 //! field names relative to `RectifiedStereoRequest` (`left`, `right`, `intrinsics.fx`,
 //! `baseline`, `max_disparity_px`, `sgm.p2`, ...).
 
+use super::geometry::{intrinsics_from_proto, intrinsics_to_proto, points_to_proto};
 use super::image::{image_from_proto, image_to_proto, ImageLimits};
 use super::mvs::{canonical_sgm, canonicalize_cost, cost_of, sgm_of};
 use super::outputs::{Delivery, OutputField, OutputSelection, Quantity};
-use super::tof::{intrinsics_from_proto, intrinsics_to_proto};
 use crate::service::proto::v1 as pb;
 use murk::atmosphere::AtmosphereParams;
 use murk::error::{MurkError, Result};
@@ -365,59 +365,9 @@ pub fn stereo_to_proto(
     })
 }
 
-/// Points for the wire: interleaved little-endian f32 positions and 8-bit colours.
-pub fn points_to_proto(points: &[ColoredPoint]) -> pb::PointCloud {
-    let mut xyz = Vec::with_capacity(points.len() * 12);
-    let mut rgb = Vec::with_capacity(points.len() * 3);
-    for p in points {
-        for v in p.xyz {
-            xyz.extend_from_slice(&(v as f32).to_le_bytes());
-        }
-        rgb.extend_from_slice(&p.rgb);
-    }
-    pb::PointCloud {
-        count: u32::try_from(points.len()).unwrap_or(u32::MAX),
-        xyz_f32_le: xyz,
-        rgb8: rgb,
-    }
-}
-
-/// The wire's points, checked: `count` positions and colours.
-pub fn points_from_proto(cloud: &pb::PointCloud) -> Result<Vec<ColoredPoint>> {
-    check_points(cloud)?;
-    Ok(cloud
-        .xyz_f32_le
-        .chunks_exact(12)
-        .zip(cloud.rgb8.chunks_exact(3))
-        .map(|(p, c)| ColoredPoint {
-            xyz: [0, 4, 8]
-                .map(|o| f64::from(f32::from_le_bytes([p[o], p[o + 1], p[o + 2], p[o + 3]]))),
-            rgb: [c[0], c[1], c[2]],
-        })
-        .collect())
-}
-
-/// The number of the wire's points, when it holds `count` positions and colours; errors name
-/// `points`.
-pub fn check_points(cloud: &pb::PointCloud) -> Result<usize> {
-    let n = cloud.count as usize;
-    if cloud.xyz_f32_le.len() != n * 12 || cloud.rgb8.len() != n * 3 {
-        return Err(MurkError::invalid(
-            "points",
-            format!(
-                "{n} points need {} position bytes and {} colour bytes, got {} and {}",
-                n * 12,
-                n * 3,
-                cloud.xyz_f32_le.len(),
-                cloud.rgb8.len()
-            ),
-        ));
-    }
-    Ok(n)
-}
-
 #[cfg(test)]
 mod tests {
+    use super::super::geometry::points_from_proto;
     use super::*;
     use murk::camera::Intrinsics;
     use murk::mvs::CostKind;

@@ -13,7 +13,7 @@ use murk::tof::{
     ScatterChannels, TofInput, TofOutput, TofParams, DEFAULT_MAX_POINT_RANGE_STD_M,
 };
 
-use super::stereo::points_to_proto;
+use super::geometry::{intrinsics_from_proto, intrinsics_to_proto, points_to_proto};
 
 /// A request's point cloud: through which camera, keeping which pixels.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -275,28 +275,6 @@ fn irls_from_proto(o: Option<&pb::IrlsOptions>, p: &mut IrlsChannelParams) {
         if let Some(v) = src {
             *dst = v;
         }
-    }
-}
-
-/// `murk.v1.CameraIntrinsics` → [`Intrinsics`] (unvalidated; callers validate).
-pub fn intrinsics_from_proto(k: &pb::CameraIntrinsics) -> Intrinsics {
-    Intrinsics {
-        fx: k.fx,
-        fy: k.fy,
-        cx: k.cx,
-        cy: k.cy,
-        skew: k.skew,
-    }
-}
-
-/// [`Intrinsics`] → `murk.v1.CameraIntrinsics`.
-pub fn intrinsics_to_proto(k: &Intrinsics) -> pb::CameraIntrinsics {
-    pb::CameraIntrinsics {
-        fx: k.fx,
-        fy: k.fy,
-        cx: k.cx,
-        cy: k.cy,
-        skew: k.skew,
     }
 }
 
