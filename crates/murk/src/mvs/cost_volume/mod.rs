@@ -84,6 +84,29 @@ pub struct View<'a> {
     pub pose: Pose,
 }
 
+/// The views with their images replaced by `images` (the reference's, then the sources' in
+/// order), or as they are when `None`: intrinsics and poses stay.
+pub(crate) fn views_over<'a>(
+    reference: &View<'a>,
+    sources: &[View<'a>],
+    images: &'a Option<(ImageF32, Vec<ImageF32>)>,
+) -> (View<'a>, Vec<View<'a>>) {
+    match images {
+        Some((r, s)) => (
+            View {
+                image: r,
+                ..*reference
+            },
+            sources
+                .iter()
+                .zip(s)
+                .map(|(v, image)| View { image, ..*v })
+                .collect(),
+        ),
+        None => (*reference, sources.to_vec()),
+    }
+}
+
 /// Which photometric cost to build.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum CostKind {

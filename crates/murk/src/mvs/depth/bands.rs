@@ -11,7 +11,7 @@ use crate::image::ImageF32;
 use crate::monitor::Monitor;
 use crate::mvs::cost_volume::census::{self, CensusImage, CensusRows, CensusScratch, CensusSource};
 use crate::mvs::cost_volume::{
-    penalty_for, validate_inputs, CostKind, CostRows, CostScratch, SweepImages, View,
+    penalty_for, validate_inputs, views_over, CostKind, CostRows, CostScratch, SweepImages, View,
 };
 use crate::mvs::plane_sweep::PlaneSet;
 
@@ -615,29 +615,6 @@ pub(super) fn bound_warnings(
         }
     }
     out
-}
-
-/// The views with their images replaced by `images` (the reference's, then the sources' in
-/// order), or as they are when `None`: intrinsics and poses stay.
-pub(super) fn views_over<'a>(
-    reference: &View<'a>,
-    sources: &[View<'a>],
-    images: &'a Option<(ImageF32, Vec<ImageF32>)>,
-) -> (View<'a>, Vec<View<'a>>) {
-    match images {
-        Some((r, s)) => (
-            View {
-                image: r,
-                ..*reference
-            },
-            sources
-                .iter()
-                .zip(s)
-                .map(|(v, image)| View { image, ..*v })
-                .collect(),
-        ),
-        None => (*reference, sources.to_vec()),
-    }
 }
 
 /// Rows added above and below a strip's own rows so that the box window, the contrast measure

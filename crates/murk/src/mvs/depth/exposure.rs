@@ -34,7 +34,7 @@ use crate::mvs::cost_volume::{CostKind, View};
 use crate::mvs::plane_sweep::{PlaneSet, PlaneWarp};
 use crate::mvs::pose::Pose;
 
-use super::vignetting::radius2;
+use super::image_radius::radius2;
 
 /// Most reference pixels the estimate samples (a regular grid).
 pub const MAX_SAMPLES: usize = 2048;
@@ -70,7 +70,7 @@ pub(super) struct Samples {
     /// in each channel, so the searches' loops over them run on vector registers
     /// ([`lowest_scaled`]).
     source: Vec<Vec<f32>>,
-    /// `r²` of each sample in the reference ([`super::vignetting::radius2`]).
+    /// `r²` of each sample in the reference ([`super::image_radius::radius2`]).
     ref_r2: Vec<f32>,
     /// `r²` of each visible (sample, plane)'s position in the source.
     src_r2: Vec<f32>,

@@ -57,6 +57,7 @@ pub mod windows;
 
 mod bands;
 mod depth_params;
+mod image_radius;
 mod shift_claims;
 
 use crate::error::{MurkError, Result};

@@ -20,10 +20,9 @@
 //!   first pair. Otherwise the refined gains are this pair's.
 
 use crate::image::ImageF32;
-use crate::mvs::cost_volume::{CostKind, View};
+use crate::mvs::cost_volume::{views_over, CostKind, View};
 use crate::mvs::plane_sweep::PlaneSet;
 
-use super::bands::views_over;
 use super::{exposure, vignetting, DepthParams};
 
 /// How a result's photometric corrections were found.

@@ -30,6 +30,7 @@
 //! the two lenses' fall-offs is a gain that varies over the image, seen without any
 //! displacement, so it is estimated with the source's gains, before the shared fall-off.
 
+pub use super::image_radius::radius2;
 use rayon::prelude::*;
 
 use crate::image::ImageF32;
@@ -72,15 +73,6 @@ pub const DEAD_BAND: f32 = 0.05;
 /// up to 2 % and true ones as little as 1.5 %, so this separates them only for clean sensors
 /// (σ ≈ 0.01; docs/stereo-mvs.md, "Limits").
 pub const MIN_EXPLAINED: f64 = 0.015;
-
-/// `r²` of pixel `(x, y)` of a `w×h` image: squared distance from the image centre over the
-/// squared half-diagonal (1 at the corner pixels' centres).
-#[inline]
-pub fn radius2(x: f32, y: f32, w: usize, h: usize) -> f32 {
-    let (cx, cy) = ((w as f32 - 1.0) / 2.0, (h as f32 - 1.0) / 2.0);
-    let d2 = (cx * cx + cy * cy).max(f32::MIN_POSITIVE);
-    ((x - cx) * (x - cx) + (y - cy) * (y - cy)) / d2
-}
 
 /// `a`, or exactly 0 within [`DEAD_BAND`] of 0.
 pub fn applied_falloff(a: f32) -> f32 {
@@ -298,14 +290,6 @@ fn scaled_by(image: &ImageF32, factor: impl Fn(f32) -> f32 + Sync) -> ImageF32 {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn radius_is_one_at_the_corners_and_zero_at_the_centre() {
-        assert_eq!(radius2(0.0, 0.0, 5, 3), 1.0);
-        assert_eq!(radius2(4.0, 2.0, 5, 3), 1.0);
-        assert_eq!(radius2(2.0, 1.0, 5, 3), 0.0);
-        assert!((radius2(4.0, 1.0, 5, 3) - 0.8).abs() < 1e-6);
-    }
 
     #[test]
     fn compensation_divides_by_the_falloff() {
