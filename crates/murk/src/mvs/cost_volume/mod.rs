@@ -43,6 +43,7 @@
 
 pub mod census;
 mod kernel;
+mod row;
 pub mod sample;
 mod shift;
 
@@ -60,7 +61,8 @@ use crate::monitor::Monitor;
 use crate::mvs::plane_sweep::{PlaneSet, PlaneWarp};
 use crate::mvs::pose::Pose;
 
-use kernel::{fill_row, fill_row_observation, Haze, ReferenceImages, RowScratch, SourcePlane};
+use kernel::{fill_row, fill_row_observation, ReferenceImages, RowScratch, SourcePlane};
+use row::Haze;
 
 /// `γ` for images of `channels` channels: the cost of a voxel no source sees, and the cap of every
 /// dehazing voxel (the module docs). No voxel of a volume over images in `[0, 1]` exceeds it,

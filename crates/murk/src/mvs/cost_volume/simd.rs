@@ -17,26 +17,26 @@
 //! rounding. The loops run only where the CPU reports AVX2; elsewhere, and for the last
 //! `width mod 8` pixels of a row, the scalar loop runs.
 
-use super::kernel::Haze;
+use super::row::Haze;
 use crate::cpu::{avx2_enabled, compiled_for_avx2};
 use crate::mvs::plane_sweep::RowWarp;
 
 compiled_for_avx2! {
-    /// [`super::kernel::source_coords`] (the same coordinates bit for bit).
+    /// [`super::row::source_coords`] (the same coordinates bit for bit).
     pub(super) fn source_coords(warp: &RowWarp, width: usize, height: usize, us: &mut [f32], vs: &mut [f32])
-        => super::kernel::source_coords;
+        => super::row::source_coords;
 }
 
 compiled_for_avx2! {
-    /// [`super::kernel::inverse_transmission_row`].
+    /// [`super::row::inverse_transmission_row`].
     pub(super) fn inverse_transmission_row(warp: &RowWarp, beta: f32, out: &mut [f32])
-        => super::kernel::inverse_transmission_row;
+        => super::row::inverse_transmission_row;
 }
 
 compiled_for_avx2! {
-    /// [`super::kernel::mean_or_penalty`].
+    /// [`super::row::mean_or_penalty`].
     pub(super) fn mean_or_penalty(out: &mut [f32], sum: &[f32], observed: &[u32], penalty: f32)
-        => super::kernel::mean_or_penalty;
+        => super::row::mean_or_penalty;
 }
 
 compiled_for_avx2! {
