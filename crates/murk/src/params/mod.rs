@@ -15,3 +15,4 @@ pub mod residual;
 pub mod sampling_share;
 pub mod search;
 pub mod sparse;
+mod tracks;

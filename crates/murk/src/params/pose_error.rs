@@ -36,103 +36,14 @@ use nalgebra::{DMatrix, DVector, Matrix3, Rotation3, SMatrix, SymmetricEigen, Ve
 use rayon::prelude::*;
 
 use crate::camera::Intrinsics;
-use crate::error::{MurkError, Result};
+use crate::error::Result;
 use crate::monitor::Monitor;
-use crate::mvs::colmap::ColmapModel;
 use crate::mvs::pose::Pose;
 use crate::mvs::View;
 use crate::params::joint_fit::JointFit;
 use crate::params::point_ratio::blurred_ratio_samples;
-use crate::params::sparse::{selected_tracks, PointSelection, SparseDepth};
-
-/// One 2-D observation of an SfM point in one of the request's views.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Observation {
-    /// Index of the point in [`SfmTracks::points`].
-    pub point: u32,
-    /// The view: 0 = the reference, `1 + i` = source `i`.
-    pub view: u32,
-    /// Where SfM found the point in the view, pixels (murk's convention: the top-left pixel's
-    /// centre at (0, 0)).
-    pub pixel: [f64; 2],
-}
-
-/// The SfM points behind a sparse map, with where each view saw them: what the poses'
-/// uncertainty is computed from.
-#[derive(Clone, Debug, Default, PartialEq)]
-pub struct SfmTracks {
-    /// World points, scene units: the list the sparse map was made of.
-    pub points: Vec<[f64; 3]>,
-    /// Per point, its [`crate::params::sparse::SparseSample::seen_by`] mask; empty = seen by
-    /// every source.
-    pub seen_by: Vec<u32>,
-    /// The points' observations in the reference and the sources.
-    pub observations: Vec<Observation>,
-}
-
-impl SfmTracks {
-    /// The points that `selection` picks for the image named `reference` of `model`, their
-    /// source masks over `sources` (image names) and their observations in the reference and
-    /// the sources. COLMAP's pixel coordinates (top-left pixel centre at (0.5, 0.5)) are
-    /// shifted into murk's. Fails naming `reference` or `sources[i]` for an unknown image.
-    pub fn from_colmap(
-        model: &ColmapModel,
-        reference: &str,
-        selection: PointSelection,
-        sources: &[&str],
-    ) -> Result<Self> {
-        selected_tracks(model, reference, selection, sources)
-    }
-
-    /// Checks the indices and coordinates against `views` views (the reference and its
-    /// sources). Errors name `points[i]`, `seen_by` or `observations[i].…`.
-    pub fn validate(&self, views: usize) -> Result<()> {
-        if let Some(i) = self
-            .points
-            .iter()
-            .position(|p| !p.iter().all(|c| c.is_finite()))
-        {
-            return Err(MurkError::invalid(
-                format!("points[{i}]"),
-                "coordinates must be finite",
-            ));
-        }
-        if !self.seen_by.is_empty() && self.seen_by.len() != self.points.len() {
-            return Err(MurkError::invalid(
-                "seen_by",
-                format!(
-                    "one source mask per point or none: {} masks for {} points",
-                    self.seen_by.len(),
-                    self.points.len()
-                ),
-            ));
-        }
-        for (i, o) in self.observations.iter().enumerate() {
-            if o.point as usize >= self.points.len() {
-                return Err(MurkError::invalid(
-                    format!("observations[{i}].point"),
-                    format!("{} but there are {} points", o.point, self.points.len()),
-                ));
-            }
-            if o.view as usize >= views {
-                return Err(MurkError::invalid(
-                    format!("observations[{i}].view"),
-                    format!(
-                        "{} but there are {views} views (0 = the reference, 1 + i = source i)",
-                        o.view
-                    ),
-                ));
-            }
-            if !o.pixel.iter().all(|c| c.is_finite()) {
-                return Err(MurkError::invalid(
-                    format!("observations[{i}].pixel"),
-                    format!("coordinates must be finite, got {:?}", o.pixel),
-                ));
-            }
-        }
-        Ok(())
-    }
-}
+use crate::params::sparse::SparseDepth;
+pub use crate::params::tracks::{Observation, SfmTracks};
 
 /// Pose parameters per source: rotation `ω` (3) then translation `τ` (3), camera frame.
 const POSE_DOF: usize = 6;
@@ -582,6 +493,7 @@ pub fn pose_error_of_fit(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::error::MurkError;
     use crate::params::joint_fit::{fit_joint_samples, JointPriors, FALLOFF_PRIOR_SIGMA};
     use crate::simulate::mvs::{simulate_mvs, MvsScene, MvsSimConfig};
     use rand::{Rng, SeedableRng};

@@ -6,7 +6,7 @@ use crate::error::{MurkError, Result};
 use crate::image::ImageF32;
 use crate::mvs::colmap::{ColmapModel, Point3D};
 use crate::mvs::pose::Pose;
-use crate::params::pose_error::{Observation, SfmTracks};
+use crate::params::tracks::{Observation, SfmTracks};
 
 /// [`SparseSample::seen_by`] of a point whose visibility in the sources is unknown: it may be
 /// used in every source.
@@ -319,6 +319,21 @@ impl SparseDepth {
             img.set(s.x as usize, s.y as usize, 0, s.z);
         }
         img
+    }
+}
+
+impl SfmTracks {
+    /// The points that `selection` picks for the image named `reference` of `model`, their
+    /// source masks over `sources` (image names) and their observations in the reference and
+    /// the sources. COLMAP's pixel coordinates (top-left pixel centre at (0.5, 0.5)) are
+    /// shifted into murk's. Fails naming `reference` or `sources[i]` for an unknown image.
+    pub fn from_colmap(
+        model: &ColmapModel,
+        reference: &str,
+        selection: PointSelection,
+        sources: &[&str],
+    ) -> Result<Self> {
+        selected_tracks(model, reference, selection, sources)
     }
 }
 
