@@ -5,10 +5,13 @@
 //! Entry point: [`estimate_tof_depth`]. Building blocks, one idea per module: Tukey's biweight
 //! and MAD scale ([`tukey`]), the local quadratic prior ([`quadratic_prior`]), the flip rows of
 //! the symmetry prior ([`symmetry`]), the weighted least-squares x-step ([`wls`]), Algorithm 2
-//! ([`irls`]) and its check for thin, dim object parts ([`coherent`]), the mask's uncertain
-//! pixels beside the objects ([`ambiguous`]), the bilateral pre-filter
-//! ([`bilateral`]), the pipeline ([`pipeline`]), a stream's frames from the previous one's answer
-//! ([`TofTracker`]) and on a coarser grid ([`estimate_tof_depth_on_grid`]).
+//! ([`irls`], its coarse level and held-out check in `coarse_level`, their settings and
+//! convergence test in `irls_settings`) and its check for thin, dim object parts
+//! ([`coherent`]), the mask's uncertain pixels beside the objects ([`ambiguous`]), the
+//! bilateral pre-filter ([`bilateral`]), the pipeline ([`pipeline`]), a stream's frames from
+//! the previous one's answer ([`TofTracker`]), on a coarser grid
+//! ([`estimate_tof_depth_on_grid`]), and from scratch with the coarse level on that grid
+//! (`grid_coarse`).
 
 pub mod ambiguous;
 pub mod bilateral;
