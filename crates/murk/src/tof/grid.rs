@@ -23,7 +23,7 @@ use super::irls::{weights_against, IrlsStart, NoiseScale};
 use super::noise_model::NoiseModel;
 use super::params::{ScatterChannels, TofInput, TofOutput, TofParams};
 use super::pipeline::{
-    compose, prefiltered, separate, wrap_phase, Direct, RawPhasor, ScatterEstimate,
+    compose, prefiltered_pair, separate, wrap_phase, Direct, RawPhasor, ScatterEstimate,
 };
 use super::wls::XStepSolver;
 use crate::error::{MurkError, Result};
@@ -95,20 +95,10 @@ impl Prepared {
     /// Prepared from the frame's raw phasor.
     pub(super) fn of(input: &TofInput, raw: &RawPhasor, params: &TofParams) -> Self {
         let (w, h) = input.amplitude.dims();
-        let to_f64 = |v: Vec<f32>| -> Vec<f64> { v.into_par_iter().map(f64::from).collect() };
-        let (noise, (re, im)) = rayon::join(
+        let (noise, observed) = rayon::join(
             || NoiseModel::fit(&raw.re, &raw.im, input.amplitude.data(), w),
-            || {
-                rayon::join(
-                    || to_f64(prefiltered(&raw.re, w, h, params)),
-                    || to_f64(prefiltered(&raw.im, w, h, params)),
-                )
-            },
+            || prefiltered_pair(&raw.re, &raw.im, (w, h), params),
         );
-        Self::from_parts(noise, [re, im])
-    }
-
-    fn from_parts(noise: Option<NoiseModel>, observed: [Vec<f64>; 2]) -> Self {
         let noise_scale =
             noise.map(|m| NoiseScale::of_observation(m, &[&observed[0], &observed[1]]));
         Self {

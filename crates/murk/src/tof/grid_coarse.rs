@@ -13,8 +13,6 @@
 //! then runs at full size from the coarse level's scatter and block weights, as it does from
 //! scratch, and the frame leaves its answer on the grid for the stream's next frame.
 
-use rayon::prelude::*;
-
 use super::coarse_level::{coarse_blocks, coarse_level, CoarseSolve};
 use super::grid::{block_means, coarse_input, grid_params, upsampled, GridFrame, Prepared};
 #[cfg(doc)]
@@ -25,7 +23,7 @@ use super::irls::{
 };
 use super::params::{ScatterChannels, TofInput, TofOutput, TofParams};
 use super::pipeline::{
-    finish, irls_config, prefiltered, scatter_system, separate_observed, PREFILTER_END,
+    finish, irls_config, prefiltered_pair, scatter_system, separate_observed, PREFILTER_END,
 };
 use super::quadratic_prior::{PatchGrid, QuadraticPrior};
 use super::wls::{XStepSolver, XStepState, XStepSystem};
@@ -66,15 +64,9 @@ pub(super) fn cold_frame_on_grid(
     let (coarse, coarse_raw) = coarse_input(input, means, factor)?;
     let on_grid = grid_params(params, factor);
     on_grid.validate_for(&coarse)?;
-    let to_f64 = |v: Vec<f32>| -> Vec<f64> { v.into_par_iter().map(f64::from).collect() };
     let (prepared, grid_observed) = rayon::join(
         || Prepared::of(input, &raw, params),
-        || {
-            rayon::join(
-                || to_f64(prefiltered(&coarse_raw.re, cw, ch, &on_grid)),
-                || to_f64(prefiltered(&coarse_raw.im, cw, ch, &on_grid)),
-            )
-        },
+        || prefiltered_pair(&coarse_raw.re, &coarse_raw.im, (cw, ch), &on_grid),
     );
     drop(coarse_raw);
     let Prepared {
@@ -90,7 +82,7 @@ pub(super) fn cold_frame_on_grid(
         &sys,
         solver,
         patches,
-        [grid_observed.0, grid_observed.1],
+        grid_observed,
         frame_observed,
         noise_scale,
         (w, h, factor),

@@ -107,16 +107,27 @@ impl RawPhasor {
     }
 }
 
-/// `img` (`w × h`) through the pre-filter of `params`, or copied without one.
-pub(super) fn prefiltered(img: &[f32], w: usize, h: usize, params: &TofParams) -> Vec<f32> {
-    match &params.bilateral {
-        Some(b) => {
-            let mut out = vec![0.0; w * h];
-            bilateral_filter(img, w, h, b, &mut out);
-            out
-        }
-        None => img.to_vec(),
-    }
+/// The two images of an observation (`w × h` each) through the pre-filter of `params`, or
+/// copied without one, in `f64` as the IRLS takes them; the two side by side.
+pub(super) fn prefiltered_pair(
+    first: &[f32],
+    second: &[f32],
+    (w, h): (usize, usize),
+    params: &TofParams,
+) -> [Vec<f64>; 2] {
+    let one = |img: &[f32]| -> Vec<f64> {
+        let filtered = match &params.bilateral {
+            Some(b) => {
+                let mut out = vec![0.0; w * h];
+                bilateral_filter(img, w, h, b, &mut out);
+                out
+            }
+            None => img.to_vec(),
+        };
+        filtered.into_par_iter().map(f64::from).collect()
+    };
+    let (a, b) = rayon::join(|| one(first), || one(second));
+    [a, b]
 }
 
 /// Algorithm 2 on a validated frame whose raw phasor is `raw`: the scatter, the weights and the
@@ -140,13 +151,9 @@ pub(super) fn separate(
         ScatterChannels::AmplitudePhase => (input.amplitude.data(), input.phase.data()),
         ScatterChannels::Phasor => (raw_re, raw_im),
     };
-    let to_f64 = |img: Vec<f32>| -> Vec<f64> { img.into_par_iter().map(f64::from).collect() };
-    let (o1, o2) = rayon::join(
-        || to_f64(prefiltered(first, w, h, params)),
-        || to_f64(prefiltered(second, w, h, params)),
-    );
+    let observed = prefiltered_pair(first, second, (w, h), params);
     monitor.progress("tof.prefilter", PREFILTER_END);
-    separate_observed(input, params, solver, start, [o1, o2], noise, monitor)
+    separate_observed(input, params, solver, start, observed, noise, monitor)
 }
 
 /// The settings of one IRLS run of `params` on an image of `channel`.
