@@ -236,24 +236,20 @@ impl<'a> GridSolves<'a> {
         Ok(its)
     }
 
-    /// Squared residuals of the frame's pixels against the grid's scatter `x` interpolated to
+    /// Squared residuals of the frame's pixels against `up`, a grid scatter interpolated to
     /// them, at the noise levels as they stand.
-    fn frame_residuals2(&self, x: &[Vec<f64>], out: &mut [f64]) -> Result<()> {
-        let up = self.upsampled(x)?;
+    fn frame_residuals2(&self, up: &[Vec<f64>], out: &mut [f64]) {
         let g = self.noise.as_ref().map(NoiseScale::levels);
-        squared_residuals(&up, &self.frame_observed, g, out);
-        Ok(())
+        squared_residuals(up, &self.frame_observed, g, out);
     }
 
-    /// The noise levels following the grid's scatter, interpolated to the frame.
-    fn follow(&mut self) -> Result<()> {
-        if self.noise.is_some() {
-            let up = self.upsampled(&self.scatter.x)?;
-            if let Some(ns) = self.noise.as_mut() {
-                ns.update(&up);
-            }
+    /// The grid's scatter interpolated to the frame, with the noise levels following it.
+    fn follow(&mut self) -> Result<Vec<Vec<f64>>> {
+        let up = self.upsampled(&self.scatter.x)?;
+        if let Some(ns) = self.noise.as_mut() {
+            ns.update(&up);
         }
-        Ok(())
+        Ok(up)
     }
 }
 
@@ -263,14 +259,15 @@ impl CoarseSolve for GridSolves<'_> {
     }
 
     fn residuals2(&mut self, out: &mut [f64]) -> Result<()> {
-        self.follow()?;
-        self.frame_residuals2(&self.scatter.x, out)
+        let up = self.follow()?;
+        self.frame_residuals2(&up, out);
+        Ok(())
     }
 
     fn held_out_residuals2(&mut self, held: &[f64], out: &mut [f64]) -> Result<usize> {
         let mut other = self.scatter.clone();
         let its = self.steps(true, held, HELD_OUT_TOL_SCALE, Some(&mut other))?;
-        self.frame_residuals2(&other.x, out)?;
+        self.frame_residuals2(&self.upsampled(&other.x)?, out);
         Ok(its)
     }
 
