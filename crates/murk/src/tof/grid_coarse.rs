@@ -282,23 +282,8 @@ impl CoarseSolve for GridSolves<'_> {
 mod tests {
     use super::*;
     use crate::simulate::tof::FogPreset;
-    use crate::simulate::{simulate_tof_sequence_frame, TofMotion, TofSimConfig};
-    use crate::tof::{estimate_tof_depth_from, MASK_OBJECT};
-
-    fn sim_input(seed: u64, preset: FogPreset) -> TofInput {
-        let cfg = TofSimConfig {
-            seed,
-            preset,
-            ..TofSimConfig::with_size(128, 106)
-        };
-        let f =
-            simulate_tof_sequence_frame(&cfg, &TofMotion::default(), 0, &Monitor::noop()).unwrap();
-        TofInput {
-            amplitude: f.amplitude,
-            phase: f.phase,
-            intrinsics: Some(f.intrinsics),
-        }
-    }
+    use crate::tof::estimate_tof_depth_from;
+    use crate::tof::grid::tests::{assert_agrees, sim_input};
 
     /// In medium and thick fog, a cold frame with its coarse level on the grid gives the frame
     /// from scratch's mask and ranges, and leaves a start on the grid.
@@ -306,33 +291,14 @@ mod tests {
     fn a_cold_frame_on_the_grid_matches_the_frame_from_scratch() {
         let params = TofParams::default();
         for (seed, preset) in [(3, FogPreset::Medium), (1, FogPreset::Thick)] {
-            let input = sim_input(seed, preset);
+            let input = sim_input(seed, preset, 0);
             let (scratch, _) =
                 estimate_tof_depth_from(&input, &params, None, &Monitor::noop()).unwrap();
             let frame = GridFrame::of(&input, 2).unwrap();
             let (grid, next) =
                 cold_frame_on_grid(&input, frame, &params, &Monitor::noop()).unwrap();
             assert_eq!(next.unwrap().weights.len(), 64 * 53);
-            let (mut differ, mut objects, mut range_diff) = (0, 0, Vec::new());
-            for i in 0..128 * 106 {
-                let (a, b) = (scratch.mask.data()[i], grid.mask.data()[i]);
-                differ += usize::from((a == MASK_OBJECT) != (b == MASK_OBJECT));
-                if a == MASK_OBJECT && b == MASK_OBJECT {
-                    objects += 1;
-                    range_diff.push((scratch.range_m.data()[i] - grid.range_m.data()[i]).abs());
-                }
-            }
-            assert!(objects > 500, "{preset:?}: {objects} object pixels");
-            assert!(
-                differ * 100 <= objects,
-                "{preset:?}: {differ} of {objects} object pixels differ"
-            );
-            range_diff.sort_by(f32::total_cmp);
-            let median = range_diff[range_diff.len() / 2];
-            assert!(
-                median < 5e-3,
-                "{preset:?}: median range difference {median} m"
-            );
+            assert_agrees(&scratch, &grid, &format!("{preset:?}"));
         }
     }
 
@@ -341,7 +307,7 @@ mod tests {
     fn a_cancel_during_the_coarse_level_stops_the_frame() {
         use std::sync::atomic::{AtomicBool, Ordering};
         use std::sync::Arc;
-        let input = sim_input(3, FogPreset::Medium);
+        let input = sim_input(3, FogPreset::Medium, 0);
         let flag = Arc::new(AtomicBool::new(false));
         let (f2, seen) = (flag.clone(), Arc::new(AtomicBool::new(false)));
         let s2 = seen.clone();
@@ -362,7 +328,7 @@ mod tests {
 
     #[test]
     fn channels_and_a_missing_coarse_level_are_refused_naming_the_field() {
-        let input = sim_input(1, FogPreset::Medium);
+        let input = sim_input(1, FogPreset::Medium, 0);
         let run = |p: TofParams| {
             let frame = GridFrame::of(&input, 2).unwrap();
             cold_frame_on_grid(&input, frame, &p, &Monitor::noop())
